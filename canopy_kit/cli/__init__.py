@@ -1,0 +1,65 @@
+"""The ``canopy-kit`` command line: a thin typer layer over the library.
+
+Commands are registered through the ``canopy_kit.commands`` entry-point group (built-ins
+included), so a third-party package can add one. A command entry point names either a
+function (a command) or a ``typer.Typer`` (a group of commands). Library errors become a
+one-line message and an exit code: 2 for bad input, 3 for a processing failure.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from canopy_kit.errors import CanopyKitError
+
+app = typer.Typer(
+    name="canopy-kit",
+    help="Per-tree canopy volumes from mobile LiDAR orchard drives, checked against drone photos.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _register_commands() -> None:
+    from canopy_kit import plugins
+
+    for name in plugins.names("commands"):
+        try:
+            target = plugins.load("commands", name)
+        except CanopyKitError as exc:
+            # A broken third-party command must not take the whole CLI down.
+            print(f"warning: {exc}", file=sys.stderr)
+            continue
+        if isinstance(target, typer.Typer):
+            app.add_typer(target, name=name)
+        else:
+            app.command(name=name)(target)
+
+
+_register_commands()
+
+
+def main() -> None:
+    """Console-script entry point: run the app, turning library errors into exit codes."""
+    try:
+        app(standalone_mode=False)
+    except CanopyKitError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
+    except Exception as exc:  # click usage errors and the like
+        import click
+
+        if isinstance(exc, click.exceptions.Exit):
+            sys.exit(exc.exit_code)
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(2)
+        if isinstance(exc, click.exceptions.Abort):
+            sys.exit(1)
+        raise

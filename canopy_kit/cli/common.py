@@ -1,0 +1,49 @@
+"""Helpers shared by CLI commands: console, progress bars, JSON output."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from rich.console import Console
+
+console = Console(stderr=False)
+err_console = Console(stderr=True)
+
+ProgressCallback = Callable[[str, float, float], None]
+
+
+@contextmanager
+def progress_bar(transient: bool = False) -> Iterator[ProgressCallback]:
+    """A rich progress display; yields a ``callback(task, done, total)`` for the library."""
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    tasks: dict[str, Any] = {}
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=err_console,
+                  transient=transient) as progress:
+
+        def callback(task: str, done: float, total: float) -> None:
+            if task not in tasks:
+                tasks[task] = progress.add_task(task, total=total or None)
+            progress.update(tasks[task], completed=done, total=total or None)
+
+        yield callback
+
+
+def print_json(data: Any) -> None:
+    """Print data as indented JSON on stdout (numpy scalars converted)."""
+    print(json.dumps(data, indent=2, default=_json_default))
+
+
+def _json_default(value: Any) -> Any:
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)

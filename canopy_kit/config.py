@@ -1,0 +1,240 @@
+"""Typed configuration: one dataclass per concern, loaded from TOML presets.
+
+Unknown keys and wrong types are errors that name the key; the config actually used is
+written next to every result (:func:`write_config`) so each number can be reproduced.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal, Mapping, TypeVar, get_args, get_origin, get_type_hints
+
+from canopy_kit.errors import ConfigError, InputError
+
+T = TypeVar("T")
+
+
+@dataclass
+class MappingConfig:
+    """LiDAR(-inertial) odometry and map building (``canopy_kit.mapping``)."""
+
+    map_voxel_size: float = 0.05
+    min_range: float = 1.0
+    max_range: float = 60.0
+    deskew: bool = True
+    use_imu: bool = True
+    use_gnss: bool = True
+    odometry_ground_band: float = 0.3
+    kiss_voxel_size: float = 0.5
+    pointcloud_topic: str = ""
+    imu_topic: str = ""
+    gnss_topic: str = ""
+
+
+@dataclass
+class PreprocessConfig:
+    """Ground, trunk and low-vegetation removal and the voxel grid (``canopy_kit.segment``)."""
+
+    ground_cell_size: float = 4.0
+    ground_ransac_threshold: float = 0.15
+    min_canopy_height: float = 0.8
+    max_canopy_height: float = 12.0
+    voxel_size: float = 0.1
+    voxelize: Literal["before_clustering", "after_clustering"] = "before_clustering"
+
+
+@dataclass
+class SegmentConfig:
+    """Which segmenter plugin to use and its keyword arguments."""
+
+    method: str = "dbscan"
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class RowsConfig:
+    """Grouping tree centroids into rows and labelling them (L0.., R0..)."""
+
+    max_distance_to_row: float = 1.5
+    min_trees_per_row: int = 2
+
+
+@dataclass
+class VolumeConfig:
+    """Volume estimator plugins to run per tree and their keyword arguments."""
+
+    methods: list[str] = field(default_factory=lambda: ["convex_hull", "alpha_shape"])
+    params: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+@dataclass
+class GroundTruthConfig:
+    """Drone photogrammetry ground truth (``ground_truth``)."""
+
+    max_image_size: int = 1600
+    match_distance_m: float = 1.5
+
+
+@dataclass
+class PipelineConfig:
+    """Everything one run needs; a preset fills it, the CLI overrides parts."""
+
+    name: str = "custom"
+    orchard: str = "generic"
+    seed: int = 0
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    segment: SegmentConfig = field(default_factory=SegmentConfig)
+    rows: RowsConfig = field(default_factory=RowsConfig)
+    volume: VolumeConfig = field(default_factory=VolumeConfig)
+    ground_truth: GroundTruthConfig = field(default_factory=GroundTruthConfig)
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _convert(value: Any, tp: Any, where: str) -> Any:
+    """Check ``value`` against the annotation ``tp`` and convert it (ints to floats etc.)."""
+    origin = get_origin(tp)
+    if tp is Any:
+        return value
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a table, got {type(value).__name__}")
+        return from_dict(tp, value, where)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise ConfigError(f"{where}: {value!r} is not one of {list(get_args(tp))}")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        errors = []
+        for arg in get_args(tp):
+            if arg is type(None) and value is None:
+                return None
+            try:
+                return _convert(value, arg, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(f"{where}: {value!r} does not match {_type_name(tp)}")
+    if origin is list:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where}: expected a list, got {type(value).__name__}")
+        (item,) = get_args(tp) or (Any,)
+        return [_convert(v, item, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a table, got {type(value).__name__}")
+        _, val_tp = get_args(tp) or (str, Any)
+        return {str(k): _convert(v, val_tp, f"{where}.{k}") for k, v in value.items()}
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    if isinstance(tp, type) and not isinstance(value, tp):
+        raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
+    return value
+
+
+def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T:
+    """Build dataclass ``cls`` from a mapping; unknown keys and wrong types are errors."""
+    hints = get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown key {unknown[0]!r} (known keys: {', '.join(sorted(known))})"
+        )
+    kwargs = {k: _convert(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    return cls(**kwargs)
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    """Plain-dict form of a config dataclass, ready for TOML or JSON."""
+    return dataclasses.asdict(obj)
+
+
+def merge(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    """Deep-merge ``override`` into ``base`` (tables merge, other values replace)."""
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """Read a TOML file, naming the file in any error."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(f"{path}: file does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+
+
+def preset_names() -> list[str]:
+    """Names of the presets shipped in ``canopy_kit/presets``."""
+    files = resources.files("canopy_kit") / "presets"
+    return sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".toml"))
+
+
+def load_preset(name_or_path: str | Path, overrides: Mapping[str, Any] | None = None) -> PipelineConfig:
+    """Load a shipped preset by name (``pistachio``, ``almond``) or a TOML file by path."""
+    text_name = str(name_or_path)
+    if text_name in preset_names():
+        data = tomllib.loads(
+            (resources.files("canopy_kit") / "presets" / f"{text_name}.toml").read_text()
+        )
+        where = f"preset {text_name!r}"
+    else:
+        path = Path(name_or_path)
+        if not path.exists():
+            raise ConfigError(
+                f"preset {text_name!r} is neither a shipped preset "
+                f"({', '.join(preset_names())}) nor an existing TOML file"
+            )
+        data = read_toml(path)
+        where = str(path)
+    if overrides:
+        data = merge(data, overrides)
+    return from_dict(PipelineConfig, data, where)
+
+
+def write_config(config: Any, path: str | Path) -> Path:
+    """Write a config dataclass as TOML, atomically."""
+    import tomlkit
+
+    from canopy_kit.io.atomic import atomic_write_text
+
+    return atomic_write_text(path, tomlkit.dumps(_drop_none(to_dict(config))))
+
+
+def _drop_none(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _drop_none(v) for k, v in value.items() if v is not None}
+    if isinstance(value, list):
+        return [_drop_none(v) for v in value]
+    return value

@@ -1,0 +1,1 @@
+"""Readers and writers: ROS bags, LAS/LAZ, PLY, PCD, and atomic output files."""

@@ -1,0 +1,295 @@
+"""ROS1 (.bag) and ROS2 (sqlite3 / mcap) bags through rosbags' ``AnyReader``.
+
+Scans stream out one at a time (:meth:`BagSession.scans`); IMU, GNSS and odometry are
+small and come out as whole arrays. Topics are found by message type when not named.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.errors import InputError
+from canopy_kit.io import pointcloud2 as pc2
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+IMU = "sensor_msgs/msg/Imu"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
+ODOMETRY = "nav_msgs/msg/Odometry"
+KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY)
+
+
+@dataclass
+class TopicInfo:
+    """One topic of a bag."""
+
+    name: str
+    msgtype: str
+    count: int
+
+
+@dataclass
+class Scan:
+    """One LiDAR sweep: coordinates in the sensor frame plus every other field."""
+
+    stamp: float
+    xyz: np.ndarray
+    fields: dict[str, np.ndarray]
+    times: np.ndarray | None
+    frame_id: str
+    index: int
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+
+@dataclass
+class ImuSeries:
+    """IMU samples: time (s), angular velocity (rad/s), linear acceleration (m/s²), orientation xyzw."""
+
+    t: np.ndarray
+    angular_velocity: np.ndarray
+    linear_acceleration: np.ndarray
+    orientation: np.ndarray
+    frame_id: str = ""
+
+
+@dataclass
+class GnssSeries:
+    """GNSS fixes: time (s), latitude, longitude (deg), altitude (m), status and covariance."""
+
+    t: np.ndarray
+    latitude: np.ndarray
+    longitude: np.ndarray
+    altitude: np.ndarray
+    status: np.ndarray
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 9)))
+
+
+@dataclass
+class OdometrySeries:
+    """Poses: time (s), position (N, 3), orientation quaternions xyzw (N, 4)."""
+
+    t: np.ndarray
+    position: np.ndarray
+    orientation: np.ndarray
+    frame_id: str = ""
+    child_frame_id: str = ""
+
+
+def bag_kind(path: Path) -> str | None:
+    """``ros1``, ``ros2`` or None, from the path's shape and magic bytes."""
+    if path.is_dir():
+        if (path / "metadata.yaml").exists() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+            return "ros2"
+        return None
+    if path.suffix == ".bag":
+        return "ros1"
+    if path.suffix in (".db3", ".mcap"):
+        return "ros2"
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(13)
+    except OSError:
+        return None
+    if head.startswith(b"#ROSBAG V2.0"):
+        return "ros1"
+    if head.startswith(b"\x89MCAP"):
+        return "ros2"
+    return None
+
+
+class BagSession:
+    """An open bag. Use as a context manager: ``with open_bag(path) as bag: ...``."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise InputError(f"{self.path}: file or folder does not exist")
+        if self.path.is_file() and self.path.stat().st_size == 0:
+            raise InputError(f"{self.path}: file is empty, not a ROS bag")
+        if bag_kind(self.path) is None:
+            raise InputError(f"{self.path}: not a ROS1 .bag file or a ROS2 bag folder")
+        self._reader: Any = None
+
+    def __enter__(self) -> "BagSession":
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        target = self.path
+        if self.path.is_file() and self.path.suffix in (".db3", ".mcap"):
+            target = self.path.parent
+        try:
+            self._reader = AnyReader([target], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            self._reader.open()
+        except Exception as exc:  # rosbags raises several unrelated types for bad files
+            raise InputError(f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})") from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+    @property
+    def reader(self) -> Any:
+        if self._reader is None:
+            raise RuntimeError("BagSession used outside its 'with' block")
+        return self._reader
+
+    def topics(self) -> list[TopicInfo]:
+        """Topics with message types and message counts."""
+        counts: dict[str, TopicInfo] = {}
+        for c in self.reader.connections:
+            info = counts.setdefault(c.topic, TopicInfo(c.topic, c.msgtype, 0))
+            info.count += c.msgcount
+        return sorted(counts.values(), key=lambda t: t.name)
+
+    @property
+    def start_time(self) -> float:
+        return self.reader.start_time * 1e-9
+
+    @property
+    def end_time(self) -> float:
+        return self.reader.end_time * 1e-9
+
+    def find_topic(self, msgtype: str, topic: str | None = None, required: bool = True) -> str | None:
+        """The topic to read for ``msgtype``: the named one (checked) or the busiest of that type."""
+        topics = self.topics()
+        if topic:
+            match = [t for t in topics if t.name == topic]
+            if not match:
+                raise InputError(
+                    f"{self.path}: no topic {topic!r} (topics: {', '.join(t.name for t in topics)})"
+                )
+            if match[0].msgtype != msgtype:
+                raise InputError(
+                    f"{self.path}: topic {topic!r} carries {match[0].msgtype}, expected {msgtype}"
+                )
+            return topic
+        candidates = [t for t in topics if t.msgtype == msgtype and t.count > 0]
+        if not candidates:
+            if required:
+                raise InputError(f"{self.path}: no {msgtype} topic in the bag")
+            return None
+        # Prefer names that do not look like ground truth or debug output.
+        candidates.sort(key=lambda t: ("ground_truth" in t.name or "truth" in t.name, -t.count))
+        return candidates[0].name
+
+    def _messages(self, topic: str) -> Iterator[tuple[int, Any]]:
+        conns = [c for c in self.reader.connections if c.topic == topic]
+        try:
+            for conn, timestamp, raw in self.reader.messages(connections=conns):
+                try:
+                    msg = self.reader.deserialize(raw, conn.msgtype)
+                except Exception as exc:
+                    raise InputError(
+                        f"{self.path}: topic {topic!r}: cannot decode a {conn.msgtype} message "
+                        f"at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})"
+                    ) from None
+                yield timestamp, msg
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(
+                f"{self.path}: topic {topic!r}: reading failed ({type(exc).__name__}: {exc})"
+            ) from None
+
+    def scans(self, topic: str | None = None) -> Iterator[Scan]:
+        """Stream the PointCloud2 scans of ``topic`` (auto-detected when None)."""
+        name = self.find_topic(POINTCLOUD2, topic)
+        assert name is not None
+        for index, (_, msg) in enumerate(self._messages(name)):
+            where = f"{self.path}: topic {name!r}, scan {index}"
+            points = pc2.decode(msg, where)
+            xyz = pc2.xyz_from(points, where)
+            stamp = pc2.stamp_seconds(msg.header)
+            names = points.dtype.names or ()
+            time_name = pc2.time_field_name(names)
+            times = pc2.point_times(points[time_name], stamp) if time_name else None
+            fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
+            yield Scan(stamp, xyz, fields, times, msg.header.frame_id, index)
+
+    def imu(self, topic: str | None = None) -> ImuSeries | None:
+        """All IMU samples of ``topic`` (auto-detected), or None when the bag has no IMU."""
+        name = self.find_topic(IMU, topic, required=bool(topic))
+        if name is None:
+            return None
+        t, gyro, acc, quat, frame = [], [], [], [], ""
+        for _, msg in self._messages(name):
+            t.append(pc2.stamp_seconds(msg.header))
+            gyro.append((msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z))
+            acc.append((msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z))
+            quat.append((msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w))
+            frame = msg.header.frame_id
+        return ImuSeries(np.array(t), np.array(gyro).reshape(-1, 3), np.array(acc).reshape(-1, 3),
+                         np.array(quat).reshape(-1, 4), frame)
+
+    def gnss(self, topic: str | None = None) -> GnssSeries | None:
+        """All NavSatFix messages of ``topic`` (auto-detected), or None when absent."""
+        name = self.find_topic(NAVSATFIX, topic, required=bool(topic))
+        if name is None:
+            return None
+        rows, cov = [], []
+        for _, msg in self._messages(name):
+            rows.append((pc2.stamp_seconds(msg.header), msg.latitude, msg.longitude, msg.altitude,
+                         msg.status.status))
+            cov.append(np.asarray(msg.position_covariance, dtype=float))
+        a = np.array(rows, dtype=float).reshape(-1, 5)
+        return GnssSeries(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4].astype(int),
+                          np.array(cov).reshape(-1, 9))
+
+    def odometry(self, topic: str | None = None) -> OdometrySeries | None:
+        """All Odometry poses of ``topic`` (auto-detected), or None when absent."""
+        name = topic or self._truth_odometry_topic()
+        if name is None:
+            return None
+        self.find_topic(ODOMETRY, name)
+        t, pos, quat, frame, child = [], [], [], "", ""
+        for _, msg in self._messages(name):
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            t.append(pc2.stamp_seconds(msg.header))
+            pos.append((p.x, p.y, p.z))
+            quat.append((q.x, q.y, q.z, q.w))
+            frame, child = msg.header.frame_id, msg.child_frame_id
+        return OdometrySeries(np.array(t), np.array(pos).reshape(-1, 3), np.array(quat).reshape(-1, 4),
+                              frame, child)
+
+    def _truth_odometry_topic(self) -> str | None:
+        odoms = [t for t in self.topics() if t.msgtype == ODOMETRY and t.count > 0]
+        if not odoms:
+            return None
+        odoms.sort(key=lambda t: ("truth" not in t.name, -t.count))
+        return odoms[0].name
+
+
+def open_bag(path: str | Path) -> BagSession:
+    """Open a ROS1 or ROS2 bag for reading (use with ``with``)."""
+    return BagSession(path)
+
+
+class RosbagReader:
+    """Reader plugin for ROS1/ROS2 bags (``canopy_kit.readers`` entry point ``rosbag``)."""
+
+    name = "rosbag"
+    kind = "bag"
+    suffixes = (".bag", ".db3", ".mcap")
+
+    def sniff(self, path: Path) -> bool:
+        return bag_kind(Path(path)) is not None
+
+    def describe(self, path: Path) -> dict[str, Any]:
+        with open_bag(path) as bag:
+            topics = bag.topics()
+            return {
+                "path": str(path),
+                "format": "ros1 bag" if bag_kind(Path(path)) == "ros1" else "ros2 bag",
+                "start_time": bag.start_time,
+                "end_time": bag.end_time,
+                "duration_s": bag.end_time - bag.start_time,
+                "topics": [{"name": t.name, "type": t.msgtype, "count": t.count} for t in topics],
+            }

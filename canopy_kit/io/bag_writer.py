@@ -1,0 +1,172 @@
+"""Write ROS1 / ROS2 (sqlite3 or mcap) bags message by message, through rosbags' writers.
+
+Used by the simulator and the tests; messages are built from plain numpy values so the
+caller never touches ROS types.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from canopy_kit.errors import InputError
+from canopy_kit.io import pointcloud2 as pc2
+
+BagFormat = Literal["ros1", "ros2-sqlite3", "ros2-mcap"]
+BAG_FORMATS: tuple[str, ...] = ("ros1", "ros2-sqlite3", "ros2-mcap")
+
+
+def bag_path_for(out: Path, fmt: str) -> Path:
+    """Where a bag of ``fmt`` named ``out`` lives (ROS1: a ``.bag`` file; ROS2: a folder)."""
+    if fmt == "ros1":
+        return out if out.suffix == ".bag" else out.with_suffix(".bag")
+    return out
+
+
+class BagWriter:
+    """Streaming bag writer. ``with BagWriter(path, "ros2-mcap") as w: w.write_imu(...)``.
+
+    The bag is written under a temporary name and renamed on a clean close, so a crash
+    never leaves a bag that looks complete.
+    """
+
+    def __init__(self, path: str | Path, fmt: str = "ros2-mcap") -> None:
+        if fmt not in BAG_FORMATS:
+            raise InputError(f"bag format {fmt!r} is not one of {', '.join(BAG_FORMATS)}")
+        self.fmt = fmt
+        self.path = bag_path_for(Path(path), fmt)
+        self.ros1 = fmt == "ros1"
+        self._tmp = self.path.with_name(f".{self.path.name}.partial")
+        self._writer: Any = None
+        self._conns: dict[str, Any] = {}
+        self._seq: dict[str, int] = {}
+        from rosbags.typesys import Stores, get_typestore
+
+        self.typestore = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
+
+    def __enter__(self) -> "BagWriter":
+        if self.path.exists():
+            raise InputError(f"{self.path}: already exists; remove it or choose another name")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self._tmp.exists():
+            shutil.rmtree(self._tmp) if self._tmp.is_dir() else self._tmp.unlink()
+        if self.ros1:
+            from rosbags.rosbag1 import Writer
+
+            self._writer = Writer(self._tmp)
+        else:
+            from rosbags.rosbag2 import StoragePlugin, Writer
+
+            plugin = StoragePlugin.MCAP if self.fmt == "ros2-mcap" else StoragePlugin.SQLITE3
+            self._writer = Writer(self._tmp, version=9, storage_plugin=plugin)
+        self._writer.open()
+        return self
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        self._writer.close()
+        if exc_type is None:
+            if not self.ros1:
+                self._rename_ros2_storage()
+            self._tmp.rename(self.path)
+        else:
+            shutil.rmtree(self._tmp, ignore_errors=True) if self._tmp.is_dir() else self._tmp.unlink(
+                missing_ok=True)
+
+    def _rename_ros2_storage(self) -> None:
+        """Storage files inside a ROS2 bag are named after the folder; keep them consistent."""
+        import yaml
+
+        meta_path = self._tmp / "metadata.yaml"
+        meta = yaml.safe_load(meta_path.read_text())
+        info = meta["rosbag2_bagfile_information"]
+        renamed = []
+        for rel in info["relative_file_paths"]:
+            new = rel.replace(self._tmp.name, self.path.name)
+            (self._tmp / rel).rename(self._tmp / new)
+            renamed.append(new)
+        info["relative_file_paths"] = renamed
+        for f in info.get("files", []):
+            f["path"] = f["path"].replace(self._tmp.name, self.path.name)
+        meta_path.write_text(yaml.safe_dump(meta, sort_keys=False))
+
+    def _write(self, topic: str, msgtype: str, msg: Any, stamp: float) -> None:
+        if topic not in self._conns:
+            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
+        if self.ros1:
+            data = self.typestore.serialize_ros1(msg, msgtype)
+        else:
+            data = self.typestore.serialize_cdr(msg, msgtype)
+        self._writer.write(self._conns[topic], int(round(stamp * 1e9)), data)
+
+    def _header(self, topic: str, stamp: float, frame_id: str) -> Any:
+        seq = self._seq.get(topic, 0)
+        self._seq[topic] = seq + 1
+        return pc2.make_header(self.typestore, stamp, frame_id, self.ros1, seq)
+
+    def _vec3(self, v: Any) -> Any:
+        return self.typestore.types["geometry_msgs/msg/Vector3"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+    def _quat(self, q: Any) -> Any:
+        return self.typestore.types["geometry_msgs/msg/Quaternion"](
+            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+
+    def write_points(self, topic: str, stamp: float, columns: Mapping[str, np.ndarray],
+                     frame_id: str = "lidar", height: int = 1) -> None:
+        """One PointCloud2 from named columns (x, y, z, then any fields)."""
+        seq = self._seq.get(topic, 0)
+        self._seq[topic] = seq + 1
+        msg = pc2.build_message(self.typestore, columns, stamp, frame_id, self.ros1, seq, height)
+        self._write(topic, "sensor_msgs/msg/PointCloud2", msg, stamp)
+
+    def write_imu(self, topic: str, stamp: float, angular_velocity: Any, linear_acceleration: Any,
+                  orientation: Any | None = None, frame_id: str = "imu") -> None:
+        """One sensor_msgs/Imu; orientation xyzw or None (covariance[0] = -1, per REP-145)."""
+        t = self.typestore.types
+        ocov = np.zeros(9)
+        if orientation is None:
+            orientation, ocov[0] = (0.0, 0.0, 0.0, 1.0), -1.0
+        msg = t["sensor_msgs/msg/Imu"](
+            header=self._header(topic, stamp, frame_id),
+            orientation=self._quat(orientation),
+            orientation_covariance=ocov,
+            angular_velocity=self._vec3(angular_velocity),
+            angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=self._vec3(linear_acceleration),
+            linear_acceleration_covariance=np.zeros(9),
+        )
+        self._write(topic, "sensor_msgs/msg/Imu", msg, stamp)
+
+    def write_fix(self, topic: str, stamp: float, lat: float, lon: float, alt: float,
+                  sigma_h: float = 1.0, sigma_v: float = 2.0, status: int = 0,
+                  frame_id: str = "gnss") -> None:
+        """One sensor_msgs/NavSatFix with a diagonal covariance."""
+        t = self.typestore.types
+        status_msg = t["sensor_msgs/msg/NavSatStatus"](status=status, service=1)
+        cov = np.diag([sigma_h**2, sigma_h**2, sigma_v**2]).ravel()
+        msg = t["sensor_msgs/msg/NavSatFix"](
+            header=self._header(topic, stamp, frame_id), status=status_msg,
+            latitude=float(lat), longitude=float(lon), altitude=float(alt),
+            position_covariance=cov, position_covariance_type=2,
+        )
+        self._write(topic, "sensor_msgs/msg/NavSatFix", msg, stamp)
+
+    def write_odometry(self, topic: str, stamp: float, position: Any, orientation: Any,
+                       frame_id: str = "map", child_frame_id: str = "lidar") -> None:
+        """One nav_msgs/Odometry pose (twist left zero)."""
+        t = self.typestore.types
+        pose = t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]),
+                                                  z=float(position[2])),
+            orientation=self._quat(orientation),
+        )
+        twist = t["geometry_msgs/msg/Twist"](linear=self._vec3((0, 0, 0)), angular=self._vec3((0, 0, 0)))
+        msg = t["nav_msgs/msg/Odometry"](
+            header=self._header(topic, stamp, frame_id), child_frame_id=child_frame_id,
+            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+        )
+        self._write(topic, "nav_msgs/msg/Odometry", msg, stamp)

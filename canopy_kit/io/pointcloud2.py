@@ -1,0 +1,168 @@
+"""``sensor_msgs/PointCloud2`` to and from numpy, with per-point time normalisation.
+
+Per-point time conventions differ between drivers; :func:`point_times` turns each into
+absolute seconds:
+
+- Ouster ``t``: uint32 nanoseconds since the scan's header stamp;
+- Velodyne ``time``: float32 seconds relative to the header stamp (may be negative when
+  the stamp marks the end of the sweep);
+- Hesai/Livox ``timestamp``: float64 absolute seconds, or integer absolute nanoseconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.errors import InputError
+
+# sensor_msgs/PointField datatype constants
+POINTFIELD_DTYPES: dict[int, str] = {
+    1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8",
+}
+DTYPE_TO_POINTFIELD: dict[str, int] = {v: k for k, v in POINTFIELD_DTYPES.items()}
+
+TIME_FIELD_NAMES: tuple[str, ...] = ("t", "time", "timestamp", "time_stamp", "offset_time")
+
+
+def structured_dtype(msg: Any, where: str = "PointCloud2") -> np.dtype:
+    """The numpy structured dtype that the message's ``fields`` describe."""
+    endian = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for f in msg.fields:
+        code = POINTFIELD_DTYPES.get(int(f.datatype))
+        if code is None:
+            raise InputError(f"{where}: field {f.name!r} has unknown datatype {f.datatype}")
+        count = max(int(f.count), 1)
+        names.append(f.name)
+        formats.append((endian + code, (count,)) if count > 1 else endian + code)
+        offsets.append(int(f.offset))
+    if len(set(names)) != len(names):
+        raise InputError(f"{where}: duplicate field names {names}")
+    try:
+        return np.dtype(
+            {"names": names, "formats": formats, "offsets": offsets, "itemsize": int(msg.point_step)}
+        )
+    except ValueError as exc:
+        raise InputError(f"{where}: field layout does not fit point_step {msg.point_step}: {exc}") from None
+
+
+def decode(msg: Any, where: str = "PointCloud2") -> np.ndarray:
+    """Decode a PointCloud2 message into a 1-D structured array (rows flattened)."""
+    dtype = structured_dtype(msg, where)
+    width, height = int(msg.width), int(msg.height)
+    step, row_step = int(msg.point_step), int(msg.row_step)
+    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, np.uint8)
+    n = width * height
+    if n == 0:
+        return np.zeros(0, dtype=dtype)
+    if row_step < width * step or len(data) < row_step * (height - 1) + width * step:
+        raise InputError(
+            f"{where}: data has {len(data)} bytes, too few for {height}x{width} points of "
+            f"{step} bytes (row_step {row_step})"
+        )
+    if row_step == width * step:
+        flat = data[: n * step]
+    else:
+        rows = [data[r * row_step : r * row_step + width * step] for r in range(height)]
+        flat = np.concatenate(rows)
+    return np.frombuffer(flat.tobytes(), dtype=dtype, count=n)
+
+
+def xyz_from(points: np.ndarray, where: str = "PointCloud2") -> np.ndarray:
+    """The (N, 3) float64 coordinates of decoded points; error naming missing fields."""
+    names = points.dtype.names or ()
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        raise InputError(f"{where}: no {'/'.join(missing)} field (fields: {', '.join(names)})")
+    return np.column_stack([points[c].astype(np.float64) for c in ("x", "y", "z")])
+
+
+def time_field_name(names: tuple[str, ...] | list[str]) -> str | None:
+    """The per-point time field among ``names``, by the common driver conventions."""
+    for candidate in TIME_FIELD_NAMES:
+        if candidate in names:
+            return candidate
+    return None
+
+
+def point_times(values: np.ndarray, stamp: float) -> np.ndarray:
+    """Per-point times in absolute seconds from a driver's time field (see module doc)."""
+    if values.size == 0:
+        return np.zeros(0)
+    if np.issubdtype(values.dtype, np.integer):
+        v = values.astype(np.float64)
+        if np.nanmax(np.abs(v)) > 1e15:  # absolute nanoseconds
+            return v * 1e-9
+        return stamp + v * 1e-9  # relative nanoseconds (Ouster t, Livox offset_time)
+    v = values.astype(np.float64)
+    finite = v[np.isfinite(v)]
+    peak = np.max(np.abs(finite)) if finite.size else 0.0
+    if peak > 1e15:  # absolute nanoseconds stored as float
+        return v * 1e-9
+    if peak > 1e6:  # absolute seconds (Hesai, Livox)
+        return v
+    return stamp + v  # relative seconds (Velodyne)
+
+
+def build_message(
+    typestore: Any,
+    columns: Mapping[str, np.ndarray],
+    stamp: float,
+    frame_id: str = "lidar",
+    ros1: bool = False,
+    seq: int = 0,
+    height: int = 1,
+) -> Any:
+    """Build a PointCloud2 message object from named 1-D columns (packed, little endian)."""
+    names = list(columns)
+    n = len(next(iter(columns.values()))) if columns else 0
+    formats = [np.asarray(columns[k]).dtype.newbyteorder("<") for k in names]
+    for k, fmt in zip(names, formats):
+        if fmt.str[1:] not in DTYPE_TO_POINTFIELD:
+            raise InputError(f"column {k!r} has dtype {fmt} that PointCloud2 cannot carry")
+        if len(columns[k]) != n:
+            raise InputError(f"column {k!r} has {len(columns[k])} values, expected {n}")
+    packed = np.zeros(n, dtype=np.dtype({"names": names, "formats": formats}))
+    for k in names:
+        packed[k] = columns[k]
+    dt = packed.dtype
+    if n % height:
+        raise InputError(f"{n} points do not fill {height} rows")
+    width = n // height
+    pf = typestore.types["sensor_msgs/msg/PointField"]
+    fields = [
+        pf(name=k, offset=int(dt.fields[k][1]), datatype=DTYPE_TO_POINTFIELD[dt.fields[k][0].str[1:]], count=1)
+        for k in names
+    ]
+    return typestore.types["sensor_msgs/msg/PointCloud2"](
+        header=make_header(typestore, stamp, frame_id, ros1, seq),
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=False,
+        point_step=dt.itemsize,
+        row_step=dt.itemsize * width,
+        data=np.frombuffer(packed.tobytes(), dtype=np.uint8),
+        is_dense=True,
+    )
+
+
+def make_header(typestore: Any, stamp: float, frame_id: str, ros1: bool, seq: int = 0) -> Any:
+    """A std_msgs/Header for ROS1 (with ``seq``) or ROS2."""
+    time_cls = typestore.types["builtin_interfaces/msg/Time"]
+    sec = int(np.floor(stamp))
+    nanosec = int(round((stamp - sec) * 1e9))
+    if nanosec >= 1_000_000_000:
+        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    header_cls = typestore.types["std_msgs/msg/Header"]
+    if ros1:
+        return header_cls(seq=seq, stamp=time_cls(sec=sec, nanosec=nanosec), frame_id=frame_id)
+    return header_cls(stamp=time_cls(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def stamp_seconds(header: Any) -> float:
+    """Header stamp as float seconds."""
+    return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
