@@ -1,0 +1,192 @@
+"""``canopy-kit paper``: reproduce the paper's results.
+
+A command group: ``table1`` checks and summarises the paper's Table I. The re-run of the
+paper's experiments on simulated orchards (``experiments``) is added to this same group
+with another ``@app.command`` once segmentation and volume estimation exist.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+app = typer.Typer(
+    name="paper",
+    help="Reproduce the results of Abedi et al. 2025 (Table I; simulated experiments planned).",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+SHORT = {"hull_m3": "hull m³", "hull_err_pct": "hull err %", "alpha_m3": "alpha m³",
+         "alpha_err_pct": "alpha err %"}
+
+
+def _ranges(trees: list[int]) -> str:
+    """``[1, 2, 3, 6, 8, 9]`` -> ``"1-3, 6, 8-9"``."""
+    parts: list[str] = []
+    for t in sorted(trees):
+        if parts and parts[-1][1] == t - 1:
+            parts[-1][1] = t
+        else:
+            parts.append([t, t])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in parts) or "none"
+
+
+@app.command("table1")
+def table1(
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON document instead of tables."),
+    corrected: bool = typer.Option(
+        True, "--corrected/--as-printed",
+        help="Statistics on the table with columns put back where the numbers say "
+             "(default), or read under the printed header."),
+    path: Path = typer.Option(None, "--path", help="Table I CSV (default: data/paper/table1.csv)."),
+    flat_tolerance: float = typer.Option(
+        None, "--flat-tolerance", min=0.0,
+        help="Ignore the rounding of the printed values and accept an order when "
+             "|recomputed - printed error| <= this many percentage points."),
+) -> None:
+    """Check Table I row by row; print the corrected table, its inconsistencies and statistics.
+
+    The statistics are those the paper does not give: MAPE, bias, RMSE, R², Bland-Altman,
+    the alpha-vs-hull claim and the crown diameters implied by the sphere volumes.
+    """
+    from canopy_kit.cli.common import print_json
+    from canopy_kit.paper import check_table1, summarise_table1
+    from canopy_kit.paper.summary import table1_result
+
+    if flat_tolerance is None:
+        check = check_table1(path)
+    else:
+        check = check_table1(path, rounding=False, tolerance_pp=flat_tolerance)
+    summary = summarise_table1(check, "corrected" if corrected else "as_printed")
+    result = table1_result(check, summary)
+    if json_output:
+        print_json(result)
+        return
+    _print_report(check, summary, result)
+
+
+def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    from canopy_kit.cli.common import console
+    from canopy_kit.paper.consistency import order_groups
+    from canopy_kit.paper.table1 import HEADER_OF, VALUE_COLUMNS
+
+    corrected = summary.reading == "corrected"
+    tolerance = ("rounding of the printed values" if check.rounding
+                 else "flat tolerance") + (f" + {check.tolerance_pp:g} pp" if check.tolerance_pp else "")
+    console.print(f"[bold]Table I[/] of Abedi et al. 2025 from {check.source}")
+    console.print(f"Consistency test: recomputed |V - GT| / GT * 100 vs printed error, "
+                  f"allowing for {tolerance}.\n")
+
+    # The table, as read.
+    title = "corrected (columns where the numbers put them)" if corrected else "as printed"
+    table = Table(title=f"Table I, {title}")
+    for col in ("tree", "GT m³", "hull m³", "hull err %", "recomp", "alpha m³",
+                "alpha err %", "recomp", "status"):
+        table.add_column(col, justify="right" if col != "status" else "left")
+    frame = check.corrected if corrected else check.as_printed
+    text = check.corrected_text if corrected else None
+    for tree, row in frame.iterrows():
+        def cell(c: str) -> str:
+            return str(text.loc[tree, c]) if text is not None else f"{row[c]:.2f}"
+        style = "" if row["status"] == "as_printed" else "yellow"
+        if row["status"] in ("unresolved", "ambiguous"):
+            style = "red"
+        table.add_row(str(tree), cell("gt_m3"), cell("hull_m3"), cell("hull_err_pct"),
+                      f"{row['hull_err_recomputed']:.2f}", cell("alpha_m3"),
+                      cell("alpha_err_pct"), f"{row['alpha_err_recomputed']:.2f}",
+                      row["status"], style=style)
+    console.print(table)
+
+    # What the numbers say about the column order.
+    console.print("[bold]Column order found from the numbers[/]")
+    for order, trees in order_groups(check).items():
+        same = order == VALUE_COLUMNS
+        desc = "as the header says" if same else ", ".join(HEADER_OF[q] for q in order)
+        console.print(f"  trees {_ranges(trees)}: {desc}")
+    n_fits = sorted({len(r.candidates) for r in check.rows})
+    by_geometry = [r.tree for r in check.rows
+                   if len({a.hull_not_below_alpha for a in r.candidates}) > 1]
+    console.print(f"  orders of the four value columns that fit a row: "
+                  f"{', '.join(map(str, n_fits))}; convex hull >= alpha shape (an alpha shape "
+                  f"lies inside its hull) decided between them in trees {_ranges(by_geometry)}")
+    if check.findings:
+        inc = Table(title=f"Inconsistencies ({len(check.findings)} rows)")
+        for col in ("tree", "status", "header says: numbers say (value)",
+                    "residual as printed (pp)", "residual corrected (pp)"):
+            inc.add_column(col)
+        for r in check.findings:
+            moved = "; ".join(
+                f"{SHORT[h]}: {SHORT[a]} ({check.as_printed.loc[r.tree, h]:.2f})"
+                for h, a in zip(VALUE_COLUMNS, r.chosen.order) if h != a
+            ) or "no order of the columns fits"
+            res_p = ", ".join(f"{m} {v:+.2f}" for m, v in r.as_printed.residual.items())
+            res_c = ", ".join(f"{m} {v:+.3f}" for m, v in r.chosen.residual.items())
+            inc.add_row(str(r.tree), r.status, moved, res_p,
+                        res_c if r.status != "unresolved" else "-")
+        console.print(inc)
+    else:
+        console.print("  no inconsistencies")
+    unresolved = [r.tree for r in check.rows if r.status in ("unresolved", "ambiguous")]
+    if unresolved:
+        console.print(f"  [red]trees {_ranges(unresolved)} could not be resolved and are kept "
+                      f"as printed in the statistics below[/]")
+    console.print(f"  largest |recomputed - printed| error after correction: "
+                  f"{result['max_abs_residual_pp']:.3f} pp\n")
+
+    # Agreement statistics.
+    stats = Table(title=f"Agreement with the sphere ground truth ({summary.reading} table)")
+    stats.add_column("statistic")
+    stats.add_column("convex hull", justify="right")
+    stats.add_column("alpha shape", justify="right")
+    a, means = summary.agreement, summary.printed_error_means
+    lines = [
+        ("n trees", lambda m: f"{a[m].n}"),
+        ("MAPE (%) from volumes", lambda m: f"{a[m].mape_pct:.3f}"),
+        ("mean of printed error column (%)", lambda m: f"{means[m]:.3f}"),
+        ("bias, mean(V - GT) (m³)", lambda m: f"{a[m].bias:+.3f}"),
+        ("bias, mean signed error (%)", lambda m: f"{a[m].bias_pct:+.3f}"),
+        ("RMSE (m³)", lambda m: f"{a[m].rmse:.3f}"),
+        ("R² (1 - SSres/SStot, V vs GT)", lambda m: f"{a[m].r_squared:.3f}"),
+        ("Pearson r²", lambda m: f"{a[m].pearson_r2:.3f}"),
+        ("Bland-Altman mean difference (m³)", lambda m: f"{a[m].bland_altman.mean_difference:+.3f}"),
+        ("Bland-Altman SD of differences (m³)", lambda m: f"{a[m].bland_altman.sd_difference:.3f}"),
+        ("Bland-Altman 95% limits (m³)", lambda m: f"{a[m].bland_altman.lower_limit:+.3f} .. "
+                                                   f"{a[m].bland_altman.upper_limit:+.3f}"),
+    ]
+    for label, fmt in lines:
+        stats.add_row(label, fmt("hull"), fmt("alpha"))
+    console.print(stats)
+
+    # The paper's claim.
+    c = summary.claim
+    console.print('[bold]Claim: "The Alpha Shape method consistently outperformed Convex Hull"[/]')
+    console.print(f"  alpha error lower in {len(c.alpha_better)} of {c.n_trees} trees "
+                  f"({_ranges(c.alpha_better)}); convex hull lower in {len(c.hull_better)} "
+                  f"({_ranges(c.hull_better)}); ties {len(c.ties)}")
+    console.print(f"  judged on the printed error columns: alpha lower in "
+                  f"{len(c.alpha_better_printed)} of {c.n_trees}")
+    n_over = len(c.hull_over_gt)
+    console.print(f"  convex hull above ground truth in {n_over} trees: alpha better in "
+                  f"{c.alpha_better_when_hull_over} of them, and in "
+                  f"{c.alpha_better_when_hull_not_over} of the {c.n_trees - n_over} others")
+    console.print(f"  two-sided sign test, alpha vs hull better: p = {c.sign_test_p:.3f}\n")
+
+    # Implied crown diameters.
+    diam = Table(title="Crown diameters implied by the sphere volumes, d = (6V/π)^(1/3)")
+    for col in ("tree", "GT m³", "d (m)", "d range from rounding (m)", "d to 0.01 m",
+                "gives GT back"):
+        diam.add_column(col, justify="right")
+    for tree, row in summary.diameters.iterrows():
+        diam.add_row(str(tree), f"{row['gt_m3']:.2f}", f"{row['diameter_m']:.4f}",
+                     f"{row['diameter_min_m']:.4f} .. {row['diameter_max_m']:.4f}",
+                     f"{row['diameter_rounded_m']:.2f}", "yes" if row["rounded_reproduces_gt"] else "no")
+    console.print(diam)
+    n_back = int(summary.diameters["rounded_reproduces_gt"].sum())
+    console.print(f"  {n_back} of {len(summary.diameters)} printed volumes are spheres of a "
+                  f"diameter given to the centimetre")
