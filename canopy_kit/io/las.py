@@ -1,0 +1,291 @@
+"""LAS/LAZ through laspy (LAZ via lazrs): float64 coordinates, every dimension kept.
+
+On reading, coordinates become local (``xyz = absolute - origin``, origin from
+:func:`las_origin`), every standard and extra-bytes dimension
+becomes a ``PointCloud.fields`` entry, and a float extra dimension's declared no-data
+value (e.g. DBL_MAX in lidR's ``treeID``) becomes NaN. On writing, fields that are not
+standard dimensions of the point format become extra-bytes dimensions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.errors import InputError
+from canopy_kit.io.atomic import atomic_path
+from canopy_kit.io.clouds import LOCAL_LIMIT_M, check_input_file, local_origin
+
+LAS_MAGIC = b"LASF"
+# Point formats without waveform packets, smallest first.
+WRITABLE_FORMATS: tuple[int, ...] = (0, 1, 2, 3, 6, 7, 8)
+EXTRA_BYTES_DTYPES = {"u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8", "f4", "f8"}
+INT32_MAX = 2**31 - 1
+
+
+def _open_error(path: Path, exc: Exception) -> InputError:
+    return InputError(f"{path}: not a readable LAS/LAZ file ({type(exc).__name__}: {exc})")
+
+
+def _is_las(path: Path) -> bool:
+    with path.open("rb") as fh:
+        return fh.read(4) == LAS_MAGIC
+
+
+def _checked(path: str | Path) -> Path:
+    path = check_input_file(path, "LAS/LAZ file")
+    if not _is_las(path):
+        raise InputError(f"{path}: not a LAS/LAZ file (no 'LASF' signature)")
+    return path
+
+
+def crs_string(crs: Any) -> str | None:
+    """``EPSG:xxxx`` for a pyproj CRS with an EPSG code, else its WKT; None for None."""
+    if crs is None:
+        return None
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg is not None else crs.to_wkt()
+
+
+def _parse_crs(header: Any, path: Path) -> str | None:
+    try:
+        return crs_string(header.parse_crs())
+    except Exception as exc:  # pyproj and laspy raise several types for odd CRS records
+        raise InputError(f"{path}: CRS record cannot be parsed ({type(exc).__name__}: {exc})") from None
+
+
+def _no_data_values(header: Any) -> dict[str, float]:
+    """Declared no-data values of single-valued extra-bytes dimensions, by name."""
+    out: dict[str, float] = {}
+    for vlr in header.vlrs:
+        for struct in getattr(vlr, "extra_bytes_structs", ()):
+            if struct.options & 1 and struct.no_data is not None:
+                name = struct.name.rstrip(b"\0").decode("ascii", "replace")
+                out[name] = float(struct.no_data[0])
+    return out
+
+
+def las_origin(header: Any) -> np.ndarray:
+    """Per axis: the header offset when the data lie within 10 km of it, else a round origin.
+
+    Keeping the offset makes a re-write at the same scale reproduce the file's integers.
+    """
+    offsets = np.asarray(header.offsets, dtype=np.float64)
+    mins = np.asarray(header.mins, dtype=np.float64)
+    maxs = np.asarray(header.maxs, dtype=np.float64)
+    near = np.maximum(np.abs(mins - offsets), np.abs(maxs - offsets)) <= LOCAL_LIMIT_M
+    return np.where(near, offsets, local_origin(mins, maxs)) + 0.0
+
+
+def read_las(path: str | Path) -> PointCloud:
+    """Read a LAS/LAZ file: local float64 xyz, origin, CRS and every dimension as a field."""
+    import laspy
+
+    path = _checked(path)
+    try:
+        las = laspy.read(path)
+    except Exception as exc:  # laspy/lazrs raise LaspyException, ValueError, OSError...
+        raise _open_error(path, exc) from None
+    header = las.header
+    if len(las.points) == 0:
+        raise InputError(f"{path}: LAS file has no points")
+    origin = las_origin(header)
+    raw = [np.asarray(las[c]) for c in ("X", "Y", "Z")]
+    xyz = np.column_stack(
+        [r.astype(np.float64) * s + (o - g) for r, s, o, g in zip(raw, header.scales, header.offsets, origin)]
+    )
+    no_data = _no_data_values(header)
+    fields: dict[str, np.ndarray] = {}
+    for name in las.point_format.dimension_names:
+        if name in ("X", "Y", "Z"):
+            continue
+        values = np.array(las[name])
+        if name in no_data and values.dtype.kind == "f":
+            values[values == no_data[name]] = np.nan
+        fields[name] = values
+    return PointCloud(xyz, fields, crs=_parse_crs(header, path), origin=origin)
+
+
+def describe_las(path: str | Path) -> dict[str, Any]:
+    """Header facts of a LAS/LAZ file without reading its points."""
+    import laspy
+
+    path = _checked(path)
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+    except Exception as exc:
+        raise _open_error(path, exc) from None
+    attributes = []
+    for dim in header.point_format.dimensions:
+        if dim.name in ("X", "Y", "Z"):
+            continue
+        dtype = dim.dtype if dim.dtype is not None else np.dtype("u1")  # bit fields
+        if dim.is_scaled:
+            dtype = np.dtype("f8")
+        attributes.append({"name": dim.name, "dtype": str(np.dtype(dtype)),
+                           "extra": not dim.is_standard})
+    return {
+        "path": str(path),
+        "format": "LAZ" if header.are_points_compressed else "LAS",
+        "version": str(header.version),
+        "point_format": header.point_format.id,
+        "points": int(header.point_count),
+        "attributes": attributes,
+        "bounds": {"min": [float(v) for v in header.mins], "max": [float(v) for v in header.maxs]},
+        "scale": [float(v) for v in header.scales],
+        "offset": [float(v) + 0.0 for v in header.offsets],
+        "crs": _parse_crs(header, path),
+    }
+
+
+def _fits_standard(values: np.ndarray, dim: Any) -> bool:
+    """Whether ``values`` can be stored exactly in a standard LAS dimension."""
+    if values.ndim != 1:
+        return False
+    if dim.kind.name == "FloatingPoint":
+        return values.dtype.kind in "fiub"
+    if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
+        return False
+    if values.size == 0:
+        return True
+    if values.dtype.kind == "f" and not np.array_equal(values, np.round(values)):
+        return False
+    return bool(values.min() >= dim.min and values.max() <= dim.max)
+
+
+def choose_point_format(fields: dict[str, np.ndarray]) -> int:
+    """The smallest point format whose standard dimensions hold the most fields exactly."""
+    import laspy
+
+    best: tuple[int, int] | None = None
+    for fmt_id in WRITABLE_FORMATS:
+        fmt = laspy.PointFormat(fmt_id)
+        standard = set(fmt.dimension_names)
+        if any(k in standard and not _fits_standard(np.asarray(v), fmt.dimension_by_name(k))
+               for k, v in fields.items()):
+            continue
+        extras = sum(1 for k in fields if k not in standard)
+        if best is None or extras < best[0]:
+            best = (extras, fmt_id)
+    return best[1] if best is not None else 6
+
+
+def _extra_bytes_type(name: str, values: np.ndarray, path: Path) -> str:
+    if values.ndim not in (1, 2) or (values.ndim == 2 and values.shape[1] > 3):
+        raise InputError(f"{path}: field {name!r} has shape {values.shape}; LAS extra bytes "
+                         f"hold 1-3 values per point")
+    if len(name) > 32:
+        raise InputError(f"{path}: field name {name!r} is longer than the 32 characters LAS allows")
+    code = "u1" if values.dtype.kind == "b" else values.dtype.newbyteorder("<").str[1:]
+    if code not in EXTRA_BYTES_DTYPES:
+        raise InputError(f"{path}: field {name!r} has dtype {values.dtype} that LAS cannot store")
+    return code if values.ndim == 1 else f"{values.shape[1]}{code}"
+
+
+def _write_offsets(cloud: PointCloud, scale: float, path: Path) -> np.ndarray:
+    """Header offsets: the origin, moved to the data when integers would overflow int32."""
+    offsets = cloud.origin.copy()
+    if len(cloud):
+        lo, hi = cloud.bounds()
+        for axis in range(3):
+            if max(abs(lo[axis]), abs(hi[axis])) / scale > INT32_MAX:
+                centre = np.round((lo[axis] + hi[axis]) / 2 / scale) * scale
+                if (hi[axis] - lo[axis]) / 2 / scale > INT32_MAX:
+                    raise InputError(f"{path}: extent too large for LAS integers at scale {scale}")
+                offsets[axis] += centre
+    return offsets
+
+
+def write_las(path: str | Path, cloud: PointCloud, point_format: int | None = None,
+              scale: float = 0.001) -> Path:
+    """Write a PointCloud as LAS or LAZ (by suffix), absolute = xyz + origin, atomically.
+
+    ``point_format`` None picks the smallest format that holds the standard fields; fields
+    that are not standard dimensions become extra-bytes dimensions.
+    """
+    import laspy
+
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise InputError(f"{path}: LAS output needs a .las or .laz suffix")
+    if len(cloud) == 0:
+        raise InputError(f"{path}: refusing to write a point cloud with no points")
+    if not scale > 0:
+        raise InputError(f"{path}: scale must be positive, got {scale}")
+    fields = {k: np.asarray(v) for k, v in cloud.fields.items()}
+    fmt_id = choose_point_format(fields) if point_format is None else int(point_format)
+    if fmt_id not in WRITABLE_FORMATS:
+        raise InputError(f"{path}: point format {fmt_id} is not one of {WRITABLE_FORMATS}")
+    fmt = laspy.PointFormat(fmt_id)
+    standard = set(fmt.dimension_names)
+    crs = _pyproj_crs(cloud.crs, path)
+    wkt_only = crs is not None and crs.to_epsg() is None
+    version = "1.4" if fmt_id >= 6 or wkt_only else "1.2"
+    header = laspy.LasHeader(point_format=fmt_id, version=version)
+    header.scales = np.full(3, float(scale))
+    header.offsets = _write_offsets(cloud, float(scale), path)
+    extra = [k for k in fields if k not in standard]
+    header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=_extra_bytes_type(k, fields[k], path))
+                           for k in extra])
+    if crs is not None:
+        header.add_crs(crs, keep_compatibility=not wkt_only)
+    las = laspy.LasData(header)
+    local_shift = cloud.origin - header.offsets
+    integers = np.round((cloud.xyz + local_shift) / scale)
+    if np.abs(integers).max() > INT32_MAX:
+        raise InputError(f"{path}: coordinates do not fit LAS integers at scale {scale}")
+    las.X, las.Y, las.Z = (integers[:, i].astype(np.int32) for i in range(3))
+    for name, values in fields.items():
+        if name in standard and not _fits_standard(values, fmt.dimension_by_name(name)):
+            dim = fmt.dimension_by_name(name)
+            raise InputError(f"{path}: field {name!r} ({values.dtype}) does not fit LAS point "
+                             f"format {fmt_id} dimension {name} (range {dim.min}..{dim.max})")
+        if name in standard and fmt.dimension_by_name(name).kind.name != "FloatingPoint":
+            values = values.astype(fmt.dimension_by_name(name).dtype or np.uint8)
+        las[name] = values.astype(np.uint8) if values.dtype.kind == "b" else values
+    with atomic_path(path) as tmp:
+        try:
+            las.write(tmp)
+        except Exception as exc:
+            raise InputError(f"{path}: writing failed ({type(exc).__name__}: {exc})") from None
+    return path
+
+
+def _pyproj_crs(crs: str | None, path: Path) -> Any:
+    if crs is None:
+        return None
+    import pyproj
+
+    try:
+        return pyproj.CRS.from_user_input(crs)
+    except pyproj.exceptions.CRSError as exc:
+        raise InputError(f"{path}: CRS {crs[:60]!r} is not understood by pyproj: {exc}") from None
+
+
+class LasReader:
+    """Reader plugin for LAS/LAZ files (``canopy_kit.readers`` entry point ``las``)."""
+
+    name = "las"
+    kind = "cloud"
+    suffixes = (".las", ".laz")
+
+    def sniff(self, path: Path) -> bool:
+        """True when the file starts with the LAS signature."""
+        path = Path(path)
+        return path.is_file() and _is_las(path)
+
+    def describe(self, path: Path) -> dict[str, Any]:
+        """Header facts: point count, attributes with dtypes, bounds, CRS."""
+        return describe_las(path)
+
+    def read(self, path: Path) -> PointCloud:
+        """The whole file as a PointCloud."""
+        return read_las(path)
+
+    def write(self, path: Path, cloud: PointCloud) -> Path:
+        """Write with default settings (smallest point format, 1 mm scale)."""
+        return write_las(path, cloud)
