@@ -27,7 +27,10 @@ INT32_MAX = 2**31 - 1
 
 
 def _open_error(path: Path, exc: Exception) -> InputError:
-    return InputError(f"{path}: not a readable LAS/LAZ file ({type(exc).__name__}: {exc})")
+    return InputError(
+        f"{path}: cannot read the LAS/LAZ data; the file is corrupt or truncated "
+        f"({type(exc).__name__}: {exc})"
+    )
 
 
 def _is_las(path: Path) -> bool:
