@@ -37,13 +37,15 @@ def _ranges(trees: list[int]) -> str:
 
 @app.command("table1")
 def table1(
-    json_output: bool = typer.Option(False, "--json", help="Print one JSON document instead of tables."),
+    json_output: bool = typer.Option(
+        False, "--json", help="Print one JSON document instead of tables."),
     corrected: bool = typer.Option(
         True, "--corrected/--as-printed",
         help="Statistics on the table with columns put back where the numbers say "
              "(default), or read under the printed header."),
-    path: Path = typer.Option(None, "--path", help="Table I CSV (default: data/paper/table1.csv)."),
-    flat_tolerance: float = typer.Option(
+    path: Path | None = typer.Option(
+        None, "--path", help="Table I CSV (default: data/paper/table1.csv)."),
+    flat_tolerance: float | None = typer.Option(
         None, "--flat-tolerance", min=0.0,
         help="Ignore the rounding of the printed values and accept an order when "
              "|recomputed - printed error| <= this many percentage points."),
@@ -77,8 +79,11 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
     from canopy_kit.paper.table1 import HEADER_OF, VALUE_COLUMNS
 
     corrected = summary.reading == "corrected"
-    tolerance = ("rounding of the printed values" if check.rounding
-                 else "flat tolerance") + (f" + {check.tolerance_pp:g} pp" if check.tolerance_pp else "")
+    if not check.rounding:
+        tolerance = f"a flat tolerance of {check.tolerance_pp:g} pp (rounding ignored)"
+    else:
+        tolerance = "rounding of the printed values"
+        tolerance += f" + {check.tolerance_pp:g} pp" if check.tolerance_pp else ""
     console.print(f"[bold]Table I[/] of Abedi et al. 2025 from {check.source}")
     console.print(f"Consistency test: recomputed |V - GT| / GT * 100 vs printed error, "
                   f"allowing for {tolerance}.\n")
@@ -145,6 +150,7 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
     stats.add_column("convex hull", justify="right")
     stats.add_column("alpha shape", justify="right")
     a, means = summary.agreement, summary.printed_error_means
+    ba = {m: x.bland_altman for m, x in a.items()}
     lines = [
         ("n trees", lambda m: f"{a[m].n}"),
         ("MAPE (%) from volumes", lambda m: f"{a[m].mape_pct:.3f}"),
@@ -154,10 +160,10 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
         ("RMSE (m³)", lambda m: f"{a[m].rmse:.3f}"),
         ("R² (1 - SSres/SStot, V vs GT)", lambda m: f"{a[m].r_squared:.3f}"),
         ("Pearson r²", lambda m: f"{a[m].pearson_r2:.3f}"),
-        ("Bland-Altman mean difference (m³)", lambda m: f"{a[m].bland_altman.mean_difference:+.3f}"),
-        ("Bland-Altman SD of differences (m³)", lambda m: f"{a[m].bland_altman.sd_difference:.3f}"),
-        ("Bland-Altman 95% limits (m³)", lambda m: f"{a[m].bland_altman.lower_limit:+.3f} .. "
-                                                   f"{a[m].bland_altman.upper_limit:+.3f}"),
+        ("Bland-Altman mean difference (m³)", lambda m: f"{ba[m].mean_difference:+.3f}"),
+        ("Bland-Altman SD of differences (m³)", lambda m: f"{ba[m].sd_difference:.3f}"),
+        ("Bland-Altman 95% limits (m³)",
+         lambda m: f"{ba[m].lower_limit:+.3f} .. {ba[m].upper_limit:+.3f}"),
     ]
     for label, fmt in lines:
         stats.add_row(label, fmt("hull"), fmt("alpha"))
@@ -185,7 +191,8 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
     for tree, row in summary.diameters.iterrows():
         diam.add_row(str(tree), f"{row['gt_m3']:.2f}", f"{row['diameter_m']:.4f}",
                      f"{row['diameter_min_m']:.4f} .. {row['diameter_max_m']:.4f}",
-                     f"{row['diameter_rounded_m']:.2f}", "yes" if row["rounded_reproduces_gt"] else "no")
+                     f"{row['diameter_rounded_m']:.2f}",
+                     "yes" if row["rounded_reproduces_gt"] else "no")
     console.print(diam)
     n_back = int(summary.diameters["rounded_reproduces_gt"].sum())
     console.print(f"  {n_back} of {len(summary.diameters)} printed volumes are spheres of a "

@@ -79,7 +79,9 @@ def _check_headers(path: Path, headers: list[str]) -> None:
     if extra:
         raise InputError(f"{path}: unexpected column {extra[0]!r}")
     if stripped != list(PRINTED_HEADERS):
-        raise InputError(f"{path}: columns out of the printed order; expected {list(PRINTED_HEADERS)}")
+        raise InputError(
+            f"{path}: columns out of the printed order; expected {list(PRINTED_HEADERS)}"
+        )
 
 
 def _check_cell(path: Path, row: int, tree: str, column: str, cell: str) -> None:
