@@ -1,0 +1,265 @@
+"""Simulator settings: one dataclass per concern, loaded from ``presets/sim/*.toml``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal, Mapping
+import tomllib
+
+from canopy_kit.config import from_dict, merge, read_toml
+from canopy_kit.errors import ConfigError
+
+
+@dataclass
+class OrchardSpec:
+    """Orchard geometry. Lengths in metres, angles in degrees, densities per m² or m³."""
+
+    kind: str = "pistachio"
+    rows: int = 4
+    trees_per_row: int = 10
+    spacing_range: list[float] = field(default_factory=lambda: [5.0, 5.0])
+    position_jitter: float = 0.1
+    row_spacing: float = 6.0
+    row_bearing_deg: float = 0.0
+    row_bow: float = 0.0
+    missing_probability: float = 0.0
+    double_probability: float = 0.0
+    double_offset_range: list[float] = field(default_factory=lambda: [1.5, 2.2])
+    crown_diameter_range: list[float] = field(default_factory=lambda: [3.0, 4.5])
+    crown_across_ratio_range: list[float] = field(default_factory=lambda: [0.85, 1.0])
+    crown_height_ratio_range: list[float] = field(default_factory=lambda: [0.75, 0.95])
+    crown_base_height_range: list[float] = field(default_factory=lambda: [0.8, 1.2])
+    crown_squareness_range: list[float] = field(default_factory=lambda: [2.0, 2.5])
+    crown_irregularity: float = 0.08
+    crown_lobes: int = 6
+    lean_max: float = 0.0
+    separate_crowns: bool = True
+    min_crown_gap: float = 0.3
+    alley_clearance: float = 1.0
+    trunk_radius_range: list[float] = field(default_factory=lambda: [0.08, 0.14])
+    branches_range: list[int] = field(default_factory=lambda: [3, 5])
+    foliage_density_shell: float = 60.0
+    foliage_density_core: float = 6.0
+    leaf_cluster_size_range: list[float] = field(default_factory=lambda: [0.10, 0.22])
+    headland: float = 8.0
+    margin: float = 6.0
+    terrain_slope_deg: float = 0.0
+    terrain_cross_slope_deg: float = 0.0
+    terrain_bump_amplitude: float = 0.08
+    terrain_bump_wavelength: float = 14.0
+    grass_height: float = 0.25
+    grass_density: float = 1.5
+    origin_lat: float = 37.2810
+    origin_lon: float = -120.4200
+    origin_height: float = 50.0
+
+
+@dataclass
+class LidarSpec:
+    """Spinning LiDAR; ``vertical_fov`` is [lowest, highest] beam elevation in degrees."""
+
+    rings: int = 32
+    vertical_fov: list[float] = field(default_factory=lambda: [-45.0, 45.0])
+    columns: int = 1024
+    rate_hz: float = 10.0
+    min_range: float = 0.5
+    max_range: float = 60.0
+    range_noise: float = 0.01
+    dropout: float = 0.01
+    mount_height: float = 1.8
+    mount_pitch_deg: float = 0.0
+    time_field: Literal["t", "time", "timestamp"] = "t"
+    frame_id: str = "lidar"
+    topic: str = "/points"
+
+
+@dataclass
+class DriveSpec:
+    """Robot motion through the alleys, with U-turns at the headlands."""
+
+    cruise_speed: float = 1.5
+    speed_variation: float = 0.12
+    turn_speed: float = 0.8
+    acceleration: float = 0.35
+    start_still: float = 2.0
+    end_still: float = 1.0
+    alleys: Literal["all", "inner"] = "all"
+    wheelbase: float = 1.2
+    track: float = 1.0
+    vibration_deg: float = 0.1
+    odometry_rate_hz: float = 50.0
+    odometry_topic: str = "/ground_truth/odom"
+
+
+@dataclass
+class ImuSpec:
+    """IMU at the LiDAR (identity extrinsic); noise densities per √Hz."""
+
+    enabled: bool = True
+    rate_hz: float = 200.0
+    gyro_noise: float = 0.003
+    accel_noise: float = 0.03
+    gyro_bias_sigma: float = 0.002
+    accel_bias_sigma: float = 0.05
+    topic: str = "/imu/data"
+    frame_id: str = "lidar"
+
+
+@dataclass
+class GnssSpec:
+    """GNSS antenna at the LiDAR; ``mode`` standard (metre level) or rtk (centimetre)."""
+
+    enabled: bool = True
+    rate_hz: float = 10.0
+    mode: Literal["standard", "rtk"] = "standard"
+    sigma_horizontal: float = 0.6
+    sigma_vertical: float = 1.2
+    correlation_time: float = 20.0
+    rtk_sigma_horizontal: float = 0.02
+    rtk_sigma_vertical: float = 0.04
+    topic: str = "/gps/fix"
+    frame_id: str = "gnss"
+
+
+@dataclass
+class DroneSpec:
+    """Nadir lawn-mower photo flight over the orchard."""
+
+    enabled: bool = False
+    altitude: float = 35.0
+    forward_overlap: float = 0.8
+    side_overlap: float = 0.75
+    image_width: int = 1200
+    image_height: int = 900
+    focal_length_mm: float = 8.8
+    sensor_width_mm: float = 13.2
+    gps_sigma_horizontal: float = 0.02
+    gps_sigma_vertical: float = 0.05
+    sun_elevation_deg: float = 55.0
+    sun_azimuth_deg: float = 135.0
+    jpeg_quality: int = 92
+
+
+@dataclass
+class SimConfig:
+    """A whole field session: orchard, sensors, drive and optional drone flight."""
+
+    seed: int = 0
+    orchard: OrchardSpec = field(default_factory=OrchardSpec)
+    lidar: LidarSpec = field(default_factory=LidarSpec)
+    drive: DriveSpec = field(default_factory=DriveSpec)
+    imu: ImuSpec = field(default_factory=ImuSpec)
+    gnss: GnssSpec = field(default_factory=GnssSpec)
+    drone: DroneSpec = field(default_factory=DroneSpec)
+
+
+SENSOR_MODELS: dict[str, dict[str, Any]] = {
+    "vlp16": {"rings": 16, "vertical_fov": [-15.0, 15.0], "columns": 1800, "time_field": "time",
+              "max_range": 100.0},
+    "hdl32": {"rings": 32, "vertical_fov": [-30.67, 10.67], "columns": 1800, "time_field": "time",
+              "max_range": 100.0},
+    "os0-32": {"rings": 32, "vertical_fov": [-45.0, 45.0], "columns": 1024, "time_field": "t",
+               "max_range": 50.0},
+    "os1-64": {"rings": 64, "vertical_fov": [-22.5, 22.5], "columns": 1024, "time_field": "t",
+               "max_range": 120.0},
+    "os1-128": {"rings": 128, "vertical_fov": [-22.5, 22.5], "columns": 1024, "time_field": "t",
+                "max_range": 120.0},
+}
+
+
+def sim_preset_names() -> list[str]:
+    """Orchard presets shipped for the simulator."""
+    files = resources.files("canopy_kit") / "presets" / "sim"
+    return sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".toml"))
+
+
+def load_sim_config(orchard: str | Path = "pistachio", overrides: Mapping[str, Any] | None = None,
+                    sensor: str | None = None) -> SimConfig:
+    """Simulator config from a shipped orchard preset (or TOML path), a sensor model and overrides."""
+    name = str(orchard)
+    if name in sim_preset_names():
+        text = (resources.files("canopy_kit") / "presets" / "sim" / f"{name}.toml").read_text()
+        data, where = tomllib.loads(text), f"simulator preset {name!r}"
+    else:
+        path = Path(orchard)
+        if not path.exists():
+            raise ConfigError(
+                f"orchard {name!r} is neither a simulator preset ({', '.join(sim_preset_names())}) "
+                "nor an existing TOML file"
+            )
+        data, where = read_toml(path), str(path)
+    if sensor is not None:
+        if sensor not in SENSOR_MODELS:
+            raise ConfigError(f"sensor {sensor!r} is not one of {', '.join(SENSOR_MODELS)}")
+        data = merge(data, {"lidar": SENSOR_MODELS[sensor]})
+    if overrides:
+        data = merge(data, overrides)
+    config = from_dict(SimConfig, data, where)
+    validate(config)
+    return config
+
+
+def _check(ok: bool, name: str, message: str) -> None:
+    if not ok:
+        raise ConfigError(f"simulator parameter {name}: {message}")
+
+
+def _check_range(values: list[float], name: str, low: float = 0.0, strict: bool = True) -> None:
+    _check(len(values) == 2, name, f"expected [min, max], got {values}")
+    _check(values[0] <= values[1], name, f"min {values[0]} is larger than max {values[1]}")
+    _check(values[0] > low if strict else values[0] >= low, name,
+           f"values must be {'>' if strict else '>='} {low}, got {values}")
+
+
+def validate(c: SimConfig) -> None:
+    """Reject impossible parameters with an error naming the parameter."""
+    o, li, d = c.orchard, c.lidar, c.drive
+    _check(o.rows >= 1, "orchard.rows", f"must be at least 1, got {o.rows}")
+    _check(o.trees_per_row >= 1, "orchard.trees_per_row", f"must be at least 1, got {o.trees_per_row}")
+    _check_range(o.spacing_range, "orchard.spacing_range")
+    _check(o.row_spacing > 0, "orchard.row_spacing", f"must be positive, got {o.row_spacing}")
+    _check_range(o.crown_diameter_range, "orchard.crown_diameter_range")
+    _check_range(o.crown_across_ratio_range, "orchard.crown_across_ratio_range")
+    _check_range(o.crown_height_ratio_range, "orchard.crown_height_ratio_range")
+    _check_range(o.crown_base_height_range, "orchard.crown_base_height_range", strict=False)
+    _check_range(o.crown_squareness_range, "orchard.crown_squareness_range", low=1.0, strict=False)
+    _check_range(o.trunk_radius_range, "orchard.trunk_radius_range")
+    _check_range(o.leaf_cluster_size_range, "orchard.leaf_cluster_size_range")
+    _check_range([float(v) for v in o.branches_range], "orchard.branches_range", strict=False)
+    _check_range(o.double_offset_range, "orchard.double_offset_range")
+    for name in ("missing_probability", "double_probability"):
+        p = getattr(o, name)
+        _check(0.0 <= p < 1.0, f"orchard.{name}", f"must be in [0, 1), got {p}")
+    _check(0 <= o.crown_irregularity < 0.5, "orchard.crown_irregularity",
+           f"must be in [0, 0.5), got {o.crown_irregularity}")
+    _check(o.foliage_density_shell > 0 and o.foliage_density_core >= 0, "orchard.foliage_density_*",
+           "densities must be positive")
+    _check(o.headland >= 0 and o.margin >= 0, "orchard.headland/margin", "must not be negative")
+    lane = o.row_spacing - 2 * o.alley_clearance
+    _check(lane > 0.5, "orchard.alley_clearance",
+           f"a {o.alley_clearance} m half-corridor leaves no room for crowns between rows "
+           f"{o.row_spacing} m apart")
+    max_extent = max(o.rows * o.row_spacing, o.trees_per_row * o.spacing_range[1])
+    _check(o.crown_diameter_range[1] * o.crown_across_ratio_range[0] <= max_extent + lane,
+           "orchard.crown_diameter_range",
+           f"crowns up to {o.crown_diameter_range[1]} m are larger than the orchard")
+    _check(li.rings >= 1, "lidar.rings", f"must be at least 1, got {li.rings}")
+    _check(li.columns >= 16, "lidar.columns", f"must be at least 16, got {li.columns}")
+    _check(li.vertical_fov[0] < li.vertical_fov[1] or li.rings == 1, "lidar.vertical_fov",
+           f"lowest beam {li.vertical_fov[0]} must be below highest {li.vertical_fov[1]}")
+    _check(-90 <= li.vertical_fov[0] and li.vertical_fov[1] <= 90, "lidar.vertical_fov",
+           "elevations must be within [-90, 90] degrees")
+    _check(li.rate_hz > 0, "lidar.rate_hz", f"must be positive, got {li.rate_hz}")
+    _check(0 < li.min_range < li.max_range, "lidar.min_range/max_range",
+           f"need 0 < min_range < max_range, got {li.min_range}, {li.max_range}")
+    _check(li.range_noise >= 0 and 0 <= li.dropout < 1, "lidar.range_noise/dropout", "out of range")
+    _check(li.mount_height > 0, "lidar.mount_height", f"must be positive, got {li.mount_height}")
+    _check(d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive")
+    _check(d.acceleration > 0, "drive.acceleration", f"must be positive, got {d.acceleration}")
+    _check(0 <= d.speed_variation < d.cruise_speed, "drive.speed_variation", "must be below cruise_speed")
+    _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")
+    _check(0 < c.drone.forward_overlap < 1 and 0 < c.drone.side_overlap < 1, "drone.*_overlap",
+           "must be in (0, 1)")
+    _check(c.drone.altitude > 0, "drone.altitude", f"must be positive, got {c.drone.altitude}")

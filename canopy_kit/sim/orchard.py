@@ -1,0 +1,233 @@
+"""Orchard layout: rows of trees with crowns, trunks and branches, from a seed and a spec.
+
+Conventions (also in docs/SIMULATOR.md): rows run along the unit vector ``d`` (bearing
+``row_bearing_deg`` from north); rows are numbered 0, 1, ... from left to right as seen
+driving along ``d``; trees are numbered along ``d``. Labels follow the paper: seen from the
+alley between rows 2k and 2k+1 while driving along ``d``, row 2k is on the left (``L0,
+L1, ...``) and row 2k+1 on the right (``R0, R1, ...``); ``(row, label)`` is unique.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from canopy_kit.geo import LocalFrame
+from canopy_kit.sim.config import OrchardSpec
+from canopy_kit.sim.crown import CrownEnvelope
+from canopy_kit.sim.terrain import Terrain
+
+
+@dataclass(frozen=True)
+class Tree:
+    """One tree: identity, trunk base, crown envelope and woody parts."""
+
+    tree_id: int
+    row: int
+    index_in_row: int
+    label: str
+    base: tuple[float, float, float]
+    crown: CrownEnvelope
+    trunk_top: tuple[float, float, float]
+    trunk_radius: float
+    branch_tips: tuple[tuple[float, float, float], ...]
+    doubled: bool = False
+
+    @property
+    def crown_base_height(self) -> float:
+        """Height of the crown's lowest point above the trunk base."""
+        return self.crown.z_range[0] - self.base[2]
+
+    @property
+    def height(self) -> float:
+        """Tree height: crown top above the trunk base."""
+        return self.crown.z_range[1] - self.base[2]
+
+
+@dataclass
+class Orchard:
+    """The generated orchard: trees, terrain, frame and the layout vectors."""
+
+    spec: OrchardSpec
+    trees: list[Tree]
+    terrain: Terrain
+    frame: LocalFrame
+    row_direction: np.ndarray
+    right_direction: np.ndarray
+    row_offsets: np.ndarray
+    along_range: tuple[float, float]
+    extra: dict = field(default_factory=dict)
+
+    def to_local(self, along: np.ndarray, across: np.ndarray) -> np.ndarray:
+        """Orchard (along-row, across-row) coordinates to local (x, y)."""
+        along = np.asarray(along, float)
+        across = np.asarray(across, float)
+        return along[..., None] * self.row_direction + across[..., None] * self.right_direction
+
+    def to_orchard(self, xy: np.ndarray) -> np.ndarray:
+        """Local (x, y) to (along-row, across-row)."""
+        xy = np.asarray(xy, float)
+        return np.stack([xy @ self.row_direction, xy @ self.right_direction], axis=-1)
+
+
+def row_label(row: int, index: int) -> str:
+    """The paper's label of a tree: L/R by the row's side in its alley pair, then the index."""
+    return f"{'L' if row % 2 == 0 else 'R'}{index}"
+
+
+def generate_orchard(spec: OrchardSpec, rng: np.random.Generator) -> Orchard:
+    """Lay out rows and trees and grow their crowns, deterministically from ``rng``."""
+    bearing = np.radians(spec.row_bearing_deg)
+    d = np.array([np.sin(bearing), np.cos(bearing)])
+    right = np.array([d[1], -d[0]])
+    frame = LocalFrame.at(spec.origin_lat, spec.origin_lon, spec.origin_height)
+    terrain = Terrain.random(rng, d, spec.terrain_slope_deg, spec.terrain_cross_slope_deg,
+                             spec.terrain_bump_amplitude, spec.terrain_bump_wavelength)
+    row_offsets = np.arange(spec.rows) * spec.row_spacing
+    trees: list[Tree] = []
+    along_max = 0.0
+    for row in range(spec.rows):
+        stations = _row_stations(spec, rng)
+        along_max = max(along_max, stations[-1][0] if stations else 0.0)
+        length = max(stations[-1][0], 1e-9) if stations else 1.0
+        row_trees: list[Tree] = []
+        for index, (along, doubled) in enumerate(stations):
+            bow = spec.row_bow * (1.0 - (2.0 * along / length - 1.0) ** 2)
+            jitter = rng.normal(0.0, spec.position_jitter, 2)
+            a, c = along + jitter[0], row_offsets[row] + bow + jitter[1]
+            xy = a * d + c * right
+            tree = _grow_tree(spec, rng, len(trees) + len(row_trees), row, index, xy, d, terrain,
+                              doubled)
+            row_trees.append(tree)
+        row_trees = _fit_crowns(spec, row_trees, d, right, row_offsets[row])
+        trees.extend(row_trees)
+    return Orchard(spec, trees, terrain, frame, d, right, row_offsets, (0.0, along_max))
+
+
+def _row_stations(spec: OrchardSpec, rng: np.random.Generator) -> list[tuple[float, bool]]:
+    """Along-row positions of the trees of one row, with missing and doubled trees."""
+    lo, hi = spec.spacing_range
+    stations: list[tuple[float, bool]] = []
+    along = 0.0
+    for i in range(spec.trees_per_row):
+        if i > 0:
+            along += rng.uniform(lo, hi)
+        if rng.random() < spec.missing_probability and 0 < i < spec.trees_per_row - 1:
+            continue
+        stations.append((along, False))
+        if rng.random() < spec.double_probability and i < spec.trees_per_row - 1:
+            stations.append((along + rng.uniform(*spec.double_offset_range), True))
+    stations.sort()
+    return stations
+
+
+def _grow_tree(spec: OrchardSpec, rng: np.random.Generator, tree_id: int, row: int, index: int,
+               xy: np.ndarray, d: np.ndarray, terrain: Terrain, doubled: bool) -> Tree:
+    diameter = rng.uniform(*spec.crown_diameter_range) * (rng.uniform(0.7, 0.9) if doubled else 1.0)
+    a = diameter / 2.0
+    b = a * rng.uniform(*spec.crown_across_ratio_range)
+    crown_height = diameter * rng.uniform(*spec.crown_height_ratio_range)
+    c_up, c_down = 0.55 * crown_height, 0.45 * crown_height
+    base_z = float(terrain.height(xy[0], xy[1]))
+    crown_base = rng.uniform(*spec.crown_base_height_range)
+    lean_dir = rng.uniform(0, 2 * np.pi)
+    lean = rng.uniform(0.0, spec.lean_max)
+    lean_xy = lean * np.array([np.cos(lean_dir), np.sin(lean_dir)])
+    center = (xy[0] + lean_xy[0], xy[1] + lean_xy[1], base_z + crown_base + c_down)
+    n_lobes = spec.crown_lobes
+    dirs = rng.normal(size=(n_lobes, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    amps = rng.uniform(-1.0, 1.0, n_lobes) * spec.crown_irregularity * 2.0
+    yaw = float(np.arctan2(d[1], d[0]) + rng.normal(0.0, 0.15))
+    crown = CrownEnvelope(tuple(map(float, center)), (a, b, c_up, c_down), yaw,
+                          float(rng.uniform(*spec.crown_squareness_range)),
+                          tuple(map(tuple, dirs.tolist())), tuple(amps.tolist()),
+                          float(rng.uniform(2.5, 5.0)))
+    return _attach_wood(spec, rng, Tree(tree_id, row, index, row_label(row, index),
+                                        (float(xy[0]), float(xy[1]), base_z), crown, center, 0.1,
+                                        (), doubled))
+
+
+def _attach_wood(spec: OrchardSpec, rng: np.random.Generator, tree: Tree) -> Tree:
+    """Trunk from the base to just inside the crown, and branches towards the crown shell."""
+    cz_lo, _ = tree.crown.z_range
+    cx, cy, cz = tree.crown.center
+    top = (cx, cy, cz_lo + 0.35 * (cz - cz_lo))
+    n_branches = int(rng.integers(spec.branches_range[0], spec.branches_range[1] + 1))
+    tips = []
+    for _ in range(n_branches):
+        u = rng.normal(size=3)
+        u[2] = abs(u[2]) + 0.3
+        u /= np.linalg.norm(u)
+        r = tree.crown.radius(u[None, :])[0] * rng.uniform(0.45, 0.75)
+        tips.append(tuple((np.asarray(tree.crown.center) + u * r).tolist()))
+    return Tree(tree.tree_id, tree.row, tree.index_in_row, tree.label, tree.base, tree.crown,
+                tuple(map(float, top)), float(rng.uniform(*spec.trunk_radius_range)), tuple(tips),
+                tree.doubled)
+
+
+def _extent_along(crown: CrownEnvelope, direction: np.ndarray) -> float:
+    """How far the crown reaches from its centre along a horizontal unit direction."""
+    s = crown.surface_points(4000)[:, :2] - np.asarray(crown.center[:2])
+    return float((s @ direction).max())
+
+
+def _fit_crowns(spec: OrchardSpec, trees: list[Tree], d: np.ndarray, right: np.ndarray,
+                row_offset: float) -> list[Tree]:
+    """Keep the alleys drivable and, for structured orchards, crowns apart by a gap."""
+    limit = spec.row_spacing / 2.0 - spec.alley_clearance
+    fitted: list[Tree] = []
+    for tree in trees:
+        crown = tree.crown
+        offset = float(np.dot(np.asarray(crown.center[:2]), right)) - row_offset
+        reach = max(_extent_along(crown, right) + offset, _extent_along(crown, -right) - offset)
+        if reach > limit:
+            a, b, cu, cd = crown.semi_axes
+            # Shrink across the row (growers hedge their rows), keeping the along-row size.
+            crown = crown.with_semi_axes((a, b * limit / reach, cu, cd))
+            for _ in range(5):
+                reach = max(_extent_along(crown, right) + offset, _extent_along(crown, -right) - offset)
+                if reach <= limit:
+                    break
+                crown = crown.scaled(limit / reach * 0.999)
+        fitted.append(_replace_crown(tree, crown))
+    if spec.separate_crowns:
+        for _ in range(3):
+            for i in range(len(fitted) - 1):
+                a_t, b_t = fitted[i], fitted[i + 1]
+                gap_vec = np.asarray(b_t.crown.center[:2]) - np.asarray(a_t.crown.center[:2])
+                dist = float(np.linalg.norm(gap_vec))
+                u = gap_vec / dist
+                reach = _extent_along(a_t.crown, u) + _extent_along(b_t.crown, -u)
+                if reach + spec.min_crown_gap > dist:
+                    k = (dist - spec.min_crown_gap) / reach * 0.999
+                    fitted[i] = _replace_crown(a_t, _scale_about(a_t.crown, k))
+                    fitted[i + 1] = _replace_crown(b_t, _scale_about(b_t.crown, k))
+    return fitted
+
+
+def _scale_about(crown: CrownEnvelope, k: float) -> CrownEnvelope:
+    """Scale a crown keeping its lowest point (the crown base) at the same height."""
+    z_lo = crown.z_range[0]
+    scaled = crown.scaled(k)
+    shift = z_lo - scaled.z_range[0]
+    cx, cy, cz = crown.center
+    return scaled.moved((cx, cy, cz + shift))
+
+
+def _replace_crown(tree: Tree, crown: CrownEnvelope) -> Tree:
+    if crown is tree.crown:
+        return tree
+    cz_lo, _ = crown.z_range
+    cx, cy, cz = crown.center
+    top = (cx, cy, cz_lo + 0.35 * (cz - cz_lo))
+    old = np.asarray(tree.crown.center)
+    tips = []
+    for tip in tree.branch_tips:
+        u = np.asarray(tip) - old
+        r = np.linalg.norm(u)
+        frac = r / tree.crown.radius((u / r)[None, :])[0]
+        tips.append(tuple((np.asarray(crown.center) + u / r * crown.radius((u / r)[None, :])[0] * frac).tolist()))
+    return Tree(tree.tree_id, tree.row, tree.index_in_row, tree.label, tree.base, crown,
+                tuple(map(float, top)), tree.trunk_radius, tuple(tips), tree.doubled)

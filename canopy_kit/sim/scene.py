@@ -1,0 +1,207 @@
+"""Triangle scene of an orchard for ray casting: ground, grass, trunks, branches, foliage.
+
+Foliage is many small leaf clusters (flattened octahedra) placed inside each crown
+envelope, denser towards the shell, so beams pass into and sometimes through a crown.
+Every triangle carries a material, the tree it belongs to (-1 for ground, grass and
+trunks below the crown) and a shade factor for rendering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from canopy_kit.sim.orchard import Orchard, Tree
+
+GROUND, GRASS, WOOD, FOLIAGE = 0, 1, 2, 3
+MATERIAL_NAMES = {GROUND: "ground", GRASS: "grass", WOOD: "wood", FOLIAGE: "foliage"}
+
+_OCTAHEDRON_V = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+_OCTAHEDRON_F = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+                          [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+
+
+@dataclass
+class Scene:
+    """A triangle soup with per-triangle attributes."""
+
+    vertices: np.ndarray  # (V, 3) float64
+    triangles: np.ndarray  # (T, 3) int64
+    material: np.ndarray  # (T,) uint8
+    tree_id: np.ndarray  # (T,) int32
+    shade: np.ndarray  # (T,) float32, per-triangle colour variation in [0.6, 1.4]
+    bounds: tuple[np.ndarray, np.ndarray]
+
+    def raycasting_scene(self):  # noqa: ANN201
+        """An Open3D RaycastingScene holding the triangles (geometry id 0)."""
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
+                            o3d.core.Tensor(self.triangles.astype(np.uint32)))
+        return scene
+
+
+class _Builder:
+    def __init__(self) -> None:
+        self.v: list[np.ndarray] = []
+        self.f: list[np.ndarray] = []
+        self.mat: list[np.ndarray] = []
+        self.tid: list[np.ndarray] = []
+        self.shade: list[np.ndarray] = []
+        self.n = 0
+
+    def add(self, verts: np.ndarray, faces: np.ndarray, material: int, tree: np.ndarray | int,
+            shade: np.ndarray | float = 1.0) -> None:
+        self.v.append(verts)
+        self.f.append(faces + self.n)
+        self.n += len(verts)
+        m = len(faces)
+        self.mat.append(np.full(m, material, np.uint8))
+        self.tid.append(np.broadcast_to(np.asarray(tree, np.int32), (m,)).copy())
+        self.shade.append(np.broadcast_to(np.asarray(shade, np.float32), (m,)).copy())
+
+    def build(self, bounds: tuple[np.ndarray, np.ndarray]) -> Scene:
+        return Scene(np.concatenate(self.v), np.concatenate(self.f), np.concatenate(self.mat),
+                     np.concatenate(self.tid), np.concatenate(self.shade), bounds)
+
+
+def build_scene(orchard: Orchard, rng: np.random.Generator,
+                extra_bounds: tuple[np.ndarray, np.ndarray] | None = None,
+                ground_step: float = 0.5) -> Scene:
+    """Mesh the whole orchard; ``extra_bounds`` widens the ground (e.g. to the drive path)."""
+    spec = orchard.spec
+    lo, hi = _ground_bounds(orchard, extra_bounds)
+    b = _Builder()
+    _add_ground(b, orchard, lo, hi, ground_step)
+    _add_grass(b, orchard, rng, lo, hi)
+    for tree in orchard.trees:
+        _add_wood(b, tree)
+        _add_foliage(b, tree, rng, spec.foliage_density_shell, spec.foliage_density_core,
+                     spec.leaf_cluster_size_range)
+    top = max((t.crown.z_range[1] for t in orchard.trees), default=5.0)
+    return b.build((np.array([lo[0], lo[1], -50.0]), np.array([hi[0], hi[1], top + 1.0])))
+
+
+def _ground_bounds(orchard: Orchard, extra: tuple[np.ndarray, np.ndarray] | None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    spec = orchard.spec
+    pts = [np.asarray(t.base[:2]) for t in orchard.trees]
+    a0, a1 = orchard.along_range
+    corners = orchard.to_local(np.array([a0 - spec.headland, a0 - spec.headland, a1 + spec.headland,
+                                         a1 + spec.headland]),
+                               np.array([-spec.row_spacing, orchard.row_offsets[-1] + spec.row_spacing] * 2))
+    pts.extend(corners)
+    pts = np.asarray(pts)
+    lo, hi = pts.min(axis=0) - spec.margin, pts.max(axis=0) + spec.margin
+    if extra is not None:
+        lo = np.minimum(lo, np.asarray(extra[0])[:2] - spec.margin)
+        hi = np.maximum(hi, np.asarray(extra[1])[:2] + spec.margin)
+    return lo, hi
+
+
+def _add_ground(b: _Builder, orchard: Orchard, lo: np.ndarray, hi: np.ndarray, step: float) -> None:
+    xs = np.arange(lo[0], hi[0] + step, step)
+    ys = np.arange(lo[1], hi[1] + step, step)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    gz = orchard.terrain.height(gx, gy)
+    verts = np.column_stack([gx.ravel(), gy.ravel(), gz.ravel()])
+    nx, ny = gx.shape
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    a, bb = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
+    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.column_stack([a, bb, c]), np.column_stack([a, c, d])])
+    b.add(verts, faces, GROUND, -1)
+
+
+def _add_grass(b: _Builder, orchard: Orchard, rng: np.random.Generator, lo: np.ndarray,
+               hi: np.ndarray) -> None:
+    spec = orchard.spec
+    if spec.grass_height <= 0 or spec.grass_density <= 0:
+        return
+    n = int(spec.grass_density * np.prod(hi - lo))
+    xy = rng.uniform(lo, hi, (n, 2))
+    z = orchard.terrain.height(xy[:, 0], xy[:, 1])
+    h = spec.grass_height * rng.uniform(0.3, 1.0, n)
+    ang = rng.uniform(0, np.pi, n)
+    w = 0.08 * rng.uniform(0.6, 1.4, n)
+    verts, faces = [], []
+    for k, extra in enumerate((0.0, np.pi / 2)):
+        dx, dy = np.cos(ang + extra) * w, np.sin(ang + extra) * w
+        tip = np.column_stack([xy[:, 0] + rng.normal(0, 0.03, n), xy[:, 1] + rng.normal(0, 0.03, n), z + h])
+        left = np.column_stack([xy[:, 0] - dx, xy[:, 1] - dy, z - 0.02])
+        rightp = np.column_stack([xy[:, 0] + dx, xy[:, 1] + dy, z - 0.02])
+        v = np.stack([left, rightp, tip], axis=1).reshape(-1, 3)
+        verts.append(v)
+        faces.append(np.arange(3 * n).reshape(n, 3) + k * 3 * n)
+    b.add(np.concatenate(verts), np.concatenate(faces), GRASS, -1, rng.uniform(0.7, 1.3, 2 * n))
+
+
+def cylinder(p0: np.ndarray, p1: np.ndarray, r0: float, r1: float, sides: int = 8
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """An open tapered cylinder between two points."""
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    axis = p1 - p0
+    axis /= np.linalg.norm(axis)
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    ang = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    ring = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v
+    verts = np.concatenate([p0 + r0 * ring, p1 + r1 * ring])
+    i = np.arange(sides)
+    j = (i + 1) % sides
+    faces = np.concatenate([np.column_stack([i, j, j + sides]), np.column_stack([i, j + sides, i + sides])])
+    return verts, faces
+
+
+def _add_wood(b: _Builder, tree: Tree) -> None:
+    base = np.asarray(tree.base) - np.array([0, 0, 0.1])
+    top = np.asarray(tree.trunk_top)
+    crown_bottom = tree.crown.z_range[0]
+    # The trunk below the crown is not canopy (tree id -1); the part inside it is.
+    if crown_bottom > base[2] + 0.2 and crown_bottom < top[2]:
+        f = (crown_bottom - base[2]) / (top[2] - base[2])
+        mid = base + f * (top - base)
+        r_mid = tree.trunk_radius * (1 - 0.3 * f)
+        v, fc = cylinder(base, mid, tree.trunk_radius, r_mid)
+        b.add(v, fc, WOOD, -1)
+        v, fc = cylinder(mid, top, r_mid, tree.trunk_radius * 0.7)
+        b.add(v, fc, WOOD, tree.tree_id)
+    else:
+        v, fc = cylinder(base, top, tree.trunk_radius, tree.trunk_radius * 0.7)
+        b.add(v, fc, WOOD, -1)
+    for tip in tree.branch_tips:
+        v, fc = cylinder(top, np.asarray(tip), tree.trunk_radius * 0.45, 0.015, sides=6)
+        b.add(v, fc, WOOD, tree.tree_id)
+
+
+def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float, core: float,
+                 size_range: list[float]) -> None:
+    lo, hi = tree.crown.bounds
+    n_candidates = int(shell * np.prod(hi - lo))
+    p = rng.uniform(lo, hi, (n_candidates, 3))
+    size = rng.uniform(size_range[0], size_range[1], n_candidates)
+    depth = tree.crown.relative_depth(p)
+    rho = np.linalg.norm(p - np.asarray(tree.crown.center), axis=1)
+    # Keep whole clusters inside the envelope: |p - c| + size <= r(u).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_u = np.where(depth > 0, rho / depth, np.inf)
+    inside = rho + size <= r_u
+    keep_prob = (core + (shell - core) * np.clip(depth, 0, 1) ** 3) / shell
+    keep = inside & (rng.random(n_candidates) < keep_prob)
+    p, size = p[keep], size[keep]
+    m = len(p)
+    if m == 0:
+        return
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.random(m, random_state=rng).as_matrix()
+    scale = np.column_stack([size, size * rng.uniform(0.6, 1.0, m), size * rng.uniform(0.25, 0.5, m)])
+    local = _OCTAHEDRON_V[None, :, :] * scale[:, None, :]
+    verts = p[:, None, :] + np.einsum("mij,mkj->mki", rot, local)
+    faces = (_OCTAHEDRON_F[None, :, :] + 6 * np.arange(m)[:, None, None]).reshape(-1, 3)
+    shade = np.repeat(rng.uniform(0.6, 1.4, m), 8)
+    b.add(verts.reshape(-1, 3), faces, FOLIAGE, tree.tree_id, shade)

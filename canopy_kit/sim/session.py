@@ -1,0 +1,190 @@
+"""Simulate a whole field session: orchard, LiDAR/IMU/GNSS bag, truth, optional drone photos."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.config import from_dict, read_toml, to_dict, write_config
+from canopy_kit.errors import InputError
+from canopy_kit.io.atomic import atomic_write_text
+from canopy_kit.io.bag_writer import BagWriter, bag_path_for
+from canopy_kit.sim.config import SimConfig, validate
+from canopy_kit.sim.inertial import simulate_gnss, simulate_imu
+from canopy_kit.sim.lidar import SpinningLidar
+from canopy_kit.sim.orchard import Orchard, generate_orchard
+from canopy_kit.sim.scene import Scene, build_scene
+from canopy_kit.sim.trajectory import Trajectory
+from canopy_kit.sim.truth import tree_table, write_csv
+
+Progress = Callable[[str, float, float], None]
+BAG_NAME = "session"
+SESSION_EPOCH = 1_700_000_000.0
+
+
+@dataclass
+class SimulatedSession:
+    """Paths and objects of a simulated session."""
+
+    root: Path
+    bag: Path
+    truth_dir: Path
+    orchard: Orchard
+    trajectory: Trajectory
+    n_scans: int
+    n_points: int
+    drone_dir: Path | None = None
+
+
+def _streams(seed: int) -> dict[str, np.random.Generator]:
+    names = ["orchard", "scene", "drive", "lidar", "imu", "gnss", "drone"]
+    children = np.random.SeedSequence(seed).spawn(len(names))
+    return {n: np.random.default_rng(c) for n, c in zip(names, children)}
+
+
+def build_world(config: SimConfig) -> tuple[Orchard, Trajectory, Scene, dict[str, np.random.Generator]]:
+    """The orchard, the drive and the scene mesh for a config (deterministic in its seed)."""
+    validate(config)
+    rngs = _streams(config.seed)
+    orchard = generate_orchard(config.orchard, rngs["orchard"])
+    trajectory = Trajectory(orchard, config.drive, config.lidar.mount_height, rngs["drive"],
+                            t0=SESSION_EPOCH, mount_pitch_deg=config.lidar.mount_pitch_deg)
+    t = np.linspace(trajectory.start_time, trajectory.end_time, 2000)
+    path, _ = trajectory.poses(t)
+    scene = build_scene(orchard, rngs["scene"], (path.min(axis=0), path.max(axis=0)))
+    return orchard, trajectory, scene, rngs
+
+
+def find_bag(sim_dir: str | Path) -> Path:
+    """The bag inside a simulated session folder."""
+    root = Path(sim_dir)
+    for candidate in (root / f"{BAG_NAME}.bag", root / BAG_NAME):
+        if candidate.exists():
+            return candidate
+    raise InputError(f"{root}: no simulated bag ({BAG_NAME}.bag or {BAG_NAME}/) in this folder")
+
+
+def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
+                     truth_field: bool = True, overwrite: bool = False,
+                     progress: Progress | None = None) -> SimulatedSession:
+    """Write a complete simulated session into folder ``out``.
+
+    Layout: ``session.bag`` (ROS1) or ``session/`` (ROS2), ``truth/`` (trees.csv,
+    trajectory.csv, frame.json, sim_config.toml) and, when ``config.drone.enabled``,
+    ``drone/`` with geotagged JPEGs.
+    """
+    root = Path(out)
+    bag_path = bag_path_for(root / BAG_NAME, fmt)
+    if root.exists() and any(root.iterdir()):
+        if not overwrite:
+            raise InputError(f"{root}: output folder is not empty (use overwrite to replace it)")
+        shutil.rmtree(root)
+    root.mkdir(parents=True, exist_ok=True)
+    report = progress or (lambda *_: None)
+    orchard, trajectory, scene, rngs = build_world(config)
+    truth_dir = root / "truth"
+    _write_truth(truth_dir, config, orchard, trajectory, fmt, truth_field)
+    lidar = SpinningLidar(config.lidar, scene, trajectory, rngs["lidar"], truth_field)
+    sweeps = lidar.sweep_times()
+    imu = simulate_imu(trajectory, config.imu, rngs["imu"]) if config.imu.enabled else None
+    gnss = simulate_gnss(trajectory, config.gnss, rngs["gnss"]) if config.gnss.enabled else None
+    odo_t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
+    n_points = 0
+    with BagWriter(bag_path, fmt) as writer:
+        cursors = {"imu": 0, "gnss": 0, "odom": 0}
+
+        def flush(until: float) -> None:
+            if imu is not None:
+                i = cursors["imu"]
+                while i < len(imu.t) and imu.t[i] < until:
+                    writer.write_imu(config.imu.topic, imu.t[i], imu.angular_velocity[i],
+                                     imu.linear_acceleration[i], None, config.imu.frame_id)
+                    i += 1
+                cursors["imu"] = i
+            if gnss is not None:
+                i = cursors["gnss"]
+                while i < len(gnss.t) and gnss.t[i] < until:
+                    lat, lon, h = orchard.frame.to_wgs84(gnss.local_xyz[i : i + 1])
+                    writer.write_fix(config.gnss.topic, gnss.t[i], lat[0], lon[0], h[0],
+                                     gnss.sigma_horizontal, gnss.sigma_vertical, gnss.status,
+                                     config.gnss.frame_id)
+                    i += 1
+                cursors["gnss"] = i
+            i = cursors["odom"]
+            j = i
+            while j < len(odo_t) and odo_t[j] < until:
+                j += 1
+            if j > i:
+                pos, rot = trajectory.poses(odo_t[i:j])
+                quat = rot.as_quat()
+                for k in range(j - i):
+                    writer.write_odometry(config.drive.odometry_topic, odo_t[i + k], pos[k], quat[k],
+                                          "map", config.lidar.frame_id)
+            cursors["odom"] = j
+
+        for k, stamp in enumerate(sweeps):
+            end = stamp + lidar.sweep_period
+            flush(end)
+            scan = lidar.sweep(stamp)
+            n_points += len(scan.columns["x"])
+            writer.write_points(config.lidar.topic, stamp, scan.columns, config.lidar.frame_id)
+            report("LiDAR sweeps", k + 1, len(sweeps))
+        flush(trajectory.end_time + 1.0)
+    drone_dir = None
+    if config.drone.enabled:
+        from canopy_kit.sim.drone import simulate_drone_flight
+
+        drone_dir = root / "drone"
+        simulate_drone_flight(orchard, scene, config.drone, drone_dir, truth_dir, rngs["drone"],
+                              progress=report)
+    return SimulatedSession(root, bag_path, truth_dir, orchard, trajectory, len(sweeps), n_points,
+                            drone_dir)
+
+
+def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajectory: Trajectory,
+                 fmt: str, truth_field: bool) -> None:
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    write_csv(tree_table(orchard), truth_dir / "trees.csv")
+    t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
+    pos, rot = trajectory.poses(t)
+    q = rot.as_quat()
+    traj = pd.DataFrame({"time": t, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
+                         "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
+    write_csv(traj, truth_dir / "trajectory.csv", float_format="%.9f")
+    info = {
+        "frame": orchard.frame.to_dict(),
+        "row_direction": orchard.row_direction.tolist(),
+        "right_direction": orchard.right_direction.tolist(),
+        "row_offsets": orchard.row_offsets.tolist(),
+        "path_length_m": trajectory.length,
+        "duration_s": trajectory.duration,
+        "start_time": trajectory.start_time,
+        "bag_format": fmt,
+        "truth_field": truth_field,
+        "sensor_frame": config.lidar.frame_id,
+        "imu_extrinsic": "identity (IMU frame = LiDAR frame)",
+        "gnss_lever_arm_m": [0.0, 0.0, 0.0],
+        "label_convention": "rows numbered left to right along the first pass; "
+                            "even rows L, odd rows R; index along the row direction",
+    }
+    atomic_write_text(truth_dir / "frame.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+    write_config(config, truth_dir / "sim_config.toml")
+
+
+def regenerate_orchard(sim_dir: str | Path) -> Orchard:
+    """Rebuild the orchard of a simulated session from its stored config and seed."""
+    cfg_path = Path(sim_dir) / "truth" / "sim_config.toml"
+    config = from_dict(SimConfig, read_toml(cfg_path), str(cfg_path))
+    return generate_orchard(config.orchard, _streams(config.seed)["orchard"])
+
+
+def load_sim_config_of(sim_dir: str | Path) -> SimConfig:
+    """The config a simulated session was made with."""
+    cfg_path = Path(sim_dir) / "truth" / "sim_config.toml"
+    return from_dict(SimConfig, read_toml(cfg_path), str(cfg_path))
