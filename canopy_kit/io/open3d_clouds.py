@@ -8,7 +8,9 @@ to ``colors``; these stay (N, 3) fields. Other fields are (N,) arrays.
 PLY cannot store int8/int16/uint32/int64/uint64 through Open3D; the writer widens them
 to int32, or float64 when int32 cannot hold the values (exact up to 2**53). Files are
 written binary: Open3D's ASCII PLY keeps 6 significant digits (metres lost on UTM
-coordinates) and its ASCII PCD 8.
+coordinates) and its ASCII PCD 8. Coordinates are written as absolute float64; note
+that Open3D's legacy ``open3d.io`` PCD reader (and PCL's float point types) read
+double-precision x/y/z PCD fields as zeros or not at all, while PLY doubles are widely read.
 """
 
 from __future__ import annotations
@@ -151,7 +153,7 @@ def _read_open3d(path: Path, header: CloudHeader, fmt: str) -> PointCloud:
 
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         try:
-            pcd = o3d.t.io.read_point_cloud(str(path))
+            pcd = o3d.t.io.read_point_cloud(str(path), format=fmt.lower())  # not by suffix
         except Exception as exc:
             raise InputError(f"{path}: {fmt} file cannot be read ({type(exc).__name__}: {exc})") from None
     if "positions" not in pcd.point or len(pcd.point.positions) != header.points:
