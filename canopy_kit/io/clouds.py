@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError
+from canopy_kit.errors import InputError, PluginError
 
 # Coordinates beyond this distance from zero (e.g. UTM) are moved to a local frame.
 LOCAL_LIMIT_M = 10_000.0
@@ -44,13 +44,22 @@ def check_input_file(path: str | Path, what: str = "point-cloud file") -> Path:
     return path
 
 
-def reader_objects() -> list[Any]:
-    """One instance of every registered reader plugin, in name order."""
+def reader_objects(broken: list[str] | None = None) -> list[Any]:
+    """One instance of every registered reader plugin that loads, in name order.
+
+    A reader that fails to load is skipped (one broken third-party package must not stop
+    LAS files from being read); its error is appended to ``broken`` when given.
+    """
     from canopy_kit import plugins
 
     out = []
     for name in plugins.names("readers"):
-        target = plugins.load("readers", name)
+        try:
+            target = plugins.load("readers", name)
+        except PluginError as exc:
+            if broken is not None:
+                broken.append(str(exc))
+            continue
         out.append(target() if isinstance(target, type) else target)
     return out
 
@@ -65,7 +74,8 @@ def find_reader(path: str | Path, kind: str | None = None) -> Any:
         raise InputError(f"{path}: file or folder does not exist")
     if path.is_file() and path.stat().st_size == 0:
         raise InputError(f"{path}: file is empty (0 bytes)")
-    readers = reader_objects()
+    broken: list[str] = []
+    readers = reader_objects(broken)
     suffix = path.suffix.lower()
     chosen = None
     if path.is_file():
@@ -74,8 +84,10 @@ def find_reader(path: str | Path, kind: str | None = None) -> Any:
         chosen = next((r for r in readers if _sniffs(r, path)), None)
     if chosen is None:
         known = sorted({s for r in readers for s in r.suffixes})
+        note = f"; reader plugins that failed to load: {' | '.join(broken)}" if broken else ""
         raise InputError(
-            f"{path}: unknown file format (suffix {suffix or 'none'!r}; readable: {', '.join(known)})"
+            f"{path}: unknown file format (suffix {suffix or 'none'!r}; readable: "
+            f"{', '.join(known)}){note}"
         )
     if kind is not None and chosen.kind != kind:
         raise InputError(
