@@ -28,7 +28,9 @@ def cli_command() -> list[str]:
 
 
 def run_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*cli_command(), *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [*cli_command(), *args], check=False, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_help_is_fast() -> None:
@@ -48,7 +50,9 @@ def test_import_does_not_load_heavy_libraries() -> None:
         "import canopy_kit.io.open3d_clouds, canopy_kit.io.info, canopy_kit.io.bag\n"
         f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))\n"
     )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout) == []
 
@@ -62,7 +66,9 @@ def test_the_check_above_would_see_a_heavy_import() -> None:
         "d = tempfile.mkdtemp(); write_cloud(os.path.join(d, 'a.ply'), PointCloud(np.eye(3)))\n"
         "print('open3d' in sys.modules)\n"
     )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120
+    )
     assert result.stdout.strip() == "True", result.stderr
 
 
@@ -71,8 +77,10 @@ def small_laz(tmp_path: Path) -> Path:
     rng = np.random.default_rng(5)
     cloud = PointCloud(
         np.round(rng.uniform(0, 50, (321, 3)), 3),
-        {"intensity": rng.integers(0, 4000, 321).astype(np.uint16),
-         "treeID": rng.integers(1, 9, 321).astype(np.float64)},
+        {
+            "intensity": rng.integers(0, 4000, 321).astype(np.uint16),
+            "treeID": rng.integers(1, 9, 321).astype(np.float64),
+        },
         crs="EPSG:32611",
         origin=np.array([400000.0, 4000000.0, 0.0]),
     )
@@ -95,17 +103,25 @@ def test_info_on_laz(small_laz: Path) -> None:
 def test_info_on_bag(tmp_path: Path, fmt: str) -> None:
     with BagWriter(tmp_path / "drive", fmt) as w:
         for k in range(3):
-            w.write_points("/lidar/points", 10.0 + k * 0.1,
-                           {"x": np.zeros(5, np.float32), "y": np.ones(5, np.float32),
-                            "z": np.full(5, 2, np.float32)})
+            w.write_points(
+                "/lidar/points",
+                10.0 + k * 0.1,
+                {
+                    "x": np.zeros(5, np.float32),
+                    "y": np.ones(5, np.float32),
+                    "z": np.full(5, 2, np.float32),
+                },
+            )
         for k in range(7):
             w.write_imu("/imu", 10.0 + k * 0.05, (0, 0, 0), (0, 0, 9.81))
     result = run_cli("info", str(w.path), "--json")
     assert result.returncode == 0, result.stderr
     facts = json.loads(result.stdout)
     topics = {t["name"]: (t["type"], t["count"]) for t in facts["topics"]}
-    assert topics == {"/lidar/points": ("sensor_msgs/msg/PointCloud2", 3),
-                      "/imu": ("sensor_msgs/msg/Imu", 7)}
+    assert topics == {
+        "/lidar/points": ("sensor_msgs/msg/PointCloud2", 3),
+        "/imu": ("sensor_msgs/msg/Imu", 7),
+    }
     assert facts["duration_s"] == pytest.approx(0.3, abs=1e-6)
     table = run_cli("info", str(w.path))
     assert table.returncode == 0 and "/lidar/points" in table.stdout and "topics" in table.stdout

@@ -74,9 +74,15 @@ def test_unknown_key_is_named(data: dict, where: str, key: str) -> None:
         ({"seed": 1.5}, "config.seed: expected an integer, got 1.5"),
         ({"preprocess": {"voxel_size": "0.1"}}, "config.preprocess.voxel_size: expected a number"),
         ({"mapping": {"deskew": 1}}, "config.mapping.deskew: expected true or false, got 1"),
-        ({"preprocess": {"voxelize": "never"}}, "config.preprocess.voxelize: 'never' is not one of"),
+        (
+            {"preprocess": {"voxelize": "never"}},
+            "config.preprocess.voxelize: 'never' is not one of",
+        ),
         ({"volume": {"methods": "alpha_shape"}}, "config.volume.methods: expected a list"),
-        ({"volume": {"methods": ["alpha_shape", 3]}}, "config.volume.methods[1]: expected a string"),
+        (
+            {"volume": {"methods": ["alpha_shape", 3]}},
+            "config.volume.methods[1]: expected a string",
+        ),
         ({"mapping": 5}, "config.mapping: expected a table"),
     ],
 )
@@ -125,5 +131,9 @@ def test_preset_file_errors_name_the_file(tmp_path: Path) -> None:
 def test_unknown_preset_lists_the_shipped_ones() -> None:
     with pytest.raises(ConfigError) as err:
         load_preset("walnut")
-    assert "'walnut'" in str(err.value) and "almond" in str(err.value) and "pistachio" in str(err.value)
+    assert (
+        "'walnut'" in str(err.value)
+        and "almond" in str(err.value)
+        and "pistachio" in str(err.value)
+    )
     assert isinstance(err.value, InputError)  # the CLI maps it to exit code 2

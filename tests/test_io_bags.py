@@ -63,20 +63,32 @@ def _hesai_columns(i: int, stamp: float) -> dict[str, np.ndarray]:
 
 
 IMU = [
-    (T0 + k * 0.0625, (0.01 * k, -0.02 * k, 0.5), (0.1, -0.2 * k, 9.81), (0.0, 0.0, np.sin(k / 10), np.cos(k / 10)))
+    (
+        T0 + k * 0.0625,
+        (0.01 * k, -0.02 * k, 0.5),
+        (0.1, -0.2 * k, 9.81),
+        (0.0, 0.0, np.sin(k / 10), np.cos(k / 10)),
+    )
     for k in range(12)
 ]
 FIXES = [(T0 + k * 0.5, 41.6671 + 1e-6 * k, 0.4576 - 2e-6 * k, 283.5 + 0.01 * k) for k in range(4)]
-ODOM = [(T0 + k * 0.25, (1.5 * k, -0.25 * k, 0.1), (0.0, 0.0, np.sin(k / 8), np.cos(k / 8))) for k in range(5)]
+ODOM = [
+    (T0 + k * 0.25, (1.5 * k, -0.25 * k, 0.1), (0.0, 0.0, np.sin(k / 8), np.cos(k / 8)))
+    for k in range(5)
+]
 
 
 def write_full_bag(path: Path, fmt: str) -> Path:
     """A bag with three PointCloud2 time conventions, Imu, NavSatFix and Odometry."""
     with BagWriter(path, fmt) as w:
         for i in range(3):
-            w.write_points("/ouster/points", T0 + i * SCAN_DT, _ouster_columns(i), frame_id="os_lidar")
+            w.write_points(
+                "/ouster/points", T0 + i * SCAN_DT, _ouster_columns(i), frame_id="os_lidar"
+            )
         for i in range(2):
-            w.write_points("/velodyne_points", T0 + i * SCAN_DT, _velodyne_columns(i), frame_id="velodyne")
+            w.write_points(
+                "/velodyne_points", T0 + i * SCAN_DT, _velodyne_columns(i), frame_id="velodyne"
+            )
         w.write_points("/hesai/pandar", T0, _hesai_columns(0, T0), frame_id="hesai")
         for stamp, gyro, acc, quat in IMU:
             w.write_imu("/imu/data", stamp, gyro, acc, quat)
@@ -120,7 +132,9 @@ def test_ouster_scans_round_trip(full_bag: Path) -> None:
         assert scan.frame_id == "os_lidar"
         assert abs(scan.stamp - stamp) < TIME_TOL
         assert scan.xyz.dtype == np.float64
-        np.testing.assert_array_equal(scan.xyz, np.column_stack([cols[c] for c in "xyz"]).astype(np.float64))
+        np.testing.assert_array_equal(
+            scan.xyz, np.column_stack([cols[c] for c in "xyz"]).astype(np.float64)
+        )
         assert set(scan.fields) == {"intensity", "t", "ring"}
         for name in ("intensity", "t", "ring"):
             assert scan.fields[name].dtype == cols[name].dtype
@@ -203,16 +217,29 @@ def _hand_built_cloud(typestore: object, ros1: bool, big_endian: bool) -> tuple[
         data[base + 12] = int(intensity[k])
     t = typestore.types  # type: ignore[attr-defined]
     pf = t["sensor_msgs/msg/PointField"]
-    fields = [pf(name="x", offset=0, datatype=7, count=1), pf(name="y", offset=4, datatype=7, count=1),
-              pf(name="z", offset=8, datatype=7, count=1),
-              pf(name="intensity", offset=12, datatype=2, count=1)]
+    fields = [
+        pf(name="x", offset=0, datatype=7, count=1),
+        pf(name="y", offset=4, datatype=7, count=1),
+        pf(name="z", offset=8, datatype=7, count=1),
+        pf(name="intensity", offset=12, datatype=2, count=1),
+    ]
     stamp = t["builtin_interfaces/msg/Time"](sec=int(T0), nanosec=250_000_000)
-    header = (t["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="organised") if ros1
-              else t["std_msgs/msg/Header"](stamp=stamp, frame_id="organised"))
+    header = (
+        t["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="organised")
+        if ros1
+        else t["std_msgs/msg/Header"](stamp=stamp, frame_id="organised")
+    )
     msg = t["sensor_msgs/msg/PointCloud2"](
-        header=header, height=ROWS, width=COLS, fields=fields, is_bigendian=big_endian,
-        point_step=POINT_STEP, row_step=row_step, data=np.frombuffer(bytes(data), np.uint8),
-        is_dense=True)
+        header=header,
+        height=ROWS,
+        width=COLS,
+        fields=fields,
+        is_bigendian=big_endian,
+        point_step=POINT_STEP,
+        row_step=row_step,
+        data=np.frombuffer(bytes(data), np.uint8),
+        is_dense=True,
+    )
     return msg, np.column_stack([xyz, intensity])
 
 
@@ -250,9 +277,12 @@ def test_padded_organised_pointcloud2(tmp_path: Path, fmt: str, big_endian: bool
 
 # --- bad input -----------------------------------------------------------------------
 
+
 def _bag_file(path: Path) -> Path:
     """The file holding a bag's messages (ROS1: the bag; ROS2: the storage file)."""
-    return path if path.is_file() else next(p for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
+    return (
+        path if path.is_file() else next(p for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
+    )
 
 
 @pytest.mark.parametrize("fmt", BAG_FORMATS)
@@ -261,9 +291,8 @@ def test_truncated_bag(tmp_path: Path, fmt: str) -> None:
     storage = _bag_file(path)
     data = storage.read_bytes()
     storage.write_bytes(data[: len(data) // 2])  # cut a real bag in the middle
-    with pytest.raises(InputError) as err:
-        with open_bag(path) as bag:
-            list(bag.scans())
+    with pytest.raises(InputError) as err, open_bag(path) as bag:
+        list(bag.scans())
     message = str(err.value)
     assert str(path) in message
     assert "cannot open bag" in message
@@ -272,9 +301,8 @@ def test_truncated_bag(tmp_path: Path, fmt: str) -> None:
 def test_bag_without_pointcloud2(tmp_path: Path) -> None:
     with BagWriter(tmp_path / "imu_only", "ros2-sqlite3") as w:
         w.write_imu("/imu", T0, (0, 0, 0), (0, 0, 9.81))
-    with open_bag(w.path) as bag:
-        with pytest.raises(InputError) as err:
-            next(bag.scans())
+    with open_bag(w.path) as bag, pytest.raises(InputError) as err:
+        next(bag.scans())
     assert str(w.path) in str(err.value)
     assert "no sensor_msgs/msg/PointCloud2 topic" in str(err.value)
 
@@ -284,9 +312,8 @@ def test_pointcloud2_without_xyz(tmp_path: Path, fmt: str) -> None:
     cols = {"range": np.ones(10, np.float32), "azimuth": np.zeros(10, np.float32)}
     with BagWriter(tmp_path / "no_xyz", fmt) as w:
         w.write_points("/points", T0, cols)
-    with open_bag(w.path) as bag:
-        with pytest.raises(InputError) as err:
-            next(bag.scans())
+    with open_bag(w.path) as bag, pytest.raises(InputError) as err:
+        next(bag.scans())
     message = str(err.value)
     assert str(w.path) in message and "'/points'" in message and "scan 0" in message
     assert "no x/y/z field" in message and "range, azimuth" in message

@@ -35,12 +35,19 @@ def shared_data() -> Path:
 
 # Facts from ../shared/data/README.md (read there with laspy by whoever fetched the files).
 REAL_FILES = {
-    "lidr/MixedConifer.laz": {"points": 37_657, "crs": "EPSG:26912", "format": 1,
-                              "extra": {"treeID": "float64"}},
+    "lidr/MixedConifer.laz": {
+        "points": 37_657,
+        "crs": "EPSG:26912",
+        "format": 1,
+        "extra": {"treeID": "float64"},
+    },
     "lidr/Topography.laz": {"points": 73_403, "crs": "EPSG:2949", "format": 1, "extra": {}},
-    "lidr/dbh.laz": {"points": 1_369, "crs": None, "format": 1,
-                     "extra": {"Range": "float64", "Ring": "float64", "hag": "float64",
-                               "cluster": "int32"}},
+    "lidr/dbh.laz": {
+        "points": 1_369,
+        "crs": None,
+        "format": 1,
+        "extra": {"Range": "float64", "Ring": "float64", "hag": "float64", "cluster": "int32"},
+    },
     "treels/pine.laz": {"points": 73_851, "crs": None, "format": 0, "extra": {}},
     "treels/spruce.laz": {"points": 83_392, "crs": None, "format": 0, "extra": {}},
     "treels/pine_plot.laz": {"points": 114_024, "crs": None, "format": 0, "extra": {}},
@@ -144,7 +151,7 @@ def test_rewrite_at_file_scale_is_exact(real_laz: tuple[Path, dict], tmp_path: P
         assert shift == round(shift)
         np.testing.assert_array_equal(
             np.asarray(copy[name]).astype(np.int64) - np.asarray(original[name]).astype(np.int64),
-            np.full(len(original.points), int(round(shift))),
+            np.full(len(original.points), round(shift)),
         )
     for name in set(original.point_format.dimension_names) - {"X", "Y", "Z"}:
         before, after = np.asarray(original[name]), np.asarray(copy[name])
@@ -152,8 +159,9 @@ def test_rewrite_at_file_scale_is_exact(real_laz: tuple[Path, dict], tmp_path: P
             assert np.array_equal(np.isnan(after), before == DBL_MAX)
             before, after = before[before != DBL_MAX], after[before != DBL_MAX]
         np.testing.assert_array_equal(after, before)
-    assert ({d.name for d in copy.point_format.extra_dimensions}
-            == {d.name for d in original.point_format.extra_dimensions})
+    assert {d.name for d in copy.point_format.extra_dimensions} == {
+        d.name for d in original.point_format.extra_dimensions
+    }
     if facts["crs"]:
         assert copy.header.parse_crs().to_epsg() == int(facts["crs"].split(":")[1])
 
@@ -165,12 +173,16 @@ def test_rewrite_at_coarser_scale_is_within_half_scale(tmp_path: Path) -> None:
     copy = laspy.read(tmp_path / "coarse.las")
     assert not copy.header.are_points_compressed
     np.testing.assert_array_equal(copy.header.scales, [0.001] * 3)
-    diff = np.column_stack([np.asarray(copy.x), np.asarray(copy.y), np.asarray(copy.z)]) - cloud.absolute_xyz
+    diff = (
+        np.column_stack([np.asarray(copy.x), np.asarray(copy.y), np.asarray(copy.z)])
+        - cloud.absolute_xyz
+    )
     assert np.abs(diff).max() <= 0.0005 + 1e-9
     assert np.abs(diff).max() > 0  # the coarser grid really rounds
 
 
 # --- round trips of synthetic clouds -------------------------------------------------
+
 
 def synthetic_cloud(n: int = 2_000, seed: int = 7) -> PointCloud:
     """A UTM-placed cloud with standard and extra attributes of many dtypes."""
@@ -218,7 +230,9 @@ def test_las_round_trip_with_extra_attributes(tmp_path: Path, suffix: str) -> No
 
 def test_las_float64_coordinates_within_scale(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
-    cloud = PointCloud(rng.uniform(-50, 50, (500, 3)), origin=np.array([500000.0, 4200000.0, 100.0]))
+    cloud = PointCloud(
+        rng.uniform(-50, 50, (500, 3)), origin=np.array([500000.0, 4200000.0, 100.0])
+    )
     for scale in (0.001, 0.0001):
         path = write_las(tmp_path / f"s{scale}.laz", cloud, scale=scale)
         back = read_las(path)
@@ -230,7 +244,9 @@ def test_las_float64_coordinates_within_scale(tmp_path: Path) -> None:
 
 def test_las_wkt_only_crs_round_trip(tmp_path: Path) -> None:
     pyproj = pytest.importorskip("pyproj")
-    wkt = pyproj.CRS.from_proj4("+proj=tmerc +lat_0=41 +lon_0=0.45 +k=1 +x_0=0 +y_0=0 +ellps=GRS80 +units=m").to_wkt()
+    wkt = pyproj.CRS.from_proj4(
+        "+proj=tmerc +lat_0=41 +lon_0=0.45 +k=1 +x_0=0 +y_0=0 +ellps=GRS80 +units=m"
+    ).to_wkt()
     cloud = PointCloud(np.zeros((3, 3)) + [[0, 0, 0], [1, 2, 3], [4, 5, 6]], crs=wkt)
     path = write_las(tmp_path / "custom.laz", cloud)
     las = laspy.read(path)
@@ -244,7 +260,10 @@ def test_las_point_format_choice(tmp_path: Path) -> None:
     xyz = np.zeros((4, 3))
     rgb = {c: np.array([0, 1000, 40000, 65535], np.uint16) for c in ("red", "green", "blue")}
     assert laspy.read(write_las(tmp_path / "a.las", PointCloud(xyz))).header.point_format.id == 0
-    assert laspy.read(write_las(tmp_path / "b.las", PointCloud(xyz, dict(rgb)))).header.point_format.id == 2
+    assert (
+        laspy.read(write_las(tmp_path / "b.las", PointCloud(xyz, dict(rgb)))).header.point_format.id
+        == 2
+    )
     classes = {"classification": np.array([1, 2, 40, 200], np.uint8)}  # > 31 needs format 6+
     las = laspy.read(write_las(tmp_path / "c.las", PointCloud(xyz, classes)))
     assert las.header.point_format.id == 6
@@ -259,8 +278,9 @@ def test_open3d_round_trip_with_extra_attributes(tmp_path: Path, suffix: str) ->
     rng = np.random.default_rng(11)
     cloud = synthetic_cloud()
     # unrounded coordinates: binary float64 must carry every bit
-    cloud = PointCloud(cloud.xyz + rng.uniform(0, 1e-3, cloud.xyz.shape), cloud.fields,
-                       origin=cloud.origin).with_field("normals", rng.normal(size=(len(cloud), 3)))
+    cloud = PointCloud(
+        cloud.xyz + rng.uniform(0, 1e-3, cloud.xyz.shape), cloud.fields, origin=cloud.origin
+    ).with_field("normals", rng.normal(size=(len(cloud), 3)))
     path = write_cloud(tmp_path / f"cloud{suffix}", cloud)
     np.testing.assert_array_equal(_positions_in_file(path), cloud.absolute_xyz)
     back = read_cloud(path)
@@ -270,7 +290,9 @@ def test_open3d_round_trip_with_extra_attributes(tmp_path: Path, suffix: str) ->
     for name, values in cloud.fields.items():
         got = back.fields[name]
         assert got.shape == values.shape, name
-        np.testing.assert_array_equal(got.astype(np.float64), values.astype(np.float64), err_msg=name)
+        np.testing.assert_array_equal(
+            got.astype(np.float64), values.astype(np.float64), err_msg=name
+        )
     widened = {"deviation": "int32", "big_id": "float64"} if suffix == ".ply" else {}
     for name, values in cloud.fields.items():
         expected = widened.get(name, "uint8" if values.dtype == bool else str(values.dtype))
@@ -287,10 +309,16 @@ def _positions_in_file(path: Path) -> np.ndarray:
         return np.asarray(o3d.io.read_point_cloud(str(path)).points)
     data = path.read_bytes()
     head, body = data.split(b"DATA binary\n", 1)
-    keys = {ln.split()[0]: ln.split()[1:] for ln in head.decode().splitlines() if ln and ln[0] != "#"}
+    keys = {
+        ln.split()[0]: ln.split()[1:] for ln in head.decode().splitlines() if ln and ln[0] != "#"
+    }
     kinds = {"F": "f", "I": "i", "U": "u"}
-    dtype = np.dtype([(name, f"<{kinds[t]}{s}") for name, t, s in
-                      zip(keys["FIELDS"], keys["TYPE"], keys["SIZE"])])
+    dtype = np.dtype(
+        [
+            (name, f"<{kinds[t]}{s}")
+            for name, t, s in zip(keys["FIELDS"], keys["TYPE"], keys["SIZE"])
+        ]
+    )
     points = np.frombuffer(body, dtype=dtype, count=int(keys["POINTS"][0]))
     assert keys["TYPE"][:3] == ["F", "F", "F"] and keys["SIZE"][:3] == ["8", "8", "8"]
     return np.column_stack([points[c] for c in "xyz"])
@@ -316,13 +344,17 @@ def test_dispatch_by_content_when_suffix_is_unknown(tmp_path: Path) -> None:
 def test_writes_are_atomic(tmp_path: Path) -> None:
     cloud = synthetic_cloud(20)
     with pytest.raises(InputError):
-        write_las(tmp_path / "bad.laz", cloud.with_field("name_is_far_too_long_for_a_las_extra_dim", np.zeros(20)))
+        write_las(
+            tmp_path / "bad.laz",
+            cloud.with_field("name_is_far_too_long_for_a_las_extra_dim", np.zeros(20)),
+        )
     assert list(tmp_path.iterdir()) == []  # neither the target nor a temporary file
     write_cloud(tmp_path / "ok.ply", cloud)
     assert [p.name for p in tmp_path.iterdir()] == ["ok.ply"]
 
 
 # --- bad input -----------------------------------------------------------------------
+
 
 def _message(path: Path) -> str:
     with pytest.raises(InputError) as err:
@@ -350,8 +382,10 @@ def test_las_with_zero_points(tmp_path: Path) -> None:
 
 def test_ply_with_zero_points(tmp_path: Path) -> None:
     path = tmp_path / "none.ply"
-    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
-                     b"property float y\nproperty float z\nend_header\n")
+    path.write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n"
+    )
     assert "has no points" in _message(path)
 
 
@@ -388,8 +422,10 @@ def test_truncated_ply_pcd(tmp_path: Path, suffix: str) -> None:
 def test_truncated_ascii_ply(tmp_path: Path) -> None:
     rows = "\n".join(f"{i} {i + 1} {i + 2}" for i in range(5))
     path = tmp_path / "cut_ascii.ply"
-    path.write_text("ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
-                    f"property float z\nend_header\n{rows}\n")
+    path.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
+        f"property float z\nend_header\n{rows}\n"
+    )
     assert "5 data lines for 10 declared" in _message(path)
 
 

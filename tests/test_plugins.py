@@ -50,10 +50,10 @@ def test_cloud_readers_sniff_only_their_own_format(tmp_path: Path) -> None:
             assert reader.sniff(path) == (suffix in reader.suffixes), (reader.name, suffix)
 
 
-def _fake_entry_points(*extra: EntryPoint):  # noqa: ANN202
+def _fake_entry_points(*extra: EntryPoint):
     real = plugins.entry_points
 
-    def entry_points(group: str):  # noqa: ANN202
+    def entry_points(group: str):
         return list(real(group=group)) + [ep for ep in extra if ep.group == group]
 
     return entry_points
@@ -116,4 +116,6 @@ def test_broken_reader_plugin_does_not_stop_other_formats(
         read_cloud(unknown)
     message = str(err.value)
     assert "unknown file format" in message
-    assert "failed to load" in message and "'broken'" in message and "ModuleNotFoundError" in message
+    assert (
+        "failed to load" in message and "'broken'" in message and "ModuleNotFoundError" in message
+    )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import struct
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -37,8 +37,9 @@ def pcap() -> Path:
 @pytest.fixture(scope="module")
 def veloview_frame0() -> np.ndarray:
     """Columns: 3-5 X/Y/Z m, 6 intensity, 7 laser_id, 8 azimuth 0.01°, 9 distance m, 11 µs past hour."""
-    return np.genfromtxt(sample_dir() / "velodyne_data_20frames_sample_frame_0000.csv",
-                         delimiter=",", skip_header=1)
+    return np.genfromtxt(
+        sample_dir() / "velodyne_data_20frames_sample_frame_0000.csv", delimiter=",", skip_header=1
+    )
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +47,9 @@ def all_scans(pcap: Path) -> list:
     return list(scans(pcap))
 
 
-def test_first_full_rotation_matches_veloview_frame0(all_scans: list, veloview_frame0: np.ndarray) -> None:
+def test_first_full_rotation_matches_veloview_frame0(
+    all_scans: list, veloview_frame0: np.ndarray
+) -> None:
     csv = veloview_frame0
     assert len(csv) == 20_197
     # The capture starts at 315°: scan 0 is the partial turn VeloView leaves out.
@@ -67,11 +70,12 @@ def test_first_full_rotation_matches_veloview_frame0(all_scans: list, veloview_f
 
 def test_point_times_are_absolute_utc(all_scans: list) -> None:
     scan = all_scans[1]
-    first = datetime.fromtimestamp(scan.times[0], timezone.utc)
+    first = datetime.fromtimestamp(scan.times[0], UTC)
     # 190,271,170 µs past 08:00 on the capture day (2018-08-01)
     assert first.strftime("%Y-%m-%d %H:%M") == "2018-08-01 08:03"
-    assert scan.times[0] == pytest.approx(datetime(2018, 8, 1, 8, tzinfo=timezone.utc).timestamp()
-                                          + 190.271170, abs=1e-6)
+    assert scan.times[0] == pytest.approx(
+        datetime(2018, 8, 1, 8, tzinfo=UTC).timestamp() + 190.271170, abs=1e-6
+    )
     assert scan.stamp == scan.times[0]
     assert np.all(np.diff(scan.times) >= 0)
     assert 0.095 < scan.times[-1] - scan.times[0] < 0.1  # one turn at 600 rpm

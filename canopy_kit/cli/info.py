@@ -9,7 +9,9 @@ import typer
 
 
 def info(
-    path: Path = typer.Argument(..., help="A ROS1 .bag, a ROS2 bag folder, or a LAS/LAZ/PLY/PCD file"),
+    path: Path = typer.Argument(
+        ..., help="A ROS1 .bag, a ROS2 bag folder, or a LAS/LAZ/PLY/PCD file"
+    ),
     json_output: bool = typer.Option(False, "--json", help="Print the facts as JSON"),
 ) -> None:
     """Show what a bag (topics, types, counts, time span) or point cloud (points,

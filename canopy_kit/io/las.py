@@ -57,7 +57,9 @@ def _parse_crs(header: Any, path: Path) -> str | None:
     try:
         return crs_string(header.parse_crs())
     except Exception as exc:  # pyproj and laspy raise several types for odd CRS records
-        raise InputError(f"{path}: CRS record cannot be parsed ({type(exc).__name__}: {exc})") from None
+        raise InputError(
+            f"{path}: CRS record cannot be parsed ({type(exc).__name__}: {exc})"
+        ) from None
 
 
 def _no_data_values(header: Any) -> dict[str, float]:
@@ -98,7 +100,10 @@ def read_las(path: str | Path) -> PointCloud:
     origin = las_origin(header)
     raw = [np.asarray(las[c]) for c in ("X", "Y", "Z")]
     xyz = np.column_stack(
-        [r.astype(np.float64) * s + (o - g) for r, s, o, g in zip(raw, header.scales, header.offsets, origin)]
+        [
+            r.astype(np.float64) * s + (o - g)
+            for r, s, o, g in zip(raw, header.scales, header.offsets, origin)
+        ]
     )
     no_data = _no_data_values(header)
     fields: dict[str, np.ndarray] = {}
@@ -129,8 +134,9 @@ def describe_las(path: str | Path) -> dict[str, Any]:
         dtype = dim.dtype if dim.dtype is not None else np.dtype("u1")  # bit fields
         if dim.is_scaled:
             dtype = np.dtype("f8")
-        attributes.append({"name": dim.name, "dtype": str(np.dtype(dtype)),
-                           "extra": not dim.is_standard})
+        attributes.append(
+            {"name": dim.name, "dtype": str(np.dtype(dtype)), "extra": not dim.is_standard}
+        )
     return {
         "path": str(path),
         "format": "LAZ" if header.are_points_compressed else "LAS",
@@ -168,8 +174,10 @@ def choose_point_format(fields: dict[str, np.ndarray]) -> int:
     for fmt_id in WRITABLE_FORMATS:
         fmt = laspy.PointFormat(fmt_id)
         standard = set(fmt.dimension_names)
-        if any(k in standard and not _fits_standard(np.asarray(v), fmt.dimension_by_name(k))
-               for k, v in fields.items()):
+        if any(
+            k in standard and not _fits_standard(np.asarray(v), fmt.dimension_by_name(k))
+            for k, v in fields.items()
+        ):
             continue
         extras = sum(1 for k in fields if k not in standard)
         if best is None or extras < best[0]:
@@ -179,8 +187,10 @@ def choose_point_format(fields: dict[str, np.ndarray]) -> int:
 
 def _extra_bytes_type(name: str, values: np.ndarray, path: Path) -> str:
     if values.ndim not in (1, 2) or (values.ndim == 2 and values.shape[1] > 3):
-        raise InputError(f"{path}: field {name!r} has shape {values.shape}; LAS extra bytes "
-                         f"hold 1-3 values per point")
+        raise InputError(
+            f"{path}: field {name!r} has shape {values.shape}; LAS extra bytes "
+            f"hold 1-3 values per point"
+        )
     if len(name) > 32:
         raise InputError(f"{path}: field name {name!r} is longer than the 32 characters LAS allows")
     code = "u1" if values.dtype.kind == "b" else values.dtype.newbyteorder("<").str[1:]
@@ -203,8 +213,9 @@ def _write_offsets(cloud: PointCloud, scale: float, path: Path) -> np.ndarray:
     return offsets
 
 
-def write_las(path: str | Path, cloud: PointCloud, point_format: int | None = None,
-              scale: float = 0.001) -> Path:
+def write_las(
+    path: str | Path, cloud: PointCloud, point_format: int | None = None, scale: float = 0.001
+) -> Path:
     """Write a PointCloud as LAS or LAZ (by suffix), absolute = xyz + origin, atomically.
 
     ``point_format`` None picks the smallest format that holds the standard fields; fields
@@ -232,8 +243,9 @@ def write_las(path: str | Path, cloud: PointCloud, point_format: int | None = No
     header.scales = np.full(3, float(scale))
     header.offsets = _write_offsets(cloud, float(scale), path)
     extra = [k for k in fields if k not in standard]
-    header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=_extra_bytes_type(k, fields[k], path))
-                           for k in extra])
+    header.add_extra_dims(
+        [laspy.ExtraBytesParams(name=k, type=_extra_bytes_type(k, fields[k], path)) for k in extra]
+    )
     if crs is not None:
         header.add_crs(crs, keep_compatibility=not wkt_only)
     las = laspy.LasData(header)
@@ -245,8 +257,10 @@ def write_las(path: str | Path, cloud: PointCloud, point_format: int | None = No
     for name, values in fields.items():
         if name in standard and not _fits_standard(values, fmt.dimension_by_name(name)):
             dim = fmt.dimension_by_name(name)
-            raise InputError(f"{path}: field {name!r} ({values.dtype}) does not fit LAS point "
-                             f"format {fmt_id} dimension {name} (range {dim.min}..{dim.max})")
+            raise InputError(
+                f"{path}: field {name!r} ({values.dtype}) does not fit LAS point "
+                f"format {fmt_id} dimension {name} (range {dim.min}..{dim.max})"
+            )
         if name in standard and fmt.dimension_by_name(name).kind.name != "FloatingPoint":
             values = values.astype(fmt.dimension_by_name(name).dtype or np.uint8)
         las[name] = values.astype(np.uint8) if values.dtype.kind == "b" else values

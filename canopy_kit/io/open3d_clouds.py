@@ -26,9 +26,24 @@ from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_path
 from canopy_kit.io.clouds import check_input_file, local_origin
 
-PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2,
-             "ushort": 2, "uint16": 2, "int": 4, "int32": 4, "uint": 4, "uint32": 4,
-             "float": 4, "float32": 4, "double": 8, "float64": 8}
+PLY_SIZES = {
+    "char": 1,
+    "int8": 1,
+    "uchar": 1,
+    "uint8": 1,
+    "short": 2,
+    "int16": 2,
+    "ushort": 2,
+    "uint16": 2,
+    "int": 4,
+    "int32": 4,
+    "uint": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
 PLY_WRITABLE = {"u1", "u2", "i4", "f4", "f8"}
 VECTOR_FIELDS = ("normals", "colors")  # Open3D's (N, 3) attributes
 MAX_HEADER_BYTES = 1 << 16
@@ -96,8 +111,12 @@ def ply_header(path: Path) -> CloudHeader:
     if encoding == "ascii":
         before = sum(e[1] for e in elements[: elements.index(vertex)])
         lines_found = _count_data_lines(path, body)
-        return CloudHeader(encoding, count, lines_found >= before + count,
-                           f"{lines_found} data lines for {before + count} declared")
+        return CloudHeader(
+            encoding,
+            count,
+            lines_found >= before + count,
+            f"{lines_found} data lines for {before + count} declared",
+        )
     if elements[0] is vertex and None not in vertex[2]:
         needed = count * sum(vertex[2])
         return CloudHeader(encoding, count, size >= needed, f"{size} data bytes, {needed} needed")
@@ -129,7 +148,9 @@ def pcd_header(path: Path) -> CloudHeader:
     size = path.stat().st_size - body
     if encoding == "ascii":
         found = _count_data_lines(path, body)
-        return CloudHeader(encoding, count, found >= count, f"{found} data lines for {count} points")
+        return CloudHeader(
+            encoding, count, found >= count, f"{found} data lines for {count} points"
+        )
     if encoding == "binary" and sizes:
         needed = count * sum(s * c for s, c in zip(sizes, counts))
         return CloudHeader(encoding, count, size >= needed, f"{size} data bytes, {needed} needed")
@@ -138,8 +159,12 @@ def pcd_header(path: Path) -> CloudHeader:
             fh.seek(body)
             sizes_raw = fh.read(8)
         compressed = int.from_bytes(sizes_raw[:4], "little") if len(sizes_raw) == 8 else -1
-        return CloudHeader(encoding, count, 0 <= compressed <= size - 8,
-                           f"{size - 8} data bytes, {compressed} compressed bytes declared")
+        return CloudHeader(
+            encoding,
+            count,
+            0 <= compressed <= size - 8,
+            f"{size - 8} data bytes, {compressed} compressed bytes declared",
+        )
     return CloudHeader(encoding, count, True)
 
 
@@ -155,19 +180,27 @@ def _read_open3d(path: Path, header: CloudHeader, fmt: str) -> PointCloud:
         try:
             pcd = o3d.t.io.read_point_cloud(str(path), format=fmt.lower())  # not by suffix
         except Exception as exc:
-            raise InputError(f"{path}: {fmt} file cannot be read ({type(exc).__name__}: {exc})") from None
+            raise InputError(
+                f"{path}: {fmt} file cannot be read ({type(exc).__name__}: {exc})"
+            ) from None
     if "positions" not in pcd.point or len(pcd.point.positions) != header.points:
         got = len(pcd.point.positions) if "positions" in pcd.point else 0
-        raise InputError(f"{path}: {fmt} file cannot be read (header declares {header.points} "
-                         f"points, Open3D read {got}; is it corrupt or missing x/y/z?)")
+        raise InputError(
+            f"{path}: {fmt} file cannot be read (header declares {header.points} "
+            f"points, Open3D read {got}; is it corrupt or missing x/y/z?)"
+        )
     absolute = pcd.point.positions.numpy().astype(np.float64)
     origin = local_origin(absolute.min(axis=0), absolute.max(axis=0))
     fields: dict[str, np.ndarray] = {}
-    for name in sorted(pcd.point):  # Open3D's attribute order is not the file's; sort for stable output
+    for name in sorted(
+        pcd.point
+    ):  # Open3D's attribute order is not the file's; sort for stable output
         if name == "positions":
             continue
         values = pcd.point[name].numpy()
-        fields[name] = values[:, 0].copy() if values.ndim == 2 and values.shape[1] == 1 else values.copy()
+        fields[name] = (
+            values[:, 0].copy() if values.ndim == 2 and values.shape[1] == 1 else values.copy()
+        )
     return PointCloud(absolute - origin, fields, crs=None, origin=origin)
 
 
@@ -199,7 +232,9 @@ def _write_open3d(path: Path, cloud: PointCloud, fmt: str) -> Path:
     for name, values in cloud.fields.items():
         values = np.asarray(values)
         if values.dtype.kind not in "biuf":
-            raise InputError(f"{path}: field {name!r} has dtype {values.dtype}; {fmt} holds numbers only")
+            raise InputError(
+                f"{path}: field {name!r} has dtype {values.dtype}; {fmt} holds numbers only"
+            )
         if name == "positions":
             raise InputError(f"{path}: field name 'positions' is reserved for the coordinates")
         columns: dict[str, np.ndarray]
@@ -210,12 +245,20 @@ def _write_open3d(path: Path, cloud: PointCloud, fmt: str) -> Path:
         elif values.ndim == 2:
             columns = {f"{name}_{i}": values[:, i : i + 1] for i in range(values.shape[1])}
         else:
-            raise InputError(f"{path}: field {name!r} has shape {values.shape}; expected (N,) or (N, k)")
+            raise InputError(
+                f"{path}: field {name!r} has shape {values.shape}; expected (N,) or (N, k)"
+            )
         for key, col in columns.items():
-            col = _ply_dtype(key, col, path) if fmt == "PLY" else (
-                col.astype(np.uint8) if col.dtype.kind == "b" else col)
+            col = (
+                _ply_dtype(key, col, path)
+                if fmt == "PLY"
+                else (col.astype(np.uint8) if col.dtype.kind == "b" else col)
+            )
             pcd.point[key] = o3c.Tensor(np.ascontiguousarray(col))
-    with atomic_path(path) as tmp, o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+    with (
+        atomic_path(path) as tmp,
+        o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error),
+    ):
         ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False)
         if not ok:
             raise InputError(f"{path}: Open3D could not write the {fmt} file")
@@ -250,8 +293,14 @@ def _describe(path: Path, cloud: PointCloud, fmt: str, header: CloudHeader) -> d
         "path": str(path),
         "format": f"{fmt} ({header.encoding})",
         "points": len(cloud),
-        "attributes": [{"name": k, "dtype": str(v.dtype) if v.ndim == 1 else f"{v.dtype} x{v.shape[1]}",
-                        "extra": False} for k, v in cloud.fields.items()],
+        "attributes": [
+            {
+                "name": k,
+                "dtype": str(v.dtype) if v.ndim == 1 else f"{v.dtype} x{v.shape[1]}",
+                "extra": False,
+            }
+            for k, v in cloud.fields.items()
+        ],
         "bounds": {"min": (lo + cloud.origin).tolist(), "max": (hi + cloud.origin).tolist()},
         "crs": None,
     }

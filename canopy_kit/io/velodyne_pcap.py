@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -26,8 +26,10 @@ from canopy_kit.io.bag import Scan
 from canopy_kit.io.clouds import check_input_file
 
 PCAP_MAGICS = {  # magic bytes -> (byte order, timestamp fraction unit in seconds)
-    b"\xd4\xc3\xb2\xa1": ("<", 1e-6), b"\xa1\xb2\xc3\xd4": (">", 1e-6),
-    b"\x4d\x3c\xb2\xa1": ("<", 1e-9), b"\xa1\xb2\x3c\x4d": (">", 1e-9),
+    b"\xd4\xc3\xb2\xa1": ("<", 1e-6),
+    b"\xa1\xb2\xc3\xd4": (">", 1e-6),
+    b"\x4d\x3c\xb2\xa1": ("<", 1e-9),
+    b"\xa1\xb2\x3c\x4d": (">", 1e-9),
 }
 LINKTYPE_ETHERNET = 1
 DATA_PACKET_BYTES = 1206
@@ -36,15 +38,28 @@ POSITION_PORT = 8308
 PRODUCT_VLP16 = 0x22
 RETURN_MODES = {0x37: "strongest", 0x38: "last", 0x39: "dual"}
 # Laser elevation by laser id (VLP-16 manual, table 9-1).
-VLP16_ELEVATION_DEG = np.array([-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], float)
+VLP16_ELEVATION_DEG = np.array(
+    [-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], float
+)
 BLOCK_US, FIRING_US, LASER_US = 110.592, 55.296, 2.304
 DISTANCE_UNIT_M = 0.002
 BATCH_PACKETS = 512
 
-_BLOCK_DTYPE = np.dtype([("flag", "<u2"), ("azimuth", "<u2"),
-                         ("returns", [("distance", "<u2"), ("reflectivity", "u1")], (32,))])
-_PACKET_DTYPE = np.dtype([("blocks", _BLOCK_DTYPE, (12,)), ("timestamp", "<u4"),
-                          ("return_mode", "u1"), ("product", "u1")])
+_BLOCK_DTYPE = np.dtype(
+    [
+        ("flag", "<u2"),
+        ("azimuth", "<u2"),
+        ("returns", [("distance", "<u2"), ("reflectivity", "u1")], (32,)),
+    ]
+)
+_PACKET_DTYPE = np.dtype(
+    [
+        ("blocks", _BLOCK_DTYPE, (12,)),
+        ("timestamp", "<u4"),
+        ("return_mode", "u1"),
+        ("product", "u1"),
+    ]
+)
 assert _PACKET_DTYPE.itemsize == DATA_PACKET_BYTES
 
 
@@ -112,14 +127,17 @@ def decode_packets(payloads: list[bytes], path: Path | str = "VLP-16") -> dict[s
         raise InputError(f"{path}: VLP-16 data packet with a bad block flag (corrupt capture?)")
     if np.any(packets["product"] != PRODUCT_VLP16):
         products = sorted({int(p) for p in packets["product"]})
-        raise InputError(f"{path}: sensor product byte(s) {products}; only the VLP-16 (0x22) is decoded")
+        raise InputError(
+            f"{path}: sensor product byte(s) {products}; only the VLP-16 (0x22) is decoded"
+        )
     if np.any(packets["return_mode"] == 0x39):
         raise InputError(f"{path}: dual-return packets are not supported yet")
     p = len(packets)
     firing = np.repeat(np.arange(2), 16)  # per channel slot 0..31
     laser = np.tile(np.arange(16), 2)
-    offset_us = (np.arange(12)[:, None] * BLOCK_US + firing[None, :] * FIRING_US
-                 + laser[None, :] * LASER_US)  # (12, 32)
+    offset_us = (
+        np.arange(12)[:, None] * BLOCK_US + firing[None, :] * FIRING_US + laser[None, :] * LASER_US
+    )  # (12, 32)
     time_us = packets["timestamp"].astype(np.float64)[:, None, None] + offset_us[None]
     az = blocks["azimuth"].astype(np.float64)  # (P, 12) in 0.01°
     flat = az.reshape(-1)
@@ -127,8 +145,10 @@ def decode_packets(payloads: list[bytes], path: Path | str = "VLP-16") -> dict[s
     gap[:-1] = np.mod(flat[1:] - flat[:-1], 36000.0)
     gap[-1] = gap[-2] if len(gap) > 1 else 0.0
     gap = np.where(gap > 1000.0, np.median(gap), gap).reshape(p, 12)  # a jump is not a step
-    azimuth = np.mod(az[:, :, None] + gap[:, :, None] * ((offset_us - offset_us[:, :1])
-                                                         / (2 * FIRING_US))[None], 36000.0)
+    azimuth = np.mod(
+        az[:, :, None] + gap[:, :, None] * ((offset_us - offset_us[:, :1]) / (2 * FIRING_US))[None],
+        36000.0,
+    )
     returns = blocks["returns"]
     shape = (p, 12, 32)
     return {
@@ -145,8 +165,9 @@ def _points_to_scan(points: dict[str, np.ndarray], base: float, index: int) -> S
     d = points["distance"][keep]
     omega = np.deg2rad(VLP16_ELEVATION_DEG[points["laser"][keep]])
     alpha = np.deg2rad(points["azimuth"][keep] * 0.01)
-    xyz = np.column_stack([d * np.cos(omega) * np.sin(alpha), d * np.cos(omega) * np.cos(alpha),
-                           d * np.sin(omega)])
+    xyz = np.column_stack(
+        [d * np.cos(omega) * np.sin(alpha), d * np.cos(omega) * np.cos(alpha), d * np.sin(omega)]
+    )
     times = base + points["time_us"][keep] * 1e-6
     fields = {
         "intensity": points["intensity"][keep],
@@ -230,20 +251,24 @@ def describe_pcap(path: str | Path) -> dict[str, Any]:
             sensor_last = scan.times[-1]
 
     def iso(t: float | None) -> str | None:
-        return None if t is None else datetime.fromtimestamp(t, timezone.utc).isoformat()
+        return None if t is None else datetime.fromtimestamp(t, UTC).isoformat()
 
     return {
         "path": str(path),
         "format": "Velodyne VLP-16 pcap",
-        "start_time": first, "end_time": last,
+        "start_time": first,
+        "end_time": last,
         "start_utc": iso(first),
         "duration_s": (last - first) if first is not None else 0.0,
         # the sensor's own (usually GPS-synchronised) clock, which point times use
-        "sensor_start_utc": iso(sensor_first), "sensor_end_utc": iso(sensor_last),
-        "data_packets": counts["data"], "position_packets": counts["position"],
+        "sensor_start_utc": iso(sensor_first),
+        "sensor_end_utc": iso(sensor_last),
+        "data_packets": counts["data"],
+        "position_packets": counts["position"],
         "other_packets": counts["other"],
         "return_mode": ", ".join(sorted(modes)),
-        "scans": rotations, "points": points,
+        "scans": rotations,
+        "points": points,
     }
 
 
