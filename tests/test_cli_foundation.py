@@ -143,11 +143,6 @@ def test_info_bad_input_is_one_line_exit_2(tmp_path: Path, kind: str) -> None:
     assert "Traceback" not in result.stderr
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="canopy_kit/cli/__init__.py main() catches click.ClickException, but typer 0.29 "
-    "raises its vendored typer._click exceptions, so a usage error prints a traceback, exit 1",
-)
 def test_usage_error_exits_2() -> None:
     result = run_cli("info")
     assert result.returncode == 2

@@ -43,23 +43,15 @@ _register_commands()
 
 
 def main() -> None:
-    """Console-script entry point: run the app, turning library errors into exit codes."""
+    """Console-script entry point: run the app, turning library errors into exit codes.
+
+    Usage errors are handled by typer itself (message and exit code 2).
+    """
     try:
-        app(standalone_mode=False)
+        app()
     except CanopyKitError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
-    except Exception as exc:  # click usage errors and the like
-        import click
-
-        if isinstance(exc, click.exceptions.Exit):
-            sys.exit(exc.exit_code)
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(2)
-        if isinstance(exc, click.exceptions.Abort):
-            sys.exit(1)
-        raise

@@ -99,8 +99,8 @@ class ImuSpec:
 
     enabled: bool = True
     rate_hz: float = 200.0
-    gyro_noise: float = 0.003
-    accel_noise: float = 0.03
+    gyro_noise: float = 0.0005
+    accel_noise: float = 0.002
     gyro_bias_sigma: float = 0.002
     accel_bias_sigma: float = 0.05
     topic: str = "/imu/data"
@@ -125,7 +125,14 @@ class GnssSpec:
 
 @dataclass
 class DroneSpec:
-    """Nadir lawn-mower photo flight over the orchard."""
+    """Nadir lawn-mower photo flight over the orchard (lengths in m, angles in degrees).
+
+    Flight lines run along the rows; the image's long side lies across the track.
+    ``gps_sigma_*`` is the per-photo GNSS noise written to EXIF (defaults: an RTK drone);
+    ``gps_offset_sigma_*`` a constant offset shared by the whole flight (metre-level for a
+    drone without RTK). ``position_jitter_*`` and ``attitude_sigma_deg``/``yaw_sigma_deg``
+    are how far the true camera strays from the plan.
+    """
 
     enabled: bool = False
     altitude: float = 35.0
@@ -137,6 +144,14 @@ class DroneSpec:
     sensor_width_mm: float = 13.2
     gps_sigma_horizontal: float = 0.02
     gps_sigma_vertical: float = 0.05
+    gps_offset_sigma_horizontal: float = 0.0
+    gps_offset_sigma_vertical: float = 0.0
+    position_jitter_horizontal: float = 0.3
+    position_jitter_vertical: float = 0.15
+    attitude_sigma_deg: float = 0.8
+    yaw_sigma_deg: float = 1.5
+    area_margin: float = 4.0
+    flight_speed: float = 5.0
     sun_elevation_deg: float = 55.0
     sun_azimuth_deg: float = 135.0
     jpeg_quality: int = 92
@@ -263,3 +278,10 @@ def validate(c: SimConfig) -> None:
     _check(0 < c.drone.forward_overlap < 1 and 0 < c.drone.side_overlap < 1, "drone.*_overlap",
            "must be in (0, 1)")
     _check(c.drone.altitude > 0, "drone.altitude", f"must be positive, got {c.drone.altitude}")
+    _check(c.drone.image_width >= 64 and c.drone.image_height >= 64, "drone.image_width/image_height",
+           f"must be at least 64 px, got {c.drone.image_width}x{c.drone.image_height}")
+    _check(c.drone.focal_length_mm > 0 and c.drone.sensor_width_mm > 0,
+           "drone.focal_length_mm/sensor_width_mm", "must be positive")
+    _check(1 <= c.drone.jpeg_quality <= 100, "drone.jpeg_quality",
+           f"must be in [1, 100], got {c.drone.jpeg_quality}")
+    _check(c.drone.flight_speed > 0, "drone.flight_speed", f"must be positive, got {c.drone.flight_speed}")

@@ -165,8 +165,6 @@ def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajector
         "path_length_m": trajectory.length,
         "duration_s": trajectory.duration,
         "start_time": trajectory.start_time,
-        "bag_format": fmt,
-        "truth_field": truth_field,
         "sensor_frame": config.lidar.frame_id,
         "imu_extrinsic": "identity (IMU frame = LiDAR frame)",
         "gnss_lever_arm_m": [0.0, 0.0, 0.0],
@@ -174,6 +172,8 @@ def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajector
                             "even rows L, odd rows R; index along the row direction",
     }
     atomic_write_text(truth_dir / "frame.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+    recording = {"bag_format": fmt, "truth_field": truth_field}
+    atomic_write_text(truth_dir / "recording.json", json.dumps(recording, indent=2) + "\n")
     write_config(config, truth_dir / "sim_config.toml")
 
 

@@ -1,0 +1,51 @@
+"""Shared fixtures: small simulated sessions, made once per test run and cached."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("CANOPY_KIT_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+# A small but complete session: U-turns, every alley, the default 32-ring sensor at a
+# reduced horizontal resolution to keep the suite fast.
+TINY = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
+# The smallest session that still has a U-turn: for format and determinism checks.
+MICRO = {"orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {"columns": 256, "rings": 16}}
+
+
+@pytest.fixture(scope="session")
+def sim_factory(tmp_path_factory):
+    """``make(orchard, fmt="ros2-mcap", seed=0, **overrides) -> SimulatedSession`` (cached)."""
+    from canopy_kit.config import merge
+    from canopy_kit.sim import load_sim_config, simulate_session
+
+    cache: dict = {}
+
+    def make(orchard: str = "pistachio", fmt: str = "ros2-mcap", seed: int = 0,
+             overrides: dict | None = None, truth_field: bool = True, sensor: str | None = None):
+        key = (orchard, fmt, seed, repr(overrides), truth_field, sensor)
+        if key not in cache:
+            cfg = load_sim_config(orchard, merge({"seed": seed}, overrides or {}), sensor=sensor)
+            out = tmp_path_factory.mktemp(f"sim_{orchard}_{seed}")
+            cache[key] = simulate_session(out, cfg, fmt=fmt, truth_field=truth_field, overwrite=True)
+        return cache[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def tiny_pistachio(sim_factory):
+    """A 2-row x 3-tree pistachio session (ROS2 mcap, truth field on)."""
+    return sim_factory("pistachio", overrides=TINY)
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The public data folder (skips the test when it is absent)."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data folder {SHARED_DATA} not present")
+    return SHARED_DATA
