@@ -1,0 +1,141 @@
+"""The volume-estimator contract: a result type, the shared input check and a base class.
+
+Every estimator is a class whose ``__init__`` only stores keyword parameters and whose
+``__call__(xyz)`` returns a :class:`VolumeResult` (scikit-learn style).
+
+Input policy (the same for every estimator):
+
+- ``xyz`` that is not an ``(N, 3)`` array of numbers, or that holds NaN/Inf, raises
+  :class:`~canopy_kit.errors.InputError`. Non-finite coordinates mean an upstream stage is
+  broken; dropping them here would hide that, so the caller decides (a batch run can catch
+  the error per tree).
+- Fewer than 4 points, or points that are all identical, collinear or coplanar, enclose no
+  volume: the result is ``volume_m3 = 0.0`` with ``valid = False`` and the reason, never a
+  silent number from a degenerate hull.
+- Bad parameter values raise :class:`~canopy_kit.errors.ConfigError` naming the parameter.
+"""
+
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.errors import ConfigError, InputError
+
+MIN_POINTS = 4
+# Relative singular-value threshold below which the cloud is treated as flat or a line.
+FLATNESS_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class VolumeResult:
+    """A per-tree volume with how it was made and whether it can be trusted."""
+
+    volume_m3: float
+    method: str
+    params: dict[str, Any]
+    valid: bool
+    reason: str | None = None
+    n_points: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain dict (for JSON and tables)."""
+        return {"volume_m3": self.volume_m3, "method": self.method, "params": dict(self.params),
+                "valid": self.valid, "reason": self.reason, "n_points": self.n_points,
+                **({"extra": dict(self.extra)} if self.extra else {})}
+
+
+def as_points(xyz: Any, name: str = "xyz") -> np.ndarray:
+    """``xyz`` (or a PointCloud's ``.xyz``) as a float64 (N, 3) array; InputError if unusable."""
+    if hasattr(xyz, "xyz") and not isinstance(xyz, np.ndarray):
+        xyz = xyz.xyz
+    try:
+        arr = np.asarray(xyz, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: expected an (N, 3) array of coordinates, got "
+                         f"{type(xyz).__name__} ({exc})") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name}: expected an (N, 3) array of coordinates, got shape {arr.shape}")
+    finite = np.isfinite(arr).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        raise InputError(f"{name}: {len(bad)} of {len(arr)} points have NaN or infinite "
+                         f"coordinates (first at row {bad[0]}); remove them before estimating a "
+                         f"volume")
+    return arr
+
+
+def degeneracy(xyz: np.ndarray) -> str | None:
+    """Why ``xyz`` encloses no volume (too few, identical, collinear, coplanar), else None."""
+    n = len(xyz)
+    if n < MIN_POINTS:
+        return f"too few points: {n} (a volume needs at least {MIN_POINTS})"
+    s = np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)
+    if s[0] <= 0.0:
+        return f"all {n} points are identical"
+    if s[1] <= FLATNESS_TOL * s[0]:
+        return f"all {n} points are collinear"
+    if s[2] <= FLATNESS_TOL * s[0]:
+        return f"all {n} points are coplanar"
+    return None
+
+
+def check_positive(value: Any, name: str, method: str, *, allow_none: bool = False) -> None:
+    """ConfigError naming ``method.name`` unless ``value`` is a positive finite number."""
+    if value is None and allow_none:
+        return
+    ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+    if not ok or not np.isfinite(value) or value <= 0:
+        raise ConfigError(f"{method}: {name} must be a positive number, got {value!r}")
+
+
+def check_choice(value: Any, name: str, method: str, choices: tuple[str, ...]) -> None:
+    """ConfigError naming ``method.name`` unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError(f"{method}: {name} must be one of {list(choices)}, got {value!r}")
+
+
+class VolumeEstimator:
+    """Base class: validates input and parameters, then calls :meth:`_volume`.
+
+    Subclasses set ``name``, store their keyword arguments in ``__init__`` unchanged and
+    implement ``_volume(xyz) -> float`` (or ``-> (float, extra_dict)``) on checked,
+    non-degenerate points; ``_check_params`` raises ConfigError for bad values.
+    """
+
+    name: str = "volume"
+
+    def get_params(self) -> dict[str, Any]:
+        """The constructor's keyword arguments and their current values."""
+        sig = inspect.signature(type(self).__init__)
+        return {p: getattr(self, p) for p in sig.parameters if p != "self"}
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+    def _check_params(self) -> None:
+        """Raise ConfigError for an unusable parameter value (override)."""
+
+    def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict[str, Any]]:
+        raise NotImplementedError
+
+    def __call__(self, xyz: Any) -> VolumeResult:
+        """Estimate the volume enclosed by the points ``xyz`` (N, 3) in metres."""
+        self._check_params()
+        pts = as_points(xyz)
+        params = self.get_params()
+        reason = degeneracy(pts)
+        if reason is not None:
+            return VolumeResult(0.0, self.name, params, False, reason, len(pts))
+        out = self._volume(pts)
+        volume, extra = out if isinstance(out, tuple) else (out, {})
+        if not np.isfinite(volume) or volume < 0:
+            return VolumeResult(0.0, self.name, params, False,
+                                f"estimator produced an unusable volume ({volume!r})", len(pts), extra)
+        reason = extra.pop("reason", None)
+        return VolumeResult(float(volume), self.name, params, reason is None, reason, len(pts), extra)
