@@ -1,0 +1,26 @@
+"""Matplotlib figures as inline ``data:`` URIs for offline HTML."""
+
+from __future__ import annotations
+
+import base64
+import io
+from typing import Any
+
+
+def figure_to_data_uri(fig: Any, dpi: int = 110) -> str:
+    """PNG data URI of a matplotlib figure (the figure is closed afterwards)."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def image_file_to_data_uri(path: str) -> str:
+    """Data URI of a PNG or JPEG file."""
+    from pathlib import Path
+
+    p = Path(path)
+    mime = "image/jpeg" if p.suffix.lower() in (".jpg", ".jpeg") else "image/png"
+    return f"data:{mime};base64," + base64.b64encode(p.read_bytes()).decode("ascii")

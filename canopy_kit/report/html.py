@@ -1,0 +1,84 @@
+"""Render the per-session HTML report from a jinja2 template (tables, figures, checks, config)."""
+
+from __future__ import annotations
+
+import html
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from canopy_kit.io.atomic import atomic_write_text
+
+
+@dataclass
+class Check:
+    """One validation check shown with a pass/fail badge."""
+
+    name: str
+    passed: bool | None
+    value: str
+    target: str = ""
+    note: str = ""
+
+
+@dataclass
+class ReportSection:
+    """A titled block of figures (data URIs), optional table and free text."""
+
+    title: str
+    figures: list[tuple[str, str]] = field(default_factory=list)  # (caption, data uri)
+    table: pd.DataFrame | None = None
+    text: str = ""
+
+
+def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3) -> str:
+    """A sortable HTML table (click a header) with numbers right-aligned."""
+    head = "".join(f'<th data-col="{i}">{html.escape(str(c))}</th>' for i, c in enumerate(df.columns))
+    rows = []
+    for _, r in df.iterrows():
+        cells = []
+        for v in r.tolist():
+            if isinstance(v, float):
+                text = "" if pd.isna(v) else f"{v:.{float_digits}f}"
+                cells.append(f'<td class="num" data-v="{"" if pd.isna(v) else v}">{text}</td>')
+            elif isinstance(v, (bool,)) or str(type(v)).endswith("bool_'>"):
+                cells.append(f"<td>{'yes' if v else 'no'}</td>")
+            elif isinstance(v, int) or str(type(v)).startswith("<class 'numpy.int"):
+                cells.append(f'<td class="num" data-v="{v}">{v}</td>')
+            else:
+                cells.append(f"<td>{html.escape(str(v))}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return (f'<table class="sortable" id="{table_id}"><thead><tr>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table>')
+
+
+def render_report(title: str, summary: dict[str, Any], trees: pd.DataFrame,
+                  sections: list[ReportSection], checks: list[Check], config_toml: str,
+                  subtitle: str = "") -> str:
+    """The complete report page as one HTML string (CSS and JS inlined, images as data URIs)."""
+    import jinja2
+
+    env = jinja2.Environment(
+        loader=jinja2.PackageLoader("canopy_kit", "report/templates"),
+        autoescape=jinja2.select_autoescape(["html", "j2"]),
+    )
+    template = env.get_template("report.html.j2")
+    section_ctx = [
+        {"title": s.title, "figures": s.figures, "text": s.text,
+         "table": jinja2.utils.markupsafe.Markup(table_html(s.table, f"t{i}")) if s.table is not None else None}
+        for i, s in enumerate(sections)
+    ]
+    return template.render(
+        title=title, subtitle=subtitle, summary=summary,
+        trees_table=jinja2.utils.markupsafe.Markup(table_html(trees, "trees")),
+        n_trees=len(trees), sections=section_ctx, checks=checks,
+        n_passed=sum(1 for c in checks if c.passed), n_checks=sum(1 for c in checks if c.passed is not None),
+        config_toml=config_toml,
+    )
+
+
+def write_report(path: str | Path, page: str) -> Path:
+    """Write the page atomically."""
+    return atomic_write_text(path, page)
