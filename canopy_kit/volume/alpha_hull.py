@@ -5,7 +5,7 @@ that contain no point of P. With ``D = {x : dist(x, P) < α}`` and ``E`` its com
 (the centres of those empty balls), the hull is ``C = {x : dist(x, E) >= α}``: a
 dilation followed by an erosion, i.e. a closing by a ball of radius α.
 
-On a grid of step h (α/4 by default) the two distance fields come from Euclidean distance
+On a grid of step h (α/4 by default, finer for small crowns) the two distance fields come from Euclidean distance
 transforms, and both are made exact where it matters, so the result does not drift with h:
 
 1. ``dist(x, P)`` from the occupancy grid is off by at most h·√3/2 (points snapped to
@@ -35,10 +35,12 @@ MAX_CELLS = 8_000_000
 
 def grid_step(xyz: np.ndarray, alpha: float, step: float | None = None,
               max_cells: int = MAX_CELLS) -> float:
-    """The grid step used for ``alpha``: ``step`` if given, else min(α, half the largest
-    extent)/4, enlarged if the padded grid would exceed ``max_cells`` cells."""
+    """The grid step used for ``alpha``: ``step`` if given, else the smallest of α/4, the
+    largest extent/12 and the smallest extent/6, enlarged if the padded grid would exceed
+    ``max_cells`` cells."""
     extent = np.ptp(xyz, axis=0)
-    h = step if step is not None else min(alpha, 0.5 * float(extent.max())) / DEFAULT_CELLS_PER_ALPHA
+    h = step if step is not None else min(alpha / DEFAULT_CELLS_PER_ALPHA,
+                                          float(extent.max()) / 12, float(extent.min()) / 6)
     for _ in range(20):
         cells = np.prod(np.ceil((extent + 2 * alpha + 4 * h) / h) + 1)
         if cells <= max_cells:
@@ -125,8 +127,8 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float) -> tuple[float
 class AlphaHullVolume(VolumeEstimator):
     """Fast α-hull volume (closing by a ball of radius α on a grid), α in metres.
 
-    ``grid_step`` None picks min(α, half the largest extent)/4 (capped at 8 M cells); the
-    step used is reported in ``result.extra["grid_step"]``.
+    ``grid_step`` None picks min(α/4, largest extent/12, smallest extent/6), capped at
+    8 M cells; the step used is reported in ``result.extra["grid_step"]``.
     """
 
     name = "alpha_hull"
