@@ -39,30 +39,46 @@ class MappingConfig:
 
 @dataclass
 class PreprocessConfig:
-    """Ground, trunk and low-vegetation removal and the voxel grid (``canopy_kit.segment``)."""
+    """Ground, trunk and low-vegetation removal and the voxel grid (``canopy_kit.segment``).
+
+    Heights are above the piecewise RANSAC ground model. ``stem_band`` is where trunks are
+    looked for; canopy is ``min_canopy_height``..``max_canopy_height``. ``voxelize`` orders
+    the voxel grid and the clustering (the paper's text and Fig. 3 disagree);
+    ``weight_by_density`` makes each voxel count as the map points it holds.
+    """
 
     ground_cell_size: float = 4.0
     ground_ransac_threshold: float = 0.15
+    ground_candidate_cell: float = 0.5
     min_canopy_height: float = 0.8
     max_canopy_height: float = 12.0
+    stem_band: list[float] = field(default_factory=lambda: [0.3, 0.8])
     voxel_size: float = 0.1
     voxelize: Literal["before_clustering", "after_clustering"] = "before_clustering"
+    weight_by_density: bool = True
 
 
 @dataclass
 class SegmentConfig:
     """Which segmenter plugin to use and its keyword arguments."""
 
-    method: str = "dbscan"
+    method: str = "adaptive"
     params: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
 class RowsConfig:
-    """Grouping tree centroids into rows and labelling them (L0.., R0..)."""
+    """Grouping tree centroids into rows and labelling them (L0.., R0..).
+
+    ``driving_direction`` is the bearing in degrees (clockwise from north, the map's +y)
+    of the first pass along the rows; ``None`` takes it from a trajectory when one is
+    given, else uses the row direction pointing north of east-west (see ``segment.rows``).
+    """
 
     max_distance_to_row: float = 1.5
     min_trees_per_row: int = 2
+    curved_rows: bool = True
+    driving_direction: float | None = None
 
 
 @dataclass

@@ -1,0 +1,78 @@
+"""What segmentation returns: labels per map point and one record per tree."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.errors import InputError
+from canopy_kit.segment.ground import GroundModel
+from canopy_kit.segment.rows import RowAssignment
+
+
+@dataclass
+class TreeRecord:
+    """One segmented tree (local metric frame; heights above the ground model)."""
+
+    segment_id: int
+    tree_id: str
+    row: int
+    label: str
+    index_in_row: int
+    x: float
+    y: float
+    z: float
+    n_points: int
+    crown_top_height_m: float
+    crown_base_height_m: float
+    crown_diameter_m: float
+    footprint_area_m2: float
+
+
+@dataclass
+class Segmentation:
+    """Labels per point of the input map (``segment_id``, -1 = not a tree) and tree records."""
+
+    labels: np.ndarray
+    trees: list[TreeRecord]
+    footprints: dict[int, np.ndarray]  # segment_id -> (M, 2) convex hull, counter-clockwise
+    rows: RowAssignment
+    ground: GroundModel
+    height: np.ndarray  # per map point: height above the ground model
+    method: str
+    params: dict[str, Any]
+    crs: str | None = None
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_trees(self) -> int:
+        return len(self.trees)
+
+    def table(self) -> pd.DataFrame:
+        """One row per tree, in row and label order."""
+        columns = list(TreeRecord.__dataclass_fields__)
+        return pd.DataFrame([asdict(t) for t in self.trees], columns=columns)
+
+    def tree_points(self, cloud: PointCloud, segment_id: int) -> PointCloud:
+        """The map points of one tree, attributes included."""
+        if len(cloud) != len(self.labels):
+            raise InputError(f"cloud has {len(cloud)} points, the segmentation {len(self.labels)}")
+        return cloud.select(self.labels == segment_id)
+
+    def summary(self) -> dict[str, Any]:
+        """Counts, settings, warnings and timings as plain data (for JSON)."""
+        return {
+            "method": self.method, "params": self.params, "n_trees": self.n_trees,
+            "n_rows": len(self.rows.lines), "n_points": int(len(self.labels)),
+            "n_tree_points": int((self.labels >= 0).sum()),
+            "driving_direction": [float(v) for v in self.rows.direction],
+            "driving_direction_source": self.rows.direction_source,
+            "crs": self.crs, "origin": [float(v) for v in self.origin],
+            "warnings": list(self.warnings), "timings_s": dict(self.timings),
+        }

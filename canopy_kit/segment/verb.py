@@ -1,0 +1,164 @@
+"""``segment(cloud, segmenter)``: the verb that owns the bookkeeping around a segmenter.
+
+Preprocess (ground, bands, voxel grid), run the segmenter on height-normalised canopy
+points, carry its labels back to every map point, describe each tree, find the rows and
+label the trees. The segmenter only does the maths (lidR's verb/algorithm split).
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from canopy_kit import plugins
+from canopy_kit.cloud import PointCloud
+from canopy_kit.config import PreprocessConfig, RowsConfig
+from canopy_kit.errors import ConfigError, InputError, ProcessingError
+from canopy_kit.segment.density import first_appearance_order
+from canopy_kit.segment.preprocess import prepare
+from canopy_kit.segment.result import Segmentation, TreeRecord
+from canopy_kit.segment.rows import assign_rows
+
+Progress = Callable[[str, float, float], None]
+
+
+def make_segmenter(method: str, params: dict[str, Any] | None = None) -> Any:
+    """Instantiate the segmenter plugin ``method`` with keyword ``params``."""
+    target = plugins.load("segmenters", method)
+    params = dict(params or {})
+    if isinstance(target, type):
+        accepted = inspect.signature(target.__init__).parameters
+        unknown = sorted(set(params) - set(accepted) - {"self"})
+        if unknown:
+            known = ", ".join(k for k in accepted if k != "self")
+            raise ConfigError(f"segment.params: segmenter {method!r} has no parameter "
+                              f"{unknown[0]!r} (parameters: {known})")
+        return target(**params)
+    if params:
+        raise ConfigError(f"segment.params: segmenter {method!r} is not a class and takes none")
+    return target
+
+
+def _fit_params(segmenter: Any) -> set[str]:
+    try:
+        sig = inspect.signature(segmenter.fit)
+    except (AttributeError, TypeError, ValueError):
+        return set()
+    if any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values()):
+        return {"sample_weight", "stem_xyz"}
+    return set(sig.parameters) & {"sample_weight", "stem_xyz"}
+
+
+def segment(cloud: PointCloud, segmenter: Any, preprocess_config: PreprocessConfig | None = None,
+            rows_config: RowsConfig | None = None, driving_direction: np.ndarray | None = None,
+            direction_source: str | None = None, seed: int = 0,
+            progress: Progress | None = None) -> Segmentation:
+    """Segment a map into trees; labels per point of ``cloud`` plus per-tree records.
+
+    ``segmenter`` is a segmenter object (``DBSCANSegmenter(...)``) or a plugin name.
+    ``driving_direction`` (xy vector), e.g. from a trajectory, orders and labels the trees.
+    """
+    pre = preprocess_config or PreprocessConfig()
+    if isinstance(segmenter, str):
+        segmenter = make_segmenter(segmenter)
+    if not hasattr(segmenter, "fit_predict"):
+        raise InputError(f"segmenter {segmenter!r} has no fit_predict(points) method")
+    report = progress or (lambda *_: None)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    prepared = prepare(cloud, pre, seed=seed, progress=report)
+    timings["preprocess"] = time.perf_counter() - t0
+    if len(prepared.canopy_index) == 0:
+        raise InputError(
+            f"map has no points {pre.min_canopy_height}-{pre.max_canopy_height} m above the "
+            "ground (preprocess.min_canopy_height/max_canopy_height): is it all ground?")
+    xyz = prepared.normalized(cloud, prepared.seen_index)
+    kwargs: dict[str, Any] = {}
+    accepted = _fit_params(segmenter)
+    if "sample_weight" in accepted:
+        kwargs["sample_weight"] = prepared.seen_weight
+    if "stem_xyz" in accepted:
+        kwargs["stem_xyz"] = prepared.normalized(cloud, prepared.stem_index)
+    report("segment", 0, 1)
+    t0 = time.perf_counter()
+    seen_labels = np.asarray(segmenter.fit_predict(xyz, **kwargs))
+    timings["segmenter"] = time.perf_counter() - t0
+    report("segment", 1, 1)
+    if seen_labels.shape != (len(xyz),):
+        raise ProcessingError(f"segmenter {type(segmenter).__name__} returned "
+                              f"{seen_labels.shape} labels for {len(xyz)} points")
+    labels = np.full(len(cloud), -1, dtype=np.int64)
+    labels[prepared.canopy_index] = seen_labels[prepared.canopy_to_seen]
+    labels = first_appearance_order(labels)
+    t0 = time.perf_counter()
+    seg = _describe(cloud, labels, prepared, segmenter, rows_config, driving_direction,
+                    direction_source)
+    timings["rows"] = time.perf_counter() - t0
+    seg.timings = timings
+    return seg
+
+
+def _describe(cloud: PointCloud, labels: np.ndarray, prepared: Any, segmenter: Any,
+              rows_config: RowsConfig | None, driving_direction: np.ndarray | None,
+              direction_source: str | None) -> Segmentation:
+    n_seg = int(labels.max()) + 1 if len(labels) else 0
+    idx = np.flatnonzero(labels >= 0)
+    order = idx[np.argsort(labels[idx], kind="stable")]
+    bounds = np.searchsorted(labels[order], np.arange(n_seg + 1))
+    stats, hulls = [], []
+    for s in range(n_seg):
+        members = order[bounds[s]:bounds[s + 1]]
+        xyz = cloud.xyz[members]
+        h = prepared.height[members]
+        hull = _hull(xyz[:, :2])
+        stats.append((xyz.mean(axis=0), len(members), float(h.max()), float(np.percentile(h, 1)),
+                      _diameter(hull), _area(hull)))
+        hulls.append(hull)
+    centroids = np.array([s[0][:2] for s in stats]).reshape(-1, 2)
+    rows = assign_rows(centroids, rows_config, driving_direction, direction_source)
+    # Stable numbering: segment ids follow the (row, index in row) order.
+    rank = np.lexsort((rows.index_in_row, rows.row)) if n_seg else np.zeros(0, int)
+    new_id = np.empty(n_seg, dtype=np.int64)
+    new_id[rank] = np.arange(n_seg)
+    out = np.where(labels >= 0, new_id[np.maximum(labels, 0)], -1)
+    trees, footprints = [], {}
+    tree_ids = rows.tree_ids
+    for old in rank:
+        c, n, top, base, diam, area = stats[old]
+        sid = int(new_id[old])
+        trees.append(TreeRecord(sid, tree_ids[old], int(rows.row[old]), rows.labels[old],
+                                int(rows.index_in_row[old]), float(c[0]), float(c[1]), float(c[2]),
+                                int(n), top, base, diam, area))
+        footprints[sid] = hulls[old]
+    params = segmenter.get_params() if hasattr(segmenter, "get_params") else {}
+    return Segmentation(out, trees, footprints, rows, prepared.ground, prepared.height,
+                        type(segmenter).__name__, params, cloud.crs, cloud.origin.copy(),
+                        list(rows.warnings))
+
+
+def _hull(xy: np.ndarray) -> np.ndarray:
+    if len(xy) < 3:
+        return xy.copy()
+    try:
+        return xy[ConvexHull(xy).vertices]
+    except QhullError:  # collinear points
+        return xy[[np.argmin(xy[:, 0]), np.argmax(xy[:, 0])]]
+
+
+def _diameter(hull: np.ndarray) -> float:
+    if len(hull) < 2:
+        return 0.0
+    d = np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=2)
+    return float(d.max())
+
+
+def _area(hull: np.ndarray) -> float:
+    if len(hull) < 3:
+        return 0.0
+    x, y = hull[:, 0], hull[:, 1]
+    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
