@@ -204,7 +204,9 @@ def test_fast_alpha_hull_matches_the_exact_complex_on_solids(name: str) -> None:
         exact = estimate_volume(pts, "alpha_shape", alpha=alpha).volume_m3
         fast = estimate_volume(pts, "alpha_hull", alpha=alpha)
         assert fast.valid and fast.extra["grid_step"] <= alpha / 4
-        assert fast.volume_m3 == pytest.approx(exact, rel=0.015), (name, alpha)
+        # the α-hull sits slightly inside the complex: empty balls bite between boundary
+        # points and round the concave crease of the two spheres
+        assert -0.025 < fast.volume_m3 / exact - 1 < 0.005, (name, alpha, fast.volume_m3, exact)
 
 
 def test_fast_alpha_hull_rounds_concave_edges_differently() -> None:
