@@ -22,16 +22,41 @@ T = TypeVar("T")
 
 @dataclass
 class MappingConfig:
-    """LiDAR(-inertial) odometry and map building (``canopy_kit.mapping``)."""
+    """LiDAR(-inertial) odometry and map building (``canopy_kit.mapping``, docs/MAPPING.md)."""
 
+    # Map
     map_voxel_size: float = 0.05
     min_range: float = 1.0
     max_range: float = 60.0
+    # Odometry front end (KISS-ICP on deskewed sweeps with the ground removed)
     deskew: bool = True
     use_imu: bool = True
     use_gnss: bool = True
-    odometry_ground_band: float = 0.3
-    kiss_voxel_size: float = 0.5
+    odometry_ground_band: float = 0.15
+    odometry_point_stride: int = 1
+    kiss_voxel_size: float = 1.0
+    kiss_max_points_per_voxel: int = 20
+    min_points_per_scan: int = 500
+    threads: int = 0
+    # Pose graph: keyframes and the odometry error model (jitter plus drift)
+    keyframe_every: int = 5
+    odometry_jitter_rotation: float = 0.002
+    odometry_jitter_translation: float = 0.015
+    odometry_drift_rotation: float = 0.0005
+    odometry_drift_translation: float = 0.005
+    # IMU noise (datasheet values; per sqrt(Hz))
+    gyro_noise_density: float = 0.005
+    accel_noise_density: float = 0.05
+    gyro_bias_walk: float = 5e-5
+    accel_bias_walk: float = 1e-3
+    # GNSS: epochs, error model, antenna lever arm in the LiDAR frame
+    gnss_epoch: float = 1.0
+    gnss_correlation_time: float = 30.0
+    gnss_white_fraction: float = 0.3
+    gnss_default_sigma_horizontal: float = 1.5
+    gnss_default_sigma_vertical: float = 3.0
+    gnss_lever_arm: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # Topics (empty: the busiest topic of the type)
     pointcloud_topic: str = ""
     imu_topic: str = ""
     gnss_topic: str = ""
@@ -239,13 +264,18 @@ def load_preset(name_or_path: str | Path, overrides: Mapping[str, Any] | None = 
     return from_dict(PipelineConfig, data, where)
 
 
-def write_config(config: Any, path: str | Path) -> Path:
-    """Write a config dataclass as TOML, atomically."""
+def config_toml(config: Any) -> str:
+    """A config dataclass as TOML text (None values left out: TOML has no null)."""
     import tomlkit
 
+    return tomlkit.dumps(_drop_none(to_dict(config)))
+
+
+def write_config(config: Any, path: str | Path) -> Path:
+    """Write a config dataclass as TOML, atomically."""
     from canopy_kit.io.atomic import atomic_write_text
 
-    return atomic_write_text(path, tomlkit.dumps(_drop_none(to_dict(config))))
+    return atomic_write_text(path, config_toml(config))
 
 
 def _drop_none(value: Any) -> Any:

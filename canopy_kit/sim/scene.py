@@ -185,13 +185,8 @@ def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float
     p = rng.uniform(lo, hi, (n_candidates, 3))
     size = rng.uniform(size_range[0], size_range[1], n_candidates)
     depth = tree.crown.relative_depth(p)
-    rho = np.linalg.norm(p - np.asarray(tree.crown.center), axis=1)
-    # Keep whole clusters inside the envelope: |p - c| + size <= r(u).
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r_u = np.where(depth > 0, rho / depth, np.inf)
-    inside = rho + size <= r_u
     keep_prob = (core + (shell - core) * np.clip(depth, 0, 1) ** 3) / shell
-    keep = inside & (rng.random(n_candidates) < keep_prob)
+    keep = (depth <= 1.0) & (rng.random(n_candidates) < keep_prob)
     p, size = p[keep], size[keep]
     m = len(p)
     if m == 0:
@@ -201,7 +196,20 @@ def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float
     rot = Rotation.random(m, random_state=rng).as_matrix()
     scale = np.column_stack([size, size * rng.uniform(0.6, 1.0, m), size * rng.uniform(0.25, 0.5, m)])
     local = _OCTAHEDRON_V[None, :, :] * scale[:, None, :]
-    verts = p[:, None, :] + np.einsum("mij,mkj->mki", rot, local)
+    verts = (p[:, None, :] + np.einsum("mij,mkj->mki", rot, local)).reshape(-1, 3)
+    # Clip leaf vertices that stick out radially back onto the envelope, so the foliage
+    # fills the crown right up to its envelope and never beyond it.
+    verts = _clip_to_envelope(tree.crown, verts)
     faces = (_OCTAHEDRON_F[None, :, :] + 6 * np.arange(m)[:, None, None]).reshape(-1, 3)
     shade = np.repeat(rng.uniform(0.6, 1.4, m), 8)
-    b.add(verts.reshape(-1, 3), faces, FOLIAGE, tree.tree_id, shade)
+    b.add(verts, faces, FOLIAGE, tree.tree_id, shade)
+
+
+def _clip_to_envelope(crown, verts: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    """Move vertices outside the envelope radially onto it."""
+    depth = crown.relative_depth(verts)
+    out = depth > 1.0
+    c = np.asarray(crown.center)
+    verts = verts.copy()
+    verts[out] = c + (verts[out] - c) / depth[out, None]
+    return verts

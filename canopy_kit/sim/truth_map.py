@@ -7,12 +7,15 @@ the mapping stage is compared with.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 from scipy.spatial.transform import Rotation, Slerp
 
 from canopy_kit.cloud import PointCloud
+from canopy_kit.geo import LocalFrame
 from canopy_kit.io.bag import open_bag
 from canopy_kit.sim.session import find_bag
 from canopy_kit.sim.truth import load_truth
@@ -71,3 +74,25 @@ def truth_map(sim_dir: str | Path, voxel_size: float = 0.05, every: int = 1,
     cloud.crs = truth.frame.crs
     cloud.origin = truth.frame.origin
     return cloud
+
+
+@dataclass
+class TruthMapping:
+    """A mapping result made from the true poses (same fields the mapping stage returns)."""
+
+    map: PointCloud
+    trajectory: pd.DataFrame
+    frame: LocalFrame
+    diagnostics: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+def truth_mapping(sim_dir: str | Path, voxel_size: float = 0.05,
+                  progress: Callable[[str, float, float], None] | None = None) -> TruthMapping:
+    """Map and trajectory of a simulated session from its true poses (for controlled studies)."""
+    truth = load_truth(sim_dir)
+    cloud = truth_map(sim_dir, voxel_size, progress=progress)
+    traj = truth.trajectory.copy()
+    steps = np.linalg.norm(np.diff(traj[["x", "y", "z"]].to_numpy(), axis=0), axis=1)
+    return TruthMapping(cloud, traj, truth.frame,
+                        {"source": "true poses", "path_length_m": float(steps.sum())})

@@ -1,0 +1,50 @@
+"""``canopy-kit run``: the whole pipeline on one bag."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def run(
+    bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
+    out: Path = typer.Option(..., "--out", help="Output folder"),
+    preset: str = typer.Option("adaptive", help="Preset name (adaptive, pistachio, almond) or TOML file"),
+    drone_images: Path = typer.Option(None, "--drone-images", help="Folder of geotagged drone JPEGs"),
+    truth: Path = typer.Option(None, "--truth", help="Simulated session folder to evaluate against"),
+    set_: list[str] = typer.Option([], "--set", help="Override a setting: section.key=value"),
+    no_cache: bool = typer.Option(False, "--no-cache", help="Recompute every stage"),
+) -> None:
+    """Map, segment, measure and (optionally) validate one field session; write the report."""
+    from canopy_kit.cli.common import console, parse_overrides, progress_bar
+    from canopy_kit.config import load_preset
+    from canopy_kit.pipeline import run as run_pipeline
+
+    config = load_preset(preset, parse_overrides(set_))
+    with progress_bar(transient=True) as progress:
+        results = run_pipeline(config, bag, out, drone_images=drone_images, truth=truth,
+                               use_cache=not no_cache, progress=progress)
+    print_results(results)
+
+
+def print_results(results) -> None:  # noqa: ANN001
+    """One screen of what a run found and where its files are."""
+    from canopy_kit.cli.common import console
+
+    m = results.metrics
+    console.print(f"[green]done[/]: {m['n_trees']} trees ({m['segmenter']})")
+    ev = m.get("evaluation", {})
+    if "segmentation" in ev:
+        s = ev["segmentation"]
+        console.print(f"  segmentation vs truth: {s['n_correct']}/{s['n_truth']} "
+                      f"({100 * s['success_rate']:.0f} %), labels {100 * s['label_accuracy']:.0f} %")
+    for method, a in ev.get("volumes", {}).items():
+        if isinstance(a, dict) and "mape_pct" in a:
+            console.print(f"  {method} vs true crown volume: MAPE {a['mape_pct']:.1f} %, "
+                          f"bias {a['bias_pct']:+.1f} %")
+    if results.cache_hits:
+        console.print(f"  reused cached stages: {', '.join(results.cache_hits)}")
+    for w in results.warnings:
+        console.print(f"  [yellow]warning[/]: {w}")
+    console.print(f"  report: {results.files['report.html']}")

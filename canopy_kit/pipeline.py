@@ -1,0 +1,256 @@
+"""The whole chain for one field session: bag → map → trees → volumes → checks → report.
+
+``run(config, bag, out)`` is the public entry point; each stage is a small function below and
+its result is cached by a hash of its inputs and settings (``canopy_kit.cache``), so changing
+a segmentation parameter re-runs segmentation and what follows, not the mapping.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.cache import StageCache, fingerprint, stage_key
+from canopy_kit.config import PipelineConfig, write_config
+from canopy_kit.errors import InputError
+from canopy_kit.io.atomic import atomic_path, atomic_write_text
+
+Progress = Callable[[str, float, float], None]
+
+
+@dataclass
+class Results:
+    """What a run produced: the per-tree table, metrics and where the files are."""
+
+    out_dir: Path
+    trees: pd.DataFrame
+    metrics: dict[str, Any]
+    files: dict[str, Path]
+    warnings: list[str] = field(default_factory=list)
+    cache_hits: list[str] = field(default_factory=list)
+
+
+@dataclass
+class RunContext:
+    """Intermediate results handed between stages (also what notebooks explore)."""
+
+    config: PipelineConfig
+    mapping: Any = None
+    segmentation: Any = None
+    trees: pd.DataFrame | None = None
+    aerial: Any = None
+    evaluation: dict[str, Any] = field(default_factory=dict)
+
+
+def run(config: PipelineConfig, bag: str | Path, out: str | Path,
+        drone_images: str | Path | None = None, truth: str | Path | None = None,
+        use_cache: bool = True, progress: Progress | None = None) -> Results:
+    """Run every stage on ``bag`` and write the outputs (all atomically) into ``out``."""
+    bag, out = Path(bag), Path(out)
+    if not bag.exists():
+        raise InputError(f"{bag}: bag does not exist")
+    if drone_images is not None and not Path(drone_images).is_dir():
+        raise InputError(f"{drone_images}: drone image folder does not exist")
+    out.mkdir(parents=True, exist_ok=True)
+    cache = StageCache(out / ".cache", enabled=use_cache)
+    report = progress or (lambda *_: None)
+    ctx = RunContext(config)
+    map_key = stage_key("map", fingerprint(bag), config.mapping)
+    ctx.mapping = cache.get_or_compute("map", map_key, lambda: map_stage(bag, config, report))
+    seg_key = stage_key("segment", map_key, config.preprocess, config.segment, config.rows, config.seed)
+    ctx.segmentation = cache.get_or_compute("segment", seg_key,
+                                            lambda: segment_stage(ctx, report))
+    vol_key = stage_key("volumes", seg_key, config.volume)
+    ctx.trees = cache.get_or_compute("volumes", vol_key, lambda: volume_stage(ctx, report))
+    if drone_images is not None:
+        gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
+        ctx.aerial = cache.get_or_compute(
+            "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report))
+    trees = tree_table(ctx)
+    if truth is not None:
+        from canopy_kit.validation import evaluate_against_truth
+
+        ctx.evaluation = evaluate_against_truth(ctx, trees, Path(truth))
+        trees = ctx.evaluation.pop("trees", trees)
+    metrics = run_metrics(ctx, trees)
+    files = write_outputs(ctx, trees, metrics, out, report)
+    return Results(out, trees, metrics, files, list(metrics.get("warnings", [])), cache.hits)
+
+
+# -- stages ---------------------------------------------------------------------------------
+def map_stage(bag: Path, config: PipelineConfig, progress: Progress) -> Any:
+    """LiDAR(-inertial) odometry and mapping (``canopy_kit.mapping.build_map``)."""
+    from canopy_kit.mapping import build_map
+
+    return build_map(bag, config.mapping, progress=progress)
+
+
+def driving_direction(trajectory: pd.DataFrame) -> np.ndarray | None:
+    """Direction of the first pass, from the start of the estimated trajectory."""
+    from canopy_kit.segment.rows import driving_direction_from_trajectory
+
+    if trajectory is None or len(trajectory) < 2:
+        return None
+    return driving_direction_from_trajectory(trajectory[["x", "y"]].to_numpy())
+
+
+def segment_stage(ctx: RunContext, progress: Progress) -> Any:
+    """Ground/trunk removal, the configured segmenter, rows and labels."""
+    from canopy_kit.segment.verb import make_segmenter, segment
+
+    cfg = ctx.config
+    segmenter = make_segmenter(cfg.segment.method, cfg.segment.params)
+    direction = driving_direction(ctx.mapping.trajectory)
+    return segment(ctx.mapping.map, segmenter, cfg.preprocess, cfg.rows,
+                   driving_direction=direction,
+                   direction_source="trajectory" if direction is not None else None,
+                   seed=cfg.seed, progress=progress)
+
+
+def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
+    """Metrics and every configured volume estimator per segmented tree."""
+    from canopy_kit.trees import measure_trees
+
+    seg = ctx.segmentation
+    table = measure_trees(ctx.mapping.map, seg.labels, ctx.config.volume,
+                          ground_height=seg.ground.height, progress=progress)
+    records = seg.table().set_index("segment_id")
+    table = table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")
+    return table
+
+
+def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -> Any:
+    """Drone photogrammetry ground truth, seeded with the LiDAR tree positions."""
+    from ground_truth import process_flight
+
+    seeds = ctx.trees[["x", "y"]].to_numpy() + ctx.mapping.map.origin[:2] - _frame_origin(ctx)[:2]
+    return process_flight(images, out, frame=ctx.mapping.frame, seeds=seeds, progress=progress)
+
+
+def _frame_origin(ctx: RunContext) -> np.ndarray:
+    frame = getattr(ctx.mapping, "frame", None)
+    return frame.origin if frame is not None else np.zeros(3)
+
+
+# -- the per-tree table ---------------------------------------------------------------------
+FIRST_COLUMNS = ["tree_id", "label", "row", "x", "y", "lat", "lon", "n_points", "height_m",
+                 "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3"]
+
+
+def tree_table(ctx: RunContext) -> pd.DataFrame:
+    """The final per-tree table: LiDAR results, positions in WGS84 and aerial truth if any."""
+    trees = ctx.trees.copy()
+    frame = getattr(ctx.mapping, "frame", None)
+    if frame is not None and len(trees):
+        xyz = np.column_stack([trees["x"], trees["y"], np.zeros(len(trees))])
+        xyz = xyz + ctx.mapping.map.origin - frame.origin
+        lat, lon, _ = frame.to_wgs84(xyz)
+        trees["lat"], trees["lon"] = lat, lon
+    else:
+        trees["lat"], trees["lon"] = np.nan, np.nan
+    if ctx.aerial is not None:
+        trees = join_aerial(trees, ctx.aerial)
+    rest = [c for c in trees.columns if c not in FIRST_COLUMNS]
+    return trees[[c for c in FIRST_COLUMNS if c in trees.columns] + rest].reset_index(drop=True)
+
+
+def join_aerial(trees: pd.DataFrame, aerial: Any) -> pd.DataFrame:
+    """Add the matched aerial crown diameter and sphere volume, and the LiDAR-vs-aerial errors."""
+    matched = aerial.matches  # one row per LiDAR tree: segment, aerial_diameter_m, ...
+    out = trees.merge(matched, on="segment", how="left")
+    for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
+        if col in out:
+            name = col.replace("volume_", "").replace("_m3", "")
+            out[f"error_{name}_vs_aerial_pct"] = (
+                100.0 * (out[col] - out["aerial_sphere_volume_m3"]) / out["aerial_sphere_volume_m3"])
+    return out
+
+
+def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
+    """Summary numbers of the run (mapping diagnostics, counts, agreement, evaluation)."""
+    from canopy_kit import stats
+
+    m: dict[str, Any] = {"n_trees": int(len(trees)), "preset": ctx.config.name,
+                         "segmenter": ctx.config.segment.method}
+    warnings = list(getattr(ctx.mapping, "warnings", []))
+    warnings += list(getattr(ctx.segmentation, "warnings", []))
+    m["mapping"] = dict(getattr(ctx.mapping, "diagnostics", {}))
+    m["segmentation"] = ctx.segmentation.summary()
+    flagged = trees["volume_flags"].astype(str).str.len() > 0 if "volume_flags" in trees else []
+    m["flagged_volumes"] = int(np.sum(flagged))
+    if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
+        ok = trees["aerial_sphere_volume_m3"].notna()
+        m["aerial"] = {"matched_trees": int(ok.sum()), **dict(getattr(ctx.aerial, "diagnostics", {}))}
+        for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
+            if col in trees and ok.any():
+                good = ok & trees[col].notna()
+                m["aerial"][col] = stats.agreement(trees.loc[good, col].to_numpy(),
+                                                   trees.loc[good, "aerial_sphere_volume_m3"].to_numpy()).as_dict()
+    if ctx.evaluation:
+        m["evaluation"] = ctx.evaluation
+    m["warnings"] = warnings
+    return m
+
+
+# -- outputs --------------------------------------------------------------------------------
+def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any], out: Path,
+                  progress: Progress) -> dict[str, Path]:
+    """Every output file, each written under a temporary name and renamed."""
+    from canopy_kit.io.las import write_las
+
+    files: dict[str, Path] = {}
+    files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
+    with atomic_path(out / "trees.parquet") as tmp:
+        trees.to_parquet(tmp, index=False)
+    files["trees.parquet"] = out / "trees.parquet"
+    files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
+    cloud = ctx.mapping.map.with_field("segment_id", ctx.segmentation.labels.astype(np.int32))
+    write_las(out / "map.laz", las_ready(cloud))
+    files["map.laz"] = out / "map.laz"
+    files["trajectory.csv"] = atomic_write_text(
+        out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
+    files["config.toml"] = write_config(ctx.config, out / "config.toml")
+    files["metrics.json"] = atomic_write_text(
+        out / "metrics.json", json.dumps(metrics, indent=2, default=_json_default) + "\n")
+    progress("report", 0, 1)
+    from canopy_kit.report.session import session_report
+
+    files["report.html"] = session_report(ctx, trees, metrics, out / "report.html")
+    progress("report", 1, 1)
+    return files
+
+
+def las_ready(cloud: Any) -> Any:
+    """LAS stores intensity as uint16: round a float intensity (scan intensities are 0-255)."""
+    value = cloud.fields.get("intensity")
+    if value is not None and np.issubdtype(np.asarray(value).dtype, np.floating):
+        return cloud.with_field("intensity", np.clip(np.round(value), 0, 65535).astype(np.uint16))
+    return cloud
+
+
+def trees_geojson(trees: pd.DataFrame) -> str:
+    """Tree positions as an RFC 7946 GeoJSON FeatureCollection (WGS84 lon/lat)."""
+    features = []
+    for rec in json.loads(trees.to_json(orient="records")):
+        if rec.get("lon") is None or rec.get("lat") is None:
+            continue
+        features.append({"type": "Feature",
+                         "geometry": {"type": "Point", "coordinates": [rec["lon"], rec["lat"]]},
+                         "properties": rec})
+    return json.dumps({"type": "FeatureCollection", "features": features}, indent=1)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)

@@ -1,0 +1,108 @@
+"""Figures for the session report and the notebooks (matplotlib, arrays and tables in)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+
+def _axes(ax: Any, size: tuple[float, float] = (8, 6)) -> tuple[Any, Any]:
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        fig, ax = plt.subplots(figsize=size)
+        return fig, ax
+    return ax.figure, ax
+
+
+def plot_segmented_map(xyz: np.ndarray, labels: np.ndarray, trees: pd.DataFrame | None = None,
+                       trajectory_xy: np.ndarray | None = None, ax: Any = None,
+                       max_points: int = 150_000, seed: int = 0) -> Any:
+    """Top view of the map: ground grey, each segment its own colour, labels at the trees."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = _axes(ax, (9, 9))
+    rng = np.random.default_rng(seed)
+    idx = rng.permutation(len(xyz))[:max_points]
+    p, lab = xyz[idx], labels[idx]
+    bg = lab < 0
+    ax.scatter(p[bg, 0], p[bg, 1], s=0.2, c="0.8", rasterized=True)
+    cmap = plt.get_cmap("tab20")
+    ax.scatter(p[~bg, 0], p[~bg, 1], s=0.4, c=cmap(lab[~bg] % 20), rasterized=True)
+    if trajectory_xy is not None:
+        ax.plot(trajectory_xy[:, 0], trajectory_xy[:, 1], "-", color="0.25", lw=0.8, label="drive")
+    if trees is not None:
+        for _, t in trees.iterrows():
+            ax.annotate(f"{t['row']}:{t['label']}", (t["x"], t["y"]), ha="center", va="center",
+                        fontsize=7, weight="bold")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("segmented map (row:label)")
+    return fig
+
+
+def plot_volumes(trees: pd.DataFrame, columns: dict[str, str], ax: Any = None) -> Any:
+    """Grouped bars of each tree's volume by method (``columns``: label -> column)."""
+    fig, ax = _axes(ax, (max(6, 0.35 * len(trees) + 2), 4.5))
+    cols = {k: v for k, v in columns.items() if v in trees}
+    x = np.arange(len(trees))
+    width = 0.8 / max(len(cols), 1)
+    for i, (name, col) in enumerate(cols.items()):
+        ax.bar(x + (i - (len(cols) - 1) / 2) * width, trees[col], width, label=name)
+    ax.set_xticks(x)
+    ax.set_xticklabels([f"{r}:{lab}" for r, lab in zip(trees["row"], trees["label"])], rotation=90,
+                       fontsize=7)
+    ax.set_ylabel("volume (m³)")
+    ax.legend(fontsize=8)
+    ax.set_title("canopy volume per tree")
+    return fig
+
+
+def plot_agreement(estimate: np.ndarray, reference: np.ndarray, names: tuple[str, str],
+                   labels: list[str] | None = None) -> Any:
+    """Scatter against the 1:1 line and a Bland-Altman plot, side by side."""
+    import matplotlib.pyplot as plt
+
+    from canopy_kit import stats
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.5))
+    est, ref = np.asarray(estimate, float), np.asarray(reference, float)
+    lim = [0, 1.05 * max(np.nanmax(est), np.nanmax(ref))]
+    a.plot(lim, lim, "k--", lw=0.8)
+    a.scatter(ref, est, s=18)
+    if labels is not None:
+        for x, y, lab in zip(ref, est, labels):
+            a.annotate(lab, (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    ag = stats.agreement(est, ref)
+    a.set_xlabel(f"{names[1]} (m³)")
+    a.set_ylabel(f"{names[0]} (m³)")
+    a.set_title(f"MAPE {ag.mape_pct:.1f} %, R² {ag.r_squared:.2f}")
+    a.set_xlim(lim)
+    a.set_ylim(lim)
+    mean, diff = (est + ref) / 2, est - ref
+    ba = ag.bland_altman
+    b.scatter(mean, diff, s=18)
+    for y, style in ((ba.mean_difference, "-"), (ba.lower_limit, "--"), (ba.upper_limit, "--")):
+        b.axhline(y, color="tab:red", ls=style, lw=0.8)
+    b.set_xlabel("mean of the two (m³)")
+    b.set_ylabel("difference (m³)")
+    b.set_title("Bland-Altman (mean and 95 % limits)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_trajectories(estimated: np.ndarray, reference: np.ndarray | None = None, ax: Any = None) -> Any:
+    """Estimated (and true) trajectory from above."""
+    fig, ax = _axes(ax, (7, 7))
+    ax.plot(estimated[:, 0], estimated[:, 1], "-", lw=1.2, label="estimated")
+    if reference is not None:
+        ax.plot(reference[:, 0], reference[:, 1], "--", lw=1.0, label="true")
+    ax.set_aspect("equal")
+    ax.legend()
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("trajectory")
+    return fig

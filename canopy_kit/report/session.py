@@ -1,0 +1,123 @@
+"""The report of one pipeline run: summary, checks, figures, per-tree table and config."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.report.figures import figure_to_data_uri
+from canopy_kit.report.html import Check, ReportSection, render_report, write_report
+
+TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
+                 "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
+                 "aerial_diameter_m", "aerial_sphere_volume_m3", "error_alpha_vs_aerial_pct",
+                 "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags"]
+
+
+def _fmt(value: float | None, unit: str = "", digits: int = 2) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}f}{unit}"
+
+
+def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
+    """Validation checks with targets; ``passed`` None for information only."""
+    checks = [Check("trees segmented", len(trees) > 0, str(len(trees)), "≥ 1")]
+    share = metrics.get("flagged_volumes", 0) / max(len(trees), 1)
+    checks.append(Check("volumes flagged as unreliable", share <= 0.10,
+                        f"{metrics.get('flagged_volumes', 0)} ({100 * share:.0f} %)", "≤ 10 % of trees"))
+    mapping = metrics.get("evaluation", {}).get("mapping", {})
+    if "ate_rmse_m" in mapping:
+        checks.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
+                            _fmt(mapping["ate_rmse_m"], " m", 3), "≤ 0.20 m"))
+    if "drift_pct" in mapping:
+        checks.append(Check("drift (% of path length)", mapping["drift_pct"] <= 0.5,
+                            _fmt(mapping["drift_pct"], " %", 3), "≤ 0.5 %"))
+    seg = metrics.get("evaluation", {}).get("segmentation")
+    if seg:
+        checks.append(Check("trees segmented one-to-one (IoU ≥ 0.5)", seg["success_rate"] >= 0.95,
+                            f"{seg['n_correct']}/{seg['n_truth']} ({100 * seg['success_rate']:.0f} %)",
+                            "≥ 95 %", f"merged {seg['n_merged']}, split {seg['n_split']}, "
+                            f"missed {seg['n_missed']}"))
+        checks.append(Check("row and label correct", seg["label_accuracy"] >= 0.95,
+                            f"{100 * seg['label_accuracy']:.0f} %", "≥ 95 % of matched trees"))
+    vols = metrics.get("evaluation", {}).get("volumes", {})
+    for method, target in (("alpha_shape", None), ("convex_hull", None)):
+        if method in vols:
+            checks.append(Check(f"{method} volume vs true crown volume (MAPE)", target,
+                                _fmt(vols[method]["mape_pct"], " %", 1), "information",
+                                f"bias {_fmt(vols[method]['bias_pct'], ' %', 1)}"))
+    aerial = metrics.get("aerial")
+    if aerial:
+        matched = aerial.get("matched_trees", 0)
+        checks.append(Check("LiDAR trees matched to an aerial crown", matched >= 0.9 * len(trees),
+                            f"{matched}/{len(trees)}", "≥ 90 %"))
+        for col, name in (("volume_alpha_m3", "alpha shape"), ("volume_convex_hull_m3", "convex hull")):
+            if col in aerial:
+                checks.append(Check(f"{name} vs aerial sphere volume (MAPE)", None,
+                                    _fmt(aerial[col]["mape_pct"], " %", 1), "paper: 0-23 % per tree",
+                                    f"R² {_fmt(aerial[col]['r_squared'])}"))
+    for w in metrics.get("warnings", []):
+        checks.append(Check("warning", None, "", "", str(w)))
+    return checks
+
+
+def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path: str | Path) -> Path:
+    """Render and write ``report.html`` for a run."""
+    from canopy_kit.config import config_toml
+    from canopy_kit.report import plots
+
+    cloud, seg = ctx.mapping.map, ctx.segmentation
+    traj = ctx.mapping.trajectory
+    sections = []
+    map_fig = plots.plot_segmented_map(cloud.xyz, seg.labels, trees, traj[["x", "y"]].to_numpy())
+    figs = [("Map from above, each segmented tree in its own colour, labelled row:label; "
+             "the grey line is the estimated drive.", figure_to_data_uri(map_fig))]
+    volume_columns = {"convex hull": "volume_convex_hull_m3", "alpha shape": "volume_alpha_m3"}
+    if "aerial_sphere_volume_m3" in trees:
+        volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
+    if "true_crown_volume_m3" in trees:
+        volume_columns["true crown (simulator)"] = "true_crown_volume_m3"
+    figs.append(("Canopy volume per tree by method.",
+                 figure_to_data_uri(plots.plot_volumes(trees, volume_columns))))
+    sections.append(ReportSection("Map and trees", figs))
+    if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
+        ok = trees["aerial_sphere_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
+        figs = []
+        if ok.sum() >= 2:
+            sub = trees[ok]
+            figs.append(("Alpha-shape volume against the aerial sphere volume (paper §III.A).",
+                         figure_to_data_uri(plots.plot_agreement(
+                             sub["volume_alpha_m3"].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
+                             ("LiDAR alpha shape", "aerial sphere"), list(sub["label"])))))
+        ortho = getattr(ctx.aerial, "figure", None)
+        if callable(ortho):
+            figs.append(("Orthomosaic with the delineated crowns.", figure_to_data_uri(ortho())))
+        sections.append(ReportSection("LiDAR against drone photogrammetry", figs))
+    if "true_crown_volume_m3" in trees:
+        ok = trees["true_crown_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
+        if ok.sum() >= 2:
+            sub = trees[ok]
+            sections.append(ReportSection("Against the simulator's truth", [
+                ("Alpha-shape volume against the exact crown volume.",
+                 figure_to_data_uri(plots.plot_agreement(
+                     sub["volume_alpha_m3"].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
+                     ("LiDAR alpha shape", "true crown"), list(sub["label"]))))]))
+    seg_m = metrics.get("segmentation", {})
+    summary = {
+        "trees": len(trees),
+        "rows": seg_m.get("n_rows", "n/a"),
+        "segmenter": metrics.get("segmenter", ""),
+        "map points": f"{len(cloud):,}",
+        "drive": _fmt(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
+        "median alpha volume": _fmt(float(trees["volume_alpha_m3"].median()) if len(trees) and "volume_alpha_m3" in trees else None, " m³", 1),
+        "CRS": cloud.crs or "none",
+    }
+    table = trees[[c for c in TABLE_COLUMNS if c in trees]]
+    page = render_report(f"canopy-kit report: {ctx.config.name}", summary, table, sections,
+                         build_checks(metrics, trees), config_toml(ctx.config),
+                         subtitle="Per-tree canopy volumes from a mobile LiDAR drive")
+    return write_report(path, page)
