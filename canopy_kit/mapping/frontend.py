@@ -1,0 +1,221 @@
+"""Per-sweep LiDAR(-inertial) odometry: range filter, deskew, ground pre-filter, KISS-ICP.
+
+Sweeps are queued until the IMU has covered them (the gyro deskews and predicts the
+rotation) and, at the start, until the IMU has seen the robot stand still and start
+moving (gravity alignment and gyro bias). Without an IMU the first sweep's ground plane
+defines "up" and a constant-velocity model deskews and predicts.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from canopy_kit.config import MappingConfig
+from canopy_kit.errors import InputError
+from canopy_kit.io.bag import Scan
+from canopy_kit.mapping.deskew import deskew_points, reference_time
+from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
+from canopy_kit.mapping.imu import RotationTrack, Standstill, detect_standstill, level_rotation
+from canopy_kit.mapping.odometry import LidarOdometry, OdometrySettings
+from canopy_kit.mapping.sensors import ImuBuffer
+
+IMU_WAIT_SCANS = 5  # process a sweep anyway when the IMU lags this many sweeps behind
+STARTUP_MAX_SCANS = 300  # give up waiting for the end of the standstill after this many
+
+
+@dataclass
+class FrontendSweep:
+    """One registered sweep: odometry pose and the deskewed points (sensor frame at ``t_ref``)."""
+
+    scan: Scan
+    t_ref: float
+    pose: np.ndarray  # (4, 4) odometry frame (gravity-aligned, origin at the first sweep)
+    keep: np.ndarray  # (N,) points within the range limits
+    xyz: np.ndarray  # (M, 3) deskewed kept points
+    ground: np.ndarray  # (M,) kept points called ground
+    deskewed: bool
+
+
+@dataclass
+class FrontendState:
+    """What the frontend learned and noticed; read by the pipeline for its diagnostics."""
+
+    standstill: Standstill | None = None
+    rotations: RotationTrack | None = None
+    initial_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    up_source: str = ""
+    sweeps: int = 0
+    skipped_sparse: list[int] = field(default_factory=list)
+    not_deskewed: int = 0
+    ground_fallbacks: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+
+class LidarFrontend:
+    """Feed scans in time order; get registered sweeps back (possibly a few scans later)."""
+
+    def __init__(self, config: MappingConfig, imu: ImuBuffer | None, where: str = "bag") -> None:
+        self.config = config
+        self.imu = imu
+        self.where = where
+        self.state = FrontendState()
+        self._queue: deque[Scan] = deque()
+        self._odometry: LidarOdometry | None = None
+        self._prev_t: float | None = None
+        self._velocity = np.zeros(3)  # body frame, m/s
+        self._omega = np.zeros(3)  # body frame, rad/s
+        self._imu_used = 0
+        self._sparse_run = 0
+
+    # -- start-up --------------------------------------------------------------------------
+    def _ready_to_start(self, final: bool) -> bool:
+        if self.imu is None or final or len(self._queue) >= STARTUP_MAX_SCANS:
+            return True
+        if len(self.imu) < 20:
+            return False
+        series = self.imu.series()
+        span = series.t[-1] - series.t[0]
+        still = detect_standstill(series)
+        if not still.found:
+            return span >= 2.0  # moving from the start: nothing to wait for
+        # The standstill is known once it ends well before the newest sample.
+        return still.end < series.t[-1] - 1.0 or span > 30.0
+
+    def _start(self, first: Scan) -> None:
+        st = self.state
+        if self.imu is not None and len(self.imu) >= 20:
+            series = self.imu.series()
+            st.standstill = detect_standstill(series)
+            st.rotations = RotationTrack(series, st.standstill.gyro_bias)
+            self._imu_used = len(self.imu)
+            st.initial_rotation = st.standstill.level_rotation().as_matrix()
+            st.up_source = "imu"
+            if not st.standstill.found:
+                st.warnings.append("IMU: no standstill at the start; gravity taken from the mean of the "
+                                   "first second of data and the gyro bias assumed zero")
+        else:
+            if self.imu is not None:
+                st.warnings.append("IMU topic has fewer than 20 samples; mapping with LiDAR only")
+                self.imu = None
+            keep = range_mask(first.xyz, self.config.min_range, self.config.max_range)
+            plane = fit_ground_plane(first.xyz[keep])
+            if plane is not None:
+                st.initial_rotation = level_rotation(plane[:3]).as_matrix()
+                st.up_source = "ground plane of the first scan"
+            else:
+                st.up_source = "sensor z axis"
+            st.warnings.append(f"no IMU: 'up' taken from the {st.up_source}; map tilt follows any "
+                               "terrain slope under the first scan")
+        t0 = np.eye(4)
+        t0[:3, :3] = st.initial_rotation
+        self._odometry = LidarOdometry(OdometrySettings(
+            voxel_size=self.config.kiss_voxel_size, max_range=self.config.max_range,
+            min_range=self.config.min_range, max_points_per_voxel=self.config.kiss_max_points_per_voxel,
+            max_threads=self.config.threads), t0)
+
+    # -- per sweep -------------------------------------------------------------------------
+    def _sync_imu(self) -> None:
+        if self.imu is not None and self.state.rotations is not None and len(self.imu) > self._imu_used:
+            new = self.imu.series(self._imu_used)
+            self.state.rotations.extend(new.t, new.angular_velocity)
+            self._imu_used = len(self.imu)
+
+    def _imu_covers(self, scan: Scan) -> bool:
+        if self.imu is None:
+            return True
+        end = float(scan.times.max()) if scan.times is not None and len(scan.times) else scan.stamp
+        return self.imu.last_time >= end
+
+    def feed(self, scan: Scan) -> list[FrontendSweep]:
+        """Queue ``scan``; return the sweeps that could be processed now."""
+        self._queue.append(scan)
+        return self._drain(final=False)
+
+    def finish(self) -> list[FrontendSweep]:
+        """Process every queued scan (end of the bag)."""
+        return self._drain(final=True)
+
+    def _drain(self, final: bool) -> list[FrontendSweep]:
+        out: list[FrontendSweep] = []
+        if self._odometry is None:
+            if not self._queue or not self._ready_to_start(final):
+                return out
+            self._start(self._queue[0])
+        while self._queue and (final or self._imu_covers(self._queue[0])
+                               or len(self._queue) > IMU_WAIT_SCANS):
+            sweep = self._process(self._queue.popleft())
+            if sweep is not None:
+                out.append(sweep)
+        return out
+
+    def _process(self, scan: Scan) -> FrontendSweep | None:
+        cfg, st = self.config, self.state
+        assert self._odometry is not None
+        self._sync_imu()
+        keep = range_mask(scan.xyz, cfg.min_range, cfg.max_range)
+        n_kept = int(keep.sum())
+        if n_kept < cfg.min_points_per_scan:
+            self._sparse_run += 1
+            st.skipped_sparse.append(scan.index)
+            if self._sparse_run >= 5 and st.sweeps == 0:
+                check_point_count(n_kept, cfg.min_points_per_scan,
+                                  f"{self.where}: scans {st.skipped_sparse[0]}..{scan.index}")
+            return None
+        self._sparse_run = 0
+        xyz = scan.xyz[keep]
+        times = scan.times[keep] if scan.times is not None else None
+        if times is not None and not (np.all(np.isfinite(times)) and np.ptp(times) > 0):
+            times = None
+        t_ref = reference_time(times, scan.stamp)
+        deskewed = cfg.deskew and times is not None
+        if deskewed:
+            assert times is not None
+            use_gyro = st.rotations is not None and st.rotations.covers(float(times.min()), float(times.max()))
+            xyz = deskew_points(xyz, times, t_ref, self._velocity, self._omega,
+                                st.rotations if use_gyro else None)
+        else:
+            st.not_deskewed += 1
+        ground = ground_mask(xyz, cfg.odometry_ground_band)
+        odo_points = xyz[~ground]
+        if len(odo_points) < max(cfg.min_points_per_scan // 4, 50):
+            odo_points = xyz  # nothing but ground in view: better the trap than no odometry
+            st.ground_fallbacks += 1
+        if cfg.odometry_point_stride > 1:
+            odo_points = odo_points[:: cfg.odometry_point_stride]
+        guess = self._predict(t_ref)
+        previous = self._odometry.pose.copy()
+        pose = self._odometry.register(odo_points, guess)
+        if self._prev_t is not None and t_ref > self._prev_t:
+            dt = t_ref - self._prev_t
+            delta = np.linalg.inv(previous) @ pose
+            self._velocity = delta[:3, 3] / dt
+            self._omega = Rotation.from_matrix(delta[:3, :3]).as_rotvec() / dt
+        self._prev_t = t_ref
+        st.sweeps += 1
+        return FrontendSweep(scan, t_ref, pose, keep, xyz, ground, deskewed)
+
+    def _predict(self, t_ref: float) -> np.ndarray:
+        """Initial guess: last pose moved by the gyro rotation (or constant velocity)."""
+        assert self._odometry is not None
+        pose = self._odometry.pose
+        if self._prev_t is None:
+            return pose.copy()
+        dt = t_ref - self._prev_t
+        delta = np.eye(4)
+        rot = self.state.rotations
+        if rot is not None and rot.covers(self._prev_t, t_ref):
+            delta[:3, :3] = rot.relative(self._prev_t, np.array([t_ref])).as_matrix()[0]
+        else:
+            delta[:3, :3] = Rotation.from_rotvec(self._omega * dt).as_matrix()
+        delta[:3, 3] = self._velocity * dt
+        return pose @ delta
+
+
+def require_sweeps(n: int, where: str) -> None:
+    """Raise when fewer than two sweeps could be registered."""
+    if n < 2:
+        raise InputError(f"{where}: only {n} usable LiDAR sweeps; at least 2 are needed to map")

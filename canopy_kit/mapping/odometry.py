@@ -1,0 +1,63 @@
+"""LiDAR odometry: KISS-ICP's registration and local map, driven with our own motion prior.
+
+``kiss_icp.kiss_icp.KissICP.register_frame`` deskews with a constant-velocity model and
+predicts the next pose the same way. Here the sweep arrives already deskewed (with the
+gyro when there is an IMU) and the prediction uses the gyro's rotation, so only KISS-ICP's
+voxelisation, adaptive threshold, point-to-point ICP and voxel-hash local map are used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class OdometrySettings:
+    """The KISS-ICP parameters the mapping stage exposes."""
+
+    voxel_size: float = 1.0
+    max_range: float = 60.0
+    min_range: float = 1.0
+    max_points_per_voxel: int = 20
+    max_threads: int = 0  # 0: all cores
+
+
+class LidarOdometry:
+    """Scan-to-local-map registration (KISS-ICP core) with an external initial guess."""
+
+    def __init__(self, settings: OdometrySettings, initial_pose: np.ndarray | None = None) -> None:
+        from kiss_icp.config import KISSConfig
+        from kiss_icp.kiss_icp import KissICP
+
+        config = KISSConfig()
+        config.data.max_range = settings.max_range
+        config.data.min_range = settings.min_range
+        config.data.deskew = False
+        config.mapping.voxel_size = settings.voxel_size
+        config.mapping.max_points_per_voxel = settings.max_points_per_voxel
+        config.registration.max_num_threads = settings.max_threads
+        self._kiss = KissICP(config)
+        self.pose = np.eye(4) if initial_pose is None else np.array(initial_pose, float)
+        self._kiss.last_pose = self.pose.copy()
+        self.n_frames = 0
+
+    def register(self, points: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
+        """Register deskewed sensor-frame ``points`` starting from ``initial_guess``; the new pose."""
+        kiss = self._kiss
+        source, frame_downsample = kiss.voxelize(points)
+        if self.n_frames == 0 or kiss.local_map.empty():
+            new_pose = np.array(initial_guess, float)
+        else:
+            sigma = kiss.adaptive_threshold.get_threshold()
+            new_pose = kiss.registration.align_points_to_map(
+                points=source, voxel_map=kiss.local_map, initial_guess=initial_guess,
+                max_correspondance_distance=3 * sigma, kernel=sigma)
+            kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
+        kiss.local_map.update(frame_downsample, new_pose)
+        kiss.last_delta = np.linalg.inv(kiss.last_pose) @ new_pose
+        kiss.last_pose = new_pose
+        self.pose = new_pose
+        self.n_frames += 1
+        return new_pose

@@ -1,0 +1,381 @@
+"""The mapping stage's entry points: :func:`build_map` (whole bag) and :func:`stream_map`.
+
+``build_map`` reads the bag twice: pass 1 runs the odometry front end and collects IMU
+and GNSS; the pose graph then fuses everything; pass 2 deskews every point with the
+fused continuous-time trajectory and accumulates the voxel-thinned map.
+``stream_map`` is causal: each sweep comes out registered as soon as it is processed,
+placed with the odometry pose georeferenced by a running fit to the GNSS.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.config import MappingConfig
+from canopy_kit.errors import InputError
+from canopy_kit.geo import LocalFrame
+from canopy_kit.io.bag import BagSession, open_bag
+from canopy_kit.mapping.accumulate import MapAccumulator
+from canopy_kit.mapping.frontend import FrontendSweep, LidarFrontend, require_sweeps
+from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
+from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
+from canopy_kit.mapping.sensors import GnssBuffer, ImuBuffer, SensorTopics, resolve_topics, sensor_messages
+from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
+
+Progress = Callable[[str, float, float], None]
+TIME_FIELD = "gps_time"  # absolute per-point time (bag clock, s); LAS's standard time dimension
+POSE_BINS = 256  # per-sweep time bins for per-point poses
+
+
+@dataclass
+class RegisteredScan:
+    """One sweep placed in the map frame (what :func:`stream_map` yields)."""
+
+    index: int
+    stamp: float
+    time: float  # the instant ``pose`` refers to (middle of the sweep)
+    pose: np.ndarray  # (4, 4) map_from_sensor
+    points: PointCloud  # kept points in the map frame, every field plus ``gps_time``
+    ground: np.ndarray  # (N,) points the odometry's ground filter removed
+    georeferenced: bool
+
+
+@dataclass
+class MappingResult:
+    """The map, the trajectory and what happened on the way."""
+
+    map: PointCloud
+    trajectory: pd.DataFrame  # time, x, y, z, qx, qy, qz, qw (map frame, one row per sweep)
+    frame: LocalFrame | None  # None: not georeferenced (no GNSS)
+    diagnostics: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    config: MappingConfig = field(default_factory=MappingConfig)
+
+
+def fusion_settings(config: MappingConfig) -> FusionSettings:
+    """The pose-graph settings a mapping config asks for."""
+    return FusionSettings(
+        keyframe_every=config.keyframe_every,
+        odometry_jitter_rotation=config.odometry_jitter_rotation,
+        odometry_jitter_translation=config.odometry_jitter_translation,
+        odometry_drift_rotation=config.odometry_drift_rotation,
+        odometry_drift_translation=config.odometry_drift_translation,
+        gyro_noise_density=config.gyro_noise_density,
+        accel_noise_density=config.accel_noise_density,
+        gyro_bias_walk=config.gyro_bias_walk,
+        accel_bias_walk=config.accel_bias_walk,
+        gnss_correlation_time=config.gnss_correlation_time,
+        gnss_white_fraction=config.gnss_white_fraction,
+        gnss_lever_arm=tuple(float(v) for v in config.gnss_lever_arm),  # type: ignore[arg-type]
+    )
+
+
+def _check_config(config: MappingConfig) -> None:
+    from canopy_kit.errors import ConfigError
+
+    if not 0 <= config.min_range < config.max_range:
+        raise ConfigError(f"mapping.min_range/max_range: need 0 <= min_range < max_range, got "
+                          f"{config.min_range}, {config.max_range}")
+    for name in ("map_voxel_size", "kiss_voxel_size", "gnss_epoch", "gnss_correlation_time"):
+        if not getattr(config, name) > 0:
+            raise ConfigError(f"mapping.{name}: must be positive, got {getattr(config, name)}")
+    if len(config.gnss_lever_arm) != 3:
+        raise ConfigError(f"mapping.gnss_lever_arm: expected [x, y, z], got {config.gnss_lever_arm}")
+    if config.keyframe_every < 1 or config.odometry_point_stride < 1:
+        raise ConfigError("mapping.keyframe_every and mapping.odometry_point_stride must be >= 1")
+
+
+def _scan_count(bag: BagSession, topic: str) -> int:
+    return next((t.count for t in bag.topics() if t.name == topic), 0)
+
+
+def _input_warnings(topics: SensorTopics, config: MappingConfig, bag: BagSession) -> list[str]:
+    out = []
+    if config.use_imu and topics.imu is None:
+        out.append(f"{bag.path}: no IMU topic (sensor_msgs/msg/Imu): mapped with LiDAR only "
+                   "(no gravity alignment, no gyro deskew or rotation prior)")
+    if config.use_gnss and topics.gnss is None:
+        out.append(f"{bag.path}: no GNSS topic (sensor_msgs/msg/NavSatFix): the map is not "
+                   "georeferenced (local frame at the first sweep) and drift is not bounded")
+    return out
+
+
+class _PassOne:
+    """Front end over the bag: sweeps, IMU and GNSS, with running counts for diagnostics."""
+
+    def __init__(self, bag: BagSession, config: MappingConfig, progress: Progress | None) -> None:
+        self.bag = bag
+        self.config = config
+        self.topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
+                                     config.use_imu, config.use_gnss)
+        self.imu = ImuBuffer() if self.topics.imu else None
+        self.gnss = GnssBuffer() if self.topics.gnss else None
+        self.frontend = LidarFrontend(config, self.imu, where=f"{bag.path}: topic {self.topics.scans!r}")
+        self.total = _scan_count(bag, self.topics.scans)
+        self.progress = progress
+        self.n_scans = 0
+        self.n_without_time = 0
+        self.first_stamp = np.inf
+        self.last_stamp = -np.inf
+
+    def sweeps(self) -> Iterator[FrontendSweep]:
+        for scan in sensor_messages(self.bag, self.topics, self.imu, self.gnss):
+            self.n_scans += 1
+            self.first_stamp = min(self.first_stamp, scan.stamp)
+            self.last_stamp = max(self.last_stamp, scan.stamp)
+            if scan.times is None:
+                self.n_without_time += 1
+            yield from self.frontend.feed(scan)
+            if self.progress:
+                self.progress("mapping: odometry", self.n_scans, self.total)
+        yield from self.frontend.finish()
+
+    def warnings(self) -> list[str]:
+        out = _input_warnings(self.topics, self.config, self.bag)
+        st = self.frontend.state
+        if self.n_without_time:
+            out.append(f"{self.bag.path}: topic {self.topics.scans!r}: {self.n_without_time} of "
+                       f"{self.n_scans} scans have no per-point time field (t, time, timestamp...); "
+                       "those were mapped without deskew")
+        elif st.not_deskewed and self.config.deskew:
+            out.append(f"{st.not_deskewed} sweeps had unusable per-point times (constant or "
+                       "non-finite) and were mapped without deskew")
+        if st.skipped_sparse:
+            out.append(f"{len(st.skipped_sparse)} scans had fewer than "
+                       f"{self.config.min_points_per_scan} points in range and were skipped "
+                       f"(first: scan {st.skipped_sparse[0]})")
+        if st.ground_fallbacks:
+            out.append(f"{st.ground_fallbacks} sweeps had almost no points above the ground; their "
+                       "odometry used the ground points (flat-ground trap possible)")
+        return out + list(st.warnings)
+
+
+def build_map(bag_path: str | Path, config: MappingConfig | None = None,
+              progress: Progress | None = None) -> MappingResult:
+    """Map a bag: odometry, pose-graph fusion (IMU, GNSS), deskewed voxel-thinned map."""
+    config = config or MappingConfig()
+    _check_config(config)
+    timing: dict[str, float] = {}
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    with open_bag(bag_path) as bag:
+        one = _PassOne(bag, config, progress)
+        records = [(s.scan.index, s.scan.stamp, s.t_ref, s.pose, len(s.scan), s.deskewed)
+                   for s in one.sweeps()]
+        require_sweeps(len(records), f"{bag.path}: topic {one.topics.scans!r}")
+        timing["odometry_cpu_s"] = time.process_time() - cpu0
+        index = np.array([r[0] for r in records])
+        t_ref = np.array([r[2] for r in records])
+        odometry = np.array([r[3] for r in records])
+        deskewed = {r[0]: r[5] for r in records}
+        warnings = one.warnings()
+        imu = one.imu.series() if one.imu is not None and len(one.imu) >= 20 else None
+        if one.frontend.imu is None:
+            imu = None
+        st = one.frontend.state
+        frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings)
+
+        cpu1 = time.process_time()
+        fused = fuse_trajectory(t_ref, odometry, fusion_settings(config), imu=imu,
+                                standstill=st.standstill, gnss=epochs)
+        if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
+            warnings.append("GNSS fixes do not overlap the LiDAR sweeps; the map is not georeferenced")
+            frame = None
+        trajectory = ContinuousTrajectory(fused.times, fused.poses, t_ref, odometry, st.rotations)
+        timing["fusion_cpu_s"] = time.process_time() - cpu1
+
+        cpu2 = time.process_time()
+        accumulator = MapAccumulator(config.map_voxel_size)
+        wanted = set(index.tolist())
+        n_done = 0
+        for scan in bag.scans(one.topics.scans):
+            if scan.index not in wanted:
+                continue
+            xyz, fields = _world_points(scan, trajectory, config, deskewed[scan.index])
+            accumulator.add(xyz, fields)
+            n_done += 1
+            if progress:
+                progress("mapping: map", n_done, len(wanted))
+        timing["map_cpu_s"] = time.process_time() - cpu2
+
+    crs = frame.crs if frame is not None else None
+    origin = frame.origin if frame is not None else np.zeros(3)
+    cloud = accumulator.cloud(crs=crs, origin=origin)
+    poses = trajectory.matrices(t_ref)
+    table = pose_table(t_ref, poses)
+    timing["total_cpu_s"] = time.process_time() - cpu0
+    timing["total_wall_s"] = time.perf_counter() - wall0
+    duration = float(one.last_stamp - one.first_stamp + 0.1) if one.n_scans else 0.0
+    diagnostics = {
+        "bag": str(bag_path),
+        "topics": {"pointcloud": one.topics.scans, "imu": one.topics.imu if imu is not None else None,
+                   "gnss": one.topics.gnss if frame is not None else None},
+        "scans": one.n_scans,
+        "sweeps_registered": len(records),
+        "scans_skipped_sparse": len(st.skipped_sparse),
+        "scans_without_point_time": one.n_without_time,
+        "sweeps_deskewed": int(sum(deskewed.values())),
+        "duration_s": duration,
+        "path_length_m": float(np.sum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))),
+        "map_points": len(cloud),
+        "points_offered": accumulator.n_offered,
+        "up_source": st.up_source,
+        "georeferenced": frame is not None,
+        "fusion": fused.diagnostics,
+        "timing": timing,
+        "real_time_factor_cpu": duration / timing["total_cpu_s"] if timing["total_cpu_s"] > 0 else None,
+    }
+    if st.standstill is not None:
+        diagnostics["imu"] = {"standstill_s": st.standstill.duration, "standstill_found": st.standstill.found,
+                              "gyro_bias_start": st.standstill.gyro_bias.tolist()}
+        if fused.accel_bias is not None:
+            diagnostics["imu"]["accel_bias_end"] = fused.accel_bias[-1].tolist()
+            diagnostics["imu"]["gyro_bias_end"] = fused.gyro_bias[-1].tolist()
+    if gnss_diag:
+        if fused.gnss_bias is not None:
+            gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
+        diagnostics["gnss"] = gnss_diag
+    return MappingResult(cloud, table, frame, diagnostics, warnings, config)
+
+
+def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig,
+                 warnings: list[str]) -> tuple[LocalFrame | None, GnssEpochs | None, dict]:
+    if buffer is None or len(buffer) == 0:
+        return None, None, {}
+    series = buffer.series()
+    try:
+        frame = local_frame_for(series)
+        epochs = gnss_epochs(series, frame, config.gnss_epoch, config.gnss_default_sigma_horizontal,
+                             config.gnss_default_sigma_vertical)
+    except InputError as exc:
+        warnings.append(f"GNSS not used: {exc}")
+        return None, None, {}
+    if epochs.n_rejected:
+        warnings.append(f"GNSS: {epochs.n_rejected} fixes without a valid position were ignored")
+    diag = {"fixes": epochs.n_fixes, "epochs": len(epochs.t), "rejected": epochs.n_rejected,
+            "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])), "crs": frame.crs}
+    return frame, epochs, diag
+
+
+def point_fields(scan_fields: dict[str, np.ndarray], keep: np.ndarray | slice,
+                 times: np.ndarray | None, stamp: float, n: int) -> dict[str, np.ndarray]:
+    """The scan's own fields (untouched) for the kept points plus absolute ``gps_time``."""
+    fields = {k: v[keep] for k, v in scan_fields.items()}
+    fields[TIME_FIELD] = times[keep] if times is not None else np.full(n, stamp)
+    return fields
+
+
+def _world_points(scan, trajectory: ContinuousTrajectory, config: MappingConfig,  # noqa: ANN001
+                  deskew: bool) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """A sweep's kept points moved to the map frame, each with the pose at its own time."""
+    from canopy_kit.mapping.filters import range_mask
+
+    keep = range_mask(scan.xyz, config.min_range, config.max_range)
+    xyz = scan.xyz[keep]
+    times = scan.times
+    fields = point_fields(scan.fields, keep, times, scan.stamp, len(xyz))
+    if deskew and times is not None:
+        t = times[keep]
+        lo, hi = float(t.min()), float(t.max())
+        bins = np.clip(((t - lo) / max(hi - lo, 1e-12) * (POSE_BINS - 1) + 0.5).astype(np.int64),
+                       0, POSE_BINS - 1)
+        pos, rot = trajectory.at(lo + (hi - lo) * np.arange(POSE_BINS) / (POSE_BINS - 1))
+        world = np.einsum("nij,nj->ni", rot[bins], xyz) + pos[bins]
+    else:
+        t_ref = 0.5 * (float(times.min()) + float(times.max())) if times is not None and len(times) else scan.stamp
+        pos, rot = trajectory.at(np.array([t_ref]))
+        world = xyz @ rot[0].T + pos[0]
+    return world, fields
+
+
+def stream_map(bag_path: str | Path, config: MappingConfig | None = None,
+               progress: Progress | None = None) -> Iterator[RegisteredScan]:
+    """Yield each sweep registered in the map frame as the drive is processed (causal).
+
+    With GNSS the frame is the local UTM frame of :func:`build_map`; the odometry is
+    georeferenced by a yaw + translation fit to the fixes seen so far (recent ones
+    weighted more), and sweeps are held back until the robot has moved ``15 m`` so the
+    heading is known. Without GNSS the frame is the gravity-aligned first sweep.
+    :func:`build_map` smooths the whole drive and so places points more accurately.
+    """
+    config = config or MappingConfig()
+    _check_config(config)
+    with open_bag(bag_path) as bag:
+        one = _PassOne(bag, config, progress)
+        georef = _RunningGeoreference(config) if one.gnss is not None else None
+        pending: list[FrontendSweep] = []
+        for sweep in one.sweeps():
+            if georef is None:
+                yield _registered(sweep, np.eye(4), False)
+                continue
+            georef.update(one.gnss, sweep)  # type: ignore[arg-type]
+            pending.append(sweep)
+            if georef.alignment is not None:
+                for held in pending:
+                    yield _registered(held, georef.alignment, True)
+                pending = []
+        for held in pending:  # never georeferenced (too short a drive or no valid fixes)
+            yield _registered(held, np.eye(4), False)
+
+
+class _RunningGeoreference:
+    """Causal odometry-to-GNSS alignment (yaw + translation), refitted every second."""
+
+    MIN_BASELINE = 15.0
+    RECENCY = 120.0  # s: older pairs count less, so the fit follows the current drift
+
+    def __init__(self, config: MappingConfig) -> None:
+        self.config = config
+        self.frame: LocalFrame | None = None
+        self.alignment: np.ndarray | None = None
+        self._t: list[float] = []
+        self._odo: list[np.ndarray] = []
+        self._last_fit = -np.inf
+        self._used = 0
+
+    def update(self, buffer: GnssBuffer, sweep: FrontendSweep) -> None:
+        self._t.append(sweep.t_ref)
+        self._odo.append(sweep.pose[:3, 3].copy())
+        if len(buffer) == 0 or sweep.t_ref - self._last_fit < 1.0:
+            return
+        series = buffer.series()
+        try:
+            if self.frame is None:
+                self.frame = local_frame_for(series)
+            epochs = gnss_epochs(series, self.frame, self.config.gnss_epoch)
+        except InputError:
+            return
+        t = np.array(self._t)
+        odo = np.array(self._odo)
+        inside = (epochs.t >= t[0]) & (epochs.t <= t[-1])
+        if inside.sum() < 3:
+            return
+        p_odo = np.column_stack([np.interp(epochs.t[inside], t, odo[:, k]) for k in range(3)])
+        if np.ptp(p_odo[:, :2], axis=0).max() < self.MIN_BASELINE:
+            return
+        weights = np.exp(-(sweep.t_ref - epochs.t[inside]) / self.RECENCY)
+        yaw, shift = heading_alignment(p_odo, epochs.xyz[inside], weights)
+        a = np.eye(4)
+        a[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        a[:3, 3] = shift
+        self.alignment = a
+        self._last_fit = sweep.t_ref
+
+
+def _registered(sweep: FrontendSweep, alignment: np.ndarray, georeferenced: bool) -> RegisteredScan:
+    pose = alignment @ sweep.pose
+    scan = sweep.scan
+    world = sweep.xyz @ pose[:3, :3].T + pose[:3, 3]
+    fields = point_fields(scan.fields, sweep.keep, scan.times, scan.stamp, len(world))
+    return RegisteredScan(scan.index, scan.stamp, sweep.t_ref, pose, PointCloud(world, fields),
+                          sweep.ground, georeferenced)
+
+
+__all__ = ["MappingResult", "RegisteredScan", "build_map", "stream_map", "fusion_settings",
+           "TIME_FIELD"]

@@ -1,0 +1,144 @@
+"""One pass over a bag's LiDAR, IMU and GNSS topics in log-time order.
+
+Reading the IMU or GNSS topic on its own costs a pass over the whole bag (chunks hold
+every topic), about as long as decoding the scans, so the mapping stage reads all three
+together and keeps the small IMU/GNSS streams in growable buffers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from canopy_kit.errors import InputError
+from canopy_kit.io import pointcloud2 as pc2
+from canopy_kit.io.bag import IMU, NAVSATFIX, POINTCLOUD2, BagSession, GnssSeries, ImuSeries, Scan
+
+
+@dataclass
+class SensorTopics:
+    """The topics one mapping run reads (IMU/GNSS None when absent or disabled)."""
+
+    scans: str
+    imu: str | None
+    gnss: str | None
+
+
+def resolve_topics(bag: BagSession, scans: str = "", imu: str = "", gnss: str = "",
+                   use_imu: bool = True, use_gnss: bool = True) -> SensorTopics:
+    """Named topics (checked) or the busiest topic of each message type."""
+    scan_topic = bag.find_topic(POINTCLOUD2, scans or None)
+    assert scan_topic is not None
+    imu_topic = bag.find_topic(IMU, imu or None, required=bool(imu)) if use_imu else None
+    gnss_topic = bag.find_topic(NAVSATFIX, gnss or None, required=bool(gnss)) if use_gnss else None
+    return SensorTopics(scan_topic, imu_topic, gnss_topic)
+
+
+class _Growable:
+    """Rows appended one at a time into a numpy array that doubles its capacity."""
+
+    def __init__(self, width: int) -> None:
+        self._a = np.zeros((256, width))
+        self.n = 0
+
+    def append(self, row: tuple[float, ...]) -> None:
+        if self.n == len(self._a):
+            self._a = np.resize(self._a, (2 * len(self._a), self._a.shape[1]))
+        self._a[self.n] = row
+        self.n += 1
+
+    @property
+    def rows(self) -> np.ndarray:
+        return self._a[: self.n]
+
+
+class ImuBuffer:
+    """IMU samples received so far (time, gyro xyz, accel xyz)."""
+
+    def __init__(self, frame_id: str = "") -> None:
+        self._rows = _Growable(7)
+        self.frame_id = frame_id
+
+    def __len__(self) -> int:
+        return self._rows.n
+
+    def append(self, t: float, gyro: tuple[float, float, float], acc: tuple[float, float, float]) -> None:
+        self._rows.append((t, *gyro, *acc))
+
+    @property
+    def last_time(self) -> float:
+        return float(self._rows.rows[-1, 0]) if len(self) else -np.inf
+
+    def series(self, start: int = 0) -> ImuSeries:
+        """Samples from index ``start`` on, sorted by time (no orientation)."""
+        r = self._rows.rows[start:]
+        r = r[np.argsort(r[:, 0], kind="stable")]
+        return ImuSeries(r[:, 0].copy(), r[:, 1:4].copy(), r[:, 4:7].copy(),
+                         np.tile([0.0, 0.0, 0.0, 1.0], (len(r), 1)), self.frame_id)
+
+
+class GnssBuffer:
+    """NavSatFix messages received so far."""
+
+    def __init__(self) -> None:
+        self._rows = _Growable(5 + 9)
+
+    def __len__(self) -> int:
+        return self._rows.n
+
+    def append(self, t: float, lat: float, lon: float, alt: float, status: int,
+               covariance: np.ndarray) -> None:
+        self._rows.append((t, lat, lon, alt, float(status), *np.asarray(covariance, float).ravel()[:9]))
+
+    def series(self) -> GnssSeries:
+        r = self._rows.rows
+        r = r[np.argsort(r[:, 0], kind="stable")]
+        return GnssSeries(r[:, 0].copy(), r[:, 1].copy(), r[:, 2].copy(), r[:, 3].copy(),
+                          r[:, 4].astype(int), r[:, 5:14].copy())
+
+
+def decode_scan(bag: BagSession, topic: str, msg: object, index: int) -> Scan:
+    """A PointCloud2 message as a :class:`Scan` (same conventions as ``BagSession.scans``)."""
+    where = f"{bag.path}: topic {topic!r}, scan {index}"
+    points = pc2.decode(msg, where)
+    xyz = pc2.xyz_from(points, where)
+    stamp = pc2.stamp_seconds(msg.header)  # type: ignore[attr-defined]
+    names = points.dtype.names or ()
+    time_name = pc2.time_field_name(names)
+    times = pc2.point_times(points[time_name], stamp) if time_name else None
+    fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
+    return Scan(stamp, xyz, fields, times, msg.header.frame_id, index)  # type: ignore[attr-defined]
+
+
+def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None = None,
+                    gnss: GnssBuffer | None = None) -> Iterator[Scan]:
+    """Stream the scans; IMU and GNSS messages met on the way are appended to the buffers."""
+    reader = bag.reader
+    wanted = {topics.scans} | ({topics.imu} if topics.imu and imu is not None else set()) | (
+        {topics.gnss} if topics.gnss and gnss is not None else set())
+    conns = [c for c in reader.connections if c.topic in wanted]
+    index = 0
+    try:
+        for conn, timestamp, raw in reader.messages(connections=conns):
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:  # rosbags raises several unrelated types
+                raise InputError(
+                    f"{bag.path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} message "
+                    f"at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})") from None
+            if conn.topic == topics.scans:
+                yield decode_scan(bag, conn.topic, msg, index)
+                index += 1
+            elif conn.topic == topics.imu and imu is not None:
+                w, a = msg.angular_velocity, msg.linear_acceleration
+                imu.frame_id = msg.header.frame_id
+                imu.append(pc2.stamp_seconds(msg.header), (w.x, w.y, w.z), (a.x, a.y, a.z))
+            elif conn.topic == topics.gnss and gnss is not None:
+                gnss.append(pc2.stamp_seconds(msg.header), msg.latitude, msg.longitude, msg.altitude,
+                            int(msg.status.status), np.asarray(msg.position_covariance, float))
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"{bag.path}: reading failed ({type(exc).__name__}: {exc})") from None
