@@ -1,0 +1,56 @@
+"""``canopy-kit ground-truth``: drone photos → orthomosaic, crowns and per-tree aerial estimates."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def ground_truth(
+    images_dir: Path = typer.Argument(..., help="Folder of geotagged drone JPEGs"),
+    out: Path = typer.Option(..., "--out", help="Output folder"),
+    seeds: Path = typer.Option(None, "--seeds",
+                               help="CSV of tree positions (lat/lon or x/y), e.g. the LiDAR trees.csv"),
+    frame: Path = typer.Option(None, "--frame",
+                               help="frame.json of the LiDAR map or simulated session (local frame "
+                                    "and CRS); default: UTM at the flight"),
+    work_size: int = typer.Option(2000, "--work-size",
+                                  help="Longest image side (px) for the surface and mosaic"),
+    json_out: bool = typer.Option(False, "--json", help="Print the report as JSON"),
+) -> None:
+    """Structure from motion, orthomosaic, DSM/CHM and crown diameters from drone photos."""
+    import json
+
+    from canopy_kit.cli.common import console, print_json, progress_bar
+    from canopy_kit.errors import InputError
+    from canopy_kit.geo import LocalFrame
+    from ground_truth.pipeline import GroundTruthOptions, process_flight
+
+    local = None
+    if frame is not None:
+        try:
+            data = json.loads(frame.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{frame}: not a readable frame JSON ({exc})") from None
+        local = LocalFrame.from_dict(data.get("frame", data) if isinstance(data, dict) else {})
+    options = GroundTruthOptions(work_image_size=work_size)
+    with progress_bar(transient=True) as progress:
+        result = process_flight(images_dir, out, frame=local, seeds=seeds, progress=progress,
+                                options=options)
+    if json_out:
+        print_json(result.report)
+        return
+    sfm = result.report["sfm"]
+    console.print(
+        f"[green]registered[/] {sfm['registered_images']}/{sfm['total_images']} photos, "
+        f"reprojection error {sfm['mean_reprojection_error_px']:.2f} px, GPS residual RMS "
+        f"{sfm['gps_residual_rms_horizontal_m']:.3f} m horizontal / "
+        f"{sfm['gps_residual_rms_vertical_m']:.3f} m vertical"
+    )
+    line = f"[green]crowns[/] {len(result.crowns)}"
+    if result.trees is not None:
+        line += f", matched to {int(result.trees['matched'].sum())} of {len(result.trees)} trees"
+    console.print(line)
+    for name, path in result.paths.items():
+        console.print(f"  {name:18s} {path}")

@@ -1,0 +1,221 @@
+"""Simulated drone photo flight: a nadir lawn-mower survey over the orchard.
+
+Flight lines run along the rows at a constant altitude above the take-off point, spaced
+for the side overlap; photos along a line are spaced for the forward overlap. Each
+photo is ray-cast from the same scene as the LiDAR (see ``drone_render``), saved as a
+JPEG with GPS (noisy, as a receiver reports it) and focal-length EXIF, and the true
+camera poses go to ``truth/drone_cameras.csv``.
+
+Camera convention (as COLMAP): x right, y down, z along the viewing direction; the
+stored rotation maps camera to world (local frame: x east, y north, z up).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
+from canopy_kit.sim.config import DroneSpec
+from canopy_kit.sim.drone_render import DroneRenderer, PinholeView
+from canopy_kit.sim.orchard import Orchard
+from canopy_kit.sim.scene import Scene
+from canopy_kit.sim.truth import write_csv
+
+Progress = Callable[[str, float, float], None]
+FLIGHT_START = datetime(2024, 6, 18, 11, 0, 0)
+CAMERA_MAKE = "canopy-kit"
+CAMERA_MODEL = "simulated nadir camera"
+
+
+@dataclass(frozen=True)
+class DroneShot:
+    """One planned and flown photo: true pose, line number and time since take-off."""
+
+    name: str
+    line: int
+    time_s: float
+    view: PinholeView
+
+
+@dataclass
+class DroneFlight:
+    """What a simulated flight wrote: image folder, camera table and the flight summary."""
+
+    images_dir: Path
+    cameras: pd.DataFrame
+    summary: dict
+
+
+def focal_px(spec: DroneSpec) -> float:
+    """Focal length in pixels from the lens focal length and the sensor width."""
+    return spec.focal_length_mm / spec.sensor_width_mm * spec.image_width
+
+
+def ground_footprint(spec: DroneSpec) -> tuple[float, float]:
+    """(across-track, along-track) ground size of a photo at flight altitude over flat ground."""
+    f = focal_px(spec)
+    return spec.altitude * spec.image_width / f, spec.altitude * spec.image_height / f
+
+
+def _line_positions(lo: float, hi: float, step: float) -> np.ndarray:
+    """Positions spaced by at most ``step`` covering [lo, hi], centred on it."""
+    n = max(int(np.ceil((hi - lo) / step - 1e-9)) + 1, 2)
+    span = (n - 1) * step
+    return (lo + hi) / 2 + np.linspace(-span / 2, span / 2, n)
+
+
+def plan_flight(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> list[DroneShot]:
+    """Lawn-mower photo positions over the crowns (plus ``area_margin``), with true-pose noise."""
+    from scipy.spatial.transform import Rotation
+
+    d, right = orchard.row_direction, orchard.right_direction
+    corners = []
+    for tree in orchard.trees:
+        lo, hi = tree.crown.bounds
+        corners.extend([(lo[0], lo[1]), (lo[0], hi[1]), (hi[0], lo[1]), (hi[0], hi[1])])
+    ac = orchard.to_orchard(np.asarray(corners))
+    a_lo, c_lo = ac.min(axis=0) - spec.area_margin
+    a_hi, c_hi = ac.max(axis=0) + spec.area_margin
+    across_size, along_size = ground_footprint(spec)
+    lines = _line_positions(c_lo, c_hi, across_size * (1 - spec.side_overlap))
+    stations = _line_positions(a_lo, a_hi, along_size * (1 - spec.forward_overlap))
+    centre = orchard.to_local(np.array((a_lo + a_hi) / 2), np.array((c_lo + c_hi) / 2))
+    z_fly = float(orchard.terrain.height(centre[0], centre[1])) + spec.altitude
+    f = focal_px(spec)
+    shots: list[DroneShot] = []
+    t = 0.0
+    prev = None
+    for k, across in enumerate(lines):
+        forward = 1.0 if k % 2 == 0 else -1.0
+        heading = forward * np.append(d, 0.0)
+        x_cam = np.cross(heading, [0.0, 0.0, 1.0])  # image right: to the right of the heading
+        y_cam = -heading  # image down: backwards, so the image top looks ahead
+        z_cam = np.array([0.0, 0.0, -1.0])
+        nominal = np.column_stack([x_cam, y_cam, z_cam])
+        for along in (stations if forward > 0 else stations[::-1]):
+            xy = orchard.to_local(np.array(along), np.array(across))
+            pos = np.array([xy[0], xy[1], z_fly])
+            pos[:2] += rng.normal(0.0, spec.position_jitter_horizontal, 2)
+            pos[2] += rng.normal(0.0, spec.position_jitter_vertical)
+            tilt = np.radians([rng.normal(0.0, spec.attitude_sigma_deg),
+                               rng.normal(0.0, spec.attitude_sigma_deg),
+                               rng.normal(0.0, spec.yaw_sigma_deg)])
+            rotation = nominal @ Rotation.from_rotvec(tilt).as_matrix()
+            if prev is not None:  # cruise between photos, plus a few seconds to turn
+                t += float(np.linalg.norm(pos - prev[0])) / spec.flight_speed + (4.0 if prev[1] != k else 0.0)
+            prev = (pos, k)
+            view = PinholeView(pos, rotation, f, spec.image_width, spec.image_height)
+            shots.append(DroneShot(f"IMG_{len(shots) + 1:04d}.jpg", k, t, view))
+    return shots
+
+
+def _rational(value: float, denominator: int) -> tuple[int, int]:
+    return int(round(value * denominator)), denominator
+
+
+def _dms(value: float) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
+    value = abs(value)
+    deg = int(value)
+    minutes = int((value - deg) * 60)
+    seconds = (value - deg - minutes / 60.0) * 3600.0
+    return (deg, 1), (minutes, 1), _rational(seconds, 100000)
+
+
+def exif_bytes(spec: DroneSpec, lat: float, lon: float, altitude: float, when: datetime) -> bytes:
+    """EXIF block with GPS position, time and the focal length / focal-plane resolution."""
+    import piexif
+
+    stamp = when.strftime("%Y:%m:%d %H:%M:%S").encode()
+    px_per_cm = spec.image_width / (spec.sensor_width_mm / 10.0)
+    zeroth = {piexif.ImageIFD.Make: CAMERA_MAKE.encode(), piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
+              piexif.ImageIFD.DateTime: stamp, piexif.ImageIFD.Orientation: 1}
+    exif = {
+        piexif.ExifIFD.DateTimeOriginal: stamp,
+        piexif.ExifIFD.FocalLength: _rational(spec.focal_length_mm, 1000),
+        piexif.ExifIFD.FocalLengthIn35mmFilm: int(round(spec.focal_length_mm * 36.0 / spec.sensor_width_mm)),
+        piexif.ExifIFD.FocalPlaneXResolution: _rational(px_per_cm, 1000),
+        piexif.ExifIFD.FocalPlaneYResolution: _rational(px_per_cm, 1000),
+        piexif.ExifIFD.FocalPlaneResolutionUnit: 3,  # centimetres
+        piexif.ExifIFD.PixelXDimension: spec.image_width,
+        piexif.ExifIFD.PixelYDimension: spec.image_height,
+    }
+    gps = {
+        piexif.GPSIFD.GPSVersionID: (2, 3, 0, 0),
+        piexif.GPSIFD.GPSLatitudeRef: b"N" if lat >= 0 else b"S",
+        piexif.GPSIFD.GPSLatitude: _dms(lat),
+        piexif.GPSIFD.GPSLongitudeRef: b"E" if lon >= 0 else b"W",
+        piexif.GPSIFD.GPSLongitude: _dms(lon),
+        piexif.GPSIFD.GPSAltitudeRef: 0 if altitude >= 0 else 1,
+        piexif.GPSIFD.GPSAltitude: _rational(abs(altitude), 1000),
+        piexif.GPSIFD.GPSMapDatum: b"WGS-84",
+    }
+    return piexif.dump({"0th": zeroth, "Exif": exif, "GPS": gps, "1st": {}, "thumbnail": None})
+
+
+def encode_jpeg(image: np.ndarray, exif: bytes, quality: int) -> bytes:
+    """JPEG bytes of an (H, W, 3) uint8 image carrying ``exif``."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="JPEG", quality=quality, exif=exif, subsampling=0)
+    return buf.getvalue()
+
+
+def simulate_drone_flight(orchard: Orchard, scene: Scene, spec: DroneSpec, drone_dir: str | Path,
+                          truth_dir: str | Path, rng: np.random.Generator,
+                          progress: Progress | None = None) -> DroneFlight:
+    """Fly, render and write the photos to ``drone_dir`` and the true cameras to ``truth_dir``."""
+    from scipy.spatial.transform import Rotation
+
+    report = progress or (lambda *_: None)
+    drone_dir, truth_dir = Path(drone_dir), Path(truth_dir)
+    drone_dir.mkdir(parents=True, exist_ok=True)
+    shots = plan_flight(orchard, spec, rng)
+    renderer = DroneRenderer(scene, orchard.terrain, (orchard.right_direction, orchard.row_offsets),
+                             spec.sun_elevation_deg, spec.sun_azimuth_deg)
+    offset = np.array([*rng.normal(0.0, spec.gps_offset_sigma_horizontal, 2),
+                       rng.normal(0.0, spec.gps_offset_sigma_vertical)])
+    rows = []
+    report("Drone photos", 0, len(shots))
+    for k, shot in enumerate(shots):
+        view = shot.view
+        gps = view.position + offset + np.array([*rng.normal(0.0, spec.gps_sigma_horizontal, 2),
+                                                 rng.normal(0.0, spec.gps_sigma_vertical)])
+        lat, lon, alt = (float(v[0]) for v in orchard.frame.to_wgs84(gps[None, :]))
+        image = renderer.render(view, rng)
+        when = FLIGHT_START + timedelta(seconds=round(shot.time_s))
+        atomic_write_bytes(drone_dir / shot.name,
+                           encode_jpeg(image, exif_bytes(spec, lat, lon, alt, when), spec.jpeg_quality))
+        q = Rotation.from_matrix(view.rotation).as_quat()
+        rows.append({"image": shot.name, "line": shot.line, "time_s": shot.time_s,
+                     "x": view.position[0], "y": view.position[1], "z": view.position[2],
+                     "qw": q[3], "qx": q[0], "qy": q[1], "qz": q[2],
+                     "gps_x": gps[0], "gps_y": gps[1], "gps_z": gps[2],
+                     "lat": lat, "lon": lon, "altitude": alt, "focal_px": view.focal_px,
+                     "cx": view.width / 2.0, "cy": view.height / 2.0,
+                     "width": view.width, "height": view.height})
+        report("Drone photos", k + 1, len(shots))
+    cameras = pd.DataFrame(rows)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    write_csv(cameras, truth_dir / "drone_cameras.csv", float_format="%.9f")
+    across, along = ground_footprint(spec)
+    summary = {
+        "images": len(shots), "lines": int(cameras["line"].max()) + 1 if len(cameras) else 0,
+        "altitude_m": spec.altitude, "gsd_m": spec.altitude / focal_px(spec),
+        "footprint_m": [across, along], "forward_overlap": spec.forward_overlap,
+        "side_overlap": spec.side_overlap, "focal_px": focal_px(spec),
+        "image_size": [spec.image_width, spec.image_height],
+        "camera_convention": "x right, y down, z viewing direction; quaternion camera-to-world",
+        "gps_offset_m": offset.tolist(),
+        "sun_elevation_deg": spec.sun_elevation_deg, "sun_azimuth_deg": spec.sun_azimuth_deg,
+    }
+    atomic_write_text(truth_dir / "drone_flight.json", json.dumps(summary, indent=2) + "\n")
+    return DroneFlight(drone_dir, cameras, summary)

@@ -1,0 +1,89 @@
+"""Match aerial crowns to LiDAR trees by position: one row per tree with both estimates.
+
+Trees come from a CSV (e.g. the LiDAR stage's ``trees.csv``) with ``lat``/``lon``
+columns (preferred: they survive a change of local frame) or ``x``/``y`` in the
+processing frame. The assignment is Hungarian (minimum total distance) with a distance
+gate: a crown farther than ``max_distance_m`` from every tree stays unmatched.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.errors import InputError
+from canopy_kit.geo import LocalFrame
+
+POSITION_COLUMNS = (("crown_x", "crown_y"), ("x", "y"))
+
+
+def read_trees(path: str | Path, frame: LocalFrame | None) -> pd.DataFrame:
+    """Tree positions from a CSV as columns ``tree_x``/``tree_y`` in ``frame`` (plus the rest)."""
+    path = Path(path)
+    try:
+        trees = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not a readable CSV of tree positions ({exc})") from None
+    return tree_positions(trees, frame, str(path))
+
+
+def tree_positions(trees: pd.DataFrame, frame: LocalFrame | None, where: str = "trees") -> pd.DataFrame:
+    """Add ``tree_x``/``tree_y`` (local frame) from ``lat``/``lon`` or from crown/trunk x, y."""
+    out = trees.copy()
+    if {"lat", "lon"} <= set(out.columns) and frame is not None:
+        xy = frame.to_local(out["lat"].to_numpy(float), out["lon"].to_numpy(float))
+        out["tree_x"], out["tree_y"] = xy[:, 0], xy[:, 1]
+        # A trunk lat/lon misses a leaning crown; shift by the crown offset when both are given.
+        if {"crown_x", "crown_y", "x", "y"} <= set(out.columns):
+            out["tree_x"] += out["crown_x"] - out["x"]
+            out["tree_y"] += out["crown_y"] - out["y"]
+        return out
+    for cx, cy in POSITION_COLUMNS:
+        if {cx, cy} <= set(out.columns):
+            out["tree_x"], out["tree_y"] = out[cx].astype(float), out[cy].astype(float)
+            return out
+    raise InputError(f"{where}: needs lat/lon (with a frame) or x/y columns for tree positions; "
+                     f"found {', '.join(map(str, out.columns))}")
+
+
+def assign(a_xy: np.ndarray, b_xy: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hungarian assignment of points ``a`` to ``b`` within ``max_distance``: (ia, ib, distance)."""
+    from scipy.optimize import linear_sum_assignment
+
+    a_xy, b_xy = np.asarray(a_xy, float).reshape(-1, 2), np.asarray(b_xy, float).reshape(-1, 2)
+    if len(a_xy) == 0 or len(b_xy) == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    d = np.linalg.norm(a_xy[:, None, :] - b_xy[None, :, :], axis=2)
+    cost = np.where(d <= max_distance, d, 1e6)
+    ia, ib = linear_sum_assignment(cost)
+    keep = d[ia, ib] <= max_distance
+    return ia[keep], ib[keep], d[ia, ib][keep]
+
+
+def match_crowns(trees: pd.DataFrame, crowns: pd.DataFrame, max_distance_m: float = 1.5) -> pd.DataFrame:
+    """One row per tree: the tree's columns plus its crown's columns prefixed ``aerial_``.
+
+    Crowns seeded by a tree (``seed_id`` = the tree's row index) go to that tree; the
+    others are assigned by position. Trees without a crown get NaN aerial columns.
+    """
+    out = trees.reset_index(drop=True).copy()
+    aerial = crowns.add_prefix("aerial_")
+    crown_of_tree = np.full(len(out), -1)
+    seeded = crowns["seed_id"].to_numpy() if "seed_id" in crowns else np.full(len(crowns), -1)
+    for ci, si in enumerate(seeded):
+        if 0 <= si < len(out):
+            crown_of_tree[si] = ci
+    free_trees = np.flatnonzero(crown_of_tree < 0)
+    free_crowns = np.setdiff1d(np.arange(len(crowns)), crown_of_tree[crown_of_tree >= 0])
+    ia, ib, _ = assign(out.loc[free_trees, ["tree_x", "tree_y"]].to_numpy(),
+                       crowns.iloc[free_crowns][["x", "y"]].to_numpy(), max_distance_m)
+    crown_of_tree[free_trees[ia]] = free_crowns[ib]
+    rows = [aerial.iloc[c] if c >= 0 else pd.Series(index=aerial.columns, dtype=float)
+            for c in crown_of_tree]
+    joined = pd.concat([out, pd.DataFrame(rows).reset_index(drop=True)], axis=1)
+    joined["aerial_distance_m"] = np.hypot(joined["aerial_x"] - joined["tree_x"],
+                                           joined["aerial_y"] - joined["tree_y"])
+    joined["matched"] = crown_of_tree >= 0
+    return joined

@@ -1,0 +1,186 @@
+"""``process_flight``: drone photos in, orthomosaic, surface models and per-crown table out."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.errors import ProcessingError
+from canopy_kit.geo import LocalFrame
+from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
+from ground_truth.camera import PosedCamera
+from ground_truth.crowns import CrownOptions, CrownSegmentation, delineate_crowns, measure_crowns
+from ground_truth.dsm import SurfaceModel, SurfaceOptions, clean_surface, dense_surface, ground_model
+from ground_truth.exif import Flight, read_flight
+from ground_truth.match import match_crowns, read_trees, tree_positions
+from ground_truth.ortho import Orthomosaic, orthomosaic
+from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
+from ground_truth.sfm import SfmOptions, SparseModel, run_sfm
+
+Progress = Callable[[str, float, float], None]
+
+
+@dataclass
+class GroundTruthOptions:
+    """Settings of every stage; saved next to the results as ``ground_truth_config.json``."""
+
+    sfm: SfmOptions = field(default_factory=SfmOptions)
+    surface: SurfaceOptions = field(default_factory=SurfaceOptions)
+    crowns: CrownOptions = field(default_factory=CrownOptions)
+    work_image_size: int = 2000  # longest side of the photos used for the surface and mosaic
+    ortho_resolution: float | None = None  # default: the ground sampling distance, >= 2 cm
+    max_canopy_height: float = 8.0
+    match_distance_m: float = 1.5
+
+
+@dataclass
+class GroundTruthResult:
+    """Everything one flight produced, in memory and on disk (``paths``)."""
+
+    out_dir: Path
+    frame: LocalFrame
+    model: SparseModel
+    surface: SurfaceModel
+    ortho: Orthomosaic
+    segmentation: CrownSegmentation
+    crowns: pd.DataFrame
+    trees: pd.DataFrame | None
+    report: dict
+    paths: dict[str, Path]
+
+
+def _load_work_images(flight: Flight, cameras: list[PosedCamera], max_size: int
+                      ) -> tuple[list[PosedCamera], list[np.ndarray]]:
+    from PIL import Image
+
+    width, height = flight.size
+    factor = min(1.0, max_size / max(width, height))
+    scaled, rgbs = [], []
+    for cam in cameras:
+        with Image.open(flight.folder / cam.name) as im:
+            im = im.convert("RGB")
+            if factor < 1.0:
+                im = im.resize((round(width * factor), round(height * factor)), Image.Resampling.LANCZOS)
+            rgbs.append(np.asarray(im))
+        scaled.append(cam.scaled(factor) if factor < 1.0 else cam)
+    return scaled, rgbs
+
+
+def _grey(rgb: np.ndarray, sigma: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter
+
+    grey = (rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0
+    return gaussian_filter(grey, sigma) if sigma > 0 else grey
+
+
+def _survey_grid(model: SparseModel, resolution: float) -> Grid:
+    """The area the sparse points cover (2nd to 98th percentile, padded a little)."""
+    xy = model.points[:, :2]
+    if len(xy) < 10:
+        raise ProcessingError(f"only {len(xy)} sparse points: the reconstruction is too thin")
+    lo, hi = np.percentile(xy, 2, axis=0), np.percentile(xy, 98, axis=0)
+    pad = 0.02 * float(np.max(hi - lo))
+    return Grid.covering(lo - pad, hi + pad, resolution)
+
+
+def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFrame | None = None,
+                   seeds: str | Path | pd.DataFrame | None = None, progress: Progress | None = None,
+                   options: GroundTruthOptions | None = None) -> GroundTruthResult:
+    """Drone photos → georeferenced orthomosaic, DSM/DTM/CHM, crowns and (with seeds) per-tree table.
+
+    ``frame`` is the local metric frame of the LiDAR map (default: UTM at the flight);
+    ``seeds`` are tree positions (CSV path or table with lat/lon or x/y) that seed the
+    crown watershed and receive one matched crown each.
+    """
+    opts = options or GroundTruthOptions()
+    report = progress or (lambda *_: None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+
+    flight = read_flight(images_dir)
+    frame = frame or flight.default_frame()
+    t0 = time.perf_counter()
+    model = run_sfm(flight, out / "sfm", frame, opts.sfm, report)
+    timings["sfm"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    names = sorted(model.cameras)
+    cameras, rgbs = _load_work_images(flight, [model.cameras[n] for n in names], opts.work_image_size)
+    heights = np.array([c.center[2] for c in cameras]) - np.median(model.points[:, 2])
+    gsd = float(np.median(heights) / np.median([c.focal for c in cameras]))
+    ortho_res = opts.ortho_resolution or max(round(gsd, 2), 0.02)
+    surface_opts = opts.surface
+    grid = _survey_grid(model, max(surface_opts.resolution, 2 * ortho_res))
+    ground = ground_model(model.points, grid, surface_opts.ground_window_m, surface_opts.ground_resolution)
+    greys = [_grey(rgb, 0.35 * grid.resolution / gsd) for rgb in rgbs]  # anti-alias to the cell size
+    raw = dense_surface(cameras, greys, grid, ground, opts.max_canopy_height, surface_opts,
+                        progress=report)
+    surface = SurfaceModel(grid, clean_surface(raw.dsm, ground), ground, raw.score, raw.view_index,
+                           raw.camera_names)
+    timings["surface"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    mosaic = orthomosaic(cameras, rgbs, grid, surface.dsm, ortho_res, progress=report)
+    timings["orthomosaic"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    trees = None
+    if seeds is not None:
+        trees = (read_trees(seeds, frame) if not isinstance(seeds, pd.DataFrame)
+                 else tree_positions(seeds, frame))
+    ox, oy = mosaic.grid.centers()
+    chm = sample_bilinear(grid, surface.chm, ox, oy)
+    seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if trees is not None else None
+    seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy, opts.crowns)
+    crowns = measure_crowns(seg, chm)
+    lat, lon, _ = frame.to_wgs84(crowns[["x", "y"]].to_numpy()) if len(crowns) else ([], [], [])
+    crowns.insert(3, "lat", lat)
+    crowns.insert(4, "lon", lon)
+    matched = match_crowns(trees, crowns, opts.match_distance_m) if trees is not None else None
+    timings["crowns"] = time.perf_counter() - t0
+
+    summary = {
+        "images": str(Path(images_dir)), "frame": frame.to_dict(), "sfm": model.report(),
+        "ground_sampling_distance_m": gsd, "orthomosaic_resolution_m": ortho_res,
+        "surface_resolution_m": grid.resolution, "crowns": int(len(crowns)),
+        "trees_matched": int(matched["matched"].sum()) if matched is not None else None,
+        "trees": int(len(matched)) if matched is not None else None,
+        "sphere_diameter": "diameter_max_m (widest extent)", "timings_s": timings,
+    }
+    paths = _write_outputs(out, frame, surface, mosaic, seg, crowns, matched, summary, opts)
+    return GroundTruthResult(out, frame, model, surface, mosaic, seg, crowns, matched, summary, paths)
+
+
+def _write_outputs(out: Path, frame: LocalFrame, surface: SurfaceModel, mosaic: Orthomosaic,
+                   seg: CrownSegmentation, crowns: pd.DataFrame, trees: pd.DataFrame | None,
+                   summary: dict, opts: GroundTruthOptions) -> dict[str, Path]:
+    from ground_truth.plots import overlay_crowns_rgb
+
+    paths = {
+        "orthomosaic_tif": write_geotiff(out / "orthomosaic.tif", mosaic.rgba, mosaic.grid, frame),
+        "orthomosaic_png": atomic_write_bytes(out / "orthomosaic.png", png_bytes(mosaic.rgba)),
+        "dsm_tif": write_geotiff(out / "dsm.tif", (surface.dsm + frame.origin_height).astype(np.float32),
+                                 surface.grid, frame, nodata=float("nan")),
+        "dtm_tif": write_geotiff(out / "dtm.tif", (surface.dtm + frame.origin_height).astype(np.float32),
+                                 surface.grid, frame, nodata=float("nan")),
+        "chm_tif": write_geotiff(out / "chm.tif", surface.chm.astype(np.float32), surface.grid, frame,
+                                 nodata=float("nan")),
+        "chm_png": atomic_write_bytes(out / "chm.png", png_bytes(colorize(surface.chm, 0.0, None))),
+        "crown_labels_tif": write_geotiff(out / "crown_labels.tif", seg.labels.astype(np.int32),
+                                          mosaic.grid, frame, nodata=0),
+        "crowns_png": atomic_write_bytes(out / "crowns.png", png_bytes(overlay_crowns_rgb(mosaic, seg))),
+        "crowns_csv": atomic_write_text(out / "crowns.csv", crowns.to_csv(index=False, float_format="%.4f")),
+    }
+    if trees is not None:
+        paths["trees_csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False, float_format="%.4f"))
+    paths["report_json"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=2, default=str))
+    paths["config_json"] = atomic_write_text(out / "ground_truth_config.json",
+                                             json.dumps(asdict(opts), indent=2, default=str))
+    return paths
