@@ -267,6 +267,20 @@ class BagSession:
         return odoms[0].name
 
 
+def read_scan(path: str | Path, index: int, topic: str | None = None) -> Scan:
+    """The ``index``-th scan of a bag (streams up to it; negative counts from the end)."""
+    with open_bag(path) as bag:
+        name = bag.find_topic(POINTCLOUD2, topic)
+        count = next(t.count for t in bag.topics() if t.name == name)
+        wanted = index + count if index < 0 else index
+        if not 0 <= wanted < count:
+            raise InputError(f"{path}: topic {name!r} has {count} scans, no scan {index}")
+        for scan in bag.scans(name):
+            if scan.index == wanted:
+                return scan
+    raise InputError(f"{path}: scan {index} could not be read")
+
+
 def open_bag(path: str | Path) -> BagSession:
     """Open a ROS1 or ROS2 bag for reading (use with ``with``)."""
     return BagSession(path)
