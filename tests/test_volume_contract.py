@@ -16,7 +16,7 @@ from canopy_kit.errors import ConfigError, InputError, PluginError
 from canopy_kit.volume import VolumeResult, estimate_volume, estimator, sphere_volume, tree_metrics
 from canopy_kit.volume.base import VolumeEstimator
 
-BUILT_IN = {"convex_hull", "alpha_shape", "alpha_hull", "voxel", "slices", "mirror"}
+BUILT_IN = {"convex_hull", "alpha_shape", "alpha_hull", "alpha_auto", "voxel", "slices", "mirror"}
 
 
 def blob(n: int = 3000, seed: int = 0) -> np.ndarray:

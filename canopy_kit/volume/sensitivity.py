@@ -13,7 +13,7 @@ import numpy as np
 
 from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.volume.alpha import Tetrahedra, delaunay_tetrahedra
-from canopy_kit.volume.base import as_points, degeneracy
+from canopy_kit.volume.base import VolumeEstimator, as_points, degeneracy
 
 
 @dataclass(frozen=True)
@@ -100,3 +100,23 @@ def auto_alpha(xyz: Any, tolerance: float = 0.02, n: int = 64) -> AutoAlpha:
     k = int(np.argmax(plateau)) if plateau.any() else n - 1
     curve = AlphaCurve(alphas, volumes, float(step.cumulative[-1]))
     return AutoAlpha(float(alphas[k]), float(volumes[k]), curve)
+
+
+
+class AutoAlphaVolume(VolumeEstimator):
+    """Alpha-shape volume at the α the plateau rule picks per tree (:func:`auto_alpha`);
+    the α used is reported in ``result.extra["alpha"]``."""
+
+    name = "alpha_auto"
+
+    def __init__(self, tolerance: float = 0.02) -> None:
+        self.tolerance = tolerance
+
+    def _check_params(self) -> None:
+        ok = isinstance(self.tolerance, int | float) and not isinstance(self.tolerance, bool)
+        if not ok or not 0 < self.tolerance < 1:
+            raise ConfigError(f"{self.name}: tolerance must be in (0, 1), got {self.tolerance!r}")
+
+    def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
+        choice = auto_alpha(xyz, tolerance=float(self.tolerance))
+        return choice.volume_m3, {"alpha": choice.alpha}
