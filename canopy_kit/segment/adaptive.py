@@ -1,35 +1,46 @@
-"""``adaptive``: our segmenter, the same settings for separated and for interwoven crowns.
+"""``adaptive``: our segmenter, with the same settings for separated and interwoven crowns.
 
-The paper splits DBSCAN clusters into ``round(size / 45000)`` parts: a constant that has to
-be tuned per orchard and swings the result. Here the number of trees in a canopy cluster
-and where they stand are read from the data:
+The paper splits a DBSCAN cluster into ``round(size / 45000)`` parts: a constant tuned per
+orchard that swings the result. Here the number of trees in a canopy part and where they
+stand are read from the data:
 
-1. the canopy falls apart into connected parts at a link distance derived from the point
-   spacing; tiny parts are crumbs of a nearby crown;
-2. trunks are detected in the stem band under the canopy (``segment.stems``); each trunk
-   standing under a part is one tree of it;
-3. the typical tree spacing is the median distance between neighbouring trunks (or, with
-   too few trunks, the along-row length of parts that hold one tree), and a part's
-   along-row mass profile has one bump per crown: where trunks are missing (occlusion,
-   a sensor with a narrow field of view), bumps of the profile fill in the trees (gaps
-   between trunks much longer than the spacing, parts without trunks much longer than a
-   tree);
-4. the part is split among its trees by assigning each point to the nearest tree centre,
-   the centres starting at the trunks and moving to the crowns' centroids (crowns lean).
+1. the canopy falls apart into connected parts at a link distance of a few point spacings
+   (measured on the data); parts far lighter than a tree are crumbs of a nearby crown;
+2. trunks are detected in the stem band under the canopy (``segment.stems``); a trunk
+   with canopy above it is a tree of that canopy part;
+3. the scale of one tree is measured, not assumed: the spacing between neighbouring
+   trunks, the along-row length and canopy weight of parts holding one trunk (or, without
+   trunks, of round isolated parts; or the rows' width);
+4. stretches of a part without trunks (occluded or hidden trunks, a sensor that does not
+   see low) get as many trees as the measured spacing fits in them, and a part without
+   any trunk gets ``round((length - tree length) / spacing) + 1`` trees;
+5. points go to the nearest tree position (a Voronoi split in the horizontal plane).
 
-Every length is derived from the point spacing and the detected trunks and spacing; no
-parameter is set per orchard.
+All lengths derive from the point spacing and the measured tree scale; nothing is set per
+orchard.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
-from canopy_kit.segment.profile import along_axis, profile_peaks
+from canopy_kit.segment.profile import along_axis, principal_axis
 from canopy_kit.segment.stems import StemDetections, detect_stems, no_stems
+
+
+@dataclass(frozen=True)
+class TreeScale:
+    """What the data says about one tree: spacing in the row, crown length and weight."""
+
+    spacing: float
+    length: float
+    weight: float
+    source: str
 
 
 def point_spacing(xyz: np.ndarray, k: int = 4, sample: int = 20000, seed: int = 0) -> float:
@@ -52,77 +63,81 @@ def connected_parts(xyz: np.ndarray, link: float, weight: np.ndarray | None = No
     return labels
 
 
-class AdaptiveSegmenter(Segmenter):
-    """Trees from canopy parts, trunks and crown profiles (see the module docstring).
+def _extent(a: np.ndarray) -> float:
+    return float(np.percentile(a, 99) - np.percentile(a, 1)) if len(a) else 0.0
 
-    ``link_factor``: parts are linked at this many point spacings. ``crumb_fraction``:
-    parts lighter than this fraction of a typical tree are crumbs, merged into the nearest
-    part within ``crumb_reach`` typical spacings. ``use_stems``: use trunk detections
-    when stem points are given. The remaining settings are ratios to the detected tree
-    spacing and are not orchard-specific.
+
+class AdaptiveSegmenter(Segmenter):
+    """Trees from canopy parts, trunks and the measured tree scale (module docstring).
+
+    ``link_factor``: canopy points closer than this many point spacings are connected.
+    ``crumb_fraction``: parts lighter than this fraction of a tree (and without a trunk)
+    are crumbs; they join the nearest part within ``crumb_reach`` tree spacings, else
+    they are noise. ``use_stems``: use trunk detections when stem points are given.
+    ``stem_search_radius`` (m): a trunk belongs to the canopy part above it within this
+    horizontal distance.
     """
 
     def __init__(self, link_factor: float = 2.0, crumb_fraction: float = 0.1,
                  crumb_reach: float = 0.25, use_stems: bool = True,
-                 gap_ratio: float = 1.6, min_peak_ratio: float = 0.55,
-                 stem_search_radius: float = 1.0, refine_iterations: int = 3,
-                 random_state: int = 0) -> None:
+                 stem_search_radius: float = 1.0, random_state: int = 0) -> None:
         self.link_factor = link_factor
         self.crumb_fraction = crumb_fraction
         self.crumb_reach = crumb_reach
         self.use_stems = use_stems
-        self.gap_ratio = gap_ratio
-        self.min_peak_ratio = min_peak_ratio
         self.stem_search_radius = stem_search_radius
-        self.refine_iterations = refine_iterations
         self.random_state = random_state
 
-    # ------------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None,  # noqa: N803
             stem_xyz: np.ndarray | None = None) -> "AdaptiveSegmenter":
-        """Segment canopy points ``X`` (x, y, height above ground); sets ``labels_`` etc."""
+        """Segment canopy points ``X`` (x, y, height above ground); sets ``labels_`` etc.
+
+        Fitted: ``labels_``, ``n_clusters_``, ``stems_`` (trunks used), ``markers_``
+        (tree positions), ``scale_`` (:class:`TreeScale`), ``point_spacing_``.
+        """
         xyz = check_points(X)
         w = check_weight(sample_weight, len(xyz))
         n = len(xyz)
         self.labels_ = np.full(n, -1, dtype=np.int64)
         self.stems_ = no_stems()
         self.markers_ = np.zeros((0, 2))
+        self.scale_ = TreeScale(np.nan, np.nan, np.nan, "none")
+        self.point_spacing_ = point_spacing(xyz, seed=self.random_state)
         if n == 0:
             self.n_clusters_ = 0
             return self
-        self.point_spacing_ = point_spacing(xyz, seed=self.random_state)
-        self.link_distance_ = self.link_factor * self.point_spacing_
-        parts = connected_parts(xyz, self.link_distance_, w)
+        parts = connected_parts(xyz, self.link_factor * self.point_spacing_, w)
         stems = detect_stems(stem_xyz) if (self.use_stems and stem_xyz is not None) else no_stems()
         stem_part = self._stems_to_parts(xyz, w, parts, stems)
         keep = stem_part >= 0
         stems = StemDetections(stems.xy[keep], stems.n_points[keep], stems.radius[keep],
                                stems.coverage[keep])
         stem_part = stem_part[keep]
-        self.stems_ = stems
         n_parts = int(parts.max()) + 1
         part_weight = np.bincount(parts[parts >= 0], weights=w[parts >= 0], minlength=n_parts)
         stems_per_part = np.bincount(stem_part, minlength=n_parts)
-        spacing, tree_weight, tree_length = self._typical_tree(xyz, w, parts, part_weight,
-                                                               stems, stem_part, stems_per_part)
-        self.tree_spacing_ = spacing
-        self.tree_weight_ = tree_weight
-        parts = self._merge_crumbs(xyz, w, parts, part_weight, stems_per_part, tree_weight,
-                                   spacing)
+        scale = self._tree_scale(xyz, w, parts, part_weight, stems, stems_per_part)
+        parts = self._merge_crumbs(xyz, parts, part_weight, stems_per_part, scale)
         labels = np.full(n, -1, dtype=np.int64)
         markers_all = []
         next_label = 0
-        for p in np.unique(parts[parts >= 0]):
-            members = np.flatnonzero(parts == p)
-            own_stems = stems.xy[stem_part == p] if len(stems) else np.zeros((0, 2))
-            markers = self._markers(xyz[members], w[members], own_stems, spacing, tree_length)
-            sub = self._split(xyz[members], w[members], markers, spacing)
+        order = np.argsort(parts, kind="stable")
+        valid = order[parts[order] >= 0]
+        ids, starts = np.unique(parts[valid], return_index=True)
+        ends = np.append(starts[1:], len(valid))
+        for p, a, b in zip(ids, starts, ends):
+            members = valid[a:b]
+            markers = self._markers(xyz[members], w[members], stems.xy[stem_part == p], scale)
+            _, sub = cKDTree(markers).query(xyz[members, :2]) if len(markers) > 1 else (
+                None, np.zeros(len(members), dtype=np.int64))
             labels[members] = sub + next_label
-            next_label += int(sub.max()) + 1
+            next_label += len(markers)
             markers_all.append(markers)
+        self.stems_ = stems
+        self.scale_ = scale
         self.markers_ = np.concatenate(markers_all) if markers_all else np.zeros((0, 2))
         self.labels_ = first_appearance_order(labels)
-        self.n_clusters_ = int(self.labels_.max()) + 1 if n else 0
+        self.n_clusters_ = int(self.labels_.max()) + 1
         return self
 
     # ------------------------------------------------------------------------------------
@@ -130,145 +145,118 @@ class AdaptiveSegmenter(Segmenter):
                         stems: StemDetections) -> np.ndarray:
         """The canopy part above each trunk (-1: no canopy above it, not a tree's trunk)."""
         out = np.full(len(stems), -1, dtype=np.int64)
-        if len(stems) == 0:
-            return out
         valid = parts >= 0
+        if len(stems) == 0 or not valid.any():
+            return out
         tree = cKDTree(xyz[valid, :2])
-        vparts = parts[valid]
-        vw = w[valid]
-        for i, s in enumerate(stems.xy):
-            near = tree.query_ball_point(s, self.stem_search_radius)
+        vparts, vw = parts[valid], w[valid]
+        for i, near in enumerate(tree.query_ball_point(stems.xy, self.stem_search_radius)):
             if near:
                 out[i] = np.bincount(vparts[near], weights=vw[near]).argmax()
         return out
 
-    def _typical_tree(self, xyz: np.ndarray, w: np.ndarray, parts: np.ndarray,
-                      part_weight: np.ndarray, stems: StemDetections, stem_part: np.ndarray,
-                      stems_per_part: np.ndarray) -> tuple[float, float, float]:
-        """Typical spacing between trees, canopy weight and along-row length of one tree."""
-        width = self._crown_width(xyz, w, parts, part_weight)
-        spacing = np.nan
-        if len(stems) >= 3:
-            d, _ = cKDTree(stems.xy).query(stems.xy, k=2)
-            spacing = float(np.median(d[:, 1]))
-        single = np.flatnonzero(stems_per_part == 1)
-        if len(single):
-            lengths = []
-            for p in single[np.argsort(-part_weight[single])][:50]:
-                m = parts == p
-                a, _ = along_axis(xyz[m, :2], w[m])
-                lengths.append(np.percentile(a, 98) - np.percentile(a, 2))
-            tree_length = float(np.median(lengths))
-        else:
-            tree_length = spacing if np.isfinite(spacing) else width
-        with_stems = np.flatnonzero(stems_per_part > 0)
-        if len(with_stems):
-            tree_weight = float(np.median(part_weight[with_stems] / stems_per_part[with_stems]))
-        else:
-            # Without trunks: the part a typical point lies in, cut into crown-sized pieces.
-            order = np.argsort(part_weight)
-            cum = np.cumsum(part_weight[order])
-            typical = order[np.searchsorted(cum, 0.5 * cum[-1])]
-            m = parts == typical
-            a, _ = along_axis(xyz[m, :2], w[m])
-            pieces = max(1.0, round((np.percentile(a, 98) - np.percentile(a, 2)) / width))
-            tree_weight = float(part_weight[typical] / pieces)
-        if not np.isfinite(spacing):
-            spacing = tree_length
-        return spacing, tree_weight, tree_length
-
-    @staticmethod
-    def _crown_width(xyz: np.ndarray, w: np.ndarray, parts: np.ndarray,
-                     part_weight: np.ndarray) -> float:
-        """Across-row width of the heaviest parts: a crown's size when trees merge in rows."""
-        widths = []
-        for p in np.argsort(-part_weight)[:10]:
+    def _tree_scale(self, xyz: np.ndarray, w: np.ndarray, parts: np.ndarray,
+                    part_weight: np.ndarray, stems: StemDetections,
+                    stems_per_part: np.ndarray) -> TreeScale:
+        """Spacing, crown length and weight of one tree, from trunks or isolated crowns."""
+        heavy = part_weight >= 0.05 * part_weight.max()
+        geometry = {}
+        for p in np.flatnonzero(heavy)[np.argsort(-part_weight[heavy])][:300]:
             m = parts == p
-            if m.sum() < 10:
-                continue
-            _, across = along_axis(xyz[m, :2], w[m])
-            widths.append(np.percentile(across, 98) - np.percentile(across, 2))
-        return float(np.median(widths)) if widths else 3.0
+            along, across = along_axis(xyz[m, :2], w[m])
+            centre = np.average(xyz[m, :2], axis=0, weights=w[m])
+            geometry[p] = (_extent(along), _extent(across), centre)
+        if len(stems) >= 2:
+            # Upper quartile of the trunks' nearest-neighbour distances: trees planted
+            # close together (doubled, replanted) must not shrink the row's spacing.
+            d, _ = cKDTree(stems.xy).query(stems.xy, k=2)
+            spacing = float(np.percentile(d[:, 1], 75))
+            single = [p for p in geometry if stems_per_part[p] == 1]
+            if single:
+                length = float(np.median([geometry[p][0] for p in single]))
+            else:  # every crown touches another: a row part reaches half a crown past its end trunks
+                length = spacing
+            with_stems = np.flatnonzero(stems_per_part > 0)
+            weight = float(np.median(part_weight[with_stems] / stems_per_part[with_stems]))
+            return TreeScale(spacing, length, weight, "trunks")
+        round_parts = [p for p, (ln, wd, _) in geometry.items() if ln <= 1.5 * max(wd, 1e-9)]
+        if len(round_parts) >= 3:
+            centres = np.array([geometry[p][2] for p in round_parts])
+            d, _ = cKDTree(centres).query(centres, k=2)
+            length = float(np.median([geometry[p][0] for p in round_parts]))
+            spacing = max(float(np.median(d[:, 1])), length)
+            weight = float(np.median(part_weight[round_parts]))
+            return TreeScale(spacing, length, weight, "isolated crowns")
+        # Crowns merged into rows and no trunks: a crown is about as long as the row is wide.
+        widths = [wd for (_, wd, _) in geometry.values()]
+        width = float(np.median(widths)) if widths else 3.0
+        heaviest = int(np.argmax(part_weight))
+        n_trees = max(1.0, round(geometry[heaviest][0] / width)) if heaviest in geometry else 1.0
+        return TreeScale(width, width, float(part_weight[heaviest] / n_trees), "row width")
 
-    def _merge_crumbs(self, xyz: np.ndarray, w: np.ndarray, parts: np.ndarray,
-                      part_weight: np.ndarray, stems_per_part: np.ndarray, tree_weight: float,
-                      spacing: float) -> np.ndarray:
+    def _merge_crumbs(self, xyz: np.ndarray, parts: np.ndarray, part_weight: np.ndarray,
+                      stems_per_part: np.ndarray, scale: TreeScale) -> np.ndarray:
         """Parts far lighter than a tree join the nearest real part, or become noise."""
-        crumbs = (part_weight < self.crumb_fraction * tree_weight) & (stems_per_part == 0)
+        crumbs = (part_weight < self.crumb_fraction * scale.weight) & (stems_per_part == 0)
         if not crumbs.any():
             return parts
-        is_crumb = crumbs[np.maximum(parts, 0)] & (parts >= 0)
+        is_crumb = (parts >= 0) & crumbs[np.maximum(parts, 0)]
         solid = (parts >= 0) & ~is_crumb
         out = parts.copy()
+        out[is_crumb] = -1
         if not solid.any():
             return out
-        dist, nearest = cKDTree(xyz[solid]).query(xyz[is_crumb],
-                                                  distance_upper_bound=self.crumb_reach * spacing)
-        solid_idx = np.flatnonzero(solid)
         crumb_idx = np.flatnonzero(is_crumb)
+        solid_idx = np.flatnonzero(solid)
+        dist, nearest = cKDTree(xyz[solid]).query(
+            xyz[crumb_idx], distance_upper_bound=self.crumb_reach * scale.spacing)
         # A crumb joins the part its closest point is nearest to (the whole crumb moves).
-        target = np.full(len(part_weight), -1, dtype=np.int64)
-        best = np.full(len(part_weight), np.inf)
         cp = parts[crumb_idx]
-        for i in np.flatnonzero(np.isfinite(dist)):
-            if dist[i] < best[cp[i]]:
-                best[cp[i]] = dist[i]
-                target[cp[i]] = parts[solid_idx[nearest[i]]]
+        best = np.full(len(part_weight), np.inf)
+        target = np.full(len(part_weight), -1, dtype=np.int64)
+        ok = np.isfinite(dist)
+        order = np.argsort(dist[ok])[::-1]  # the closest written last wins
+        cpo, do, no = cp[ok][order], dist[ok][order], nearest[ok][order]
+        best[cpo] = do
+        target[cpo] = parts[solid_idx[no]]
         out[crumb_idx] = target[cp]
         return out
 
-    def _markers(self, xyz: np.ndarray, w: np.ndarray, stems: np.ndarray, spacing: float,
-                 tree_length: float) -> np.ndarray:
-        """Tree positions (x, y) in one canopy part: its trunks plus crowns without one."""
-        along, _ = along_axis(xyz[:, :2], w)
-        axis_origin, axis_dir = _axis_frame(xyz[:, :2], w)
+    def _markers(self, xyz: np.ndarray, w: np.ndarray, stems: np.ndarray,
+                 scale: TreeScale) -> np.ndarray:
+        """Tree positions (x, y) in one canopy part: its trunks plus trees without one."""
+        centre, axis = principal_axis(xyz[:, :2], w)
+        along = (xyz[:, :2] - centre) @ axis
         lo, hi = np.percentile(along, 1), np.percentile(along, 99)
-        length = hi - lo
-        if len(stems) == 0 and length <= self.gap_ratio * max(tree_length, spacing):
-            return np.array([np.average(xyz[:, :2], axis=0, weights=w)])
-        peaks = profile_peaks(along, w, self.min_peak_ratio * spacing)
+        s, half = scale.spacing, 0.5 * scale.length
         if len(stems) == 0:
-            pos = peaks if len(peaks) else np.array([0.5 * (lo + hi)])
-            return axis_origin + pos[:, None] * axis_dir
-        s_along = np.sort((stems - axis_origin) @ axis_dir)
-        extra = []
-        # Long stretches without a trunk (between trunks and beyond the end ones) take
-        # the profile's bumps there, at least a spacing's distance from any trunk.
-        bounds = np.concatenate([[lo - 0.5 * spacing], s_along, [hi + 0.5 * spacing]])
-        for a, b in zip(bounds[:-1], bounds[1:]):
-            if b - a < self.gap_ratio * spacing:
-                continue
-            cand = peaks[(peaks > a + self.min_peak_ratio * spacing)
-                         & (peaks < b - self.min_peak_ratio * spacing)]
-            extra.extend(cand.tolist())
-        if extra:
-            return np.concatenate([stems, axis_origin + np.array(extra)[:, None] * axis_dir])
-        return stems
+            n = max(1, int(round((hi - lo - scale.length) / s)) + 1)
+            spots = [0.5 * (lo + hi)] if n == 1 else np.linspace(lo + half, hi - half, n)
+            return self._on_canopy(xyz, w, along, np.asarray(spots, float), s)
+        stem_along = np.sort((stems - centre) @ axis)
+        spots: list[float] = []
+        for a, b in zip(stem_along[:-1], stem_along[1:]):
+            k = int(round((b - a) / s)) - 1
+            spots.extend(np.linspace(a, b, k + 2)[1:-1].tolist() if k > 0 else [])
+        # Beyond the end trunks a part reaches half a crown; more than that holds trees.
+        for end, reach in ((stem_along[0], stem_along[0] - lo), (stem_along[-1], hi - stem_along[-1])):
+            k = int(round((reach - half) / s))
+            sign = -1.0 if end == stem_along[0] and reach == stem_along[0] - lo else 1.0
+            spots.extend((end + sign * s * np.arange(1, k + 1)).tolist() if k > 0 else [])
+        if not spots:
+            return stems
+        return np.concatenate([stems, self._on_canopy(xyz, w, along, np.array(spots), s)])
 
-    def _split(self, xyz: np.ndarray, w: np.ndarray, markers: np.ndarray,
-               spacing: float) -> np.ndarray:
-        """Assign points to the nearest tree centre; centres move from trunks to crowns."""
-        if len(markers) <= 1:
-            return np.zeros(len(xyz), dtype=np.int64)
-        centres = markers.astype(float).copy()
-        xy = xyz[:, :2]
-        labels = np.zeros(len(xyz), dtype=np.int64)
-        limit = 0.25 * spacing
-        for _ in range(max(self.refine_iterations, 0) + 1):
-            _, labels = cKDTree(centres).query(xy)
-            new = centres.copy()
-            for k in range(len(centres)):
-                m = labels == k
-                if m.any():
-                    new[k] = np.average(xy[m], axis=0, weights=w[m])
-            move = new - markers
-            dist = np.linalg.norm(move, axis=1, keepdims=True)
-            centres = markers + move * np.minimum(1.0, limit / np.maximum(dist, 1e-12))
-        _, labels = cKDTree(centres).query(xy)
-        return first_appearance_order(labels)
-
-
-def _axis_frame(xy: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from canopy_kit.segment.profile import principal_axis
-
-    return principal_axis(xy, w)
+    @staticmethod
+    def _on_canopy(xyz: np.ndarray, w: np.ndarray, along: np.ndarray, spots: np.ndarray,
+                   spacing: float) -> np.ndarray:
+        """Positions at along-axis ``spots``: the centroid of the canopy within half a spacing
+        (follows a curved row), or the nearest canopy point when the slice is empty."""
+        out = []
+        for a in spots:
+            m = np.abs(along - a) <= 0.5 * spacing
+            if m.any():
+                out.append(np.average(xyz[m, :2], axis=0, weights=w[m]))
+            else:
+                out.append(xyz[int(np.argmin(np.abs(along - a))), :2])
+        return np.array(out)

@@ -50,3 +50,18 @@ def profile_peaks(along: np.ndarray, w: np.ndarray, min_distance: float,
     idx, _ = find_peaks(smooth, distance=max(int(min_distance / h), 1),
                         prominence=prominence * smooth.max())
     return edges[idx] + 0.5 * h
+
+
+def section_profile(xyz: np.ndarray, along: np.ndarray, across: np.ndarray, bin_size: float,
+                    cell: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """Cross-section area (m², occupied ``cell`` squares in the across x height plane) per
+    along-axis bin: bin starts and areas. Occupancy, not point counts, so a denser scan
+    of the near side does not make a bump."""
+    lo = along.min()
+    b = np.floor((along - lo) / bin_size).astype(np.int64)
+    c = np.floor((across - across.min()) / cell).astype(np.int64)
+    z = np.floor((xyz[:, 2] - xyz[:, 2].min()) / cell).astype(np.int64)
+    key = (b * (c.max() + 1) + c) * (z.max() + 1) + z
+    uniq = np.unique(key)
+    per_bin = np.bincount(uniq // ((c.max() + 1) * (z.max() + 1)), minlength=b.max() + 1)
+    return lo + bin_size * np.arange(len(per_bin)), per_bin * cell * cell

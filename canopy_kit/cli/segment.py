@@ -1,0 +1,63 @@
+"""``canopy-kit segment MAP --preset NAME --out DIR``: trees, rows and labels of a map."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def segment(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="Map point cloud (LAS/LAZ/PLY/PCD)"),
+    preset: str = typer.Option("pistachio", help="Preset name (pistachio, almond) or TOML file"),
+    out: Path = typer.Option(..., "--out", help="Output folder"),
+    method: str = typer.Option(None, help="Segmenter plugin, overriding the preset's"),
+    trajectory: Path = typer.Option(None, help="CSV with x, y columns (map frame): the drive, "
+                                               "whose first pass orders and labels the trees"),
+    set_: list[str] = typer.Option([], "--set", help="Override any setting: section.key=value"),
+    no_cloud: bool = typer.Option(False, "--no-cloud", help="Do not write segmented.laz"),
+) -> None:
+    """Remove ground and trunks, segment the trees, find rows and label the trees."""
+    import numpy as np
+    import pandas as pd
+
+    from canopy_kit.cli.common import console, parse_overrides, progress_bar
+    from canopy_kit.config import load_preset, write_config
+    from canopy_kit.errors import InputError
+    from canopy_kit.io.clouds import read_cloud
+    from canopy_kit.segment.export import write_segmentation
+    from canopy_kit.segment.rows import driving_direction_from_trajectory
+    from canopy_kit.segment.verb import make_segmenter
+    from canopy_kit.segment.verb import segment as run_segment
+
+    overrides = parse_overrides(set_)
+    if method:
+        overrides.setdefault("segment", {})["method"] = method
+        if "params" not in overrides["segment"]:
+            overrides["segment"]["params"] = {}
+    config = load_preset(preset, overrides)
+    if method and not overrides["segment"]["params"]:
+        config.segment.params = {}  # the preset's parameters belong to its own method
+    cloud = read_cloud(map_path)
+    direction, source = None, None
+    if trajectory is not None:
+        if not trajectory.exists():
+            raise InputError(f"{trajectory}: trajectory file does not exist")
+        traj = pd.read_csv(trajectory)
+        if not {"x", "y"} <= set(traj.columns):
+            raise InputError(f"{trajectory}: trajectory CSV needs x and y columns")
+        direction = driving_direction_from_trajectory(traj[["x", "y"]].to_numpy())
+        source = f"trajectory {trajectory.name}"
+    segmenter = make_segmenter(config.segment.method, config.segment.params)
+    with progress_bar(transient=True) as progress:
+        seg = run_segment(cloud, segmenter, config.preprocess, config.rows,
+                          driving_direction=direction, direction_source=source,
+                          seed=config.seed, progress=progress)
+        write_segmentation(out, seg, cloud, with_cloud=not no_cloud)
+    write_config(config, out / "config.toml")
+    for w in seg.warnings:
+        console.print(f"[yellow]warning:[/] {w}")
+    n_rows = len(seg.rows.lines)
+    console.print(f"[green]segmented[/] {seg.n_trees} trees in {n_rows} rows "
+                  f"({config.segment.method}, {np.sum(seg.labels >= 0):,} of {len(cloud):,} points)"
+                  f"\n  output: {out}")
