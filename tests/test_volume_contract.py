@@ -223,3 +223,12 @@ def test_cli_volume_json_and_errors(tmp_path: Path) -> None:
     assert missing.returncode == 2 and "file does not exist" in missing.stderr
     unknown = _cli("volume", str(path), "-m", "sphere")
     assert unknown.returncode == 2 and "no volumes plugin named 'sphere'" in unknown.stderr
+
+
+def test_alpha_hull_flags_clouds_too_sparse_for_the_grid_formulation() -> None:
+    sparse = blob(150)
+    result = estimate_volume(sparse, "alpha_hull")
+    assert not result.valid and result.volume_m3 > 0
+    assert result.reason.startswith("points too sparse for the alpha hull: median spacing")
+    assert "use alpha_shape" in result.reason and result.extra["spacing_ratio"] > 0.2
+    assert estimate_volume(blob(20000), "alpha_hull").extra["spacing_ratio"] < 0.2
