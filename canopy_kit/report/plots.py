@@ -33,6 +33,12 @@ def plot_segmented_map(xyz: np.ndarray, labels: np.ndarray, trees: pd.DataFrame 
     ax.scatter(p[~bg, 0], p[~bg, 1], s=0.4, c=cmap(lab[~bg] % 20), rasterized=True)
     if trajectory_xy is not None:
         ax.plot(trajectory_xy[:, 0], trajectory_xy[:, 1], "-", color="0.25", lw=0.8, label="drive")
+    focus = p[~bg, :2] if (~bg).any() else p[:, :2]
+    if trajectory_xy is not None:
+        focus = np.vstack([focus, trajectory_xy])
+    lo, hi = focus.min(axis=0) - 3.0, focus.max(axis=0) + 3.0
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     if trees is not None:
         for _, t in trees.iterrows():
             ax.annotate(f"{t['row']}:{t['label']}", (t["x"], t["y"]), ha="center", va="center",

@@ -33,9 +33,19 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
     if "ate_rmse_m" in mapping:
         checks.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
                             _fmt(mapping["ate_rmse_m"], " m", 3), "≤ 0.20 m"))
-    if "drift_pct" in mapping:
-        checks.append(Check("drift (% of path length)", mapping["drift_pct"] <= 0.5,
-                            _fmt(mapping["drift_pct"], " %", 3), "≤ 0.5 %"))
+    if "drift_percent" in mapping:
+        checks.append(Check("drift (% of path length)", mapping["drift_percent"] <= 0.5,
+                            _fmt(mapping["drift_percent"], " %", 3), "≤ 0.5 %"))
+    if "map_aligned" in mapping:
+        d = mapping["map_aligned"]
+        checks.append(Check("map points to true surfaces, after alignment (median)",
+                            d["median_m"] <= 0.05, _fmt(d["median_m"], " m", 3), "≤ 0.05 m",
+                            f"90 % within {_fmt(d['p90_m'], ' m', 3)}"))
+    if "georeferenced" in mapping:
+        g = mapping["georeferenced"]
+        checks.append(Check("absolute position error of the trajectory (GNSS-limited)", None,
+                            _fmt(g["horizontal_rmse_m"], " m", 2), "information",
+                            f"vertical {_fmt(g['vertical_rmse_m'], ' m', 2)}"))
     seg = metrics.get("evaluation", {}).get("segmentation")
     if seg:
         checks.append(Check("trees segmented one-to-one (IoU ≥ 0.5)", seg["success_rate"] >= 0.95,

@@ -1,0 +1,88 @@
+"""End to end: simulate → run → evaluate, with outputs, caching and determinism."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.config import load_preset
+from canopy_kit.pipeline import run
+
+
+@pytest.fixture(scope="module")
+def pistachio_run(tiny_pistachio, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    return run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root)
+
+
+@pytest.mark.slow
+def test_end_to_end_against_truth(pistachio_run, tiny_pistachio):
+    r = pistachio_run
+    truth = pd.read_csv(tiny_pistachio.truth_dir / "trees.csv")
+    ev = r.metrics["evaluation"]
+    assert ev["segmentation"]["n_truth"] == len(truth)
+    assert ev["segmentation"]["success_rate"] == 1.0
+    assert ev["segmentation"]["label_accuracy"] == 1.0
+    assert ev["mapping"]["ate_rmse_m"] < 0.20
+    assert ev["mapping"]["drift_percent"] < 0.5
+    # Volumes against the exact crown envelopes (both sides of each tree are scanned).
+    assert ev["volumes"]["convex_hull"]["mape_pct"] < 10.0
+    assert ev["volumes"]["alpha_shape"]["mape_pct"] < 10.0
+    trees = r.trees
+    assert list(trees.columns[:12]) == ["tree_id", "label", "row", "x", "y", "lat", "lon",
+                                        "n_points", "height_m", "crown_diameter_m",
+                                        "volume_convex_hull_m3", "volume_alpha_m3"]
+    # Positions in WGS84 agree with the truth's (same tree matched by segmentation).
+    m = trees.dropna(subset=["truth_tree_id"]).merge(
+        truth, left_on="truth_tree_id", right_on="tree_id", suffixes=("", "_true"))
+    assert np.allclose(m["lat"], m["lat_true"], atol=2e-5)  # ~2 m: GNSS-level
+    assert (m["label"] == m["label_true"]).all()
+
+
+@pytest.mark.slow
+def test_outputs_are_complete_and_readable(pistachio_run):
+    from canopy_kit.io.las import read_las
+
+    out = pistachio_run.out_dir
+    for name in ("trees.csv", "trees.parquet", "trees.geojson", "map.laz", "trajectory.csv",
+                 "config.toml", "metrics.json", "report.html"):
+        assert (out / name).stat().st_size > 0, name
+    assert not list(out.glob(".*.tmp*"))  # no temporary files left behind
+    csv = pd.read_csv(out / "trees.csv")
+    parquet = pd.read_parquet(out / "trees.parquet")
+    assert len(csv) == len(parquet) == len(pistachio_run.trees)
+    geo = json.loads((out / "trees.geojson").read_text())
+    assert len(geo["features"]) == len(csv)
+    cloud = read_las(out / "map.laz")
+    assert "segment_id" in cloud.fields and cloud.crs.startswith("EPSG:")
+    assert set(np.unique(cloud.fields["segment_id"])) - {-1} == set(csv["segment"])
+    assert load_preset(out / "config.toml").segment.method == "adaptive"
+
+
+@pytest.mark.slow
+def test_rerun_reuses_unchanged_stages_and_is_deterministic(pistachio_run, tiny_pistachio):
+    cfg = load_preset("adaptive", {"volume": {"params": {"alpha_shape": {"alpha": 1.5}}}})
+    again = run(cfg, tiny_pistachio.bag, pistachio_run.out_dir, truth=tiny_pistachio.root)
+    assert set(again.cache_hits) == {"map", "segment"}
+    assert not np.allclose(again.trees["volume_alpha_m3"], pistachio_run.trees["volume_alpha_m3"])
+    same = run(load_preset("adaptive"), tiny_pistachio.bag, pistachio_run.out_dir,
+               truth=tiny_pistachio.root, use_cache=False)
+    pd.testing.assert_frame_equal(same.trees, pistachio_run.trees)
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_report_shows_the_run_offline(pistachio_run):
+    from conftest import REPO
+
+    from canopy_kit.report.browser import render_page
+
+    page = render_page(pistachio_run.files["report.html"],
+                       screenshot=REPO / "test-artifacts" / "pipeline_report.png")
+    assert page.tree_rows == len(pistachio_run.trees)
+    assert page.images_loaded >= 3 and page.images_broken == 0
+    assert page.check_rows >= 6
+    assert page.blocked_requests == [] and page.console_errors == []
