@@ -253,6 +253,39 @@ def truth_footprints(sim_dir: str | Path) -> dict[int, np.ndarray]:
         return out
 
 
+def envelope_ceiling(xyz: np.ndarray, sim_dir: str | Path, min_height: float = 0.8) -> np.ndarray:
+    """Per-point tree ids from the simulator's exact crown envelopes: an upper bound.
+
+    Each point at least ``min_height`` above the true terrain goes to the crown that holds
+    it deepest towards its own shell (foliage is densest there), or, outside every crown,
+    to the crown it is relatively closest to. Where crowns interweave, no segmenter that
+    sees only point positions can do much better; scoring these labels shows the ceiling
+    a session allows.
+    """
+    from canopy_kit.sim.truth import load_truth
+
+    orchard = load_truth(sim_dir).orchard()
+    xyz = np.asarray(xyz, dtype=np.float64)
+    out = np.full(len(xyz), -1, dtype=np.int64)
+    hag = xyz[:, 2] - orchard.terrain.height(xyz[:, 0], xyz[:, 1])
+    idx = np.flatnonzero(hag >= min_height)
+    if len(idx) == 0 or not orchard.trees:
+        return out
+    p = xyz[idx]
+    depth = np.full((len(p), len(orchard.trees)), np.inf)
+    for k, tree in enumerate(orchard.trees):
+        a = max(tree.crown.semi_axes) * 1.6
+        near = np.all(np.abs(p[:, :2] - np.asarray(tree.crown.center[:2])) <= a, axis=1)
+        depth[near, k] = tree.crown.relative_depth(p[near])
+    inside = np.where(depth <= 1.02, depth, -np.inf)
+    has_inside = np.isfinite(inside.max(axis=1))
+    best = np.where(has_inside, inside.argmax(axis=1), depth.argmin(axis=1))
+    ids = np.array([t.tree_id for t in orchard.trees])
+    near_any = has_inside | (depth.min(axis=1) <= 1.5)
+    out[idx[near_any]] = ids[best[near_any]]
+    return out
+
+
 def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
                  mode: str = "auto") -> SegmentationScore:
     """Score a ``canopy-kit segment`` output folder against a simulated session's truth.

@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
-from canopy_kit.segment.profile import along_axis, principal_axis
+from canopy_kit.segment.profile import along_axis, chm_peaks, chm_spacing, principal_axis
 from canopy_kit.segment.stems import StemDetections, detect_stems, no_stems
 
 
@@ -187,11 +187,20 @@ class AdaptiveSegmenter(Segmenter):
             spacing = max(float(np.median(d[:, 1])), length)
             weight = float(np.median(part_weight[round_parts]))
             return TreeScale(spacing, length, weight, "isolated crowns")
+        heaviest = int(np.argmax(part_weight))
+        ln, wd, _ = geometry[heaviest]
+        if ln < 2.0 * wd:
+            # Crowns merged in two dimensions (a stand, not rows): the canopy's own rhythm.
+            m = parts == heaviest
+            cell = max(self.point_spacing_, 0.25)
+            spacing = chm_spacing(xyz[m], cell)
+            if np.isfinite(spacing):
+                return TreeScale(spacing, spacing, float(part_weight[heaviest]) * (spacing / max(ln, 1e-9)) ** 2,
+                                 "canopy height rhythm")
         # Crowns merged into rows and no trunks: a crown is about as long as the row is wide.
         widths = [wd for (_, wd, _) in geometry.values()]
         width = float(np.median(widths)) if widths else 3.0
-        heaviest = int(np.argmax(part_weight))
-        n_trees = max(1.0, round(geometry[heaviest][0] / width)) if heaviest in geometry else 1.0
+        n_trees = max(1.0, round(geometry[heaviest][0] / width))
         return TreeScale(width, width, float(part_weight[heaviest] / n_trees), "row width")
 
     def _merge_crumbs(self, xyz: np.ndarray, parts: np.ndarray, part_weight: np.ndarray,
@@ -230,6 +239,14 @@ class AdaptiveSegmenter(Segmenter):
         lo, hi = np.percentile(along, 1), np.percentile(along, 99)
         s, half = scale.spacing, 0.5 * scale.length
         if len(stems) == 0:
+            across = (xyz[:, :2] - centre) @ np.array([-axis[1], axis[0]])
+            width = np.percentile(across, 99) - np.percentile(across, 1)
+            stand = scale.source == "canopy height rhythm"
+            if hi - lo < 2.0 * width and hi - lo > (1.0 if stand else 1.5) * scale.length:
+                # Not a row but a patch of merged crowns: one tree per crown top.
+                tops = chm_peaks(xyz, max(self.point_spacing_, 0.25), 0.4 * s)
+                if len(tops):
+                    return tops
             n = max(1, int(round((hi - lo - scale.length) / s)) + 1)
             spots = [0.5 * (lo + hi)] if n == 1 else np.linspace(lo + half, hi - half, n)
             return self._on_canopy(xyz, w, along, np.asarray(spots, float), s)

@@ -9,14 +9,29 @@ from canopy_kit.errors import InputError
 from canopy_kit.segment.density import grid_dbscan, weighted_dbscan
 
 
+def lattice_is_cheaper(xyz: np.ndarray, eps: float) -> bool:
+    """Whether the ``eps / 8`` lattice is cheaper than point neighbourhoods for ``xyz``.
+
+    The lattice costs about one operation per cell of the bounding box, the exact method
+    one per neighbour pair: dense canopy favours the lattice, sparse or tall scenes
+    (airborne forest) the exact method.
+    """
+    if len(xyz) == 0:
+        return True
+    cells = np.prod(np.maximum(np.ptp(xyz, axis=0), eps) / (eps / 8.0))
+    return bool(cells <= 200.0 * len(xyz))
+
+
 def run_dbscan(xyz: np.ndarray, eps: float, min_samples: float, weight: np.ndarray,
                algorithm: str) -> tuple[np.ndarray, np.ndarray]:
-    """DBSCAN labels and core mask with the named implementation (``grid`` or ``exact``)."""
+    """DBSCAN labels and core mask: ``grid``, ``exact`` or ``auto`` (the cheaper one)."""
+    if algorithm == "auto":
+        algorithm = "grid" if lattice_is_cheaper(xyz, eps) else "exact"
     if algorithm == "grid":
         return grid_dbscan(xyz, eps, min_samples, weight)
     if algorithm == "exact":
         return weighted_dbscan(xyz, eps, min_samples, weight)
-    raise InputError(f"algorithm must be 'grid' or 'exact', got {algorithm!r}")
+    raise InputError(f"algorithm must be 'auto', 'grid' or 'exact', got {algorithm!r}")
 
 
 class DBSCANSegmenter(Segmenter):
@@ -25,12 +40,12 @@ class DBSCANSegmenter(Segmenter):
     The paper used eps = 0.8 m and N_min = 1300. ``min_samples`` counts map points: on a
     voxel grid each voxel weighs the map points it holds (``sample_weight``), so the
     paper's number keeps its meaning at any voxel size. ``algorithm``: ``grid`` (DBSCAN on
-    an ``eps / 8`` lattice, tile by tile: fast, memory linear in the map) or ``exact``
-    (point neighbourhoods, tile by tile; scikit-learn's result).
+    an ``eps / 8`` lattice, tile by tile: fast on dense canopy, memory linear in the map),
+    ``exact`` (point neighbourhoods, tile by tile; scikit-learn's result) or ``auto``.
     """
 
     def __init__(self, eps: float = 0.8, min_samples: float = 1300,
-                 algorithm: str = "grid") -> None:
+                 algorithm: str = "auto") -> None:
         self.eps = eps
         self.min_samples = min_samples
         self.algorithm = algorithm

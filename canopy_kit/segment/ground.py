@@ -154,4 +154,7 @@ def _raised_cells(heights: np.ndarray, fitted: np.ndarray, cell_size: float,
             if di or dj:
                 lowest = np.minimum(lowest, padded[1 + di: 1 + di + nx, 1 + dj: 1 + dj + ny])
     allowed = max_step + max_slope * cell_size * np.sqrt(2)
-    return fitted & np.isfinite(lowest) & (h - lowest > allowed)
+    ok = fitted & np.isfinite(lowest)
+    raised = np.zeros_like(fitted)
+    raised[ok] = h[ok] - lowest[ok] > allowed
+    return raised

@@ -63,7 +63,7 @@ class DBSCANSpectralSegmenter(Segmenter):
     def __init__(self, eps: float = 0.8, min_samples: float = 1300,
                  max_cluster_size: float = 45000, n_neighbors: int = 10,
                  eigen_solver: str = "amg", random_state: int = 0,
-                 algorithm: str = "grid") -> None:
+                 algorithm: str = "auto") -> None:
         self.eps = eps
         self.min_samples = min_samples
         self.max_cluster_size = max_cluster_size

@@ -125,7 +125,7 @@ def _describe(cloud: PointCloud, labels: np.ndarray, prepared: Any, segmenter: A
     rank = np.lexsort((rows.index_in_row, rows.row)) if n_seg else np.zeros(0, int)
     new_id = np.empty(n_seg, dtype=np.int64)
     new_id[rank] = np.arange(n_seg)
-    out = np.where(labels >= 0, new_id[np.maximum(labels, 0)], -1)
+    out = np.where(labels >= 0, new_id[np.maximum(labels, 0)], -1) if n_seg else labels.copy()
     trees, footprints = [], {}
     tree_ids = rows.tree_ids
     for old in rank:
@@ -136,9 +136,13 @@ def _describe(cloud: PointCloud, labels: np.ndarray, prepared: Any, segmenter: A
                                 int(n), top, base, diam, area))
         footprints[sid] = hulls[old]
     params = segmenter.get_params() if hasattr(segmenter, "get_params") else {}
+    warnings = list(rows.warnings)
+    if n_seg == 0:
+        warnings = [f"no trees found: the segmenter {type(segmenter).__name__} labelled all "
+                    f"{len(prepared.seen_index)} canopy points as noise"]
     return Segmentation(out, trees, footprints, rows, prepared.ground, prepared.height,
                         type(segmenter).__name__, params, cloud.crs, cloud.origin.copy(),
-                        list(rows.warnings))
+                        warnings)
 
 
 def _hull(xy: np.ndarray) -> np.ndarray:

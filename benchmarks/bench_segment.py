@@ -1,0 +1,226 @@
+"""Segmentation benchmarks: accuracy over simulated sessions, and time/memory per row.
+
+    python benchmarks/bench_segment.py accuracy --orchards pistachio almond --seeds 101 102
+    python benchmarks/bench_segment.py speed --rows 1 2 4 10
+
+``accuracy`` simulates sessions (cached in ``--cache``: the map from the true poses and the
+truth folder; the bag is deleted), runs every method on each, scores it (point IoU,
+footprint IoU) and the ceiling the exact crown envelopes allow, appends one line per
+method and session to ``--csv`` and prints the table method x orchard -> success rate.
+``speed`` times the segmenters and Open3D's and scikit-learn's DBSCAN on the same canopy
+points of maps with more and more rows, each run in a fresh process for its peak memory.
+The numbers in docs/SEGMENTATION.md and docs/BENCHMARKS.md come from these two commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+PAPER = {
+    "dbscan": {"eps": 0.8, "min_samples": 1300},
+    "dbscan_spectral": {"eps": 0.8, "min_samples": 1300, "max_cluster_size": 45000,
+                        "n_neighbors": 10},
+    "adaptive": {},
+}
+
+
+# -- sessions ----------------------------------------------------------------------------
+def session_map(cache: Path, orchard: str, rows: int, trees: int, seed: int,
+                overrides: dict | None = None, sensor: str | None = None, tag: str = ""):
+    """(map PointCloud with tree_id, sim dir): simulated once, then read from the cache."""
+    from canopy_kit.cloud import PointCloud
+    from canopy_kit.config import merge
+    from canopy_kit.sim import load_sim_config, simulate_session
+    from canopy_kit.sim.session import find_bag
+    from canopy_kit.sim.truth import load_truth
+    from canopy_kit.sim.truth_map import truth_map
+
+    name = f"{orchard}_{rows}x{trees}_s{seed}{tag}"
+    sim_dir, npz = cache / name, cache / f"{name}.npz"
+    if not npz.exists():
+        base = {"seed": seed, "orchard": {"rows": rows, "trees_per_row": trees}}
+        cfg = load_sim_config(orchard, merge(base, overrides or {}), sensor=sensor)
+        simulate_session(sim_dir, cfg, overwrite=True)
+        m = truth_map(sim_dir, voxel_size=0.05)
+        np.savez(npz, xyz=m.xyz, tree_id=m.fields["tree_id"], intensity=m.fields["intensity"])
+        bag = find_bag(sim_dir)
+        shutil.rmtree(bag) if bag.is_dir() else bag.unlink()
+    d = np.load(npz)
+    frame = load_truth(sim_dir).frame
+    cloud = PointCloud(d["xyz"], {"tree_id": d["tree_id"], "intensity": d["intensity"]},
+                       crs=frame.crs, origin=frame.origin)
+    return cloud, sim_dir, name
+
+
+def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
+    """Every method on one map: success by point and by footprint IoU, plus the ceiling."""
+    from canopy_kit.evaluate import (envelope_ceiling, score_footprints, score_point_labels,
+                                     truth_footprints)
+    from canopy_kit.segment.rows import driving_direction_from_trajectory
+    from canopy_kit.segment.verb import make_segmenter, segment
+    from canopy_kit.sim.truth import load_truth
+
+    truth = load_truth(sim_dir)
+    tl = truth.trees.set_index("tree_id")[["row", "label"]]
+    direction = driving_direction_from_trajectory(truth.trajectory[["x", "y"]].to_numpy())
+    footprints = truth_footprints(sim_dir)
+    ceiling = score_point_labels(envelope_ceiling(cloud.xyz, sim_dir), cloud.fields["tree_id"])
+    out = []
+    for method in methods:
+        t0 = time.perf_counter()
+        seg = segment(cloud, make_segmenter(method, PAPER[method]), driving_direction=direction,
+                      direction_source="trajectory")
+        elapsed = time.perf_counter() - t0
+        pl = seg.table().set_index("segment_id")[["row", "label"]]
+        pts = score_point_labels(seg.labels, cloud.fields["tree_id"], truth_labels=tl,
+                                 pred_labels=pl)
+        fp = score_footprints(seg.footprints, footprints, truth_labels=tl, pred_labels=pl)
+        out.append({"method": method, "n_truth": pts.n_truth, "n_predicted": pts.n_predicted,
+                    "success_points": pts.success_rate, "success_footprints": fp.success_rate,
+                    "ceiling_points": ceiling.success_rate, "n_merged": pts.n_merged,
+                    "n_split": pts.n_split, "n_other": pts.n_other, "f1_points": pts.f1,
+                    "label_accuracy": pts.label_accuracy, "seconds": round(elapsed, 2),
+                    "warnings": " | ".join(seg.warnings)})
+    return out
+
+
+def accuracy(args: argparse.Namespace) -> None:
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    overrides = {}
+    for item in args.set:
+        from canopy_kit.cli.common import parse_overrides
+
+        overrides = parse_overrides(args.set)
+        break
+    rows = []
+    for orchard in args.orchards:
+        for seed in args.seeds:
+            cloud, sim_dir, name = session_map(cache, orchard, args.rows, args.trees_per_row,
+                                               seed, overrides, args.sensor, args.tag)
+            for r in score_session(cloud, sim_dir, args.methods):
+                r.update({"orchard": orchard, "seed": seed, "session": name,
+                          "variant": args.tag.strip("_") or "default"})
+                rows.append(r)
+                print(json.dumps(r), file=sys.stderr, flush=True)
+    df = pd.DataFrame(rows)
+    if args.csv:
+        path = Path(args.csv)
+        old = pd.read_csv(path) if path.exists() else pd.DataFrame()
+        if len(old):
+            old = old[~old.set_index(["session", "method"]).index.isin(
+                df.set_index(["session", "method"]).index)]
+        pd.concat([old, df], ignore_index=True).to_csv(path, index=False, float_format="%.4f")
+    from canopy_kit.segment.results import success_table
+
+    print(success_table(df).to_string(float_format=lambda v: f"{v:.3f}"))
+
+
+# -- speed -------------------------------------------------------------------------------
+def _measure(job: str, npz: str, queue) -> None:  # runs in a fresh process
+    import resource
+
+    d = np.load(npz)
+    xyz, w = d["xyz"], d["weight"]
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    if job == "open3d":
+        import open3d as o3d
+
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+        # Open3D has no sample weights: N_min in voxels, scaled by the mean map points per voxel.
+        labels = np.asarray(pc.cluster_dbscan(0.8, int(round(1300 / w.mean())), False))
+    elif job == "sklearn":
+        from sklearn.cluster import DBSCAN
+
+        labels = DBSCAN(eps=0.8, min_samples=1300).fit_predict(xyz, sample_weight=w)
+    else:
+        from canopy_kit.segment.verb import make_segmenter
+
+        kwargs = {"sample_weight": w}
+        if job == "adaptive":
+            kwargs["stem_xyz"] = d["stems"]
+        labels = make_segmenter(job, PAPER[job]).fit_predict(xyz, **kwargs)
+    seconds = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    queue.put({"seconds": seconds, "peak_mb": peak / 1024, "delta_mb": (peak - base) / 1024,
+               "n_clusters": int(np.max(labels)) + 1})
+
+
+def speed(args: argparse.Namespace) -> None:
+    import multiprocessing as mp
+
+    from canopy_kit.config import PreprocessConfig
+    from canopy_kit.segment.preprocess import prepare
+
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    ctx = mp.get_context("spawn")
+    rows = []
+    for n_rows in args.rows:
+        cloud, _, name = session_map(cache, args.orchard, n_rows, args.trees_per_row, args.seed)
+        t0 = time.perf_counter()
+        prep = prepare(cloud, PreprocessConfig())
+        t_prep = time.perf_counter() - t0
+        npz = cache / f"{name}_canopy.npz"
+        np.savez(npz, xyz=prep.normalized(cloud, prep.seen_index), weight=prep.seen_weight,
+                 stems=prep.normalized(cloud, prep.stem_index))
+        for job in args.jobs:
+            q = ctx.Queue()
+            proc = ctx.Process(target=_measure, args=(job, str(npz), q))
+            proc.start()
+            proc.join()
+            res = q.get() if proc.exitcode == 0 else {"seconds": np.nan, "peak_mb": np.nan,
+                                                       "delta_mb": np.nan, "n_clusters": -1}
+            res.update({"rows": n_rows, "job": job, "map_points": len(cloud),
+                        "canopy_voxels": len(prep.seen_index), "preprocess_s": t_prep})
+            rows.append(res)
+            print(json.dumps(res), file=sys.stderr, flush=True)
+    df = pd.DataFrame(rows)
+    table = df.pivot_table(index="rows", columns="job", values=["seconds", "peak_mb"])
+    print(df[["rows", "map_points", "canopy_voxels", "preprocess_s"]].drop_duplicates()
+          .to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    print(table.to_string(float_format=lambda v: f"{v:.1f}"))
+    if args.csv:
+        df.to_csv(args.csv, index=False, float_format="%.3f")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    acc = sub.add_parser("accuracy")
+    acc.add_argument("--orchards", nargs="+", default=["pistachio", "almond"])
+    acc.add_argument("--seeds", nargs="+", type=int, default=[101, 102, 103, 104, 105])
+    acc.add_argument("--rows", type=int, default=3)
+    acc.add_argument("--trees-per-row", type=int, default=6)
+    acc.add_argument("--methods", nargs="+", default=list(PAPER))
+    acc.add_argument("--set", nargs="*", default=[], help="simulator overrides section.key=value")
+    acc.add_argument("--sensor", default=None)
+    acc.add_argument("--tag", default="", help="suffix of the session names (variants)")
+    acc.add_argument("--cache", default="out/bench_segment")
+    acc.add_argument("--csv", default=None)
+    acc.set_defaults(func=accuracy)
+    sp = sub.add_parser("speed")
+    sp.add_argument("--orchard", default="almond")
+    sp.add_argument("--rows", nargs="+", type=int, default=[1, 2, 4, 10])
+    sp.add_argument("--trees-per-row", type=int, default=10)
+    sp.add_argument("--seed", type=int, default=7)
+    sp.add_argument("--jobs", nargs="+", default=["dbscan", "dbscan_spectral", "adaptive",
+                                                  "open3d", "sklearn"])
+    sp.add_argument("--cache", default="out/bench_segment")
+    sp.add_argument("--csv", default=None)
+    sp.set_defaults(func=speed)
+    args = parser.parse_args()
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,335 @@
+"""Segmentation, step by step, on synthetic inputs with known answers (fast)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from sklearn.base import clone
+from sklearn.cluster import DBSCAN
+from sklearn.metrics import adjusted_rand_score
+
+from canopy_kit import plugins
+from canopy_kit.cloud import PointCloud
+from canopy_kit.config import PreprocessConfig, RowsConfig
+from canopy_kit.errors import ConfigError, InputError, PluginError
+from canopy_kit.evaluate import score_footprints, score_point_labels
+from canopy_kit.segment.density import first_appearance_order, grid_dbscan, weighted_dbscan
+from canopy_kit.segment.ground import fit_ground, ransac_plane
+from canopy_kit.segment.preprocess import prepare
+from canopy_kit.segment.rows import (assign_rows, bearing_to_vector, default_direction,
+                                     driving_direction_from_trajectory)
+from canopy_kit.segment.stems import detect_stems
+from canopy_kit.segment.verb import make_segmenter, segment
+
+from fixtures_sim import synthetic_orchard
+
+
+def blobs(seed: int = 0, n: int = 400) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    centres = np.array([[0, 0, 2], [4, 0, 2], [0, 5, 2.5]])
+    return np.concatenate([c + rng.normal(0, 0.4, (n, 3)) for c in centres]
+                          + [rng.uniform(-3, 8, (30, 3))])
+
+
+# -- ground and preprocessing ---------------------------------------------------------------
+def test_ransac_plane_recovers_a_plane_among_outliers() -> None:
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-2, 2, (200, 2))
+    z = 0.1 * xy[:, 0] - 0.05 * xy[:, 1] + 3.0
+    z[:40] += rng.uniform(1, 3, 40)  # crown bottoms taken for ground candidates
+    coef, inliers = ransac_plane(np.column_stack([xy, z]), 0.05, rng)
+    assert np.allclose(coef, [0.1, -0.05, 3.0], atol=1e-6)
+    assert inliers.sum() == 160
+
+
+@pytest.mark.parametrize("slope", [0.0, 6.0])
+def test_ground_model_follows_slopes_and_bumps_under_crowns(slope: float) -> None:
+    orch = synthetic_orchard(rows=2, trees_per_row=3, slope_deg=slope)
+    model = fit_ground(orch.cloud.xyz, cell_size=4.0, threshold=0.15)
+    g = orch.cloud.fields["tree_id"] < 0
+    xy = orch.cloud.xyz[:, :2]
+    err = model.height(xy) - orch.ground(xy[:, 0], xy[:, 1])
+    assert np.percentile(np.abs(err[g]), 95) < 0.12
+    assert np.abs(np.median(err)) < 0.05
+
+
+def test_ground_model_messages() -> None:
+    with pytest.raises(InputError, match="no points"):
+        fit_ground(np.zeros((0, 3)))
+    with pytest.raises(InputError, match="cell_size"):
+        fit_ground(np.zeros((5, 3)), cell_size=0)
+
+
+def test_prepare_bands_heights_and_weighs_voxels() -> None:
+    orch = synthetic_orchard(rows=1, trees_per_row=2)
+    cfg = PreprocessConfig()
+    prep = prepare(orch.cloud, cfg)
+    crown = orch.cloud.fields["tree_id"] >= 0
+    canopy = np.zeros(len(orch.cloud), bool)
+    canopy[prep.canopy_index] = True
+    assert canopy[crown].mean() > 0.99  # crowns kept
+    assert not canopy[~crown & (prep.height < 0.5)].any()  # ground and grass removed
+    # each voxel weighs the map points it holds
+    assert prep.seen_weight.sum() == len(prep.canopy_index)
+    assert np.array_equal(np.bincount(prep.canopy_to_seen), prep.seen_weight.astype(int))
+    after = prepare(orch.cloud, PreprocessConfig(voxelize="after_clustering"))
+    assert len(after.seen_index) == len(after.canopy_index) and (after.seen_weight == 1).all()
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("stem_band", [0.8, 0.3], "preprocess.stem_band"),
+    ("voxel_size", 0.0, "preprocess.voxel_size"),
+    ("min_canopy_height", 20.0, "preprocess.min_canopy_height"),
+])
+def test_preprocess_config_errors_name_the_setting(field: str, value: object, message: str) -> None:
+    orch = synthetic_orchard(rows=1, trees_per_row=1)
+    cfg = PreprocessConfig(**{field: value})
+    with pytest.raises(ConfigError, match=message):
+        prepare(orch.cloud, cfg)
+
+
+# -- DBSCAN implementations -----------------------------------------------------------------
+@pytest.mark.parametrize("weighted", [False, True])
+def test_exact_dbscan_equals_scikit_learn(weighted: bool) -> None:
+    xyz = blobs()
+    w = np.random.default_rng(3).integers(1, 5, len(xyz)).astype(float) if weighted else None
+    ours, core = weighted_dbscan(xyz, 0.5, 25, w, target_points=300)
+    ref = DBSCAN(eps=0.5, min_samples=25).fit(xyz, sample_weight=w)
+    assert np.array_equal(core, np.isin(np.arange(len(xyz)), ref.core_sample_indices_))
+    assert adjusted_rand_score(ours, ref.labels_) > 0.99
+
+
+def test_lattice_dbscan_agrees_with_scikit_learn() -> None:
+    xyz = blobs(n=1500)
+    ours, _ = grid_dbscan(xyz, 0.8, 60, tile_size=3.0)  # small tiles: labels joined across them
+    ref = DBSCAN(eps=0.8, min_samples=60).fit_predict(xyz)
+    assert ours.max() == ref.max() == 2
+    assert adjusted_rand_score(ours, ref) > 0.98
+
+
+def test_dbscan_edge_cases() -> None:
+    assert len(weighted_dbscan(np.zeros((0, 3)), 1.0, 5)[0]) == 0
+    assert len(grid_dbscan(np.zeros((0, 3)), 1.0, 5)[0]) == 0
+    with pytest.raises(InputError, match="eps"):
+        grid_dbscan(np.zeros((3, 3)), 0.0, 5)
+    with pytest.raises(InputError, match="sample_weight"):
+        weighted_dbscan(np.zeros((3, 3)), 1.0, 5, np.ones(2))
+    assert first_appearance_order(np.array([5, -1, 2, 5, 9])).tolist() == [0, -1, 1, 0, 2]
+
+
+# -- the segmenter contract (every registered plugin) --------------------------------------
+@pytest.mark.parametrize("name", plugins.names("segmenters"))
+def test_every_segmenter_honours_the_scikit_learn_contract(name: str) -> None:
+    cls = plugins.load("segmenters", name)
+    est = cls()
+    params = est.get_params()
+    assert params and all(not k.endswith("_") for k in params)
+    assert not [k for k in vars(est) if k.endswith("_")], "work done in __init__"
+    assert clone(est).get_params() == params
+    xyz = blobs()
+    labels = est.fit_predict(xyz)
+    assert labels.shape == (len(xyz),) and labels.dtype.kind == "i" and labels.min() >= -1
+    assert est.n_clusters_ == labels.max() + 1
+    assert np.array_equal(est.labels_, labels)
+    with pytest.raises(InputError, match=r"shape \(N, 3\)"):
+        cls().fit_predict(np.zeros((4, 2)))
+    assert len(cls().fit_predict(np.zeros((0, 3)))) == 0
+
+
+def test_paper_segmenters_count_map_points_not_voxels() -> None:
+    xyz = blobs(n=200)
+    # 200 points per blob in a 0.8 m ball: no core points with N_min = 1300 ...
+    assert make_segmenter("dbscan").fit_predict(xyz).max() == -1
+    # ... unless each point stands for 10 map points, as a voxel of a dense map does.
+    labels = make_segmenter("dbscan").fit_predict(xyz, sample_weight=np.full(len(xyz), 10.0))
+    assert labels.max() == 2
+
+
+def test_spectral_splits_clusters_by_size() -> None:
+    rng = np.random.default_rng(0)
+    # one DBSCAN cluster: three touching blobs in a row
+    xyz = np.concatenate([rng.normal([x, 0, 2], [0.7, 0.5, 0.5], (600, 3)) for x in (0, 2.2, 4.4)])
+    seg = make_segmenter("dbscan_spectral", {"min_samples": 20, "max_cluster_size": 600})
+    labels = seg.fit_predict(xyz)
+    assert seg.splits_ == {0: 3} and labels.max() == 2
+    truth = np.repeat([0, 1, 2], 600)
+    assert adjusted_rand_score(truth, labels) > 0.6
+
+
+def test_make_segmenter_errors() -> None:
+    with pytest.raises(PluginError, match="no segmenters plugin named 'kmeans'"):
+        make_segmenter("kmeans")
+    with pytest.raises(ConfigError, match="segmenter 'dbscan' has no parameter 'epsilon'"):
+        make_segmenter("dbscan", {"epsilon": 0.8})
+
+
+# -- trunks and the adaptive segmenter ------------------------------------------------------
+def test_stems_found_under_crowns_and_grass_ignored() -> None:
+    orch = synthetic_orchard(rows=2, trees_per_row=3, row_spacing=5.0)
+    prep = prepare(orch.cloud, PreprocessConfig())
+    stems = detect_stems(prep.normalized(orch.cloud, prep.stem_index))
+    assert len(stems) == 6
+    d = np.linalg.norm(stems.xy[:, None] - orch.centres[None], axis=2).min(axis=0)
+    assert d.max() < 0.1
+
+
+@pytest.mark.parametrize("trunks", [True, False])
+def test_adaptive_splits_touching_crowns_in_a_hedgerow(trunks: bool) -> None:
+    # crowns 3.6 m wide every 3 m: DBSCAN sees one cluster per row
+    orch = synthetic_orchard(rows=2, trees_per_row=5, spacing=3.0, row_spacing=6.0, trunks=trunks,
+                             bearing_deg=25.0)
+    truth = orch.cloud.fields["tree_id"]
+    seg = segment(orch.cloud, make_segmenter("adaptive"))
+    score = score_point_labels(seg.labels, truth)
+    # with trunks every tree is found; without, the count comes from the rows' width
+    assert score.success_rate >= (1.0 if trunks else 0.6)
+    paper = segment(orch.cloud, make_segmenter("dbscan", {"min_samples": 300}))
+    assert score_point_labels(paper.labels, truth).n_merged >= 8
+
+
+# -- rows and labels --------------------------------------------------------------------------
+@pytest.mark.parametrize("bearing", [0.0, 30.0, 95.0, 200.0, 315.0])
+@pytest.mark.parametrize("bow", [0.0, 1.0])
+def test_rows_and_labels_at_any_bearing_and_curvature(bearing: float, bow: float) -> None:
+    orch = synthetic_orchard(rows=4, trees_per_row=7, bearing_deg=bearing, bow=bow, trunks=False,
+                             density=5)
+    rng = np.random.default_rng(2)
+    xy = orch.centres + rng.normal(0, 0.2, orch.centres.shape)
+    perm = rng.permutation(len(xy))
+    result = assign_rows(xy[perm], RowsConfig(), driving_direction=bearing_to_vector(bearing))
+    assert result.row.tolist() == orch.rows[perm].tolist()
+    assert result.index_in_row.tolist() == orch.index_in_row[perm].tolist()
+    expected = [f"{'L' if r % 2 == 0 else 'R'}{i}" for r, i in zip(orch.rows[perm], orch.index_in_row[perm])]
+    assert result.labels == expected
+    assert len(set(result.tree_ids)) == len(xy)
+    assert not result.warnings
+
+
+def test_rows_default_direction_and_trajectory() -> None:
+    assert np.allclose(default_direction(np.array([0.2, -1.0])), np.array([-0.2, 1.0]) / np.hypot(0.2, 1))
+    assert default_direction(np.array([-1.0, 0.0])).tolist() == [1.0, 0.0]
+    traj = np.array([[0, 0], [0, 0], [0.1, 2], [0.2, 6], [1, 10]])
+    d = driving_direction_from_trajectory(traj)
+    assert d[1] > 0.99
+    with pytest.raises(InputError, match="never moves"):
+        driving_direction_from_trajectory(np.zeros((10, 2)))
+    # driving the other way mirrors the labels: the last tree becomes index 0
+    orch = synthetic_orchard(rows=2, trees_per_row=4, trunks=False, density=5)
+    fwd = assign_rows(orch.centres)
+    back = assign_rows(orch.centres, driving_direction=np.array([0.0, -1.0]))
+    assert fwd.direction_source.startswith("default")
+    assert back.index_in_row.tolist() == (3 - fwd.index_in_row).tolist()
+    assert back.row.tolist() == (1 - fwd.row).tolist()
+
+
+def test_rows_give_up_clearly_on_a_forest_and_handle_tiny_inputs() -> None:
+    xy = np.random.default_rng(0).uniform(0, 90, (150, 2))
+    result = assign_rows(xy)
+    assert result.warnings and "no rows detected" in result.warnings[0]
+    assert result.labels[0].startswith("T") and (result.row == -1).all()
+    one = assign_rows(np.array([[3.0, 4.0]]))
+    assert one.labels == ["L0"] and not one.warnings
+    empty = assign_rows(np.zeros((0, 2)))
+    assert empty.labels == [] and "no trees" in empty.warnings[0]
+
+
+# -- evaluation -----------------------------------------------------------------------------
+def test_point_scores_classify_merges_splits_and_misses() -> None:
+    truth = np.repeat([0, 1, 2, 3, 4, -1], 100)
+    pred = truth.copy()
+    pred[100:300] = 7  # trees 1 and 2 merged
+    pred[300:335], pred[335:370], pred[370:400] = 8, 9, 11  # tree 3 split in three
+    pred[400:500] = -1  # tree 4 missed
+    pred[500:], pred[500:520] = 10, 7  # a segment of non-tree points; the merge takes some
+    s = score_point_labels(pred, truth)
+    assert (s.n_truth, s.n_correct, s.n_merged, s.n_split, s.n_missed) == (5, 1, 2, 1, 1)
+    assert s.n_predicted == 6 and s.n_false_segments == 2  # the merged one and the non-tree one
+    assert s.precision == pytest.approx(1 / 6) and s.recall == pytest.approx(0.2)
+    # IoU exactly 0.5 counts (>=): two halves of one tree, one of them matches
+    half = truth.copy()
+    half[:50] = 20
+    assert score_point_labels(half, truth).n_correct == 5
+    perfect = score_point_labels(truth, truth)
+    assert perfect.success_rate == 1.0 and perfect.f1 == 1.0
+    with pytest.raises(InputError, match="predicted labels"):
+        score_point_labels(pred[:5], truth)
+
+
+def test_label_correctness_and_footprint_scores() -> None:
+    square = lambda x, y, r: np.array([[x - r, y - r], [x + r, y - r], [x + r, y + r], [x - r, y + r]])  # noqa: E731
+    truth = {0: square(0, 0, 1), 1: square(5, 0, 1), 2: square(10, 0, 1)}
+    pred = {10: square(0.1, 0, 1), 11: square(7.5, 0, 3.6)}  # 1 and 2 merged
+    tl = pd.DataFrame({"row": [0, 0, 0], "label": ["L0", "L1", "L2"]}, index=[0, 1, 2])
+    pl = pd.DataFrame({"row": [0, 0], "label": ["L0", "L1"]}, index=[10, 11])
+    s = score_footprints(pred, truth, truth_labels=tl, pred_labels=pl)
+    assert (s.n_correct, s.n_merged, s.n_label_correct) == (1, 2, 1)
+    assert s.trees.loc[0, "iou"] == pytest.approx(3.8 / 4.2, abs=0.04)
+
+
+# -- the verb, bad input and the run folder ---------------------------------------------------
+def test_segment_verb_bad_input_messages() -> None:
+    with pytest.raises(InputError, match="map has no points"):
+        segment(PointCloud(np.zeros((0, 3))), "adaptive")
+    rng = np.random.default_rng(0)
+    flat = PointCloud(np.column_stack([rng.uniform(0, 30, (5000, 2)), rng.normal(0, 0.02, 5000)]))
+    with pytest.raises(InputError, match="is it all ground"):
+        segment(flat, "dbscan")
+    with pytest.raises(InputError, match="has no fit_predict"):
+        segment(flat, object())
+
+
+def test_segment_one_tree_and_no_rows() -> None:
+    one = synthetic_orchard(rows=1, trees_per_row=1)
+    seg = segment(one.cloud, "adaptive")
+    assert seg.n_trees == 1 and seg.trees[0].label == "L0" and seg.trees[0].tree_id == "r0-L0"
+    assert not seg.warnings
+    assert score_point_labels(seg.labels, one.cloud.fields["tree_id"]).success_rate == 1.0
+    # trees scattered at random: segmented, but labelled T0.. with a clear warning
+    rng = np.random.default_rng(4)
+    parts = []
+    for k, c in enumerate(rng.uniform(0, 40, (12, 2))):
+        o = synthetic_orchard(rows=1, trees_per_row=1, seed=k, ground_extent=0.5)
+        xyz = o.cloud.xyz.copy()
+        xyz[:, :2] += c
+        parts.append(xyz)
+    scattered = PointCloud(np.concatenate(parts))
+    seg = segment(scattered, "adaptive")
+    assert seg.warnings and "no rows detected" in seg.warnings[0]
+
+
+def test_write_and_read_a_run_folder(tmp_path) -> None:
+    from canopy_kit.segment.export import read_segmentation, write_segmentation
+
+    orch = synthetic_orchard(rows=2, trees_per_row=2)
+    seg = segment(orch.cloud, "adaptive")
+    paths = write_segmentation(tmp_path / "run", seg, orch.cloud)
+    assert {p.name for p in paths.values()} >= {"segmented.laz", "trees.csv", "trees.geojson"}
+    pos = json.loads(paths["positions"].read_text())
+    assert pos["crs"]["properties"]["name"] == "urn:ogc:def:crs:EPSG::32610"
+    x0, y0, _ = pos["features"][0]["geometry"]["coordinates"]
+    assert x0 == pytest.approx(seg.trees[0].x + 700000.0) and y0 > 4_000_000
+    run = read_segmentation(tmp_path / "run")
+    assert run.trees["tree_id"].tolist() == [t.tree_id for t in seg.trees]
+    assert np.allclose(run.cloud.xyz, orch.cloud.xyz, atol=0.002)
+    assert np.array_equal(run.cloud.fields["segment_id"], seg.labels)
+    assert set(run.footprints) == {t.segment_id for t in seg.trees}
+    with pytest.raises(InputError, match="not a segmentation folder"):
+        read_segmentation(tmp_path)
+
+
+def test_results_table_pivots_long_form_runs(tmp_path) -> None:
+    from canopy_kit.segment.results import results_table, success_table
+
+    runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "adaptive"],
+                         "orchard": ["almond", "pistachio", "almond", "pistachio"],
+                         "success_points": [0.4, 0.9, 0.9, 1.0], "variant": "default"})
+    table = success_table(runs)
+    assert table.loc["adaptive", ("mean", "almond")] == 0.9
+    assert list(table.index) == ["dbscan", "adaptive"]
+    runs.to_csv(tmp_path / "r.csv", index=False)
+    assert results_table(tmp_path / "r.csv").equals(table)
+    with pytest.raises(InputError, match="no segmentation results"):
+        results_table(tmp_path / "missing.csv")
