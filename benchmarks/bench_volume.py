@@ -58,7 +58,7 @@ def timed(fn: Callable[[], float], repeats: int) -> tuple[float, float | None, s
         start = time.perf_counter()
         try:
             value = fn()
-        except Exception as exc:  # Open3D raises RuntimeError on non-watertight meshes
+        except RuntimeError as exc:  # Open3D's get_volume on a non-watertight mesh
             error = f"{type(exc).__name__}"
         times.append(time.perf_counter() - start)
     return float(np.median(times)), (None if error else value), error
@@ -84,11 +84,11 @@ def main() -> None:
                 pts = crown(n, seed=1000 * t + n % 997, one_sided=kind == "one-sided")
                 values = {}
                 for m, est in estimators.items():
-                    sec, res, _ = timed(lambda est=est: est(pts), repeats)
+                    sec, res, _ = timed(lambda est=est, pts=pts: est(pts), repeats)
                     times[m].append(sec)
                     fails[m] += res is None or not res.valid
                     values[m] = res.volume_m3 if res is not None else None
-                sec, v, _ = timed(lambda: open3d_alpha_volume(pts, args.alpha), repeats)
+                sec, v, _ = timed(lambda pts=pts: open3d_alpha_volume(pts, args.alpha), repeats)
                 times["open3d"].append(sec)
                 fails["open3d"] += v is None
                 if v is not None:

@@ -49,7 +49,7 @@ def session(cache: Path, orchard: str, rows: int, trees: int) -> Path:
     return root
 
 
-def load_map(root: Path):  # noqa: ANN201
+def load_map(root: Path):
     """The cached reference map as a PointCloud with tree_id and time."""
     from canopy_kit.cloud import PointCloud
 
@@ -90,8 +90,12 @@ def main() -> None:
                 flag = f" ({row.invalid} invalid)" if row.invalid else ""
                 cells += [f"{row.mape:.1%}{flag}", f"{row.bias:+.1%}"]
             print("| " + " | ".join(cells) + " |")
-        seen = np.mean([len(t.sides[s]) / len(t.complete) for t in trees for s in t.sides])
-        print(f"\nOne-sided scans hold on average {seen:.0%} of a tree's points. "
+        seen = [len(t.sides[s]) / len(t.complete) for t in trees for s in t.sides]
+        far = [np.mean(((t.sides[s][:, :2] - t.trunk_xy) @ t.across_row) * sign < 0)
+               for t in trees for s, sign in (("left", 1), ("right", -1))]
+        print(f"\nOne-sided scans hold {min(seen):.0%}-{max(seen):.0%} (mean {np.mean(seen):.0%}) "
+              f"of a tree's points; {min(far):.0%}-{max(far):.0%} (mean {np.mean(far):.0%}) of "
+              f"them lie beyond the trunk plane, away from the sensor. "
               f"({time.perf_counter() - start:.0f} s)\n")
 
 

@@ -11,7 +11,7 @@ from canopy_kit import plugins
 from canopy_kit.volume import estimate_volume
 
 
-def test_convex_hull_matches_the_shipped_per_tree_hulls(shared_data) -> None:  # noqa: ANN001
+def test_convex_hull_matches_the_shipped_per_tree_hulls(shared_data) -> None:
     from canopy_kit.io.clouds import read_cloud
 
     cloud = read_cloud(shared_data / "lidr" / "MixedConifer.laz")
@@ -33,7 +33,7 @@ def test_convex_hull_matches_the_shipped_per_tree_hulls(shared_data) -> None:  #
 
 
 @pytest.mark.parametrize("name", ["pine", "spruce"])
-def test_every_method_measures_a_real_terrestrial_tree(shared_data, name: str) -> None:  # noqa: ANN001
+def test_every_method_measures_a_real_terrestrial_tree(shared_data, name: str) -> None:
     from canopy_kit.io.clouds import read_cloud
     from canopy_kit.voxel import voxel_downsample
 

@@ -18,39 +18,39 @@ SPECS = [
 
 
 @pytest.fixture(scope="module")
-def errors(tiny_pistachio):  # noqa: ANN001, ANN201
+def errors(tiny_pistachio):
     trees = simulated_trees(tiny_pistachio.root, voxel_size=0.1)
     assert len(trees) == 6
     assert all(len(t.complete) > 500 and len(t.sides["left"]) > 100 for t in trees)
     return volume_errors(trees, SPECS)
 
 
-def summary(errors, scan: str) -> dict[str, tuple[float, float]]:  # noqa: ANN001
+def summary(errors, scan: str) -> dict[str, tuple[float, float]]:
     table = error_table(errors)
     rows = table[table["scan"] == scan]
     return {r.method: (r.mape, r.bias) for r in rows.itertuples()}
 
 
-def test_every_method_gives_a_valid_volume_on_every_scan(errors) -> None:  # noqa: ANN001
+def test_every_method_gives_a_valid_volume_on_every_scan(errors) -> None:
     assert errors["valid"].all()
     assert set(errors["scan"]) == {"complete", "left", "right"}
 
 
-def test_complete_trees_are_within_a_few_percent(errors) -> None:  # noqa: ANN001
+def test_complete_trees_are_within_a_few_percent(errors) -> None:
     s = summary(errors, "complete")
     assert -0.15 < s["hull"][1] < 0.05, s  # points lie inside the envelope: a little low
     assert min(s[m][0] for m in ("hull", "slices", "mirror")) < 0.08, s
     assert s["alpha"][1] < s["hull"][1]  # the alpha shape carves more than the hull
 
 
-def test_mirror_beats_alpha_on_one_sided_scans(errors) -> None:  # noqa: ANN001
+def test_mirror_beats_alpha_on_one_sided_scans(errors) -> None:
     s = summary(errors, "one-sided")
     assert s["mirror"][0] < s["alpha"][0], s
     assert s["mirror"][0] < s["hull"][0], s
     assert s["mirror"][0] < 0.1, s
 
 
-def test_fast_alpha_hull_tracks_the_exact_alpha_on_simulated_crowns(errors) -> None:  # noqa: ANN001
+def test_fast_alpha_hull_tracks_the_exact_alpha_on_simulated_crowns(errors) -> None:
     wide = errors.pivot_table(index=["tree", "scan"], columns="method", values="volume_m3")
     ratio = wide["alpha_hull"] / wide["alpha"] - 1
     # the α-hull is bitten between sparse boundary points: slightly smaller, never larger

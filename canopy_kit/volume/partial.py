@@ -53,7 +53,7 @@ class MirrorPlane:
 def horizontal_axes(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Major and minor principal axes (unit 2-vectors) of the horizontal coordinates."""
     xy = xyz[:, :2] - xyz[:, :2].mean(axis=0)
-    w, v = np.linalg.eigh(xy.T @ xy)
+    _, v = np.linalg.eigh(xy.T @ xy)
     return v[:, 1], v[:, 0]
 
 
