@@ -232,3 +232,12 @@ def test_alpha_hull_flags_clouds_too_sparse_for_the_grid_formulation() -> None:
     assert result.reason.startswith("points too sparse for the alpha hull: median spacing")
     assert "use alpha_shape" in result.reason and result.extra["spacing_ratio"] > 0.2
     assert estimate_volume(blob(20000), "alpha_hull").extra["spacing_ratio"] < 0.2
+
+
+def test_tree_metrics_refuse_empty_input_and_bad_parameters() -> None:
+    with pytest.raises(InputError, match="xyz: a tree needs at least one point"):
+        tree_metrics(np.zeros((0, 3)))
+    with pytest.raises(ConfigError, match="crown_fraction must be in"):
+        tree_metrics(blob(100), crown_fraction=1.5)
+    one = tree_metrics(np.array([[1.0, 2.0, 3.0]]))
+    assert one.height_m == 0 and one.crown_diameter_max_m == 0 and np.isnan(one.density_per_m3)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.errors import ConfigError
+from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.volume.base import as_points
 
 
@@ -104,7 +104,7 @@ def tree_metrics(xyz: Any, ground_z: float | None = None, volume_m3: float | Non
     """Height, crown base, diameters, projected area, count, density and sphere volume of a tree."""
     pts = as_points(xyz)
     if len(pts) == 0:
-        raise ConfigError("xyz: a tree needs at least one point for its metrics")
+        raise InputError("xyz: a tree needs at least one point for its metrics")
     if not slice_thickness > 0:
         raise ConfigError(f"slice_thickness must be positive, got {slice_thickness!r}")
     if not 0 < crown_fraction <= 1:
