@@ -8,7 +8,8 @@ truth folder; the bag is deleted), runs every method on each, scores it (point I
 footprint IoU) and the ceiling the exact crown envelopes allow, appends one line per
 method and session to ``--csv`` and prints the table method x orchard -> success rate.
 ``speed`` times the segmenters and Open3D's and scikit-learn's DBSCAN on the same canopy
-points of maps with more and more rows, each run in a fresh process for its peak memory.
+points of maps with more and more rows (the two rows of one simulated session repeated
+across), each run in a fresh process for its peak memory.
 The numbers in docs/SEGMENTATION.md and docs/BENCHMARKS.md come from these two commands.
 """
 
@@ -155,6 +156,33 @@ def _measure(job: str, npz: str, queue) -> None:  # runs in a fresh process
                "n_clusters": int(np.max(labels)) + 1})
 
 
+def repeated_rows(cloud, sim_dir: Path, n_rows: int):
+    """A map of ``n_rows`` rows made by repeating the two rows of a simulated session.
+
+    The block between the middle of the alleys left of row 0 and right of row 1 is copied
+    across the rows (same point density, crowns, trunks and ground as simulated); the
+    outermost copies keep the scanned margins.
+    """
+    from canopy_kit.cloud import PointCloud
+    from canopy_kit.sim.truth import load_truth
+
+    info = load_truth(sim_dir).info
+    right = np.asarray(info["right_direction"])
+    spacing = float(np.diff(info["row_offsets"])[0])
+    across = cloud.xyz[:, :2] @ right
+    parts = []
+    for k in range((n_rows + 1) // 2):
+        lo = -np.inf if k == 0 else -0.5 * spacing
+        last = k == (n_rows + 1) // 2 - 1
+        hi = (0.5 if n_rows % 2 and last else 1.5) * spacing
+        hi = np.inf if last and not n_rows % 2 else hi
+        m = (across >= lo) & (across < hi)
+        xyz = cloud.xyz[m].copy()
+        xyz[:, :2] += 2 * k * spacing * right
+        parts.append(PointCloud(xyz, {"tree_id": cloud.fields["tree_id"][m]}))
+    return PointCloud.concatenate(parts)
+
+
 def speed(args: argparse.Namespace) -> None:
     import multiprocessing as mp
 
@@ -165,8 +193,10 @@ def speed(args: argparse.Namespace) -> None:
     cache.mkdir(parents=True, exist_ok=True)
     ctx = mp.get_context("spawn")
     rows = []
+    base, sim_dir, base_name = session_map(cache, args.orchard, 2, args.trees_per_row, args.seed)
     for n_rows in args.rows:
-        cloud, _, name = session_map(cache, args.orchard, n_rows, args.trees_per_row, args.seed)
+        cloud = repeated_rows(base, sim_dir, n_rows)
+        name = f"{base_name}_rows{n_rows}"
         t0 = time.perf_counter()
         prep = prepare(cloud, PreprocessConfig())
         t_prep = time.perf_counter() - t0
@@ -211,7 +241,7 @@ def main() -> None:
     sp = sub.add_parser("speed")
     sp.add_argument("--orchard", default="almond")
     sp.add_argument("--rows", nargs="+", type=int, default=[1, 2, 4, 10])
-    sp.add_argument("--trees-per-row", type=int, default=10)
+    sp.add_argument("--trees-per-row", type=int, default=8)
     sp.add_argument("--seed", type=int, default=7)
     sp.add_argument("--jobs", nargs="+", default=["dbscan", "dbscan_spectral", "adaptive",
                                                   "open3d", "sklearn"])

@@ -1,0 +1,93 @@
+"""Figures of a segmentation: the map from above, and a gallery of the failures."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.segment.result import Segmentation
+
+
+def _colours(labels: np.ndarray) -> np.ndarray:
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab20"]
+    rgba = cmap((np.maximum(labels, 0) * 7 % 20) / 19.0)
+    rgba[labels < 0] = (0.75, 0.75, 0.75, 0.35)
+    return rgba
+
+
+def _sample(n: int, max_points: int, seed: int = 0) -> np.ndarray:
+    if n <= max_points:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+
+
+def plot_top_view(cloud: PointCloud, seg: Segmentation, ax: Any = None,
+                  max_points: int = 150_000, show_rows: bool = True) -> Any:
+    """Top view of the map: each tree in its colour, labelled ``row:label``; returns the Figure."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(8, 8))
+    else:
+        fig = ax.figure
+    keep = np.flatnonzero(seg.height >= 0.3)
+    keep = keep[_sample(len(keep), max_points)]
+    ax.scatter(cloud.xyz[keep, 0], cloud.xyz[keep, 1], s=0.3, c=_colours(seg.labels[keep]),
+               linewidths=0, rasterized=True)
+    if show_rows:
+        for line in seg.rows.lines:
+            p = line.polyline()
+            ax.plot(p[:, 0], p[:, 1], "k--", lw=0.6, alpha=0.6)
+    for t in seg.trees:
+        ax.annotate(f"{t.row}:{t.label}" if t.row >= 0 else t.label, (t.x, t.y), fontsize=7,
+                    ha="center", va="center", weight="bold")
+    d = seg.rows.direction
+    lo = cloud.xyz[keep, :2].min(axis=0) if len(keep) else np.zeros(2)
+    ax.annotate("", lo + 3 * d, lo, arrowprops={"arrowstyle": "->", "lw": 1.5})
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{seg.n_trees} trees, {len(seg.rows.lines)} rows ({seg.method}); "
+                 "arrow: driving direction")
+    return fig
+
+
+def plot_failure_gallery(cloud: PointCloud, seg: Segmentation, score: Any,
+                         truth: np.ndarray, max_panels: int = 6, margin: float = 2.0,
+                         max_points: int = 40_000) -> Any:
+    """Side-by-side truth and segmentation around each tree that was not segmented correctly.
+
+    ``score`` is a point-mode :class:`canopy_kit.evaluate.SegmentationScore` of ``seg``
+    against the per-point true tree ids ``truth``. Returns the Figure (``None`` if every
+    tree was correct).
+    """
+    import matplotlib.pyplot as plt
+
+    failed = score.trees[score.trees["status"] != "correct"].head(max_panels)
+    if failed.empty:
+        return None
+    fig, axes = plt.subplots(len(failed), 2, figsize=(9, 3.2 * len(failed)), squeeze=False)
+    for (ax_t, ax_p), (_, row) in zip(axes, failed.iterrows()):
+        members = truth == row["truth_id"]
+        lo = cloud.xyz[members, :2].min(axis=0) - margin
+        hi = cloud.xyz[members, :2].max(axis=0) + margin
+        near = np.flatnonzero(np.all((cloud.xyz[:, :2] >= lo) & (cloud.xyz[:, :2] <= hi), axis=1)
+                              & (seg.height >= 0.3))
+        near = near[_sample(len(near), max_points)]
+        # Side view along the longer side of the window.
+        axis = 0 if hi[0] - lo[0] >= hi[1] - lo[1] else 1
+        for ax, labels, title in ((ax_t, truth, "truth"), (ax_p, seg.labels, "segmentation")):
+            ax.scatter(cloud.xyz[near, axis], seg.height[near], s=0.4, c=_colours(labels[near]),
+                       linewidths=0, rasterized=True)
+            ax.set_aspect("equal")
+            ax.set_title(f"{title}: tree {row['truth_id']}"
+                         + (f" ({row.get('truth_label', '')})" if "truth_label" in row else ""),
+                         fontsize=9)
+        ax_p.set_title(f"segmentation: {row['status']}, best IoU {row['iou']:.2f}", fontsize=9)
+        ax_t.set_ylabel("height above ground (m)")
+    fig.tight_layout()
+    return fig
