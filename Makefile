@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 setup: system-deps $(STAMP)
 
 demo: setup
-	$(VENV)/bin/canopy-kit --help
+	$(VENV)/bin/canopy-kit demo --out $(OUT)
 
 test: setup
 	$(VENV)/bin/python -m pytest

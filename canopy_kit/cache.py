@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import pickle
+import time
 from collections.abc import Callable
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
@@ -59,6 +60,7 @@ class StageCache:
         self.enabled = enabled and root is not None
         self.hits: list[str] = []
         self.misses: list[str] = []
+        self.timings: dict[str, dict[str, float]] = {}
 
     def _path(self, stage: str, key: str) -> Path:
         assert self.root is not None
@@ -76,7 +78,9 @@ class StageCache:
                     return value
                 except (pickle.UnpicklingError, EOFError, AttributeError, ImportError):
                     path.unlink(missing_ok=True)  # stale or damaged entry: recompute
+        wall, cpu = time.perf_counter(), time.process_time()
         value = compute()
+        self.timings[stage] = {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
         self.misses.append(stage)
         if self.enabled:
             for old in self.root.glob(f"{stage}-*.pkl"):

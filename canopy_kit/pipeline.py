@@ -79,6 +79,8 @@ def run(config: PipelineConfig, bag: str | Path, out: str | Path,
         ctx.evaluation = evaluate_against_truth(ctx, trees, Path(truth))
         trees = ctx.evaluation.pop("trees", trees)
     metrics = run_metrics(ctx, trees)
+    metrics["stage_timings"] = cache.timings
+    metrics["cached_stages"] = list(cache.hits)
     files = write_outputs(ctx, trees, metrics, out, report)
     return Results(out, trees, metrics, files, list(metrics.get("warnings", [])), cache.hits)
 
@@ -129,7 +131,10 @@ def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -
     """Drone photogrammetry ground truth, seeded with the LiDAR tree positions."""
     from ground_truth import process_flight
 
-    seeds = ctx.trees[["x", "y"]].to_numpy() + ctx.mapping.map.origin[:2] - _frame_origin(ctx)[:2]
+    shift = ctx.mapping.map.origin[:2] - _frame_origin(ctx)[:2]
+    seeds = pd.DataFrame({"segment": ctx.trees["segment"].to_numpy(),
+                          "x": ctx.trees["x"].to_numpy() + shift[0],
+                          "y": ctx.trees["y"].to_numpy() + shift[1]})
     return process_flight(images, out, frame=ctx.mapping.frame, seeds=seeds, progress=progress)
 
 
@@ -160,9 +165,21 @@ def tree_table(ctx: RunContext) -> pd.DataFrame:
     return trees[[c for c in FIRST_COLUMNS if c in trees.columns] + rest].reset_index(drop=True)
 
 
+AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tree table
+    "aerial_diameter_max_m": "aerial_diameter_m",
+    "aerial_diameter_mean_m": "aerial_diameter_mean_m",
+    "aerial_sphere_volume_m3": "aerial_sphere_volume_m3",
+    "aerial_ellipsoid_volume_m3": "aerial_ellipsoid_volume_m3",
+    "aerial_chm_volume_m3": "aerial_chm_volume_m3",
+    "aerial_height_m": "aerial_height_m",
+    "aerial_distance_m": "aerial_match_distance_m",
+}
+
+
 def join_aerial(trees: pd.DataFrame, aerial: Any) -> pd.DataFrame:
     """Add the matched aerial crown diameter and sphere volume, and the LiDAR-vs-aerial errors."""
-    matched = aerial.matches  # one row per LiDAR tree: segment, aerial_diameter_m, ...
+    matched = aerial.trees[["segment", *AERIAL_COLUMNS]].rename(columns=AERIAL_COLUMNS)
+    matched = matched[aerial.trees["matched"].to_numpy(bool)]
     out = trees.merge(matched, on="segment", how="left")
     for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
         if col in out:

@@ -103,9 +103,11 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
                          figure_to_data_uri(plots.plot_agreement(
                              sub["volume_alpha_m3"].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
                              ("LiDAR alpha shape", "aerial sphere"), list(sub["label"])))))
-        ortho = getattr(ctx.aerial, "figure", None)
-        if callable(ortho):
-            figs.append(("Orthomosaic with the delineated crowns.", figure_to_data_uri(ortho())))
+        from ground_truth.plots import plot_crowns
+
+        ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation, ctx.aerial.crowns)
+        figs.append(("Orthomosaic from the drone photos with the delineated crowns (red) and "
+                     "their numbers.", figure_to_data_uri(ax.figure)))
         sections.append(ReportSection("LiDAR against drone photogrammetry", figs))
     if "true_crown_volume_m3" in trees:
         ok = trees["true_crown_volume_m3"].notna() & trees["volume_alpha_m3"].notna()

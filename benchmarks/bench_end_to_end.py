@@ -1,0 +1,51 @@
+"""End-to-end speed: seconds of driving per second of compute, per stage.
+
+    .venv/bin/python benchmarks/bench_end_to_end.py [--rows 4] [--trees-per-row 10] [--orchard pistachio]
+
+Simulates a session (not timed), then runs the whole pipeline (mapping, segmentation,
+volumes, report; no drone stage) with the cache off and prints each stage's wall and CPU
+time and the real-time factor. The issue's target: ≥ 5x real time for a 4-row session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+from canopy_kit.config import load_preset
+from canopy_kit.pipeline import run
+from canopy_kit.sim import load_sim_config, simulate_session
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--orchard", default="pistachio")
+    parser.add_argument("--rows", type=int, default=4)
+    parser.add_argument("--trees-per-row", type=int, default=10)
+    parser.add_argument("--preset", default="adaptive")
+    parser.add_argument("--seed", type=int, default=11)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = load_sim_config(args.orchard, {"seed": args.seed, "orchard": {
+            "rows": args.rows, "trees_per_row": args.trees_per_row}})
+        session = simulate_session(Path(tmp) / "sim", cfg)
+        driving = session.trajectory.duration
+        wall, cpu = time.perf_counter(), time.process_time()
+        result = run(load_preset(args.preset), session.bag, Path(tmp) / "run", use_cache=False)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    t = result.metrics["stage_timings"]
+    print(f"{args.orchard}, {args.rows} rows x {args.trees_per_row} trees, {driving:.0f} s of driving, "
+          f"{result.metrics['n_trees']} trees, preset {args.preset}")
+    print("| stage | wall (s) | CPU (s) | real-time factor (wall) |")
+    print("|---|---|---|---|")
+    for stage, v in t.items():
+        print(f"| {stage} | {v['wall_s']:.1f} | {v['cpu_s']:.1f} | {driving / v['wall_s']:.1f}x |")
+    rest = wall - sum(v["wall_s"] for v in t.values())
+    print(f"| outputs and report | {rest:.1f} | | |")
+    print(f"| **total** | **{wall:.1f}** | {cpu:.1f} | **{driving / wall:.1f}x** |")
+
+
+if __name__ == "__main__":
+    main()
