@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 from canopy_kit.mapping.imu import RotationTrack
+from canopy_kit.mapping.quaternions import cross
 
 
 def reference_time(times: np.ndarray | None, stamp: float) -> float:
@@ -52,5 +53,5 @@ def rotate_small(xyz: np.ndarray, rotvecs: np.ndarray) -> np.ndarray:
     Within one sweep the angles stay below ~0.05 rad, where the dropped third-order term is
     below 2e-5 of the range (0.6 mm at 30 m).
     """
-    c1 = np.cross(rotvecs, xyz)
-    return xyz + c1 + 0.5 * np.cross(rotvecs, c1)
+    c1 = cross(rotvecs, xyz)
+    return xyz + c1 + 0.5 * cross(rotvecs, c1)

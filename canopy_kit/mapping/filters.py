@@ -30,7 +30,7 @@ def check_point_count(n_points: int, minimum: int, where: str) -> None:
 
 def fit_ground_plane(xyz: np.ndarray, cell_size: float = 2.0, fit_radius: float = 25.0,
                      up: np.ndarray | None = None, iterations: int = 3,
-                     inlier_band: float = 0.25, max_points: int = 6000) -> np.ndarray | None:
+                     inlier_band: float = 0.25, max_points: int = 4000) -> np.ndarray | None:
     """Plane ``(n, d)`` with ``n·p + d = 0`` (``n`` pointing up) through the scan's ground.
 
     The lowest point of each ``cell_size`` cell (along ``up``, default the sensor z axis)
@@ -54,10 +54,13 @@ def fit_ground_plane(xyz: np.ndarray, cell_size: float = 2.0, fit_radius: float 
         return None
     cells = np.floor(local[:, :2] / cell_size).astype(np.int64)
     key = (cells[:, 0] + 100_000) * 200_003 + (cells[:, 1] + 100_000)
-    order = np.lexsort((local[:, 2], key))
-    first = np.ones(len(order), bool)
-    first[1:] = key[order[1:]] != key[order[:-1]]
-    cand = local[order[first]]
+    order = np.argsort(key, kind="stable")
+    key_sorted = key[order]
+    starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
+    # Lowest height per cell, placed at the cell centre (slopes are small over one cell).
+    z_min = np.minimum.reduceat(local[order, 2], starts)
+    centre = (cells[order[starts]] + 0.5) * cell_size
+    cand = np.column_stack([centre, z_min])
     if len(cand) < 6:
         return None
     # Robust start: the lower half of the candidates (cells filled by crowns or trunks sit higher).

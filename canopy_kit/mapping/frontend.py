@@ -19,6 +19,7 @@ from canopy_kit.errors import InputError
 from canopy_kit.io.bag import Scan
 from canopy_kit.mapping.deskew import deskew_points, reference_time
 from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
+from canopy_kit.mapping.ground import GroundHeightGrid, apply_ground_correction, ground_correction
 from canopy_kit.mapping.imu import RotationTrack, Standstill, detect_standstill, level_rotation
 from canopy_kit.mapping.odometry import LidarOdometry, OdometrySettings
 from canopy_kit.mapping.sensors import ImuBuffer
@@ -34,7 +35,7 @@ class FrontendSweep:
     scan: Scan
     t_ref: float
     pose: np.ndarray  # (4, 4) odometry frame (gravity-aligned, origin at the first sweep)
-    keep: np.ndarray  # (N,) points within the range limits
+    keep: np.ndarray  # (N,) points within the range limits (every stride-th when thinned)
     xyz: np.ndarray  # (M, 3) deskewed kept points
     ground: np.ndarray  # (M,) kept points called ground
     deskewed: bool
@@ -52,14 +53,17 @@ class FrontendState:
     skipped_sparse: list[int] = field(default_factory=list)
     not_deskewed: int = 0
     ground_fallbacks: int = 0
+    ground_corrections: int = 0
     warnings: list[str] = field(default_factory=list)
 
 
 class LidarFrontend:
     """Feed scans in time order; get registered sweeps back (possibly a few scans later)."""
 
-    def __init__(self, config: MappingConfig, imu: ImuBuffer | None, where: str = "bag") -> None:
+    def __init__(self, config: MappingConfig, imu: ImuBuffer | None, where: str = "bag",
+                 keep_all_points: bool = True) -> None:
         self.config = config
+        self.keep_all_points = keep_all_points
         self.imu = imu
         self.where = where
         self.state = FrontendState()
@@ -70,6 +74,7 @@ class LidarFrontend:
         self._omega = np.zeros(3)  # body frame, rad/s
         self._imu_used = 0
         self._sparse_run = 0
+        self._ground_grid = GroundHeightGrid() if config.odometry_ground_refine else None
 
     # -- start-up --------------------------------------------------------------------------
     def _ready_to_start(self, final: bool) -> bool:
@@ -166,6 +171,11 @@ class LidarFrontend:
                                   f"{self.where}: scans {st.skipped_sparse[0]}..{scan.index}")
             return None
         self._sparse_run = 0
+        if not self.keep_all_points and cfg.odometry_point_stride > 1:
+            # Only the odometry needs these points: thin before the per-point work.
+            thinned = np.zeros_like(keep)
+            thinned[np.flatnonzero(keep)[:: cfg.odometry_point_stride]] = True
+            keep = thinned
         xyz = scan.xyz[keep]
         times = scan.times[keep] if scan.times is not None else None
         if times is not None and not (np.all(np.isfinite(times)) and np.ptp(times) > 0):
@@ -184,11 +194,14 @@ class LidarFrontend:
         if len(odo_points) < max(cfg.min_points_per_scan // 4, 50):
             odo_points = xyz  # nothing but ground in view: better the trap than no odometry
             st.ground_fallbacks += 1
-        if cfg.odometry_point_stride > 1:
+        if self.keep_all_points and cfg.odometry_point_stride > 1:
             odo_points = odo_points[:: cfg.odometry_point_stride]
         guess = self._predict(t_ref)
         previous = self._odometry.pose.copy()
-        pose = self._odometry.register(odo_points, guess)
+        pose = self._odometry.align(odo_points, guess)
+        if self._ground_grid is not None:
+            pose = self._refine_with_ground(pose, xyz[ground])
+        self._odometry.commit(pose)
         if self._prev_t is not None and t_ref > self._prev_t:
             dt = t_ref - self._prev_t
             delta = np.linalg.inv(previous) @ pose
@@ -197,6 +210,22 @@ class LidarFrontend:
         self._prev_t = t_ref
         st.sweeps += 1
         return FrontendSweep(scan, t_ref, pose, keep, xyz, ground, deskewed)
+
+    def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:
+        """Height and tilt from the ground grid (see :mod:`.ground`); the grid grows with the sweep."""
+        assert self._ground_grid is not None
+        r2 = np.einsum("ij,ij->i", ground[:, :2], ground[:, :2])
+        ground = ground[(r2 >= 4.0) & (r2 <= 400.0)]
+        if len(ground) > 3000:
+            ground = ground[:: int(np.ceil(len(ground) / 3000))]
+        world = ground @ pose[:3, :3].T + pose[:3, 3]
+        coef = ground_correction(world, pose[:2, 3], self._ground_grid)
+        if coef is not None:
+            pose = apply_ground_correction(pose, coef)
+            world = ground @ pose[:3, :3].T + pose[:3, 3]
+            self.state.ground_corrections += 1
+        self._ground_grid.add(world)
+        return pose
 
     def _predict(self, t_ref: float) -> np.ndarray:
         """Initial guess: last pose moved by the gyro rotation (or constant velocity)."""

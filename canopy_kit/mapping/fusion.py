@@ -37,8 +37,8 @@ class FusionSettings:
     odometry_lags: tuple[int, ...] = (1, 2, 20)  # keyframes between odometry factors
     odometry_jitter_rotation: float = 0.002  # rad, per sweep, does not accumulate
     odometry_jitter_translation: float = 0.015  # m
-    odometry_drift_rotation: float = 0.0005  # rad per m travelled
-    odometry_drift_translation: float = 0.005  # fraction of the distance travelled
+    odometry_drift_rotation: float = 0.0002  # rad per m travelled
+    odometry_drift_translation: float = 0.003  # fraction of the distance travelled
     gyro_noise_density: float = 0.005  # rad/s/sqrt(Hz)
     accel_noise_density: float = 0.05  # m/s^2/sqrt(Hz)
     gyro_bias_walk: float = 5e-5  # rad/s^2/sqrt(Hz)

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from canopy_kit.errors import InputError
 from canopy_kit.io.bag import ImuSeries
+from canopy_kit.mapping import quaternions as quat
 
 GRAVITY = 9.80665
 
@@ -142,8 +143,8 @@ class RotationTrack:
         w_all = np.vstack([self._omega_last, omega])
         # Midpoint rule between samples, chained by a parallel prefix product.
         steps = Rotation.from_rotvec(0.5 * (w_all[:-1] + w_all[1:]) * dt[:, None]).as_quat()
-        chained = _quat_mul(np.repeat(self._q[self._n - 1 : self._n], len(steps), axis=0),
-                            _prefix_products(steps))
+        chained = quat.multiply(np.repeat(self._q[self._n - 1 : self._n], len(steps), axis=0),
+                                quat.prefix_products(steps))
         self._append(t, chained / np.linalg.norm(chained, axis=1, keepdims=True))
         self._omega_last = omega[-1]
 
@@ -167,8 +168,7 @@ class RotationTrack:
         times = np.clip(times, self.t[0], self.t[-1])
         i = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self.t) - 2)
         frac = ((times - self.t[i]) / (self.t[i + 1] - self.t[i]))[:, None]
-        q = (1.0 - frac) * self._quat[i] + frac * self._quat[i + 1]  # 5 ms apart: lerp is exact enough
-        return q / np.linalg.norm(q, axis=1, keepdims=True)
+        return quat.nlerp(self._quat[i], self._quat[i + 1], frac[:, 0])  # samples ms apart
 
     def at(self, times: np.ndarray) -> Rotation:
         """Orientations at ``times`` as a scipy Rotation."""
@@ -176,44 +176,9 @@ class RotationTrack:
 
     def relative_rotvecs(self, t_ref: float, times: np.ndarray) -> np.ndarray:
         """Rotation vectors of ``R(t_ref)^T R(t)``: body at ``t`` seen from the body at ``t_ref``."""
-        q_ref = self.quaternions(np.array([t_ref]))
-        q_ref_inv = q_ref * np.array([-1.0, -1.0, -1.0, 1.0])
-        rel = _quat_mul(np.repeat(q_ref_inv, len(np.atleast_1d(times)), axis=0), self.quaternions(times))
-        return _quat_to_rotvec(rel)
+        q_ref = quat.conjugate(self.quaternions(np.array([t_ref])))
+        return quat.to_rotvec(quat.multiply(q_ref, self.quaternions(times)))
 
     def relative(self, t_ref: float, times: np.ndarray) -> Rotation:
         """Rotations ``R(t_ref)^T R(t)`` as a scipy Rotation."""
         return Rotation.from_rotvec(self.relative_rotvecs(t_ref, times))
-
-
-def _quat_to_rotvec(q: np.ndarray) -> np.ndarray:
-    """Rotation vectors of xyzw quaternions (shortest rotation)."""
-    q = np.where(q[:, 3:4] < 0, -q, q)
-    s = np.linalg.norm(q[:, :3], axis=1)
-    angle = 2.0 * np.arctan2(s, q[:, 3])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scale = np.where(s > 1e-12, angle / s, 2.0)
-    return q[:, :3] * scale[:, None]
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products of xyzw quaternion arrays."""
-    ax, ay, az, aw = a.T
-    bx, by, bz, bw = b.T
-    return np.column_stack([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ])
-
-
-def _prefix_products(q: np.ndarray) -> np.ndarray:
-    """``out[i] = q[0] * q[1] * ... * q[i]`` in O(log n) vectorised passes."""
-    out = q.copy()
-    shift = 1
-    while shift < len(out):
-        out[shift:] = _quat_mul(out[:-shift], out[shift:])
-        out /= np.linalg.norm(out, axis=1, keepdims=True)
-        shift *= 2
-    return out

@@ -45,19 +45,29 @@ class LidarOdometry:
 
     def register(self, points: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
         """Register deskewed sensor-frame ``points`` starting from ``initial_guess``; the new pose."""
+        pose = self.align(points, initial_guess)
+        self.commit(pose)
+        return pose
+
+    def align(self, points: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
+        """ICP of ``points`` against the local map (no state change until :meth:`commit`)."""
         kiss = self._kiss
-        source, frame_downsample = kiss.voxelize(points)
+        self._source, self._frame_downsample = kiss.voxelize(points)
+        self._guess = np.array(initial_guess, float)
         if self.n_frames == 0 or kiss.local_map.empty():
-            new_pose = np.array(initial_guess, float)
-        else:
-            sigma = kiss.adaptive_threshold.get_threshold()
-            new_pose = kiss.registration.align_points_to_map(
-                points=source, voxel_map=kiss.local_map, initial_guess=initial_guess,
-                max_correspondance_distance=3 * sigma, kernel=sigma)
-            kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
-        kiss.local_map.update(frame_downsample, new_pose)
-        kiss.last_delta = np.linalg.inv(kiss.last_pose) @ new_pose
-        kiss.last_pose = new_pose
-        self.pose = new_pose
+            return self._guess.copy()
+        sigma = kiss.adaptive_threshold.get_threshold()
+        return kiss.registration.align_points_to_map(
+            points=self._source, voxel_map=kiss.local_map, initial_guess=self._guess,
+            max_correspondance_distance=3 * sigma, kernel=sigma)
+
+    def commit(self, pose: np.ndarray) -> None:
+        """Accept ``pose`` for the last aligned sweep: threshold model and local map updated."""
+        kiss = self._kiss
+        if self.n_frames > 0:
+            kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(self._guess) @ pose)
+        kiss.local_map.update(self._frame_downsample, pose)
+        kiss.last_delta = np.linalg.inv(kiss.last_pose) @ pose
+        kiss.last_pose = pose
+        self.pose = pose
         self.n_frames += 1
-        return new_pose

@@ -13,13 +13,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
+from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.imu import RotationTrack
-
-
-def _nlerp_quats(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
-    q1 = np.where(np.sum(q0 * q1, axis=1, keepdims=True) < 0, -q1, q1)
-    q = (1 - s)[:, None] * q0 + s[:, None] * q1
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 class ContinuousTrajectory:
@@ -29,9 +24,11 @@ class ContinuousTrajectory:
                  sweep_odometry: np.ndarray, rotations: RotationTrack | None = None) -> None:
         self.key_times = np.asarray(key_times, float)
         self.key_poses = np.asarray(key_poses, float)
+        self._key_p = self.key_poses[:, :3, 3]
+        self._key_q = quat.from_matrix(self.key_poses[:, :3, :3])
         self.sweep_times = np.asarray(sweep_times, float)
         self._odo_p = np.asarray(sweep_odometry[:, :3, 3], float)
-        self._odo_q = Rotation.from_matrix(sweep_odometry[:, :3, :3]).as_quat()
+        self._odo_q = quat.from_matrix(sweep_odometry[:, :3, :3])
         self.rotations = rotations
         # Per-segment mismatch M = rel_b^-1 K_a^-1 K_b as (rotation vector, translation).
         n = len(self.key_times)
@@ -39,12 +36,13 @@ class ContinuousTrajectory:
         self._m_tr = np.zeros((max(n - 1, 0), 3))
         if n > 1:
             seg = np.arange(n - 1)
-            rel_r, rel_t = self._relative(seg, self.key_times[1:])
-            k_rel = np.linalg.inv(self.key_poses[:-1]) @ self.key_poses[1:]
-            r_m = np.einsum("nji,njk->nik", rel_r, k_rel[:, :3, :3])
-            t_m = np.einsum("nji,nj->ni", rel_r, k_rel[:, :3, 3] - rel_t)
-            self._m_rot = Rotation.from_matrix(r_m).as_rotvec()
-            self._m_tr = t_m
+            rel_q, rel_t = self._relative(seg, self.key_times[1:])
+            ka_inv = quat.conjugate(self._key_q[:-1])
+            k_rel_q = quat.multiply(ka_inv, self._key_q[1:])
+            k_rel_t = quat.rotate(ka_inv, self._key_p[1:] - self._key_p[:-1])
+            rel_inv = quat.conjugate(rel_q)
+            self._m_rot = quat.to_rotvec(quat.multiply(rel_inv, k_rel_q))
+            self._m_tr = quat.rotate(rel_inv, k_rel_t - rel_t)
 
     def _odometry_at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = self.sweep_times
@@ -53,26 +51,25 @@ class ContinuousTrajectory:
         i = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 2)
         s = (times - t[i]) / (t[i + 1] - t[i])
         p = self._odo_p[i] + s[:, None] * (self._odo_p[i + 1] - self._odo_p[i])
-        sc = np.clip(s, 0.0, 1.0)  # rotation: hold outside the sweeps' span
-        return p, _nlerp_quats(self._odo_q[i], self._odo_q[i + 1], sc)
+        # Rotation: held outside the sweeps' span.
+        return p, quat.nlerp(self._odo_q[i], self._odo_q[i + 1], np.clip(s, 0.0, 1.0))
 
     def _relative(self, seg: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Odometry motion from keyframe ``seg`` to ``times``: rotation matrices and translations."""
+        """Odometry motion from keyframe ``seg`` to ``times``: quaternions and translations."""
         ta = self.key_times[seg]
         pa, qa = self._odometry_at(ta)
         pt, qt = self._odometry_at(times)
-        ra_inv = Rotation.from_quat(qa).inv()
-        trans = ra_inv.apply(pt - pa)
+        qa_inv = quat.conjugate(qa)
+        trans = quat.rotate(qa_inv, pt - pa)
         if self.rotations is not None:
-            qa_g = self.rotations.quaternions(ta)
-            qt_g = self.rotations.quaternions(times)
-            rot = (Rotation.from_quat(qa_g).inv() * Rotation.from_quat(qt_g)).as_matrix()
+            rot = quat.multiply(quat.conjugate(self.rotations.quaternions(ta)),
+                                self.rotations.quaternions(times))
         else:
-            rot = (ra_inv * Rotation.from_quat(qt)).as_matrix()
+            rot = quat.multiply(qa_inv, qt)
         return rot, trans
 
-    def at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions (N, 3) and rotation matrices (N, 3, 3), world_from_sensor, at ``times``."""
+    def quaternions_at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (N, 3) and orientations (N, 4, xyzw), world_from_sensor, at ``times``."""
         times = np.atleast_1d(np.asarray(times, float))
         kt = self.key_times
         if len(kt) == 1:
@@ -81,16 +78,17 @@ class ContinuousTrajectory:
         else:
             seg = np.clip(np.searchsorted(kt, times, side="right") - 1, 0, len(kt) - 2)
             s = np.clip((times - kt[seg]) / (kt[seg + 1] - kt[seg]), 0.0, 1.0)
-        rel_r, rel_t = self._relative(seg, times)
+        rel_q, rel_t = self._relative(seg, times)
         if len(kt) > 1:
-            corr_r = Rotation.from_rotvec(self._m_rot[seg] * s[:, None]).as_matrix()
-            corr_t = self._m_tr[seg] * s[:, None]
-            rel_t = rel_t + np.einsum("nij,nj->ni", rel_r, corr_t)
-            rel_r = rel_r @ corr_r
-        k = self.key_poses[seg]
-        rot = k[:, :3, :3] @ rel_r
-        pos = k[:, :3, 3] + np.einsum("nij,nj->ni", k[:, :3, :3], rel_t)
-        return pos, rot
+            rel_t = rel_t + quat.rotate(rel_q, self._m_tr[seg] * s[:, None])
+            rel_q = quat.multiply(rel_q, quat.from_rotvec(self._m_rot[seg] * s[:, None]))
+        kq = self._key_q[seg]
+        return self._key_p[seg] + quat.rotate(kq, rel_t), quat.normalize(quat.multiply(kq, rel_q))
+
+    def at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (N, 3) and rotation matrices (N, 3, 3), world_from_sensor, at ``times``."""
+        pos, q = self.quaternions_at(times)
+        return pos, quat.to_matrix(q)
 
     def matrices(self, times: np.ndarray) -> np.ndarray:
         """Poses (N, 4, 4) at ``times``."""
