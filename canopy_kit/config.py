@@ -33,6 +33,7 @@ class MappingConfig:
     use_imu: bool = True
     use_gnss: bool = True
     odometry_ground_band: float = 0.15
+    odometry_ground_refine: bool = True
     odometry_point_stride: int = 1
     kiss_voxel_size: float = 1.0
     kiss_max_points_per_voxel: int = 20
@@ -42,8 +43,8 @@ class MappingConfig:
     keyframe_every: int = 5
     odometry_jitter_rotation: float = 0.002
     odometry_jitter_translation: float = 0.015
-    odometry_drift_rotation: float = 0.0005
-    odometry_drift_translation: float = 0.005
+    odometry_drift_rotation: float = 0.0002
+    odometry_drift_translation: float = 0.003
     # IMU noise (datasheet values; per sqrt(Hz))
     gyro_noise_density: float = 0.005
     accel_noise_density: float = 0.05
