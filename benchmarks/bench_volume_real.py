@@ -58,7 +58,9 @@ def main() -> None:
     print("| method | median m³ | invalid |")
     print("|---|---|---|")
     for m in methods:
-        print(f"| {m} | {np.nanmedian(vols[m]):.1f} | {invalid[m]} |")
+        valid = np.array(vols[m])[~np.isnan(vols[m])]
+        median = f"{np.median(valid):.1f}" if len(valid) else "–"
+        print(f"| {m} | {median} | {invalid[m]} |")
     print(f"\nconvex_hull vs the shipped table: max |difference| "
           f"{np.max(np.abs(ours[both] - ref[both])):.4f} m³ on {both.sum()} trees; the table has "
           f"no hull for {np.isnan(ref).sum()} trees, canopy-kit flags {np.isnan(ours).sum()}")

@@ -241,3 +241,19 @@ def test_tree_metrics_refuse_empty_input_and_bad_parameters() -> None:
         tree_metrics(blob(100), crown_fraction=1.5)
     one = tree_metrics(np.array([[1.0, 2.0, 3.0]]))
     assert one.height_m == 0 and one.crown_diameter_max_m == 0 and np.isnan(one.density_per_m3)
+
+
+def test_alpha_hull_gap_to_the_complex_grows_with_the_spacing() -> None:
+    from scipy.spatial import cKDTree
+
+    gaps = {}
+    for n in (200, 3000):
+        rng = np.random.default_rng(5)
+        d = rng.normal(size=(n, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        pts = d * 2.0 * rng.uniform(0, 1, (n, 1)) ** 0.25
+        ratio = np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]) / 0.9
+        gap = estimate_volume(pts, "alpha_hull").volume_m3 / estimate_volume(pts).volume_m3 - 1
+        gaps[n] = (ratio, gap)
+    assert gaps[3000][0] < 0.16 and -0.03 < gaps[3000][1] < 0
+    assert gaps[200][0] > 0.3 and gaps[200][1] < -0.1
