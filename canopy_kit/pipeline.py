@@ -45,18 +45,40 @@ class RunContext:
     segmentation: Any = None
     trees: pd.DataFrame | None = None
     aerial: Any = None
+    table: pd.DataFrame | None = None  # the final per-tree table
     evaluation: dict[str, Any] = field(default_factory=dict)
+    truth_matches: pd.DataFrame | None = None  # per true tree: status and matched segment
 
 
 def run(config: PipelineConfig, bag: str | Path, out: str | Path,
         drone_images: str | Path | None = None, truth: str | Path | None = None,
         use_cache: bool = True, progress: Progress | None = None) -> Results:
     """Run every stage on ``bag`` and write the outputs (all atomically) into ``out``."""
+    out = Path(out)
+    report = progress or (lambda *_: None)
+    ctx, cache = compute(config, bag, out, drone_images, truth, use_cache, report)
+    metrics = run_metrics(ctx, ctx.table)
+    metrics["stage_timings"] = cache.timings
+    metrics["cached_stages"] = list(cache.hits)
+    files = write_outputs(ctx, ctx.table, metrics, out, report)
+    return Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])), cache.hits)
+
+
+def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
+            drone_images: str | Path | None = None, truth: str | Path | None = None,
+            use_cache: bool = True, progress: Progress | None = None
+            ) -> tuple[RunContext, StageCache]:
+    """Every stage's result (from the cache in ``out/.cache`` when unchanged), no outputs.
+
+    Notebooks call this to explore a run; :func:`run` adds the output files.
+    """
     bag, out = Path(bag), Path(out)
     if not bag.exists():
         raise InputError(f"{bag}: bag does not exist")
     if drone_images is not None and not Path(drone_images).is_dir():
         raise InputError(f"{drone_images}: drone image folder does not exist")
+    if truth is not None and not Path(truth).is_dir():
+        raise InputError(f"{truth}: simulated session folder does not exist")
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache(out / ".cache", enabled=use_cache)
     report = progress or (lambda *_: None)
@@ -72,17 +94,14 @@ def run(config: PipelineConfig, bag: str | Path, out: str | Path,
         gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
         ctx.aerial = cache.get_or_compute(
             "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report))
-    trees = tree_table(ctx)
+    ctx.table = tree_table(ctx)
     if truth is not None:
         from canopy_kit.validation import evaluate_against_truth
 
-        ctx.evaluation = evaluate_against_truth(ctx, trees, Path(truth))
-        trees = ctx.evaluation.pop("trees", trees)
-    metrics = run_metrics(ctx, trees)
-    metrics["stage_timings"] = cache.timings
-    metrics["cached_stages"] = list(cache.hits)
-    files = write_outputs(ctx, trees, metrics, out, report)
-    return Results(out, trees, metrics, files, list(metrics.get("warnings", [])), cache.hits)
+        ctx.evaluation = evaluate_against_truth(ctx, ctx.table, Path(truth))
+        ctx.table = ctx.evaluation.pop("trees")
+        ctx.truth_matches = ctx.evaluation.pop("segmentation_trees")
+    return ctx, cache
 
 
 # -- stages ---------------------------------------------------------------------------------
