@@ -17,39 +17,6 @@ def _axes(ax: Any, size: tuple[float, float] = (8, 6)) -> tuple[Any, Any]:
     return ax.figure, ax
 
 
-def plot_segmented_map(xyz: np.ndarray, labels: np.ndarray, trees: pd.DataFrame | None = None,
-                       trajectory_xy: np.ndarray | None = None, ax: Any = None,
-                       max_points: int = 150_000, seed: int = 0) -> Any:
-    """Top view of the map: ground grey, each segment its own colour, labels at the trees."""
-    import matplotlib.pyplot as plt
-
-    fig, ax = _axes(ax, (9, 9))
-    rng = np.random.default_rng(seed)
-    idx = rng.permutation(len(xyz))[:max_points]
-    p, lab = xyz[idx], labels[idx]
-    bg = lab < 0
-    ax.scatter(p[bg, 0], p[bg, 1], s=0.2, c="0.8", rasterized=True)
-    cmap = plt.get_cmap("tab20")
-    ax.scatter(p[~bg, 0], p[~bg, 1], s=0.4, c=cmap(lab[~bg] % 20), rasterized=True)
-    if trajectory_xy is not None:
-        ax.plot(trajectory_xy[:, 0], trajectory_xy[:, 1], "-", color="0.25", lw=0.8, label="drive")
-    focus = p[~bg, :2] if (~bg).any() else p[:, :2]
-    if trajectory_xy is not None:
-        focus = np.vstack([focus, trajectory_xy])
-    lo, hi = focus.min(axis=0) - 3.0, focus.max(axis=0) + 3.0
-    ax.set_xlim(lo[0], hi[0])
-    ax.set_ylim(lo[1], hi[1])
-    if trees is not None:
-        for _, t in trees.iterrows():
-            ax.annotate(f"{t['row']}:{t['label']}", (t["x"], t["y"]), ha="center", va="center",
-                        fontsize=7, weight="bold")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title("segmented map (row:label)")
-    return fig
-
-
 def plot_volumes(trees: pd.DataFrame, columns: dict[str, str], ax: Any = None) -> Any:
     """Grouped bars of each tree's volume by method (``columns``: label -> column)."""
     fig, ax = _axes(ax, (max(6, 0.35 * len(trees) + 2), 4.5))

@@ -83,9 +83,12 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
     cloud, seg = ctx.mapping.map, ctx.segmentation
     traj = ctx.mapping.trajectory
     sections = []
-    map_fig = plots.plot_segmented_map(cloud.xyz, seg.labels, trees, traj[["x", "y"]].to_numpy())
+    from canopy_kit.segment.plots import plot_failure_gallery, plot_top_view
+
+    map_fig = plot_top_view(cloud, seg)
+    map_fig.axes[0].plot(traj["x"], traj["y"], "-", color="0.4", lw=0.7)
     figs = [("Map from above, each segmented tree in its own colour, labelled row:label; "
-             "the grey line is the estimated drive.", figure_to_data_uri(map_fig))]
+             "dashed: fitted rows; grey: the estimated drive.", figure_to_data_uri(map_fig))]
     volume_columns = {"convex hull": "volume_convex_hull_m3", "alpha shape": "volume_alpha_m3"}
     if "aerial_sphere_volume_m3" in trees:
         volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
@@ -118,6 +121,15 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
                  figure_to_data_uri(plots.plot_agreement(
                      sub["volume_alpha_m3"].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
                      ("LiDAR alpha shape", "true crown"), list(sub["label"]))))]))
+    if ctx.truth_matches is not None and "tree_id" in cloud.fields:
+        from canopy_kit.evaluate import score_point_labels
+
+        score = score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
+        gallery = plot_failure_gallery(cloud, seg, score, np.asarray(cloud.fields["tree_id"]))
+        if gallery is not None:
+            sections.append(ReportSection("Segmentation failures", [
+                ("Side views around each true tree that was not segmented one-to-one: truth "
+                 "(left) and segmentation (right).", figure_to_data_uri(gallery))]))
     seg_m = metrics.get("segmentation", {})
     summary = {
         "trees": len(trees),
