@@ -48,7 +48,8 @@ class PosedCamera:
         p = self.params
         return float((p[0] + p[1]) / 2 if self.model == "PINHOLE" else p[0])
 
-    def _intrinsics(self) -> tuple[float, float, float, float, float, float]:
+    def intrinsics(self) -> tuple[float, float, float, float, float, float]:
+        """(fx, fy, cx, cy, k1, k2) of the model (zeros for absent distortion terms)."""
         p = self.params
         if self.model == "SIMPLE_PINHOLE":
             return p[0], p[0], p[1], p[2], 0.0, 0.0
@@ -65,7 +66,7 @@ class PosedCamera:
         depth = cam[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             x, y = cam[:, 0] / depth, cam[:, 1] / depth
-        fx, fy, cx, cy, k1, k2 = self._intrinsics()
+        fx, fy, cx, cy, k1, k2 = self.intrinsics()
         if k1 or k2:
             r2 = x * x + y * y
             d = 1.0 + k1 * r2 + k2 * r2 * r2

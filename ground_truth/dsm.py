@@ -27,10 +27,11 @@ class SurfaceOptions:
     """Dense matching settings: cell size, height step, views per cell and window."""
 
     resolution: float = 0.1
-    height_step: float = 0.1
+    height_step: float = 0.15
     views_per_cell: int = 4
-    window_cells: int = 5
+    window_cells: int = 3
     min_score: float = 0.3
+    class_weight: float = 1.0
     max_height: float | None = None  # above ground; default from the sparse points
     ground_window_m: float = 10.0
     ground_resolution: float = 1.0
@@ -73,15 +74,27 @@ def _fill_nans(values: np.ndarray, max_sigma: float = 64.0) -> np.ndarray:
     return out
 
 
+def reliable_points(points: np.ndarray, track_lengths: np.ndarray, errors: np.ndarray,
+                    min_track: int = 3, max_error_px: float = 1.0) -> np.ndarray:
+    """Sparse points seen in at least ``min_track`` photos with a small reprojection error.
+
+    Two-view points include rare gross outliers (one was 200 m below the ground).
+    """
+    keep = (np.asarray(track_lengths) >= min_track) & (np.asarray(errors) <= max_error_px)
+    return np.asarray(points)[keep]
+
+
 def ground_model(points: np.ndarray, grid: Grid, window_m: float = 10.0,
                  resolution: float = 1.0) -> np.ndarray:
-    """Ground heights on ``grid``: lowest sparse point per coarse cell, opened by ``window_m``.
+    """Ground heights on ``grid``: lowest point per coarse cell, opened by ``window_m``.
 
     The opening (minimum then maximum filter) removes anything narrower than the window
-    (crowns) while following slopes better than a plain minimum would.
+    (crowns) while following slopes better than a plain minimum would. ``points`` should
+    be reliable (see ``reliable_points``): one gross outlier pulls a whole window down.
     """
     from scipy.ndimage import gaussian_filter, maximum_filter, minimum_filter, zoom
 
+    points = np.asarray(points, float)
     if len(points) < 10:
         raise ProcessingError(f"only {len(points)} sparse points: too few for a ground model")
     coarse = grid.resampled(resolution)
@@ -107,42 +120,80 @@ def ground_model(points: np.ndarray, grid: Grid, window_m: float = 10.0,
 
 
 def nadir_views(cameras: Sequence[PosedCamera], grid: Grid, heights: np.ndarray, k: int,
-                margin_px: float = 8.0) -> np.ndarray:
-    """(rows, cols, k) indices of the cameras seeing each cell nearest to nadir (-1: none)."""
+                margin_px: float = 8.0, block_m: float = 0.25) -> np.ndarray:
+    """(rows, cols, k) indices of the cameras seeing each cell nearest to nadir (-1: none).
+
+    Decided per block of about ``block_m`` (the choice changes slowly across the ground),
+    with the image margin widened by the block size so every cell of a block is inside.
+    """
+    step = max(int(block_m / grid.resolution), 1)
+    rows, cols = -(-grid.rows // step), -(-grid.cols // step)
     x, y = grid.centers()
-    pts = np.column_stack([x.ravel(), y.ravel(), heights.ravel()])
-    n = len(pts)
-    dist = np.full((n, len(cameras)), np.inf, np.float32)
+    h = np.asarray(heights, float)
+    # Block centres (clipped to the grid) and the block's highest surface.
+    rc = np.minimum(np.arange(rows) * step + step // 2, grid.rows - 1)
+    cc = np.minimum(np.arange(cols) * step + step // 2, grid.cols - 1)
+    bx, by = x[np.ix_(rc, cc)].ravel(), y[np.ix_(rc, cc)].ravel()
+    bz = h[np.ix_(rc, cc)].ravel()
+    pts = np.column_stack([bx, by, bz])
+    dist = np.full((len(pts), len(cameras)), np.inf, np.float32)
     for i, cam in enumerate(cameras):
         uv, depth = cam.project(pts)
-        inside = ((depth > 0) & (uv[:, 0] >= margin_px) & (uv[:, 0] < cam.width - margin_px)
-                  & (uv[:, 1] >= margin_px) & (uv[:, 1] < cam.height - margin_px))
+        pad = margin_px + step * grid.resolution * cam.focal / max(float(np.median(depth)), 1e-6)
+        inside = ((depth > 0) & (uv[:, 0] >= pad) & (uv[:, 0] < cam.width - pad)
+                  & (uv[:, 1] >= pad) & (uv[:, 1] < cam.height - pad))
         centre = cam.center
-        d = np.hypot(pts[:, 0] - centre[0], pts[:, 1] - centre[1])
-        dist[inside, i] = d[inside]
-    order = np.argsort(dist, axis=1)[:, :k]
+        dist[inside, i] = np.hypot(bx[inside] - centre[0], by[inside] - centre[1])
+    kk = min(k, len(cameras))
+    order = np.argpartition(dist, kk - 1, axis=1)[:, :kk] if kk < len(cameras) else \
+        np.tile(np.arange(len(cameras)), (len(pts), 1))
     chosen = np.take_along_axis(dist, order, axis=1)
-    order[~np.isfinite(chosen)] = -1
+    sort = np.argsort(chosen, axis=1)
+    order = np.take_along_axis(order, sort, axis=1)
+    order[~np.isfinite(np.take_along_axis(chosen, sort, axis=1))] = -1
     if order.shape[1] < k:
         order = np.pad(order, ((0, 0), (0, k - order.shape[1])), constant_values=-1)
-    return order.reshape(grid.rows, grid.cols, k)
+    blocks = order.reshape(rows, cols, k)
+    return blocks[np.arange(grid.rows)[:, None] // step, np.arange(grid.cols)[None, :] // step]
 
 
-def _sample(images: Sequence[np.ndarray], cameras: Sequence[PosedCamera], views: np.ndarray,
-            pts: np.ndarray) -> np.ndarray:
-    """Grey values of points ``pts`` (N, 3) in camera ``views[n]`` (-1 gives NaN)."""
-    from scipy.ndimage import map_coordinates
+class _ViewSampler:
+    """Grey values of every cell at any height in its assigned photo (one photo per cell).
 
-    out = np.full(len(pts), np.nan, np.float32)
-    for i in np.unique(views):
-        if i < 0:
-            continue
-        sel = np.flatnonzero(views == i)
-        uv, _ = cameras[i].project(pts[sel])
-        # map_coordinates indexes pixel centres at integers: shift by half a pixel.
-        out[sel] = map_coordinates(images[i], [uv[:, 1] - 0.5, uv[:, 0] - 0.5], order=1,
-                                   mode="constant", cval=np.nan)
-    return out
+    The projection is split once into a height-independent part and the camera's third
+    rotation column, so each height costs one division and one bilinear lookup per cell.
+    """
+
+    def __init__(self, cameras: Sequence[PosedCamera], images: Sequence[np.ndarray],
+                 views: np.ndarray, xy: np.ndarray, ground: np.ndarray) -> None:
+        self.n = len(views)
+        self.groups = []
+        for i in np.unique(views):
+            if i < 0:
+                continue
+            idx = np.flatnonzero(views == i)
+            cam = cameras[i]
+            pts = np.column_stack([xy[idx], ground[idx]])
+            base = (pts @ cam.rotation.T + cam.translation).astype(np.float32)
+            self.groups.append((idx, base, cam.rotation[:, 2].astype(np.float32), cam.intrinsics(),
+                                images[i]))
+
+    def sample(self, height: float) -> np.ndarray:
+        from scipy.ndimage import map_coordinates
+
+        out = np.full(self.n, np.nan, np.float32)
+        h = np.float32(height)
+        for idx, base, axis, (fx, fy, cx, cy, k1, k2), image in self.groups:
+            cam = base + h * axis
+            x, y = cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2]
+            if k1 or k2:
+                r2 = x * x + y * y
+                d = 1.0 + k1 * r2 + k2 * r2 * r2
+                x, y = x * d, y * d
+            # map_coordinates indexes pixel centres at integers: shift by half a pixel.
+            out[idx] = map_coordinates(image, [fy * y + (cy - 0.5), fx * x + (cx - 0.5)], order=1,
+                                       mode="constant", cval=np.nan)
+        return out
 
 
 def _ncc(a: np.ndarray, b: np.ndarray, size: int, mask: np.ndarray | None = None,
@@ -169,18 +220,15 @@ def _ncc(a: np.ndarray, b: np.ndarray, size: int, mask: np.ndarray | None = None
     return ncc
 
 
-def _class_aware_ncc(a: np.ndarray, b: np.ndarray, size: int, classes: np.ndarray | None
-                     ) -> np.ndarray:
-    """NCC whose window only uses cells of the centre cell's class (vegetation or not).
+def _class_disagreement(a: np.ndarray, b: np.ndarray, size: int) -> np.ndarray:
+    """Windowed fraction of cells whose vegetation class differs between two views."""
+    from scipy.ndimage import uniform_filter
 
-    Windows that straddle a crown edge otherwise take the height of the more textured
-    side, fattening crowns over their dark shadow and thinning them on the sunlit side.
-    """
-    if classes is None:
-        return _ncc(a, b, size, min_fraction=0.8)
-    known = np.isfinite(classes)
-    green = known & (classes > 0.5)
-    return np.where(green, _ncc(a, b, size, green), _ncc(a, b, size, known & ~green))
+    valid = np.isfinite(a) & np.isfinite(b)
+    diff = np.where(valid, np.abs(a - b), 0.0).astype(np.float32)
+    w = uniform_filter(valid.astype(np.float32), size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return uniform_filter(diff, size) / w
 
 
 def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], grid: Grid,
@@ -190,8 +238,10 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
     """DSM by multi-view height matching above ``ground`` up to ``max_height`` (m).
 
     ``images`` are grey float32 arrays matching ``cameras`` (same size as each camera);
-    ``classes`` optional float32 arrays of the same size, 1 for vegetation, 0 otherwise,
-    keep matching windows on one side of crown edges.
+    ``classes`` optional float32 arrays of the same size, 1 for vegetation, 0 otherwise:
+    views that disagree on vegetation within the window are penalised. NCC alone lets the
+    most textured part of a window decide, so crowns swell over their dark shadows; the
+    class term counts cells, whatever their contrast.
     """
     opts = options or SurfaceOptions()
     report = progress or (lambda *_: None)
@@ -202,28 +252,35 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
     x, y = grid.centers()
     xy = np.column_stack([x.ravel(), y.ravel()])
     g = ground.ravel()
+    samplers = [_ViewSampler(cameras, images, flat_views[:, j], xy, g) for j in range(k)]
+    class_samplers = (None if classes is None else
+                      [_ViewSampler(cameras, classes, flat_views[:, j], xy, g) for j in range(k)])
     best = np.full(len(g), -np.inf, np.float32)
     best_level = np.zeros(len(g), np.int32)
     before = np.full(len(g), np.nan, np.float32)
     after = np.full(len(g), np.nan, np.float32)
     previous = np.full(len(g), np.nan, np.float32)
     for li, h in enumerate(levels):
-        pts = np.column_stack([xy, g + h])
-        ref = _sample(images, cameras, flat_views[:, 0], pts).reshape(grid.shape)
-        ref_class = (None if classes is None else
-                     _sample(classes, cameras, flat_views[:, 0], pts).reshape(grid.shape))
+        ref = samplers[0].sample(h).reshape(grid.shape)
+        ref_class = None if class_samplers is None else class_samplers[0].sample(h).reshape(grid.shape)
         scores = []
         for j in range(1, k):
-            other = _sample(images, cameras, flat_views[:, j], pts).reshape(grid.shape)
-            scores.append(_class_aware_ncc(ref, other, opts.window_cells, ref_class))
+            other = samplers[j].sample(h).reshape(grid.shape)
+            score_j = _ncc(ref, other, opts.window_cells, min_fraction=0.8)
+            if ref_class is not None:
+                other_class = class_samplers[j].sample(h).reshape(grid.shape)
+                score_j = score_j - opts.class_weight * _class_disagreement(
+                    ref_class, other_class, opts.window_cells)
+            scores.append(score_j)
         stack = np.stack(scores)
         # Robust to one occluded view: average the best k-2 of the k-1 pairs.
         if k > 2:
             stack = np.sort(np.where(np.isfinite(stack), stack, -np.inf), axis=0)[1:]
             stack[~np.isfinite(stack)] = np.nan
-        with np.errstate(invalid="ignore"):
-            score = np.nanmean(stack, axis=0).ravel().astype(np.float32)
-        score[~np.isfinite(score)] = -np.inf
+        finite = np.isfinite(stack)
+        count = finite.sum(axis=0)
+        score = np.where(count > 0, np.where(finite, stack, 0.0).sum(axis=0) / np.maximum(count, 1),
+                         -np.inf).ravel().astype(np.float32)
         just_after = best_level == li - 1
         after[just_after] = score[just_after]
         better = score > best
@@ -243,6 +300,35 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
     score = best.reshape(grid.shape)
     dsm[~(score >= opts.min_score)] = np.nan
     return SurfaceModel(grid, dsm, ground, score, views, [c.name for c in cameras])
+
+
+def canopy_top(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], grid: Grid,
+               ground: np.ndarray, max_height: float, options: SurfaceOptions | None = None) -> float:
+    """Height above ground of the highest canopy (m), from a quick coarse matching pass.
+
+    Sets the search range of the fine pass: most orchards stay well below ``max_height``.
+    """
+    from scipy.ndimage import zoom
+
+    opts = options or SurfaceOptions()
+    factor = 4
+    coarse = grid.resampled(grid.resolution * factor)
+    g = zoom(ground, (coarse.rows / grid.rows, coarse.cols / grid.cols), order=1)[: coarse.rows, : coarse.cols]
+    g = np.pad(g, ((0, coarse.rows - g.shape[0]), (0, coarse.cols - g.shape[1])), mode="edge")
+    rough = SurfaceOptions(resolution=coarse.resolution, height_step=max(2 * opts.height_step, 0.25),
+                           views_per_cell=opts.views_per_cell, window_cells=5, min_score=0.5)
+    model = dense_surface(cameras, images, coarse, g, max_height, rough)
+    chm = clean_surface(model.dsm, g) - g  # median filter: isolated false matches go
+    return float(min(max(np.nanmax(chm) + 1.0, 2.0), max_height))
+
+
+def ground_from_surface(dsm: np.ndarray, grid: Grid, window_m: float) -> np.ndarray:
+    """Ground heights as the morphological opening of a dense surface (crowns removed)."""
+    from scipy.ndimage import gaussian_filter, maximum_filter, minimum_filter
+
+    size = max(int(round(window_m / grid.resolution)) | 1, 3)
+    opened = maximum_filter(minimum_filter(dsm, size=size, mode="nearest"), size=size, mode="nearest")
+    return gaussian_filter(opened, sigma=size / 4.0, mode="nearest")
 
 
 def clean_surface(dsm: np.ndarray, ground: np.ndarray, median_cells: int = 3) -> np.ndarray:

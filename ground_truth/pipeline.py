@@ -15,8 +15,10 @@ from canopy_kit.errors import ProcessingError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
 from ground_truth.camera import PosedCamera
-from ground_truth.crowns import CrownOptions, CrownSegmentation, delineate_crowns, measure_crowns
-from ground_truth.dsm import SurfaceModel, SurfaceOptions, clean_surface, dense_surface, ground_model
+from ground_truth.crowns import (CrownOptions, CrownSegmentation, delineate_crowns, measure_crowns,
+                                 vegetation_images)
+from ground_truth.dsm import (SurfaceModel, SurfaceOptions, canopy_top, clean_surface, dense_surface,
+                             ground_from_surface, ground_model, reliable_points)
 from ground_truth.exif import Flight, read_flight
 from ground_truth.match import match_crowns, read_trees, tree_positions
 from ground_truth.ortho import Orthomosaic, orthomosaic
@@ -118,12 +120,16 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     ortho_res = opts.ortho_resolution or max(round(gsd, 2), 0.02)
     surface_opts = opts.surface
     grid = _survey_grid(model, max(surface_opts.resolution, 2 * ortho_res))
-    ground = ground_model(model.points, grid, surface_opts.ground_window_m, surface_opts.ground_resolution)
+    points = reliable_points(model.points, model.track_lengths, model.point_errors)
+    ground = ground_model(points, grid, surface_opts.ground_window_m, surface_opts.ground_resolution)
     greys = [_grey(rgb, 0.35 * grid.resolution / gsd) for rgb in rgbs]  # anti-alias to the cell size
-    raw = dense_surface(cameras, greys, grid, ground, opts.max_canopy_height, surface_opts,
-                        progress=report)
-    surface = SurfaceModel(grid, clean_surface(raw.dsm, ground), ground, raw.score, raw.view_index,
-                           raw.camera_names)
+    classes = vegetation_images(rgbs, 0.35 * grid.resolution / gsd)
+    top = canopy_top(cameras, greys, grid, ground, opts.max_canopy_height, surface_opts)
+    raw = dense_surface(cameras, greys, grid, ground, top, surface_opts, classes=classes, progress=report)
+    dsm = clean_surface(raw.dsm, ground)
+    # The dense surface sees far more ground than the sparse points: refine the ground from it.
+    ground = np.minimum(ground_from_surface(dsm, grid, surface_opts.ground_window_m), dsm)
+    surface = SurfaceModel(grid, dsm, ground, raw.score, raw.view_index, raw.camera_names)
     timings["surface"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -149,16 +155,33 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     summary = {
         "images": str(Path(images_dir)), "frame": frame.to_dict(), "sfm": model.report(),
         "ground_sampling_distance_m": gsd, "orthomosaic_resolution_m": ortho_res,
-        "surface_resolution_m": grid.resolution, "crowns": int(len(crowns)),
+        "surface_resolution_m": grid.resolution, "canopy_search_height_m": top,
+        "crowns": int(len(crowns)),
         "trees_matched": int(matched["matched"].sum()) if matched is not None else None,
         "trees": int(len(matched)) if matched is not None else None,
         "sphere_diameter": "diameter_max_m (widest extent)", "timings_s": timings,
     }
-    paths = _write_outputs(out, frame, surface, mosaic, seg, crowns, matched, summary, opts)
+    paths = _write_outputs(out, frame, model, surface, mosaic, seg, crowns, matched, summary, opts)
     return GroundTruthResult(out, frame, model, surface, mosaic, seg, crowns, matched, summary, paths)
 
 
-def _write_outputs(out: Path, frame: LocalFrame, surface: SurfaceModel, mosaic: Orthomosaic,
+def cameras_table(model: SparseModel) -> pd.DataFrame:
+    """Registered cameras: centre in the local frame, camera-to-world quaternion, GPS residual."""
+    from scipy.spatial.transform import Rotation
+
+    res = model.gps_residuals.set_index("image")
+    rows = []
+    for name, cam in sorted(model.cameras.items()):
+        q = Rotation.from_matrix(cam.rotation.T).as_quat()
+        c = cam.center
+        rows.append({"image": name, "x": c[0], "y": c[1], "z": c[2], "qw": q[3], "qx": q[0], "qy": q[1],
+                     "qz": q[2], "focal_px": cam.focal, "gps_dx": res.loc[name, "dx"],
+                     "gps_dy": res.loc[name, "dy"], "gps_dz": res.loc[name, "dz"]})
+    return pd.DataFrame(rows)
+
+
+def _write_outputs(out: Path, frame: LocalFrame, model: SparseModel, surface: SurfaceModel,
+                   mosaic: Orthomosaic,
                    seg: CrownSegmentation, crowns: pd.DataFrame, trees: pd.DataFrame | None,
                    summary: dict, opts: GroundTruthOptions) -> dict[str, Path]:
     from ground_truth.plots import overlay_crowns_rgb
@@ -178,6 +201,8 @@ def _write_outputs(out: Path, frame: LocalFrame, surface: SurfaceModel, mosaic: 
         "crowns_png": atomic_write_bytes(out / "crowns.png", png_bytes(overlay_crowns_rgb(mosaic, seg))),
         "crowns_csv": atomic_write_text(out / "crowns.csv", crowns.to_csv(index=False, float_format="%.4f")),
     }
+    paths["cameras_csv"] = atomic_write_text(out / "cameras.csv", cameras_table(model).to_csv(
+        index=False, float_format="%.6f"))
     if trees is not None:
         paths["trees_csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False, float_format="%.4f"))
     paths["report_json"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=2, default=str))

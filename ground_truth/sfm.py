@@ -44,6 +44,7 @@ class SfmOptions:
     refine_focal_length: bool | None = None  # None: only when EXIF states no focal length
     gps_sigma_horizontal: float = 1.0
     gps_sigma_vertical: float = 2.0
+    gps_sigma_floor: float = 0.01
     min_registered_fraction: float = 0.5
     num_threads: int = -1
     seed: int = 0
@@ -152,6 +153,8 @@ def run_sfm(flight: Flight, work_dir: str | Path, frame: LocalFrame | None = Non
         timings["mapping"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
+        _align(pycolmap, rec, flight, gps, opts)
+        _refine_with_gps(pycolmap, rec, flight, gps, opts)
         _align(pycolmap, rec, flight, gps, opts)
         timings["georeferencing"] = time.perf_counter() - t0
         rec.write(str(work))
@@ -274,6 +277,39 @@ def _align(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> 
         raise ProcessingError(f"{flight.folder}: the model could not be aligned to the photos' GPS "
                               "positions (too few registered photos with consistent GPS)")
     rec.transform(sim3)
+
+
+def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> None:  # noqa: ANN001
+    """Bundle adjustment with GPS position priors as tight as the GPS turns out to be.
+
+    A nadir block from one altitude bends into a dome (radial distortion trades against
+    curvature): measured 0.2 m ground shifts between photos with loose priors, 0.07 m
+    after this step. The prior sigma is the RMS residual of the aligned model, floored.
+    """
+    by_name = dict(zip(flight.names, gps))
+    images = list(rec.images.values())
+    res = np.array([im.projection_center() - by_name[im.name] for im in images])
+    sigma_h = max(float(np.sqrt(np.mean(res[:, 0] ** 2 + res[:, 1] ** 2) / 2)), opts.gps_sigma_floor)
+    sigma_v = max(float(np.sqrt(np.mean(res[:, 2] ** 2))), 2 * opts.gps_sigma_floor)
+    priors = []
+    for im in images:
+        prior = pycolmap.PosePrior()
+        prior.corr_data_id = im.data_id
+        prior.position = np.asarray(by_name[im.name], float)
+        prior.position_covariance = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+        prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+        priors.append(prior)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = opts.refine_focal_length if opts.refine_focal_length is not None \
+        else flight.focal_px is None
+    ba.print_summary = False
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    prior_options = pycolmap.PosePriorBundleAdjustmentOptions()
+    prior_options.ceres.prior_position_loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    adjuster = pycolmap.create_pose_prior_bundle_adjuster(ba, prior_options, config, priors, rec)
+    adjuster.solve()
 
 
 def _to_model(rec, flight: Flight, gps: np.ndarray, frame: LocalFrame, matching: str,  # noqa: ANN001

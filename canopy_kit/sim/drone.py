@@ -219,3 +219,26 @@ def simulate_drone_flight(orchard: Orchard, scene: Scene, spec: DroneSpec, drone
     }
     atomic_write_text(truth_dir / "drone_flight.json", json.dumps(summary, indent=2) + "\n")
     return DroneFlight(drone_dir, cameras, summary)
+
+
+def simulate_drone_session(out: str | Path, config, progress: Progress | None = None  # noqa: ANN001
+                           ) -> DroneFlight:
+    """A drone-only session, no LiDAR bag: ``out/drone/`` photos and ``out/truth/`` tables.
+
+    The orchard, scene and random streams are those ``simulate_session`` would use for the
+    same config, so the photos match a full session with the same seed.
+    """
+    from canopy_kit.config import write_config
+    from canopy_kit.sim.session import build_world
+    from canopy_kit.sim.truth import tree_table
+
+    root = Path(out)
+    orchard, _, scene, rngs = build_world(config)
+    truth_dir = root / "truth"
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    write_csv(tree_table(orchard), truth_dir / "trees.csv")
+    atomic_write_text(truth_dir / "frame.json",
+                      json.dumps({"frame": orchard.frame.to_dict()}, indent=2, sort_keys=True) + "\n")
+    write_config(config, truth_dir / "sim_config.toml")
+    return simulate_drone_flight(orchard, scene, config.drone, root / "drone", truth_dir, rngs["drone"],
+                                 progress=progress)

@@ -1,0 +1,144 @@
+"""Aerial ground truth on simulated drone flights: accuracy against the simulator's truth, and speed.
+
+Prints the numbers quoted in docs/BENCHMARKS.md ("Ground truth (drone photogrammetry)")
+and docs/GROUND_TRUTH.md:
+
+* accuracy: pistachio and almond flights (4 rows x 10 trees, a seed the defaults were not
+  tuned on): registration, camera georeferencing error, crown detection, diameter and
+  height errors, volume-model biases; crowns seeded by CHM maxima and by tree positions;
+* sphere-model bias of the paper's ground truth against the exact crown volume, on many
+  simulated trees (no photogrammetry involved);
+* speed: SfM time per image and in total for about 20 and 50 photos, and the surface,
+  orthomosaic and crown stages.
+
+Usage: ``python benchmarks/bench_ground_truth.py [--work DIR] [--only accuracy|sphere|speed]``.
+Flights are rendered once into ``--work`` (default ``work/bench_ground_truth``, git-ignored)
+and reused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+REPO = Path(__file__).resolve().parents[1]
+ACCURACY_FLIGHTS = [("pistachio", 4, 10, 1), ("almond", 4, 10, 1)]
+SPEED_FLIGHTS = [("pistachio", 3, 7, 2), ("pistachio", 6, 12, 2)]  # about 20 and 50 photos
+
+
+def flight(work: Path, kind: str, rows: int, trees: int, seed: int) -> Path:
+    """A rendered drone-only session (cached)."""
+    from canopy_kit.sim import load_sim_config
+    from canopy_kit.sim.drone import simulate_drone_session
+
+    root = work / f"{kind}_{rows}x{trees}_s{seed}"
+    if not (root / "truth" / "drone_cameras.csv").exists():
+        cfg = load_sim_config(kind, {"seed": seed, "orchard": {"rows": rows, "trees_per_row": trees},
+                                     "drone": {"enabled": True}})
+        t0 = time.perf_counter()
+        simulate_drone_session(root, cfg)
+        print(f"  rendered {root.name} in {time.perf_counter() - t0:.0f} s")
+    return root
+
+
+def frame_of(root: Path):  # noqa: ANN201
+    from canopy_kit.geo import LocalFrame
+
+    return LocalFrame.from_dict(json.loads((root / "truth" / "frame.json").read_text())["frame"])
+
+
+def accuracy(work: Path) -> None:
+    from ground_truth import process_flight
+    from ground_truth.evaluate import camera_errors, crown_agreement
+
+    print("## accuracy against simulator truth")
+    for kind, rows, trees, seed in ACCURACY_FLIGHTS:
+        root = flight(work, kind, rows, trees, seed)
+        truth = pd.read_csv(root / "truth" / "trees.csv")
+        for seeding in ("chm_maxima", "tree_positions"):
+            out = root / f"gt_{seeding}"
+            t0 = time.perf_counter()
+            result = process_flight(root / "drone", out, frame=frame_of(root),
+                                    seeds=root / "truth" / "trees.csv" if seeding == "tree_positions" else None)
+            total = time.perf_counter() - t0
+            cams = camera_errors(result.model, root / "truth" / "drone_cameras.csv")
+            _, m = crown_agreement(result.crowns, truth)
+            sfm = result.report["sfm"]
+            line = {
+                "flight": root.name, "seeding": seeding, "photos": sfm["total_images"],
+                "registered": sfm["registered_images"],
+                "reprojection_px": round(sfm["mean_reprojection_error_px"], 3),
+                "camera_error_mean_m": round(float(cams["error_m"].mean()), 3),
+                "camera_error_max_m": round(float(cams["error_m"].max()), 3),
+                "gps_residual_rms_h_m": round(sfm["gps_residual_rms_horizontal_m"], 3),
+                "gps_residual_rms_v_m": round(sfm["gps_residual_rms_vertical_m"], 3),
+                **{k: (round(v, 3) if isinstance(v, float) else v) for k, v in m.items()},
+                "total_s": round(total, 1),
+                "stage_s": {k: round(v, 1) for k, v in result.report["timings_s"].items()},
+            }
+            print(json.dumps(line))
+
+
+def sphere_bias(n_rows: int = 10, n_trees: int = 20) -> None:
+    """How wrong is the paper's sphere model, with a perfect diameter?"""
+    from canopy_kit.sim import load_sim_config
+    from canopy_kit.sim.orchard import generate_orchard
+    from canopy_kit.sim.truth import tree_table
+    from canopy_kit.stats import agreement
+
+    print("## sphere model against the exact crown volume (perfect diameters)")
+    for kind in ("pistachio", "almond"):
+        cfg = load_sim_config(kind, {"orchard": {"rows": n_rows, "trees_per_row": n_trees}})
+        t = tree_table(generate_orchard(cfg.orchard, np.random.default_rng(7)))
+        v = t["crown_volume_m3"].to_numpy()
+        for name, d in (("widest extent", t["crown_diameter_m"]),
+                        ("mean of perpendicular extents", t["crown_diameter_mean_m"])):
+            sphere = np.pi * d.to_numpy() ** 3 / 6
+            a = agreement(sphere, v)
+            print(json.dumps({"orchard": kind, "trees": len(t), "diameter": name,
+                              "bias_pct": round(a.bias_pct, 1), "mape_pct": round(a.mape_pct, 1),
+                              "ratio_median": round(float(np.median(sphere / v)), 3),
+                              "ratio_p5_p95": [round(float(q), 3) for q in np.percentile(sphere / v, [5, 95])]}))
+
+
+def speed(work: Path) -> None:
+    from ground_truth.exif import read_flight
+    from ground_truth.sfm import run_sfm
+
+    print("## speed (SfM on all cores of this machine)")
+    print(json.dumps({"cpu_count": os.cpu_count(), "load_average": os.getloadavg()}))
+    for kind, rows, trees, seed in SPEED_FLIGHTS:
+        root = flight(work, kind, rows, trees, seed)
+        photos = read_flight(root / "drone")
+        t0 = time.perf_counter()
+        model = run_sfm(photos, root / "sfm_speed", frame_of(root))
+        total = time.perf_counter() - t0
+        n = len(photos.images)
+        print(json.dumps({"flight": root.name, "photos": n, "registered": model.n_registered,
+                          "matching": model.matching, "sfm_total_s": round(total, 1),
+                          "sfm_per_photo_s": round(total / n, 2),
+                          "stages_s": {k: round(v, 1) for k, v in model.timings.items()}}))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, default=REPO / "work" / "bench_ground_truth")
+    parser.add_argument("--only", choices=["accuracy", "sphere", "speed"])
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    if args.only in (None, "sphere"):
+        sphere_bias()
+    if args.only in (None, "accuracy"):
+        accuracy(args.work)
+    if args.only in (None, "speed"):
+        speed(args.work)
+
+
+if __name__ == "__main__":
+    main()
