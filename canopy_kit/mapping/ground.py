@@ -16,39 +16,62 @@ import numpy as np
 
 
 class GroundHeightGrid:
-    """Mean ground height per square cell of the map frame, built from registered sweeps."""
+    """Mean ground height per square cell of the map frame, built from registered sweeps.
 
-    def __init__(self, cell_size: float = 0.5) -> None:
+    A dense array that grows (with margin) when points fall outside it: an orchard block
+    of a few hundred metres needs a few hundred thousand 0.5 m cells.
+    """
+
+    def __init__(self, cell_size: float = 0.5, margin: int = 200) -> None:
         self.cell_size = float(cell_size)
-        self._sum: dict[int, float] = {}
-        self._count: dict[int, int] = {}
+        self.margin = margin
+        self._origin = np.zeros(2, np.int64)  # cell index of element [0, 0]
+        self._sum = np.zeros((0, 0))
+        self._count = np.zeros((0, 0), np.int64)
 
-    def _keys(self, xy: np.ndarray) -> np.ndarray:
-        c = np.floor(xy / self.cell_size).astype(np.int64) + (1 << 30)
-        return (c[:, 0] << 31) | c[:, 1]
+    def _cells(self, xy: np.ndarray) -> np.ndarray:
+        return np.floor(xy / self.cell_size).astype(np.int64)
+
+    def _ensure(self, cells: np.ndarray) -> None:
+        lo, hi = cells.min(axis=0), cells.max(axis=0)
+        shape = np.array(self._sum.shape, np.int64)
+        if self._sum.size and np.all(lo >= self._origin) and np.all(hi < self._origin + shape):
+            return
+        new_lo = np.minimum(lo, self._origin) - self.margin if self._sum.size else lo - self.margin
+        new_hi = np.maximum(hi, self._origin + shape - 1) + self.margin if self._sum.size else hi + self.margin
+        size = new_hi - new_lo + 1
+        total = np.zeros(size)
+        count = np.zeros(size, np.int64)
+        if self._sum.size:
+            off = self._origin - new_lo
+            total[off[0]:off[0] + shape[0], off[1]:off[1] + shape[1]] = self._sum
+            count[off[0]:off[0] + shape[0], off[1]:off[1] + shape[1]] = self._count
+        self._origin, self._sum, self._count = new_lo, total, count
 
     def heights(self, xy: np.ndarray, min_count: int = 3) -> np.ndarray:
         """Mean height of each point's cell (NaN where the cell has fewer than ``min_count``)."""
-        keys = self._keys(xy)
-        uniq, inverse = np.unique(keys, return_inverse=True)
-        h = np.full(len(uniq), np.nan)
-        for i, k in enumerate(uniq.tolist()):
-            n = self._count.get(k, 0)
-            if n >= min_count:
-                h[i] = self._sum[k] / n
-        return h[inverse.ravel()]
+        out = np.full(len(xy), np.nan)
+        if self._sum.size == 0 or len(xy) == 0:
+            return out
+        ij = self._cells(xy) - self._origin
+        inside = np.all((ij >= 0) & (ij < np.array(self._sum.shape)), axis=1)
+        i, j = ij[inside, 0], ij[inside, 1]
+        n = self._count[i, j]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[inside] = np.where(n >= min_count, self._sum[i, j] / n, np.nan)
+        return out
 
     def add(self, xyz: np.ndarray) -> None:
         """Add ground points (map frame)."""
         if len(xyz) == 0:
             return
-        keys = self._keys(xyz[:, :2])
-        uniq, inverse = np.unique(keys, return_inverse=True)
-        sums = np.bincount(inverse.ravel(), weights=xyz[:, 2])
-        counts = np.bincount(inverse.ravel())
-        for k, s, n in zip(uniq.tolist(), sums.tolist(), counts.tolist()):
-            self._sum[k] = self._sum.get(k, 0.0) + s
-            self._count[k] = self._count.get(k, 0) + n
+        cells = self._cells(xyz[:, :2])
+        self._ensure(cells)
+        ij = cells - self._origin
+        flat = ij[:, 0] * self._sum.shape[1] + ij[:, 1]
+        uniq, inverse = np.unique(flat, return_inverse=True)
+        self._sum.flat[uniq] += np.bincount(inverse.ravel(), weights=xyz[:, 2])
+        self._count.flat[uniq] += np.bincount(inverse.ravel())
 
 
 def ground_correction(ground_world: np.ndarray, sensor_xy: np.ndarray, grid: GroundHeightGrid,

@@ -9,6 +9,7 @@ placed with the odometry pose georeferenced by a running fit to the GNSS.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -22,9 +23,7 @@ from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.bag import BagSession, open_bag
-from canopy_kit.mapping import quaternions as quat
-from canopy_kit.mapping.accumulate import MapAccumulator
-from canopy_kit.mapping.deskew import rotate_small
+from canopy_kit.mapping.assemble import TIME_FIELD, assemble_map, point_fields
 from canopy_kit.mapping.frontend import FrontendSweep, LidarFrontend, require_sweeps
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
 from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
@@ -32,8 +31,6 @@ from canopy_kit.mapping.sensors import GnssBuffer, ImuBuffer, SensorTopics, reso
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
 
 Progress = Callable[[str, float, float], None]
-TIME_FIELD = "gps_time"  # absolute per-point time (bag clock, s); LAS's standard time dimension
-POSE_BINS = 64  # per-sweep time bins for per-point poses (1.6 ms apart at 10 Hz)
 
 
 @dataclass
@@ -167,14 +164,13 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     config = config or MappingConfig()
     _check_config(config)
     timing: dict[str, float] = {}
-    cpu0, wall0 = time.process_time(), time.perf_counter()
+    cpu0, wall0, children0 = time.process_time(), time.perf_counter(), _children_cpu()
     with open_bag(bag_path) as bag:
         one = _PassOne(bag, config, progress, keep_all_points=False)
         records = [(s.scan.index, s.scan.stamp, s.t_ref, s.pose, len(s.scan), s.deskewed)
                    for s in one.sweeps()]
         require_sweeps(len(records), f"{bag.path}: topic {one.topics.scans!r}")
         timing["odometry_cpu_s"] = time.process_time() - cpu0
-        index = np.array([r[0] for r in records])
         t_ref = np.array([r[2] for r in records])
         odometry = np.array([r[3] for r in records])
         deskewed = {r[0]: r[5] for r in records}
@@ -195,25 +191,17 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         timing["fusion_cpu_s"] = time.process_time() - cpu1
 
         cpu2 = time.process_time()
-        accumulator = MapAccumulator(config.map_voxel_size)
-        wanted = set(index.tolist())
-        n_done = 0
-        for scan in bag.scans(one.topics.scans):
-            if scan.index not in wanted:
-                continue
-            xyz, fields = _world_points(scan, trajectory, config, deskewed[scan.index])
-            accumulator.add(xyz, fields)
-            n_done += 1
-            if progress:
-                progress("mapping: map", n_done, len(wanted))
-        timing["map_cpu_s"] = time.process_time() - cpu2
+        wall2 = time.perf_counter()
+    xyz, fields, offered = assemble_map(str(bag_path), one.topics.scans, deskewed, trajectory, config,
+                                        progress)
+    timing["map_cpu_s"] = time.process_time() - cpu2 + _children_cpu() - children0
+    timing["map_wall_s"] = time.perf_counter() - wall2
 
-    crs = frame.crs if frame is not None else None
-    origin = frame.origin if frame is not None else np.zeros(3)
-    cloud = accumulator.cloud(crs=crs, origin=origin)
+    cloud = PointCloud(xyz, fields, crs=frame.crs if frame is not None else None,
+                       origin=frame.origin if frame is not None else np.zeros(3))
     poses = trajectory.matrices(t_ref)
     table = pose_table(t_ref, poses)
-    timing["total_cpu_s"] = time.process_time() - cpu0
+    timing["total_cpu_s"] = time.process_time() - cpu0 + _children_cpu() - children0
     timing["total_wall_s"] = time.perf_counter() - wall0
     duration = float(one.last_stamp - one.first_stamp + 0.1) if one.n_scans else 0.0
     diagnostics = {
@@ -228,11 +216,12 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "duration_s": duration,
         "path_length_m": float(np.sum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))),
         "map_points": len(cloud),
-        "points_offered": accumulator.n_offered,
+        "points_offered": offered,
         "up_source": st.up_source,
         "georeferenced": frame is not None,
         "fusion": fused.diagnostics,
         "timing": timing,
+        "real_time_factor": duration / timing["total_wall_s"] if timing["total_wall_s"] > 0 else None,
         "real_time_factor_cpu": duration / timing["total_cpu_s"] if timing["total_cpu_s"] > 0 else None,
     }
     if st.standstill is not None:
@@ -246,6 +235,11 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
     return MappingResult(cloud, table, frame, diagnostics, warnings, config)
+
+
+def _children_cpu() -> float:
+    t = os.times()
+    return t.children_user + t.children_system
 
 
 def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig,
@@ -265,43 +259,6 @@ def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig,
     diag = {"fixes": epochs.n_fixes, "epochs": len(epochs.t), "rejected": epochs.n_rejected,
             "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])), "crs": frame.crs}
     return frame, epochs, diag
-
-
-def point_fields(scan_fields: dict[str, np.ndarray], keep: np.ndarray | slice,
-                 times: np.ndarray | None, stamp: float, n: int) -> dict[str, np.ndarray]:
-    """The scan's own fields (untouched) for the kept points plus absolute ``gps_time``."""
-    fields = {k: v[keep] for k, v in scan_fields.items()}
-    fields[TIME_FIELD] = times[keep] if times is not None else np.full(n, stamp)
-    return fields
-
-
-def _world_points(scan, trajectory: ContinuousTrajectory, config: MappingConfig,  # noqa: ANN001
-                  deskew: bool) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """A sweep's kept points moved to the map frame, each with the pose at its own time."""
-    from canopy_kit.mapping.filters import range_mask
-
-    keep = range_mask(scan.xyz, config.min_range, config.max_range)
-    xyz = scan.xyz[keep]
-    times = scan.times
-    fields = point_fields(scan.fields, keep, times, scan.stamp, len(xyz))
-    if deskew and times is not None:
-        t = times[keep]
-        lo, hi = float(t.min()), float(t.max())
-        bins = np.clip(((t - lo) / max(hi - lo, 1e-12) * (POSE_BINS - 1) + 0.5).astype(np.int64),
-                       0, POSE_BINS - 1)
-        pos, q = trajectory.quaternions_at(lo + (hi - lo) * np.arange(POSE_BINS) / (POSE_BINS - 1))
-        # Each bin's pose relative to the middle one is small: rotate with rotation vectors.
-        mid = POSE_BINS // 2
-        q_mid_inv = quat.conjugate(q[mid])
-        rel_rotvec = quat.to_rotvec(quat.multiply(q_mid_inv, q))
-        rel_t = quat.rotate(q_mid_inv, pos - pos[mid])
-        local = rotate_small(xyz, rel_rotvec[bins]) + rel_t[bins]
-        world = local @ quat.to_matrix(q[mid]).T + pos[mid]
-    else:
-        t_ref = 0.5 * (float(times.min()) + float(times.max())) if times is not None and len(times) else scan.stamp
-        pos, rot = trajectory.at(np.array([t_ref]))
-        world = xyz @ rot[0].T + pos[0]
-    return world, fields
 
 
 def stream_map(bag_path: str | Path, config: MappingConfig | None = None,

@@ -1,0 +1,316 @@
+"""Unit tests of the mapping stage's pieces on small synthetic inputs (fast)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.spatial.transform import Rotation
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.config import MappingConfig
+from canopy_kit.errors import InputError
+from canopy_kit.io.bag import GnssSeries, ImuSeries
+from canopy_kit.mapping import quaternions as quat
+from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
+from canopy_kit.mapping.assemble import merge_partial_maps
+from canopy_kit.mapping.deskew import deskew_points, reference_time, rotate_small
+from canopy_kit.mapping.evaluate import segment_drift, trajectory_errors
+from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
+from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
+from canopy_kit.mapping.gnss import gnss_epochs, local_frame_for
+from canopy_kit.mapping.ground import GroundHeightGrid, apply_ground_correction, ground_correction
+from canopy_kit.mapping.imu import GRAVITY, RotationTrack, detect_standstill, level_rotation
+from canopy_kit.mapping.outputs import read_tum, tum_text
+from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
+
+RNG = np.random.default_rng(7)
+
+
+def _poses(pos: np.ndarray, rot: Rotation) -> np.ndarray:
+    out = np.tile(np.eye(4), (len(pos), 1, 1))
+    out[:, :3, :3] = rot.as_matrix()
+    out[:, :3, 3] = pos
+    return out
+
+
+# -- filters ---------------------------------------------------------------------------
+def _ground_scene(tilt_deg: float = 0.0, n: int = 20000) -> tuple[np.ndarray, np.ndarray]:
+    """Ground 1.8 m below a (tilted) sensor plus tree-like blobs; returns points and a ground mask."""
+    xy = RNG.uniform(-25, 25, (n, 2))
+    ground = np.column_stack([xy, np.full(n, -1.8) + RNG.normal(0, 0.01, n)])
+    blobs = RNG.normal(0, 1.0, (n // 2, 3)) + np.array([4.0, 3.0, 1.0])
+    pts = np.vstack([ground, blobs])
+    truth = np.r_[np.ones(n, bool), np.zeros(n // 2, bool)]
+    r = Rotation.from_euler("xy", [tilt_deg, -tilt_deg / 2], degrees=True)
+    return r.apply(pts), truth
+
+
+@pytest.mark.parametrize("tilt", [0.0, 4.0])
+def test_ground_plane_fit_finds_the_ground_under_a_tilted_sensor(tilt: float) -> None:
+    pts, truth = _ground_scene(tilt)
+    plane = fit_ground_plane(pts)
+    assert plane is not None
+    normal_true = Rotation.from_euler("xy", [tilt, -tilt / 2], degrees=True).apply([0, 0, 1.0])
+    assert np.degrees(np.arccos(np.clip(plane[:3] @ normal_true, -1, 1))) < 0.5
+    assert abs(plane[3] - 1.8) < 0.05
+    mask = ground_mask(pts, 0.15, plane)
+    assert mask[truth].mean() > 0.99
+    assert mask[~truth].mean() < 0.05
+
+
+def test_ground_plane_none_without_ground() -> None:
+    assert fit_ground_plane(RNG.normal(0, 1, (500, 3)) + [0, 0, 3.0]) is None
+    assert not ground_mask(RNG.normal(0, 1, (500, 3)) + [0, 0, 3.0], 0.15).any()
+
+
+def test_range_mask_and_point_count_message() -> None:
+    pts = np.array([[0.5, 0, 0], [2.0, 0, 0], [70.0, 0, 0], [np.nan, 0, 0]])
+    assert range_mask(pts, 1.0, 60.0).tolist() == [False, True, False, False]
+    with pytest.raises(InputError, match=r"bag.bag: topic '/p': only 12 valid points.*at least 500"):
+        check_point_count(12, 500, "bag.bag: topic '/p'")
+
+
+# -- IMU -------------------------------------------------------------------------------
+def _imu(rate: float = 200.0, still: float = 2.0, duration: float = 6.0, tilt=(0.05, -0.03)) -> ImuSeries:
+    t = np.arange(0.0, duration, 1.0 / rate)
+    r = Rotation.from_euler("xy", tilt)
+    f = r.inv().apply([0.0, 0.0, GRAVITY])
+    acc = np.tile(f, (len(t), 1)) + RNG.normal(0, 0.4, (len(t), 3))
+    acc[t > still, 0] += 0.5  # starts accelerating forward
+    gyro = np.tile([0.001, -0.002, 0.003], (len(t), 1)) + RNG.normal(0, 0.04, (len(t), 3))
+    gyro[t > still, 2] += 0.2
+    return ImuSeries(t, gyro, acc, np.tile([0, 0, 0, 1.0], (len(t), 1)))
+
+
+def test_standstill_gravity_and_gyro_bias() -> None:
+    imu = _imu()
+    st = detect_standstill(imu)
+    assert st.found and 1.2 < st.end <= 2.05
+    assert np.allclose(st.gyro_bias, [0.001, -0.002, 0.003], atol=0.006)
+    up = st.level_rotation().apply(st.gravity_body)
+    assert np.degrees(np.arctan2(np.hypot(up[0], up[1]), up[2])) < 0.3
+
+
+def test_level_rotation_maps_gravity_to_z() -> None:
+    r = Rotation.from_euler("xyz", [0.1, -0.2, 0.7])
+    f = r.inv().apply([0, 0, GRAVITY])
+    assert np.allclose(level_rotation(f).apply(f), [0, 0, GRAVITY], atol=1e-9)
+
+
+def test_rotation_track_integrates_and_extends() -> None:
+    t = np.arange(0.0, 5.0, 0.005)
+    w = np.column_stack([0.2 * np.sin(t), 0.1 * np.ones_like(t), -0.3 * np.cos(2 * t)])
+    imu = ImuSeries(t, w, np.zeros_like(w), np.zeros((len(t), 4)))
+    whole = RotationTrack(imu)
+    part = RotationTrack(ImuSeries(t[:10], w[:10], w[:10], w[:10]))
+    for k in range(10, len(t), 37):
+        part.extend(t[k : k + 37], w[k : k + 37])
+    assert np.allclose(whole.quaternions(t), part.quaternions(t), atol=1e-12)
+    # Constant rate about z: the relative rotation is omega * dt.
+    imu_z = ImuSeries(t, np.tile([0, 0, 0.5], (len(t), 1)), np.zeros((len(t), 3)), np.zeros((len(t), 4)))
+    rv = RotationTrack(imu_z).relative_rotvecs(1.0, np.array([1.1, 0.9]))
+    assert np.allclose(rv, [[0, 0, 0.05], [0, 0, -0.05]], atol=1e-9)
+
+
+# -- deskew and quaternions --------------------------------------------------------------
+def test_deskew_undoes_constant_motion() -> None:
+    """Points of a static scene seen by a sensor turning and moving during the sweep."""
+    world = RNG.uniform(-20, 20, (3000, 3))
+    times = np.sort(RNG.uniform(0.0, 0.1, len(world)))
+    w = np.array([0.0, 0.0, 0.4])
+    v = np.array([1.5, 0.0, 0.0])
+    t_ref = reference_time(times, 0.0)
+    # Sensor pose at t relative to t_ref: rotation w(t - t_ref), translation v(t - t_ref).
+    dt = times - t_ref
+    rot = Rotation.from_rotvec(dt[:, None] * w)
+    sensor = rot.inv().apply(world - dt[:, None] * v)
+    fixed = deskew_points(sensor, times, t_ref, v, w)
+    assert np.abs(fixed - world).max() < 2e-3
+    assert np.abs(sensor - world).max() > 0.1
+
+
+def test_quaternion_helpers_match_scipy() -> None:
+    r = Rotation.random(20, random_state=3)
+    v = RNG.normal(size=(20, 3))
+    assert np.allclose(quat.rotate(r.as_quat(), v), r.apply(v))
+    assert np.allclose(quat.to_matrix(r.as_quat()), r.as_matrix())
+    prod = quat.multiply(r.as_quat(), r[::-1].as_quat())
+    assert np.allclose(Rotation.from_quat(prod).as_matrix(), (r * r[::-1]).as_matrix())
+    assert np.allclose(quat.cross(v, v[::-1]), np.cross(v, v[::-1]))
+    small = RNG.normal(0, 0.02, (20, 3))
+    assert np.abs(rotate_small(v, small) - Rotation.from_rotvec(small).apply(v)).max() < 1e-4
+
+
+# -- map accumulation ----------------------------------------------------------------------
+def test_voxel_key_set_reports_new_keys_once() -> None:
+    s = VoxelKeySet(capacity_bits=4)
+    a = np.arange(0, 1000, 3, dtype=np.int64)
+    assert s.insert(a).all()
+    b = np.arange(0, 2000, 5, dtype=np.int64)
+    new = s.insert(b)
+    assert np.array_equal(b[new], np.setdiff1d(b, a))
+    assert s.size == len(np.union1d(a, b))
+
+
+def test_accumulator_keeps_first_point_per_voxel_with_fields_untouched() -> None:
+    acc = MapAccumulator(0.1)
+    p1 = np.array([[0.01, 0.01, 0.01], [0.5, 0.5, 0.5], [0.02, 0.02, 0.02]])
+    f1 = {"tree_id": np.array([7, 8, 9], np.int32), "intensity": np.array([1.5, 2.5, 3.5], np.float32)}
+    acc.add(p1, f1)
+    acc.add(np.array([[0.03, 0.03, 0.03], [1.0, 1.0, 1.0]]),
+            {"tree_id": np.array([1, 2], np.int32), "intensity": np.array([4.0, 5.0], np.float32)})
+    cloud = acc.cloud()
+    assert len(cloud) == 3
+    assert cloud.fields["tree_id"].tolist() == [7, 8, 2]
+    assert cloud.fields["tree_id"].dtype == np.int32
+    assert np.array_equal(cloud.xyz[0], p1[0])
+
+
+def test_parallel_merge_equals_single_accumulator() -> None:
+    pts = [RNG.uniform(0, 3, (400, 3)) for _ in range(6)]
+    single = MapAccumulator(0.2)
+    parts = [MapAccumulator(0.2), MapAccumulator(0.2)]
+    for i, p in enumerate(pts):
+        order = (np.int64(i) << 24) | np.arange(len(p), dtype=np.int64)
+        single.add(p, {"__order__": order})
+        parts[i % 2].add(p, {"__order__": order})
+    xyz, fields = merge_partial_maps([(a.cloud().xyz, a.cloud().fields) for a in parts], 0.2)
+    ref = single.cloud()
+    assert np.array_equal(xyz, ref.xyz)
+    assert np.array_equal(fields["__order__"], ref.fields["__order__"])
+    assert len(np.unique(voxel_hash(xyz, 0.2))) == len(xyz)
+
+
+# -- ground refinement ---------------------------------------------------------------------
+def test_ground_correction_recovers_height_and_tilt() -> None:
+    grid = GroundHeightGrid()
+    xy = RNG.uniform(-15, 15, (20000, 2))
+    grid.add(np.column_stack([xy, 0.02 * xy[:, 0]]))  # a 2 % slope
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, 2.0, 1.8]
+    local = np.column_stack([RNG.uniform(-12, 12, (3000, 2)), np.zeros(3000)])
+    local[:, 2] = -1.8 + 0.02 * (local[:, 0] + 1.0)
+    true_world = local + pose[:3, 3]
+    wrong = pose.copy()
+    wrong[:3, 3] += [0.0, 0.0, 0.07]
+    wrong[:3, :3] = Rotation.from_euler("y", -0.004).as_matrix()
+    seen = local @ wrong[:3, :3].T + wrong[:3, 3]
+    coef = ground_correction(seen, wrong[:2, 3], grid)
+    assert coef is not None
+    fixed = apply_ground_correction(wrong, coef)
+    fixed_world = local @ fixed[:3, :3].T + fixed[:3, 3]
+    assert np.abs(fixed_world[:, 2] - true_world[:, 2]).max() < 0.01
+
+
+# -- trajectory and fusion -----------------------------------------------------------------
+def test_continuous_trajectory_passes_through_keyframes() -> None:
+    t = np.arange(0.0, 10.0, 0.1)
+    odo = _poses(np.column_stack([1.5 * t, np.sin(t), 0 * t]), Rotation.from_rotvec(np.outer(0.1 * t, [0, 0, 1])))
+    key = np.arange(0, len(t), 5)
+    fused = odo[key].copy()
+    fused[:, 1, 3] += np.linspace(0, 0.5, len(key))
+    traj = ContinuousTrajectory(t[key], fused, t, odo)
+    assert np.allclose(traj.matrices(t[key]), fused, atol=1e-9)
+    mid = traj.matrices(t[2:3])[0]
+    assert abs(mid[1, 3] - (odo[2, 1, 3] + 0.5 * 0.4 / (len(key) - 1))) < 1e-3
+    tab = traj.table()
+    assert list(tab.columns) == ["time", "x", "y", "z", "qx", "qy", "qz", "qw"]
+    assert np.allclose(read_tum_roundtrip(tab)[["x", "y", "qw"]], tab[["x", "y", "qw"]], atol=1e-6)
+
+
+def read_tum_roundtrip(table: pd.DataFrame) -> pd.DataFrame:
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "t.tum"
+        path.write_text(tum_text(table))
+        return read_tum(path)
+
+
+def test_heading_alignment_recovers_yaw_and_shift() -> None:
+    p = RNG.uniform(-30, 30, (50, 3))
+    yaw = 0.7
+    q = Rotation.from_euler("z", yaw).apply(p) + [5.0, -3.0, 1.0]
+    est, shift = heading_alignment(p, q)
+    assert abs(est - yaw) < 1e-9 and np.allclose(shift, [5.0, -3.0, 1.0])
+
+
+def _gnss_series(frame_lat: float, frame_lon: float, local: np.ndarray, t: np.ndarray,
+                 sigma: float) -> GnssSeries:
+    from canopy_kit.geo import LocalFrame
+
+    frame = LocalFrame.at(frame_lat, frame_lon, 50.0)
+    lat, lon, h = frame.to_wgs84(local)
+    cov = np.zeros((len(t), 9))
+    cov[:, [0, 4, 8]] = sigma**2
+    return GnssSeries(t, lat, lon, h, np.zeros(len(t), int), cov)
+
+
+def test_gnss_bounds_drift_and_georeferences() -> None:
+    """A serpentine drive; odometry with a slow heading drift in an unknown heading; GNSS fixes."""
+    t = np.arange(0.0, 130.0, 0.1)
+    s = 1.5 * t
+    lane = np.floor(s / 60.0)
+    along = np.where(lane % 2 == 0, s % 60.0, 60.0 - s % 60.0)
+    pos = np.column_stack([lane * 6.0, along, np.zeros_like(t)])
+    truth = _poses(pos, Rotation.from_euler("z", np.where(lane % 2 == 0, np.pi / 2, -np.pi / 2)[:, None]))
+    # Odometry: the true steps with 0.03 deg of heading drift per metre, started 30 deg off.
+    odo = truth.copy()
+    odo[0, :3, :3] = Rotation.from_euler("z", np.pi / 2 + 0.5).as_matrix()
+    odo[0, :3, 3] = 0.0
+    steps = np.linalg.inv(truth[:-1]) @ truth[1:]
+    bend = Rotation.from_euler("z", np.radians(0.03) * 0.15).as_matrix()
+    for k in range(1, len(t)):
+        step = steps[k - 1].copy()
+        step[:3, :3] = bend @ step[:3, :3]
+        odo[k] = odo[k - 1] @ step
+    noisy = pos + RNG.normal(0, 0.05, pos.shape)
+    series = _gnss_series(37.0, -120.0, noisy, t, 0.05)
+    epochs = gnss_epochs(series, local_frame_for(series))
+    fused = fuse_trajectory(t, odo, FusionSettings(odometry_drift_rotation=0.001), gnss=epochs)
+    est = pose_table(t, ContinuousTrajectory(fused.times, fused.poses, t, odo).matrices(t))
+    ref = pose_table(t, truth)
+    err = trajectory_errors(est, ref)
+    odo_err = trajectory_errors(pose_table(t, odo), ref)
+    assert err["ate_rmse_m"] < 0.1 < odo_err["ate_rmse_m"]
+    assert abs(fused.diagnostics["initial_heading_deg"] + np.degrees(0.5)) < 5.0
+
+
+def test_segment_drift_of_a_scaled_path() -> None:
+    t = np.arange(0, 300.0)
+    ref = _poses(np.column_stack([t, 0 * t, 0 * t]), Rotation.identity(len(t)))
+    est = ref.copy()
+    est[:, 0, 3] *= 1.01
+    drift = segment_drift(est, ref, lengths=(50.0, 100.0))
+    assert drift["50m"] == pytest.approx(1.0, rel=0.02) and drift["100m"] == pytest.approx(1.0, rel=0.02)
+
+
+def test_trajectory_errors_after_rigid_motion_are_zero() -> None:
+    t = np.arange(0.0, 60.0, 0.1)
+    truth = _poses(np.column_stack([np.cos(t / 10) * 20, np.sin(t / 10) * 20, 0.1 * np.sin(t)]),
+                   Rotation.from_euler("z", (t / 10 + np.pi / 2)[:, None]))
+    moved = np.einsum("ij,njk->nik", _poses(np.array([[3.0, -2.0, 1.0]]), Rotation.from_euler("z", [0.3]))[0], truth)
+    r = trajectory_errors(pose_table(t, moved), pose_table(t, truth))
+    assert r["ate_rmse_m"] < 1e-6 and r["drift_percent"] < 1e-4 and r["rotation_rmse_deg"] < 1e-4
+
+
+def test_mapping_config_defaults_are_valid() -> None:
+    from canopy_kit.mapping.pipeline import _check_config
+
+    _check_config(MappingConfig())
+    from canopy_kit.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="mapping.min_range/max_range"):
+        _check_config(MappingConfig(min_range=5.0, max_range=2.0))
+    with pytest.raises(ConfigError, match="mapping.gnss_lever_arm"):
+        _check_config(MappingConfig(gnss_lever_arm=[0.0, 1.0]))
+
+
+def test_point_cloud_of_accumulator_carries_crs_and_origin() -> None:
+    acc = MapAccumulator(0.05)
+    acc.add(np.zeros((1, 3)), {"a": np.ones(1)})
+    cloud = acc.cloud(crs="EPSG:32610", origin=np.array([1.0, 2.0, 3.0]))
+    assert isinstance(cloud, PointCloud) and cloud.crs == "EPSG:32610"
+    assert np.allclose(cloud.absolute_xyz, [[1.0, 2.0, 3.0]])
