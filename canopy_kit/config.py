@@ -39,6 +39,7 @@ class MappingConfig:
     kiss_max_points_per_voxel: int = 20
     min_points_per_scan: int = 500
     threads: int = 0
+    workers: int = 0
     # Pose graph: keyframes and the odometry error model (jitter plus drift)
     keyframe_every: int = 5
     odometry_jitter_rotation: float = 0.002
