@@ -48,6 +48,7 @@ class RunContext:
     table: pd.DataFrame | None = None  # the final per-tree table
     evaluation: dict[str, Any] = field(default_factory=dict)
     truth_matches: pd.DataFrame | None = None  # per true tree: status and matched segment
+    truth_dir: Path | None = None  # simulated session the run was checked against
 
 
 def run(config: PipelineConfig, bag: str | Path, out: str | Path,
@@ -98,7 +99,8 @@ def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
     if truth is not None:
         from canopy_kit.validation import evaluate_against_truth
 
-        ctx.evaluation = evaluate_against_truth(ctx, ctx.table, Path(truth))
+        ctx.truth_dir = Path(truth)
+        ctx.evaluation = evaluate_against_truth(ctx, ctx.table, ctx.truth_dir)
         ctx.table = ctx.evaluation.pop("trees")
         ctx.truth_matches = ctx.evaluation.pop("segmentation_trees")
     return ctx, cache

@@ -91,6 +91,4 @@ def _mapping_evaluation(ctx: Any, sim_dir: Path) -> dict[str, Any]:
 
     if not hasattr(ctx.mapping, "config"):  # a map made from the true poses: nothing to score
         return {}
-    report = evaluate_against_simulation(ctx.mapping, sim_dir)
-    report.pop("alignment", None)
-    return report
+    return evaluate_against_simulation(ctx.mapping, sim_dir)

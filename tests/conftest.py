@@ -49,3 +49,13 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data folder {SHARED_DATA} not present")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def tiny_pistachio_run(tiny_pistachio, tmp_path_factory):
+    """The adaptive pipeline run on ``tiny_pistachio``, checked against its truth (cached)."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.pipeline import run
+
+    out = tmp_path_factory.mktemp("run")
+    return run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root)

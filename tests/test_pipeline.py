@@ -13,9 +13,8 @@ from canopy_kit.pipeline import run
 
 
 @pytest.fixture(scope="module")
-def pistachio_run(tiny_pistachio, tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    return run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root)
+def pistachio_run(tiny_pistachio_run):
+    return tiny_pistachio_run
 
 
 @pytest.mark.slow

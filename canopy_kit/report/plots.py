@@ -65,17 +65,3 @@ def plot_agreement(estimate: np.ndarray, reference: np.ndarray, names: tuple[str
     b.set_title("Bland-Altman (mean and 95 % limits)")
     fig.tight_layout()
     return fig
-
-
-def plot_trajectories(estimated: np.ndarray, reference: np.ndarray | None = None, ax: Any = None) -> Any:
-    """Estimated (and true) trajectory from above."""
-    fig, ax = _axes(ax, (7, 7))
-    ax.plot(estimated[:, 0], estimated[:, 1], "-", lw=1.2, label="estimated")
-    if reference is not None:
-        ax.plot(reference[:, 0], reference[:, 1], "--", lw=1.0, label="true")
-    ax.set_aspect("equal")
-    ax.legend()
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title("trajectory")
-    return fig

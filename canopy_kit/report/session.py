@@ -97,6 +97,18 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
     figs.append(("Canopy volume per tree by method.",
                  figure_to_data_uri(plots.plot_volumes(trees, volume_columns))))
     sections.append(ReportSection("Map and trees", figs))
+    mapping_eval = metrics.get("evaluation", {}).get("mapping")
+    if mapping_eval and ctx.truth_dir is not None:
+        from canopy_kit.mapping.plots import mapping_figures
+        from canopy_kit.sim.truth import load_truth
+
+        reference = load_truth(ctx.truth_dir).trajectory
+        mfigs = mapping_figures(ctx.mapping, reference, mapping_eval)
+        sections.append(ReportSection("Mapping", [
+            ("Estimated trajectory (SE(3)-aligned) against the true one, and the position error "
+             "over time.", figure_to_data_uri(mfigs["trajectory"])),
+            ("The map from above: highest point per cell, coloured by height.",
+             figure_to_data_uri(mfigs["map"]))]))
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
         ok = trees["aerial_sphere_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
         figs = []
