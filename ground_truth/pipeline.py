@@ -47,7 +47,7 @@ class GroundTruthResult:
 
     out_dir: Path
     frame: LocalFrame
-    model: SparseModel
+    model: SparseModel | None  # None when loaded back from disk
     surface: SurfaceModel
     ortho: Orthomosaic
     segmentation: CrownSegmentation
@@ -209,3 +209,39 @@ def _write_outputs(out: Path, frame: LocalFrame, model: SparseModel, surface: Su
     paths["config_json"] = atomic_write_text(out / "ground_truth_config.json",
                                              json.dumps(asdict(opts), indent=2, default=str))
     return paths
+
+
+def _grid_of(geo: dict, shape: tuple[int, ...], frame: LocalFrame) -> Grid:
+    res = float(geo["pixel_scale"][0])
+    return Grid(float(geo["tiepoint"][3]) - frame.origin_easting, float(geo["tiepoint"][4]) - frame.origin_northing,
+                res, int(shape[0]), int(shape[1]))
+
+
+def load_result(out_dir: str | Path) -> GroundTruthResult:
+    """A processed flight read back from ``out_dir`` (rasters, tables, report; no SfM model)."""
+    from canopy_kit.errors import InputError
+    from ground_truth.crowns import vegetation_mask
+    from ground_truth.raster import read_geotiff
+
+    out = Path(out_dir)
+    if not (out / "report.json").exists():
+        raise InputError(f"{out}: not a ground-truth output folder (no report.json)")
+    report = json.loads((out / "report.json").read_text())
+    frame = LocalFrame.from_dict(report["frame"])
+    rgba, geo = read_geotiff(out / "orthomosaic.tif")
+    ogrid = _grid_of(geo, rgba.shape, frame)
+    dsm, geo_s = read_geotiff(out / "dsm.tif")
+    dtm, _ = read_geotiff(out / "dtm.tif")
+    sgrid = _grid_of(geo_s, dsm.shape, frame)
+    surface = SurfaceModel(sgrid, dsm.astype(float) - frame.origin_height,
+                           dtm.astype(float) - frame.origin_height, np.full(dsm.shape, np.nan),
+                           np.zeros(dsm.shape + (0,), int), [])
+    mosaic = Orthomosaic(ogrid, rgba, np.full(rgba.shape[:2], -1, np.int32), [])
+    labels, _ = read_geotiff(out / "crown_labels.tif")
+    crowns = pd.read_csv(out / "crowns.csv")
+    vegetation, threshold = vegetation_mask(mosaic.rgb, mosaic.valid)
+    seg = CrownSegmentation(ogrid, labels.astype(np.int32), labels > 0, vegetation, threshold,
+                            crowns[["x", "y"]].to_numpy(), crowns["seed_id"].to_numpy())
+    trees = pd.read_csv(out / "trees.csv") if (out / "trees.csv").exists() else None
+    paths = {p.stem + "_" + p.suffix[1:]: p for p in out.iterdir() if p.is_file()}
+    return GroundTruthResult(out, frame, None, surface, mosaic, seg, crowns, trees, report, paths)

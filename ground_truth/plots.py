@@ -28,7 +28,8 @@ def plot_crowns(mosaic: Orthomosaic, seg: CrownSegmentation, crowns: pd.DataFram
                 ax: Any = None, window: tuple[float, float, float, float] | None = None) -> Any:
     """Orthomosaic with crown outlines and labels; ``truth`` (x, y, diameter) adds circles.
 
-    ``window`` is (xmin, xmax, ymin, ymax) in the local frame. Returns the axes.
+    ``window`` is (xmin, xmax, ymin, ymax) in the local frame (default: around the crowns).
+    Returns the axes.
     """
     import matplotlib.pyplot as plt
     from matplotlib.patches import Circle
@@ -46,6 +47,8 @@ def plot_crowns(mosaic: Orthomosaic, seg: CrownSegmentation, crowns: pd.DataFram
         for row in truth.itertuples():
             ax.add_patch(Circle((row.x, row.y), row.diameter / 2, fill=False, color="cyan", lw=0.7,
                                 ls="--"))
+    if window is None and len(crowns):  # the trees, not the whole surveyed area
+        window = (crowns["x"].min() - 4, crowns["x"].max() + 4, crowns["y"].min() - 4, crowns["y"].max() + 4)
     if window is not None:
         ax.set_xlim(window[0], window[1])
         ax.set_ylim(window[2], window[3])

@@ -1,0 +1,172 @@
+"""ground_truth building blocks on synthetic inputs with known answers (fast)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.geo import LocalFrame
+from canopy_kit.sim.drone_render import PinholeView, fbm2
+from ground_truth.camera import PosedCamera, camera_from_pose
+from ground_truth.crowns import CrownOptions, delineate_crowns, feret_extents, measure_crowns
+from ground_truth.dsm import SurfaceOptions, dense_surface, ground_model, reliable_points
+from ground_truth.match import assign, match_crowns, tree_positions
+from ground_truth.raster import Grid, read_geotiff, write_geotiff
+
+NADIR = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # camera x east, y south, z down
+
+
+def test_projection_inverts_the_renderer_rays():
+    rot = NADIR @ np.array([[np.cos(0.02), 0, np.sin(0.02)], [0, 1, 0], [-np.sin(0.02), 0, np.cos(0.02)]])
+    view = PinholeView(np.array([3.0, -2.0, 35.0]), rot, 800.0, 120, 90)
+    cam = camera_from_pose("a", "SIMPLE_PINHOLE", (800.0, 60.0, 45.0), 120, 90, view.position, rot)
+    d = view.ray_directions()
+    pts = view.position + d.reshape(-1, 3) * 30.0
+    uv, depth = cam.project(pts)
+    jj, ii = np.meshgrid(np.arange(120) + 0.5, np.arange(90) + 0.5)
+    assert np.allclose(uv[:, 0], jj.ravel(), atol=1e-6) and np.allclose(uv[:, 1], ii.ravel(), atol=1e-6)
+    assert (depth > 0).all()
+    assert np.allclose(cam.center, view.position)
+    half = cam.scaled(0.5)
+    assert np.allclose(half.project(pts)[0], uv * 0.5)
+
+
+def test_geotiff_round_trip(tmp_path):
+    frame = LocalFrame.at(37.281, -120.42, 50.0)
+    grid = Grid.covering(np.array([-3.0, -2.0]), np.array([4.0, 5.0]), 0.5)
+    data = np.arange(grid.rows * grid.cols, dtype=np.float32).reshape(grid.shape)
+    write_geotiff(tmp_path / "a.tif", data, grid, frame, nodata=float("nan"))
+    back, geo = read_geotiff(tmp_path / "a.tif")
+    assert np.array_equal(back, data)
+    assert geo["epsg"] == frame.epsg == 32610
+    assert geo["pixel_scale"][:2] == (0.5, 0.5)
+    assert geo["tiepoint"][3] == pytest.approx(frame.origin_easting - 3.0)
+    assert geo["tiepoint"][4] == pytest.approx(frame.origin_northing + 5.0)
+
+
+def test_feret_extents_of_an_ellipse():
+    res = 0.02
+    yy, xx = np.mgrid[-150:151, -150:151] * res
+    a, b, t = 2.5, 1.5, np.radians(30)
+    u = xx * np.cos(t) + yy * np.sin(t)
+    v = -xx * np.sin(t) + yy * np.cos(t)
+    rows, cols = np.nonzero((u / a) ** 2 + (v / b) ** 2 <= 1)
+    widest, perp, _ = feret_extents(rows, cols, res)
+    assert widest == pytest.approx(2 * a, abs=2 * res)
+    assert perp == pytest.approx(2 * b, abs=2 * res)
+
+
+def _synthetic_orchard(res: float = 0.05):
+    """An 'orthomosaic' with green crowns (domes in the CHM), a flat green weed patch."""
+    grid = Grid(0.0, 20.0, res, int(20 / res), int(30 / res))
+    x, y = grid.centers()
+    rng = np.random.default_rng(0)
+    rgb = np.empty(grid.shape + (3,), np.uint8)
+    rgb[...] = (150, 120, 90)
+    rgb = np.clip(rgb + rng.normal(0, 8, rgb.shape), 0, 255).astype(np.uint8)
+    chm = np.zeros(grid.shape)
+    crowns = [(5.0, 10.0, 3.0, 4.0), (12.0, 10.0, 4.0, 5.0), (15.7, 10.0, 3.4, 4.5), (24.0, 6.0, 2.6, 3.5)]
+    for cx, cy, d, h in crowns:
+        r2 = ((x - cx) ** 2 + (y - cy) ** 2) / (d / 2) ** 2
+        inside = r2 <= 1
+        chm[inside] = np.maximum(chm[inside], h * np.sqrt(1 - r2[inside]) * 0.6 + 0.4 * h)
+        rgb[inside] = (60, 110, 40)
+    weeds = (np.abs(x - 24.0) < 1.5) & (np.abs(y - 15.0) < 1.0)
+    rgb[weeds] = (70, 120, 45)
+    return grid, rgb, chm, crowns
+
+
+def test_crowns_found_measured_and_weeds_ignored():
+    grid, rgb, chm, crowns = _synthetic_orchard()
+    seg = delineate_crowns(rgb, np.ones(grid.shape, bool), chm, grid, options=CrownOptions(min_tree_spacing_m=2.0))
+    table = measure_crowns(seg, chm)
+    truth = np.array([(cx, cy) for cx, cy, _, _ in crowns])
+    ia, ib, dist = assign(truth, table[["x", "y"]].to_numpy(), 1.0)
+    assert len(ia) == 4 and len(table) == 4  # the two touching crowns are split, weeds dropped
+    d_true = np.array([crowns[i][2] for i in ia])
+    d_est = table["diameter_max_m"].to_numpy()[ib]
+    # The touching pair is cut at the CHM saddle, so their widest extents shrink a little.
+    lone = [k for k, i in enumerate(ia) if i in (0, 3)]
+    assert np.abs(d_est[lone] - d_true[lone]).max() < 0.1
+    assert np.abs(d_est - d_true).max() < 0.6
+    assert table.loc[ib[lone], "height_m"].to_numpy() == pytest.approx([crowns[i][3] for i in ia[lone]],
+                                                                        abs=0.3)
+    sphere = table["sphere_volume_m3"].to_numpy()
+    assert sphere == pytest.approx(np.pi * table["diameter_max_m"].to_numpy() ** 3 / 6)
+
+
+def test_crowns_seeded_by_tree_positions():
+    grid, rgb, chm, crowns = _synthetic_orchard()
+    seeds = np.array([(cx, cy) for cx, cy, _, _ in crowns] + [(28.0, 18.0)])  # last: no crown there
+    seg = delineate_crowns(rgb, np.ones(grid.shape, bool), chm, grid, seeds_xy=seeds)
+    table = measure_crowns(seg, chm)
+    assert sorted(table["seed_id"].tolist()) == [0, 1, 2, 3]
+
+
+def test_match_crowns_to_trees_with_gate():
+    trees = pd.DataFrame({"tree_id": [1, 2, 3], "x": [0.0, 5.0, 10.0], "y": [0.0, 0.0, 0.0]})
+    trees = tree_positions(trees, None)
+    crowns = pd.DataFrame({"crown_id": [7, 8, 9], "x": [5.3, 0.2, 30.0], "y": [0.1, -0.2, 0.0],
+                           "seed_id": [-1, -1, -1], "diameter_max_m": [3.0, 4.0, 5.0]})
+    out = match_crowns(trees, crowns, max_distance_m=1.5)
+    assert out["matched"].tolist() == [True, True, False]
+    assert out["aerial_crown_id"].tolist()[:2] == [8, 7]
+    assert np.isnan(out["aerial_diameter_max_m"].iloc[2])
+    assert out["aerial_distance_m"].iloc[0] == pytest.approx(np.hypot(0.2, 0.2))
+
+
+def test_tree_positions_from_lat_lon_follow_the_frame():
+    frame = LocalFrame.at(37.281, -120.42, 50.0)
+    lat, lon, _ = frame.to_wgs84(np.array([[12.0, -7.0, 0.0]]))
+    trees = tree_positions(pd.DataFrame({"lat": lat, "lon": lon}), frame)
+    assert trees[["tree_x", "tree_y"]].to_numpy()[0] == pytest.approx([12.0, -7.0], abs=1e-6)
+
+
+def test_ground_model_ignores_crowns_and_outliers():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 30, (4000, 2))
+    z = 0.05 * xy[:, 0] + rng.normal(0, 0.02, len(xy))
+    on_crown = np.hypot(xy[:, 0] - 15, xy[:, 1] - 15) < 2.0
+    z[on_crown] += 3.0
+    z[0] = -200.0  # a two-view outlier
+    tracks = np.full(len(z), 4)
+    tracks[0] = 2
+    pts = reliable_points(np.column_stack([xy, z]), tracks, np.full(len(z), 0.5))
+    grid = Grid(0.0, 30.0, 0.5, 60, 60)
+    ground = ground_model(pts, grid, window_m=8.0)
+    x, _ = grid.centers()
+    inner = (slice(10, 50), slice(10, 50))
+    assert np.abs(ground - 0.05 * x)[inner].max() < 0.25
+
+
+def test_dense_surface_recovers_a_raised_block():
+    """Two nadir photos of a textured ground with a 2 m block: the matched height is right."""
+    res = 0.1
+    cams, images = [], []
+    for k, cx in enumerate((-4.0, 4.0)):
+        view = PinholeView(np.array([cx, 0.0, 30.0]), NADIR, 400.0, 300, 300)
+        d = view.ray_directions().reshape(-1, 3)
+        t_top = (2.0 - 30.0) / d[:, 2]
+        p = view.position + d * t_top[:, None]
+        on_block = (np.abs(p[:, 0]) < 3) & (np.abs(p[:, 1]) < 3)
+        t = np.where(on_block, t_top, (0.0 - 30.0) / d[:, 2])
+        p = view.position + d * t[:, None]
+        images.append(fbm2(p[:, 0], p[:, 1], 0.6, 3, 5).reshape(300, 300).astype(np.float32))
+        cams.append(camera_from_pose(f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300,
+                                     view.position, NADIR))
+    grid = Grid(-6.0, 6.0, res, 120, 120)
+    surface = dense_surface(cams, images, grid, np.zeros(grid.shape), 3.0,
+                            SurfaceOptions(resolution=res, views_per_cell=2, window_cells=5))
+    x, y = grid.centers()
+    top = (np.abs(x) < 2.5) & (np.abs(y) < 2.5)
+    ground = (np.abs(x) > 3.5) & (np.abs(x) < 5.5) & (np.abs(y) < 5)
+    assert np.nanmedian(np.abs(surface.dsm[top] - 2.0)) < 0.08
+    assert np.nanmedian(np.abs(surface.dsm[ground])) < 0.08
+
+
+def test_posed_camera_rejects_unknown_model():
+    from canopy_kit.errors import InputError
+
+    with pytest.raises(InputError, match="model OPENCV_FISHEYE is not one of"):
+        PosedCamera("x", "OPENCV_FISHEYE", (1.0,), 10, 10, np.eye(3), np.zeros(3))
