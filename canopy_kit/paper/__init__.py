@@ -1,6 +1,6 @@
 """The paper's own data (Abedi et al. 2025): Table I as shipped data, its consistency
-check and the statistics it implies. The re-run of the paper's experiments on simulated
-orchards will live here too once segmentation and volume estimation exist.
+check and the statistics it implies; and the paper's experiments re-run on simulated
+orchards (:mod:`canopy_kit.paper.experiments`, imported on use: it pulls in the pipeline).
 """
 
 from canopy_kit.paper.consistency import Table1Check, check_table1

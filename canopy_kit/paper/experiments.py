@@ -1,0 +1,379 @@
+"""The paper's experiments re-run on simulated orchards, beside the paper's figures.
+
+For every orchard (pistachio, almond) and seed a session is simulated, then the whole
+pipeline (:func:`canopy_kit.pipeline.compute`, with its own LiDAR-inertial mapping) runs it
+once per segmenter with the preset that sets it up: ``dbscan`` = the paper's pistachio
+preset (eps 0.8 m, N_min 1300), ``dbscan_spectral`` = the paper's almond preset (split
+above 45,000 points, k = 10), ``adaptive`` = canopy-kit's own; every preset measures convex
+hull and alpha shape (alpha = 0.9 m). Optionally the same runs on a map built from the
+true poses separate mapping error from segmentation and volume error.
+
+Scored against the simulator's truth: segmentation success (:mod:`canopy_kit.evaluate`,
+one-to-one point IoU >= 0.5), and, on the correctly segmented trees, volume errors against
+the aerial sphere ground truth as the paper computes it (``pi d^3 / 6`` of the widest true
+crown diameter: what a perfect aerial survey gives) and against the true crown volume,
+which the paper could not measure.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.errors import CanopyKitError, InputError
+from canopy_kit.paper.comparison import PAPER_SEGMENTATION, compare
+
+Progress = Callable[[str, float, float], None]
+
+ORCHARDS = ("pistachio", "almond")
+#: Segmenter -> the preset that runs it (presets are in canopy_kit/presets).
+METHOD_PRESETS = {"dbscan": "pistachio", "dbscan_spectral": "almond", "adaptive": "adaptive"}
+MAPPINGS = ("pipeline", "true_poses")
+RESULT_FILES = {"runs": "experiments_runs.csv", "trees": "experiments_trees.csv",
+                "comparison": "experiments_comparison.csv", "summary": "experiments.json"}
+TREE_COLUMNS = ["tree_id", "label", "segment", "n_points", "crown_diameter_m",
+                "truth_tree_id", "truth_label", "true_crown_diameter_m", "true_crown_volume_m3",
+                "true_sphere_volume_m3", "aerial_sphere_volume_m3", "aerial_diameter_m",
+                "volume_flags"]
+
+
+def default_results_dir() -> Path:
+    """``data/paper`` of the source checkout this package was imported from."""
+    return Path(__file__).resolve().parents[2] / "data" / "paper"
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """What to simulate and run: orchards x seeds sessions, each with every method and mapping.
+
+    ``sim_overrides`` go to every simulated session (e.g. ``{"lidar": {"columns": 512}}``);
+    ``drone`` also simulates a drone flight and runs the photogrammetry stage, whose sphere
+    volumes become a third reference (``aerial``).
+    """
+
+    seeds: tuple[int, ...] = (1, 2, 3)
+    rows: int = 3
+    trees_per_row: int = 8
+    orchards: tuple[str, ...] = ORCHARDS
+    methods: tuple[str, ...] = tuple(METHOD_PRESETS)
+    mappings: tuple[str, ...] = ("pipeline",)
+    sim_overrides: dict[str, Any] = field(default_factory=dict)
+    sensor: str | None = None
+    drone: bool = False
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` naming the first unusable setting."""
+        if not self.seeds:
+            raise InputError("experiments: need at least one seed")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise InputError(f"experiments: seeds repeat ({list(self.seeds)})")
+        if self.rows < 1 or self.trees_per_row < 2:
+            raise InputError(f"experiments: need rows >= 1 and trees per row >= 2, got "
+                             f"{self.rows} x {self.trees_per_row}")
+        for name, given, known in (("orchard", self.orchards, ORCHARDS),
+                                   ("method", self.methods, tuple(METHOD_PRESETS)),
+                                   ("mapping", self.mappings, MAPPINGS)):
+            if not given:
+                raise InputError(f"experiments: no {name} given")
+            bad = [g for g in given if g not in known]
+            if bad:
+                raise InputError(f"experiments: unknown {name} {bad[0]!r} "
+                                 f"(known: {', '.join(known)})")
+
+    def n_runs(self) -> int:
+        return len(self.orchards) * len(self.seeds) * len(self.mappings) * len(self.methods)
+
+
+@dataclass
+class ExperimentResults:
+    """Every run (``runs``), every segmented tree (``trees``), the table beside the paper."""
+
+    config: ExperimentConfig
+    runs: pd.DataFrame  # one row per orchard x seed x mapping x method
+    trees: pd.DataFrame  # one row per segment of every run, truth columns where matched
+    comparison: pd.DataFrame  # one row per orchard x method x mapping, paper columns beside
+    paper: dict[str, Any]  # the paper's figures the comparison quotes
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: settings, paper figures, the comparison table and every run."""
+        return {"config": asdict(self.config), "paper": self.paper, "seconds": self.seconds,
+                "comparison": _records(self.comparison), "runs": _records(self.runs)}
+
+
+# -- the paper's figures -----------------------------------------------------------------
+def paper_figures(table1: str | Path | None = None) -> dict[str, Any]:
+    """Segmentation success as printed, volume statistics recomputed from corrected Table I."""
+    from canopy_kit.paper.consistency import check_table1
+    from canopy_kit.paper.summary import summarise_table1
+
+    check = check_table1(table1)
+    summary = summarise_table1(check, "corrected")
+    t = check.corrected
+    return {
+        "segmentation_success": {f"{o}/{m}": v for (o, m), v in PAPER_SEGMENTATION.items()},
+        "volume_source": "Table I (17 pistachio trees, DBSCAN), columns corrected",
+        "mape_vs_sphere_pct": {"convex_hull": summary.agreement["hull"].mape_pct,
+                               "alpha_shape": summary.agreement["alpha"].mape_pct},
+        "bias_vs_sphere_pct": {"convex_hull": summary.agreement["hull"].bias_pct,
+                               "alpha_shape": summary.agreement["alpha"].bias_pct},
+        "max_error_vs_sphere_pct": {"convex_hull": float(t["hull_err_pct"].max()),
+                                    "alpha_shape": float(t["alpha_err_pct"].max())},
+        "alpha_better_trees": len(summary.claim.alpha_better),
+        "n_trees": summary.claim.n_trees,
+    }
+
+
+# -- running -----------------------------------------------------------------------------
+def session_name(orchard: str, seed: int, config: ExperimentConfig) -> str:
+    return f"{orchard}_{config.rows}x{config.trees_per_row}_s{seed}"
+
+
+def simulate(orchard: str, seed: int, config: ExperimentConfig, root: Path,
+             progress: Progress | None = None) -> Any:
+    """Simulate one session of the experiment into ``root`` (replacing what is there)."""
+    from canopy_kit.config import merge
+    from canopy_kit.sim import load_sim_config, simulate_session
+
+    base: dict[str, Any] = {"seed": seed, "orchard": {"rows": config.rows,
+                                                      "trees_per_row": config.trees_per_row}}
+    if config.drone:
+        base["drone"] = {"enabled": True}
+    sim_cfg = load_sim_config(orchard, merge(base, config.sim_overrides), sensor=config.sensor)
+    return simulate_session(root, sim_cfg, overwrite=True, progress=progress)
+
+
+def compute_on_true_poses(pipeline_config: Any, mapping: Any, sim_dir: Path,
+                          drone_images: Path | None, out: Path, progress: Progress) -> Any:
+    """The pipeline's stages after mapping, on a map built from the true poses."""
+    from canopy_kit.pipeline import (
+        RunContext,
+        aerial_stage,
+        segment_stage,
+        tree_table,
+        volume_stage,
+    )
+    from canopy_kit.validation import evaluate_against_truth
+
+    ctx = RunContext(pipeline_config, mapping=mapping)
+    ctx.segmentation = segment_stage(ctx, progress)
+    ctx.trees = volume_stage(ctx, progress)
+    if drone_images is not None:
+        ctx.aerial = aerial_stage(ctx, drone_images, out / "aerial", progress)
+    ctx.table = tree_table(ctx)
+    ctx.evaluation = evaluate_against_truth(ctx, ctx.table, sim_dir)
+    ctx.table = ctx.evaluation.pop("trees")
+    ctx.truth_matches = ctx.evaluation.pop("segmentation_trees")
+    return ctx
+
+
+def run_record(ctx: Any) -> dict[str, Any]:
+    """The per-run numbers: segmentation score, mapping error, map density."""
+    score = ctx.evaluation["segmentation"]
+    rec = {k: score[k] for k in ("n_truth", "n_predicted", "n_correct", "success_rate",
+                                 "n_merged", "n_split", "n_missed", "n_other",
+                                 "n_false_segments", "label_accuracy", "mode")}
+    mapping = ctx.evaluation.get("mapping", {})
+    rec["ate_rmse_m"] = mapping.get("ate_rmse_m", np.nan)
+    rec["drift_percent"] = mapping.get("drift_percent", np.nan)
+    cloud = ctx.mapping.map
+    if "tree_id" in cloud.fields:  # map points per true tree: what N_min and 45,000 count
+        ids = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
+        counts = np.bincount(ids[ids >= 0])
+        counts = counts[counts > 0]
+        rec["map_points_per_tree_median"] = float(np.median(counts)) if len(counts) else np.nan
+    return rec
+
+
+def run_session(orchard: str, seed: int, config: ExperimentConfig, work: Path,
+                progress: Progress, done: list[int], keep: bool = False
+                ) -> tuple[list[dict[str, Any]], list[pd.DataFrame]]:
+    """Simulate one session and run every mapping x method on it; delete it unless ``keep``."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.pipeline import compute
+    from canopy_kit.sim.truth_map import truth_mapping
+
+    name = session_name(orchard, seed, config)
+    root = work / name
+    sim = simulate(orchard, seed, config, root, progress)
+    drone = sim.drone_dir if config.drone else None
+    records: list[dict[str, Any]] = []
+    tables: list[pd.DataFrame] = []
+    try:
+        for mapping in config.mappings:
+            true_map = truth_mapping(root, progress=progress) if mapping == "true_poses" else None
+            for method in config.methods:
+                preset = METHOD_PRESETS[method]
+                pipeline_config = load_preset(preset)
+                rec: dict[str, Any] = {"orchard": orchard, "seed": seed, "session": name,
+                                       "mapping": mapping, "method": method, "preset": preset}
+                t0 = time.perf_counter()
+                try:
+                    if true_map is None:
+                        ctx, _ = compute(pipeline_config, sim.bag, root / "run", drone, root,
+                                         progress=progress)
+                    else:
+                        ctx = compute_on_true_poses(pipeline_config, true_map, root, drone,
+                                                    root / "run_true", progress)
+                    rec.update(run_record(ctx))
+                    columns = [c for c in TREE_COLUMNS
+                               if config.drone or not c.startswith("aerial_")]
+                    table = ctx.table.reindex(columns=columns + [
+                        c for c in ctx.table.columns if c.startswith("volume_")
+                        and c != "volume_flags"])
+                    tables.append(table.assign(orchard=orchard, seed=seed, mapping=mapping,
+                                               method=method))
+                    rec["error"] = ""
+                except CanopyKitError as exc:  # one failed run must not lose the others
+                    rec["error"] = f"{type(exc).__name__}: {exc}"
+                rec["seconds"] = round(time.perf_counter() - t0, 1)
+                records.append(rec)
+                done[0] += 1
+                progress("experiment runs", done[0], config.n_runs())
+    finally:
+        if not keep:
+            shutil.rmtree(root, ignore_errors=True)
+    return records, tables
+
+
+def run_experiments(config: ExperimentConfig, work_dir: str | Path,
+                    progress: Progress | None = None, keep_sessions: bool = False,
+                    table1: str | Path | None = None) -> ExperimentResults:
+    """Simulate every session in ``work_dir`` (deleted as it goes), run and score everything.
+
+    Each finished session leaves its results in ``work_dir``; running the same config
+    there again resumes after the sessions already done.
+    """
+    config.validate()
+    report = progress or (lambda *_: None)
+    work = Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    paper = paper_figures(table1)
+    t0 = time.perf_counter()
+    done = [0]
+    report("experiment runs", 0, config.n_runs())
+    records: list[dict[str, Any]] = []
+    tables: list[pd.DataFrame] = []
+    for orchard in config.orchards:
+        for seed in config.seeds:
+            saved = load_checkpoint(work, orchard, seed, config)
+            if saved is None:
+                recs, tabs = run_session(orchard, seed, config, work, report, done,
+                                         keep_sessions)
+                save_checkpoint(work, orchard, seed, config, recs, tabs)
+            else:
+                recs, tabs = saved
+                done[0] += len(recs)
+                report("experiment runs", done[0], config.n_runs())
+            records += recs
+            tables += tabs
+    runs = pd.DataFrame(records)
+    trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+    if len(trees):
+        first = ["orchard", "seed", "mapping", "method"]
+        trees = trees[first + [c for c in trees.columns if c not in first]]
+    comparison = compare(runs, trees, paper, config)
+    return ExperimentResults(config, runs, trees, comparison, paper,
+                             round(time.perf_counter() - t0, 1))
+
+
+def _checkpoint_paths(work: Path, orchard: str, seed: int, config: ExperimentConfig
+                      ) -> tuple[Path, Path]:
+    """Files holding one finished session's runs and trees, named by everything that matters."""
+    settings = {k: v for k, v in asdict(config).items() if k not in ("seeds", "orchards")}
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
+    stem = f"{session_name(orchard, seed, config)}_{digest.hexdigest()[:10]}"
+    return work / f"{stem}.runs.json", work / f"{stem}.trees.csv"
+
+
+def save_checkpoint(work: Path, orchard: str, seed: int, config: ExperimentConfig,
+                    records: list[dict[str, Any]], tables: list[pd.DataFrame]) -> None:
+    """Keep a finished session's results in ``work`` so a rerun there resumes after it."""
+    from canopy_kit.io.atomic import atomic_write_text
+
+    runs_path, trees_path = _checkpoint_paths(work, orchard, seed, config)
+    trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+    atomic_write_text(trees_path, trees.to_csv(index=False))
+    atomic_write_text(runs_path, json.dumps(records, default=_json_default))
+
+
+def load_checkpoint(work: Path, orchard: str, seed: int, config: ExperimentConfig
+                    ) -> tuple[list[dict[str, Any]], list[pd.DataFrame]] | None:
+    """A finished session's results from ``work``, or None when it has not run there."""
+    runs_path, trees_path = _checkpoint_paths(work, orchard, seed, config)
+    if not (runs_path.is_file() and trees_path.is_file()):
+        return None
+    records = json.loads(runs_path.read_text())
+    try:
+        trees = pd.read_csv(trees_path, keep_default_na=True)
+    except pd.errors.EmptyDataError:
+        trees = pd.DataFrame()
+    if "volume_flags" in trees:
+        trees["volume_flags"] = trees["volume_flags"].astype(object).fillna("")
+    return records, ([trees] if len(trees) else [])
+
+
+# -- files ---------------------------------------------------------------------------------
+def write_results(results: ExperimentResults, out_dir: str | Path | None = None
+                  ) -> dict[str, Path]:
+    """Runs, trees and comparison as CSV, everything as JSON, each written atomically."""
+    from canopy_kit.io.atomic import atomic_write_text
+
+    out = Path(out_dir) if out_dir is not None else default_results_dir()
+    out.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for key, frame in (("runs", results.runs), ("trees", results.trees),
+                       ("comparison", results.comparison)):
+        files[key] = atomic_write_text(out / RESULT_FILES[key],
+                                       frame.to_csv(index=False, float_format="%.4f"))
+    files["summary"] = atomic_write_text(
+        out / RESULT_FILES["summary"],
+        json.dumps(results.to_dict(), indent=1, default=_json_default) + "\n")
+    return files
+
+
+def load_results(out_dir: str | Path | None = None) -> ExperimentResults:
+    """Read back what :func:`write_results` wrote (for notebooks and docs)."""
+    out = Path(out_dir) if out_dir is not None else default_results_dir()
+    path = out / RESULT_FILES["summary"]
+    if not path.is_file():
+        raise InputError(f"{path}: no experiment results (run 'canopy-kit paper experiments')")
+    data = json.loads(path.read_text())
+    cfg = data["config"]
+    config = ExperimentConfig(**{k: tuple(v) if isinstance(v, list) else v
+                                 for k, v in cfg.items()})
+    trees_csv = out / RESULT_FILES["trees"]
+    trees = pd.read_csv(trees_csv) if trees_csv.is_file() else pd.DataFrame()
+    return ExperimentResults(config, _frame(data["runs"]), trees, _frame(data["comparison"]),
+                             data["paper"], data.get("seconds", 0.0))
+
+
+def _frame(records: list[dict[str, Any]]) -> pd.DataFrame:
+    """Records read from JSON: numeric columns (JSON null = NaN) back to numbers."""
+    frame = pd.DataFrame(records)
+    for col in frame.columns:
+        values = frame[col]
+        if values.map(lambda v: v is None or isinstance(v, (int, float))).all():
+            frame[col] = pd.to_numeric(values)
+    return frame
+
+
+def _records(frame: pd.DataFrame) -> list[dict[str, Any]]:
+    return json.loads(frame.to_json(orient="records")) if len(frame) else []
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)

@@ -1,0 +1,174 @@
+"""The paper's experiments on a tiny simulated configuration: structure, provenance of every
+number (the runs, the truth folder, the paper), files, resume and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.errors import InputError
+from canopy_kit.paper import experiments as ex
+
+# One seed, one row of three trees per orchard, a sparse 16 x 256 sensor; the map from the
+# true poses keeps odometry out of the test's time (the pipeline mapping is tested below).
+TINY = ex.ExperimentConfig(seeds=(1,), rows=1, trees_per_row=3,
+                           methods=("dbscan", "dbscan_spectral"), mappings=("true_poses",),
+                           sim_overrides={"lidar": {"columns": 256, "rings": 16}})
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    work = tmp_path_factory.mktemp("experiments")
+    calls: list[tuple[str, float, float]] = []
+    results = ex.run_experiments(TINY, work, progress=lambda *a: calls.append(a),
+                                 keep_sessions=True)
+    return results, work, calls
+
+
+def test_one_run_per_orchard_seed_mapping_method(tiny):
+    results, _, calls = tiny
+    runs, comp = results.runs, results.comparison
+    assert len(runs) == TINY.n_runs() == 4
+    assert set(zip(runs["orchard"], runs["method"])) == {
+        (o, m) for o in ("pistachio", "almond") for m in ("dbscan", "dbscan_spectral")}
+    assert (runs["error"] == "").all() and (runs["mapping"] == "true_poses").all()
+    assert list(runs["preset"]) == [ex.METHOD_PRESETS[m] for m in runs["method"]]
+    assert len(comp) == 4 and (comp["sessions"] == 1).all()
+    assert ("experiment runs", 4, 4) in calls
+    # Every segment of every run is in the tree table, tagged with its run.
+    assert set(results.trees.groupby(["orchard", "method"]).size().index) == set(
+        zip(runs["orchard"], runs["method"]))
+
+
+def test_segmentation_numbers_are_those_of_the_runs(tiny):
+    results, work, _ = tiny
+    runs, comp, trees = results.runs, results.comparison, results.trees
+    for r in runs.to_dict("records"):
+        truth = pd.read_csv(work / r["session"] / "truth" / "trees.csv")
+        assert r["n_truth"] == len(truth)
+        matched = trees[(trees["orchard"] == r["orchard"]) & (trees["method"] == r["method"])
+                        & trees["truth_tree_id"].notna()]
+        assert len(matched) == r["n_correct"]  # volumes are only scored on correct trees
+        assert r["success_rate"] == pytest.approx(r["n_correct"] / r["n_truth"])
+        c = comp[(comp["orchard"] == r["orchard"]) & (comp["method"] == r["method"])].iloc[0]
+        assert c["success_pct"] == pytest.approx(100 * r["success_rate"])
+        assert c["success_min_pct"] == c["success_max_pct"] == pytest.approx(c["success_pct"])
+
+
+def test_segmentation_rescored_independently(tiny):
+    """Segment the kept session again with the almond preset and score it by hand."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.evaluate import score_point_labels
+    from canopy_kit.pipeline import driving_direction
+    from canopy_kit.segment.verb import make_segmenter, segment
+    from canopy_kit.sim.truth_map import truth_mapping
+
+    results, work, _ = tiny
+    run = results.runs.query("orchard == 'almond' and method == 'dbscan_spectral'").iloc[0]
+    mapping = truth_mapping(work / run["session"])
+    cfg = load_preset("almond")
+    seg = segment(mapping.map, make_segmenter(cfg.segment.method, cfg.segment.params),
+                  cfg.preprocess, cfg.rows, driving_direction=driving_direction(mapping.trajectory),
+                  direction_source="trajectory", seed=cfg.seed)
+    score = score_point_labels(seg.labels, mapping.map.fields["tree_id"])
+    assert (score.n_correct, score.n_truth) == (run["n_correct"], run["n_truth"])
+
+
+def test_volume_errors_against_the_truth_folder(tiny):
+    results, work, _ = tiny
+    trees = results.trees.dropna(subset=["truth_tree_id"])
+    assert len(trees) > 0
+    for (orchard, method), group in trees.groupby(["orchard", "method"]):
+        session = results.runs.query("orchard == @orchard and method == @method")["session"].iloc[0]
+        truth = pd.read_csv(work / session / "truth" / "trees.csv").set_index("tree_id")
+        t = truth.loc[group["truth_tree_id"].astype(int)]
+        # The aerial sphere ground truth is pi d^3 / 6 of the widest true crown diameter.
+        assert np.allclose(group["true_sphere_volume_m3"], np.pi * t["crown_diameter_m"] ** 3 / 6)
+        assert np.allclose(group["true_crown_volume_m3"], t["crown_volume_m3"])
+        c = results.comparison.query("orchard == @orchard and method == @method").iloc[0]
+        for est, col in (("convex_hull", "volume_convex_hull_m3"), ("alpha_shape", "volume_alpha_m3")):
+            for ref, ref_col in (("sphere", "true_sphere_volume_m3"), ("crown", "true_crown_volume_m3")):
+                err = 100 * (group[col] - group[ref_col]) / group[ref_col]
+                assert c[f"{est}_mape_vs_{ref}_pct"] == pytest.approx(err.abs().mean())
+                assert c[f"{est}_bias_vs_{ref}_pct"] == pytest.approx(err.mean())
+        assert c["n_trees_vs_sphere"] == len(group)
+
+
+def test_paper_column_holds_the_printed_figures(tiny):
+    from canopy_kit.paper import check_table1
+
+    comp = tiny[0].comparison.set_index(["orchard", "method"])
+    assert comp.loc[("pistachio", "dbscan"), "paper_success_pct"] == 93
+    assert comp.loc[("almond", "dbscan"), "paper_success_pct"] == 46
+    assert comp.loc[("almond", "dbscan_spectral"), "paper_success_pct"] == 80
+    assert math.isnan(comp.loc[("pistachio", "dbscan_spectral"), "paper_success_pct"])
+    # Volume figures exist only for the paper's pistachio DBSCAN run: Table I, corrected.
+    table = check_table1().corrected
+    row = comp.loc[("pistachio", "dbscan")]
+    assert row["paper_alpha_shape_mape_vs_sphere_pct"] == pytest.approx(
+        table["alpha_err_pct"].mean(), abs=0.01)  # 8.54
+    assert row["paper_convex_hull_mape_vs_sphere_pct"] == pytest.approx(
+        table["hull_err_pct"].mean(), abs=0.01)  # 10.68
+    assert row["paper_alpha_shape_max_error_vs_sphere_pct"] == 22.91
+    assert row["paper_alpha_better"] == "12/17"
+    assert comp.drop(("pistachio", "dbscan"))["paper_alpha_shape_mape_vs_sphere_pct"].isna().all()
+
+
+def test_results_files_round_trip_and_cli_shows_them(tiny, tmp_path):
+    from typer.testing import CliRunner
+
+    from canopy_kit.cli import app
+
+    results = tiny[0]
+    files = ex.write_results(results, tmp_path)
+    assert set(files) == {"runs", "trees", "comparison", "summary"}
+    back = ex.load_results(tmp_path)
+    assert back.config == results.config
+    pd.testing.assert_frame_equal(back.comparison, results.comparison, check_dtype=False)
+    out = CliRunner().invoke(app, ["paper", "experiments", "--show-saved", "--out",
+                                   str(tmp_path), "--json"])
+    assert out.exit_code == 0, out.output
+    data = json.loads(out.output)
+    assert len(data["comparison"]) == 4 and data["paper"]["n_trees"] == 17
+    text = CliRunner().invoke(app, ["paper", "experiments", "--show-saved", "--out",
+                                    str(tmp_path)], env={"COLUMNS": "250"})
+    assert text.exit_code == 0 and "Segmentation success" in text.output
+
+
+def test_rerun_in_the_same_work_folder_resumes(tiny, monkeypatch):
+    results, work, _ = tiny
+
+    def no_simulation(*_a, **_k):
+        raise AssertionError("a finished session was simulated again")
+
+    monkeypatch.setattr(ex, "simulate", no_simulation)
+    again = ex.run_experiments(TINY, work)
+    pd.testing.assert_frame_equal(again.comparison, results.comparison, check_dtype=False)
+
+
+def test_settings_are_checked():
+    with pytest.raises(InputError, match="unknown method 'kmeans'"):
+        ex.ExperimentConfig(methods=("kmeans",)).validate()
+    with pytest.raises(InputError, match="seeds repeat"):
+        ex.ExperimentConfig(seeds=(1, 1)).validate()
+    with pytest.raises(InputError, match="no experiment results"):
+        ex.load_results("/nonexistent/folder")
+
+
+@pytest.mark.slow
+def test_pipeline_mapping_run(tmp_path):
+    """The main table's path: the pipeline's own mapping (compute), scored with its ATE."""
+    config = ex.ExperimentConfig(seeds=(2,), rows=1, trees_per_row=3, orchards=("pistachio",),
+                                 methods=("dbscan",), sim_overrides=TINY.sim_overrides)
+    results = ex.run_experiments(config, tmp_path)
+    run = results.runs.iloc[0]
+    assert run["error"] == "" and run["mapping"] == "pipeline"
+    assert np.isfinite(run["ate_rmse_m"]) and run["map_points_per_tree_median"] > 0
+    matched = results.trees.dropna(subset=["truth_tree_id"])
+    assert len(matched) == run["n_correct"]
+    assert results.comparison.iloc[0]["success_pct"] == pytest.approx(100 * run["success_rate"])
+    assert not (tmp_path / run["session"]).exists()  # simulated session deleted after use
