@@ -54,6 +54,12 @@ class OrchardSpec:
     origin_lat: float = 37.2810
     origin_lon: float = -120.4200
     origin_height: float = 50.0
+    # Revisits of the same orchard (same seed, same layout): crown growth, removed trees and
+    # young trees replanted in place of old ones (tree ids of the full layout).
+    crown_scale: float = 1.0
+    removed_trees: list[int] = field(default_factory=list)
+    replanted_trees: list[int] = field(default_factory=list)
+    replanted_crown_scale: float = 0.5
 
 
 @dataclass
@@ -86,6 +92,7 @@ class DriveSpec:
     start_still: float = 2.0
     end_still: float = 1.0
     alleys: Literal["all", "inner"] = "all"
+    reverse: bool = False  # drive the serpentine backwards, from the far end of the last alley
     wheelbase: float = 1.2
     track: float = 1.0
     vibration_deg: float = 0.1
@@ -159,9 +166,14 @@ class DroneSpec:
 
 @dataclass
 class SimConfig:
-    """A whole field session: orchard, sensors, drive and optional drone flight."""
+    """A whole field session: orchard, sensors, drive and optional drone flight.
+
+    ``seed`` makes the orchard and the scene; ``session_seed``, when set, makes the drive
+    and the sensor noise instead, so one orchard can be visited on several days.
+    """
 
     seed: int = 0
+    session_seed: int | None = None
     orchard: OrchardSpec = field(default_factory=OrchardSpec)
     lidar: LidarSpec = field(default_factory=LidarSpec)
     drive: DriveSpec = field(default_factory=DriveSpec)
@@ -247,6 +259,8 @@ def validate(c: SimConfig) -> None:
     for name in ("missing_probability", "double_probability"):
         p = getattr(o, name)
         _check(0.0 <= p < 1.0, f"orchard.{name}", f"must be in [0, 1), got {p}")
+    for name in ("crown_scale", "replanted_crown_scale"):
+        _check(getattr(o, name) > 0, f"orchard.{name}", f"must be positive, got {getattr(o, name)}")
     _check(0 <= o.crown_irregularity < 0.5, "orchard.crown_irregularity",
            f"must be in [0, 0.5), got {o.crown_irregularity}")
     _check(o.foliage_density_shell > 0 and o.foliage_density_core >= 0, "orchard.foliage_density_*",

@@ -102,6 +102,9 @@ def generate_orchard(spec: OrchardSpec, rng: np.random.Generator) -> Orchard:
             row_trees.append(tree)
         row_trees = _fit_crowns(spec, row_trees, d, right, row_offsets[row])
         trees.extend(row_trees)
+    # Removal after the layout is drawn: the other trees keep their ids, places and shapes.
+    removed = set(spec.removed_trees) - set(spec.replanted_trees)
+    trees = [t for t in trees if t.tree_id not in removed]
     return Orchard(spec, trees, terrain, frame, d, right, row_offsets, (0.0, along_max))
 
 
@@ -125,6 +128,8 @@ def _row_stations(spec: OrchardSpec, rng: np.random.Generator) -> list[tuple[flo
 def _grow_tree(spec: OrchardSpec, rng: np.random.Generator, tree_id: int, row: int, index: int,
                xy: np.ndarray, d: np.ndarray, terrain: Terrain, doubled: bool) -> Tree:
     diameter = rng.uniform(*spec.crown_diameter_range) * (rng.uniform(0.7, 0.9) if doubled else 1.0)
+    # Growth scales the drawn crown (the draws stay the same, so the layout does too).
+    diameter *= spec.replanted_crown_scale if tree_id in spec.replanted_trees else spec.crown_scale
     a = diameter / 2.0
     b = a * rng.uniform(*spec.crown_across_ratio_range)
     crown_height = diameter * rng.uniform(*spec.crown_height_ratio_range)

@@ -42,16 +42,21 @@ class SimulatedSession:
     drone_dir: Path | None = None
 
 
-def _streams(seed: int) -> dict[str, np.random.Generator]:
+def _streams(seed: int, session_seed: int | None = None) -> dict[str, np.random.Generator]:
     names = ["orchard", "scene", "drive", "lidar", "imu", "gnss", "drone"]
     children = np.random.SeedSequence(seed).spawn(len(names))
-    return {n: np.random.default_rng(c) for n, c in zip(names, children)}
+    rngs = {n: np.random.default_rng(c) for n, c in zip(names, children)}
+    if session_seed is not None:  # another visit of the same orchard: new drive and noise
+        visit = np.random.SeedSequence([seed, session_seed]).spawn(len(names))
+        rngs.update({n: np.random.default_rng(c) for n, c in zip(names, visit)
+                     if n not in ("orchard", "scene")})
+    return rngs
 
 
 def build_world(config: SimConfig) -> tuple[Orchard, Trajectory, Scene, dict[str, np.random.Generator]]:
     """The orchard, the drive and the scene mesh for a config (deterministic in its seed)."""
     validate(config)
-    rngs = _streams(config.seed)
+    rngs = _streams(config.seed, config.session_seed)
     orchard = generate_orchard(config.orchard, rngs["orchard"])
     trajectory = Trajectory(orchard, config.drive, config.lidar.mount_height, rngs["drive"],
                             t0=SESSION_EPOCH, mount_pitch_deg=config.lidar.mount_pitch_deg)

@@ -30,6 +30,9 @@ class _Line:
         heading = np.full(len(s), np.arctan2(self.direction[1], self.direction[0]))
         return xy, heading
 
+    def reversed(self) -> _Line:
+        return _Line(self.start + self.length * self.direction, -self.direction, self.length)
+
 
 @dataclass(frozen=True)
 class _Arc:
@@ -46,6 +49,9 @@ class _Arc:
         ang = self.start_angle + self.turn * s / self.radius
         xy = self.center + self.radius * np.column_stack([np.cos(ang), np.sin(ang)])
         return xy, ang + self.turn * np.pi / 2
+
+    def reversed(self) -> _Arc:
+        return _Arc(self.center, self.radius, self.start_angle + self.turn * np.pi, -self.turn)
 
 
 class Trajectory:
@@ -197,4 +203,6 @@ def _plan_segments(orchard: Orchard, spec: DriveSpec) -> tuple[list, list[bool]]
             turn = -1.0 if forward else 1.0
             segments.append(_Arc(center, radius, start_angle, turn))
             flags.append(True)
+    if spec.reverse:  # the same path driven from its far end
+        return [seg.reversed() for seg in reversed(segments)], flags[::-1]
     return segments, flags
