@@ -287,10 +287,16 @@ def _bag_file(path: Path) -> Path:
 
 @pytest.mark.parametrize("fmt", BAG_FORMATS)
 def test_truncated_bag(tmp_path: Path, fmt: str) -> None:
+    """Cut in the middle: the messages before the cut are read, with a warning naming the
+    file (more cases in test_reliability_bags.py); cut before the first message: an error."""
     path = write_full_bag(tmp_path / "whole", fmt)
     storage = _bag_file(path)
     data = storage.read_bytes()
     storage.write_bytes(data[: len(data) // 2])  # cut a real bag in the middle
+    with open_bag(path) as bag:
+        assert 0 < len(list(bag.scans())) <= 3
+        assert bag.recovered and str(path) in bag.warnings[0] and "cut short" in bag.warnings[0]
+    storage.write_bytes(data[:40])
     with pytest.raises(InputError) as err, open_bag(path) as bag:
         list(bag.scans())
     message = str(err.value)

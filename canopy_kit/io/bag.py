@@ -115,6 +115,8 @@ class BagSession:
         if bag_kind(self.path) is None:
             raise InputError(f"{self.path}: not a ROS1 .bag file or a ROS2 bag folder")
         self._reader: Any = None
+        self.warnings: list[str] = []
+        self.recovered = False  # read in file order after rosbags refused the bag (cut short?)
 
     def __enter__(self) -> "BagSession":
         from rosbags.highlevel import AnyReader
@@ -123,12 +125,34 @@ class BagSession:
         target = self.path
         if self.path.is_file() and self.path.suffix in (".db3", ".mcap"):
             target = self.path.parent
+        from canopy_kit.io.bag_recovery import sqlite_cut_short
+
+        if sqlite_cut_short(self.path):
+            self._recover("the sqlite3 file is shorter than its header says")
+            return self
         try:
             self._reader = AnyReader([target], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             self._reader.open()
         except Exception as exc:  # rosbags raises several unrelated types for bad files
-            raise InputError(f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})") from None
+            self._reader = None
+            self._recover(f"{type(exc).__name__}: {exc}")
         return self
+
+    def _recover(self, reason: str) -> None:
+        """Fall back to reading the complete records of a damaged bag (partial data)."""
+        from canopy_kit.io.bag_recovery import recover_bag
+
+        try:
+            self._reader = recover_bag(self.path)
+        except Exception as exc:  # InputError, or whatever the damaged bytes provoke
+            detail = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
+            raise InputError(f"{self.path}: cannot open bag ({reason}); reading it record by "
+                             f"record failed too: {detail}") from None
+        self.recovered = True
+        self.warnings.append(
+            f"{self.path}: damaged or cut short ({reason}); recovered "
+            f"{self._reader.message_count} messages up to "
+            f"t={self._reader.end_time * 1e-9:.3f} s, the rest is lost ({self._reader.stopped})")
 
     def __exit__(self, *exc: object) -> None:
         if self._reader is not None:
@@ -174,7 +198,8 @@ class BagSession:
         candidates = [t for t in topics if t.msgtype == msgtype and t.count > 0]
         if not candidates:
             if required:
-                raise InputError(f"{self.path}: no {msgtype} topic in the bag")
+                part = " part recovered from the damaged" if self.recovered else ""
+                raise InputError(f"{self.path}: no {msgtype} topic in the{part} bag")
             return None
         # Prefer names that do not look like ground truth or debug output.
         candidates.sort(key=lambda t: ("ground_truth" in t.name or "truth" in t.name, -t.count))

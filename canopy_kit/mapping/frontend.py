@@ -26,6 +26,9 @@ from canopy_kit.mapping.sensors import ImuBuffer
 
 IMU_WAIT_SCANS = 5  # process a sweep anyway when the IMU lags this many sweeps behind
 STARTUP_MAX_SCANS = 300  # give up waiting for the end of the standstill after this many
+DROPOUT_S = 1.0  # s without a scan reported as a sensor dropout (a hole in the map)
+MIN_VELOCITY_DT = 0.02  # s: sweeps closer than this give no velocity (mis-stamped duplicates)
+STANDSTILL_M = 1.0  # a drive whose sweeps all stay this close to the first one stood still
 
 
 @dataclass
@@ -54,6 +57,9 @@ class FrontendState:
     not_deskewed: int = 0
     ground_fallbacks: int = 0
     ground_corrections: int = 0
+    out_of_order: list[int] = field(default_factory=list)  # scans stamped at or before the previous
+    gaps: list[tuple[float, float]] = field(default_factory=list)  # (last stamp, seconds) of dropouts
+    max_displacement: float = 0.0  # m, horizontal, of any sweep from the first
     warnings: list[str] = field(default_factory=list)
 
 
@@ -74,6 +80,7 @@ class LidarFrontend:
         self._omega = np.zeros(3)  # body frame, rad/s
         self._imu_used = 0
         self._sparse_run = 0
+        self._last_stamp = -np.inf  # stamp of the last scan fed
         self._ground_grid = GroundHeightGrid() if config.odometry_ground_refine else None
 
     # -- start-up --------------------------------------------------------------------------
@@ -136,7 +143,17 @@ class LidarFrontend:
         return self.imu.last_time >= end
 
     def feed(self, scan: Scan) -> list[FrontendSweep]:
-        """Queue ``scan``; return the sweeps that could be processed now."""
+        """Queue ``scan``; return the sweeps that could be processed now.
+
+        A scan stamped at or before the previous one (a repeated or mis-stamped message) is
+        dropped: its zero or negative time step would wreck the motion model.
+        """
+        if scan.stamp <= self._last_stamp:
+            self.state.out_of_order.append(scan.index)
+            return []
+        if scan.stamp - self._last_stamp > DROPOUT_S and np.isfinite(self._last_stamp):
+            self.state.gaps.append((self._last_stamp, scan.stamp - self._last_stamp))
+        self._last_stamp = scan.stamp
         self._queue.append(scan)
         return self._drain(final=False)
 
@@ -202,13 +219,14 @@ class LidarFrontend:
         if self._ground_grid is not None:
             pose = self._refine_with_ground(pose, xyz[ground])
         self._odometry.commit(pose)
-        if self._prev_t is not None and t_ref > self._prev_t:
+        if self._prev_t is not None and t_ref - self._prev_t >= MIN_VELOCITY_DT:
             dt = t_ref - self._prev_t
             delta = np.linalg.inv(previous) @ pose
             self._velocity = delta[:3, 3] / dt
             self._omega = Rotation.from_matrix(delta[:3, :3]).as_rotvec() / dt
         self._prev_t = t_ref
         st.sweeps += 1
+        st.max_displacement = max(st.max_displacement, float(np.hypot(*pose[:2, 3])))
         return FrontendSweep(scan, t_ref, pose, keep, xyz, ground, deskewed)
 
     def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:

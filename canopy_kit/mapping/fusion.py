@@ -28,6 +28,9 @@ from canopy_kit.io.bag import ImuSeries
 from canopy_kit.mapping.gnss import GnssEpochs
 from canopy_kit.mapping.imu import GRAVITY, Standstill
 
+# m: below this horizontal extent of the drive, GNSS noise, not motion, would set the heading
+MIN_HEADING_BASELINE = 3.0
+
 
 @dataclass
 class FusionSettings:
@@ -178,6 +181,8 @@ def initial_alignment(times: np.ndarray, odometry: np.ndarray, gnss: GnssEpochs)
     if inside.sum() < 3:
         return None
     p_odo = np.column_stack([np.interp(gnss.t[inside], times, odometry[:, k, 3]) for k in range(3)])
+    if np.ptp(p_odo[:, :2], axis=0).max() < MIN_HEADING_BASELINE:
+        return None  # standing (nearly) still: the heading is not observable
     yaw, shift = heading_alignment(p_odo, gnss.xyz[inside])
     a = np.eye(4)
     a[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
@@ -241,6 +246,11 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
     diag: dict = {"keyframes": int(n)}
 
     align = initial_alignment(times, odometry, gnss) if gnss is not None else None
+    if align is None and gnss is not None:
+        extent = float(np.ptp(odometry[:, :2, 3], axis=0).max())
+        diag["no_heading"] = (f"the robot moved {extent:.1f} m, too little for a heading from GNSS"
+                              if extent < MIN_HEADING_BASELINE else
+                              "GNSS fixes do not overlap the LiDAR sweeps")
     if align is None:
         gnss = None
         align = np.eye(4)

@@ -24,7 +24,8 @@ from canopy_kit.errors import InputError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.bag import BagSession, open_bag
 from canopy_kit.mapping.assemble import TIME_FIELD, assemble_map, point_fields
-from canopy_kit.mapping.frontend import FrontendSweep, LidarFrontend, require_sweeps
+from canopy_kit.mapping.frontend import (DROPOUT_S, STANDSTILL_M, FrontendSweep, LidarFrontend,
+                                         require_sweeps)
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
 from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
 from canopy_kit.mapping.sensors import GnssBuffer, ImuBuffer, SensorTopics, resolve_topics, sensor_messages
@@ -139,7 +140,7 @@ class _PassOne:
         yield from self.frontend.finish()
 
     def warnings(self) -> list[str]:
-        out = _input_warnings(self.topics, self.config, self.bag)
+        out = list(self.bag.warnings) + _input_warnings(self.topics, self.config, self.bag)
         st = self.frontend.state
         if self.n_without_time:
             out.append(f"{self.bag.path}: topic {self.topics.scans!r}: {self.n_without_time} of "
@@ -152,6 +153,18 @@ class _PassOne:
             out.append(f"{len(st.skipped_sparse)} scans had fewer than "
                        f"{self.config.min_points_per_scan} points in range and were skipped "
                        f"(first: scan {st.skipped_sparse[0]})")
+        if st.out_of_order:
+            out.append(f"{self.bag.path}: topic {self.topics.scans!r}: {len(st.out_of_order)} scans "
+                       "stamped at or before the scan before them (repeated or backwards time) were "
+                       f"skipped (first: scan {st.out_of_order[0]})")
+        if st.gaps:
+            start, length = max(st.gaps, key=lambda g: g[1])
+            out.append(f"{self.bag.path}: topic {self.topics.scans!r}: no scan for {length:.1f} s "
+                       f"after t={start:.3f} s ({len(st.gaps)} gap(s) over {DROPOUT_S:.0f} s): sensor "
+                       "dropout, the map has a hole there")
+        if st.sweeps >= 2 and st.max_displacement < STANDSTILL_M:
+            out.append(f"the robot moved at most {st.max_displacement:.2f} m from its start: the map "
+                       "shows what one spot sees (one-sided crowns, trees out of range missing)")
         if st.ground_fallbacks:
             out.append(f"{st.ground_fallbacks} sweeps had almost no points above the ground; their "
                        "odometry used the ground points (flat-ground trap possible)")
@@ -185,7 +198,8 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         fused = fuse_trajectory(t_ref, odometry, fusion_settings(config), imu=imu,
                                 standstill=st.standstill, gnss=epochs)
         if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
-            warnings.append("GNSS fixes do not overlap the LiDAR sweeps; the map is not georeferenced")
+            why = fused.diagnostics.get("no_heading", "GNSS fixes do not overlap the LiDAR sweeps")
+            warnings.append(f"{why}; the map is not georeferenced")
             frame = None
         trajectory = ContinuousTrajectory(fused.times, fused.poses, t_ref, odometry, st.rotations)
         timing["fusion_cpu_s"] = time.process_time() - cpu1
@@ -219,6 +233,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "points_offered": offered,
         "up_source": st.up_source,
         "georeferenced": frame is not None,
+        "quality_flags": quality_flags(one, frame, imu),
         "fusion": fused.diagnostics,
         "timing": timing,
         "real_time_factor": duration / timing["total_wall_s"] if timing["total_wall_s"] > 0 else None,
@@ -235,6 +250,16 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
     return MappingResult(cloud, table, frame, diagnostics, warnings, config)
+
+
+def quality_flags(one: _PassOne, frame: LocalFrame | None, imu: object) -> list[str]:
+    """Short names of what makes the map less trustworthy than a clean drive's (metrics.json)."""
+    st = one.frontend.state
+    flags = {"bag_recovered": one.bag.recovered, "scan_gaps": bool(st.gaps),
+             "scans_out_of_order": bool(st.out_of_order), "scans_skipped": bool(st.skipped_sparse),
+             "standing_still": st.max_displacement < STANDSTILL_M, "no_imu": imu is None,
+             "not_georeferenced": frame is None}
+    return [name for name, raised in flags.items() if raised]
 
 
 def _children_cpu() -> float:
