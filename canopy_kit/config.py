@@ -138,6 +138,10 @@ class PipelineConfig:
     volume: VolumeConfig = field(default_factory=VolumeConfig)
     ground_truth: GroundTruthConfig = field(default_factory=GroundTruthConfig)
 
+    def __post_init__(self) -> None:
+        if isinstance(self.seed, int) and self.seed < 0:  # numpy seeds are non-negative
+            raise ConfigError(f"config.seed: expected a non-negative integer, got {self.seed}")
+
 
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")

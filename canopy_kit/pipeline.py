@@ -80,6 +80,11 @@ def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
         raise InputError(f"{drone_images}: drone image folder does not exist")
     if truth is not None and not Path(truth).is_dir():
         raise InputError(f"{truth}: simulated session folder does not exist")
+    check_settings(config)
+    if drone_images is not None:
+        from ground_truth.exif import read_flight
+
+        read_flight(drone_images)  # bad photos reported now, not after the LiDAR stages
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache(out / ".cache", enabled=use_cache)
     report = progress or (lambda *_: None)
@@ -104,6 +109,20 @@ def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
         ctx.table = ctx.evaluation.pop("trees")
         ctx.truth_matches = ctx.evaluation.pop("segmentation_trees")
     return ctx, cache
+
+
+def check_settings(config: PipelineConfig) -> None:
+    """Plugins, their parameters and the preprocessing ranges, checked before any stage runs
+    (a typo in a preset must not cost a mapping run first)."""
+    from canopy_kit.segment.preprocess import check_preprocess_config
+    from canopy_kit.segment.verb import make_segmenter
+    from canopy_kit.volume import estimator
+
+    check_preprocess_config(config.preprocess)
+    make_segmenter(config.segment.method, config.segment.params)
+    for method in config.volume.methods:
+        volume = estimator(method, **config.volume.params.get(method, {}))
+        getattr(volume, "_check_params", lambda: None)()
 
 
 # -- stages ---------------------------------------------------------------------------------

@@ -73,6 +73,22 @@ def _no_data_values(header: Any) -> dict[str, float]:
     return out
 
 
+def _check_scale(header: Any, path: Path) -> None:
+    """Coordinates are integers times the header scale plus the offset: both must be usable.
+
+    A zero scale collapses every point onto the offset and a NaN or infinite one makes
+    every coordinate NaN; neither is a cloud, whatever laspy returns.
+    """
+    scales = np.asarray(header.scales, dtype=np.float64)
+    offsets = np.asarray(header.offsets, dtype=np.float64)
+    if not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
+        raise InputError(f"{path}: LAS header scale factors {scales.tolist()} are not positive "
+                         "finite numbers; the header is corrupt")
+    if not np.all(np.isfinite(offsets)):
+        raise InputError(f"{path}: LAS header offsets {offsets.tolist()} are not finite; "
+                         "the header is corrupt")
+
+
 def las_origin(header: Any) -> np.ndarray:
     """Per axis: the header offset when the data lie within 10 km of it, else a round origin.
 
@@ -97,6 +113,7 @@ def read_las(path: str | Path) -> PointCloud:
     header = las.header
     if len(las.points) == 0:
         raise InputError(f"{path}: LAS file has no points")
+    _check_scale(header, path)
     origin = las_origin(header)
     raw = [np.asarray(las[c]) for c in ("X", "Y", "Z")]
     xyz = np.column_stack(
@@ -127,6 +144,7 @@ def describe_las(path: str | Path) -> dict[str, Any]:
             header = reader.header
     except Exception as exc:
         raise _open_error(path, exc) from None
+    _check_scale(header, path)
     attributes = []
     for dim in header.point_format.dimensions:
         if dim.name in ("X", "Y", "Z"):
