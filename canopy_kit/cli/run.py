@@ -15,6 +15,8 @@ def run(
     truth: Path = typer.Option(None, "--truth", help="Simulated session folder to evaluate against"),
     set_: list[str] = typer.Option([], "--set", help="Override a setting: section.key=value"),
     no_cache: bool = typer.Option(False, "--no-cache", help="Recompute every stage"),
+    stream: bool = typer.Option(False, "--stream", help="Emit each tree once the robot has passed "
+                                "it, keeping only a window of the map (no map or report)"),
 ) -> None:
     """Map, segment, measure and (optionally) validate one field session; write the report."""
     from canopy_kit.cli.common import console, parse_overrides, progress_bar
@@ -22,6 +24,11 @@ def run(
     from canopy_kit.pipeline import run as run_pipeline
 
     config = load_preset(preset, parse_overrides(set_))
+    if stream:
+        from canopy_kit.cli.stream import run_streaming
+
+        run_streaming(config, bag, out, extra_inputs=drone_images or truth)
+        return
     with progress_bar(transient=True) as progress:
         results = run_pipeline(config, bag, out, drone_images=drone_images, truth=truth,
                                use_cache=not no_cache, progress=progress)
