@@ -1,12 +1,11 @@
 """Trunk detection below the canopy: compact, vertical clusters in the stem band.
 
 A trunk seen from the alleys is a narrow vertical column of points between the grass and
-the crown; grass is too low to fill the lower part of the band, a crown that hangs into
-the band is wide and fills only its top. So only the lowest ``slice_height`` of the stem
-band is used: points there are grouped in the horizontal plane (cells of ``cell``), and a
-group is a trunk when it is narrow (``max_radius``) and fills most of the slice's height
-(``min_coverage`` of its 5 cm layers). Trunks closer than ``merge_distance`` are one tree
-(a forked trunk or one trunk split by occlusion).
+the crown; grass is too low to reach the stem band, and a crown that hangs into the band
+rarely reaches its foot. So trunks are looked for in the lowest ``slice_height`` of the
+band: compact groups of points at its foot (cells of ``cell``) whose column fills most of
+the slice's height (``min_coverage`` of its 5 cm layers). Trunks closer than
+``merge_distance`` are one tree (a forked trunk or one trunk split by occlusion).
 """
 
 from __future__ import annotations
@@ -15,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -37,45 +37,60 @@ def no_stems() -> StemDetections:
 
 def detect_stems(stem_xyz: np.ndarray | None, slice_height: float = 0.3, cell: float = 0.05,
                  max_radius: float = 0.3, min_coverage: float = 0.6,
-                 merge_distance: float = 0.5) -> StemDetections:
-    """Trunks among height-normalised stem-band points ``(x, y, height above ground)``."""
+                 merge_distance: float = 0.8, foot_height: float = 0.1,
+                 min_share: float = 0.4) -> StemDetections:
+    """Trunks among height-normalised stem-band points ``(x, y, height above ground)``.
+
+    Candidates are compact groups of points in the lowest ``foot_height`` of the slice
+    (where leaves of a low crown rarely reach); a candidate is a trunk when the column of
+    radius ``max_radius`` above it fills ``min_coverage`` of the slice's 5 cm layers and
+    has at least ``min_share`` of the median trunk's points and foot radius.
+    """
     if stem_xyz is None or len(stem_xyz) < 3:
         return no_stems()
     p = np.asarray(stem_xyz, dtype=np.float64)
     z0 = np.percentile(p[:, 2], 1)
     p = p[(p[:, 2] >= z0) & (p[:, 2] < z0 + slice_height)]
-    if len(p) < 3:
+    foot = p[p[:, 2] < z0 + foot_height]
+    if len(foot) < 3:
         return no_stems()
-    lo = p[:, :2].min(axis=0) - 2 * cell
-    keys = np.floor((p[:, :2] - lo) / cell).astype(np.int64)
-    shape = tuple(keys.max(axis=0) + 3)
-    occ = np.zeros(shape, bool)
+    lo = foot[:, :2].min(axis=0) - 2 * cell
+    keys = np.floor((foot[:, :2] - lo) / cell).astype(np.int64)
+    occ = np.zeros(tuple(keys.max(axis=0) + 3), bool)
     occ[keys[:, 0], keys[:, 1]] = True
     # Cells one apart belong together (a sparse trunk seen from two sides).
-    grown = ndimage.binary_dilation(occ, np.ones((3, 3), bool))
-    blobs, n = ndimage.label(grown, np.ones((3, 3), bool))
+    blobs, n = ndimage.label(ndimage.binary_dilation(occ, np.ones((3, 3), bool)),
+                             np.ones((3, 3), bool))
     lab = blobs[keys[:, 0], keys[:, 1]] - 1
     n_layers = max(int(round(slice_height / 0.05)), 1)
     layer = np.minimum(((p[:, 2] - z0) / 0.05).astype(int), n_layers - 1)
-    order = np.argsort(lab, kind="stable")
-    bounds = np.searchsorted(lab[order], np.arange(n + 1))
+    column_tree = cKDTree(p[:, :2])
     xy, npts, rad, cov = [], [], [], []
     for b in range(n):
-        members = order[bounds[b]:bounds[b + 1]]
-        if len(members) < 3:
+        q = foot[lab == b]
+        if len(q) < 2:
             continue
-        q = p[members]
         c = q[:, :2].mean(axis=0)
         r = float(np.percentile(np.linalg.norm(q[:, :2] - c, axis=1), 90))
-        coverage = len(np.unique(layer[members])) / n_layers
-        if r <= max_radius and coverage >= min_coverage:
+        if r > max_radius:
+            continue
+        column = column_tree.query_ball_point(c, max(2 * r, 0.1) + cell)
+        coverage = len(np.unique(layer[column])) / n_layers
+        if coverage >= min_coverage:
             xy.append(c)
-            npts.append(len(members))
+            npts.append(len(column))
             rad.append(r)
             cov.append(coverage)
     if not xy:
         return no_stems()
-    return _merge_close(np.array(xy), np.array(npts), np.array(rad), np.array(cov), merge_distance)
+    npts_a, rad_a = np.array(npts), np.array(rad)
+    # A few leaves hanging to the foot make a column too, but a thinner one, of fewer
+    # points than the trunks of the same scan.
+    solid = np.ones(len(npts_a), bool)
+    if len(npts_a) >= 3:
+        solid = (npts_a >= min_share * np.median(npts_a)) & (rad_a >= min_share * np.median(rad_a))
+    return _merge_close(np.array(xy)[solid], npts_a[solid], rad_a[solid],
+                        np.array(cov)[solid], merge_distance)
 
 
 def _merge_close(xy: np.ndarray, npts: np.ndarray, rad: np.ndarray, cov: np.ndarray,
