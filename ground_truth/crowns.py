@@ -249,6 +249,18 @@ def feret_extents(rows: np.ndarray, cols: np.ndarray, resolution: float) -> tupl
             float(np.arctan2(axis[1], axis[0])))
 
 
+def _closed_chm(chm: np.ndarray, resolution: float, radius_m: float = 0.3) -> np.ndarray:
+    """Grey closing of the CHM (on cells of about 0.1 m), back on the input grid."""
+    from scipy.ndimage import grey_closing
+
+    step = max(int(round(0.1 / resolution)), 1)
+    coarse = np.nan_to_num(np.asarray(chm)[::step, ::step], nan=0.0)
+    closed = grey_closing(coarse, footprint=_disk(radius_m / (resolution * step)))
+    rows = np.minimum(np.arange(chm.shape[0]) // step, closed.shape[0] - 1)
+    cols = np.minimum(np.arange(chm.shape[1]) // step, closed.shape[1] - 1)
+    return closed[np.ix_(rows, cols)]
+
+
 def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
     """One row per crown: centre, area, diameters, heights and volume models."""
     from scipy.ndimage import binary_erosion, find_objects
@@ -256,6 +268,7 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
     grid, labels = seg.grid, seg.labels
     res = grid.resolution
     x, y = grid.centers()
+    surface = _closed_chm(chm, res)  # the crown's top surface without the gaps between leaves
     rows = []
     for k, sl in enumerate(find_objects(labels)):
         if sl is None:
@@ -284,7 +297,7 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
             "sphere_volume_m3": np.pi * d_max**3 / 6.0,
             "sphere_volume_mean_m3": np.pi * d_mean**3 / 6.0,
             "ellipsoid_volume_m3": np.pi / 6.0 * d_max * d_perp * depth,
-            "chm_volume_m3": float(2.0 * np.sum(np.clip(h - edge, 0.0, None)) * res**2),
+            "chm_volume_m3": float(2.0 * np.sum(np.clip(surface[sl][region] - edge, 0.0, None)) * res**2),
             "seed_id": seed, "touches_border": touches,
         })
     return pd.DataFrame(rows, columns=CROWN_COLUMNS)

@@ -32,6 +32,7 @@ class SurfaceOptions:
     window_cells: int = 3
     min_score: float = 0.3
     class_weight: float = 1.0
+    all_pairs: bool = True
     max_height: float | None = None  # above ground; default from the sparse points
     ground_window_m: float = 10.0
     ground_resolution: float = 1.0
@@ -260,23 +261,26 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
     before = np.full(len(g), np.nan, np.float32)
     after = np.full(len(g), np.nan, np.float32)
     previous = np.full(len(g), np.nan, np.float32)
+    if opts.all_pairs:
+        pairs = [(i, j) for i in range(k) for j in range(i + 1, k)]
+        keep = len(pairs) - (k - 1)  # drop as many pairs as one occluded view spoils
+    else:
+        pairs = [(0, j) for j in range(1, k)]
+        keep = len(pairs) - 1 if k > 2 else len(pairs)
     for li, h in enumerate(levels):
-        ref = samplers[0].sample(h).reshape(grid.shape)
-        ref_class = None if class_samplers is None else class_samplers[0].sample(h).reshape(grid.shape)
+        grey = [s.sample(h).reshape(grid.shape) for s in samplers]
+        cls = None if class_samplers is None else [s.sample(h).reshape(grid.shape) for s in class_samplers]
         scores = []
-        for j in range(1, k):
-            other = samplers[j].sample(h).reshape(grid.shape)
-            score_j = _ncc(ref, other, opts.window_cells, min_fraction=0.8)
-            if ref_class is not None:
-                other_class = class_samplers[j].sample(h).reshape(grid.shape)
-                score_j = score_j - opts.class_weight * _class_disagreement(
-                    ref_class, other_class, opts.window_cells)
-            scores.append(score_j)
+        for i, j in pairs:
+            score_ij = _ncc(grey[i], grey[j], opts.window_cells, min_fraction=0.8)
+            if cls is not None:
+                score_ij = score_ij - opts.class_weight * _class_disagreement(cls[i], cls[j],
+                                                                               opts.window_cells)
+            scores.append(score_ij)
         stack = np.stack(scores)
-        # Robust to one occluded view: average the best k-2 of the k-1 pairs.
-        if k > 2:
-            stack = np.sort(np.where(np.isfinite(stack), stack, -np.inf), axis=0)[1:]
-            stack[~np.isfinite(stack)] = np.nan
+        # Robust to one view that sees something else (occlusion): average the best pairs.
+        stack = np.sort(np.where(np.isfinite(stack), stack, -np.inf), axis=0)[len(pairs) - keep:]
+        stack[~np.isfinite(stack)] = np.nan
         finite = np.isfinite(stack)
         count = finite.sum(axis=0)
         score = np.where(count > 0, np.where(finite, stack, 0.0).sum(axis=0) / np.maximum(count, 1),

@@ -91,23 +91,10 @@ def _survey_grid(model: SparseModel, resolution: float) -> Grid:
     return Grid.covering(lo - pad, hi + pad, resolution)
 
 
-def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFrame | None = None,
-                   seeds: str | Path | pd.DataFrame | None = None, progress: Progress | None = None,
-                   options: GroundTruthOptions | None = None) -> GroundTruthResult:
-    """Drone photos → georeferenced orthomosaic, DSM/DTM/CHM, crowns and (with seeds) per-tree table.
-
-    ``frame`` is the local metric frame of the LiDAR map (default: UTM at the flight);
-    ``seeds`` are tree positions (CSV path or table with lat/lon or x/y) that seed the
-    crown watershed and receive one matched crown each.
-    """
-    opts = options or GroundTruthOptions()
-    report = progress or (lambda *_: None)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    timings: dict[str, float] = {}
-
-    flight = read_flight(images_dir)
-    frame = frame or flight.default_frame()
+def _reconstruct(flight: Flight, out: Path, frame: LocalFrame, opts: GroundTruthOptions,
+                 report: Progress, timings: dict[str, float]
+                 ) -> tuple[SparseModel, SurfaceModel, Orthomosaic, float, float, float]:
+    """SfM, surface models and orthomosaic of a flight."""
     t0 = time.perf_counter()
     model = run_sfm(flight, out / "sfm", frame, opts.sfm, report)
     timings["sfm"] = time.perf_counter() - t0
@@ -135,6 +122,45 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     t0 = time.perf_counter()
     mosaic = orthomosaic(cameras, rgbs, grid, surface.dsm, ortho_res, progress=report)
     timings["orthomosaic"] = time.perf_counter() - t0
+    return model, surface, mosaic, gsd, ortho_res, top
+
+
+def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFrame | None = None,
+                   seeds: str | Path | pd.DataFrame | None = None, progress: Progress | None = None,
+                   options: GroundTruthOptions | None = None,
+                   reuse: GroundTruthResult | None = None) -> GroundTruthResult:
+    """Drone photos → georeferenced orthomosaic, DSM/DTM/CHM, crowns and (with seeds) per-tree table.
+
+    ``frame`` is the local metric frame of the LiDAR map (default: UTM at the flight);
+    ``seeds`` are tree positions (CSV path or table with lat/lon or x/y) that seed the
+    crown watershed and receive one matched crown each. ``reuse``, an earlier result for
+    the same photos and frame, skips SfM, surface and orthomosaic (other seeds or crown
+    options only).
+    """
+    opts = options or GroundTruthOptions()
+    report = progress or (lambda *_: None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+
+    flight = read_flight(images_dir)
+    frame = frame or (reuse.frame if reuse is not None else flight.default_frame())
+    if reuse is not None:
+        if reuse.model is None:
+            raise ProcessingError("a result loaded from disk has no SfM model to reuse; process the "
+                                  "photos again")
+        if reuse.frame != frame or sorted(reuse.model.cameras) != sorted(
+                n for n in flight.names if n not in reuse.model.unregistered):
+            raise ProcessingError(f"{images_dir}: the result to reuse comes from other photos or "
+                                  "another frame")
+        model, surface, mosaic = reuse.model, reuse.surface, reuse.ortho
+        timings.update({k: v for k, v in reuse.report["timings_s"].items()
+                        if k in ("sfm", "surface", "orthomosaic")})
+        gsd, ortho_res, top = (reuse.report["ground_sampling_distance_m"],
+                               reuse.report["orthomosaic_resolution_m"], reuse.report["canopy_search_height_m"])
+    else:
+        model, surface, mosaic, gsd, ortho_res, top = _reconstruct(flight, out, frame, opts, report, timings)
+    grid = surface.grid
 
     t0 = time.perf_counter()
     trees = None
