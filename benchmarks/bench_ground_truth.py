@@ -128,10 +128,41 @@ def speed(work: Path) -> None:
                           "stages_s": {k: round(v, 1) for k, v in model.timings.items()}}))
 
 
+def figures(work: Path, docs: Path) -> None:
+    """Figures for docs/GROUND_TRUTH.md from the accuracy runs (run ``--only accuracy`` first)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    from ground_truth.pipeline import load_result
+    from ground_truth.plots import plot_crowns, plot_surface
+
+    docs.mkdir(parents=True, exist_ok=True)
+    for kind, rows, trees, seed in ACCURACY_FLIGHTS:
+        root = work / f"{kind}_{rows}x{trees}_s{seed}"
+        result = load_result(root / "gt_chm_maxima")
+        truth = pd.read_csv(root / "truth" / "trees.csv").rename(
+            columns={"crown_x": "x", "crown_y": "y", "crown_diameter_m": "diameter"})
+        ax = plot_crowns(result.ortho, result.segmentation, result.crowns, truth=truth)
+        ax.set_title(f"{kind}: orthomosaic, crowns (red, numbered), true widest extent (cyan)")
+        ax.figure.savefig(docs / f"ground_truth_{kind}_crowns.png", dpi=110, bbox_inches="tight")
+        plt.close(ax.figure)
+        axes = plot_surface(result.surface)
+        axes[0].figure.savefig(docs / f"ground_truth_{kind}_dsm_chm.png", dpi=90, bbox_inches="tight")
+        plt.close(axes[0].figure)
+        photo = sorted((root / "drone").glob("*.jpg"))[len(list((root / "drone").glob("*.jpg"))) // 2]
+        with Image.open(photo) as im:
+            im.convert("RGB").save(docs / f"sim_drone_photo_{kind}.png")
+        print(f"  figures for {kind} in {docs}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=REPO / "work" / "bench_ground_truth")
-    parser.add_argument("--only", choices=["accuracy", "sphere", "speed"])
+    parser.add_argument("--only", choices=["accuracy", "sphere", "speed", "figures"])
+    parser.add_argument("--docs", type=Path, default=REPO / "docs" / "figures")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     if args.only in (None, "sphere"):
@@ -140,6 +171,8 @@ def main() -> None:
         accuracy(args.work)
     if args.only in (None, "speed"):
         speed(args.work)
+    if args.only in (None, "figures"):
+        figures(args.work, args.docs)
 
 
 if __name__ == "__main__":

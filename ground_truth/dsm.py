@@ -263,7 +263,7 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
     previous = np.full(len(g), np.nan, np.float32)
     if opts.all_pairs:
         pairs = [(i, j) for i in range(k) for j in range(i + 1, k)]
-        keep = len(pairs) - (k - 1)  # drop as many pairs as one occluded view spoils
+        keep = max(len(pairs) - (k - 1), 1)  # drop as many pairs as one occluded view spoils
     else:
         pairs = [(0, j) for j in range(1, k)]
         keep = len(pairs) - 1 if k > 2 else len(pairs)
