@@ -93,6 +93,7 @@ class DriveSpec:
     end_still: float = 1.0
     alleys: Literal["all", "inner"] = "all"
     reverse: bool = False  # drive the serpentine backwards, from the far end of the last alley
+    lead_in: float = 0.0  # metres of straight approach before the first alley (a farther start)
     wheelbase: float = 1.2
     track: float = 1.0
     vibration_deg: float = 0.1
@@ -286,6 +287,7 @@ def validate(c: SimConfig) -> None:
     _check(li.range_noise >= 0 and 0 <= li.dropout < 1, "lidar.range_noise/dropout", "out of range")
     _check(li.mount_height > 0, "lidar.mount_height", f"must be positive, got {li.mount_height}")
     _check(d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive")
+    _check(d.lead_in >= 0, "drive.lead_in", f"must not be negative, got {d.lead_in}")
     _check(d.acceleration > 0, "drive.acceleration", f"must be positive, got {d.acceleration}")
     _check(0 <= d.speed_variation < d.cruise_speed, "drive.speed_variation", "must be below cruise_speed")
     _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")

@@ -204,5 +204,9 @@ def _plan_segments(orchard: Orchard, spec: DriveSpec) -> tuple[list, list[bool]]
             segments.append(_Arc(center, radius, start_angle, turn))
             flags.append(True)
     if spec.reverse:  # the same path driven from its far end
-        return [seg.reversed() for seg in reversed(segments)], flags[::-1]
+        segments, flags = [seg.reversed() for seg in reversed(segments)], flags[::-1]
+    if spec.lead_in > 0:  # start farther out, driving straight into the first alley
+        first = segments[0]
+        segments[0] = _Line(first.start - spec.lead_in * first.direction, first.direction,
+                            first.length + spec.lead_in)
     return segments, flags
