@@ -38,7 +38,9 @@ class MappingConfig:
     kiss_voxel_size: float = 1.0
     kiss_max_points_per_voxel: int = 20
     min_points_per_scan: int = 500
-    threads: int = 0
+    # KISS-ICP threads. 1 keeps runs bit-reproducible; 0 (all cores) is faster but its
+    # parallel sums change the last bits of poses from run to run, and so of trees.csv.
+    threads: int = 1
     workers: int = 0
     # Pose graph: keyframes and the odometry error model (jitter plus drift)
     keyframe_every: int = 5
