@@ -146,7 +146,7 @@ def test_rerun_in_the_same_work_folder_resumes(tiny, monkeypatch):
         raise AssertionError("a finished session was simulated again")
 
     monkeypatch.setattr(ex, "simulate", no_simulation)
-    again = ex.run_experiments(TINY, work)
+    again = ex.run_experiments(TINY, work, keep_sessions=True)
     pd.testing.assert_frame_equal(again.comparison, results.comparison, check_dtype=False)
 
 
@@ -172,3 +172,17 @@ def test_pipeline_mapping_run(tmp_path):
     assert len(matched) == run["n_correct"]
     assert results.comparison.iloc[0]["success_pct"] == pytest.approx(100 * run["success_rate"])
     assert not (tmp_path / run["session"]).exists()  # simulated session deleted after use
+
+
+def test_a_complete_session_is_reused(tiny, monkeypatch):
+    import canopy_kit.sim
+
+    results, work, _ = tiny
+    run = results.runs.iloc[0]
+
+    def no_simulation(*_a, **_k):
+        raise AssertionError("a complete session with the same config was simulated again")
+
+    monkeypatch.setattr(canopy_kit.sim, "simulate_session", no_simulation)
+    bag = ex.simulate(run["orchard"], int(run["seed"]), TINY, work / run["session"])
+    assert bag.exists() and bag.parent == work / run["session"]

@@ -134,27 +134,60 @@ def paper_figures(table1: str | Path | None = None) -> dict[str, Any]:
 
 
 # -- running -----------------------------------------------------------------------------
+@dataclass
+class SharedMap:
+    """A map handed to further segmenters of the same session: the mapping stage's result
+    without its settings, so evaluation does not score the same mapping again."""
+
+    map: Any
+    trajectory: pd.DataFrame
+    frame: Any
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
 def session_name(orchard: str, seed: int, config: ExperimentConfig) -> str:
     return f"{orchard}_{config.rows}x{config.trees_per_row}_s{seed}"
 
 
-def simulate(orchard: str, seed: int, config: ExperimentConfig, root: Path,
-             progress: Progress | None = None) -> Any:
-    """Simulate one session of the experiment into ``root`` (replacing what is there)."""
+def session_config(orchard: str, seed: int, config: ExperimentConfig) -> Any:
+    """The simulator config of one session of the experiment."""
     from canopy_kit.config import merge
-    from canopy_kit.sim import load_sim_config, simulate_session
+    from canopy_kit.sim import load_sim_config
 
     base: dict[str, Any] = {"seed": seed, "orchard": {"rows": config.rows,
                                                       "trees_per_row": config.trees_per_row}}
     if config.drone:
         base["drone"] = {"enabled": True}
-    sim_cfg = load_sim_config(orchard, merge(base, config.sim_overrides), sensor=config.sensor)
-    return simulate_session(root, sim_cfg, overwrite=True, progress=progress)
+    return load_sim_config(orchard, merge(base, config.sim_overrides), sensor=config.sensor)
 
 
-def compute_on_true_poses(pipeline_config: Any, mapping: Any, sim_dir: Path,
-                          drone_images: Path | None, out: Path, progress: Progress) -> Any:
-    """The pipeline's stages after mapping, on a map built from the true poses."""
+def simulate(orchard: str, seed: int, config: ExperimentConfig, root: Path,
+             progress: Progress | None = None) -> Path:
+    """Simulate one session into ``root``, or reuse the complete one with the same config there.
+
+    Returns the bag path. A ``.complete`` file marks a finished simulation.
+    """
+    from canopy_kit.config import to_dict
+    from canopy_kit.sim import simulate_session
+    from canopy_kit.sim.session import find_bag, load_sim_config_of
+
+    sim_cfg = session_config(orchard, seed, config)
+    marker = root / ".complete"
+    if marker.is_file():
+        try:
+            if to_dict(load_sim_config_of(root)) == to_dict(sim_cfg):
+                return find_bag(root)
+        except CanopyKitError:
+            pass  # unreadable: simulate again
+    session = simulate_session(root, sim_cfg, overwrite=True, progress=progress)
+    marker.write_text("simulated\n")
+    return session.bag
+
+
+def compute_on_map(pipeline_config: Any, mapping: Any, sim_dir: Path,
+                   drone_images: Path | None, out: Path, progress: Progress) -> Any:
+    """The pipeline's stages after mapping, on a given map, scored against the truth."""
     from canopy_kit.pipeline import (
         RunContext,
         aerial_stage,
@@ -176,15 +209,14 @@ def compute_on_true_poses(pipeline_config: Any, mapping: Any, sim_dir: Path,
     return ctx
 
 
-def run_record(ctx: Any) -> dict[str, Any]:
+def run_record(ctx: Any, mapping_scores: dict[str, Any]) -> dict[str, Any]:
     """The per-run numbers: segmentation score, mapping error, map density."""
     score = ctx.evaluation["segmentation"]
     rec = {k: score[k] for k in ("n_truth", "n_predicted", "n_correct", "success_rate",
                                  "n_merged", "n_split", "n_missed", "n_other",
                                  "n_false_segments", "label_accuracy", "mode")}
-    mapping = ctx.evaluation.get("mapping", {})
-    rec["ate_rmse_m"] = mapping.get("ate_rmse_m", np.nan)
-    rec["drift_percent"] = mapping.get("drift_percent", np.nan)
+    rec["ate_rmse_m"] = mapping_scores.get("ate_rmse_m", np.nan)
+    rec["drift_percent"] = mapping_scores.get("drift_percent", np.nan)
     cloud = ctx.mapping.map
     if "tree_id" in cloud.fields:  # map points per true tree: what N_min and 45,000 count
         ids = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
@@ -194,64 +226,66 @@ def run_record(ctx: Any) -> dict[str, Any]:
     return rec
 
 
-def run_session(orchard: str, seed: int, config: ExperimentConfig, work: Path,
-                progress: Progress, done: list[int], keep: bool = False
+def run_mapping(orchard: str, seed: int, mapping: str, config: ExperimentConfig, root: Path,
+                bag: Path, progress: Progress, done: list[int]
                 ) -> tuple[list[dict[str, Any]], list[pd.DataFrame]]:
-    """Simulate one session and run every mapping x method on it; delete it unless ``keep``."""
+    """Every method on one simulated session, on one kind of map.
+
+    ``pipeline``: the first method runs :func:`canopy_kit.pipeline.compute` (mapping and its
+    evaluation included); the others reuse that map. ``true_poses``: a map from the true
+    poses (:func:`canopy_kit.sim.truth_map.truth_mapping`).
+    """
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import compute
     from canopy_kit.sim.truth_map import truth_mapping
 
-    name = session_name(orchard, seed, config)
-    root = work / name
-    sim = simulate(orchard, seed, config, root, progress)
-    drone = sim.drone_dir if config.drone else None
+    drone = root / "drone" if config.drone else None
+    shared = truth_mapping(root, progress=progress) if mapping == "true_poses" else None
+    mapping_scores: dict[str, Any] = {}
     records: list[dict[str, Any]] = []
     tables: list[pd.DataFrame] = []
-    try:
-        for mapping in config.mappings:
-            true_map = truth_mapping(root, progress=progress) if mapping == "true_poses" else None
-            for method in config.methods:
-                preset = METHOD_PRESETS[method]
-                pipeline_config = load_preset(preset)
-                rec: dict[str, Any] = {"orchard": orchard, "seed": seed, "session": name,
-                                       "mapping": mapping, "method": method, "preset": preset}
-                t0 = time.perf_counter()
-                try:
-                    if true_map is None:
-                        ctx, _ = compute(pipeline_config, sim.bag, root / "run", drone, root,
-                                         progress=progress)
-                    else:
-                        ctx = compute_on_true_poses(pipeline_config, true_map, root, drone,
-                                                    root / "run_true", progress)
-                    rec.update(run_record(ctx))
-                    columns = [c for c in TREE_COLUMNS
-                               if config.drone or not c.startswith("aerial_")]
-                    table = ctx.table.reindex(columns=columns + [
-                        c for c in ctx.table.columns if c.startswith("volume_")
-                        and c != "volume_flags"])
-                    tables.append(table.assign(orchard=orchard, seed=seed, mapping=mapping,
-                                               method=method))
-                    rec["error"] = ""
-                except CanopyKitError as exc:  # one failed run must not lose the others
-                    rec["error"] = f"{type(exc).__name__}: {exc}"
-                rec["seconds"] = round(time.perf_counter() - t0, 1)
-                records.append(rec)
-                done[0] += 1
-                progress("experiment runs", done[0], config.n_runs())
-    finally:
-        if not keep:
-            shutil.rmtree(root, ignore_errors=True)
+    for method in config.methods:
+        preset = METHOD_PRESETS[method]
+        rec: dict[str, Any] = {"orchard": orchard, "seed": seed, "session": root.name,
+                               "mapping": mapping, "method": method, "preset": preset}
+        t0 = time.perf_counter()
+        try:
+            if shared is None:
+                ctx, _ = compute(load_preset(preset), bag, root / "run", drone, root,
+                                 progress=progress)
+                mapping_scores = ctx.evaluation.get("mapping", {})
+                m = ctx.mapping
+                shared = SharedMap(m.map, m.trajectory, getattr(m, "frame", None),
+                                   dict(getattr(m, "diagnostics", {})),
+                                   list(getattr(m, "warnings", [])))
+            else:
+                ctx = compute_on_map(load_preset(preset), shared, root, drone,
+                                     root / f"run_{mapping}_{method}", progress)
+            rec.update(run_record(ctx, mapping_scores))
+            columns = [c for c in TREE_COLUMNS if config.drone or not c.startswith("aerial_")]
+            table = ctx.table.reindex(columns=columns + [
+                c for c in ctx.table.columns if c.startswith("volume_") and c != "volume_flags"])
+            tables.append(table.assign(orchard=orchard, seed=seed, mapping=mapping,
+                                       method=method))
+            rec["error"] = ""
+        except CanopyKitError as exc:  # one failed run must not lose the others
+            rec["error"] = f"{type(exc).__name__}: {exc}"
+        rec["seconds"] = round(time.perf_counter() - t0, 1)
+        records.append(rec)
+        done[0] += 1
+        progress("experiment runs", done[0], config.n_runs())
     return records, tables
 
 
 def run_experiments(config: ExperimentConfig, work_dir: str | Path,
                     progress: Progress | None = None, keep_sessions: bool = False,
                     table1: str | Path | None = None) -> ExperimentResults:
-    """Simulate every session in ``work_dir`` (deleted as it goes), run and score everything.
+    """Simulate every session in ``work_dir``, run and score everything.
 
-    Each finished session leaves its results in ``work_dir``; running the same config
-    there again resumes after the sessions already done.
+    Mappings come outermost, so the pipeline's results of every session are in before the
+    true-pose variant starts. Each finished session x mapping leaves its results in
+    ``work_dir``, and a session is deleted after its last mapping (unless
+    ``keep_sessions``): running the same config there again resumes where it stopped.
     """
     config.validate()
     report = progress or (lambda *_: None)
@@ -263,19 +297,25 @@ def run_experiments(config: ExperimentConfig, work_dir: str | Path,
     report("experiment runs", 0, config.n_runs())
     records: list[dict[str, Any]] = []
     tables: list[pd.DataFrame] = []
-    for orchard in config.orchards:
-        for seed in config.seeds:
-            saved = load_checkpoint(work, orchard, seed, config)
-            if saved is None:
-                recs, tabs = run_session(orchard, seed, config, work, report, done,
-                                         keep_sessions)
-                save_checkpoint(work, orchard, seed, config, recs, tabs)
-            else:
-                recs, tabs = saved
-                done[0] += len(recs)
-                report("experiment runs", done[0], config.n_runs())
-            records += recs
-            tables += tabs
+    for mapping in config.mappings:
+        last = mapping == config.mappings[-1]
+        for orchard in config.orchards:
+            for seed in config.seeds:
+                root = work / session_name(orchard, seed, config)
+                saved = load_checkpoint(work, orchard, seed, mapping, config)
+                if saved is None:
+                    bag = simulate(orchard, seed, config, root, report)
+                    recs, tabs = run_mapping(orchard, seed, mapping, config, root, bag,
+                                             report, done)
+                    save_checkpoint(work, orchard, seed, mapping, config, recs, tabs)
+                else:
+                    recs, tabs = saved
+                    done[0] += len(recs)
+                    report("experiment runs", done[0], config.n_runs())
+                if last and not keep_sessions:
+                    shutil.rmtree(root, ignore_errors=True)
+                records += recs
+                tables += tabs
     runs = pd.DataFrame(records)
     trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     if len(trees):
@@ -286,35 +326,38 @@ def run_experiments(config: ExperimentConfig, work_dir: str | Path,
                              round(time.perf_counter() - t0, 1))
 
 
-def _checkpoint_paths(work: Path, orchard: str, seed: int, config: ExperimentConfig
-                      ) -> tuple[Path, Path]:
-    """Files holding one finished session's runs and trees, named by everything that matters."""
-    settings = {k: v for k, v in asdict(config).items() if k not in ("seeds", "orchards")}
+def _checkpoint_paths(work: Path, orchard: str, seed: int, mapping: str,
+                      config: ExperimentConfig) -> tuple[Path, Path]:
+    """Files of one finished session x mapping, named by every setting that matters."""
+    settings = {k: v for k, v in asdict(config).items()
+                if k not in ("seeds", "orchards", "mappings")}
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
-    stem = f"{session_name(orchard, seed, config)}_{digest.hexdigest()[:10]}"
+    stem = f"{session_name(orchard, seed, config)}_{mapping}_{digest.hexdigest()[:10]}"
     return work / f"{stem}.runs.json", work / f"{stem}.trees.csv"
 
 
-def save_checkpoint(work: Path, orchard: str, seed: int, config: ExperimentConfig,
-                    records: list[dict[str, Any]], tables: list[pd.DataFrame]) -> None:
-    """Keep a finished session's results in ``work`` so a rerun there resumes after it."""
+def save_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
+                    config: ExperimentConfig, records: list[dict[str, Any]],
+                    tables: list[pd.DataFrame]) -> None:
+    """Keep a finished session x mapping's results in ``work`` for a rerun to resume after."""
     from canopy_kit.io.atomic import atomic_write_text
 
-    runs_path, trees_path = _checkpoint_paths(work, orchard, seed, config)
+    runs_path, trees_path = _checkpoint_paths(work, orchard, seed, mapping, config)
     trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     atomic_write_text(trees_path, trees.to_csv(index=False))
     atomic_write_text(runs_path, json.dumps(records, default=_json_default))
 
 
-def load_checkpoint(work: Path, orchard: str, seed: int, config: ExperimentConfig
+def load_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
+                    config: ExperimentConfig
                     ) -> tuple[list[dict[str, Any]], list[pd.DataFrame]] | None:
-    """A finished session's results from ``work``, or None when it has not run there."""
-    runs_path, trees_path = _checkpoint_paths(work, orchard, seed, config)
+    """A finished session x mapping's results from ``work``, or None when not run there."""
+    runs_path, trees_path = _checkpoint_paths(work, orchard, seed, mapping, config)
     if not (runs_path.is_file() and trees_path.is_file()):
         return None
     records = json.loads(runs_path.read_text())
     try:
-        trees = pd.read_csv(trees_path, keep_default_na=True)
+        trees = pd.read_csv(trees_path)
     except pd.errors.EmptyDataError:
         trees = pd.DataFrame()
     if "volume_flags" in trees:
