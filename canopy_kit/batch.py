@@ -1,0 +1,376 @@
+"""Many sessions at once on Dask distributed, each finished session written to the orchard store.
+
+``run_batch(load_manifest("sessions.toml"), "out/")`` starts a ``LocalCluster`` (or joins an
+existing scheduler), runs one task per session (the whole pipeline, outputs in
+``out/sessions/<id>/``), retries tasks that fail for a transient reason (a worker lost, out
+of memory) and reports a session whose input is bad without stopping the others. Finished
+sessions go into ``out/orchard.duckdb`` in date order per orchard, one transaction each.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from canopy_kit.errors import CanopyKitError, ConfigError, InputError
+
+Progress = Callable[[str, float, float], None]
+SESSION_KEYS = {"id", "bag", "orchard", "date", "preset", "drone_images", "truth", "report",
+                "stream", "set"}
+
+
+@dataclass
+class SessionSpec:
+    """One line of a manifest: a bag, the orchard it covers, its date and how to run it."""
+
+    session_id: str
+    bag: Path
+    orchard: str
+    date: dt.date
+    preset: str = "adaptive"
+    overrides: dict[str, Any] = field(default_factory=dict)
+    drone_images: Path | None = None
+    truth: Path | None = None
+    report: bool = True  # False: trees, metrics and config only (no map, no HTML report)
+    stream: bool = False  # streaming mode (canopy_kit.streaming)
+
+
+@dataclass
+class SessionOutcome:
+    """What one task returned: the per-tree table or why the session failed."""
+
+    session_id: str
+    orchard: str
+    date: dt.date
+    ok: bool
+    out_dir: str
+    trees: pd.DataFrame | None = None
+    error: str | None = None
+    summary: dict[str, Any] = field(default_factory=dict)
+    wall_s: float = 0.0
+    worker: str = ""
+
+
+@dataclass
+class BatchReport:
+    """Every session's outcome, what the store made of it, and the batch's timing."""
+
+    out_dir: Path
+    store: Path | None
+    outcomes: dict[str, SessionOutcome]
+    ingests: dict[str, dict[str, Any]]
+    failures: dict[str, str]
+    skipped: list[str]
+    wall_s: float
+    n_workers: int
+    scheduler: str
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for ``batch.json`` (per-tree tables left out)."""
+        return {"out_dir": str(self.out_dir), "store": str(self.store) if self.store else None,
+                "scheduler": self.scheduler, "n_workers": self.n_workers, "wall_s": self.wall_s,
+                "sessions": {k: {**{f: v for f, v in asdict(o).items() if f != "trees"},
+                                 "date": o.date.isoformat()} for k, o in self.outcomes.items()},
+                "ingests": self.ingests, "failures": self.failures, "skipped": self.skipped}
+
+
+# -- manifest -------------------------------------------------------------------------------
+def load_manifest(path: str | Path) -> list[SessionSpec]:
+    """Sessions listed in a TOML (``[[session]]`` tables) or CSV (one row each) manifest.
+
+    Relative paths are relative to the manifest's folder. Top-level TOML keys (``preset``,
+    ``orchard``, ``report``, ``stream``, ``[set]``) are defaults for every session.
+    """
+    from canopy_kit.config import read_toml
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: manifest does not exist")
+    if path.suffix.lower() == ".csv":
+        with path.open(newline="") as fh:
+            entries = [{k: v for k, v in row.items() if v not in (None, "")}
+                       for row in csv.DictReader(fh)]
+        defaults: dict[str, Any] = {}
+    else:
+        data = read_toml(path)
+        entries = data.pop("session", [])
+        defaults = data
+        unknown = sorted(set(defaults) - (SESSION_KEYS - {"id", "bag", "date"}))
+        if unknown:
+            raise ConfigError(f"{path}: unknown top-level key {unknown[0]!r}")
+    if not entries:
+        raise InputError(f"{path}: manifest lists no session")
+    specs = [_spec(path, i, {**defaults, **entry}) for i, entry in enumerate(entries, 1)]
+    seen: set[str] = set()
+    for s in specs:
+        if s.session_id in seen:
+            raise ConfigError(f"{path}: session id {s.session_id!r} appears twice")
+        seen.add(s.session_id)
+    return specs
+
+
+def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
+    from canopy_kit.config import merge
+
+    where = f"{path}: session {number}"
+    unknown = sorted(set(entry) - SESSION_KEYS)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(sorted(SESSION_KEYS))})")
+    for key in ("bag", "date", "orchard"):
+        if key not in entry:
+            raise ConfigError(f"{where}: no {key!r}")
+    date = entry["date"]
+    if isinstance(date, dt.datetime):
+        date = date.date()
+    elif not isinstance(date, dt.date):
+        try:
+            date = dt.date.fromisoformat(str(date))
+        except ValueError:
+            raise ConfigError(f"{where}: date {entry['date']!r} is not YYYY-MM-DD") from None
+    overrides = entry.get("set", {})
+    if isinstance(overrides, str):  # CSV: "section.key=value; section.key=value"
+        overrides = _parse_set(overrides, where)
+    elif not isinstance(overrides, dict):
+        raise ConfigError(f"{where}: 'set' must be a table of overrides")
+    overrides = merge({}, _nested(overrides))
+
+    def resolve(value: Any) -> Path | None:
+        if value is None:
+            return None
+        p = Path(str(value)).expanduser()
+        return p if p.is_absolute() else (path.parent / p)
+
+    orchard = str(entry["orchard"])
+    return SessionSpec(str(entry.get("id", f"{orchard}-{date.isoformat()}")), resolve(entry["bag"]),
+                       orchard, date, str(entry.get("preset", "adaptive")), overrides,
+                       resolve(entry.get("drone_images")), resolve(entry.get("truth")),
+                       _flag(entry.get("report", True), where, "report"),
+                       _flag(entry.get("stream", False), where, "stream"))
+
+
+def _parse_set(text: str, where: str) -> dict[str, Any]:
+    """``"a.b=1; c.d=[1, 2]"`` to ``{"a.b": 1, "c.d": [1, 2]}`` (values are TOML)."""
+    import tomllib
+
+    out: dict[str, Any] = {}
+    for item in (part.strip() for part in text.split(";")):
+        if not item:
+            continue
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{where}: set {item!r}: expected section.key=value")
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {raw.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = raw.strip()
+    return out
+
+
+def _nested(overrides: dict[str, Any]) -> dict[str, Any]:
+    """``{"mapping.threads": 1}`` and ``{"mapping": {"threads": 1}}`` both become the latter."""
+    out: dict[str, Any] = {}
+    for key, value in overrides.items():
+        node = out
+        parts = str(key).split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = _nested(value) if isinstance(value, dict) else value
+    return out
+
+
+def _flag(value: Any, where: str, name: str) -> bool:
+    if isinstance(value, bool):
+        return value
+    if str(value).strip().lower() in ("true", "1", "yes"):
+        return True
+    if str(value).strip().lower() in ("false", "0", "no"):
+        return False
+    raise ConfigError(f"{where}: {name} must be true or false, got {value!r}")
+
+
+# -- one session (runs on a worker) ---------------------------------------------------------
+def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1) -> SessionOutcome:
+    """Run one session's pipeline; bad input is returned as a failed outcome (not retried)."""
+    import socket
+
+    from canopy_kit.config import load_preset
+
+    out = Path(out_root) / "sessions" / spec.session_id
+    wall = time.perf_counter()
+    worker = f"{socket.gethostname()}:{os.getpid()}"
+    try:
+        config = load_preset(spec.preset, spec.overrides)
+        config.mapping.workers = 1  # a Dask worker is daemonic: no child processes
+        if mapping_threads > 0:
+            config.mapping.threads = mapping_threads
+        results = _run_one(spec, config, out)
+    except CanopyKitError as exc:
+        return SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(out),
+                              error=f"{type(exc).__name__}: {exc}",
+                              wall_s=time.perf_counter() - wall, worker=worker)
+    m = results.metrics
+    summary = {"n_trees": m.get("n_trees"), "warnings": m.get("warnings", []),
+               "mode": "stream" if spec.stream else "batch"}
+    return SessionOutcome(spec.session_id, spec.orchard, spec.date, True, str(out), results.trees,
+                          summary=summary, wall_s=time.perf_counter() - wall, worker=worker)
+
+
+def _run_one(spec: SessionSpec, config: Any, out: Path) -> Any:
+    from canopy_kit import pipeline
+
+    if spec.stream:
+        from canopy_kit.streaming import run_stream
+
+        return run_stream(config, spec.bag, out)
+    if spec.report:
+        return pipeline.run(config, spec.bag, out, drone_images=spec.drone_images, truth=spec.truth)
+    ctx, cache = pipeline.compute(config, spec.bag, out, spec.drone_images, spec.truth)
+    return _write_tables(ctx, cache, out)
+
+
+def _write_tables(ctx: Any, cache: Any, out: Path) -> Any:
+    """The per-tree table, metrics and config only (a batch that needs no report)."""
+    from canopy_kit import pipeline
+    from canopy_kit.config import write_config
+    from canopy_kit.io.atomic import atomic_path, atomic_write_text
+
+    metrics = pipeline.run_metrics(ctx, ctx.table)
+    metrics["stage_timings"] = cache.timings
+    files = {"trees.csv": atomic_write_text(out / "trees.csv", ctx.table.to_csv(index=False))}
+    with atomic_path(out / "trees.parquet") as tmp:
+        ctx.table.to_parquet(tmp, index=False)
+    files["trees.parquet"] = out / "trees.parquet"
+    files["config.toml"] = write_config(ctx.config, out / "config.toml")
+    files["metrics.json"] = atomic_write_text(
+        out / "metrics.json", json.dumps(metrics, indent=2, default=str) + "\n")
+    return pipeline.Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])))
+
+
+# -- the batch ------------------------------------------------------------------------------
+def run_batch(sessions: list[SessionSpec], out: str | Path, scheduler: str | None = None,
+              n_workers: int | None = None, retries: int = 2, store: str | Path | None = None,
+              match: Any = None, mapping_threads: int = 1, skip_stored: bool = True,
+              progress: Progress | None = None,
+              on_session: Callable[[SessionOutcome], None] | None = None) -> BatchReport:
+    """Process ``sessions`` on Dask (one task each) and store them; see the module docstring.
+
+    ``scheduler`` is the address of a running Dask scheduler (``tcp://host:8786``); without
+    it a ``LocalCluster`` of ``n_workers`` single-threaded processes is started. ``store``
+    defaults to ``out/orchard.duckdb``; pass ``False``-like ``""`` to skip storing.
+    """
+    from canopy_kit.store import MatchSettings, OrchardStore
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = progress or (lambda *_: None)
+    store_path = out / "orchard.duckdb" if store is None else (Path(store) if store else None)
+    db = OrchardStore(store_path) if store_path is not None else None
+    wall = time.perf_counter()
+    skipped = [s.session_id for s in sessions if db is not None and skip_stored
+               and db.has_session(s.session_id)]
+    todo = [s for s in sessions if s.session_id not in skipped]
+    outcomes: dict[str, SessionOutcome] = {}
+    ingests: dict[str, dict[str, Any]] = {}
+    failures: dict[str, str] = {}
+    order = _ingest_order(todo)
+    client, cluster = _connect(scheduler, n_workers or min(len(todo), os.cpu_count() or 1) or 1)
+    try:
+        n_live = len(client.scheduler_info().get("workers", {}))
+        report("sessions", 0, len(todo))
+        if todo:
+            _collect(client, todo, out, retries, mapping_threads, outcomes, failures, report,
+                     on_session, lambda: _ingest_ready(db, order, outcomes, ingests, failures,
+                                                       match or MatchSettings()))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+        if db is not None:
+            db.close()
+    result = BatchReport(out, store_path, outcomes, ingests, failures, skipped,
+                         time.perf_counter() - wall, n_live, scheduler or "LocalCluster")
+    from canopy_kit.io.atomic import atomic_write_text
+
+    atomic_write_text(out / "batch.json", json.dumps(result.to_dict(), indent=2, default=str) + "\n")
+    return result
+
+
+def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            return Client(scheduler, timeout="20s"), None
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
+    cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def _collect(client: Any, todo: list[SessionSpec], out: Path, retries: int, mapping_threads: int,
+             outcomes: dict[str, SessionOutcome], failures: dict[str, str], report: Progress,
+             on_session: Callable[[SessionOutcome], None] | None, ingest: Callable[[], None]) -> None:
+    from distributed import as_completed
+
+    futures = {client.submit(process_session, spec, str(out.resolve()), mapping_threads,
+                             key=f"canopy-kit-session-{spec.session_id}-{time.time_ns()}",
+                             retries=retries, pure=False): spec for spec in todo}
+    for n, future in enumerate(as_completed(futures), 1):
+        spec = futures[future]
+        try:
+            outcome = future.result()
+        except Exception as exc:  # the task itself died: a lost worker, memory, a bug
+            outcome = SessionOutcome(spec.session_id, spec.orchard, spec.date, False,
+                                     str(out / "sessions" / spec.session_id),
+                                     error=f"{type(exc).__name__}: {exc}")
+        outcomes[spec.session_id] = outcome
+        if not outcome.ok:
+            failures[spec.session_id] = outcome.error or "failed"
+        ingest()
+        report("sessions", n, len(todo))
+        if on_session is not None:
+            on_session(outcome)
+
+
+def _ingest_order(todo: list[SessionSpec]) -> dict[str, list[SessionSpec]]:
+    order: dict[str, list[SessionSpec]] = {}
+    for spec in sorted(todo, key=lambda s: (s.date, s.session_id)):
+        order.setdefault(spec.orchard, []).append(spec)
+    return order
+
+
+def _ingest_ready(db: Any, order: dict[str, list[SessionSpec]], outcomes: dict[str, SessionOutcome],
+                  ingests: dict[str, dict[str, Any]], failures: dict[str, str], match: Any) -> None:
+    """Store every finished session whose orchard's earlier sessions are all settled."""
+    from canopy_kit.store import SessionRecord
+
+    if db is None:
+        return
+    for specs in order.values():
+        while specs and specs[0].session_id in outcomes:
+            spec = specs.pop(0)
+            outcome = outcomes[spec.session_id]
+            if not outcome.ok or outcome.trees is None:
+                continue
+            record = SessionRecord(spec.session_id, spec.orchard, spec.date, str(spec.bag),
+                                   spec.preset, outcome.out_dir, outcome.summary)
+            try:
+                ingests[spec.session_id] = db.ingest(record, outcome.trees, match).summary()
+            except CanopyKitError as exc:
+                failures[spec.session_id] = f"store: {type(exc).__name__}: {exc}"

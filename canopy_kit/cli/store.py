@@ -1,0 +1,98 @@
+"""``canopy-kit store``: look into an orchard store, add a run to it, export growth tables."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+app = typer.Typer(help="The orchard store (DuckDB): sessions, trees over time, growth exports.",
+                  no_args_is_help=True)
+
+
+@app.command("sessions")
+def sessions(store: Path = typer.Argument(..., help="Store file (orchard.duckdb)")) -> None:
+    """List the stored sessions with their matched, new and missing trees."""
+    from canopy_kit.cli.common import console
+    from canopy_kit.store import OrchardStore
+
+    with OrchardStore(store, read_only=True) as db:
+        table = db.query("SELECT session_id, orchard, date, n_trees, n_matched, n_new, n_missing, "
+                         "n_replanted, round(align_rms_m, 3) AS align_rms_m FROM sessions "
+                         "ORDER BY orchard, date")
+    console.print(table.to_string(index=False))
+
+
+@app.command("changes")
+def changes(store: Path = typer.Argument(..., help="Store file"),
+            orchard: str = typer.Option(None, help="Only this orchard")) -> None:
+    """New, missing and replanted trees, session by session."""
+    from canopy_kit.cli.common import console
+    from canopy_kit.store import OrchardStore
+    from canopy_kit.store import changes as changes_of
+
+    with OrchardStore(store, read_only=True) as db:
+        table = changes_of(db, orchard)
+    console.print(table.to_string(index=False) if len(table) else "no changes")
+
+
+@app.command("export")
+def export(store: Path = typer.Argument(..., help="Store file"),
+           out: Path = typer.Argument(..., help="Output .parquet or .csv"),
+           what: str = typer.Option("growth", help="growth, row_growth, changes, trees or sessions"),
+           method: str = typer.Option(None, help="Volume method (default: alpha_shape)"),
+           orchard: str = typer.Option(None, help="Only this orchard")) -> None:
+    """Export a growth table (per tree or per row) or a store table to Parquet or CSV."""
+    from canopy_kit.cli.common import console
+    from canopy_kit.store import OrchardStore
+    from canopy_kit.store import export as export_table
+
+    with OrchardStore(store, read_only=True) as db:
+        path = export_table(db, what, out, method=method, orchard=orchard)
+    console.print(f"[green]wrote[/] {path}")
+
+
+@app.command("add")
+def add(store: Path = typer.Argument(..., help="Store file (created when absent)"),
+        run_dir: Path = typer.Argument(..., help="Output folder of 'canopy-kit run'"),
+        orchard: str = typer.Option(..., help="Orchard name"),
+        date: str = typer.Option(..., help="Session date, YYYY-MM-DD"),
+        session_id: str = typer.Option(None, "--id", help="Session id (default: ORCHARD-DATE)"),
+        gate: float = typer.Option(1.5, help="Largest distance (m) to a tree's earlier position")) -> None:
+    """Add one run's trees (RUN_DIR/trees.parquet) to the store."""
+    import datetime as dt
+
+    import pandas as pd
+
+    from canopy_kit.cli.common import console
+    from canopy_kit.errors import InputError
+    from canopy_kit.store import MatchSettings, OrchardStore, SessionRecord
+
+    table = run_dir / "trees.parquet"
+    if not table.exists():
+        raise InputError(f"{table}: no per-tree table (is {run_dir} a 'canopy-kit run' output?)")
+    try:
+        day = dt.date.fromisoformat(date)
+    except ValueError:
+        raise InputError(f"--date {date!r}: expected YYYY-MM-DD") from None
+    record = SessionRecord(session_id or f"{orchard}-{day.isoformat()}", orchard, day,
+                           run_dir=str(run_dir))
+    with OrchardStore(store) as db:
+        rep = db.ingest(record, pd.read_parquet(table), MatchSettings(gate_m=gate)).summary()
+    console.print(f"[green]stored[/] {rep['session_id']}: {rep['n_matched']} known trees, "
+                  f"{rep['n_new']} new, {rep['n_missing']} missing, {rep['n_replanted']} replanted")
+
+
+@app.command("check")
+def check(store: Path = typer.Argument(..., help="Store file")) -> None:
+    """Check the store's references and counts; exit code 3 when something is wrong."""
+    from canopy_kit.cli.common import console
+    from canopy_kit.store import OrchardStore, consistency_problems
+
+    with OrchardStore(store, read_only=True) as db:
+        problems = consistency_problems(db)
+    for p in problems:
+        console.print(f"[red]problem[/]: {p}")
+    if problems:
+        raise typer.Exit(3)
+    console.print("[green]consistent[/]")
