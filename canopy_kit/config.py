@@ -35,9 +35,11 @@ class MappingConfig:
     odometry_ground_band: float = 0.15
     odometry_ground_refine: bool = True
     odometry_point_stride: int = 1
-    kiss_voxel_size: float = 1.0
+    kiss_voxel_size: float = 0.5
     kiss_max_points_per_voxel: int = 20
     min_points_per_scan: int = 500
+    odometry_max_correction: float = 0.15
+    odometry_max_correction_deg: float = 1.5
     # KISS-ICP threads. 1 keeps runs bit-reproducible; 0 (all cores) is faster but its
     # parallel sums change the last bits of poses from run to run, and so of trees.csv.
     threads: int = 1

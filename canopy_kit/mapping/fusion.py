@@ -155,8 +155,10 @@ def imu_params(settings: FusionSettings):  # noqa: ANN202
     return p
 
 
-def odometry_noise(settings: FusionSettings, distance: float):  # noqa: ANN202
-    """Robust noise of an odometry factor spanning ``distance`` metres (jitter plus drift)."""
+def odometry_noise(settings: FusionSettings, distance: float, scale: float = 1.0):  # noqa: ANN202
+    """Robust noise of an odometry factor spanning ``distance`` metres (jitter plus drift).
+
+    ``scale`` inflates it for spans containing weak registrations."""
     import gtsam
 
     s_rot = np.hypot(np.sqrt(2) * settings.odometry_jitter_rotation,
@@ -165,7 +167,7 @@ def odometry_noise(settings: FusionSettings, distance: float):  # noqa: ANN202
                     settings.odometry_drift_translation * distance)
     return gtsam.noiseModel.Robust.Create(
         gtsam.noiseModel.mEstimator.Huber.Create(1.345),
-        gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, s_rot), np.full(3, s_tr)]))
+        gtsam.noiseModel.Diagonal.Sigmas(scale * np.r_[np.full(3, s_rot), np.full(3, s_tr)]))
 
 
 def gnss_noise(settings: FusionSettings, sigma: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -227,11 +229,13 @@ def optimize(graph, values, max_iterations: int = 50, tolerance: float = 1e-4): 
 
 def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSettings,
                     imu: ImuSeries | None = None, standstill: Standstill | None = None,
-                    gnss: GnssEpochs | None = None) -> FusionResult:
-    """Batch (Levenberg-Marquardt) fusion of a whole drive into keyframe states.
+                    gnss: GnssEpochs | None = None,
+                    uncertainty: np.ndarray | None = None) -> FusionResult:
+    """Batch fusion of a whole drive into keyframe states.
 
     ``odometry`` holds the LiDAR odometry poses (K, 4, 4) at sweep ``times``, in a
-    gravity-aligned odometry frame whose origin is the first sweep.
+    gravity-aligned odometry frame whose origin is the first sweep; ``uncertainty`` (K,)
+    scales the odometry noise of the spans containing each sweep (1: a normal sweep).
     """
     import gtsam
     from gtsam.symbol_shorthand import B, G, V, X
@@ -265,13 +269,18 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
     graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(init[0]), gtsam.noiseModel.Diagonal.Sigmas(sig0)))
 
     steps = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odometry[kidx, :3, 3], axis=0), axis=1))]
+    weak = np.ones(len(times)) if uncertainty is None else np.asarray(uncertainty, float)
+    # Worst sweep between consecutive keyframes, then the worst over each factor's span.
+    seg_weak = np.array([weak[kidx[j - 1] + 1 : kidx[j] + 1].max() for j in range(1, n)])
     n_odo = 0
     for lag in sorted({int(v) for v in settings.odometry_lags if int(v) >= 1}):
         for j in range(lag, n):
             delta = np.linalg.inv(odometry[kidx[j - lag]]) @ odometry[kidx[j]]
+            scale = float(seg_weak[j - lag : j].max())
             graph.add(gtsam.BetweenFactorPose3(X(j - lag), X(j), gtsam.Pose3(delta),
-                                               odometry_noise(settings, steps[j] - steps[j - lag])))
+                                               odometry_noise(settings, steps[j] - steps[j - lag], scale)))
             n_odo += 1
+    diag["weak_spans"] = int((seg_weak > 1.5).sum())
     diag["odometry_factors"] = n_odo
 
     use_imu = imu is not None and len(imu.t) > 10

@@ -80,7 +80,8 @@ def ground_correction(ground_world: np.ndarray, sensor_xy: np.ndarray, grid: Gro
     """Least-squares ``(dz, a, b)`` with ``z - h(cell) ≈ dz + a·dx + b·dy``, or None.
 
     ``dx, dy`` are offsets from the sensor; residuals beyond ``trim`` of the first fit are
-    dropped; corrections beyond the limits are refused (None) rather than clipped.
+    dropped; corrections beyond the limits are clipped to them (the next sweeps go on
+    correcting), so one bad fit cannot move a sweep far.
     """
     h = grid.heights(ground_world[:, :2])
     ok = np.isfinite(h)
@@ -96,9 +97,9 @@ def ground_correction(ground_world: np.ndarray, sensor_xy: np.ndarray, grid: Gro
             return None
         coef, *_ = np.linalg.lstsq(a[use], r[use], rcond=None)
         use = np.abs(r - a @ coef) <= trim
-    if coef is None or abs(coef[0]) > max_shift or np.abs(coef[1:]).max() > max_tilt:
+    if coef is None:
         return None
-    return coef
+    return np.r_[np.clip(coef[0], -max_shift, max_shift), np.clip(coef[1:], -max_tilt, max_tilt)]
 
 
 def apply_ground_correction(pose: np.ndarray, coef: np.ndarray) -> np.ndarray:

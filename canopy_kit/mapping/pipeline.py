@@ -153,6 +153,11 @@ class _PassOne:
             out.append(f"{len(st.skipped_sparse)} scans had fewer than "
                        f"{self.config.min_points_per_scan} points in range and were skipped "
                        f"(first: scan {st.skipped_sparse[0]})")
+        if st.rejected_registrations:
+            out.append(f"{st.rejected_registrations} of {st.sweeps} sweeps: ICP moved the motion "
+                       f"prediction by more than {self.config.odometry_max_correction} m or "
+                       f"{self.config.odometry_max_correction_deg} deg; the prediction was kept "
+                       "(little structure in view?)")
         if st.out_of_order:
             out.append(f"{self.bag.path}: topic {self.topics.scans!r}: {len(st.out_of_order)} scans "
                        "stamped at or before the scan before them (repeated or backwards time) were "
@@ -180,12 +185,13 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     cpu0, wall0, children0 = time.process_time(), time.perf_counter(), _children_cpu()
     with open_bag(bag_path) as bag:
         one = _PassOne(bag, config, progress, keep_all_points=False)
-        records = [(s.scan.index, s.scan.stamp, s.t_ref, s.pose, len(s.scan), s.deskewed)
+        records = [(s.scan.index, s.scan.stamp, s.t_ref, s.pose, s.uncertainty, s.deskewed)
                    for s in one.sweeps()]
         require_sweeps(len(records), f"{bag.path}: topic {one.topics.scans!r}")
         timing["odometry_cpu_s"] = time.process_time() - cpu0
         t_ref = np.array([r[2] for r in records])
         odometry = np.array([r[3] for r in records])
+        uncertainty = np.array([r[4] for r in records])
         deskewed = {r[0]: r[5] for r in records}
         warnings = one.warnings()
         imu = one.imu.series() if one.imu is not None and len(one.imu) >= 20 else None
@@ -196,7 +202,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
 
         cpu1 = time.process_time()
         fused = fuse_trajectory(t_ref, odometry, fusion_settings(config), imu=imu,
-                                standstill=st.standstill, gnss=epochs)
+                                standstill=st.standstill, gnss=epochs, uncertainty=uncertainty)
         if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
             why = fused.diagnostics.get("no_heading", "GNSS fixes do not overlap the LiDAR sweeps")
             warnings.append(f"{why}; the map is not georeferenced")
@@ -232,6 +238,8 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "map_points": len(cloud),
         "points_offered": offered,
         "up_source": st.up_source,
+        "registrations_rejected": st.rejected_registrations,
+        "ground_corrections": st.ground_corrections,
         "georeferenced": frame is not None,
         "quality_flags": quality_flags(one, frame, imu),
         "fusion": fused.diagnostics,
