@@ -259,7 +259,7 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
 def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any], out: Path,
                   progress: Progress) -> dict[str, Path]:
     """Every output file, each written under a temporary name and renamed."""
-    from canopy_kit.io.las import write_las
+    from canopy_kit.io.las import las_ready, write_las
 
     files: dict[str, Path] = {}
     files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
@@ -281,14 +281,6 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
     files["report.html"] = session_report(ctx, trees, metrics, out / "report.html")
     progress("report", 1, 1)
     return files
-
-
-def las_ready(cloud: Any) -> Any:
-    """LAS stores intensity as uint16: round a float intensity (scan intensities are 0-255)."""
-    value = cloud.fields.get("intensity")
-    if value is not None and np.issubdtype(np.asarray(value).dtype, np.floating):
-        return cloud.with_field("intensity", np.clip(np.round(value), 0, 65535).astype(np.uint16))
-    return cloud
 
 
 def trees_geojson(trees: pd.DataFrame) -> str:

@@ -231,6 +231,15 @@ def _write_offsets(cloud: PointCloud, scale: float, path: Path) -> np.ndarray:
     return offsets
 
 
+def las_ready(cloud: PointCloud) -> PointCloud:
+    """LAS stores intensity as uint16: round a float intensity (drivers publish float32 0-255)."""
+    value = cloud.fields.get("intensity")
+    if value is not None and np.issubdtype(np.asarray(value).dtype, np.floating):
+        value = np.nan_to_num(np.asarray(value, dtype=np.float64), nan=0.0)
+        return cloud.with_field("intensity", np.clip(np.round(value), 0, 65535).astype(np.uint16))
+    return cloud
+
+
 def write_las(
     path: str | Path, cloud: PointCloud, point_format: int | None = None, scale: float = 0.001
 ) -> Path:

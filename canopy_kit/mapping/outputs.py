@@ -17,7 +17,7 @@ import pandas as pd
 
 from canopy_kit.config import write_config
 from canopy_kit.io.atomic import atomic_write_text
-from canopy_kit.io.las import write_las
+from canopy_kit.io.las import las_ready, write_las
 
 MAP_NAME = "map.laz"
 TRAJECTORY_CSV = "trajectory.csv"
@@ -54,7 +54,7 @@ def write_mapping_outputs(result: Any, out_dir: str | Path,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {
-        "map": write_las(out / MAP_NAME, result.map),
+        "map": write_las(out / MAP_NAME, las_ready(result.map)),
         "trajectory_csv": atomic_write_text(
             out / TRAJECTORY_CSV,
             result.trajectory.to_csv(index=False, float_format="%.6f", lineterminator="\n")),
