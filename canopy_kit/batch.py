@@ -218,8 +218,9 @@ def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1) 
             config.mapping.threads = mapping_threads
         results = _run_one(spec, config, out)
     except CanopyKitError as exc:
+        message = str(exc) if str(spec.bag) in str(exc) else f"{spec.bag}: {exc}"
         return SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(out),
-                              error=f"{type(exc).__name__}: {exc}",
+                              error=f"{type(exc).__name__}: {message}",
                               wall_s=time.perf_counter() - wall, worker=worker)
     m = results.metrics
     summary = {"n_trees": m.get("n_trees"), "warnings": m.get("warnings", []),

@@ -25,7 +25,7 @@ class MatchSettings:
     gate_m: float = 1.5  # a session tree farther than this from every known tree is new
     search_m: float = 4.0  # the largest GNSS offset between two sessions that is looked for
     refine: Literal["rigid", "translation", "none"] = "rigid"
-    coverage_m: float = 8.0  # an unmatched known tree this close to the session's trees is missing
+    coverage_m: float = 2.5  # unmatched known trees within this of the session's area are missing
     max_iterations: int = 10
 
     def check(self) -> None:
@@ -141,8 +141,6 @@ def rigid_fit(a: np.ndarray, b: np.ndarray, rotate: bool = True) -> tuple[float,
 def match_trees(session_xy: np.ndarray, known_xy: np.ndarray,
                 settings: MatchSettings | None = None) -> TreeMatch:
     """Align a session's tree positions to the known trees and pair them up."""
-    from scipy.spatial import cKDTree
-
     st = settings or MatchSettings()
     st.check()
     session_xy = np.asarray(session_xy, float).reshape(-1, 2)
@@ -167,8 +165,23 @@ def match_trees(session_xy: np.ndarray, known_xy: np.ndarray,
     alignment.rms_m = float(np.sqrt(np.mean(dist**2))) if len(dist) else float("nan")
     new = np.setdiff1d(np.arange(len(session_xy)), pairs[:, 0])
     unmatched = np.setdiff1d(np.arange(len(known_xy)), pairs[:, 1])
-    missing = np.zeros(0, int)
-    if len(unmatched) and len(aligned):
-        d, _ = cKDTree(aligned).query(known_xy[unmatched])
-        missing = unmatched[d <= st.coverage_m]
-    return TreeMatch(alignment, pairs, dist, new, missing, aligned)
+    inside = within_area(known_xy[unmatched], aligned, st.coverage_m)
+    return TreeMatch(alignment, pairs, dist, new, unmatched[inside], aligned)
+
+
+def within_area(xy: np.ndarray, trees: np.ndarray, margin: float) -> np.ndarray:
+    """Points ``xy`` inside the convex hull of ``trees`` grown by ``margin`` (the area a
+    session looked at: a tree gone from the middle of it is missing, a block not driven is not)."""
+    from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    if len(xy) == 0 or len(trees) == 0:
+        return np.zeros(len(xy), bool)
+    if len(trees) < 3:
+        return cKDTree(trees).query(xy)[0] <= margin
+    try:
+        hull = ConvexHull(trees, qhull_options="QJ")  # joggled: a single row is a thin hull
+    except QhullError:
+        return cKDTree(trees).query(xy)[0] <= margin
+    eq = hull.equations  # unit outward normals and offsets: n·x + c <= 0 inside
+    return np.all(xy @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)

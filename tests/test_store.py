@@ -1,0 +1,173 @@
+"""The orchard store on synthetic plantings: identity over visits, changes, transactions, queries."""
+
+from __future__ import annotations
+
+import datetime as dt
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.errors import InputError
+from canopy_kit.geo import LocalFrame
+from canopy_kit.store import (MatchSettings, OrchardStore, SessionRecord, changes,
+                              consistency_problems, export, growth, match_trees, row_growth)
+
+FRAME = LocalFrame.at(37.281, -120.42)
+ROWS, PER_ROW = 4, 6
+LAYOUT = np.array([[r * 6.0, i * 5.0] for r in range(ROWS) for i in range(PER_ROW)])
+VOLUME = np.random.default_rng(1).uniform(20.0, 40.0, len(LAYOUT))
+
+
+def visit(shift=(0.0, 0.0), rotation_deg=0.0, absent=(), young=(), growth_factor=1.0, seed=0):
+    """A session's per-tree table: the layout seen through a GNSS shift and rotation."""
+    rng = np.random.default_rng(seed)
+    a = np.radians(rotation_deg)
+    r = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    centre = LAYOUT.mean(axis=0)
+    xy = (LAYOUT - centre) @ r.T + centre + shift + rng.normal(0, 0.1, LAYOUT.shape)
+    volume = VOLUME * growth_factor
+    volume[list(young)] = 2.0
+    lat, lon, _ = FRAME.to_wgs84(np.column_stack([xy, np.zeros(len(xy))]))
+    table = pd.DataFrame({"segment": np.arange(len(xy)), "label": [f"L{i}" for i in range(len(xy))],
+                          "row": np.repeat(np.arange(ROWS), PER_ROW), "lat": lat, "lon": lon,
+                          "n_points": 1000, "height_m": 3.0, "crown_diameter_m": 3.5,
+                          "volume_convex_hull_m3": 1.05 * volume, "volume_alpha_m3": volume,
+                          "volume_flags": "", "truth": np.arange(len(xy))})
+    return table.drop(index=list(absent)).reset_index(drop=True)
+
+
+def record(sid, month):
+    return SessionRecord(sid, "block-a", dt.date(2025, month, 1), bag=f"{sid}.bag")
+
+
+@pytest.fixture()
+def three_visits(tmp_path):
+    """Spring (first), summer (tree 7 gone, GNSS off by 1.4 m and 0.6°), autumn (replanted)."""
+    store = OrchardStore(tmp_path / "orchard.duckdb")
+    tables = {"spring": visit(seed=1),
+              "summer": visit((1.2, -0.8), 0.6, absent=(7,), growth_factor=1.2, seed=2),
+              "autumn": visit((-0.9, 1.4), -0.5, young=(7,), growth_factor=1.4, seed=3)}
+    reports = {sid: store.ingest(record(sid, m), tables[sid])
+               for sid, m in (("spring", 4), ("summer", 6), ("autumn", 9))}
+    yield store, tables, reports
+    store.close()
+
+
+def test_trees_keep_their_ids_across_shifted_visits(three_visits):
+    store, tables, reports = three_visits
+    obs = store.query("SELECT session_id, tree_id, segment FROM observations")
+    ids = {}
+    for sid, table in tables.items():
+        got = obs[obs.session_id == sid].set_index("segment")["tree_id"]
+        for seg, truth in zip(table["segment"], table["truth"]):
+            ids.setdefault(int(truth), {})[sid] = int(got[seg])
+    persistent = [t for t in ids if t != 7]
+    assert all(len(set(ids[t].values())) == 1 for t in persistent)
+    assert reports["summer"].alignment["rms_m"] < 0.25  # the residual is the 0.1 m jitter
+    assert abs(reports["summer"].alignment["rotation_deg"] + 0.6) < 0.3
+
+
+def test_removed_tree_is_missing_then_replaced(three_visits):
+    store, _, reports = three_visits
+    old = store.one("SELECT tree_id FROM observations WHERE session_id = 'spring' AND segment = 7")[0]
+    assert reports["summer"].missing == [old] and reports["summer"].new == []
+    assert len(reports["autumn"].replanted) == 1 and reports["autumn"].replanted[0][1] == old
+    new = reports["autumn"].replanted[0][0]
+    status = dict(store.run("SELECT tree_id, status FROM trees"))
+    assert status[old] == "removed" and status[new] == "present"
+    kinds = changes(store).groupby("session_id")["kind"].apply(set).to_dict()
+    assert kinds["summer"] == {"missing"} and kinds["autumn"] == {"replanted"}
+    assert consistency_problems(store) == []
+
+
+def test_growth_per_tree_and_row(three_visits, tmp_path):
+    store, _, _ = three_visits
+    g = growth(store)
+    kept = g[(g.status == "present") & (g.session_id == "autumn") & (g.kind == "matched")]
+    assert np.allclose(kept["growth_since_first"], 0.4)  # volumes x1.4 since spring
+    summer = g[(g.session_id == "summer")]
+    assert np.allclose(summer["growth_since_previous"], 0.2)
+    rows = row_growth(store, method="convex_hull")
+    assert set(rows["tree_row"]) == set(range(ROWS))
+    assert (rows.groupby("tree_row")["n_trees"].max() == PER_ROW).all()
+    for suffix in ("parquet", "csv"):
+        path = export(store, "growth", tmp_path / f"growth.{suffix}")
+        back = pd.read_parquet(path) if suffix == "parquet" else pd.read_csv(path)
+        assert len(back) == len(g)
+    with pytest.raises(InputError, match=r"growth\.xlsx: export format must be \.parquet or \.csv"):
+        export(store, "growth", tmp_path / "growth.xlsx")
+
+
+def test_a_failed_ingest_leaves_the_store_as_it_was(three_visits, monkeypatch):
+    import canopy_kit.store.db as db
+
+    store, _, _ = three_visits
+    before = {t: store.query(f"SELECT * FROM {t} ORDER BY ALL") for t in ("sessions", "trees",
+                                                                          "observations", "volumes")}
+
+    def fail(stage):
+        if stage == "volumes":
+            raise RuntimeError("disk full")
+
+    monkeypatch.setattr(db, "_FAULT", fail)
+    with pytest.raises(RuntimeError, match="disk full"):
+        store.ingest(record("winter", 12), visit(growth_factor=1.5, seed=4))
+    for table, frame in before.items():
+        pd.testing.assert_frame_equal(store.query(f"SELECT * FROM {table} ORDER BY ALL"), frame)
+    assert not store.has_session("winter")
+
+
+def test_a_crash_mid_ingest_leaves_the_previous_state(tmp_path):
+    path = tmp_path / "orchard.duckdb"
+    with OrchardStore(path) as store:
+        store.ingest(record("spring", 4), visit(seed=1))
+    tests = str(Path(__file__).parent)
+    script = f"""
+import os, sys
+sys.path.insert(0, {tests!r})
+import canopy_kit.store.db as db
+from canopy_kit.store import OrchardStore
+from test_store import record, visit
+db._FAULT = lambda stage: os._exit(9) if stage == "volumes" else None
+OrchardStore({str(path)!r}).ingest(record("summer", 6), visit(seed=2))
+"""
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert proc.returncode == 9, proc.stderr
+    with OrchardStore(path, read_only=True) as store:
+        assert store.query("SELECT session_id FROM sessions")["session_id"].tolist() == ["spring"]
+        assert store.one("SELECT count(*) FROM observations")[0] == len(LAYOUT)
+        assert consistency_problems(store) == []
+
+
+def test_errors_name_the_store_and_session(tmp_path):
+    with OrchardStore(tmp_path / "o.duckdb") as store:
+        store.ingest(record("spring", 4), visit())
+        with pytest.raises(InputError, match=r"o\.duckdb: session 'spring' is already in the store"):
+            store.ingest(record("spring", 4), visit())
+        no_gnss = visit().assign(lat=np.nan)
+        with pytest.raises(InputError, match=r"session 'summer': trees without latitude/longitude"):
+            store.ingest(record("summer", 6), no_gnss)
+    with pytest.raises(InputError, match=r"nothing\.duckdb: store does not exist"):
+        OrchardStore(tmp_path / "nothing.duckdb", read_only=True)
+
+
+def test_regular_grid_offset_is_not_taken_for_the_neighbour():
+    # A 2.3 m shift along rows of trees 5 m apart: the neighbour is 2.7 m the other way.
+    session = LAYOUT + [0.0, 2.3]
+    m = match_trees(session, LAYOUT, MatchSettings(refine="translation"))
+    assert len(m.pairs) == len(LAYOUT)
+    assert np.array_equal(m.pairs[:, 0], m.pairs[:, 1])
+    assert abs(m.alignment.dy + 2.3) < 1e-6
+
+
+def test_trees_outside_the_visited_area_are_not_missing():
+    half = LAYOUT[LAYOUT[:, 0] < 7]  # only the first two rows driven this time
+    m = match_trees(half, LAYOUT, MatchSettings())
+    assert len(m.pairs) == len(half) and len(m.missing) == 0
+    gone = np.delete(half, 3, axis=0)
+    m = match_trees(gone, LAYOUT, MatchSettings())
+    assert m.missing.tolist() == [3]
