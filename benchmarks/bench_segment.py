@@ -223,6 +223,35 @@ def speed(args: argparse.Namespace) -> None:
         df.to_csv(args.csv, index=False, float_format="%.3f")
 
 
+def figures(args: argparse.Namespace) -> None:
+    """Top views and failure galleries of one cached session, for docs/figures."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from canopy_kit.evaluate import score_point_labels
+    from canopy_kit.segment.plots import plot_failure_gallery, plot_top_view
+    from canopy_kit.segment.rows import driving_direction_from_trajectory
+    from canopy_kit.segment.verb import make_segmenter, segment
+    from canopy_kit.sim.truth import load_truth
+
+    cache, out = Path(args.cache), Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cloud, sim_dir, name = session_map(cache, args.orchard, args.rows, args.trees_per_row,
+                                       args.seed)
+    traj = load_truth(sim_dir).trajectory[["x", "y"]].to_numpy()
+    direction = driving_direction_from_trajectory(traj)
+    truth = np.asarray(cloud.fields["tree_id"])
+    for method in args.methods:
+        seg = segment(cloud, make_segmenter(method, PAPER[method]), driving_direction=direction)
+        fig = plot_top_view(cloud, seg)
+        fig.savefig(out / f"segment_{args.orchard}_{method}_top.png", dpi=110)
+        score = score_point_labels(seg.labels, truth)
+        gallery = plot_failure_gallery(cloud, seg, score, truth, max_panels=4)
+        if gallery is not None:
+            gallery.savefig(out / f"segment_{args.orchard}_{method}_failures.png", dpi=90)
+        print(f"{name} {method}: {score.n_correct}/{score.n_truth} correct")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -248,6 +277,15 @@ def main() -> None:
     sp.add_argument("--cache", default="out/bench_segment")
     sp.add_argument("--csv", default=None)
     sp.set_defaults(func=speed)
+    fg = sub.add_parser("figures")
+    fg.add_argument("--orchard", default="almond")
+    fg.add_argument("--rows", type=int, default=3)
+    fg.add_argument("--trees-per-row", type=int, default=6)
+    fg.add_argument("--seed", type=int, default=101)
+    fg.add_argument("--methods", nargs="+", default=list(PAPER))
+    fg.add_argument("--cache", default="out/bench_segment")
+    fg.add_argument("--out", default="docs/figures")
+    fg.set_defaults(func=figures)
     args = parser.parse_args()
     args.func(args)
 
