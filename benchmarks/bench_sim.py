@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -28,12 +29,13 @@ if case.get("exact_poses"):
     lidar.SpinningLidar._column_poses = lambda self, stamp, knots=33: original(self, stamp, self.spec.columns)
 cfg = load_sim_config(case["orchard"], case["overrides"])
 tmp = Path(tempfile.mkdtemp())
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 s = simulate_session(tmp / "s", cfg, fmt=case.get("fmt", "ros2-mcap"))
 elapsed = time.perf_counter() - t0
+cpu = time.process_time() - c0
 size = sum(p.stat().st_size for p in (tmp / "s").rglob("*") if p.is_file())
 shutil.rmtree(tmp)
-print(json.dumps({"seconds": elapsed, "driving_s": s.trajectory.duration, "points": s.n_points,
+print(json.dumps({"seconds": elapsed, "cpu_s": cpu, "driving_s": s.trajectory.duration, "points": s.n_points,
                   "scans": s.n_scans, "trees": len(s.orchard.trees),
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "bag_mb": size / 1e6}))
@@ -62,13 +64,15 @@ def main() -> None:
             ("6 rows x 10 trees", {"orchard": "pistachio", "overrides": {"orchard": {"rows": 6}}}),
             ("10 rows x 10 trees", {"orchard": "pistachio", "overrides": {"orchard": {"rows": 10}}}),
         ]
-    print(f"python {sys.version.split()[0]}, {time.strftime('%Y-%m-%d')}")
-    print("| case | driving (s) | compute (s) | real-time factor | points/s | scans | "
+    load = os.getloadavg()[0]
+    print(f"python {sys.version.split()[0]}, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
+          f"load average {load:.1f} at start (wall times stretch under load; CPU times less)")
+    print("| case | driving (s) | wall (s) | CPU (s) | real-time factor (wall) | points/s | scans | "
           "peak RSS (MB) | bag (MB) |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, case in cases:
         r = run(case)
-        print(f"| {name} | {r['driving_s']:.0f} | {r['seconds']:.1f} | "
+        print(f"| {name} | {r['driving_s']:.0f} | {r['seconds']:.1f} | {r['cpu_s']:.1f} | "
               f"{r['driving_s'] / r['seconds']:.2f}x | {r['points'] / r['seconds'] / 1e6:.2f} M | "
               f"{r['scans']} | {r['peak_rss_mb']:.0f} | {r['bag_mb']:.0f} |", flush=True)
 

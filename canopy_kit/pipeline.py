@@ -19,7 +19,7 @@ import pandas as pd
 from canopy_kit.cache import StageCache, fingerprint, stage_key
 from canopy_kit.config import PipelineConfig, write_config
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_path, atomic_write_text
+from canopy_kit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 
 Progress = Callable[[str, float, float], None]
 
@@ -273,8 +273,7 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
     files["trajectory.csv"] = atomic_write_text(
         out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
     files["config.toml"] = write_config(ctx.config, out / "config.toml")
-    files["metrics.json"] = atomic_write_text(
-        out / "metrics.json", json.dumps(metrics, indent=2, default=_json_default) + "\n")
+    files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
     progress("report", 0, 1)
     from canopy_kit.report.session import session_report
 
@@ -294,12 +293,3 @@ def trees_geojson(trees: pd.DataFrame) -> str:
                          "properties": rec})
     return json.dumps({"type": "FeatureCollection", "features": features}, indent=1)
 
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    return str(value)

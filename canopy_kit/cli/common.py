@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -36,17 +35,9 @@ def progress_bar(transient: bool = False) -> Iterator[ProgressCallback]:
 
 def print_json(data: Any) -> None:
     """Print data as indented JSON on stdout (numpy scalars converted)."""
-    print(json.dumps(data, indent=2, default=_json_default))
+    from canopy_kit.io.atomic import to_json
 
-
-def _json_default(value: Any) -> Any:
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
+    print(to_json(data), end="")
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
