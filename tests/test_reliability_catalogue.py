@@ -1,0 +1,102 @@
+"""Every case of the bad-input catalogue through the command line a user runs.
+
+Each case builds its input, runs ``canopy-kit`` in a subprocess and checks the behaviour the
+catalogue promises: exit 2/3 with one ``error:`` line naming the input and the problem, or
+exit 0 with a finite map, the warnings and the quality flags. Never a traceback.
+The commands run two at a time (both cores) in one fixture; each case is its own test.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bad_inputs.catalogue import CASES, Case
+from test_cli_foundation import cli_command
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(args: list[str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*cli_command(), *args], capture_output=True, text=True, timeout=600,
+                          check=False, env={**os.environ, "COLUMNS": "400"})
+
+
+@pytest.fixture(scope="module")
+def outcomes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple]:
+    built = {}
+    for case in CASES:
+        root = tmp_path_factory.mktemp(case.id)
+        built[case.id] = (root, *case.build(root))
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        futures = {k: pool.submit(_run, args) for k, (_, args, _) in built.items()}
+        return {k: (built[k][0], built[k][2], f.result()) for k, f in futures.items()}
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_catalogue_case(case: Case, outcomes: dict[str, tuple]) -> None:
+    root, named, result = outcomes[case.id]
+    report = f"exit {result.returncode}\nstdout: {result.stdout[-2000:]}\nstderr: {result.stderr[-3000:]}"
+    assert "Traceback" not in result.stderr, report
+    assert result.returncode == case.exit_code, report
+    if case.exit_code:
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: "), report
+        assert named in lines[0], f"{named!r} not named\n{report}"
+        for fragment in case.expect:
+            assert fragment in lines[0], f"{fragment!r} missing\n{report}"
+        return
+    # A result: the mapping report carries the warnings and the quality flags.
+    mapping = json.loads((root / "out" / "mapping.json").read_text())
+    warnings = mapping["warnings"]
+    for fragment in case.expect:
+        assert any(fragment in w for w in warnings), f"{fragment!r} not warned: {warnings}"
+        assert fragment in re.sub(r"\s+", " ", result.stdout), report  # and shown to the user
+    flags = set(mapping["diagnostics"]["quality_flags"])
+    assert set(case.flags) <= flags, flags
+    assert not set(case.absent_flags) & flags, flags
+    from canopy_kit.io.las import read_las
+
+    cloud = read_las(root / "out" / "map.laz")
+    assert len(cloud) > 10_000 and np.isfinite(cloud.xyz).all()
+    assert not list((root / "out").glob(".*.tmp*"))
+
+
+def test_clean_drive_has_no_warnings_or_flags(tmp_path: Path) -> None:
+    """The fault-free drive maps without warnings: each flag above comes from its fault."""
+    from bad_inputs.drives import write_drive
+
+    drive = write_drive(tmp_path / "drive", duration=6.0)
+    result = _run(["map", str(drive.path), "--out", str(tmp_path / "out"), "--no-plots"])
+    assert result.returncode == 0, result.stderr
+    mapping = json.loads((tmp_path / "out" / "mapping.json").read_text())
+    assert mapping["warnings"] == [] and mapping["diagnostics"]["quality_flags"] == []
+    assert mapping["diagnostics"]["sweeps_registered"] == drive.n_scans
+
+
+def test_reliability_doc_lists_the_catalogue() -> None:
+    text = (REPO / "docs" / "RELIABILITY.md").read_text()
+    assert f"{len(CASES)} cases" in text
+    missing = [c.id for c in CASES if f"`{c.id}`" not in text]
+    assert not missing, missing
+    assert len({c.id for c in CASES}) == len(CASES)
+
+
+def test_reliability_doc_table_is_generated_from_the_catalogue() -> None:
+    """docs/RELIABILITY.md holds exactly what scripts/reliability_doc.py makes of CASES."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("reliability_doc", REPO / "scripts" / "reliability_doc.py")
+    doc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(doc)
+    text = (REPO / "docs" / "RELIABILITY.md").read_text()
+    block = doc.catalogue_block(CASES)
+    assert block in text, "docs/RELIABILITY.md is out of step: run scripts/reliability_doc.py"
+    assert doc.render(text, block) == text
