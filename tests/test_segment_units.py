@@ -351,3 +351,45 @@ def test_plots_top_view_and_failure_gallery() -> None:
     assert gallery is not None and len(gallery.axes) == 2 * min(3, score.n_truth - score.n_correct)
     good = segment(orch.cloud, "adaptive")
     assert plot_failure_gallery(orch.cloud, good, score_point_labels(good.labels, truth), truth) is None
+
+
+def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
+    """Empty and all-ground maps: exit code 2 and a message; one tree and no rows: results."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from canopy_kit.io.clouds import write_cloud
+
+    exe = str(Path(sys.executable).parent / "canopy-kit")
+    rng = np.random.default_rng(0)
+    flat = PointCloud(np.column_stack([rng.uniform(0, 30, (5000, 2)), rng.normal(0, 0.02, 5000)]))
+    one = synthetic_orchard(rows=1, trees_per_row=1, density=150).cloud
+    scattered = []
+    for k, c in enumerate(rng.uniform(0, 40, (8, 2))):
+        xyz = synthetic_orchard(rows=1, trees_per_row=1, seed=k, ground_extent=0.5,
+                                density=150).cloud.xyz.copy()
+        xyz[:, :2] += c
+        scattered.append(xyz)
+    maps = {"flat": flat, "one": PointCloud(one.xyz),
+            "scattered": PointCloud(np.concatenate(scattered))}
+    res = {}
+    for name, cloud in maps.items():
+        path = write_cloud(tmp_path / f"{name}.laz", cloud)
+        res[name] = subprocess.run([exe, "segment", str(path), "--preset", "adaptive", "--out",
+                                    str(tmp_path / name), "--no-cloud"],
+                                   capture_output=True, text=True)
+    assert res["flat"].returncode == 2
+    assert res["flat"].stderr.strip().startswith("error: map has no points 0.8-12.0 m above")
+    assert "Traceback" not in res["flat"].stderr
+    assert res["one"].returncode == 0 and "segmented 1 trees in 1 rows" in res["one"].stdout
+    assert res["scattered"].returncode == 0, res["scattered"].stderr
+    assert "warning: no rows detected" in " ".join(res["scattered"].stdout.split())
+    import laspy
+
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = [0.01, 0.01, 0.01]
+    laspy.LasData(header).write(tmp_path / "empty.laz")
+    bad = subprocess.run([exe, "segment", str(tmp_path / "empty.laz"), "--out", str(tmp_path / "e")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.strip().endswith("LAS file has no points")
