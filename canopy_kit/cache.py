@@ -76,8 +76,8 @@ class StageCache:
                         value = pickle.load(fh)
                     self.hits.append(stage)
                     return value
-                except (pickle.UnpicklingError, EOFError, AttributeError, ImportError):
-                    path.unlink(missing_ok=True)  # stale or damaged entry: recompute
+                except Exception:  # stale or damaged entry (pickle raises many types): recompute
+                    path.unlink(missing_ok=True)
         wall, cpu = time.perf_counter(), time.process_time()
         value = compute()
         self.timings[stage] = {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}

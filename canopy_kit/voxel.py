@@ -30,7 +30,11 @@ def linear_keys(keys: np.ndarray) -> np.ndarray:
 
 
 def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
-    """For each occupied voxel: index of its point nearest the voxel centre, and each point's voxel."""
+    """For each occupied voxel: index of its point nearest the voxel centre, and each point's voxel.
+
+    Points equally near the centre are told apart by their coordinates (smallest x, y, z), so
+    the choice does not depend on the order of the points.
+    """
     if len(xyz) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     origin = xyz.min(axis=0)
@@ -42,7 +46,16 @@ def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.
     order = np.lexsort((dist, inverse))
     first = np.ones(len(order), bool)
     first[1:] = inverse[order[1:]] != inverse[order[:-1]]
-    return order[first], inverse
+    reps = order[first]  # reps[v]: the point kept for voxel v
+    tied = dist == dist[reps][inverse]
+    crowded = np.bincount(inverse[tied], minlength=len(reps)) > 1
+    if crowded.any():  # rare: several points at the nearest distance; sort only those
+        cand = np.flatnonzero(tied & crowded[inverse])
+        cand = cand[np.lexsort((xyz[cand, 2], xyz[cand, 1], xyz[cand, 0], inverse[cand]))]
+        lead = np.ones(len(cand), bool)
+        lead[1:] = inverse[cand[1:]] != inverse[cand[:-1]]
+        reps[inverse[cand[lead]]] = cand[lead]
+    return reps, inverse
 
 
 def voxel_downsample(cloud: PointCloud, size: float,
