@@ -95,7 +95,7 @@ def test_manifest_is_read_with_defaults(orchard_batch):
 
 @pytest.mark.slow
 def test_trees_keep_their_id_across_three_visits(orchard_batch):
-    report, sims, _, _ = orchard_batch
+    report, _, _, _ = orchard_batch
     obs = _observed(report)
     assert obs["truth_tree_id"].notna().all()  # every stored tree is a real tree
     persistent = set(range(ORCHARD["rows"] * ORCHARD["trees_per_row"])) - {REMOVED}

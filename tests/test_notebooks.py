@@ -36,3 +36,8 @@ def test_session_notebook_runs(name, tiny_pistachio, tiny_pistachio_run):
 def test_paper_notebook_runs():
     result = _run(REPO / "notebooks" / "paper_reproduction.py")
     assert result.returncode == 0, result.stderr[-3000:]
+
+
+def test_orchard_notebook_runs():  # without --store it makes a small synthetic store
+    result = _run(REPO / "notebooks" / "orchard_over_time.py")
+    assert result.returncode == 0, result.stderr[-3000:]

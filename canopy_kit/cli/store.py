@@ -36,6 +36,31 @@ def changes(store: Path = typer.Argument(..., help="Store file"),
     console.print(table.to_string(index=False) if len(table) else "no changes")
 
 
+@app.command("growth")
+def growth(store: Path = typer.Argument(..., help="Store file"),
+           orchard: str = typer.Option(None, help="Only this orchard"),
+           method: str = typer.Option(None, help="Volume method (default: alpha_shape)"),
+           tree: int = typer.Option(None, "--tree", help="Only this tree_id"),
+           rows: bool = typer.Option(False, "--rows", help="Per row instead of per tree")) -> None:
+    """Volume and growth per tree (or per row) over the sessions of a store."""
+    from canopy_kit.cli.common import console
+    from canopy_kit.store import OrchardStore, row_growth
+    from canopy_kit.store import growth as growth_of
+
+    with OrchardStore(store, read_only=True) as db:
+        table = (row_growth if rows else growth_of)(db, method=method, orchard=orchard)
+    if rows:
+        cols = ["orchard", "tree_row", "date", "n_trees", "total_volume_m3", "mean_volume_m3",
+                "median_growth_since_first"]
+    else:
+        if tree is not None:
+            table = table[table["tree_id"] == tree]
+        cols = ["orchard", "tree_id", "tree_label", "status", "date", "kind", "volume_m3",
+                "growth_since_first", "growth_since_previous"]
+    text = table[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}")
+    console.print(text if len(table) else "no observations", soft_wrap=True)
+
+
 @app.command("export")
 def export(store: Path = typer.Argument(..., help="Store file"),
            out: Path = typer.Argument(..., help="Output .parquet or .csv"),
