@@ -26,6 +26,7 @@ CROWN_COLUMNS = [
     "crown_id", "x", "y", "area_m2", "diameter_max_m", "diameter_perp_m", "diameter_mean_m",
     "diameter_equivalent_m", "height_m", "edge_height_m", "sphere_volume_m3",
     "sphere_volume_mean_m3", "ellipsoid_volume_m3", "chm_volume_m3", "seed_id", "touches_border",
+    "shared_outline_fraction",
 ]
 
 
@@ -45,6 +46,8 @@ class CrownOptions:
     gap_closing_m: float = 0.1
     speck_opening_m: float = 0.25
     seed_snap_m: float = 1.0
+    seed_disc_fraction: float = 0.3  # seeded: marker discs of this share of the nearest-seed distance
+    seed_disc_max_m: float = 1.5
     use_color: bool = True
 
 
@@ -200,6 +203,35 @@ def _markers_from_maxima(chm_smooth: np.ndarray, canopy: np.ndarray, grid: Grid,
     return peaks.reshape(-1, 2)
 
 
+def _seed_discs(markers: np.ndarray, cells: np.ndarray, canopy: np.ndarray, grid: Grid,
+                options: CrownOptions) -> np.ndarray:
+    """Grow each seed marker into a disc (in the canopy) of ``seed_disc_fraction`` of the
+    distance to its nearest other seed, at most ``seed_disc_max_m``.
+
+    A single-cell marker that is not on its crown's CHM top (a trunk position under a leaning
+    crown, a crown without a clear top) loses the watershed race to a higher neighbour,
+    whose flood takes everything above the seed's own height: measured on a simulated
+    almond flight, 2 of 11 seeded crowns came out as slivers under 0.4 m. A disc makes each
+    given tree own its immediate surroundings; the CHM still decides the boundary beyond.
+    """
+    from scipy.spatial import cKDTree
+
+    pos = cells.astype(float)
+    dist, _ = cKDTree(pos).query(pos, k=2)
+    radius = np.minimum(options.seed_disc_fraction * dist[:, 1],
+                        options.seed_disc_max_m / grid.resolution)
+    out = markers.copy()
+    for k, ((r, c), rad) in enumerate(zip(cells, radius)):
+        if markers[r, c] != k + 1 or rad < 1:
+            continue
+        ri = int(np.ceil(rad))
+        r0, r1, c0, c1 = max(r - ri, 0), min(r + ri + 1, grid.rows), max(c - ri, 0), min(c + ri + 1, grid.cols)
+        yy, xx = np.mgrid[r0:r1, c0:c1]
+        disc = ((yy - r) ** 2 + (xx - c) ** 2 <= rad**2) & canopy[r0:r1, c0:c1] & (out[r0:r1, c0:c1] == 0)
+        out[r0:r1, c0:c1][disc] = k + 1
+    return out
+
+
 def delineate_crowns(rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: Grid,
                      seeds_xy: np.ndarray | None = None,
                      options: CrownOptions | None = None) -> CrownSegmentation:
@@ -219,6 +251,8 @@ def delineate_crowns(rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: 
     for k, (r, c) in enumerate(cells):
         if markers[r, c] == 0:
             markers[r, c] = k + 1
+    if seeds_xy is not None and len(cells) > 1 and opts.seed_disc_fraction > 0:
+        markers = _seed_discs(markers, cells, canopy, grid, opts)
     labels = watershed(-chm_smooth, markers, mask=canopy) if len(cells) else np.zeros(grid.shape, np.int32)
     x, y = grid.centers()
     pos = np.column_stack([x[tuple(cells.T)], y[tuple(cells.T)]]) if len(cells) else np.zeros((0, 2))
@@ -247,6 +281,22 @@ def feret_extents(rows: np.ndarray, cols: np.ndarray, resolution: float) -> tupl
     proj = hull @ perp
     return (float(d[i, j]) + resolution, float(proj.max() - proj.min()) + resolution,
             float(np.arctan2(axis[1], axis[0])))
+
+
+def shared_outline_fraction(region: np.ndarray, others: np.ndarray) -> float:
+    """Share of a crown's outline cells that touch another crown (0: free-standing).
+
+    Where crowns overlap, the aerial view cuts each at the boundary, so its extents measure
+    only the visible part. Tried and dropped: a circle fitted through the free outline
+    (round-crown assumption) came out 0.3-1.2 m short on simulated almond crowns.
+    """
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    outline = region & ~binary_erosion(region, border_value=0)
+    n = int(outline.sum())
+    if n == 0:
+        return 0.0
+    return float((outline & binary_dilation(others, structure=np.ones((3, 3), bool))).sum() / n)
 
 
 def _closed_chm(chm: np.ndarray, resolution: float, radius_m: float = 0.3) -> np.ndarray:
@@ -289,6 +339,9 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
         seed = int(seg.marker_seed_ids[lab - 1]) if lab - 1 < len(seg.marker_seed_ids) else -1
         touches = bool(sl[0].start == 0 or sl[1].start == 0 or sl[0].stop == grid.rows
                        or sl[1].stop == grid.cols)
+        wide = tuple(slice(max(a.start - 1, 0), a.stop + 1) for a in sl)
+        around = labels[wide]
+        shared = shared_outline_fraction(around == lab, (around > 0) & (around != lab))
         rows.append({
             "crown_id": lab, "x": float(x[rr_abs, cc_abs].mean()), "y": float(y[rr_abs, cc_abs].mean()),
             "area_m2": float(area), "diameter_max_m": d_max, "diameter_perp_m": d_perp,
@@ -299,5 +352,6 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
             "ellipsoid_volume_m3": np.pi / 6.0 * d_max * d_perp * depth,
             "chm_volume_m3": float(2.0 * np.sum(np.clip(surface[sl][region] - edge, 0.0, None)) * res**2),
             "seed_id": seed, "touches_border": touches,
+            "shared_outline_fraction": shared,
         })
     return pd.DataFrame(rows, columns=CROWN_COLUMNS)

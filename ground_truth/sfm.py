@@ -4,8 +4,9 @@ Features: SIFT on images downscaled to ``max_image_size``. Pairs: every pair for
 flights, the GPS neighbours for larger ones (sequential pairs when the GPS positions are
 too close together to tell neighbours apart). Mapping: incremental, with the GPS
 positions as position priors in the local frame, then a robust similarity alignment of
-the model onto those positions (``align_reconstruction_to_locations``), so the model is
-in the same local metric frame / CRS as the LiDAR map.
+the model onto those positions (``georeference``: levelled by the GPS or by the photos'
+optical axes, whichever is more precise), so the model is in the same local metric
+frame / CRS as the LiDAR map.
 
 Trap (measured): after ``import pycolmap`` (4.2 wheel) zlib use could crash the process
 unless zlib was imported first; ``import zlib`` comes before every pycolmap import.
@@ -45,6 +46,7 @@ class SfmOptions:
     gps_sigma_horizontal: float = 1.0
     gps_sigma_vertical: float = 2.0
     gps_sigma_floor: float = 0.01
+    nadir_tilt_sigma_deg: float = 1.0  # how far a flight's mean optical axis may be off vertical
     min_registered_fraction: float = 0.5
     num_threads: int = -1
     seed: int = 0
@@ -65,6 +67,7 @@ class SparseModel:
     mean_reprojection_error_px: float
     matching: str
     timings: dict[str, float] = field(default_factory=dict)
+    alignment: dict = field(default_factory=dict)  # how the model was levelled and scaled
 
     @property
     def n_registered(self) -> int:
@@ -85,6 +88,7 @@ class SparseModel:
             "gps_residual_max_m": float(np.sqrt(r["dx"]**2 + r["dy"]**2 + r["dz"]**2).max())
             if len(r) else np.nan,
             "matching": self.matching,
+            "alignment": dict(self.alignment),
             "timings_s": dict(self.timings),
         }
 
@@ -153,12 +157,13 @@ def run_sfm(flight: Flight, work_dir: str | Path, frame: LocalFrame | None = Non
         timings["mapping"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        _align(pycolmap, rec, flight, gps, opts)
-        _refine_with_gps(pycolmap, rec, flight, gps, opts)
-        _align(pycolmap, rec, flight, gps, opts)
+        alignment = _align(pycolmap, rec, flight, gps, opts)
+        if alignment["vertical_from"] == "gps":  # GPS good enough to fight doming with
+            _refine_with_gps(pycolmap, rec, flight, gps, opts)
+            alignment = _align(pycolmap, rec, flight, gps, opts)
         timings["georeferencing"] = time.perf_counter() - t0
         rec.write(str(work))
-        return _to_model(rec, flight, gps, frame, matching, timings)
+        return _to_model(rec, flight, gps, frame, matching, timings, alignment)
     finally:
         pycolmap.logging.minloglevel = previous_level
 
@@ -265,29 +270,125 @@ def _map(pycolmap, database: Path, flight: Flight, work: Path, opts: SfmOptions,
     return best
 
 
-def _align(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> None:  # noqa: ANN001
-    """Similarity transform of the model onto the GPS positions.
+def _rotation_to_up(up: np.ndarray) -> np.ndarray:
+    """The rotation that turns the unit vector ``up`` onto +z (Rodrigues)."""
+    z = np.array([0.0, 0.0, 1.0])
+    v, c = np.cross(up, z), float(up @ z)
+    s = float(np.linalg.norm(v))
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + k + k @ k * ((1.0 - c) / s**2)
 
-    A least-squares fit over all photos first tells how good the GPS is; a robust fit
-    with an inlier threshold of three times that residual then drops gross fixes. A
-    threshold from a nominal GPS accuracy would be wrong both ways: consumer-camera GPS
-    lagging by a photo (measured: 15 m RMS) or RTK at a few centimetres.
+
+def _levelled_fit(centres: np.ndarray, targets: np.ndarray, up: np.ndarray,
+                  inliers: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(scale, rotation, translation) mapping model ``up`` to +z: a horizontal similarity
+    (Umeyama in 2-D) plus a height offset, fitted on the ``inliers``."""
+    r0 = _rotation_to_up(up)
+    level = centres @ r0.T
+    a, b = level[inliers, :2], targets[inliers, :2]
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    u, sv, vt = np.linalg.svd((b - mb).T @ (a - ma))
+    d = np.diag([1.0, np.sign(np.linalg.det(u @ vt))])
+    r2 = u @ d @ vt
+    scale = float(np.trace(np.diag(sv) @ d) / max(np.sum((a - ma) ** 2), 1e-12))
+    rz = np.eye(3)
+    rz[:2, :2] = r2
+    rotation = rz @ r0
+    t = np.zeros(3)
+    t[:2] = mb - scale * r2 @ ma
+    t[2] = float(np.mean(targets[inliers, 2] - scale * level[inliers, 2]))
+    return scale, rotation, t
+
+
+def _umeyama(a: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity (scale, rotation, translation) with b ≈ s R a + t."""
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    u, sv, vt = np.linalg.svd((b - mb).T @ (a - ma))
+    d = np.eye(a.shape[1])
+    d[-1, -1] = np.sign(np.linalg.det(u @ vt))
+    r = u @ d @ vt
+    s = float(np.trace(np.diag(sv) @ d) / max(np.sum((a - ma) ** 2), 1e-12))
+    return s, r, mb - s * r @ ma
+
+
+def georeference(centres: np.ndarray, optical_axes: np.ndarray, targets: np.ndarray,
+                 options: SfmOptions | None = None) -> tuple[float, np.ndarray, np.ndarray, dict]:
+    """Similarity (scale, rotation, translation) taking model camera centres onto GPS positions.
+
+    Which way is up comes from two estimates, weighted by their precision: the tilt of a full
+    least-squares similarity to the GPS (uncertainty: the per-axis GPS residual over the
+    camera spread across the flight's narrowest direction), and minus the mean optical axis
+    (``optical_axes``: world direction of each camera's +z; nadir photos look straight down;
+    uncertainty: their scatter over √n, at least ``nadir_tilt_sigma_deg``). When the two
+    differ by more than three combined sigmas, the GPS heights are taken as systematically
+    wrong and only the photos level the model (nadir flights assumed, as the orthomosaic
+    does). Measured on real consumer-camera photos: GPS altitude climbing 26 m in 30 s of
+    level flight made the GPS-only fit tilt the model by 47°. Scale, heading and position then come from a
+    horizontal similarity plus a height offset: a least-squares fit first tells how good the
+    GPS is, a second drops fixes beyond three times that residual (a nominal accuracy would
+    be wrong both ways: metre-level camera GPS, centimetre-level RTK). Returns also a dict
+    saying what was decided.
     """
+    opts = options or SfmOptions()
+    centres, targets = np.asarray(centres, float), np.asarray(targets, float)
+    n = len(centres)
+    if n < 3 or np.ptp(targets[:, :2], axis=0).max() < 1e-6 or np.ptp(centres, axis=0).max() < 1e-12:
+        raise ProcessingError("the model could not be aligned to the photos' GPS positions "
+                              "(fewer than 3 registered photos, or all in one spot)")
+    axes = np.asarray(optical_axes, float)
+    down = axes.mean(axis=0)
+    down /= np.linalg.norm(down)
+    scatter = np.arccos(np.clip(axes @ down, -1.0, 1.0))
+    sigma_nadir = float(np.hypot(np.sqrt(np.mean(scatter**2) / n), np.radians(opts.nadir_tilt_sigma_deg)))
+    s_full, r_full, t_full = _umeyama(centres, targets)
+    res_full = s_full * centres @ r_full.T + t_full - targets
+    sigma_axis = float(np.sqrt(np.sum(res_full**2) / max(3 * n - 7, 1)))
+    xy = targets[:, :2] - targets[:, :2].mean(axis=0)
+    narrow = np.linalg.eigh(xy.T @ xy)[1][:, 0]
+    sigma_gps = sigma_axis / max(float(np.sqrt(np.sum((xy @ narrow) ** 2))), 1e-9)
+    up_gps, up_nadir = r_full[2], -down  # r_full.T @ ẑ: the model direction the fit makes vertical
+    tilt = float(np.arccos(np.clip(up_gps @ up_nadir, -1.0, 1.0)))
+    # Far apart beyond both uncertainties: the GPS heights carry a systematic error (a drift
+    # the tilted fit half absorbs, so its residual understates it); drop their vertical.
+    consistent = tilt <= 3.0 * float(np.hypot(sigma_gps, sigma_nadir))
+    w_gps, w_nadir = (1.0 / max(sigma_gps, 1e-9) ** 2 if consistent else 0.0), 1.0 / sigma_nadir**2
+    up = w_gps * up_gps + w_nadir * up_nadir
+    up /= np.linalg.norm(up)
+    inliers = np.ones(n, bool)
+    scale, rotation, t = _levelled_fit(centres, targets, up, inliers)
+    res = np.linalg.norm(scale * centres @ rotation.T + t - targets, axis=1)
+    rms = float(np.sqrt(np.mean(res**2)))
+    inliers = res <= max(3.0 * rms, 3.0 * opts.gps_sigma_floor)
+    if inliers.sum() >= 3 and not inliers.all():
+        scale, rotation, t = _levelled_fit(centres, targets, up, inliers)
+    info = {
+        "vertical_from": "gps" if w_gps >= w_nadir else "camera_axes",
+        "gps_weight": float(w_gps / (w_gps + w_nadir)),
+        "gps_tilt_vs_camera_axes_deg": float(np.degrees(tilt)),
+        "gps_tilt_consistent": bool(consistent),
+        "gps_tilt_sigma_deg": float(np.degrees(sigma_gps)),
+        "camera_axes_tilt_sigma_deg": float(np.degrees(sigma_nadir)),
+        "gps_inliers": int(inliers.sum()),
+        "scale": float(scale),
+    }
+    return scale, rotation, t, info
+
+
+def _align(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> dict:  # noqa: ANN001
+    """Move the model onto the GPS positions (``georeference``); returns what was decided."""
     by_name = dict(zip(flight.names, gps))
-    names = [im.name for im in rec.images.values()]
-    targets = np.array([by_name[n] for n in names])
-    centres = np.array([im.projection_center() for im in rec.images.values()])
-    ransac = pycolmap.RANSACOptions()
-    ransac.max_error = 1e6  # every photo an inlier: plain least squares
-    sim3 = pycolmap.align_reconstruction_to_locations(rec, names, targets, 3, ransac)
-    if sim3 is None:
-        raise ProcessingError(f"{flight.folder}: the model could not be aligned to the photos' GPS "
-                              "positions (fewer than 3 registered photos, or all in one spot)")
-    moved = np.array([sim3 * c for c in centres])
-    rms = float(np.sqrt(np.mean(np.sum((moved - targets) ** 2, axis=1))))
-    ransac.max_error = max(3.0 * rms, 3.0 * opts.gps_sigma_floor)
-    robust = pycolmap.align_reconstruction_to_locations(rec, names, targets, 3, ransac)
-    rec.transform(robust if robust is not None else sim3)
+    images = list(rec.images.values())
+    targets = np.array([by_name[im.name] for im in images]).reshape(-1, 3)
+    centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
+    axes = np.array([im.cam_from_world().rotation.matrix()[2] for im in images]).reshape(-1, 3)
+    try:
+        scale, rotation, t, info = georeference(centres, axes, targets, opts)
+    except ProcessingError as exc:
+        raise ProcessingError(f"{flight.folder}: {exc}") from None
+    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), t))
+    return info
 
 
 def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> None:  # noqa: ANN001
@@ -324,7 +425,7 @@ def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOp
 
 
 def _to_model(rec, flight: Flight, gps: np.ndarray, frame: LocalFrame, matching: str,  # noqa: ANN001
-              timings: dict[str, float]) -> SparseModel:
+              timings: dict[str, float], alignment: dict) -> SparseModel:
     cameras: dict[str, PosedCamera] = {}
     for image in rec.images.values():
         cam = rec.cameras[image.camera_id]
@@ -345,4 +446,4 @@ def _to_model(rec, flight: Flight, gps: np.ndarray, frame: LocalFrame, matching:
     residuals = pd.DataFrame({"image": names, "dx": res[:, 0], "dy": res[:, 1], "dz": res[:, 2]})
     unregistered = [n for n in flight.names if n not in cameras]
     return SparseModel(frame, cameras, points, colors, errors, tracks, unregistered, residuals,
-                       float(rec.compute_mean_reprojection_error()), matching, timings)
+                       float(rec.compute_mean_reprojection_error()), matching, timings, alignment)

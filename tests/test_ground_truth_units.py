@@ -170,3 +170,93 @@ def test_posed_camera_rejects_unknown_model():
 
     with pytest.raises(InputError, match="model OPENCV_FISHEYE is not one of"):
         PosedCamera("x", "OPENCV_FISHEYE", (1.0,), 10, 10, np.eye(3), np.zeros(3))
+
+
+def _survey(rng: np.random.Generator, attitude_deg: float = 0.8):
+    """A 3-strip nadir survey (true centres, optical axes) and a random similarity of it (the model)."""
+    from scipy.spatial.transform import Rotation
+
+    xs, ys = np.meshgrid(np.arange(5) * 8.0, np.arange(3) * 10.0)
+    true = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 35.0)])
+    tilts = Rotation.from_rotvec(np.column_stack([rng.normal(0, np.radians(attitude_deg), (xs.size, 2)),
+                                                  np.zeros(xs.size)]))
+    axes_true = tilts.apply([0.0, 0.0, -1.0])
+    g = Rotation.from_rotvec([0.4, -0.7, 1.1]).as_matrix()
+    model = 0.13 * true @ g.T + np.array([3.0, -1.0, 2.0])
+    return true, axes_true, model, axes_true @ g.T, g
+
+
+def test_georeference_trusts_precise_gps():
+    from ground_truth.sfm import georeference
+
+    rng = np.random.default_rng(1)
+    true, _, model, axes, _ = _survey(rng)
+    gps = true + rng.normal(0, [0.02, 0.02, 0.05], true.shape)
+    s, r, t, info = georeference(model, axes, gps)
+    assert info["vertical_from"] == "gps" and info["gps_weight"] > 0.9
+    assert np.abs(s * model @ r.T + t - true).max() < 0.1
+
+
+def test_georeference_levels_by_the_photos_when_gps_altitude_drifts():
+    """Camera GPS: metre-level horizontal noise, altitude climbing 26 m over level flight."""
+    from ground_truth.sfm import georeference
+
+    rng = np.random.default_rng(2)
+    true, _, model, axes, g = _survey(rng)
+    gps = true + rng.normal(0, [3.0, 3.0, 1.0], true.shape)
+    gps[:, 2] += np.linspace(0.0, 26.0, len(gps)).reshape(5, 3).T.ravel()  # climbs strip by strip
+    s, r, t, info = georeference(model, axes, gps)
+    assert info["vertical_from"] == "camera_axes" and info["gps_tilt_vs_camera_axes_deg"] > 10
+    up = r @ (g @ np.array([0.0, 0.0, 1.0]))  # the true vertical, through the recovered transform
+    assert np.degrees(np.arccos(up[2])) < 1.5
+    horizontal = s * model @ r.T + t - true
+    assert np.sqrt(np.mean(np.sum(horizontal[:, :2] ** 2, axis=1))) < 4.0
+
+
+def test_georeference_needs_three_spread_photos():
+    from canopy_kit.errors import ProcessingError
+    from ground_truth.sfm import georeference
+
+    with pytest.raises(ProcessingError, match="fewer than 3"):
+        georeference(np.zeros((2, 3)), np.tile([0.0, 0.0, -1.0], (2, 1)), np.zeros((2, 3)))
+
+
+def test_shared_outline_of_a_crown_cut_by_its_neighbours():
+    """A round crown cut on both sides by overlapping neighbours: its visible extents give the
+    widest chord and a short one (mean 4.0 m for a 5 m crown); the shared outline says so."""
+    from ground_truth.crowns import shared_outline_fraction
+
+    res = 0.05
+    yy, xx = np.mgrid[-80:81, -120:121] * res
+    disc = xx**2 + yy**2 <= 2.5**2
+    cut = disc & (np.abs(xx) < 1.5)  # neighbours take everything beyond 1.5 m either side
+    rows, cols = np.nonzero(cut)
+    widest, perp, _ = feret_extents(rows, cols, res)
+    assert widest == pytest.approx(5.0, abs=0.1) and (widest + perp) / 2 < 4.2
+    assert 0.4 < shared_outline_fraction(cut, disc & ~cut) < 0.7
+    assert shared_outline_fraction(disc, np.zeros_like(disc)) == 0.0
+
+
+def test_seed_off_its_crown_top_still_gets_its_crown():
+    """Overlapping crowns; the middle tree's position lies 1.9 m off its crown top, on the slope
+    of a taller neighbour. A one-cell marker there lost the watershed race (the neighbour came
+    out 9.7 m wide); seed discs keep both crowns near their true 6 m and 5 m."""
+    res = 0.05
+    grid = Grid(0.0, 10.0, res, int(10 / res), int(24 / res))
+    x, y = grid.centers()
+    rgb = np.empty(grid.shape + (3,), np.uint8)
+    rgb[...] = (150, 120, 90)
+    chm = np.zeros(grid.shape)
+    for cx, d, h in ((8.0, 6.0, 5.0), (12.5, 5.0, 3.5), (17.0, 5.0, 4.0)):
+        r2 = ((x - cx) ** 2 + (y - 5.0) ** 2) / (d / 2) ** 2
+        inside = r2 <= 1
+        chm[inside] = np.maximum(chm[inside], h * np.sqrt(1 - r2[inside]) * 0.6 + 0.4 * h)
+        rgb[inside] = (60, 110, 40)
+    seeds = np.array([(8.0, 5.0), (10.6, 5.0), (17.0, 5.0)])
+    widths = {}
+    for fraction in (0.0, CrownOptions().seed_disc_fraction):
+        seg = delineate_crowns(rgb, np.ones(grid.shape, bool), chm, grid, seeds,
+                               CrownOptions(seed_disc_fraction=fraction))
+        widths[fraction] = measure_crowns(seg, chm).sort_values("seed_id")["diameter_max_m"].to_numpy()
+    assert widths[0.0][0] > 9.0  # the failure the discs fix
+    assert widths[CrownOptions().seed_disc_fraction] == pytest.approx([6.0, 5.0, 5.0], abs=0.45)

@@ -48,6 +48,11 @@ def ground_truth(
         f"{sfm['gps_residual_rms_horizontal_m']:.3f} m horizontal / "
         f"{sfm['gps_residual_rms_vertical_m']:.3f} m vertical"
     )
+    level = sfm.get("alignment", {})
+    if level.get("vertical_from") == "camera_axes":
+        console.print(f"[yellow]levelled by the photos' optical axes[/]: the GPS heights would tilt the "
+                      f"model {level['gps_tilt_vs_camera_axes_deg']:.1f}° (GPS tilt sigma "
+                      f"{level['gps_tilt_sigma_deg']:.1f}°)")
     line = f"[green]crowns[/] {len(result.crowns)}"
     if result.trees is not None:
         line += f", matched to {int(result.trees['matched'].sum())} of {len(result.trees)} trees"
