@@ -21,6 +21,9 @@ IMU = "sensor_msgs/msg/Imu"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 ODOMETRY = "nav_msgs/msg/Odometry"
 KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY)
+# A point timed this far from the rest of its sweep is corrupt (a sweep lasts 0.05-0.2 s):
+# one such time stretched its sweep's deskew window and moved the pose by metres.
+MAX_POINT_TIME_OFFSET_S = 1.0
 
 
 @dataclass
@@ -117,6 +120,8 @@ class BagSession:
         self._reader: Any = None
         self.warnings: list[str] = []
         self.recovered = False  # read in file order after rosbags refused the bag (cut short?)
+        self._stray: list[tuple[int, int]] = []  # (scan, points dropped for corrupt times)
+        self._stray_warning: int | None = None
 
     def __enter__(self) -> "BagSession":
         from rosbags.highlevel import AnyReader
@@ -237,7 +242,28 @@ class BagSession:
             time_name = pc2.time_field_name(names)
             times = pc2.point_times(points[time_name], stamp) if time_name else None
             fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
+            xyz, fields, times = self.drop_stray_times(name, index, xyz, fields, times)
             yield Scan(stamp, xyz, fields, times, msg.header.frame_id, index)
+
+    def drop_stray_times(self, topic: str, index: int, xyz: np.ndarray, fields: dict[str, np.ndarray],
+                         times: np.ndarray | None) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
+        """A scan without its points of corrupt per-point time (see :func:`_stray_times`);
+        one warning in :attr:`warnings` counts them over the bag."""
+        stray = _stray_times(times)
+        if stray is None:
+            return xyz, fields, times
+        keep = ~stray
+        self._stray.append((index, int(stray.sum())))
+        text = (f"{self.path}: topic {topic!r}: {sum(n for _, n in self._stray)} points in "
+                f"{len(self._stray)} scans had per-point times more than {MAX_POINT_TIME_OFFSET_S:g} s "
+                f"from the rest of their scan (corrupt data) and were dropped (first: scan "
+                f"{self._stray[0][0]})")
+        if self._stray_warning is None:
+            self._stray_warning = len(self.warnings)
+            self.warnings.append(text)
+        else:
+            self.warnings[self._stray_warning] = text
+        return xyz[keep], {k: v[keep] for k, v in fields.items()}, times[keep]  # type: ignore[index]
 
     def imu(self, topic: str | None = None) -> ImuSeries | None:
         """All IMU samples of ``topic`` (auto-detected), or None when the bag has no IMU."""
@@ -290,6 +316,24 @@ class BagSession:
             return None
         odoms.sort(key=lambda t: ("truth" not in t.name, -t.count))
         return odoms[0].name
+
+
+def _stray_times(times: np.ndarray | None) -> np.ndarray | None:
+    """Mask of the few points whose time lies far from their sweep's, or None when there are none.
+
+    Only a handful (at most 1 %) count as corrupt; a scan whose times spread widely throughout
+    is left alone (another convention, handled downstream).
+    """
+    if times is None or len(times) == 0:
+        return None
+    finite = np.isfinite(times)
+    if not finite.any():
+        return None
+    stray = np.zeros(len(times), bool)
+    stray[finite] = np.abs(times[finite] - np.median(times[finite])) > MAX_POINT_TIME_OFFSET_S
+    if not stray.any() or stray.sum() > 0.01 * len(times):
+        return None
+    return stray
 
 
 def read_scan(path: str | Path, index: int, topic: str | None = None) -> Scan:

@@ -109,6 +109,7 @@ def decode_scan(bag: BagSession, topic: str, msg: object, index: int) -> Scan:
     time_name = pc2.time_field_name(names)
     times = pc2.point_times(points[time_name], stamp) if time_name else None
     fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
+    xyz, fields, times = bag.drop_stray_times(topic, index, xyz, fields, times)
     return Scan(stamp, xyz, fields, times, msg.header.frame_id, index)  # type: ignore[attr-defined]
 
 
