@@ -126,6 +126,16 @@ class GroundTruthConfig:
 
     max_image_size: int = 1600
     match_distance_m: float = 1.5
+    # An aerial crown whose diameter is outside this ratio of the LiDAR crown diameter is a
+    # fragment or a merge of neighbours: kept in the table, flagged, left out of the statistics.
+    min_diameter_ratio: float = 0.6
+    max_diameter_ratio: float = 1.6
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.min_diameter_ratio < self.max_diameter_ratio:
+            raise ConfigError(
+                "ground_truth.min_diameter_ratio/max_diameter_ratio: expected "
+                f"0 <= min < max, got {self.min_diameter_ratio} and {self.max_diameter_ratio}")
 
 
 @dataclass

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.cache import StageCache, fingerprint, stage_key
-from canopy_kit.config import PipelineConfig, write_config
+from canopy_kit.config import GroundTruthConfig, PipelineConfig, write_config
 from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 
@@ -200,7 +200,7 @@ def tree_table(ctx: RunContext) -> pd.DataFrame:
     else:
         trees["lat"], trees["lon"] = np.nan, np.nan
     if ctx.aerial is not None:
-        trees = join_aerial(trees, ctx.aerial)
+        trees = join_aerial(trees, ctx.aerial, ctx.config.ground_truth)
     rest = [c for c in trees.columns if c not in FIRST_COLUMNS]
     return trees[[c for c in FIRST_COLUMNS if c in trees.columns] + rest].reset_index(drop=True)
 
@@ -216,16 +216,29 @@ AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tr
 }
 
 
-def join_aerial(trees: pd.DataFrame, aerial: Any) -> pd.DataFrame:
-    """Add the matched aerial crown diameter and sphere volume, and the LiDAR-vs-aerial errors."""
+def join_aerial(trees: pd.DataFrame, aerial: Any,
+                settings: GroundTruthConfig | None = None) -> pd.DataFrame:
+    """Add the matched aerial crown diameter and sphere volume, and the LiDAR-vs-aerial errors.
+
+    ``aerial_flag`` names an aerial crown that cannot be the same tree's crown (its diameter
+    far from the LiDAR crown's: a fragment, or neighbours merged); such trees keep their
+    aerial columns but get no error and stay out of the agreement statistics.
+    """
+    st = settings or GroundTruthConfig()
     matched = aerial.trees[["segment", *AERIAL_COLUMNS]].rename(columns=AERIAL_COLUMNS)
     matched = matched[aerial.trees["matched"].to_numpy(bool)]
     out = trees.merge(matched, on="segment", how="left")
+    ratio = out["aerial_diameter_m"] / out["crown_diameter_m"]
+    out["aerial_flag"] = np.select(
+        [ratio < st.min_diameter_ratio, ratio > st.max_diameter_ratio],
+        [f"aerial crown a fragment (diameter below {st.min_diameter_ratio:g}x the LiDAR crown's)",
+         f"aerial crown merged with neighbours (diameter above {st.max_diameter_ratio:g}x "
+         "the LiDAR crown's)"], default="")
+    usable = out["aerial_sphere_volume_m3"].where(out["aerial_flag"] == "")
     for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
         if col in out:
             name = col.replace("volume_", "").replace("_m3", "")
-            out[f"error_{name}_vs_aerial_pct"] = (
-                100.0 * (out[col] - out["aerial_sphere_volume_m3"]) / out["aerial_sphere_volume_m3"])
+            out[f"error_{name}_vs_aerial_pct"] = 100.0 * (out[col] - usable) / usable
     return out
 
 
@@ -242,8 +255,11 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
     flagged = trees["volume_flags"].astype(str).str.len() > 0 if "volume_flags" in trees else []
     m["flagged_volumes"] = int(np.sum(flagged))
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
-        ok = trees["aerial_sphere_volume_m3"].notna()
-        m["aerial"] = {"matched_trees": int(ok.sum()), **dict(getattr(ctx.aerial, "diagnostics", {}))}
+        matched = trees["aerial_sphere_volume_m3"].notna()
+        ok = matched & (trees["aerial_flag"] == "")
+        m["aerial"] = {"matched_trees": int(matched.sum()), "compared_trees": int(ok.sum()),
+                       "implausible_crowns": int((matched & ~ok).sum()),
+                       **dict(getattr(ctx.aerial, "diagnostics", {}))}
         for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
             if col in trees and ok.any():
                 good = ok & trees[col].notna()

@@ -14,6 +14,7 @@ from canopy_kit.report.html import Check, ReportSection, render_report, write_re
 TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
                  "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
                  "aerial_diameter_m", "aerial_sphere_volume_m3", "error_alpha_vs_aerial_pct",
+                 "aerial_flag",
                  "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags"]
 
 
@@ -65,6 +66,11 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
         matched = aerial.get("matched_trees", 0)
         checks.append(Check("LiDAR trees matched to an aerial crown", matched >= 0.9 * len(trees),
                             f"{matched}/{len(trees)}", "≥ 90 %"))
+        compared = aerial.get("compared_trees", matched)
+        checks.append(Check("matched aerial crowns of plausible size", compared >= 0.9 * matched,
+                            f"{compared}/{matched}", "≥ 90 %",
+                            "others are fragments or merged neighbours: flagged in the table, "
+                            "left out of the comparison" if compared < matched else ""))
         for col, name in (("volume_alpha_m3", "alpha shape"), ("volume_convex_hull_m3", "convex hull")):
             if col in aerial:
                 checks.append(Check(f"{name} vs aerial sphere volume (MAPE)", None,
@@ -94,8 +100,12 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
         volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
     if "true_crown_volume_m3" in trees:
         volume_columns["true crown (simulator)"] = "true_crown_volume_m3"
-    figs.append(("Canopy volume per tree by method.",
-                 figure_to_data_uri(plots.plot_volumes(trees, volume_columns))))
+    shown = trees
+    if "aerial_flag" in trees:  # a merged aerial crown's sphere would dwarf every other bar
+        shown = trees.assign(aerial_sphere_volume_m3=trees["aerial_sphere_volume_m3"].where(
+            trees["aerial_flag"].fillna("") == ""))
+    figs.append(("Canopy volume per tree by method (aerial spheres of flagged crowns left out).",
+                 figure_to_data_uri(plots.plot_volumes(shown, volume_columns))))
     sections.append(ReportSection("Map and trees", figs))
     mapping_eval = metrics.get("evaluation", {}).get("mapping")
     if mapping_eval and ctx.truth_dir is not None:
@@ -111,10 +121,13 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
              figure_to_data_uri(mfigs["map"]))]))
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
         ok = trees["aerial_sphere_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
+        if "aerial_flag" in trees:
+            ok &= trees["aerial_flag"].fillna("") == ""
         figs = []
         if ok.sum() >= 2:
             sub = trees[ok]
-            figs.append(("Alpha-shape volume against the aerial sphere volume (paper §III.A).",
+            figs.append(("Alpha-shape volume against the aerial sphere volume (paper §III.A); "
+                         "trees with a flagged aerial crown left out.",
                          figure_to_data_uri(plots.plot_agreement(
                              sub["volume_alpha_m3"].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
                              ("LiDAR alpha shape", "aerial sphere"), list(sub["label"])))))

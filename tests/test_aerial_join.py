@@ -1,0 +1,54 @@
+"""The per-tree join of aerial crowns: errors against the sphere, implausible crowns flagged."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.config import GroundTruthConfig
+from canopy_kit.pipeline import join_aerial
+
+
+def _aerial(diameters: list[float]) -> SimpleNamespace:
+    d = np.asarray(diameters, float)
+    trees = pd.DataFrame({
+        "segment": np.arange(len(d)), "matched": True,
+        "aerial_diameter_max_m": d, "aerial_diameter_mean_m": d,
+        "aerial_sphere_volume_m3": np.pi * d**3 / 6, "aerial_ellipsoid_volume_m3": np.nan,
+        "aerial_chm_volume_m3": np.nan, "aerial_height_m": 4.0, "aerial_distance_m": 0.2})
+    return SimpleNamespace(trees=trees)
+
+
+def test_errors_against_the_sphere_and_flags_for_fragments_and_merges() -> None:
+    lidar = pd.DataFrame({"segment": [0, 1, 2], "crown_diameter_m": [4.0, 4.0, 4.0],
+                          "volume_convex_hull_m3": [30.0, 30.0, 30.0],
+                          "volume_alpha_m3": [20.0, 20.0, 20.0]})
+    out = join_aerial(lidar, _aerial([4.0, 0.4, 8.0]), GroundTruthConfig())
+    sphere = np.pi * 4.0**3 / 6  # hand-computed: 33.51 m³
+    assert np.isclose(out.loc[0, "aerial_sphere_volume_m3"], sphere)
+    assert np.isclose(out.loc[0, "error_alpha_vs_aerial_pct"], 100 * (20 - sphere) / sphere)
+    assert out.loc[0, "aerial_flag"] == ""
+    assert "fragment" in out.loc[1, "aerial_flag"] and "merged" in out.loc[2, "aerial_flag"]
+    # flagged crowns keep their aerial numbers but get no error
+    assert out.loc[[1, 2], "aerial_diameter_m"].notna().all()
+    assert out.loc[[1, 2], "error_alpha_vs_aerial_pct"].isna().all()
+    assert out.loc[[1, 2], "error_convex_hull_vs_aerial_pct"].isna().all()
+
+
+def test_ratio_bounds_come_from_the_config() -> None:
+    lidar = pd.DataFrame({"segment": [0], "crown_diameter_m": [4.0],
+                          "volume_convex_hull_m3": [30.0], "volume_alpha_m3": [20.0]})
+    loose = GroundTruthConfig(min_diameter_ratio=0.05, max_diameter_ratio=3.0)
+    assert join_aerial(lidar, _aerial([0.4]), loose).loc[0, "aerial_flag"] == ""
+    assert join_aerial(lidar, _aerial([0.4])).loc[0, "aerial_flag"] != ""
+
+
+def test_inverted_ratio_bounds_are_a_config_error() -> None:
+    import pytest
+
+    from canopy_kit.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="min_diameter_ratio"):
+        GroundTruthConfig(min_diameter_ratio=2.0, max_diameter_ratio=1.0)
