@@ -4,7 +4,8 @@
 and GNSS; the pose graph then fuses everything; pass 2 deskews every point with the
 fused continuous-time trajectory and accumulates the voxel-thinned map.
 ``stream_map`` is causal: each sweep comes out registered as soon as it is processed,
-placed with the odometry pose georeferenced by a running fit to the GNSS.
+placed with the odometry pose georeferenced by a fit to the first GNSS fixes (later,
+better fits come with each sweep as an update).
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ class RegisteredScan:
     points: PointCloud  # kept points in the map frame, every field plus ``gps_time``
     ground: np.ndarray  # (N,) points the odometry's ground filter removed
     georeferenced: bool
+    # (4, 4) map frame -> local UTM frame by the latest, better GNSS fit (identity until refitted)
+    georeference_update: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
 @dataclass
@@ -298,11 +301,14 @@ def stream_map(bag_path: str | Path, config: MappingConfig | None = None,
                progress: Progress | None = None) -> Iterator[RegisteredScan]:
     """Yield each sweep registered in the map frame as the drive is processed (causal).
 
-    With GNSS the frame is the local UTM frame of :func:`build_map`; the odometry is
-    georeferenced by a yaw + translation fit to the fixes seen so far (recent ones
-    weighted more), and sweeps are held back until the robot has moved ``15 m`` so the
-    heading is known. Without GNSS the frame is the gravity-aligned first sweep.
-    :func:`build_map` smooths the whole drive and so places points more accurately.
+    With GNSS the map frame is the odometry frame placed in the local UTM frame of
+    :func:`build_map` by a yaw + translation fit to the fixes of the first ``15 m`` (sweeps
+    are held back until then), and it stays so: the streamed map is as consistent as the
+    odometry, while its placement on the globe is as good as that first fit. Later fits
+    (whenever the drive's extent or duration has doubled) come with each sweep as
+    ``georeference_update`` (map frame -> local UTM frame) for placing finished results.
+    Without GNSS the frame is the gravity-aligned first sweep. :func:`build_map` smooths
+    the whole drive and so places points more accurately.
     """
     config = config or MappingConfig()
     _check_config(config)
@@ -316,33 +322,56 @@ def stream_map(bag_path: str | Path, config: MappingConfig | None = None,
                 continue
             georef.update(one.gnss, sweep)  # type: ignore[arg-type]
             pending.append(sweep)
-            if georef.alignment is not None:
+            if georef.frame_alignment is not None:
+                update = georef.alignment @ np.linalg.inv(georef.frame_alignment)  # type: ignore[operator]
                 for held in pending:
-                    yield _registered(held, georef.alignment, True)
+                    yield _registered(held, georef.frame_alignment, True, update)
                 pending = []
         for held in pending:  # never georeferenced (too short a drive or no valid fixes)
             yield _registered(held, np.eye(4), False)
 
 
 class _RunningGeoreference:
-    """Causal odometry-to-GNSS alignment (yaw + translation), refitted every second."""
+    """Causal odometry-to-GNSS alignment (yaw + horizontal shift), refitted rarely.
+
+    The first fit comes once the drive spans ``MIN_BASELINE`` metres; it is refitted (to
+    every fix so far) only when that span or the time driven has grown by ``REFIT_GROWTH``,
+    so the streamed map frame stays put between refits and each refit (averaging more of
+    the receiver's slow wander) moves it less than the one before.
+    Height is fixed at the first fit: a standalone receiver's height wanders by a metre,
+    and refitting it every second moved whole sweeps up and down (blurred crowns).
+    ``frame_alignment`` is the first fit and stays fixed: it places the streamed map, so
+    the map is as consistent as the odometry (measured: a refit moved the frame by 1.8 m
+    after the first 15 m baseline). ``alignment`` is the latest fit.
+    """
 
     MIN_BASELINE = 15.0
-    RECENCY = 120.0  # s: older pairs count less, so the fit follows the current drift
+    REFIT_GROWTH = 2.0
 
     def __init__(self, config: MappingConfig) -> None:
         self.config = config
         self.frame: LocalFrame | None = None
         self.alignment: np.ndarray | None = None
+        self.frame_alignment: np.ndarray | None = None
         self._t: list[float] = []
         self._odo: list[np.ndarray] = []
-        self._last_fit = -np.inf
-        self._used = 0
+        self._last_try = -np.inf
+        self._fitted_span = 0.0
+        self._fitted_time = 0.0
 
     def update(self, buffer: GnssBuffer, sweep: FrontendSweep) -> None:
         self._t.append(sweep.t_ref)
         self._odo.append(sweep.pose[:3, 3].copy())
-        if len(buffer) == 0 or sweep.t_ref - self._last_fit < 1.0:
+        if len(buffer) == 0 or sweep.t_ref - self._last_try < 1.0:
+            return
+        self._last_try = sweep.t_ref
+        odo = np.array(self._odo)
+        span = float(np.ptp(odo[:, :2], axis=0).max())
+        elapsed = sweep.t_ref - self._t[0]
+        if self.alignment is None:
+            if span < self.MIN_BASELINE:
+                return
+        elif span < self.REFIT_GROWTH * self._fitted_span and elapsed < self.REFIT_GROWTH * self._fitted_time:
             return
         series = buffer.series()
         try:
@@ -352,29 +381,32 @@ class _RunningGeoreference:
         except InputError:
             return
         t = np.array(self._t)
-        odo = np.array(self._odo)
         inside = (epochs.t >= t[0]) & (epochs.t <= t[-1])
         if inside.sum() < 3:
             return
         p_odo = np.column_stack([np.interp(epochs.t[inside], t, odo[:, k]) for k in range(3)])
         if np.ptp(p_odo[:, :2], axis=0).max() < self.MIN_BASELINE:
             return
-        weights = np.exp(-(sweep.t_ref - epochs.t[inside]) / self.RECENCY)
-        yaw, shift = heading_alignment(p_odo, epochs.xyz[inside], weights)
+        yaw, shift = heading_alignment(p_odo, epochs.xyz[inside])
         a = np.eye(4)
         a[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
         a[:3, 3] = shift
+        if self.alignment is not None:
+            a[2, 3] = self.alignment[2, 3]
         self.alignment = a
-        self._last_fit = sweep.t_ref
+        if self.frame_alignment is None:
+            self.frame_alignment = a.copy()
+        self._fitted_span, self._fitted_time = span, elapsed
 
 
-def _registered(sweep: FrontendSweep, alignment: np.ndarray, georeferenced: bool) -> RegisteredScan:
+def _registered(sweep: FrontendSweep, alignment: np.ndarray, georeferenced: bool,
+                update: np.ndarray | None = None) -> RegisteredScan:
     pose = alignment @ sweep.pose
     scan = sweep.scan
     world = sweep.xyz @ pose[:3, :3].T + pose[:3, 3]
     fields = point_fields(scan.fields, sweep.keep, scan.times, scan.stamp, len(world))
     return RegisteredScan(scan.index, scan.stamp, sweep.t_ref, pose, PointCloud(world, fields),
-                          sweep.ground, georeferenced)
+                          sweep.ground, georeferenced, np.eye(4) if update is None else update)
 
 
 __all__ = ["MappingResult", "RegisteredScan", "build_map", "stream_map", "fusion_settings",
