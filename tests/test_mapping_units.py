@@ -314,3 +314,32 @@ def test_point_cloud_of_accumulator_carries_crs_and_origin() -> None:
     cloud = acc.cloud(crs="EPSG:32610", origin=np.array([1.0, 2.0, 3.0]))
     assert isinstance(cloud, PointCloud) and cloud.crs == "EPSG:32610"
     assert np.allclose(cloud.absolute_xyz, [[1.0, 2.0, 3.0]])
+
+
+# -- decoding ----------------------------------------------------------------------------
+@pytest.mark.parametrize("fmt", ["ros1", "ros2-sqlite3", "ros2-mcap"])
+def test_imu_fields_read_in_place_match_a_full_deserialisation(tmp_path, fmt: str) -> None:
+    from canopy_kit.io.bag import open_bag
+    from canopy_kit.io.bag_writer import BagWriter
+    from canopy_kit.mapping.sensors import imu_fields
+
+    # Frame ids of every length mod 8 exercise the CDR alignment after the string.
+    frames = ["", "a", "imu", "lidar", "base_imu", "imu_link_long", "x" * 14, "ü_frame"]
+    with BagWriter(tmp_path / "b", fmt) as writer:
+        for i, frame in enumerate(frames):
+            writer.write_imu("/imu", 100.0 + 0.005 * i + 1e-9 * i, RNG.normal(size=3), RNG.normal(size=3),
+                             None, frame)
+    n = 0
+    with open_bag(writer.path) as bag:
+        reader = bag.reader
+        for conn, _, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            got = imu_fields(raw, reader.is2)
+            assert got is not None
+            stamp = float(msg.header.stamp.sec) + float(msg.header.stamp.nanosec) * 1e-9
+            w, a = msg.angular_velocity, msg.linear_acceleration
+            assert got == (stamp, msg.header.frame_id, (w.x, w.y, w.z), (a.x, a.y, a.z))
+            n += 1
+    assert n == len(frames)
+    assert imu_fields(b"\x00\x00\x00\x00" + bytes(300), True) is None  # big-endian CDR: rosbags decodes
+    assert imu_fields(b"\x00\x01\x00\x00" + bytes(8), True) is None  # cut short

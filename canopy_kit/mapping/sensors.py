@@ -7,6 +7,7 @@ together and keeps the small IMU/GNSS streams in growable buffers.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -113,6 +114,44 @@ def decode_scan(bag: BagSession, topic: str, msg: object, index: int) -> Scan:
     return Scan(stamp, xyz, fields, times, msg.header.frame_id, index)  # type: ignore[attr-defined]
 
 
+_IMU_SIZE_AFTER_HEADER = 296  # orientation, 3 vectors and 3 covariances: 37 float64
+_GYRO, _ACCEL = 104, 200  # their offsets after the header (same in ROS1 and CDR)
+
+
+def imu_fields(raw: bytes | memoryview, ros2: bool) -> tuple[float, str, tuple, tuple] | None:
+    """Stamp, frame id, gyro and accel of a serialized ``sensor_msgs/Imu``, read in place.
+
+    About 50 times cheaper than a full deserialisation (an IMU at 200 Hz sends 20 messages
+    per LiDAR sweep). Returns None for anything but a well-formed little-endian message,
+    and the caller then deserialises it with rosbags.
+    """
+    raw = bytes(raw)
+    if ros2:
+        if raw[:2] != b"\x00\x01" or len(raw) < 16:  # CDR, little endian
+            return None
+        raw, start = raw[4:], 12  # alignment counts from after the encapsulation header
+        sec, nsec, n = struct.unpack_from("<iII", raw, 0)
+        if n == 0 or start + n > len(raw) or raw[start + n - 1] != 0:
+            return None
+        frame = raw[start:start + n - 1]
+        body = (start + n + 7) & ~7
+    else:
+        if len(raw) < 16:
+            return None
+        _, sec, nsec, n = struct.unpack_from("<IIII", raw, 0)
+        start = 16
+        frame = raw[start:start + n]
+        body = start + n
+    if len(raw) < body + _IMU_SIZE_AFTER_HEADER:
+        return None
+    try:
+        frame_id = frame.decode()
+    except UnicodeDecodeError:
+        return None
+    return (float(sec) + float(nsec) * 1e-9, frame_id, struct.unpack_from("<3d", raw, body + _GYRO),
+            struct.unpack_from("<3d", raw, body + _ACCEL))
+
+
 def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None = None,
                     gnss: GnssBuffer | None = None) -> Iterator[Scan]:
     """Stream the scans; IMU and GNSS messages met on the way are appended to the buffers."""
@@ -120,9 +159,16 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
     wanted = {topics.scans} | ({topics.imu} if topics.imu and imu is not None else set()) | (
         {topics.gnss} if topics.gnss and gnss is not None else set())
     conns = [c for c in reader.connections if c.topic in wanted]
+    ros2 = getattr(reader, "is2", None)  # None: a recovered bag's reader; decode fully
     index = 0
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
+            if imu is not None and ros2 is not None and conn.topic == topics.imu:
+                fields = imu_fields(raw, ros2)
+                if fields is not None:
+                    imu.frame_id = fields[1]
+                    imu.append(fields[0], fields[2], fields[3])
+                    continue
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception as exc:  # rosbags raises several unrelated types
