@@ -393,3 +393,25 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
     bad = subprocess.run([exe, "segment", str(tmp_path / "empty.laz"), "--out", str(tmp_path / "e")],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.strip().endswith("LAS file has no points")
+
+
+def test_reproduction_table_pools_trees_and_sets_the_paper_beside(tmp_path) -> None:
+    from canopy_kit.segment.results import reproduction_results, reproduction_table
+
+    runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "dbscan"],
+                         "orchard": ["almond", "almond", "almond", "pistachio"],
+                         "seed": [201, 202, 201, 201], "n_truth": [10, 20, 10, 18],
+                         "success_points": [0.5, 0.25, 1.0, 17 / 18], "variant": "default"})
+    t = reproduction_table(runs).set_index(["orchard", "method"])
+    assert list(t.index) == [("pistachio", "dbscan"), ("almond", "dbscan"), ("almond", "adaptive")]
+    assert t.loc[("almond", "dbscan"), "correct"] == 10 and t.loc[("almond", "dbscan"), "trees"] == 30
+    assert t.loc[("almond", "dbscan"), "success"] == pytest.approx(1 / 3)
+    assert t.loc[("almond", "dbscan"), "seeds"] == "201 202"
+    assert t.loc[("almond", "dbscan"), "paper"] == 0.46
+    assert t.loc[("pistachio", "dbscan"), "paper"] == 0.93
+    assert t.loc[("almond", "adaptive"), "target"] == 0.95
+    runs.to_csv(tmp_path / "r.csv", index=False)
+    only = reproduction_results(tmp_path / "r.csv", seeds=[202])
+    assert len(only) == 1 and only.iloc[0]["success"] == 0.25
+    with pytest.raises(InputError, match="column 'seed' missing"):
+        reproduction_table(runs.drop(columns="seed"))
