@@ -147,3 +147,22 @@ def test_usage_error_exits_2() -> None:
     result = run_cli("info")
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
+
+
+def test_unexpected_failure_is_one_line_exit_3(monkeypatch, capsys) -> None:
+    """A bug inside a command gives one ``error:`` line and exit 3, the traceback on request."""
+    import canopy_kit.cli as cli
+
+    def broken() -> None:
+        raise ZeroDivisionError("division by zero in a stage")
+
+    monkeypatch.setattr(cli, "app", broken)
+    monkeypatch.delenv("CANOPY_KIT_DEBUG", raising=False)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main()
+    assert exit_info.value.code == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: processing failed (ZeroDivisionError")
+    monkeypatch.setenv("CANOPY_KIT_DEBUG", "1")
+    with pytest.raises(ZeroDivisionError):
+        cli.main()

@@ -8,6 +8,7 @@ one-line message and an exit code: 2 for bad input, 3 for a processing failure.
 
 from __future__ import annotations
 
+import os
 import sys
 
 import typer
@@ -55,3 +56,12 @@ def main() -> None:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
+    except Exception as exc:  # noqa: BLE001
+        # A bug or an environment failure, not bad input: one line, and the traceback only
+        # on request, so a field user never gets a wall of Python.
+        if os.environ.get("CANOPY_KIT_DEBUG"):
+            raise
+        where = type(exc).__name__
+        print(f"error: processing failed ({where}: {exc}); set CANOPY_KIT_DEBUG=1 for the "
+              "traceback and please report it", file=sys.stderr)
+        sys.exit(3)
