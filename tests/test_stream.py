@@ -36,8 +36,8 @@ def test_stream_finds_the_batch_trees_with_volumes_within_2_percent(streamed, ti
     _, stream, _, _ = streamed
     batch = tiny_pistachio_run.trees
     assert len(stream) == len(batch)
-    both = batch.merge(stream, on="label", suffixes=("_batch", "_stream"))
-    assert len(both) == len(batch)  # the same labels, one to one
+    both = batch.merge(stream, on="tree_id", suffixes=("_batch", "_stream"))  # r<row>-<label>
+    assert len(both) == len(batch)  # the same rows and labels, one to one
     shift = np.hypot(both.x_batch - both.x_stream, both.y_batch - both.y_stream)
     assert shift.max() < 1.0  # the same tree (placed by a different GNSS fit)
     methods = [c for c in batch.columns if c.startswith("volume_") and c.endswith("_m3")]
