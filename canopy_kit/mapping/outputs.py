@@ -8,7 +8,6 @@ map frame), ``trajectory.tum`` (the same, space separated, for evo and other too
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import write_config
-from canopy_kit.io.atomic import atomic_write_text
+from canopy_kit.io.atomic import atomic_write_json, atomic_write_text
 from canopy_kit.io.las import las_ready, write_las
 
 MAP_NAME = "map.laz"
@@ -39,13 +38,6 @@ def read_tum(path: str | Path) -> pd.DataFrame:
     a = np.loadtxt(path, ndmin=2)
     return pd.DataFrame(a[:, :8], columns=["time", "x", "y", "z", "qx", "qy", "qz", "qw"])
 
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
 
 
 def write_mapping_outputs(result: Any, out_dir: str | Path,
@@ -70,6 +62,5 @@ def write_mapping_outputs(result: Any, out_dir: str | Path,
     }
     if evaluation is not None:
         report["evaluation"] = evaluation
-    paths["report"] = atomic_write_text(
-        out / REPORT_JSON, json.dumps(report, indent=2, default=_json_default) + "\n")
+    paths["report"] = atomic_write_json(out / REPORT_JSON, report)
     return paths

@@ -8,7 +8,6 @@ report: streaming keeps only a window of the map.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -19,7 +18,7 @@ import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_path, atomic_write_text
+from canopy_kit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
 
 Progress = Callable[[str, float, float], None]
@@ -59,8 +58,7 @@ def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
     files["trees.parquet"] = out / "trees.parquet"
     files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
     files["config.toml"] = write_config(config, out / "config.toml")
-    files["metrics.json"] = atomic_write_text(
-        out / "metrics.json", json.dumps(metrics, indent=2, default=_json) + "\n")
+    files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
     return Results(out, trees, metrics, files, list(metrics["warnings"]))
 
 
@@ -126,10 +124,3 @@ def stream_metrics(stream: TreeStream, trees: pd.DataFrame) -> dict[str, Any]:
         "warnings": list(stream.warnings),
     }
 
-
-def _json(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
