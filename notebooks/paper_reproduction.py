@@ -130,11 +130,13 @@ def _(mo):
 
     try:
         experiments = load_results(mo.cli_args().get("results"))
+        _seeds = "; ".join(
+            f"{_o} seeds {', '.join(str(int(_s)) for _s in sorted(set(_g['seed'])))}"
+            for _o, _g in experiments.runs.groupby("orchard", sort=False))
         experiments_note = mo.md(
-            f"Results of {len(experiments.runs)} runs: seeds "
-            f"{', '.join(map(str, experiments.config.seeds))}, {experiments.config.rows} rows x "
-            f"{experiments.config.trees_per_row} trees, mapping "
-            f"{', '.join(experiments.config.mappings)}.")
+            f"Results of {len(experiments.runs)} runs ({_seeds}), "
+            f"{experiments.config.rows} rows x {experiments.config.trees_per_row} trees per "
+            f"session, mapping {', '.join(experiments.config.mappings)}.")
     except InputError as exc:
         experiments = None
         experiments_note = mo.callout(mo.md(
@@ -152,7 +154,11 @@ def _(experiments, mo):
              "success_min_pct", "success_max_pct", "n_correct", "n_truth",
              "paper_convex_hull_mape_vs_sphere_pct", "convex_hull_mape_vs_sphere_pct",
              "paper_alpha_shape_mape_vs_sphere_pct", "alpha_shape_mape_vs_sphere_pct",
-             "convex_hull_mape_vs_crown_pct", "alpha_shape_mape_vs_crown_pct"]
+             "convex_hull_mape_vs_crown_pct", "alpha_shape_mape_vs_crown_pct",
+             "convex_hull_bias_vs_sphere_pct", "alpha_shape_bias_vs_sphere_pct",
+             "convex_hull_bias_vs_crown_pct", "alpha_shape_bias_vs_crown_pct",
+             "paper_alpha_better", "alpha_better_vs_sphere", "alpha_better_vs_crown",
+             "n_trees_vs_sphere"]
     _table = experiments.comparison.reindex(columns=_cols).round(1)
     mo.vstack([mo.md("### Paper beside reproduction"), mo.ui.table(_table, selection=None)])
     return

@@ -186,3 +186,29 @@ def test_a_complete_session_is_reused(tiny, monkeypatch):
     monkeypatch.setattr(canopy_kit.sim, "simulate_session", no_simulation)
     bag = ex.simulate(run["orchard"], int(run["seed"]), TINY, work / run["session"])
     assert bag.exists() and bag.parent == work / run["session"]
+
+
+def test_saved_only_collects_finished_sessions_and_runs_nothing(tiny, monkeypatch, tmp_path):
+    """Several processes can share a work folder; --saved-only gathers what they finished."""
+    from dataclasses import replace
+
+    from typer.testing import CliRunner
+
+    from canopy_kit.cli import app
+
+    results, work, _ = tiny
+
+    def no_simulation(*_a, **_k):
+        raise AssertionError("--saved-only simulated a session")
+
+    monkeypatch.setattr(ex, "simulate", no_simulation)
+    # Seed 2 never ran in this folder: left out, not simulated.
+    wider = replace(TINY, seeds=(1, 2))
+    got = ex.run_experiments(wider, work, keep_sessions=True, saved_only=True)
+    assert set(got.runs["seed"]) == {1} and len(got.runs) == len(results.runs)
+    pd.testing.assert_frame_equal(got.comparison, results.comparison, check_dtype=False)
+    with pytest.raises(InputError, match="no finished sessions"):
+        ex.run_experiments(replace(TINY, seeds=(2,)), work, saved_only=True)
+    no_work = CliRunner().invoke(app, ["paper", "experiments", "--saved-only"])
+    assert isinstance(no_work.exception, InputError)  # main() turns it into exit code 2
+    assert "--saved-only needs --work" in str(no_work.exception)

@@ -227,6 +227,10 @@ def experiments(
                                                         "(default: data/paper of the checkout)."),
     show_saved: bool = typer.Option(False, "--show-saved",
                                     help="Print the results saved in --out; run nothing."),
+    saved_only: bool = typer.Option(
+        False, "--saved-only", help="Run nothing: collect the sessions already finished in "
+                                    "--work (e.g. by several processes sharing it), leave out "
+                                    "the others, write the results."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON document."),
 ) -> None:
     """Re-run the paper's experiments on simulated pistachio and almond sessions.
@@ -238,6 +242,7 @@ def experiments(
     import tempfile
 
     from canopy_kit.cli.common import console, parse_overrides, print_json, progress_bar
+    from canopy_kit.errors import InputError
     from canopy_kit.paper.experiments import (
         ExperimentConfig,
         load_results,
@@ -254,10 +259,12 @@ def experiments(
             mappings=("pipeline", "true_poses") if true_poses else ("pipeline",),
             sim_overrides=parse_overrides(set_), sensor=sensor, drone=drone)
         config.validate()
+        if saved_only and work is None:
+            raise InputError("--saved-only needs --work (the folder the sessions ran in)")
         with tempfile.TemporaryDirectory(prefix="canopy-kit-experiments-") as tmp, \
                 progress_bar(transient=True) as progress:
             results = run_experiments(config, work or tmp, progress=progress,
-                                      keep_sessions=keep_sessions)
+                                      keep_sessions=keep_sessions, saved_only=saved_only)
         files = write_results(results, out)
     if json_output:
         print_json(results.to_dict())

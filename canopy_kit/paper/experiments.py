@@ -279,13 +279,17 @@ def run_mapping(orchard: str, seed: int, mapping: str, config: ExperimentConfig,
 
 def run_experiments(config: ExperimentConfig, work_dir: str | Path,
                     progress: Progress | None = None, keep_sessions: bool = False,
-                    table1: str | Path | None = None) -> ExperimentResults:
+                    table1: str | Path | None = None, saved_only: bool = False
+                    ) -> ExperimentResults:
     """Simulate every session in ``work_dir``, run and score everything.
 
     Mappings come outermost, so the pipeline's results of every session are in before the
     true-pose variant starts. Each finished session x mapping leaves its results in
     ``work_dir``, and a session is deleted after its last mapping (unless
     ``keep_sessions``): running the same config there again resumes where it stopped.
+    ``saved_only`` runs nothing: it collects the session x mappings already finished in
+    ``work_dir`` (e.g. by several processes sharing it) and leaves the others out; the
+    ``runs`` table and the comparison's ``sessions`` column say which are in.
     """
     config.validate()
     report = progress or (lambda *_: None)
@@ -303,6 +307,8 @@ def run_experiments(config: ExperimentConfig, work_dir: str | Path,
             for seed in config.seeds:
                 root = work / session_name(orchard, seed, config)
                 saved = load_checkpoint(work, orchard, seed, mapping, config)
+                if saved is None and saved_only:
+                    continue
                 if saved is None:
                     bag = simulate(orchard, seed, config, root, report)
                     recs, tabs = run_mapping(orchard, seed, mapping, config, root, bag,
@@ -316,6 +322,9 @@ def run_experiments(config: ExperimentConfig, work_dir: str | Path,
                     shutil.rmtree(root, ignore_errors=True)
                 records += recs
                 tables += tabs
+    if saved_only and not records:
+        raise InputError(f"{work}: no finished sessions of this configuration "
+                         f"({config.rows} rows x {config.trees_per_row} trees, same settings)")
     runs = pd.DataFrame(records)
     trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     if len(trees):
