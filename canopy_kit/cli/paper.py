@@ -291,9 +291,13 @@ def _print_experiments(results: Any) -> None:
 
     c, cfg = results.comparison, results.config
     seeds = ", ".join(map(str, cfg.seeds))
+    runs_min = (float(results.runs["seconds"].sum()) / 60
+                if "seconds" in results.runs else math.nan)
     console.print(f"[bold]Abedi et al. 2025 re-run on simulated orchards[/]: "
                   f"{cfg.rows} rows x {cfg.trees_per_row} trees, seeds {seeds}, "
-                  f"mapping: {', '.join(cfg.mappings)} ({results.seconds / 60:.0f} min)")
+                  f"mapping: {', '.join(cfg.mappings)} (this command {results.seconds / 60:.1f} "
+                  f"min; the runs, mapping included and simulation not, {runs_min:.0f} min "
+                  f"in all, checkpointed ones included)")
     seg = Table(title="Segmentation success (%): one-to-one point IoU >= 0.5 with a true tree")
     for col in ("orchard", "method", "mapping", "paper", "ours", "seed range",
                 "correct / trees", "merged", "split", "missed", "other", "map pts/tree"):
