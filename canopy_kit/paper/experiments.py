@@ -349,12 +349,12 @@ def save_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
                     config: ExperimentConfig, records: list[dict[str, Any]],
                     tables: list[pd.DataFrame]) -> None:
     """Keep a finished session x mapping's results in ``work`` for a rerun to resume after."""
-    from canopy_kit.io.atomic import atomic_write_text
+    from canopy_kit.io.atomic import atomic_write_text, json_default
 
     runs_path, trees_path = _checkpoint_paths(work, orchard, seed, mapping, config)
     trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     atomic_write_text(trees_path, trees.to_csv(index=False))
-    atomic_write_text(runs_path, json.dumps(records, default=_json_default))
+    atomic_write_text(runs_path, json.dumps(records, default=json_default))
 
 
 def load_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
@@ -378,7 +378,7 @@ def load_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
 def write_results(results: ExperimentResults, out_dir: str | Path | None = None
                   ) -> dict[str, Path]:
     """Runs, trees and comparison as CSV, everything as JSON, each written atomically."""
-    from canopy_kit.io.atomic import atomic_write_text
+    from canopy_kit.io.atomic import atomic_write_text, json_default
 
     out = Path(out_dir) if out_dir is not None else default_results_dir()
     out.mkdir(parents=True, exist_ok=True)
@@ -389,7 +389,7 @@ def write_results(results: ExperimentResults, out_dir: str | Path | None = None
                                        frame.to_csv(index=False, float_format="%.4f"))
     files["summary"] = atomic_write_text(
         out / RESULT_FILES["summary"],
-        json.dumps(results.to_dict(), indent=1, default=_json_default) + "\n")
+        json.dumps(results.to_dict(), indent=1, default=json_default) + "\n")
     return files
 
 
@@ -421,11 +421,3 @@ def _frame(records: list[dict[str, Any]]) -> pd.DataFrame:
 
 def _records(frame: pd.DataFrame) -> list[dict[str, Any]]:
     return json.loads(frame.to_json(orient="records")) if len(frame) else []
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return str(value)
