@@ -8,7 +8,7 @@ from typing import Any
 
 from rich.console import Console
 
-console = Console(stderr=False)
+console = Console(stderr=False, soft_wrap=True)  # lines stay whole in logs and pipes
 err_console = Console(stderr=True)
 
 ProgressCallback = Callable[[str, float, float], None]
