@@ -234,12 +234,18 @@ def join_aerial(trees: pd.DataFrame, aerial: Any,
         [f"aerial crown a fragment (diameter below {st.min_diameter_ratio:g}x the LiDAR crown's)",
          f"aerial crown merged with neighbours (diameter above {st.max_diameter_ratio:g}x "
          "the LiDAR crown's)"], default="")
-    usable = out["aerial_sphere_volume_m3"].where(out["aerial_flag"] == "")
+    usable = comparable_aerial_sphere(out)
     for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
         if col in out:
             name = col.replace("volume_", "").replace("_m3", "")
             out[f"error_{name}_vs_aerial_pct"] = 100.0 * (out[col] - usable) / usable
     return out
+
+
+def comparable_aerial_sphere(trees: pd.DataFrame) -> pd.Series:
+    """The aerial sphere volume of each tree whose aerial crown is not flagged (NaN otherwise)."""
+    flag = trees["aerial_flag"].fillna("") if "aerial_flag" in trees else ""
+    return trees["aerial_sphere_volume_m3"].where(flag == "")
 
 
 def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
@@ -256,7 +262,7 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
     m["flagged_volumes"] = int(np.sum(flagged))
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
         matched = trees["aerial_sphere_volume_m3"].notna()
-        ok = matched & (trees["aerial_flag"] == "")
+        ok = comparable_aerial_sphere(trees).notna()
         m["aerial"] = {"matched_trees": int(matched.sum()), "compared_trees": int(ok.sum()),
                        "implausible_crowns": int((matched & ~ok).sum()),
                        **dict(getattr(ctx.aerial, "diagnostics", {}))}

@@ -53,8 +53,8 @@ def print_results(results) -> None:  # noqa: ANN001
     aerial = m.get("aerial") or {}
     for column, a in aerial.items():
         if isinstance(a, dict) and "mape_pct" in a:
-            console.print(f"  {column} vs aerial sphere volume ({aerial.get('matched_trees', a['n'])}"
-                          f" trees matched): MAPE {a['mape_pct']:.1f} %, bias {a['bias_pct']:+.1f} %")
+            console.print(f"  {column} vs aerial sphere volume ({a['n']} trees compared): "
+                          f"MAPE {a['mape_pct']:.1f} %, bias {a['bias_pct']:+.1f} %")
     if results.cache_hits:
         console.print(f"  reused cached stages: {', '.join(results.cache_hits)}")
     for w in results.warnings:

@@ -84,6 +84,7 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
 def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path: str | Path) -> Path:
     """Render and write ``report.html`` for a run."""
     from canopy_kit.config import config_toml
+    from canopy_kit.pipeline import comparable_aerial_sphere
     from canopy_kit.report import plots
 
     cloud, seg = ctx.mapping.map, ctx.segmentation
@@ -101,9 +102,8 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
     if "true_crown_volume_m3" in trees:
         volume_columns["true crown (simulator)"] = "true_crown_volume_m3"
     shown = trees
-    if "aerial_flag" in trees:  # a merged aerial crown's sphere would dwarf every other bar
-        shown = trees.assign(aerial_sphere_volume_m3=trees["aerial_sphere_volume_m3"].where(
-            trees["aerial_flag"].fillna("") == ""))
+    if "aerial_sphere_volume_m3" in trees:  # a merged crown's sphere would dwarf every other bar
+        shown = trees.assign(aerial_sphere_volume_m3=comparable_aerial_sphere(trees))
     figs.append(("Canopy volume per tree by method (aerial spheres of flagged crowns left out).",
                  figure_to_data_uri(plots.plot_volumes(shown, volume_columns))))
     sections.append(ReportSection("Map and trees", figs))
@@ -120,9 +120,7 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
             ("The map from above: highest point per cell, coloured by height.",
              figure_to_data_uri(mfigs["map"]))]))
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
-        ok = trees["aerial_sphere_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
-        if "aerial_flag" in trees:
-            ok &= trees["aerial_flag"].fillna("") == ""
+        ok = comparable_aerial_sphere(trees).notna() & trees["volume_alpha_m3"].notna()
         figs = []
         if ok.sum() >= 2:
             sub = trees[ok]
