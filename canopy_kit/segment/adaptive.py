@@ -14,7 +14,9 @@ stand are read from the data:
 4. stretches of a part without trunks (occluded or hidden trunks, a sensor that does not
    see low) get as many trees as the measured spacing fits in them, and a part without
    any trunk gets ``round((length - tree length) / spacing) + 1`` trees;
-5. points go to the nearest tree position (a Voronoi split in the horizontal plane).
+5. points go to the tree whose crown, an ellipsoid fitted to the tree's points, holds
+   them closest to its shell (``segment.crowns``: a border that follows a small crown
+   sitting half inside a big one), starting from the nearest tree position.
 
 All lengths derive from the point spacing and the measured tree scale; nothing is set per
 orchard.
@@ -28,6 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
+from canopy_kit.segment.crowns import crown_split
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
 from canopy_kit.segment.profile import along_axis, chm_peaks, chm_spacing, principal_axis
 from canopy_kit.segment.stems import StemDetections, detect_stems, no_stems
@@ -75,13 +78,16 @@ class AdaptiveSegmenter(Segmenter):
     are crumbs; they join the nearest part within ``crumb_reach`` tree spacings, else
     they are noise. ``use_stems``: use trunk detections when stem points are given.
     ``stem_search_radius`` (m): a trunk belongs to the canopy part above it within this
-    horizontal distance.
+    horizontal distance. ``crown_split``: split a part between its trees by fitted crowns
+    (``segment.crowns``); else by the nearest tree position in the horizontal plane.
     """
 
     def __init__(self, link_factor: float = 2.0, crumb_fraction: float = 0.1,
                  crumb_reach: float = 0.25, use_stems: bool = True,
-                 stem_search_radius: float = 1.0, random_state: int = 0) -> None:
+                 stem_search_radius: float = 1.0, crown_split: bool = True,
+                 random_state: int = 0) -> None:
         self.link_factor = link_factor
+        self.crown_split = crown_split
         self.crumb_fraction = crumb_fraction
         self.crumb_reach = crumb_reach
         self.use_stems = use_stems
@@ -128,8 +134,12 @@ class AdaptiveSegmenter(Segmenter):
         for p, a, b in zip(ids, starts, ends):
             members = valid[a:b]
             markers = self._markers(xyz[members], w[members], stems.xy[stem_part == p], scale)
-            _, sub = cKDTree(markers).query(xyz[members, :2]) if len(markers) > 1 else (
-                None, np.zeros(len(members), dtype=np.int64))
+            if len(markers) <= 1:
+                sub = np.zeros(len(members), dtype=np.int64)
+            elif self.crown_split:
+                sub = crown_split(xyz[members], markers)
+            else:
+                _, sub = cKDTree(markers).query(xyz[members, :2])
             labels[members] = sub + next_label
             next_label += len(markers)
             markers_all.append(markers)
