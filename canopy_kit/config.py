@@ -35,6 +35,12 @@ class MappingConfig:
     odometry_ground_band: float = 0.15
     odometry_ground_refine: bool = True
     odometry_point_stride: int = 1
+    # Register every n-th sweep (build_map); the sweeps between are placed by the fused
+    # continuous trajectory (odometry interpolated, gyro rotation) in the map pass.
+    odometry_every: int = 2
+    # Long drives: the odometry runs in consecutive chunks of at least this many scans on
+    # ``workers`` processes (mapping.chunks), tied together where they overlap.
+    odometry_chunk_sweeps: int = 600
     kiss_voxel_size: float = 0.5
     kiss_max_points_per_voxel: int = 20
     min_points_per_scan: int = 500
@@ -43,6 +49,7 @@ class MappingConfig:
     # KISS-ICP threads. 1 keeps runs bit-reproducible; 0 (all cores) is faster but its
     # parallel sums change the last bits of poses from run to run, and so of trees.csv.
     threads: int = 1
+    # Processes for the odometry chunks and the map pass (0: one per core; 1: no workers).
     workers: int = 0
     # Pose graph: keyframes and the odometry error model (jitter plus drift)
     keyframe_every: int = 5
@@ -114,10 +121,21 @@ class RowsConfig:
 
 @dataclass
 class VolumeConfig:
-    """Volume estimator plugins to run per tree and their keyword arguments."""
+    """Volume estimator plugins to run per tree and their keyword arguments.
+
+    ``voxel_size``: volumes are measured on each tree's points thinned to this voxel grid
+    (the paper measures its 0.1 m voxel grid; docs/VOLUMES.md's accuracy figures are on it
+    too); 0 measures every map point. Height and crown metrics always use every point.
+    """
 
     methods: list[str] = field(default_factory=lambda: ["convex_hull", "alpha_shape"])
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    voxel_size: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.voxel_size, (int, float)) and self.voxel_size >= 0):
+            raise ConfigError(f"volume.voxel_size: must be a number >= 0 (0: every map point), "
+                              f"got {self.voxel_size!r}")
 
 
 @dataclass

@@ -10,6 +10,7 @@ import pandas as pd
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
 from canopy_kit.volume import estimator, tree_metrics
+from canopy_kit.voxel import voxel_representatives
 
 Progress = Callable[[str, float, float], None]
 # Column names of the paper's two estimators, as the per-tree table promises them.
@@ -48,8 +49,9 @@ def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
                     "projected_area_m2": metrics.projected_area_m2,
                     "sphere_volume_m3": metrics.sphere_volume_m3})
         flags = []
+        measured = xyz[voxel_representatives(xyz, volume.voxel_size)[0]] if volume.voxel_size else xyz
         for method, est in estimators.items():
-            result = est(xyz)
+            result = est(measured)
             row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
             if not result.valid:
                 flags.append(f"{method}: {result.reason}")

@@ -78,7 +78,7 @@ def test_clean_drive_has_no_warnings_or_flags(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     mapping = json.loads((tmp_path / "out" / "mapping.json").read_text())
     assert mapping["warnings"] == [] and mapping["diagnostics"]["quality_flags"] == []
-    assert mapping["diagnostics"]["sweeps_registered"] == drive.n_scans
+    assert mapping["diagnostics"]["sweeps_mapped"] == drive.n_scans
 
 
 def test_corrupt_bytes_do_not_move_the_trajectory(outcomes: dict[str, tuple], tmp_path: Path) -> None:

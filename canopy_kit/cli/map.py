@@ -72,7 +72,7 @@ def _write_plots(result, out: Path, reference, evaluation) -> dict[str, Path]:  
 def _print_summary(console, result, evaluation, paths) -> None:  # noqa: ANN001
     d = result.diagnostics
     t = d["timing"]
-    console.print(f"[green]mapped[/] {d['sweeps_registered']}/{d['scans']} sweeps, "
+    console.print(f"[green]mapped[/] {d['sweeps_mapped']}/{d['scans']} sweeps ({d['sweeps_registered']} registered), "
                   f"{d['path_length_m']:.0f} m in {d['duration_s']:.0f} s of driving, "
                   f"{d['map_points']:,} map points "
                   f"({result.map.crs or 'local frame, not georeferenced'})")

@@ -106,6 +106,14 @@ def bag_kind(path: Path) -> str | None:
     return None
 
 
+def stray_times_warning(path: str, topic: str, stray: list[tuple[int, int]]) -> str:
+    """The one warning that counts the points dropped for corrupt per-point times."""
+    return (f"{path}: topic {topic!r}: {sum(n for _, n in stray)} points in "
+            f"{len(stray)} scans had per-point times more than {MAX_POINT_TIME_OFFSET_S:g} s "
+            f"from the rest of their scan (corrupt data) and were dropped (first: scan "
+            f"{min(i for i, _ in stray)})")
+
+
 class BagSession:
     """An open bag. Use as a context manager: ``with open_bag(path) as bag: ...``."""
 
@@ -254,16 +262,23 @@ class BagSession:
             return xyz, fields, times
         keep = ~stray
         self._stray.append((index, int(stray.sum())))
-        text = (f"{self.path}: topic {topic!r}: {sum(n for _, n in self._stray)} points in "
-                f"{len(self._stray)} scans had per-point times more than {MAX_POINT_TIME_OFFSET_S:g} s "
-                f"from the rest of their scan (corrupt data) and were dropped (first: scan "
-                f"{self._stray[0][0]})")
+        text = stray_times_warning(str(self.path), topic, self._stray)
         if self._stray_warning is None:
             self._stray_warning = len(self.warnings)
             self.warnings.append(text)
         else:
             self.warnings[self._stray_warning] = text
         return xyz[keep], {k: v[keep] for k, v in fields.items()}, times[keep]  # type: ignore[index]
+
+    @property
+    def stray_time_scans(self) -> list[tuple[int, int]]:
+        """(scan index, points dropped) of every scan that lost points to corrupt times so far."""
+        return list(self._stray)
+
+    @property
+    def stray_warning_index(self) -> int | None:
+        """Position in :attr:`warnings` of the corrupt-times warning (None: no such warning)."""
+        return self._stray_warning
 
     def imu(self, topic: str | None = None) -> ImuSeries | None:
         """All IMU samples of ``topic`` (auto-detected), or None when the bag has no IMU."""

@@ -16,14 +16,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from canopy_kit.config import MappingConfig
-from canopy_kit.errors import ProcessingError
 from canopy_kit.io.bag import BagSession, Scan, open_bag
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, voxel_hash
-from canopy_kit.mapping.deskew import rotate_small
 from canopy_kit.mapping.filters import range_mask
 from canopy_kit.mapping.sensors import decode_scan
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
+from canopy_kit.mapping.workers import run_forked
 
 TIME_FIELD = "gps_time"  # absolute per-point time (bag clock, s); LAS's standard time dimension
 POSE_BINS = 64  # per-sweep time bins for per-point poses (1.6 ms apart at 10 Hz)
@@ -54,19 +53,36 @@ def world_points(scan: Scan, trajectory: ContinuousTrajectory, config: MappingCo
         bins = np.clip(((t - lo) / max(hi - lo, 1e-12) * (POSE_BINS - 1) + 0.5).astype(np.int64),
                        0, POSE_BINS - 1)
         pos, q = trajectory.quaternions_at(lo + (hi - lo) * np.arange(POSE_BINS) / (POSE_BINS - 1))
-        # Each bin's pose relative to the middle one is small: rotate with rotation vectors.
-        mid = POSE_BINS // 2
-        q_mid_inv = quat.conjugate(q[mid])
-        rel_rotvec = quat.to_rotvec(quat.multiply(q_mid_inv, q))
-        rel_t = quat.rotate(q_mid_inv, pos - pos[mid])
-        local = rotate_small(xyz, rel_rotvec[bins]) + rel_t[bins]
-        world = local @ quat.to_matrix(q[mid]).T + pos[mid]
+        world = transform_binned(xyz, bins, quat.to_matrix(q), pos)
     else:
         valid = times is not None and len(times) and np.ptp(times) > 0
         t_ref = 0.5 * (float(times.min()) + float(times.max())) if valid else scan.stamp  # type: ignore[union-attr]
         pos, rot = trajectory.at(np.array([t_ref]))
         world = xyz @ rot[0].T + pos[0]
     return world, fields, keep
+
+
+def transform_binned(xyz: np.ndarray, bins: np.ndarray, rotations: np.ndarray,
+                     translations: np.ndarray) -> np.ndarray:
+    """``rotations[b] @ p + translations[b]`` for each point ``p`` of bin ``b``.
+
+    One matrix product per bin over the bin's points; a sweep's points usually come in
+    time order, so the bins are contiguous runs and need no sorting.
+    """
+    order = None
+    if len(bins) > 1 and np.any(bins[1:] < bins[:-1]):
+        order = np.argsort(bins, kind="stable")
+        xyz, bins = xyz[order], bins[order]
+    edges = np.searchsorted(bins, np.arange(len(rotations) + 1))
+    out = np.empty_like(xyz, dtype=np.float64)
+    for b in np.flatnonzero(np.diff(edges)):
+        part = slice(edges[b], edges[b + 1])
+        out[part] = xyz[part] @ rotations[b].T + translations[b]
+    if order is not None:
+        placed = np.empty_like(out)
+        placed[order] = out
+        out = placed
+    return out
 
 
 def selected_scans(bag: BagSession, topic: str, wanted: Callable[[int], bool]) -> Iterator[Scan]:
@@ -89,68 +105,19 @@ class _Job:
     n_workers: int
 
 
-def _accumulate(job: _Job, progress: Callable[[int], None] | None = None
+def _accumulate(job: _Job, tick: Callable[[], None] | None = None
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
     acc = MapAccumulator(job.config.map_voxel_size)
     mine = {i: d for i, d in job.sweeps.items() if i % job.n_workers == job.worker}
     with open_bag(job.bag_path) as bag:
-        for n, scan in enumerate(selected_scans(bag, job.topic, mine.__contains__), 1):
+        for scan in selected_scans(bag, job.topic, mine.__contains__):
             xyz, fields, keep = world_points(scan, job.trajectory, job.config, mine[scan.index])
             fields[_ORDER] = (np.int64(scan.index) << 24) | keep.astype(np.int64)
             acc.add(xyz, fields)
-            if progress:
-                progress(n)
+            if tick:
+                tick()
     cloud = acc.cloud()
     return cloud.xyz, cloud.fields, acc.n_offered
-
-
-def _worker(job: _Job, counter, conn) -> None:  # noqa: ANN001
-    """Child process body (fork): accumulate, then send the partial map or the error back."""
-    def tick(_: int) -> None:
-        with counter.get_lock():
-            counter.value += 1
-
-    try:
-        conn.send(("ok", _accumulate(job, tick)))
-    except BaseException as exc:  # report any failure to the parent instead of dying silently
-        conn.send(("error", exc))
-    finally:
-        conn.close()
-
-
-def _run_parallel(jobs: list[_Job], total: int,
-                  progress: Callable[[str, float, float], None] | None) -> list:
-    import multiprocessing as mp
-
-    ctx = mp.get_context("fork")
-    counter = ctx.Value("i", 0)
-    pipes = [ctx.Pipe(duplex=False) for _ in jobs]
-    procs = [ctx.Process(target=_worker, args=(job, counter, send), daemon=True)
-             for job, (_, send) in zip(jobs, pipes)]
-    for proc in procs:
-        proc.start()
-    results: list = [None] * len(jobs)
-    try:
-        while any(r is None for r in results):
-            for i, (recv, _) in enumerate(pipes):
-                if results[i] is None and recv.poll(0.2):
-                    results[i] = recv.recv()
-            if progress:
-                progress("mapping: map", counter.value, total)
-            dead = [i for i, p in enumerate(procs) if results[i] is None and not p.is_alive()
-                    and not pipes[i][0].poll()]
-            if dead:
-                raise ProcessingError(f"map assembly worker {dead[0]} ended without a result "
-                                      f"(exit code {procs[dead[0]].exitcode})")
-    finally:
-        for proc in procs:
-            proc.join(timeout=5)
-            if proc.is_alive():
-                proc.terminate()
-    for status, value in results:
-        if status == "error":
-            raise value
-    return [value for _, value in results]
 
 
 def merge_partial_maps(parts: list[tuple[np.ndarray, dict[str, np.ndarray]]],
@@ -177,13 +144,17 @@ def assemble_map(bag_path: str, topic: str, sweeps: dict[int, bool], trajectory:
     total = len(sweeps)
     jobs = [_Job(str(bag_path), topic, sweeps, trajectory, config, w, n_workers) for w in range(n_workers)]
     if n_workers == 1:
-        def tick(n: int) -> None:
+        done = 0
+
+        def tick() -> None:
+            nonlocal done
+            done += 1
             if progress:
-                progress("mapping: map", n, total)
+                progress("mapping: map", done, total)
 
         xyz, fields, offered = _accumulate(jobs[0], tick)
     else:
-        parts = _run_parallel(jobs, total, progress)
+        parts = run_forked(_accumulate, jobs, "mapping: map", total, progress)
         xyz, fields = merge_partial_maps([(p[0], p[1]) for p in parts], config.map_voxel_size)
         offered = sum(p[2] for p in parts)
     if progress:

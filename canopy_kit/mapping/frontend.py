@@ -28,6 +28,7 @@ IMU_WAIT_SCANS = 5  # process a sweep anyway when the IMU lags this many sweeps 
 STARTUP_MAX_SCANS = 300  # give up waiting for the end of the standstill after this many
 DROPOUT_S = 1.0  # s without a scan reported as a sensor dropout (a hole in the map)
 MIN_VELOCITY_DT = 0.02  # s: sweeps closer than this give no velocity (mis-stamped duplicates)
+VELOCITY_BASELINE_S = 0.3  # s of registered poses the velocity is measured over
 STANDSTILL_M = 1.0  # a drive whose sweeps all stay this close to the first one stood still
 STRUCTURE_POINTS = 800  # fewer odometry points than this inflate the sweep's uncertainty
 WEAK_REGISTRATION_MAX = 10.0  # uncertainty of a sweep placed by the motion prediction
@@ -46,6 +47,9 @@ class FrontendSweep:
     ground: np.ndarray  # (M,) kept points called ground
     deskewed: bool
     uncertainty: float = 1.0  # >1 when the registration was weak or replaced by the prediction
+    # False: not registered (``mapping.odometry_every``); ``pose`` is the motion prediction,
+    # ``xyz`` and ``ground`` are empty, and the pose graph leaves the sweep out.
+    registered: bool = True
 
 
 @dataclass
@@ -75,6 +79,9 @@ class LidarFrontend:
                  keep_all_points: bool = True) -> None:
         self.config = config
         self.keep_all_points = keep_all_points
+        # Register every sweep when the caller needs every sweep's points (streaming).
+        self.register_every = 1 if keep_all_points else max(1, config.odometry_every)
+        self._unregistered_run = 0
         self.imu = imu
         self.where = where
         self.state = FrontendState()
@@ -87,6 +94,8 @@ class LidarFrontend:
         self._sparse_run = 0
         self._last_stamp = -np.inf  # stamp of the last scan fed
         self._rejected_run = 0
+        self._motion_known = False  # a velocity has been measured between two registered sweeps
+        self._history: deque[tuple[float, np.ndarray]] = deque(maxlen=8)  # registered (t_ref, pose)
         self._ground_grid = GroundHeightGrid() if config.odometry_ground_refine else None
 
     # -- start-up --------------------------------------------------------------------------
@@ -111,6 +120,12 @@ class LidarFrontend:
             st.rotations = RotationTrack(series, st.standstill.gyro_bias)
             self._imu_used = len(self.imu)
             st.initial_rotation = st.standstill.level_rotation().as_matrix()
+            t_first = reference_time(first.times, first.stamp)
+            if st.standstill.found and st.rotations.covers(st.standstill.end, t_first):
+                # The first sweep comes after the standstill (a late LiDAR, or a later part of
+                # the drive): its orientation is the level one turned by the gyro since then.
+                turn = st.rotations.relative(st.standstill.end, np.array([t_first])).as_matrix()[0]
+                st.initial_rotation = st.initial_rotation @ turn
             st.up_source = "imu"
             if not st.standstill.found:
                 st.warnings.append("IMU: no standstill at the start; gravity taken from the mean of the "
@@ -194,6 +209,9 @@ class LidarFrontend:
                                   f"{self.where}: scans {st.skipped_sparse[0]}..{scan.index}")
             return None
         self._sparse_run = 0
+        if self._prev_t is not None and self._unregistered_run + 1 < self.register_every:
+            return self._unregistered(scan, keep)
+        self._unregistered_run = 0
         if not self.keep_all_points and cfg.odometry_point_stride > 1:
             # Only the odometry needs these points: thin before the per-point work.
             thinned = np.zeros_like(keep)
@@ -220,17 +238,20 @@ class LidarFrontend:
         if self.keep_all_points and cfg.odometry_point_stride > 1:
             odo_points = odo_points[:: cfg.odometry_point_stride]
         guess = self._predict(t_ref)
-        previous = self._odometry.pose.copy()
         # Few points above the ground (an open headland) make ICP weak: say so to the graph.
         uncertainty = float(np.clip(STRUCTURE_POINTS / max(len(odo_points), 1), 1.0, WEAK_REGISTRATION_MAX))
         pose = self._odometry.align(odo_points, guess)
         if self._prev_t is not None:
             shift, turn = self._correction(guess, pose)
+            # The limits below are per sweep of prediction: registering every n-th sweep
+            # predicts n sweeps ahead.
+            shift, turn = shift / self.register_every, turn / self.register_every
             # Large corrections of a good prediction mean a weak registration (measured: 99 % of
             # corrections stay under 5 cm and 0.35 deg in a structured orchard).
             uncertainty = max(uncertainty, min(WEAK_REGISTRATION_MAX, shift / 0.05, turn / 0.35))
-            # Only a gyro-based prediction is good enough to overrule ICP.
-            gyro = st.rotations is not None
+            # Only a gyro-based prediction is good enough to overrule ICP, and only once the
+            # velocity is known (not at the first sweeps of a chunk that starts while driving).
+            gyro = st.rotations is not None and self._motion_known
             if gyro and (shift > cfg.odometry_max_correction or turn > cfg.odometry_max_correction_deg):
                 # ICP jumped further from the prediction than a vehicle moves in one sweep (e.g.
                 # a U-turn on an open headland). After a few in a row the prediction itself is
@@ -247,15 +268,44 @@ class LidarFrontend:
         if self._ground_grid is not None:
             pose = self._refine_with_ground(pose, xyz[ground])
         self._odometry.commit(pose)
-        if self._prev_t is not None and t_ref - self._prev_t >= MIN_VELOCITY_DT:
-            dt = t_ref - self._prev_t
-            delta = np.linalg.inv(previous) @ pose
-            self._velocity = delta[:3, 3] / dt
-            self._omega = Rotation.from_matrix(delta[:3, :3]).as_rotvec() / dt
+        self._update_motion(t_ref, pose)
         self._prev_t = t_ref
         st.sweeps += 1
         st.max_displacement = max(st.max_displacement, float(np.hypot(*pose[:2, 3])))
         return FrontendSweep(scan, t_ref, pose, keep, xyz, ground, deskewed, uncertainty)
+
+    def _update_motion(self, t_ref: float, pose: np.ndarray) -> None:
+        """Velocity and turn rate (body frame) over the last ``VELOCITY_BASELINE_S`` of poses.
+
+        One sweep's ICP jitter (a few cm) over one sweep's time would read as a speed of
+        decimetres per second on a robot standing still; a longer baseline damps it, and the
+        velocity is expressed in the newest body frame, so turns do not skew it.
+        """
+        history = self._history
+        older = [(t, p) for t, p in history if t_ref - t >= MIN_VELOCITY_DT]
+        history.append((t_ref, pose))
+        if not older:
+            return
+        base = [(t, p) for t, p in older if t_ref - t >= VELOCITY_BASELINE_S]
+        t0, p0 = base[-1] if base else older[0]
+        dt = t_ref - t0
+        self._velocity = pose[:3, :3].T @ (pose[:3, 3] - p0[:3, 3]) / dt
+        self._omega = Rotation.from_matrix(p0[:3, :3].T @ pose[:3, :3]).as_rotvec() / dt
+        self._motion_known = True
+
+    def _unregistered(self, scan: Scan, keep: np.ndarray) -> FrontendSweep:
+        """A sweep left to the map pass: its reference time and the motion prediction only."""
+        self._unregistered_run += 1
+        times = scan.times[keep] if scan.times is not None else None
+        usable = times is not None and bool(np.all(np.isfinite(times))) and float(np.ptp(times)) > 0
+        t_ref = reference_time(times if usable else None, scan.stamp)
+        deskewed = self.config.deskew and usable
+        if not deskewed:
+            self.state.not_deskewed += 1
+        self.state.sweeps += 1
+        empty = np.zeros((0, 3))
+        return FrontendSweep(scan, t_ref, self._predict(t_ref), keep, empty, np.zeros(0, bool), deskewed,
+                             registered=False)
 
     def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """Height and tilt from the ground grid (see :mod:`.ground`); the grid grows with the sweep."""

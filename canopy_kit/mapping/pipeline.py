@@ -23,13 +23,14 @@ from canopy_kit.cloud import PointCloud
 from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 from canopy_kit.geo import LocalFrame
-from canopy_kit.io.bag import BagSession, open_bag
+from canopy_kit.io.bag import open_bag
 from canopy_kit.mapping.assemble import TIME_FIELD, assemble_map, point_fields
-from canopy_kit.mapping.frontend import (DROPOUT_S, STANDSTILL_M, FrontendSweep, LidarFrontend,
-                                         require_sweeps)
+from canopy_kit.mapping.chunks import run_odometry
+from canopy_kit.mapping.frontend import FrontendSweep, require_sweeps
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
 from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
-from canopy_kit.mapping.sensors import GnssBuffer, ImuBuffer, SensorTopics, resolve_topics, sensor_messages
+from canopy_kit.mapping.passone import PassOne, pass_warnings, quality_flags
+from canopy_kit.mapping.sensors import GnssBuffer
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
 
 Progress = Callable[[str, float, float], None]
@@ -91,92 +92,9 @@ def _check_config(config: MappingConfig) -> None:
             raise ConfigError(f"mapping.{name}: must be positive, got {getattr(config, name)}")
     if len(config.gnss_lever_arm) != 3:
         raise ConfigError(f"mapping.gnss_lever_arm: expected [x, y, z], got {config.gnss_lever_arm}")
-    if config.keyframe_every < 1 or config.odometry_point_stride < 1:
-        raise ConfigError("mapping.keyframe_every and mapping.odometry_point_stride must be >= 1")
-
-
-def _scan_count(bag: BagSession, topic: str) -> int:
-    return next((t.count for t in bag.topics() if t.name == topic), 0)
-
-
-def _input_warnings(topics: SensorTopics, config: MappingConfig, bag: BagSession) -> list[str]:
-    out = []
-    if config.use_imu and topics.imu is None:
-        out.append(f"{bag.path}: no IMU topic (sensor_msgs/msg/Imu): mapped with LiDAR only "
-                   "(no gravity alignment, no gyro deskew or rotation prior)")
-    if config.use_gnss and topics.gnss is None:
-        out.append(f"{bag.path}: no GNSS topic (sensor_msgs/msg/NavSatFix): the map is not "
-                   "georeferenced (local frame at the first sweep) and drift is not bounded")
-    return out
-
-
-class _PassOne:
-    """Front end over the bag: sweeps, IMU and GNSS, with running counts for diagnostics."""
-
-    def __init__(self, bag: BagSession, config: MappingConfig, progress: Progress | None,
-                 keep_all_points: bool) -> None:
-        self.bag = bag
-        self.config = config
-        self.topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
-                                     config.use_imu, config.use_gnss)
-        self.imu = ImuBuffer() if self.topics.imu else None
-        self.gnss = GnssBuffer() if self.topics.gnss else None
-        self.frontend = LidarFrontend(config, self.imu, where=f"{bag.path}: topic {self.topics.scans!r}",
-                                      keep_all_points=keep_all_points)
-        self.total = _scan_count(bag, self.topics.scans)
-        self.progress = progress
-        self.n_scans = 0
-        self.n_without_time = 0
-        self.first_stamp = np.inf
-        self.last_stamp = -np.inf
-
-    def sweeps(self) -> Iterator[FrontendSweep]:
-        for scan in sensor_messages(self.bag, self.topics, self.imu, self.gnss):
-            self.n_scans += 1
-            self.first_stamp = min(self.first_stamp, scan.stamp)
-            self.last_stamp = max(self.last_stamp, scan.stamp)
-            if scan.times is None:
-                self.n_without_time += 1
-            yield from self.frontend.feed(scan)
-            if self.progress:
-                self.progress("mapping: odometry", self.n_scans, self.total)
-        yield from self.frontend.finish()
-
-    def warnings(self) -> list[str]:
-        out = list(self.bag.warnings) + _input_warnings(self.topics, self.config, self.bag)
-        st = self.frontend.state
-        if self.n_without_time:
-            out.append(f"{self.bag.path}: topic {self.topics.scans!r}: {self.n_without_time} of "
-                       f"{self.n_scans} scans have no per-point time field (t, time, timestamp...); "
-                       "those were mapped without deskew")
-        elif st.not_deskewed and self.config.deskew:
-            out.append(f"{st.not_deskewed} sweeps had unusable per-point times (constant or "
-                       "non-finite) and were mapped without deskew")
-        if st.skipped_sparse:
-            out.append(f"{len(st.skipped_sparse)} scans had fewer than "
-                       f"{self.config.min_points_per_scan} points in range and were skipped "
-                       f"(first: scan {st.skipped_sparse[0]})")
-        if st.rejected_registrations:
-            out.append(f"{st.rejected_registrations} of {st.sweeps} sweeps: ICP moved the motion "
-                       f"prediction by more than {self.config.odometry_max_correction} m or "
-                       f"{self.config.odometry_max_correction_deg} deg; the prediction was kept "
-                       "(little structure in view?)")
-        if st.out_of_order:
-            out.append(f"{self.bag.path}: topic {self.topics.scans!r}: {len(st.out_of_order)} scans "
-                       "stamped at or before the scan before them (repeated or backwards time) were "
-                       f"skipped (first: scan {st.out_of_order[0]})")
-        if st.gaps:
-            start, length = max(st.gaps, key=lambda g: g[1])
-            out.append(f"{self.bag.path}: topic {self.topics.scans!r}: no scan for {length:.1f} s "
-                       f"after t={start:.3f} s ({len(st.gaps)} gap(s) over {DROPOUT_S:.0f} s): sensor "
-                       "dropout, the map has a hole there")
-        if st.sweeps >= 2 and st.max_displacement < STANDSTILL_M:
-            out.append(f"the robot moved at most {st.max_displacement:.2f} m from its start: the map "
-                       "shows what one spot sees (one-sided crowns, trees out of range missing)")
-        if st.ground_fallbacks:
-            out.append(f"{st.ground_fallbacks} sweeps had almost no points above the ground; their "
-                       "odometry used the ground points (flat-ground trap possible)")
-        return out + list(st.warnings)
+    for name in ("keyframe_every", "odometry_point_stride", "odometry_every"):
+        if getattr(config, name) < 1:
+            raise ConfigError(f"mapping.{name}: must be >= 1, got {getattr(config, name)}")
 
 
 def build_map(bag_path: str | Path, config: MappingConfig | None = None,
@@ -187,37 +105,36 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     timing: dict[str, float] = {}
     cpu0, wall0, children0 = time.process_time(), time.perf_counter(), _children_cpu()
     with open_bag(bag_path) as bag:
-        one = _PassOne(bag, config, progress, keep_all_points=False)
-        records = [(s.scan.index, s.scan.stamp, s.t_ref, s.pose, s.uncertainty, s.deskewed)
-                   for s in one.sweeps()]
-        require_sweeps(len(records), f"{bag.path}: topic {one.topics.scans!r}")
-        timing["odometry_cpu_s"] = time.process_time() - cpu0
-        t_ref = np.array([r[2] for r in records])
-        odometry = np.array([r[3] for r in records])
-        uncertainty = np.array([r[4] for r in records])
-        deskewed = {r[0]: r[5] for r in records}
-        warnings = one.warnings()
-        imu = one.imu.series() if one.imu is not None and len(one.imu) >= 20 else None
-        if one.frontend.imu is None:
-            imu = None
-        st = one.frontend.state
-        frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings)
+        one = run_odometry(bag, config, progress)
+    records = one.records
+    registered = [r for r in records if r.registered]
+    require_sweeps(len(registered), f"{one.bag_path}: topic {one.topics.scans!r}")
+    timing["odometry_cpu_s"] = time.process_time() - cpu0 + _children_cpu() - children0
+    timing["odometry_wall_s"] = time.perf_counter() - wall0
+    # The pose graph takes the registered sweeps; every sweep gets a pose and a map pass.
+    odo_times = np.array([r.t_ref for r in registered])
+    odometry = np.array([r.pose for r in registered])
+    uncertainty = np.array([r.uncertainty for r in registered])
+    t_ref = np.array([r.t_ref for r in records])
+    deskewed = {r.index: r.deskewed for r in records}
+    warnings = pass_warnings(one, config)
+    imu = one.imu
+    st = one.state
+    frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings)
+    cpu1 = time.process_time()
+    fused = fuse_trajectory(odo_times, odometry, fusion_settings(config), imu=imu,
+                            standstill=st.standstill, gnss=epochs, uncertainty=uncertainty)
+    if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
+        why = fused.diagnostics.get("no_heading", "GNSS fixes do not overlap the LiDAR sweeps")
+        warnings.append(f"{why}; the map is not georeferenced")
+        frame = None
+    trajectory = ContinuousTrajectory(fused.times, fused.poses, odo_times, odometry, st.rotations)
+    timing["fusion_cpu_s"] = time.process_time() - cpu1
 
-        cpu1 = time.process_time()
-        fused = fuse_trajectory(t_ref, odometry, fusion_settings(config), imu=imu,
-                                standstill=st.standstill, gnss=epochs, uncertainty=uncertainty)
-        if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
-            why = fused.diagnostics.get("no_heading", "GNSS fixes do not overlap the LiDAR sweeps")
-            warnings.append(f"{why}; the map is not georeferenced")
-            frame = None
-        trajectory = ContinuousTrajectory(fused.times, fused.poses, t_ref, odometry, st.rotations)
-        timing["fusion_cpu_s"] = time.process_time() - cpu1
-
-        cpu2 = time.process_time()
-        wall2 = time.perf_counter()
+    cpu2, wall2, children2 = time.process_time(), time.perf_counter(), _children_cpu()
     xyz, fields, offered = assemble_map(str(bag_path), one.topics.scans, deskewed, trajectory, config,
                                         progress)
-    timing["map_cpu_s"] = time.process_time() - cpu2 + _children_cpu() - children0
+    timing["map_cpu_s"] = time.process_time() - cpu2 + _children_cpu() - children2
     timing["map_wall_s"] = time.perf_counter() - wall2
 
     cloud = PointCloud(xyz, fields, crs=frame.crs if frame is not None else None,
@@ -232,7 +149,8 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "topics": {"pointcloud": one.topics.scans, "imu": one.topics.imu if imu is not None else None,
                    "gnss": one.topics.gnss if frame is not None else None},
         "scans": one.n_scans,
-        "sweeps_registered": len(records),
+        "sweeps_mapped": len(records),
+        "sweeps_registered": len(registered),
         "scans_skipped_sparse": len(st.skipped_sparse),
         "scans_without_point_time": one.n_without_time,
         "sweeps_deskewed": int(sum(deskewed.values())),
@@ -245,6 +163,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "ground_corrections": st.ground_corrections,
         "georeferenced": frame is not None,
         "quality_flags": quality_flags(one, frame, imu),
+        "odometry_workers": one.workers,
         "fusion": fused.diagnostics,
         "timing": timing,
         "real_time_factor": duration / timing["total_wall_s"] if timing["total_wall_s"] > 0 else None,
@@ -261,16 +180,6 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
     return MappingResult(cloud, table, frame, diagnostics, warnings, config)
-
-
-def quality_flags(one: _PassOne, frame: LocalFrame | None, imu: object) -> list[str]:
-    """Short names of what makes the map less trustworthy than a clean drive's (metrics.json)."""
-    st = one.frontend.state
-    flags = {"bag_recovered": one.bag.recovered, "scan_gaps": bool(st.gaps),
-             "scans_out_of_order": bool(st.out_of_order), "scans_skipped": bool(st.skipped_sparse),
-             "standing_still": st.max_displacement < STANDSTILL_M, "no_imu": imu is None,
-             "not_georeferenced": frame is None}
-    return [name for name, raised in flags.items() if raised]
 
 
 def _children_cpu() -> float:
@@ -313,7 +222,7 @@ def stream_map(bag_path: str | Path, config: MappingConfig | None = None,
     config = config or MappingConfig()
     _check_config(config)
     with open_bag(bag_path) as bag:
-        one = _PassOne(bag, config, progress, keep_all_points=True)
+        one = PassOne(bag, config, progress, keep_all_points=True)
         georef = _RunningGeoreference(config) if one.gnss is not None else None
         pending: list[FrontendSweep] = []
         for sweep in one.sweeps():
@@ -409,5 +318,11 @@ def _registered(sweep: FrontendSweep, alignment: np.ndarray, georeferenced: bool
                           sweep.ground, georeferenced, np.eye(4) if update is None else update)
 
 
-__all__ = ["MappingResult", "RegisteredScan", "build_map", "stream_map", "fusion_settings",
-           "TIME_FIELD"]
+__all__ = [
+    "TIME_FIELD",
+    "MappingResult",
+    "RegisteredScan",
+    "build_map",
+    "fusion_settings",
+    "stream_map",
+]

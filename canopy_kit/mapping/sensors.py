@@ -153,8 +153,14 @@ def imu_fields(raw: bytes | memoryview, ros2: bool) -> tuple[float, str, tuple, 
 
 
 def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None = None,
-                    gnss: GnssBuffer | None = None) -> Iterator[Scan]:
-    """Stream the scans; IMU and GNSS messages met on the way are appended to the buffers."""
+                    gnss: GnssBuffer | None = None, first_scan: int = 0,
+                    end_scan: int | None = None) -> Iterator[Scan]:
+    """Stream the scans; IMU and GNSS messages met on the way are appended to the buffers.
+
+    Only scans ``first_scan <= index < end_scan`` are decoded and yielded (the ones before
+    are skipped undecoded; IMU and GNSS before them are still collected); reading stops at
+    ``end_scan``.
+    """
     reader = bag.reader
     wanted = {topics.scans} | ({topics.imu} if topics.imu and imu is not None else set()) | (
         {topics.gnss} if topics.gnss and gnss is not None else set())
@@ -163,6 +169,9 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
     index = 0
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
+            if index < first_scan and conn.topic == topics.scans:
+                index += 1
+                continue
             if imu is not None and ros2 is not None and conn.topic == topics.imu:
                 fields = imu_fields(raw, ros2)
                 if fields is not None:
@@ -178,6 +187,8 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
             if conn.topic == topics.scans:
                 yield decode_scan(bag, conn.topic, msg, index)
                 index += 1
+                if end_scan is not None and index >= end_scan:
+                    return
             elif conn.topic == topics.imu and imu is not None:
                 w, a = msg.angular_velocity, msg.linear_acceleration
                 imu.frame_id = msg.header.frame_id

@@ -1,0 +1,146 @@
+"""Pass 1 in parallel: the drive cut into consecutive chunks, one odometry per worker process.
+
+KISS-ICP's registration holds the GIL and a sweep needs the one before it, so one
+odometry runs on one core. A long drive is therefore cut into ``n`` chunks of consecutive
+scans; every chunk after the first starts ``OVERLAP_SWEEPS`` scans early, and each worker
+reads the bag from its start (scans before its chunk are skipped undecoded, IMU and GNSS
+are collected: the standstill at the start levels every chunk and fixes the gyro bias).
+Each chunk's odometry lives in its own frame; chunk ``k`` is tied to chunk ``k - 1`` by
+the mean of ``T_prev(i) · T_k(i)⁻¹`` over the overlap sweeps both registered, taken from
+the second half of the overlap (chunk ``k``'s local map needs a few sweeps to fill up).
+The stitched odometry then goes to the pose graph like a single process's: the seams are
+as good as one registration.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from canopy_kit.config import MappingConfig
+from canopy_kit.io.bag import BagSession, open_bag
+from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass, scan_count
+from canopy_kit.mapping.sensors import resolve_topics
+from canopy_kit.mapping.workers import Tick, run_forked
+
+Progress = Callable[[str, float, float], None]
+OVERLAP_SWEEPS = 40  # scans each chunk after the first starts early
+MIN_TIE_SWEEPS = 5  # overlap sweeps both chunks registered, needed to tie them
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """Scans ``first <= index < end`` are processed; those from ``own`` on are this chunk's."""
+
+    bag_path: str
+    config: MappingConfig
+    first: int
+    own: int
+    end: int | None  # None: to the end of the bag
+
+
+def chunk_plan(bag_path: str, n_scans: int, config: MappingConfig) -> list[Chunk]:
+    """The chunks for ``n_scans`` scans: one per worker (``mapping.workers``, 0: every core)."""
+    workers = config.workers if config.workers > 0 else (os.cpu_count() or 1)
+    workers = max(1, min(workers, n_scans // max(config.odometry_chunk_sweeps, 1)))
+    bounds = np.linspace(0, n_scans, workers + 1).round().astype(int)
+    step = max(1, config.odometry_every)
+
+    def start(own: int) -> int:  # early enough for the overlap, in step with the chunk before
+        return max(0, (own - OVERLAP_SWEEPS) // step * step)
+
+    return [Chunk(bag_path, config, start(int(a)) if k else 0, int(a), int(b) if k < workers - 1 else None)
+            for k, (a, b) in enumerate(itertools.pairwise(bounds))]
+
+
+def _run_chunk(chunk: Chunk, tick: Tick) -> OdometryPass:
+    counted = 0
+
+    def progress(_: str, n: float, __: float) -> None:
+        nonlocal counted
+        while counted < n:
+            counted += 1
+            tick()
+
+    with open_bag(chunk.bag_path) as bag:
+        return odometry_pass(bag, chunk.config, progress, (chunk.first, chunk.end), count_from=chunk.own)
+
+
+def tie(previous: list[SweepRecord], current: list[SweepRecord], own: int) -> np.ndarray | None:
+    """``A`` with ``A · T_current ≈ T_previous`` on the overlap, or None when too few sweeps tie."""
+    before = {r.index: r for r in previous if r.registered}
+    overlap = [r for r in current if r.index < own and r.index in before]
+    overlap = overlap[len(overlap) // 2:]
+    # Sweeps both registered; else the current chunk's predictions (a gyro-and-velocity
+    # extrapolation over one sweep: millimetres off) stand in.
+    pairs = [(before[r.index].pose, r.pose) for r in overlap if r.registered]
+    if len(pairs) < MIN_TIE_SWEEPS:
+        pairs = [(before[r.index].pose, r.pose) for r in overlap]
+    if len(pairs) < MIN_TIE_SWEEPS:
+        return None
+    each = np.array([p @ np.linalg.inv(c) for p, c in pairs])
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_matrix(each[:, :3, :3]).mean().as_matrix()
+    out[:3, 3] = each[:, :3, 3].mean(axis=0)
+    return out
+
+
+def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | None:
+    """One :class:`OdometryPass` in the first chunk's frame; None when a seam cannot be tied."""
+    first, last = parts[0], parts[-1]
+    records = [r for r in first.records if len(chunks) == 1 or r.index < chunks[1].own]
+    to_first = np.eye(4)
+    for k in range(1, len(parts)):
+        a = tie(parts[k - 1].records, parts[k].records, chunks[k].own)
+        if a is None:
+            return None
+        to_first = to_first @ a
+        end = chunks[k + 1].own if k + 1 < len(chunks) else np.inf
+        records += [r._replace(pose=to_first @ r.pose) for r in parts[k].records if chunks[k].own <= r.index < end]
+    states = [p.state for p in parts]
+    origin = records[0].pose[:2, 3]
+    state = replace(
+        first.state,
+        rotations=last.state.rotations,  # the last worker integrated the gyro over the whole drive
+        sweeps=len(records),
+        skipped_sparse=sorted({i for s, c in zip(states, chunks) for i in s.skipped_sparse if i >= c.own}),
+        not_deskewed=sum(not r.deskewed for r in records),
+        ground_fallbacks=sum(s.ground_fallbacks for s in states),
+        ground_corrections=sum(s.ground_corrections for s in states),
+        out_of_order=sorted({i for s, c in zip(states, chunks) for i in s.out_of_order if i >= c.own}),
+        gaps=sorted({g for s in states for g in s.gaps}),
+        max_displacement=float(max(np.hypot(*(r.pose[:2, 3] - origin)) for r in records)),
+        rejected_registrations=sum(s.rejected_registrations for s in states),
+        warnings=list(dict.fromkeys(w for s in states for w in s.warnings)),
+    )
+    return OdometryPass(
+        first.bag_path, first.topics, records, state, last.imu, last.gnss,
+        n_scans=sum(p.n_scans for p in parts), n_without_time=sum(p.n_without_time for p in parts),
+        first_stamp=min(p.first_stamp for p in parts), last_stamp=max(p.last_stamp for p in parts),
+        bag_warnings=list(dict.fromkeys(w for p in parts for w in p.bag_warnings)),
+        recovered=first.recovered, workers=len(parts),
+        stray=sorted({(i, n) for p, c in zip(parts, chunks) for i, n in p.stray if i >= c.own}))
+
+
+def run_odometry(bag: BagSession, config: MappingConfig, progress: Progress | None = None) -> OdometryPass:
+    """Pass 1 over the whole bag: in chunks on several cores when the drive is long enough."""
+    topic = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
+                           config.use_imu, config.use_gnss).scans
+    n_scans = scan_count(bag, topic)
+    chunks = chunk_plan(str(bag.path), n_scans, config)
+    if len(chunks) > 1 and not bag.recovered:
+        parts = run_forked(_run_chunk, chunks, "mapping: odometry", n_scans, progress)
+        stitched = stitch(chunks, parts)
+        if stitched is not None:
+            return stitched
+        single = odometry_pass(bag, config, progress)
+        single.state.warnings.append(
+            f"odometry: the {len(chunks)} parallel chunks of the drive could not be tied together "
+            f"(fewer than {MIN_TIE_SWEEPS} sweeps registered in an overlap); ran in one process")
+        return single
+    return odometry_pass(bag, config, progress)

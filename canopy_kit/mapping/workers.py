@@ -1,0 +1,67 @@
+"""Run jobs in forked worker processes with a shared progress count.
+
+Fork, not spawn: a forked child starts from the parent's memory (the trajectory, the
+config) without re-importing ``__main__``, so scripts and notebooks work unchanged. Any
+exception in a child comes back to the parent and is raised there.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from canopy_kit.errors import ProcessingError
+
+Tick = Callable[[], None]
+
+
+def _child(function: Callable[[Any, Tick], Any], job: Any, counter, conn) -> None:
+    def tick() -> None:
+        with counter.get_lock():
+            counter.value += 1
+
+    try:
+        conn.send(("ok", function(job, tick)))
+    except BaseException as exc:  # report any failure to the parent instead of dying silently
+        conn.send(("error", exc))
+    finally:
+        conn.close()
+
+
+def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str, total: int,
+               progress: Callable[[str, float, float], None] | None = None) -> list[Any]:
+    """``[function(job, tick) for job in jobs]``, one forked process per job.
+
+    ``tick()`` advances the progress count reported as ``progress(label, count, total)``.
+    """
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    counter = ctx.Value("i", 0)
+    pipes = [ctx.Pipe(duplex=False) for _ in jobs]
+    procs = [ctx.Process(target=_child, args=(function, job, counter, send), daemon=True)
+             for job, (_, send) in zip(jobs, pipes)]
+    for proc in procs:
+        proc.start()
+    results: list = [None] * len(jobs)
+    try:
+        while any(r is None for r in results):
+            for i, (recv, _) in enumerate(pipes):
+                if results[i] is None and recv.poll(0.2):
+                    results[i] = recv.recv()
+            if progress:
+                progress(label, counter.value, total)
+            dead = [i for i, p in enumerate(procs) if results[i] is None and not p.is_alive()
+                    and not pipes[i][0].poll()]
+            if dead:
+                raise ProcessingError(f"{label}: worker {dead[0]} ended without a result "
+                                      f"(exit code {procs[dead[0]].exitcode})")
+    finally:
+        for proc in procs:
+            proc.join(timeout=5)
+            if proc.is_alive():
+                proc.terminate()
+    for status, value in results:
+        if status == "error":
+            raise value
+    return [value for _, value in results]
