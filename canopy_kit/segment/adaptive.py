@@ -133,10 +133,12 @@ class AdaptiveSegmenter(Segmenter):
         ends = np.append(starts[1:], len(valid))
         for p, a, b in zip(ids, starts, ends):
             members = valid[a:b]
-            markers = self._markers(xyz[members], w[members], stems.xy[stem_part == p], scale)
+            markers, tops = self._markers(xyz[members], w[members], stems.xy[stem_part == p], scale)
             if len(markers) <= 1:
                 sub = np.zeros(len(members), dtype=np.int64)
-            elif self.crown_split:
+            elif self.crown_split and not tops:
+                # Crown shells need crowns seen from the side (trunks, rows); crown tops of
+                # a stand seen from above keep the nearest top.
                 sub = crown_split(xyz[members], markers)
             else:
                 _, sub = cKDTree(markers).query(xyz[members, :2])
@@ -242,8 +244,9 @@ class AdaptiveSegmenter(Segmenter):
         return out
 
     def _markers(self, xyz: np.ndarray, w: np.ndarray, stems: np.ndarray,
-                 scale: TreeScale) -> np.ndarray:
-        """Tree positions (x, y) in one canopy part: its trunks plus trees without one."""
+                 scale: TreeScale) -> tuple[np.ndarray, bool]:
+        """Tree positions (x, y) in one canopy part: its trunks plus trees without one;
+        and whether they are crown tops of a patch that is not a row."""
         centre, axis = principal_axis(xyz[:, :2], w)
         along = (xyz[:, :2] - centre) @ axis
         lo, hi = np.percentile(along, 1), np.percentile(along, 99)
@@ -256,10 +259,10 @@ class AdaptiveSegmenter(Segmenter):
                 # Not a row but a patch of merged crowns: one tree per crown top.
                 tops = chm_peaks(xyz, max(self.point_spacing_, 0.25), 0.4 * s)
                 if len(tops):
-                    return tops
+                    return tops, True
             n = max(1, int(round((hi - lo - scale.length) / s)) + 1)
             spots = [0.5 * (lo + hi)] if n == 1 else np.linspace(lo + half, hi - half, n)
-            return self._on_canopy(xyz, w, along, np.asarray(spots, float), s)
+            return self._on_canopy(xyz, w, along, np.asarray(spots, float), s), False
         stem_along = np.sort((stems - centre) @ axis)
         spots: list[float] = []
         for a, b in zip(stem_along[:-1], stem_along[1:]):
@@ -271,8 +274,8 @@ class AdaptiveSegmenter(Segmenter):
             sign = -1.0 if end == stem_along[0] and reach == stem_along[0] - lo else 1.0
             spots.extend((end + sign * s * np.arange(1, k + 1)).tolist() if k > 0 else [])
         if not spots:
-            return stems
-        return np.concatenate([stems, self._on_canopy(xyz, w, along, np.array(spots), s)])
+            return stems, False
+        return np.concatenate([stems, self._on_canopy(xyz, w, along, np.array(spots), s)]), False
 
     @staticmethod
     def _on_canopy(xyz: np.ndarray, w: np.ndarray, along: np.ndarray, spots: np.ndarray,
