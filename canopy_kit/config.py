@@ -131,8 +131,11 @@ class VolumeConfig:
     methods: list[str] = field(default_factory=lambda: ["convex_hull", "alpha_shape"])
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
     voxel_size: float = 0.1
+    workers: int = 0  # processes measuring trees (0: one per core; 1: this process only)
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.workers, int) and self.workers >= 0):
+            raise ConfigError(f"volume.workers: must be an integer >= 0 (0: one per core), got {self.workers!r}")
         if not (isinstance(self.voxel_size, (int, float)) and self.voxel_size >= 0):
             raise ConfigError(f"volume.voxel_size: must be a number >= 0 (0: every map point), "
                               f"got {self.voxel_size!r}")

@@ -9,10 +9,12 @@ import pandas as pd
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
+from canopy_kit.parallel import run_forked, worker_count
 from canopy_kit.volume import estimator, tree_metrics
 from canopy_kit.voxel import voxel_representatives
 
 Progress = Callable[[str, float, float], None]
+MIN_TREES_PER_WORKER = 4  # fewer trees than this per worker are measured in this process
 # Column names of the paper's two estimators, as the per-tree table promises them.
 VOLUME_COLUMN = {"convex_hull": "volume_convex_hull_m3", "alpha_shape": "volume_alpha_m3"}
 
@@ -28,14 +30,16 @@ def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
     """One row per segment label ≥ 0: position, metrics and volumes (with validity flags).
 
     ``ground_height(xy) -> z`` gives the ground under each tree for its height; without it
-    the lowest point of the tree is used.
+    the lowest point of the tree is used. Trees are measured on ``volume.workers`` forked
+    processes when there are enough of them (never inside a daemonic process such as a
+    Dask worker); the table does not depend on the number of workers.
     """
     estimators = {m: estimator(m, **volume.params.get(m, {})) for m in volume.methods}
     ids = np.unique(labels[labels >= 0])
     order = np.argsort(labels, kind="stable")
     sorted_labels = labels[order]
-    rows = []
-    for k, seg in enumerate(ids):
+
+    def measure(seg: int) -> dict:
         lo, hi = np.searchsorted(sorted_labels, [seg, seg + 1])
         xyz = cloud.xyz[order[lo:hi]]
         centre = np.median(xyz[:, :2], axis=0)
@@ -56,7 +60,27 @@ def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
             if not result.valid:
                 flags.append(f"{method}: {result.reason}")
         row["volume_flags"] = "; ".join(flags)
-        rows.append(row)
-        if progress:
-            progress("tree volumes", k + 1, len(ids))
-    return pd.DataFrame(rows)
+        return row
+
+    def measure_all(segments: np.ndarray, tick: Callable[[], None]) -> list[dict]:
+        rows = []
+        for seg in segments:
+            rows.append(measure(int(seg)))
+            tick()
+        return rows
+
+    n_workers = worker_count(volume.workers, len(ids) // MIN_TREES_PER_WORKER)
+    if n_workers == 1:
+        done = 0
+
+        def tick() -> None:
+            nonlocal done
+            done += 1
+            if progress:
+                progress("tree volumes", done, len(ids))
+
+        return pd.DataFrame(measure_all(ids, tick))
+    parts = run_forked(measure_all, [ids[k::n_workers] for k in range(n_workers)], "tree volumes",
+                       len(ids), progress)
+    rows = [row for part in parts for row in part]
+    return pd.DataFrame(sorted(rows, key=lambda r: r["segment"]))

@@ -9,7 +9,6 @@ the map does not depend on the number of workers.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -22,7 +21,7 @@ from canopy_kit.mapping.accumulate import MapAccumulator, voxel_hash
 from canopy_kit.mapping.filters import range_mask
 from canopy_kit.mapping.sensors import decode_scan
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
-from canopy_kit.mapping.workers import run_forked
+from canopy_kit.parallel import run_forked, worker_count
 
 TIME_FIELD = "gps_time"  # absolute per-point time (bag clock, s); LAS's standard time dimension
 POSE_BINS = 64  # per-sweep time bins for per-point poses (1.6 ms apart at 10 Hz)
@@ -139,8 +138,7 @@ def assemble_map(bag_path: str, topic: str, sweeps: dict[int, bool], trajectory:
                  config: MappingConfig, progress: Callable[[str, float, float], None] | None = None
                  ) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
     """Place every point of the ``sweeps`` (index -> deskew) and voxel-thin them: xyz, fields, offered."""
-    n_workers = config.workers if config.workers > 0 else (os.cpu_count() or 1)
-    n_workers = max(1, min(n_workers, len(sweeps) // 50 or 1))
+    n_workers = worker_count(config.workers, len(sweeps) // 50)
     total = len(sweeps)
     jobs = [_Job(str(bag_path), topic, sweeps, trajectory, config, w, n_workers) for w in range(n_workers)]
     if n_workers == 1:

@@ -15,7 +15,6 @@ as good as one registration.
 from __future__ import annotations
 
 import itertools
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -26,7 +25,7 @@ from canopy_kit.config import MappingConfig
 from canopy_kit.io.bag import BagSession, open_bag
 from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass, scan_count
 from canopy_kit.mapping.sensors import resolve_topics
-from canopy_kit.mapping.workers import Tick, run_forked
+from canopy_kit.parallel import Tick, run_forked, worker_count
 
 Progress = Callable[[str, float, float], None]
 OVERLAP_SWEEPS = 40  # scans each chunk after the first starts early
@@ -46,8 +45,7 @@ class Chunk:
 
 def chunk_plan(bag_path: str, n_scans: int, config: MappingConfig) -> list[Chunk]:
     """The chunks for ``n_scans`` scans: one per worker (``mapping.workers``, 0: every core)."""
-    workers = config.workers if config.workers > 0 else (os.cpu_count() or 1)
-    workers = max(1, min(workers, n_scans // max(config.odometry_chunk_sweeps, 1)))
+    workers = worker_count(config.workers, n_scans // max(config.odometry_chunk_sweeps, 1))
     bounds = np.linspace(0, n_scans, workers + 1).round().astype(int)
     step = max(1, config.odometry_every)
 

@@ -28,6 +28,18 @@ def _child(function: Callable[[Any, Tick], Any], job: Any, counter, conn) -> Non
         conn.close()
 
 
+def worker_count(setting: int, most: int) -> int:
+    """Processes to use: ``setting`` (0: one per core), at most ``most``, and 1 inside a
+    daemonic process (a Dask or multiprocessing worker may not have children)."""
+    import multiprocessing as mp
+    import os
+
+    if mp.current_process().daemon:
+        return 1
+    wanted = setting if setting > 0 else (os.cpu_count() or 1)
+    return max(1, min(wanted, most))
+
+
 def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str, total: int,
                progress: Callable[[str, float, float], None] | None = None) -> list[Any]:
     """``[function(job, tick) for job in jobs]``, one forked process per job.
