@@ -86,6 +86,20 @@ def test_adaptive_targets_with_the_same_settings_on_both_orchards(scores) -> Non
     assert seg.rows.direction_source == "given" and len(seg.rows.lines) == 2
 
 
+def test_adaptive_crown_split_no_worse_than_the_nearest_trunk(sessions, scores) -> None:
+    """The crown-following split (segment.crowns) against the straight 2-D border between
+    the same trees, on the almond session: at least as many trees right, and most of them."""
+    s, cloud = sessions["almond"]
+    truth = load_truth(s.root)
+    direction = driving_direction_from_trajectory(truth.trajectory[["x", "y"]].to_numpy())
+    flat = segment(cloud, make_segmenter("adaptive", {"crown_split": False}),
+                   driving_direction=direction)
+    flat_score = score_point_labels(flat.labels, cloud.fields["tree_id"])
+    crowns, _ = scores["almond", "adaptive"]
+    assert crowns.n_correct >= flat_score.n_correct
+    assert crowns.success_rate >= 0.8
+
+
 def test_cli_segment_and_evaluate_round_trip(sessions, tmp_path: Path) -> None:
     from canopy_kit.io.clouds import write_cloud
     from canopy_kit.segment.export import _las_compatible
