@@ -16,7 +16,8 @@ stand are read from the data:
    any trunk gets ``round((length - tree length) / spacing) + 1`` trees;
 5. points go to the tree whose crown, an ellipsoid fitted to the tree's points, holds
    them closest to its shell (``segment.crowns``: a border that follows a small crown
-   sitting half inside a big one), starting from the nearest tree position.
+   sitting half inside a big one), starting from the nearest tree position; crown tops of
+   a stand seen from above keep the nearest top (shells need crowns seen from the side).
 
 All lengths derive from the point spacing and the measured tree scale; nothing is set per
 orchard.
