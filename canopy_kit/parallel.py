@@ -77,3 +77,19 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
         if status == "error":
             raise value
     return [value for _, value in results]
+
+
+def run_jobs(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str, total: int,
+             progress: Callable[[str, float, float], None] | None = None) -> list[Any]:
+    """:func:`run_forked`, or in this process when there is a single job."""
+    if len(jobs) != 1:
+        return run_forked(function, jobs, label, total, progress)
+    done = 0
+
+    def tick() -> None:
+        nonlocal done
+        done += 1
+        if progress:
+            progress(label, done, total)
+
+    return [function(jobs[0], tick)]

@@ -9,7 +9,7 @@ import pandas as pd
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
-from canopy_kit.parallel import run_forked, worker_count
+from canopy_kit.parallel import run_jobs, worker_count
 from canopy_kit.volume import estimator, tree_metrics
 from canopy_kit.voxel import voxel_representatives
 
@@ -70,17 +70,7 @@ def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
         return rows
 
     n_workers = worker_count(volume.workers, len(ids) // MIN_TREES_PER_WORKER)
-    if n_workers == 1:
-        done = 0
-
-        def tick() -> None:
-            nonlocal done
-            done += 1
-            if progress:
-                progress("tree volumes", done, len(ids))
-
-        return pd.DataFrame(measure_all(ids, tick))
-    parts = run_forked(measure_all, [ids[k::n_workers] for k in range(n_workers)], "tree volumes",
-                       len(ids), progress)
+    parts = run_jobs(measure_all, [ids[k::n_workers] for k in range(n_workers)], "tree volumes",
+                     len(ids), progress)
     rows = [row for part in parts for row in part]
     return pd.DataFrame(sorted(rows, key=lambda r: r["segment"]))

@@ -21,7 +21,7 @@ from canopy_kit.mapping.accumulate import MapAccumulator, voxel_hash
 from canopy_kit.mapping.filters import range_mask
 from canopy_kit.mapping.sensors import decode_scan
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
-from canopy_kit.parallel import run_forked, worker_count
+from canopy_kit.parallel import run_jobs, worker_count
 
 TIME_FIELD = "gps_time"  # absolute per-point time (bag clock, s); LAS's standard time dimension
 POSE_BINS = 64  # per-sweep time bins for per-point poses (1.6 ms apart at 10 Hz)
@@ -141,18 +141,10 @@ def assemble_map(bag_path: str, topic: str, sweeps: dict[int, bool], trajectory:
     n_workers = worker_count(config.workers, len(sweeps) // 50)
     total = len(sweeps)
     jobs = [_Job(str(bag_path), topic, sweeps, trajectory, config, w, n_workers) for w in range(n_workers)]
-    if n_workers == 1:
-        done = 0
-
-        def tick() -> None:
-            nonlocal done
-            done += 1
-            if progress:
-                progress("mapping: map", done, total)
-
-        xyz, fields, offered = _accumulate(jobs[0], tick)
+    parts = run_jobs(_accumulate, jobs, "mapping: map", total, progress)
+    if len(parts) == 1:
+        xyz, fields, offered = parts[0]
     else:
-        parts = run_forked(_accumulate, jobs, "mapping: map", total, progress)
         xyz, fields = merge_partial_maps([(p[0], p[1]) for p in parts], config.map_voxel_size)
         offered = sum(p[2] for p in parts)
     if progress:
