@@ -415,3 +415,14 @@ def test_reproduction_table_pools_trees_and_sets_the_paper_beside(tmp_path) -> N
     assert len(only) == 1 and only.iloc[0]["success"] == 0.25
     with pytest.raises(InputError, match="column 'seed' missing"):
         reproduction_table(runs.drop(columns="seed"))
+
+
+def test_segment_colours_are_never_the_grey_of_unlabelled_points() -> None:
+    from canopy_kit.segment.plots import NOISE_RGBA, segment_colours
+
+    labels = np.arange(-1, 60)
+    rgba = segment_colours(labels)
+    assert tuple(rgba[0]) == NOISE_RGBA
+    trees = rgba[1:, :3]
+    assert np.all(np.ptp(trees, axis=1) > 0.1)  # saturated: no grey (r = g = b) among trees
+    assert np.all(np.any(np.abs(np.diff(trees, axis=0)) > 0.1, axis=1))  # neighbours differ

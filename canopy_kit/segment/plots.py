@@ -10,12 +10,18 @@ from canopy_kit.cloud import PointCloud
 from canopy_kit.segment.result import Segmentation
 
 
-def _colours(labels: np.ndarray) -> np.ndarray:
+NOISE_RGBA = (0.75, 0.75, 0.75, 0.35)
+
+
+def segment_colours(labels: np.ndarray) -> np.ndarray:
+    """RGBA per label: tab20 without its two greys (they read as the grey of unlabelled
+    points), stepping 7 colours from one label to the next so neighbours differ."""
     import matplotlib
 
-    cmap = matplotlib.colormaps["tab20"]
-    rgba = cmap((np.maximum(labels, 0) * 7 % 20) / 19.0)
-    rgba[labels < 0] = (0.75, 0.75, 0.75, 0.35)
+    palette = np.delete(np.asarray(matplotlib.colormaps["tab20"].colors), [14, 15], axis=0)
+    rgba = np.ones((len(labels), 4))
+    rgba[:, :3] = palette[np.maximum(labels, 0) * 7 % len(palette)]
+    rgba[labels < 0] = NOISE_RGBA
     return rgba
 
 
@@ -36,7 +42,7 @@ def plot_top_view(cloud: PointCloud, seg: Segmentation, ax: Any = None,
         fig = ax.figure
     keep = np.flatnonzero(seg.height >= 0.3)
     keep = keep[_sample(len(keep), max_points)]
-    ax.scatter(cloud.xyz[keep, 0], cloud.xyz[keep, 1], s=0.3, c=_colours(seg.labels[keep]),
+    ax.scatter(cloud.xyz[keep, 0], cloud.xyz[keep, 1], s=0.3, c=segment_colours(seg.labels[keep]),
                linewidths=0, rasterized=True)
     if show_rows:
         for line in seg.rows.lines:
@@ -81,7 +87,7 @@ def plot_failure_gallery(cloud: PointCloud, seg: Segmentation, score: Any,
         # Side view along the longer side of the window.
         axis = 0 if hi[0] - lo[0] >= hi[1] - lo[1] else 1
         for ax, labels, title in ((ax_t, truth, "truth"), (ax_p, seg.labels, "segmentation")):
-            ax.scatter(cloud.xyz[near, axis], seg.height[near], s=0.4, c=_colours(labels[near]),
+            ax.scatter(cloud.xyz[near, axis], seg.height[near], s=0.4, c=segment_colours(labels[near]),
                        linewidths=0, rasterized=True)
             ax.set_aspect("equal")
             ax.set_title(f"{title}: tree {row['truth_id']}"
