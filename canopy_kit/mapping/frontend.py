@@ -87,7 +87,6 @@ class LidarFrontend:
         self.state = FrontendState()
         self._queue: deque[Scan] = deque()
         self._odometry: LidarOdometry | None = None
-        self._prev_t: float | None = None
         self._velocity = np.zeros(3)  # body frame, m/s
         self._omega = np.zeros(3)  # body frame, rad/s
         self._imu_used = 0
@@ -218,18 +217,12 @@ class LidarFrontend:
             thinned[np.flatnonzero(keep)[:: cfg.odometry_point_stride]] = True
             keep = thinned
         xyz = scan.xyz[keep]
-        times = scan.times[keep] if scan.times is not None else None
-        if times is not None and not (np.all(np.isfinite(times)) and np.ptp(times) > 0):
-            times = None
-        t_ref = reference_time(times, scan.stamp)
-        deskewed = cfg.deskew and times is not None
+        times, t_ref, deskewed = self._sweep_times(scan, keep)
         if deskewed:
             assert times is not None
             use_gyro = st.rotations is not None and st.rotations.covers(float(times.min()), float(times.max()))
             xyz = deskew_points(xyz, times, t_ref, self._velocity, self._omega,
                                 st.rotations if use_gyro else None)
-        else:
-            st.not_deskewed += 1
         ground = ground_mask(xyz, cfg.odometry_ground_band)
         odo_points = xyz[~ground]
         if len(odo_points) < max(cfg.min_points_per_scan // 4, 50):
@@ -269,10 +262,14 @@ class LidarFrontend:
             pose = self._refine_with_ground(pose, xyz[ground])
         self._odometry.commit(pose)
         self._update_motion(t_ref, pose)
-        self._prev_t = t_ref
         st.sweeps += 1
         st.max_displacement = max(st.max_displacement, float(np.hypot(*pose[:2, 3])))
         return FrontendSweep(scan, t_ref, pose, keep, xyz, ground, deskewed, uncertainty)
+
+    @property
+    def _prev_t(self) -> float | None:
+        """Reference time of the last registered sweep (None before the first)."""
+        return self._history[-1][0] if self._history else None
 
     def _update_motion(self, t_ref: float, pose: np.ndarray) -> None:
         """Velocity and turn rate (body frame) over the last ``VELOCITY_BASELINE_S`` of poses.
@@ -293,15 +290,21 @@ class LidarFrontend:
         self._omega = Rotation.from_matrix(p0[:3, :3].T @ pose[:3, :3]).as_rotvec() / dt
         self._motion_known = True
 
+    def _sweep_times(self, scan: Scan, keep: np.ndarray) -> tuple[np.ndarray | None, float, bool]:
+        """The kept points' times (None when missing, constant or non-finite), the sweep's
+        reference time and whether it is deskewed (counted in the state when not)."""
+        times = scan.times[keep] if scan.times is not None else None
+        if times is not None and not (np.all(np.isfinite(times)) and np.ptp(times) > 0):
+            times = None
+        deskewed = self.config.deskew and times is not None
+        if not deskewed:
+            self.state.not_deskewed += 1
+        return times, reference_time(times, scan.stamp), deskewed
+
     def _unregistered(self, scan: Scan, keep: np.ndarray) -> FrontendSweep:
         """A sweep left to the map pass: its reference time and the motion prediction only."""
         self._unregistered_run += 1
-        times = scan.times[keep] if scan.times is not None else None
-        usable = times is not None and bool(np.all(np.isfinite(times))) and float(np.ptp(times)) > 0
-        t_ref = reference_time(times if usable else None, scan.stamp)
-        deskewed = self.config.deskew and usable
-        if not deskewed:
-            self.state.not_deskewed += 1
+        _, t_ref, deskewed = self._sweep_times(scan, keep)
         self.state.sweeps += 1
         empty = np.zeros((0, 3))
         return FrontendSweep(scan, t_ref, self._predict(t_ref), keep, empty, np.zeros(0, bool), deskewed,
