@@ -16,8 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from canopy_kit.cache import cpu_seconds
 from canopy_kit.config import load_preset
+from canopy_kit.parallel import cpu_seconds
 from canopy_kit.pipeline import run
 from canopy_kit.sim import load_sim_config, simulate_session
 from canopy_kit.sim.session import find_bag

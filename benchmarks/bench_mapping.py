@@ -35,14 +35,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from canopy_kit.parallel import cpu_seconds
 
 DEFAULT = ("canopy-kit build_map (defaults: IMU + GNSS, every 2nd sweep registered, odometry in "
            "2 time chunks, 2 map workers)")
-
-
-def _cpu() -> float:
-    t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
 
 
 def _peak_mb() -> tuple[float, float]:
@@ -57,9 +53,9 @@ def run_canopy_kit(session: Path, overrides: dict) -> dict:
     from canopy_kit.mapping.evaluate import evaluate_against_simulation
     from canopy_kit.sim.session import find_bag
 
-    cpu0, wall0 = _cpu(), time.perf_counter()
+    cpu0, wall0 = cpu_seconds(), time.perf_counter()
     result = build_map(find_bag(session), MappingConfig(**overrides))
-    wall, cpu = time.perf_counter() - wall0, _cpu() - cpu0
+    wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     own, children = _peak_mb()
     ev = evaluate_against_simulation(result, session)
     d = result.diagnostics
@@ -72,16 +68,16 @@ def run_canopy_kit(session: Path, overrides: dict) -> dict:
 
 def run_kiss_icp(session: Path) -> dict:
     import numpy as np
+    from kiss_icp.config import load_config
+    from kiss_icp.kiss_icp import KissICP
 
     from canopy_kit.io.bag import open_bag
     from canopy_kit.mapping.evaluate import trajectory_errors
     from canopy_kit.mapping.trajectory import pose_table
     from canopy_kit.sim.session import find_bag
     from canopy_kit.sim.truth import load_truth
-    from kiss_icp.config import load_config
-    from kiss_icp.kiss_icp import KissICP
 
-    cpu0, wall0 = _cpu(), time.perf_counter()
+    cpu0, wall0 = cpu_seconds(), time.perf_counter()
     odometry = KissICP(load_config(None))
     times, poses = [], []
     first = last = None
@@ -94,7 +90,7 @@ def run_kiss_icp(session: Path) -> dict:
             poses.append(odometry.last_pose.copy())
             first = scan.stamp if first is None else first
             last = scan.stamp
-    wall, cpu = time.perf_counter() - wall0, _cpu() - cpu0
+    wall, cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
     own, _ = _peak_mb()
     err = trajectory_errors(pose_table(np.array(times), np.array(poses)), load_truth(session).trajectory)
     return {"duration_s": last - first + 0.1, "wall_s": wall, "cpu_s": cpu, "peak_mb": own,

@@ -9,7 +9,6 @@ complete stage.
 from __future__ import annotations
 
 import hashlib
-import os
 import json
 import pickle
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from canopy_kit.io.atomic import atomic_path
+from canopy_kit.parallel import cpu_seconds
 
 T = TypeVar("T")
 CACHE_VERSION = 1
@@ -51,12 +51,6 @@ def stage_key(stage: str, *parts: Any) -> str:
     """Hash of a stage name and everything its result depends on."""
     text = json.dumps([CACHE_VERSION, stage, _canonical(list(parts))], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
-
-
-def cpu_seconds() -> float:
-    """CPU time of this process and of its finished child processes (the stages' workers)."""
-    t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
 
 
 class StageCache:

@@ -28,6 +28,14 @@ def _child(function: Callable[[Any, Tick], Any], job: Any, counter, conn) -> Non
         conn.close()
 
 
+def cpu_seconds() -> float:
+    """CPU time of this process and of its finished child processes (the workers)."""
+    import os
+
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 def worker_count(setting: int, most: int) -> int:
     """Processes to use: ``setting`` (0: one per core), at most ``most``, and 1 inside a
     daemonic process (a Dask or multiprocessing worker may not have children)."""

@@ -10,7 +10,6 @@ better fits come with each sweep as an update).
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
 from canopy_kit.mapping.passone import PassOne, pass_warnings, quality_flags
 from canopy_kit.mapping.sensors import GnssBuffer
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
+from canopy_kit.parallel import cpu_seconds
 
 Progress = Callable[[str, float, float], None]
 
@@ -103,13 +103,13 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     config = config or MappingConfig()
     _check_config(config)
     timing: dict[str, float] = {}
-    cpu0, wall0, children0 = time.process_time(), time.perf_counter(), _children_cpu()
+    cpu0, wall0 = cpu_seconds(), time.perf_counter()
     with open_bag(bag_path) as bag:
         one = run_odometry(bag, config, progress)
     records = one.records
     registered = [r for r in records if r.registered]
     require_sweeps(len(registered), f"{one.bag_path}: topic {one.topics.scans!r}")
-    timing["odometry_cpu_s"] = time.process_time() - cpu0 + _children_cpu() - children0
+    timing["odometry_cpu_s"] = cpu_seconds() - cpu0
     timing["odometry_wall_s"] = time.perf_counter() - wall0
     # The pose graph takes the registered sweeps; every sweep gets a pose and a map pass.
     odo_times = np.array([r.t_ref for r in registered])
@@ -121,7 +121,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     imu = one.imu
     st = one.state
     frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings)
-    cpu1 = time.process_time()
+    cpu1 = cpu_seconds()
     fused = fuse_trajectory(odo_times, odometry, fusion_settings(config), imu=imu,
                             standstill=st.standstill, gnss=epochs, uncertainty=uncertainty)
     if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
@@ -129,19 +129,19 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         warnings.append(f"{why}; the map is not georeferenced")
         frame = None
     trajectory = ContinuousTrajectory(fused.times, fused.poses, odo_times, odometry, st.rotations)
-    timing["fusion_cpu_s"] = time.process_time() - cpu1
+    timing["fusion_cpu_s"] = cpu_seconds() - cpu1
 
-    cpu2, wall2, children2 = time.process_time(), time.perf_counter(), _children_cpu()
+    cpu2, wall2 = cpu_seconds(), time.perf_counter()
     xyz, fields, offered = assemble_map(str(bag_path), one.topics.scans, deskewed, trajectory, config,
                                         progress)
-    timing["map_cpu_s"] = time.process_time() - cpu2 + _children_cpu() - children2
+    timing["map_cpu_s"] = cpu_seconds() - cpu2
     timing["map_wall_s"] = time.perf_counter() - wall2
 
     cloud = PointCloud(xyz, fields, crs=frame.crs if frame is not None else None,
                        origin=frame.origin if frame is not None else np.zeros(3))
     poses = trajectory.matrices(t_ref)
     table = pose_table(t_ref, poses)
-    timing["total_cpu_s"] = time.process_time() - cpu0 + _children_cpu() - children0
+    timing["total_cpu_s"] = cpu_seconds() - cpu0
     timing["total_wall_s"] = time.perf_counter() - wall0
     duration = float(one.last_stamp - one.first_stamp + 0.1) if one.n_scans else 0.0
     diagnostics = {
@@ -180,11 +180,6 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
     return MappingResult(cloud, table, frame, diagnostics, warnings, config)
-
-
-def _children_cpu() -> float:
-    t = os.times()
-    return t.children_user + t.children_system
 
 
 def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig,
