@@ -66,3 +66,12 @@ def test_chunked_odometry_maps_as_accurately_as_one_process(tmp_path) -> None:
     # The seams cost little: within 2 cm of the single process's trajectory error.
     assert chunked["ate_rmse_m"] < single["ate_rmse_m"] + 0.02
     assert chunked["map_aligned"]["median_m"] < 0.05
+
+
+@pytest.mark.parametrize("setting", [{"odometry_every": 0}, {"odometry_chunk_sweeps": 0}, {"workers": -1}])
+def test_bad_parallel_settings_are_named(setting: dict, tmp_path) -> None:
+    from canopy_kit.errors import ConfigError
+
+    name = next(iter(setting))
+    with pytest.raises(ConfigError, match=f"mapping.{name}"):
+        build_map(tmp_path / "never_read.bag", MappingConfig(**setting))

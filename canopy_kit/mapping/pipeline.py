@@ -92,9 +92,11 @@ def _check_config(config: MappingConfig) -> None:
             raise ConfigError(f"mapping.{name}: must be positive, got {getattr(config, name)}")
     if len(config.gnss_lever_arm) != 3:
         raise ConfigError(f"mapping.gnss_lever_arm: expected [x, y, z], got {config.gnss_lever_arm}")
-    for name in ("keyframe_every", "odometry_point_stride", "odometry_every"):
+    for name in ("keyframe_every", "odometry_point_stride", "odometry_every", "odometry_chunk_sweeps"):
         if getattr(config, name) < 1:
             raise ConfigError(f"mapping.{name}: must be >= 1, got {getattr(config, name)}")
+    if config.workers < 0:
+        raise ConfigError(f"mapping.workers: must be >= 0 (0: one per core), got {config.workers}")
 
 
 def build_map(bag_path: str | Path, config: MappingConfig | None = None,
