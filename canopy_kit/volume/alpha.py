@@ -64,6 +64,12 @@ def delaunay_tetrahedra(xyz: np.ndarray) -> Tetrahedra:
     return Tetrahedra(simplices, volume, radius)
 
 
+def qhull_failure(exc: Exception) -> str:
+    """Why qhull refused a point set (near-flat or coincident points), in one line."""
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else "QhullError"
+    return f"qhull could not triangulate the points: {first}"
+
+
 def alpha_volume(tetra: Tetrahedra, alpha: float) -> float:
     """Volume of the alpha complex: tetrahedra whose circumradius is below ``alpha``."""
     return float(tetra.volume[tetra.circumradius < alpha].sum())
@@ -86,8 +92,7 @@ class AlphaShapeVolume(VolumeEstimator):
         try:
             tetra = delaunay_tetrahedra(xyz)
         except QhullError as exc:
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else "QhullError"
-            return 0.0, {"reason": f"qhull could not triangulate the points: {first}"}
+            return 0.0, {"reason": qhull_failure(exc)}
         kept = tetra.circumradius < self.alpha
         extra: dict = {"n_tetrahedra": int(kept.sum())}
         if not kept.any():

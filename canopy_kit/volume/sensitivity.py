@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.errors import ConfigError, InputError
-from canopy_kit.volume.alpha import Tetrahedra, delaunay_tetrahedra
+from canopy_kit.volume.alpha import Tetrahedra, delaunay_tetrahedra, qhull_failure
 from canopy_kit.volume.base import VolumeEstimator, as_points, degeneracy
 
 
@@ -118,5 +118,10 @@ class AutoAlphaVolume(VolumeEstimator):
             raise ConfigError(f"{self.name}: tolerance must be in (0, 1), got {self.tolerance!r}")
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
-        choice = auto_alpha(xyz, tolerance=float(self.tolerance))
+        from scipy.spatial import QhullError
+
+        try:
+            choice = auto_alpha(xyz, tolerance=float(self.tolerance))
+        except QhullError as exc:  # points qhull finds flat although they pass degeneracy()
+            return 0.0, {"reason": qhull_failure(exc)}
         return choice.volume_m3, {"alpha": choice.alpha}
