@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -13,7 +15,7 @@ from canopy_kit.errors import InputError
 from canopy_kit.io.bag import GnssSeries, ImuSeries
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
-from canopy_kit.mapping.assemble import merge_partial_maps
+from canopy_kit.mapping.assemble import merge_partial_maps, stretches
 from canopy_kit.mapping.deskew import deskew_points, reference_time, rotate_small
 from canopy_kit.mapping.evaluate import segment_drift, trajectory_errors
 from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
@@ -168,18 +170,30 @@ def test_accumulator_keeps_first_point_per_voxel_with_fields_untouched() -> None
 
 
 def test_parallel_merge_equals_single_accumulator() -> None:
-    pts = [RNG.uniform(0, 3, (400, 3)) for _ in range(6)]
+    pts = [RNG.uniform(0, 3, (400, 3)) for _ in range(7)]
     single = MapAccumulator(0.2)
-    parts = [MapAccumulator(0.2), MapAccumulator(0.2)]
-    for i, p in enumerate(pts):
+    parts = [MapAccumulator(0.2) for _ in range(3)]
+    for i, p in enumerate(pts):  # three consecutive stretches of the drive: sweeps 0-2, 3-5, 6
         order = (np.int64(i) << 24) | np.arange(len(p), dtype=np.int64)
-        single.add(p, {"__order__": order})
-        parts[i % 2].add(p, {"__order__": order})
+        single.add(p, {"order": order})
+        parts[i // 3].add(p, {"order": order})
     xyz, fields = merge_partial_maps([(a.cloud().xyz, a.cloud().fields) for a in parts], 0.2)
     ref = single.cloud()
     assert np.array_equal(xyz, ref.xyz)
-    assert np.array_equal(fields["__order__"], ref.fields["__order__"])
+    assert np.array_equal(fields["order"], ref.fields["order"])
     assert len(np.unique(voxel_hash(xyz, 0.2))) == len(xyz)
+
+
+def test_stretches_cover_every_sweep_once_and_start_where_the_bag_can_be_seeked() -> None:
+    log_ns = np.array([0, 10, 20, 20, 20, 30, 40, 50, 60, 70, 80, 90], np.int64)
+    indices = [i for i in range(12) if i != 5]
+    runs = stretches(indices, 3, log_ns)
+    assert runs[0][0] == 0 and runs[-1][1] is None
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(runs))  # consecutive, no gap
+    for first, _ in runs[1:]:  # never inside a run of equal log times
+        assert log_ns[first] > log_ns[first - 1]
+    sizes = [sum(1 for i in indices if a <= i < (b if b is not None else 99)) for a, b in runs]
+    assert sum(sizes) == len(indices) and max(sizes) - min(sizes) <= 3
 
 
 # -- ground refinement ---------------------------------------------------------------------

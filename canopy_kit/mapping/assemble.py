@@ -1,23 +1,26 @@
 """Pass 2 of :func:`~canopy_kit.mapping.build_map`: every point placed with the fused trajectory.
 
 Each point is moved with the pose at its own time (deskew with the final, smoothed
-trajectory) and offered to the voxel map. The sweeps can be split over worker processes
-(sweep ``i`` goes to worker ``i % n``); the partial maps are merged so that each voxel
-keeps the point that reached it first in acquisition order, as a single process would:
-the map does not depend on the number of workers.
+trajectory) and offered to the voxel map, sixteen sweeps at a time. The drive can be cut
+into consecutive stretches, one per worker process, each reading only its part of the
+bag; the partial maps are merged so that each voxel keeps the point that reached it first
+in acquisition order, as a single process would: the map does not depend on the number
+of workers.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from itertools import islice
+from typing import TypeVar
 
 import numpy as np
 
 from canopy_kit.config import MappingConfig
 from canopy_kit.io.bag import BagSession, Scan, open_bag
 from canopy_kit.mapping import quaternions as quat
-from canopy_kit.mapping.accumulate import MapAccumulator, voxel_hash
+from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
 from canopy_kit.mapping.filters import range_mask
 from canopy_kit.mapping.sensors import decode_scan
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
@@ -25,7 +28,8 @@ from canopy_kit.parallel import run_jobs, worker_count
 
 TIME_FIELD = "gps_time"  # absolute per-point time (bag clock, s); LAS's standard time dimension
 POSE_BINS = 64  # per-sweep time bins for per-point poses (1.6 ms apart at 10 Hz)
-_ORDER = "__order__"  # internal: acquisition order (sweep index << 24 | point index)
+SWEEP_BATCH = 16  # sweeps placed and accumulated together (per-call costs dominate per sweep)
+T = TypeVar("T")
 
 
 def point_fields(scan_fields: dict[str, np.ndarray], keep: np.ndarray | slice,
@@ -36,37 +40,62 @@ def point_fields(scan_fields: dict[str, np.ndarray], keep: np.ndarray | slice,
     return fields
 
 
-def world_points(scan: Scan, trajectory: ContinuousTrajectory, config: MappingConfig,
-                 deskew: bool) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
-    """A sweep's points in range, moved to the map frame with the pose at each point's time.
+def _pose_times(scan: Scan, keep: np.ndarray, deskew: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Times whose poses place the kept points, and each point's index among them (None: one pose).
 
-    Returns coordinates, fields (the scan's own plus ``gps_time``) and the kept indices.
+    Deskewed sweeps get ``POSE_BINS`` poses spread over their time span, one per bin; the
+    others one pose at the middle of the sweep (or its stamp when the times are unusable).
     """
-    keep = np.flatnonzero(range_mask(scan.xyz, config.min_range, config.max_range))
-    xyz = scan.xyz[keep]
     times = scan.times
-    fields = point_fields(scan.fields, keep, times, scan.stamp, len(xyz))
     if deskew and times is not None and len(keep):
         t = times[keep]
         lo, hi = float(t.min()), float(t.max())
         bins = np.clip(((t - lo) / max(hi - lo, 1e-12) * (POSE_BINS - 1) + 0.5).astype(np.int64),
                        0, POSE_BINS - 1)
-        pos, q = trajectory.quaternions_at(lo + (hi - lo) * np.arange(POSE_BINS) / (POSE_BINS - 1))
-        world = transform_binned(xyz, bins, quat.to_matrix(q), pos)
-    else:
-        valid = times is not None and len(times) and np.ptp(times) > 0
-        t_ref = 0.5 * (float(times.min()) + float(times.max())) if valid else scan.stamp  # type: ignore[union-attr]
-        pos, rot = trajectory.at(np.array([t_ref]))
-        world = xyz @ rot[0].T + pos[0]
-    return world, fields, keep
+        return lo + (hi - lo) * np.arange(POSE_BINS) / (POSE_BINS - 1), bins
+    valid = times is not None and len(times) and np.ptp(times) > 0
+    t_ref = 0.5 * (float(times.min()) + float(times.max())) if valid else scan.stamp  # type: ignore[union-attr]
+    return np.array([t_ref]), None
+
+
+def place_sweeps(scans: list[Scan], deskew: list[bool], trajectory: ContinuousTrajectory,
+                 config: MappingConfig) -> list[tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]]:
+    """Each sweep's points in range, moved to the map frame with the pose at each point's time.
+
+    One trajectory lookup serves the whole batch (its cost is mostly per call). Returns,
+    per sweep, coordinates, fields (the scan's own plus ``gps_time``) and the kept indices.
+    """
+    kept = [np.flatnonzero(range_mask(s.xyz, config.min_range, config.max_range)) for s in scans]
+    plans = [_pose_times(s, k, d) for s, k, d in zip(scans, kept, deskew, strict=True)]
+    starts = np.cumsum([0] + [len(times) for times, _ in plans])
+    pos, q = trajectory.quaternions_at(np.concatenate([times for times, _ in plans]))
+    rot = quat.to_matrix(q)
+    out = []
+    for i, (scan, keep, (_, bins)) in enumerate(zip(scans, kept, plans, strict=True)):
+        xyz = scan.xyz[keep]
+        fields = point_fields(scan.fields, keep, scan.times, scan.stamp, len(xyz))
+        a = starts[i]
+        if bins is None:
+            world = xyz @ rot[a].T + pos[a]
+        else:
+            world = transform_binned(xyz, bins, rot[a:starts[i + 1]], pos[a:starts[i + 1]])
+        out.append((world, fields, keep))
+    return out
+
+
+def world_points(scan: Scan, trajectory: ContinuousTrajectory, config: MappingConfig,
+                 deskew: bool) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    """One sweep's points in the map frame (see :func:`place_sweeps`): xyz, fields, kept indices."""
+    return place_sweeps([scan], [deskew], trajectory, config)[0]
 
 
 def transform_binned(xyz: np.ndarray, bins: np.ndarray, rotations: np.ndarray,
                      translations: np.ndarray) -> np.ndarray:
     """``rotations[b] @ p + translations[b]`` for each point ``p`` of bin ``b``.
 
-    One matrix product per bin over the bin's points; a sweep's points usually come in
-    time order, so the bins are contiguous runs and need no sorting.
+    One matrix product per bin over the bin's points (measured faster than gathering a
+    matrix per point); a sweep's points usually come in time order, so the bins are
+    contiguous runs and need no sorting.
     """
     order = None
     if len(bins) > 1 and np.any(bins[1:] < bins[:-1]):
@@ -84,63 +113,119 @@ def transform_binned(xyz: np.ndarray, bins: np.ndarray, rotations: np.ndarray,
     return out
 
 
-def selected_scans(bag: BagSession, topic: str, wanted: Callable[[int], bool]) -> Iterator[Scan]:
-    """Scans of ``topic`` whose index ``wanted`` accepts (the others are not decoded)."""
+def selected_scans(bag: BagSession, topic: str, wanted: Callable[[int], bool], first: int = 0,
+                   start_ns: int | None = None, stop_ns: int | None = None) -> Iterator[Scan]:
+    """Scans of ``topic`` whose index ``wanted`` accepts (the others are not decoded).
+
+    With ``start_ns``/``stop_ns`` (bag log times) only that stretch of the bag is read, and
+    its first scan message is scan ``first``.
+    """
     reader = bag.reader
     conns = [c for c in reader.connections if c.topic == topic]
-    for index, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
+    messages = reader.messages(connections=conns, start=start_ns, stop=stop_ns)
+    for index, (conn, _, raw) in enumerate(messages, start=first if start_ns is not None else 0):
         if wanted(index):
             yield decode_scan(bag, topic, reader.deserialize(raw, conn.msgtype), index)
+
+
+def batched(items: Iterable[T], size: int) -> Iterator[list[T]]:
+    """Consecutive lists of ``size`` items (the last may be shorter); itertools.batched in 3.12."""
+    it = iter(items)
+    while batch := list(islice(it, size)):
+        yield batch
 
 
 @dataclass
 class _Job:
     bag_path: str
     topic: str
-    sweeps: dict[int, bool]  # scan index -> deskew
+    sweeps: dict[int, bool]  # scan index -> deskew, this worker's only
     trajectory: ContinuousTrajectory
     config: MappingConfig
-    worker: int
-    n_workers: int
+    first: int  # scan index the stretch starts at
+    start_ns: int | None  # bag log time to seek to (None: read from the start and count)
+    stop_ns: int | None  # bag log time to stop before (None: to the end)
+
+
+def _seekable(log_ns: np.ndarray, index: int) -> bool:
+    """Reading from scan ``index``'s log time starts exactly at it (no earlier scan shares it)."""
+    return index < len(log_ns) and (index == 0 or log_ns[index] > log_ns[index - 1])
+
+
+def stretches(indices: list[int], n: int, log_ns: np.ndarray) -> list[tuple[int, int | None]]:
+    """``n`` runs of consecutive scans with about as many ``indices`` each: (first, end) pairs.
+
+    Borders are moved to a scan the bag can be seeked to (see :func:`_seekable`) where one is
+    near; the last run ends at None (the end of the bag).
+    """
+    indices = sorted(indices)
+    borders = [0]
+    for k in range(1, n):
+        b = indices[min(round(k * len(indices) / n), len(indices) - 1)]
+        while b < len(log_ns) and not _seekable(log_ns, b):
+            b += 1
+        if b > borders[-1] and b <= indices[-1]:
+            borders.append(b)
+    return [(a, borders[i + 1] if i + 1 < len(borders) else None) for i, a in enumerate(borders)]
+
+
+def _jobs(bag_path: str, topic: str, sweeps: dict[int, bool], trajectory: ContinuousTrajectory,
+          config: MappingConfig, n: int, log_ns: np.ndarray) -> list[_Job]:
+    jobs = []
+    for first, end in stretches(list(sweeps), n, log_ns):
+        mine = {i: d for i, d in sweeps.items() if i >= first and (end is None or i < end)}
+        start = int(log_ns[first]) if first and _seekable(log_ns, first) else None
+        stop = int(log_ns[end]) if end is not None and _seekable(log_ns, end) else None
+        jobs.append(_Job(bag_path, topic, mine, trajectory, config, first, start, stop))
+    return jobs
 
 
 def _accumulate(job: _Job, tick: Callable[[], None] | None = None
                 ) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
     acc = MapAccumulator(job.config.map_voxel_size)
-    mine = {i: d for i, d in job.sweeps.items() if i % job.n_workers == job.worker}
+    last = max(job.sweeps, default=-1)
     with open_bag(job.bag_path) as bag:
-        for scan in selected_scans(bag, job.topic, mine.__contains__):
-            xyz, fields, keep = world_points(scan, job.trajectory, job.config, mine[scan.index])
-            fields[_ORDER] = (np.int64(scan.index) << 24) | keep.astype(np.int64)
-            acc.add(xyz, fields)
+        scans = selected_scans(bag, job.topic, job.sweeps.__contains__, job.first, job.start_ns, job.stop_ns)
+        for batch in batched(scans, SWEEP_BATCH):
+            placed = place_sweeps(batch, [job.sweeps[s.index] for s in batch], job.trajectory, job.config)
+            acc.add_many([(xyz, fields) for xyz, fields, _ in placed])
             if tick:
-                tick()
+                for _ in batch:
+                    tick()
+            if batch[-1].index >= last:
+                break  # the rest of the bag is someone else's
     cloud = acc.cloud()
     return cloud.xyz, cloud.fields, acc.n_offered
 
 
 def merge_partial_maps(parts: list[tuple[np.ndarray, dict[str, np.ndarray]]],
                        voxel_size: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """One point per voxel over all parts: the one first in acquisition order; sorted by it."""
-    xyz = np.concatenate([p[0] for p in parts])
-    names = [k for k in parts[0][1]]
-    fields = {k: np.concatenate([p[1][k] for p in parts]) for k in names}
-    order = fields[_ORDER]
-    keys = voxel_hash(xyz, voxel_size)
-    idx = np.lexsort((order, keys))
-    first = np.r_[True, keys[idx][1:] != keys[idx][:-1]]
-    keep = idx[first]
-    keep = keep[np.argsort(order[keep], kind="stable")]
-    return xyz[keep], {k: v[keep] for k, v in fields.items()}
+    """One map from the maps of consecutive stretches of the drive (earliest first).
+
+    A voxel keeps the point of the earliest part that reached it, which is the point a
+    single accumulator would have kept; points stay in acquisition order.
+    """
+    seen = VoxelKeySet()
+    take = [seen.insert(voxel_hash(xyz, voxel_size)) for xyz, _ in parts]
+    xyz = np.concatenate([p[0][t] for p, t in zip(parts, take, strict=True)])
+    fields = {k: np.concatenate([p[1][k][t] for p, t in zip(parts, take, strict=True)]) for k in parts[0][1]}
+    return xyz, fields
 
 
 def assemble_map(bag_path: str, topic: str, sweeps: dict[int, bool], trajectory: ContinuousTrajectory,
-                 config: MappingConfig, progress: Callable[[str, float, float], None] | None = None
-                 ) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
-    """Place every point of the ``sweeps`` (index -> deskew) and voxel-thin them: xyz, fields, offered."""
+                 config: MappingConfig, progress: Callable[[str, float, float], None] | None = None,
+                 scan_log_ns: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
+    """Place every point of the ``sweeps`` (index -> deskew) and voxel-thin them: xyz, fields, offered.
+
+    ``scan_log_ns`` (each scan's bag log time) lets the workers read only their stretch of
+    the bag; without it each reads from the start.
+    """
+    if not sweeps:
+        return np.zeros((0, 3)), {}, 0
     n_workers = worker_count(config.workers, len(sweeps) // 50)
     total = len(sweeps)
-    jobs = [_Job(str(bag_path), topic, sweeps, trajectory, config, w, n_workers) for w in range(n_workers)]
+    log_ns = np.zeros(0, np.int64) if scan_log_ns is None else np.asarray(scan_log_ns, np.int64)
+    jobs = _jobs(str(bag_path), topic, sweeps, trajectory, config, n_workers, log_ns)
     parts = run_jobs(_accumulate, jobs, "mapping: map", total, progress)
     if len(parts) == 1:
         xyz, fields, offered = parts[0]
@@ -149,5 +234,4 @@ def assemble_map(bag_path: str, topic: str, sweeps: dict[int, bool], trajectory:
         offered = sum(p[2] for p in parts)
     if progress:
         progress("mapping: map", total, total)
-    fields.pop(_ORDER, None)
     return xyz, fields, offered

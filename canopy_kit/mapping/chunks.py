@@ -122,7 +122,8 @@ def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | Non
         first_stamp=min(p.first_stamp for p in parts), last_stamp=max(p.last_stamp for p in parts),
         bag_warnings=list(dict.fromkeys(w for p in parts for w in p.bag_warnings)),
         recovered=first.recovered, workers=len(parts),
-        stray=sorted({(i, n) for p, c in zip(parts, chunks) for i, n in p.stray if i >= c.own}))
+        stray=sorted({(i, n) for p, c in zip(parts, chunks) for i, n in p.stray if i >= c.own}),
+        scan_log_ns=last.scan_log_ns)  # the last chunk read every scan message from the start
 
 
 def run_odometry(bag: BagSession, config: MappingConfig, progress: Progress | None = None) -> OdometryPass:

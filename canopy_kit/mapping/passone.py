@@ -66,6 +66,8 @@ class OdometryPass:
     recovered: bool = False
     workers: int = 1
     stray: list[tuple[int, int]] = field(default_factory=list)  # (scan, points with corrupt times)
+    # The bag's log time (ns) of scan 0, 1, ... as far as they were read (the map pass seeks with it).
+    scan_log_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def scan_count(bag: BagSession, topic: str) -> int:
@@ -100,10 +102,12 @@ class PassOne:
         self.n_without_time = 0
         self.first_stamp = np.inf
         self.last_stamp = -np.inf
+        self.scan_log_ns: list[int] = []
 
     def sweeps(self) -> Iterator[FrontendSweep]:
         """Registered (and, with ``odometry_every`` > 1, predicted) sweeps in bag order."""
-        for scan in sensor_messages(self.bag, self.topics, self.imu, self.gnss, *self.scan_range):
+        for scan in sensor_messages(self.bag, self.topics, self.imu, self.gnss, *self.scan_range,
+                                    log_times=self.scan_log_ns):
             if scan.index >= self.count_from:
                 self.n_scans += 1
                 self.first_stamp = min(self.first_stamp, scan.stamp)
@@ -125,7 +129,8 @@ class PassOne:
         stray = [(i, n) for i, n in self.bag.stray_time_scans if i >= self.count_from]
         return OdometryPass(str(self.bag.path), self.topics, records, self.frontend.state, imu, self.gnss,
                             self.n_scans, self.n_without_time, self.first_stamp, self.last_stamp,
-                            bag_warnings, self.bag.recovered, stray=stray)
+                            bag_warnings, self.bag.recovered, stray=stray,
+                            scan_log_ns=np.asarray(self.scan_log_ns, np.int64))
 
 
 def record(sweep: FrontendSweep) -> SweepRecord:

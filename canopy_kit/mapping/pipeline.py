@@ -135,7 +135,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
 
     cpu2, wall2 = cpu_seconds(), time.perf_counter()
     xyz, fields, offered = assemble_map(str(bag_path), one.topics.scans, deskewed, trajectory, config,
-                                        progress)
+                                        progress, one.scan_log_ns)
     timing["map_cpu_s"] = cpu_seconds() - cpu2
     timing["map_wall_s"] = time.perf_counter() - wall2
 

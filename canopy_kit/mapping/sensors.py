@@ -154,12 +154,13 @@ def imu_fields(raw: bytes | memoryview, ros2: bool) -> tuple[float, str, tuple, 
 
 def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None = None,
                     gnss: GnssBuffer | None = None, first_scan: int = 0,
-                    end_scan: int | None = None) -> Iterator[Scan]:
+                    end_scan: int | None = None, log_times: list[int] | None = None) -> Iterator[Scan]:
     """Stream the scans; IMU and GNSS messages met on the way are appended to the buffers.
 
     Only scans ``first_scan <= index < end_scan`` are decoded and yielded (the ones before
     are skipped undecoded; IMU and GNSS before them are still collected); reading stops at
-    ``end_scan``.
+    ``end_scan``. ``log_times`` receives the bag's log time (ns) of every scan message read,
+    skipped ones included (the map pass seeks to a scan with it).
     """
     reader = bag.reader
     wanted = {topics.scans} | ({topics.imu} if topics.imu and imu is not None else set()) | (
@@ -169,6 +170,8 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
     index = 0
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
+            if log_times is not None and conn.topic == topics.scans:
+                log_times.append(int(timestamp))
             if index < first_scan and conn.topic == topics.scans:
                 index += 1
                 continue
