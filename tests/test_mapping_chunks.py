@@ -80,11 +80,12 @@ def test_bad_parallel_settings_are_named(setting: dict, tmp_path) -> None:
 @pytest.mark.parametrize("fmt", ["ros2-mcap", "ros1", "ros2-sqlite3"])
 def test_map_pass_on_several_workers_equals_one_process(sim_factory, fmt) -> None:
     """Workers seek to their own stretch of the bag; the merged map is the single process's."""
+    from conftest import MICRO
+
     from canopy_kit.io.bag import open_bag
     from canopy_kit.mapping.assemble import assemble_map
     from canopy_kit.mapping.passone import odometry_pass
     from canopy_kit.mapping.trajectory import ContinuousTrajectory
-    from conftest import MICRO
 
     session = sim_factory("pistachio", fmt=fmt, overrides=MICRO)
     cfg = MappingConfig(workers=1)
