@@ -6,11 +6,13 @@ Without ``--session`` a 4-row pistachio session with the default 32-ring sensor 
 simulated into a temporary folder (about 1 GB; deleted afterwards unless ``--keep``).
 Each pipeline runs in its own process, so peak memory (max RSS) is its own:
 
-- ``canopy-kit build_map``: the default MappingConfig (IMU + GNSS fusion, every second
-  sweep registered, the odometry in time chunks on one process per core, the map pass on
-  2 worker processes, KISS-ICP on 1 thread so runs are bit-reproducible);
-- the most accurate and slowest: every sweep registered, everything in one process
-  (``workers = 1, odometry_every = 1``, the defaults before the speed-up);
+- ``canopy-kit build_map``: the default MappingConfig (IMU + GNSS fusion, every third
+  sweep registered or sooner in tight turns, ICP convergence 1e-3, the odometry in time
+  chunks on one process per core, the map pass on one process per core, each reading its
+  own stretch of the bag, KISS-ICP on 1 thread so runs are bit-reproducible);
+- the most accurate and slowest: every sweep registered, KISS-ICP's own convergence
+  criterion, everything in one process (``workers = 1, odometry_every = 1,
+  kiss_convergence = 1e-4``, the defaults of two sessions before);
 - ``KISS-ICP (Python API, unfiltered)``: ``kiss_icp.kiss_icp.KissICP`` with its default
   config (voxel = max_range / 100, all cores), every scan as is (ground kept), per-point
   times normalised to [0, 1] for its own deskew - what ``kiss_icp_pipeline`` does. It
@@ -37,7 +39,7 @@ from pathlib import Path
 
 from canopy_kit.parallel import cpu_seconds
 
-DEFAULT = ("canopy-kit build_map (defaults: IMU + GNSS, every 2nd sweep registered, odometry in "
+DEFAULT = ("canopy-kit build_map (defaults: IMU + GNSS, every 3rd sweep registered, odometry in "
            "2 time chunks, 2 map workers)")
 
 
@@ -139,8 +141,9 @@ def main() -> None:
     try:
         runs = {
             DEFAULT: _child("{}", session),
-            "canopy-kit build_map, one odometry process, every sweep registered (workers = 1, "
-            "odometry_every = 1)": _child('{"workers": 1, "odometry_every": 1}', session),
+            "canopy-kit build_map, one process, every sweep registered, ICP convergence 1e-4 "
+            "(workers = 1, odometry_every = 1)": _child(
+                '{"workers": 1, "odometry_every": 1, "kiss_convergence": 0.0001}', session),
             "KISS-ICP (Python API, unfiltered, all cores)": _child("kiss", session),
         }
     finally:

@@ -35,14 +35,18 @@ class MappingConfig:
     odometry_ground_band: float = 0.15
     odometry_ground_refine: bool = True
     odometry_point_stride: int = 1
-    # Register every n-th sweep (build_map); the sweeps between are placed by the fused
-    # continuous trajectory (odometry interpolated, gyro rotation) in the map pass.
-    odometry_every: int = 2
+    # Register every n-th sweep (build_map), or sooner where the vehicle turns or moves fast;
+    # the sweeps between are placed by the fused continuous trajectory (odometry
+    # interpolated, gyro rotation) in the map pass.
+    odometry_every: int = 3
     # Long drives: the odometry runs in consecutive chunks of at least this many scans on
     # ``workers`` processes (mapping.chunks), tied together where they overlap.
     odometry_chunk_sweeps: int = 600
     kiss_voxel_size: float = 0.5
     kiss_max_points_per_voxel: int = 20
+    # KISS-ICP's ICP stops when an iteration moves the pose by less than this (its own default
+    # 1e-4; 1e-3 saved 18 % of the odometry at the same trajectory error, docs/BENCHMARKS.md).
+    kiss_convergence: float = 1e-3
     min_points_per_scan: int = 500
     odometry_max_correction: float = 0.15
     odometry_max_correction_deg: float = 1.5

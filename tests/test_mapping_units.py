@@ -357,3 +357,28 @@ def test_imu_fields_read_in_place_match_a_full_deserialisation(tmp_path, fmt: st
     assert n == len(frames)
     assert imu_fields(b"\x00\x00\x00\x00" + bytes(300), True) is None  # big-endian CDR: rosbags decodes
     assert imu_fields(b"\x00\x01\x00\x00" + bytes(8), True) is None  # cut short
+
+
+def test_sweeps_are_left_unregistered_only_while_the_predicted_motion_is_small() -> None:
+    from types import SimpleNamespace
+
+    from canopy_kit.io.bag import Scan
+    from canopy_kit.mapping.frontend import SKIP_MAX_SHIFT_M, SKIP_MAX_TURN_DEG, LidarFrontend
+
+    front = LidarFrontend(MappingConfig(odometry_every=3), imu=None, keep_all_points=False)
+    front._odometry = SimpleNamespace(pose=np.eye(4))
+    front._history.append((0.0, np.eye(4)))  # last registered sweep at t = 0
+    n = 1000
+    scan = Scan(0.1, RNG.uniform(-10, 10, (n, 3)), {}, np.linspace(0.05, 0.15, n), "lidar", 1)
+    keep = np.ones(n, bool)
+    dt = 0.1  # the sweep's reference time is the middle of its points' times
+
+    def skipped(speed: float, turn_rate_deg: float) -> bool:
+        front._velocity = np.array([speed, 0.0, 0.0])
+        front._omega = np.array([0.0, 0.0, np.radians(turn_rate_deg)])
+        return front._unregistered(scan, keep) is not None
+
+    assert skipped(1.5, 10.0)  # driving along a row
+    assert not skipped(1.05 * SKIP_MAX_SHIFT_M / dt, 0.0)  # too fast: register it
+    assert not skipped(0.5, 1.05 * SKIP_MAX_TURN_DEG / dt)  # a tight turn: register it
+    assert front.state.sweeps == 1  # only the skipped sweep was counted

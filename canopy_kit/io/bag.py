@@ -344,6 +344,8 @@ def _stray_times(times: np.ndarray | None) -> np.ndarray | None:
     finite = np.isfinite(times)
     if not finite.any():
         return None
+    if np.ptp(times[finite]) <= MAX_POINT_TIME_OFFSET_S:  # no point can be that far from the median
+        return None
     stray = np.zeros(len(times), bool)
     stray[finite] = np.abs(times[finite] - np.median(times[finite])) > MAX_POINT_TIME_OFFSET_S
     if not stray.any() or stray.sum() > 0.01 * len(times):

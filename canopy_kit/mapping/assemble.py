@@ -122,7 +122,8 @@ def selected_scans(bag: BagSession, topic: str, wanted: Callable[[int], bool], f
     """
     reader = bag.reader
     conns = [c for c in reader.connections if c.topic == topic]
-    messages = reader.messages(connections=conns, start=start_ns, stop=stop_ns)
+    seek = {k: v for k, v in (("start", start_ns), ("stop", stop_ns)) if v is not None}
+    messages = reader.messages(connections=conns, **seek)
     for index, (conn, _, raw) in enumerate(messages, start=first if start_ns is not None else 0):
         if wanted(index):
             yield decode_scan(bag, topic, reader.deserialize(raw, conn.msgtype), index)

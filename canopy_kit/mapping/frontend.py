@@ -33,6 +33,10 @@ STANDSTILL_M = 1.0  # a drive whose sweeps all stay this close to the first one 
 STRUCTURE_POINTS = 800  # fewer odometry points than this inflate the sweep's uncertainty
 WEAK_REGISTRATION_MAX = 10.0  # uncertainty of a sweep placed by the motion prediction
 MAX_REJECTED_RUN = 3  # implausible ICP results replaced by the prediction before ICP is trusted again
+# A sweep is left unregistered (``mapping.odometry_every``) only while the predicted motion
+# since the last registered sweep stays below these: tight turns are registered densely.
+SKIP_MAX_SHIFT_M = 0.6
+SKIP_MAX_TURN_DEG = 6.0
 
 
 @dataclass
@@ -147,7 +151,7 @@ class LidarFrontend:
         self._odometry = LidarOdometry(OdometrySettings(
             voxel_size=self.config.kiss_voxel_size, max_range=self.config.max_range,
             min_range=self.config.min_range, max_points_per_voxel=self.config.kiss_max_points_per_voxel,
-            max_threads=self.config.threads), t0)
+            max_threads=self.config.threads, convergence_criterion=self.config.kiss_convergence), t0)
 
     # -- per sweep -------------------------------------------------------------------------
     def _sync_imu(self) -> None:
@@ -209,7 +213,9 @@ class LidarFrontend:
             return None
         self._sparse_run = 0
         if self._prev_t is not None and self._unregistered_run + 1 < self.register_every:
-            return self._unregistered(scan, keep)
+            sweep = self._unregistered(scan, keep)
+            if sweep is not None:
+                return sweep
         self._unregistered_run = 0
         if not self.keep_all_points and cfg.odometry_point_stride > 1:
             # Only the odometry needs these points: thin before the per-point work.
@@ -290,25 +296,36 @@ class LidarFrontend:
         self._omega = Rotation.from_matrix(p0[:3, :3].T @ pose[:3, :3]).as_rotvec() / dt
         self._motion_known = True
 
-    def _sweep_times(self, scan: Scan, keep: np.ndarray) -> tuple[np.ndarray | None, float, bool]:
+    def _sweep_times(self, scan: Scan, keep: np.ndarray, count: bool = True
+                     ) -> tuple[np.ndarray | None, float, bool]:
         """The kept points' times (None when missing, constant or non-finite), the sweep's
-        reference time and whether it is deskewed (counted in the state when not)."""
+        reference time and whether it is deskewed (counted in the state when not, if ``count``)."""
         times = scan.times[keep] if scan.times is not None else None
         if times is not None and not (np.all(np.isfinite(times)) and np.ptp(times) > 0):
             times = None
         deskewed = self.config.deskew and times is not None
-        if not deskewed:
+        if not deskewed and count:
             self.state.not_deskewed += 1
         return times, reference_time(times, scan.stamp), deskewed
 
-    def _unregistered(self, scan: Scan, keep: np.ndarray) -> FrontendSweep:
-        """A sweep left to the map pass: its reference time and the motion prediction only."""
+    def _unregistered(self, scan: Scan, keep: np.ndarray) -> FrontendSweep | None:
+        """A sweep left to the map pass: its reference time and the motion prediction only.
+
+        None when the vehicle is predicted to have moved or turned too far since the last
+        registered sweep (a tight turn): that sweep is registered instead.
+        """
+        _, t_ref, deskewed = self._sweep_times(scan, keep, count=False)
+        assert self._odometry is not None
+        guess = self._predict(t_ref)
+        shift, turn = self._correction(self._odometry.pose, guess)
+        if shift > SKIP_MAX_SHIFT_M or turn > SKIP_MAX_TURN_DEG:
+            return None
+        if not deskewed:
+            self.state.not_deskewed += 1
         self._unregistered_run += 1
-        _, t_ref, deskewed = self._sweep_times(scan, keep)
         self.state.sweeps += 1
         empty = np.zeros((0, 3))
-        return FrontendSweep(scan, t_ref, self._predict(t_ref), keep, empty, np.zeros(0, bool), deskewed,
-                             registered=False)
+        return FrontendSweep(scan, t_ref, guess, keep, empty, np.zeros(0, bool), deskewed, registered=False)
 
     def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """Height and tilt from the ground grid (see :mod:`.ground`); the grid grows with the sweep."""

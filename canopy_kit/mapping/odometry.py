@@ -22,6 +22,7 @@ class OdometrySettings:
     min_range: float = 1.0
     max_points_per_voxel: int = 20
     max_threads: int = 0  # 0: all cores
+    convergence_criterion: float = 1e-4
 
 
 class LidarOdometry:
@@ -38,6 +39,7 @@ class LidarOdometry:
         config.mapping.voxel_size = settings.voxel_size
         config.mapping.max_points_per_voxel = settings.max_points_per_voxel
         config.registration.max_num_threads = settings.max_threads
+        config.registration.convergence_criterion = settings.convergence_criterion
         self._kiss = KissICP(config)
         self.pose = np.eye(4) if initial_pose is None else np.array(initial_pose, float)
         self._kiss.last_pose = self.pose.copy()

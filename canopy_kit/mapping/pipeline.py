@@ -87,7 +87,7 @@ def _check_config(config: MappingConfig) -> None:
     if not 0 <= config.min_range < config.max_range:
         raise ConfigError(f"mapping.min_range/max_range: need 0 <= min_range < max_range, got "
                           f"{config.min_range}, {config.max_range}")
-    for name in ("map_voxel_size", "kiss_voxel_size", "gnss_epoch", "gnss_correlation_time"):
+    for name in ("map_voxel_size", "kiss_voxel_size", "kiss_convergence", "gnss_epoch", "gnss_correlation_time"):
         if not getattr(config, name) > 0:
             raise ConfigError(f"mapping.{name}: must be positive, got {getattr(config, name)}")
     if len(config.gnss_lever_arm) != 3:
@@ -135,7 +135,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
 
     cpu2, wall2 = cpu_seconds(), time.perf_counter()
     xyz, fields, offered = assemble_map(str(bag_path), one.topics.scans, deskewed, trajectory, config,
-                                        progress, one.scan_log_ns)
+                                        progress, None if one.recovered else one.scan_log_ns)
     timing["map_cpu_s"] = cpu_seconds() - cpu2
     timing["map_wall_s"] = time.perf_counter() - wall2
 

@@ -1,0 +1,36 @@
+"""Forked workers (``canopy_kit.parallel``): results, errors and progress come back to the parent."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from canopy_kit.errors import InputError, ProcessingError
+from canopy_kit.parallel import run_forked
+
+
+def _square_pid(x: int, tick) -> tuple[int, int]:
+    tick()
+    return x * x, os.getpid()
+
+
+def _fail_or_die(x: int, tick) -> None:
+    if x == 0:
+        raise InputError("scan 17: no x field")
+    os._exit(3)
+
+
+def test_run_forked_returns_results_in_job_order_from_other_processes() -> None:
+    seen = []
+    out = run_forked(_square_pid, [3, 1, 2], "squares", 3, lambda label, n, total: seen.append((label, n, total)))
+    assert [r[0] for r in out] == [9, 1, 4]
+    assert os.getpid() not in {r[1] for r in out}
+    assert seen[-1] == ("squares", 3, 3)
+
+
+def test_a_worker_error_or_death_reaches_the_parent() -> None:
+    with pytest.raises(InputError, match="scan 17: no x field"):
+        run_forked(_fail_or_die, [0], "map", 1)
+    with pytest.raises(ProcessingError, match="map: worker 0 ended without a result"):
+        run_forked(_fail_or_die, [1], "map", 1)
