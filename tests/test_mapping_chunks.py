@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from canopy_kit.config import MappingConfig
 from canopy_kit.mapping import build_map
-from canopy_kit.mapping.chunks import OVERLAP_SWEEPS, chunk_plan, tie
+from canopy_kit.mapping.chunks import OVERLAP_SWEEPS, SKIP_COST, balanced_bounds, chunk_plan, tie
 from canopy_kit.mapping.evaluate import evaluate_against_simulation
 from canopy_kit.mapping.passone import SweepRecord
 from canopy_kit.sim import load_sim_config, simulate_session
@@ -34,6 +34,18 @@ def test_chunks_cover_every_scan_once_and_start_in_step() -> None:
         assert OVERLAP_SWEEPS <= c.own - c.first < OVERLAP_SWEEPS + cfg.odometry_every
     # Too short a drive for two chunks of the minimum size: one process.
     assert len(chunk_plan("bag", 150, cfg)) == 1
+
+
+@pytest.mark.parametrize(("n_scans", "n_chunks"), [(2370, 2), (5000, 3), (1001, 4), (900, 1)])
+def test_chunk_borders_give_every_worker_the_same_work(n_scans, n_chunks) -> None:
+    bounds = balanced_bounds(n_scans, n_chunks)
+    assert bounds[0] == 0 and bounds[-1] == n_scans and np.all(np.diff(bounds) > 0)
+    # Work of chunk k: its own scans, the overlap it repeats and the scans it skips undecoded.
+    work = [b - a + (OVERLAP_SWEEPS + SKIP_COST * (a - OVERLAP_SWEEPS) if k else 0)
+            for k, (a, b) in enumerate(itertools.pairwise(bounds))]
+    assert max(work) - min(work) <= 2
+    if n_chunks > 1:
+        assert bounds[1] > n_scans / n_chunks  # the first chunk, which skips nothing, owns more
 
 
 def test_tie_recovers_the_transform_between_chunk_frames() -> None:
