@@ -353,6 +353,21 @@ def test_plots_top_view_and_failure_gallery() -> None:
     assert plot_failure_gallery(orch.cloud, good, score_point_labels(good.labels, truth), truth) is None
 
 
+def test_top_view_image_shows_the_highest_point_of_each_pixel() -> None:
+    from canopy_kit.segment.plots import segment_colours, top_view_image
+
+    # Two points share the pixel at (0.05, 0.05): the higher one (label 2) is seen from above.
+    xy = np.array([[0.05, 0.05], [0.06, 0.04], [0.37, 0.15]])
+    labels = np.array([1, 2, -1])
+    height = np.array([1.0, 3.0, 0.5])
+    image, extent = top_view_image(xy, labels, height, pixel=0.1)
+    assert image.shape == (2, 4, 4)  # rows: y pixels, columns: x pixels
+    assert np.allclose(extent, [0.05, 0.45, 0.04, 0.24])
+    colours = segment_colours(np.array([2, -1]))
+    assert np.allclose(image[0, 0], colours[0]) and np.allclose(image[1, 3], colours[1])
+    assert image[0, 1:, 3].max() == 0 and image[1, :3, 3].max() == 0  # no point: transparent
+
+
 def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
     """Empty and all-ground maps: exit code 2 and a message; one tree and no rows: results."""
     import subprocess

@@ -275,7 +275,8 @@ def write_las(
     )
     if crs is not None:
         header.add_crs(crs, keep_compatibility=not wkt_only)
-    las = laspy.LasData(header)
+    # Sized up front: filling an empty LasData grows its record once per dimension.
+    las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(cloud), header=header))
     local_shift = cloud.origin - header.offsets
     integers = np.round((cloud.xyz + local_shift) / scale)
     if np.abs(integers).max() > INT32_MAX:

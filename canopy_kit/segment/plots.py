@@ -31,9 +31,27 @@ def _sample(n: int, max_points: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
 
 
+def top_view_image(xy: np.ndarray, labels: np.ndarray, height: np.ndarray, pixel: float = 0.1
+                   ) -> tuple[np.ndarray, list[float]]:
+    """RGBA image of points seen from above (the highest point of each pixel gives its
+    colour, as a scatter plot of every point would look) and its ``imshow`` extent."""
+    lo = xy.min(axis=0)
+    ij = np.floor((xy - lo) / pixel).astype(np.int64)
+    shape = ij.max(axis=0) + 1
+    flat = ij[:, 1] * shape[0] + ij[:, 0]
+    order = np.lexsort((height, flat))  # by pixel, highest point last
+    last = np.r_[flat[order][1:] != flat[order][:-1], True]
+    top = order[last]
+    image = np.zeros((shape[1] * shape[0], 4))  # transparent where no point fell
+    image[flat[top]] = segment_colours(labels[top])
+    hi = lo + shape * pixel
+    return image.reshape(shape[1], shape[0], 4), [lo[0], hi[0], lo[1], hi[1]]
+
+
 def plot_top_view(cloud: PointCloud, seg: Segmentation, ax: Any = None,
-                  max_points: int = 150_000, show_rows: bool = True) -> Any:
-    """Top view of the map: each tree in its colour, labelled ``row:label``; returns the Figure."""
+                  pixel: float = 0.1, show_rows: bool = True) -> Any:
+    """Top view of the map (``pixel`` m): each tree in its colour, labelled ``row:label``;
+    returns the Figure."""
     import matplotlib.pyplot as plt
 
     if ax is None:
@@ -41,9 +59,9 @@ def plot_top_view(cloud: PointCloud, seg: Segmentation, ax: Any = None,
     else:
         fig = ax.figure
     keep = np.flatnonzero(seg.height >= 0.3)
-    keep = keep[_sample(len(keep), max_points)]
-    ax.scatter(cloud.xyz[keep, 0], cloud.xyz[keep, 1], s=0.3, c=segment_colours(seg.labels[keep]),
-               linewidths=0, rasterized=True)
+    if len(keep):
+        image, extent = top_view_image(cloud.xyz[keep, :2], seg.labels[keep], seg.height[keep], pixel)
+        ax.imshow(image, extent=extent, origin="lower", interpolation="nearest")
     if show_rows:
         for line in seg.rows.lines:
             p = line.polyline()
