@@ -29,6 +29,17 @@ def linear_keys(keys: np.ndarray) -> np.ndarray:
     return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
 
 
+def first_minimum(groups: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Per group (non-negative ints), in ascending group order: the index of its smallest
+    value, the first such index on ties. No sort of all points (a lexsort of a 4 M-point map
+    took 2 s)."""
+    lowest = np.full(int(groups.max()) + 1, np.inf)
+    np.minimum.at(lowest, groups, values)
+    candidates = np.flatnonzero(values == lowest[groups])
+    _, first = np.unique(groups[candidates], return_index=True)
+    return candidates[first]
+
+
 def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     """For each occupied voxel: index of its point nearest the voxel centre, and each point's voxel.
 
@@ -43,10 +54,7 @@ def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.
     inverse = inverse.ravel()
     centre = origin + (keys + 0.5) * size
     dist = np.einsum("ij,ij->i", xyz - centre, xyz - centre)
-    order = np.lexsort((dist, inverse))
-    first = np.ones(len(order), bool)
-    first[1:] = inverse[order[1:]] != inverse[order[:-1]]
-    reps = order[first]  # reps[v]: the point kept for voxel v
+    reps = first_minimum(inverse, dist)  # reps[v]: the point kept for voxel v
     tied = dist == dist[reps][inverse]
     crowded = np.bincount(inverse[tied], minlength=len(reps)) > 1
     if crowded.any():  # rare: several points at the nearest distance; sort only those

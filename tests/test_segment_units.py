@@ -441,3 +441,21 @@ def test_segment_colours_are_never_the_grey_of_unlabelled_points() -> None:
     trees = rgba[1:, :3]
     assert np.all(np.ptp(trees, axis=1) > 0.1)  # saturated: no grey (r = g = b) among trees
     assert np.all(np.any(np.abs(np.diff(trees, axis=0)) > 0.1, axis=1))  # neighbours differ
+
+
+def test_first_minimum_and_voxel_representatives_match_a_plain_loop() -> None:
+    from canopy_kit.voxel import first_minimum, voxel_representatives
+
+    rng = np.random.default_rng(5)
+    groups = rng.integers(0, 50, 2000)
+    values = rng.integers(0, 20, 2000).astype(float)  # many ties
+    expected = [min(np.flatnonzero(groups == g), key=lambda i: (values[i], i)) for g in np.unique(groups)]
+    assert first_minimum(groups, values).tolist() == expected
+    xyz = np.round(rng.uniform(0, 1, (3000, 3)) * 64) / 64  # binary lattice: exact distances, true ties
+    reps, inverse = voxel_representatives(xyz, 0.25)
+    for v, rep in enumerate(reps):
+        members = np.flatnonzero(inverse == v)
+        centre = np.floor((xyz[rep] - xyz.min(axis=0)) / 0.25) * 0.25 + 0.125 + xyz.min(axis=0)
+        dist = np.sum((xyz[members] - centre) ** 2, axis=1)
+        best = members[dist == dist.min()]
+        assert rep == min(best, key=lambda i: tuple(xyz[i]))  # nearest the centre, then smallest x, y, z

@@ -16,6 +16,7 @@ import numpy as np
 from scipy import ndimage
 
 from canopy_kit.errors import InputError, ProcessingError
+from canopy_kit.voxel import first_minimum
 
 
 @dataclass(frozen=True)
@@ -46,10 +47,7 @@ def lowest_per_cell(xyz: np.ndarray, cell: float) -> np.ndarray:
     """The lowest point of every occupied ``cell`` x ``cell`` column: ground candidates."""
     keys = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / cell).astype(np.int64)
     lin = keys[:, 0] * (keys[:, 1].max() + 1) + keys[:, 1]
-    order = np.lexsort((xyz[:, 2], lin))
-    first = np.ones(len(order), bool)
-    first[1:] = lin[order[1:]] != lin[order[:-1]]
-    return xyz[order[first]]
+    return xyz[first_minimum(lin, xyz[:, 2])]
 
 
 def ransac_plane(points: np.ndarray, threshold: float, rng: np.random.Generator,
