@@ -83,12 +83,6 @@ def place_sweeps(scans: list[Scan], deskew: list[bool], trajectory: ContinuousTr
     return out
 
 
-def world_points(scan: Scan, trajectory: ContinuousTrajectory, config: MappingConfig,
-                 deskew: bool) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
-    """One sweep's points in the map frame (see :func:`place_sweeps`): xyz, fields, kept indices."""
-    return place_sweeps([scan], [deskew], trajectory, config)[0]
-
-
 def transform_binned(xyz: np.ndarray, bins: np.ndarray, rotations: np.ndarray,
                      translations: np.ndarray) -> np.ndarray:
     """``rotations[b] @ p + translations[b]`` for each point ``p`` of bin ``b``.

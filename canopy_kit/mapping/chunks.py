@@ -66,20 +66,20 @@ def balanced_bounds(n_scans: int, n_chunks: int) -> np.ndarray:
     reads every scan before that undecoded (``SKIP_COST`` of a processed scan each), so
     later chunks own fewer scans.
     """
+    def extra(own: float) -> float:  # work of a chunk owning scans from ``own`` on, besides them
+        return 0.0 if own == 0 else OVERLAP_SWEEPS + SKIP_COST * max(own - OVERLAP_SWEEPS, 0.0)
+
     def borders(load: float) -> list[float]:
         out = [0.0]
-        for k in range(n_chunks - 1):
-            extra = 0.0 if k == 0 else OVERLAP_SWEEPS + SKIP_COST * max(out[-1] - OVERLAP_SWEEPS, 0.0)
-            out.append(out[-1] + max(load - extra, 1.0))
+        for _ in range(n_chunks - 1):
+            out.append(out[-1] + max(load - extra(out[-1]), 1.0))
         return out
 
     lo, hi = 0.0, float(n_scans)
     for _ in range(60):  # the load per chunk for which the last chunk gets as much as the others
         load = 0.5 * (lo + hi)
         last = borders(load)[-1]
-        last_cost = n_scans - last + (OVERLAP_SWEEPS + SKIP_COST * max(last - OVERLAP_SWEEPS, 0.0)
-                                      if n_chunks > 1 else 0.0)
-        lo, hi = (load, hi) if last_cost > load else (lo, load)
+        lo, hi = (load, hi) if n_scans - last + extra(last) > load else (lo, load)
     return np.array([*borders(load), n_scans]).round().astype(int)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.segment.result import Segmentation
-
+from canopy_kit.voxel import first_minimum
 
 NOISE_RGBA = (0.75, 0.75, 0.75, 0.35)
 
@@ -39,9 +39,7 @@ def top_view_image(xy: np.ndarray, labels: np.ndarray, height: np.ndarray, pixel
     ij = np.floor((xy - lo) / pixel).astype(np.int64)
     shape = ij.max(axis=0) + 1
     flat = ij[:, 1] * shape[0] + ij[:, 0]
-    order = np.lexsort((height, flat))  # by pixel, highest point last
-    last = np.r_[flat[order][1:] != flat[order][:-1], True]
-    top = order[last]
+    top = first_minimum(flat, -np.asarray(height, float))  # the highest point of each pixel
     image = np.zeros((shape[1] * shape[0], 4))  # transparent where no point fell
     image[flat[top]] = segment_colours(labels[top])
     hi = lo + shape * pixel
