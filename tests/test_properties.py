@@ -167,6 +167,50 @@ def test_convex_hull_bounds_alpha_shape_and_alpha_is_monotone(seed, n, alphas) -
 
 
 @FAST
+@given(seed=seeds, n=st.integers(5, 300), spread=st.floats(0.2, 5.0), alpha=st.floats(0.05, 30.0),
+       grid=st.sampled_from([0.0, 0.1]))
+def test_alpha_tetrahedra_give_qhulls_alpha_volume(seed, n, spread, alpha, grid) -> None:
+    """VTK's triangulation (used where it is provably complete for the alpha asked) gives the
+    alpha-complex volume of qhull's, for points in general position and for points snapped
+    to a grid (many co-spherical quadruples), and any alpha (large ones go to qhull)."""
+    from canopy_kit.volume.alpha import alpha_tetrahedra, alpha_volume, delaunay_tetrahedra
+    from canopy_kit.volume.hull import hull_volume
+
+    xyz = generic_points(np.random.default_rng(seed), n, spread)
+    if grid:
+        xyz = np.unique(np.round(xyz / grid) * grid, axis=0)
+        assume(len(xyz) >= 5 and np.linalg.matrix_rank(xyz - xyz.mean(axis=0)) == 3)
+    reference = alpha_volume(delaunay_tetrahedra(xyz), alpha)
+    fast = alpha_volume(alpha_tetrahedra(xyz, alpha), alpha)
+    assert fast == pytest.approx(reference, rel=1e-9, abs=1e-9 * hull_volume(xyz))
+
+
+def test_alpha_tetrahedra_use_vtk_on_a_crown_and_fall_back_where_it_is_incomplete(monkeypatch) -> None:
+    """On a crown-like shell VTK's tetrahedra are used; for an alpha beyond the range where
+    they are complete, or when VTK leaves a point out, qhull's are (same volume either way)."""
+    from canopy_kit.volume import alpha as alpha_module
+
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(4000, 3))
+    xyz = 2.5 * d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.8, 1.0, (4000, 1))
+    reference = alpha_module.alpha_volume(alpha_module.delaunay_tetrahedra(xyz), 0.9)
+    calls: list[bool] = []
+    real = alpha_module._vtk_simplices
+    monkeypatch.setattr(alpha_module, "_vtk_simplices", lambda c: calls.append(True) or real(c))
+    tetra = alpha_module.alpha_tetrahedra(xyz, 0.9)
+    assert calls and real(xyz - xyz.mean(axis=0)) is not None
+    assert alpha_module.alpha_volume(tetra, 0.9) == pytest.approx(reference, rel=1e-12)
+    calls.clear()
+    alpha_module.alpha_tetrahedra(xyz, 10.0)  # beyond one bounding-box diagonal (8.7 m): qhull
+    assert not calls
+    # Two points 1 µm apart are merged by VTK's tolerance: detected, qhull decides.
+    twin = np.vstack([xyz, xyz[:1] + 1e-6])
+    assert real(twin - twin.mean(axis=0)) is None
+    assert alpha_module.alpha_volume(alpha_module.alpha_tetrahedra(twin, 0.9), 0.9) == pytest.approx(
+        alpha_module.alpha_volume(alpha_module.delaunay_tetrahedra(twin), 0.9), rel=1e-9)
+
+
+@FAST
 @given(seed=seeds, n=st.integers(5, 100), shift=st.tuples(coordinate, coordinate, coordinate),
        scale=st.floats(0.1, 10.0), alpha=st.floats(0.3, 5.0))
 def test_volumes_are_invariant_to_rigid_motion_and_order_and_scale_as_cube(seed, n, shift, scale,

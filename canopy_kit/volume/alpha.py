@@ -4,8 +4,10 @@ This is the solid that Open3D's ``create_from_point_cloud_alpha_shape`` meshes (
 radius in metres, as in the paper's α = 0.9 m). Summing the tetrahedra directly always
 gives a number: Open3D's ``get_volume()`` raises on the non-watertight meshes that
 one-sided LiDAR crowns produce and double-counts shells on surface-only points (measured
-trap, docs/DESIGN.md). The cost is one Delaunay triangulation, about as slow as Open3D;
-:class:`~canopy_kit.volume.alpha_hull.AlphaHullVolume` is the fast formulation.
+trap, docs/DESIGN.md). The cost is one Delaunay triangulation: VTK's incremental
+``vtkDelaunay3D`` (3-6x faster than qhull, which Open3D and scipy use) where it is provably
+complete for the α asked, scipy's qhull otherwise (:func:`alpha_tetrahedra`).
+:class:`~canopy_kit.volume.alpha_hull.AlphaHullVolume` is a faster approximation.
 """
 
 from __future__ import annotations
@@ -18,6 +20,15 @@ from canopy_kit.volume.base import VolumeEstimator, check_positive
 
 # Tetrahedra are processed in chunks to bound temporary memory (~100 MB per chunk).
 _CHUNK = 1_000_000
+# vtkDelaunay3D inserts the points into an octahedron whose corners lie ``Offset`` bounding-box
+# diagonals from the centre and then drops every tetrahedron touching a corner. A Delaunay
+# tetrahedron of the points is dropped only if its circumsphere reaches a corner, which a
+# sphere of radius R through points within half a diagonal D of the centre cannot do while
+# D/2 + 2R < Offset D, i.e. R < (Offset - 1/2) D / 2: below that radius none is missing.
+_VTK_OFFSET = 2.5
+# Points closer than this fraction of the diagonal are merged by VTK (its default 1e-3 merges
+# about 1 % of a 5 cm map's crown points); a merge is detected and falls back to qhull.
+_VTK_TOLERANCE = 1e-5
 
 
 @dataclass(frozen=True)
@@ -49,11 +60,62 @@ def circumradii_and_volumes(a: np.ndarray, b: np.ndarray, c: np.ndarray,
 
 
 def delaunay_tetrahedra(xyz: np.ndarray) -> Tetrahedra:
-    """Delaunay tetrahedralisation of (N, 3) points with per-tetrahedron volume and circumradius."""
+    """Delaunay tetrahedralisation of (N, 3) points with per-tetrahedron volume and circumradius
+    (qhull: every tetrahedron, up to the convex hull)."""
     from scipy.spatial import Delaunay
 
     centred = xyz - xyz.mean(axis=0)
-    simplices = Delaunay(centred).simplices
+    return _measured(centred, Delaunay(centred).simplices)
+
+
+def alpha_tetrahedra(xyz: np.ndarray, alpha: float) -> Tetrahedra:
+    """The Delaunay tetrahedra of (N, 3) points, complete for circumradii below ``alpha``.
+
+    Larger ones near the hull may be missing, so the alpha-complex volume for any α up to
+    ``alpha`` is exact. VTK's triangulation when ``alpha`` is within its complete range
+    and every point went in; qhull's (:func:`delaunay_tetrahedra`) otherwise.
+    """
+    centred = np.ascontiguousarray(xyz - xyz.mean(axis=0), dtype=np.float64)
+    diagonal = float(np.linalg.norm(np.ptp(centred, axis=0))) if len(centred) else 0.0
+    if len(centred) >= 5 and alpha < (_VTK_OFFSET - 0.5) * diagonal / 2:
+        simplices = _vtk_simplices(centred)
+        if simplices is not None:
+            return _measured(centred, simplices)
+    return delaunay_tetrahedra(xyz)
+
+
+def _vtk_simplices(centred: np.ndarray) -> np.ndarray | None:
+    """vtkDelaunay3D's tetrahedra, or None when it complained or left a point out."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkPolyData
+    from vtkmodules.vtkFiltersCore import vtkDelaunay3D
+
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(centred, deep=True))
+    poly = vtkPolyData()
+    poly.SetPoints(points)
+    triangulate = vtkDelaunay3D()
+    triangulate.SetInputData(poly)
+    triangulate.SetOffset(_VTK_OFFSET)
+    triangulate.SetTolerance(_VTK_TOLERANCE)
+    complaints: list[str] = []  # an observer also keeps VTK from printing them
+    for event in ("WarningEvent", "ErrorEvent"):
+        triangulate.AddObserver(event, lambda _obj, name: complaints.append(name))
+    triangulate.Update()
+    cells = triangulate.GetOutput().GetCells()
+    if complaints or cells is None or cells.GetNumberOfCells() == 0:
+        return None
+    offsets = vtk_to_numpy(cells.GetOffsetsArray())
+    if not np.all(np.diff(offsets) == 4):
+        return None
+    simplices = vtk_to_numpy(cells.GetConnectivityArray()).reshape(-1, 4).astype(np.int64)
+    if np.count_nonzero(np.bincount(simplices.ravel(), minlength=len(centred))) < len(centred):
+        return None  # merged (near-duplicate) or not inserted (degenerate): qhull decides
+    return simplices
+
+
+def _measured(centred: np.ndarray, simplices: np.ndarray) -> Tetrahedra:
     radius = np.empty(len(simplices))
     volume = np.empty(len(simplices))
     for start in range(0, len(simplices), _CHUNK):
@@ -90,7 +152,7 @@ class AlphaShapeVolume(VolumeEstimator):
         from scipy.spatial import QhullError
 
         try:
-            tetra = delaunay_tetrahedra(xyz)
+            tetra = alpha_tetrahedra(xyz, self.alpha)
         except QhullError as exc:
             return 0.0, {"reason": qhull_failure(exc)}
         kept = tetra.circumradius < self.alpha
