@@ -280,18 +280,33 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
 # -- outputs --------------------------------------------------------------------------------
 def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any], out: Path,
                   progress: Progress) -> dict[str, Path]:
-    """Every output file, each written under a temporary name and renamed."""
+    """Every output file, each written under a temporary name and renamed.
+
+    ``map.laz`` (the longest, compressed by lazrs outside the GIL) is written on a thread
+    while the other files and the report are made.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
     from canopy_kit.io.las import las_ready, write_las
 
+    files: dict[str, Path] = {}
+    cloud = ctx.mapping.map.with_field("segment_id", ctx.segmentation.labels.astype(np.int32))
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="map.laz") as pool:
+        laz = pool.submit(lambda: write_las(out / "map.laz", las_ready(cloud)))
+        files.update(_write_tables_and_report(ctx, trees, metrics, out, progress))
+        laz.result()  # raises here what the writer raised
+    files["map.laz"] = out / "map.laz"
+    return files
+
+
+def _write_tables_and_report(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any], out: Path,
+                             progress: Progress) -> dict[str, Path]:
     files: dict[str, Path] = {}
     files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
     with atomic_path(out / "trees.parquet") as tmp:
         trees.to_parquet(tmp, index=False)
     files["trees.parquet"] = out / "trees.parquet"
     files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
-    cloud = ctx.mapping.map.with_field("segment_id", ctx.segmentation.labels.astype(np.int32))
-    write_las(out / "map.laz", las_ready(cloud))
-    files["map.laz"] = out / "map.laz"
     files["trajectory.csv"] = atomic_write_text(
         out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
     files["config.toml"] = write_config(ctx.config, out / "config.toml")
