@@ -78,10 +78,24 @@ def alpha_tetrahedra(xyz: np.ndarray, alpha: float) -> Tetrahedra:
     centred = np.ascontiguousarray(xyz - xyz.mean(axis=0), dtype=np.float64)
     diagonal = float(np.linalg.norm(np.ptp(centred, axis=0))) if len(centred) else 0.0
     if len(centred) >= 5 and alpha < (_VTK_OFFSET - 0.5) * diagonal / 2:
-        simplices = _vtk_simplices(centred)
+        # Inserted in Z order, each point's search for its tetrahedron starts next to it:
+        # 3-4x faster than map or random order on 100k-200k points.
+        order = z_order(centred)
+        simplices = _vtk_simplices(np.ascontiguousarray(centred[order]))
         if simplices is not None:
-            return _measured(centred, simplices)
+            return _measured(centred, order[simplices])
     return delaunay_tetrahedra(xyz)
+
+
+def z_order(xyz: np.ndarray, bits: int = 10) -> np.ndarray:
+    """Indices that sort (N, 3) points along a Morton (Z-order) curve of ``bits`` per axis."""
+    span = float(np.ptp(xyz, axis=0).max()) if len(xyz) else 0.0
+    q = ((xyz - xyz.min(axis=0)) / max(span, 1e-12) * (2**bits - 1)).astype(np.uint64)
+    code = np.zeros(len(xyz), np.uint64)
+    for b in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
+    return np.argsort(code, kind="stable")
 
 
 def _vtk_simplices(centred: np.ndarray) -> np.ndarray | None:
