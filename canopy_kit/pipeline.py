@@ -283,24 +283,36 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
     """Every output file, each written under a temporary name and renamed.
 
     ``map.laz`` (the longest, compressed by lazrs outside the GIL) is written on a thread
-    while the other files and the report are made.
+    while the tables and the report's page are made; ``metrics.json`` and ``report.html``
+    are written last, once every other file is, so a run that failed leaves no report
+    (an error of the writer thread is raised, or noted on the main thread's error).
     """
     from concurrent.futures import ThreadPoolExecutor
 
     from canopy_kit.io.las import las_ready, write_las
+    from canopy_kit.report.html import write_report
+    from canopy_kit.report.session import session_report_page
 
-    files: dict[str, Path] = {}
     cloud = ctx.mapping.map.with_field("segment_id", ctx.segmentation.labels.astype(np.int32))
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="map.laz") as pool:
         laz = pool.submit(lambda: write_las(out / "map.laz", las_ready(cloud)))
-        files.update(_write_tables_and_report(ctx, trees, metrics, out, progress))
+        try:
+            files = _write_tables(ctx, trees, out)
+            progress("report", 0, 1)
+            page = session_report_page(ctx, trees, metrics)
+        except BaseException as exc:
+            if laz.exception() is not None:  # waits for the writer
+                exc.add_note(f"writing {out / 'map.laz'} failed too: {laz.exception()!r}")
+            raise
         laz.result()  # raises here what the writer raised
     files["map.laz"] = out / "map.laz"
+    files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
+    files["report.html"] = write_report(out / "report.html", page)
+    progress("report", 1, 1)
     return files
 
 
-def _write_tables_and_report(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any], out: Path,
-                             progress: Progress) -> dict[str, Path]:
+def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
     files: dict[str, Path] = {}
     files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
     with atomic_path(out / "trees.parquet") as tmp:
@@ -310,12 +322,6 @@ def _write_tables_and_report(ctx: RunContext, trees: pd.DataFrame, metrics: dict
     files["trajectory.csv"] = atomic_write_text(
         out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
     files["config.toml"] = write_config(ctx.config, out / "config.toml")
-    files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
-    progress("report", 0, 1)
-    from canopy_kit.report.session import session_report
-
-    files["report.html"] = session_report(ctx, trees, metrics, out / "report.html")
-    progress("report", 1, 1)
     return files
 
 

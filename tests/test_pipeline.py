@@ -85,3 +85,26 @@ def test_report_shows_the_run_offline(pistachio_run):
     assert page.images_loaded >= 3 and page.images_broken == 0
     assert page.check_rows >= 6
     assert page.blocked_requests == [] and page.console_errors == []
+
+
+def test_a_failing_map_writer_leaves_no_report_and_names_the_error(tiny_pistachio, tiny_pistachio_run,
+                                                                   tmp_path, monkeypatch) -> None:
+    """map.laz is written on a thread beside the report: when it fails the run raises that
+    error, and neither metrics.json nor report.html (written last) claims a finished run."""
+    import shutil
+
+    import canopy_kit.io.las as las
+    from canopy_kit.errors import InputError
+
+    out = tmp_path / "run"
+    shutil.copytree(tiny_pistachio_run.out_dir / ".cache", out / ".cache")  # straight to the outputs
+
+    def broken(path, cloud):
+        raise InputError(f"{path}: disk full (simulated)")
+
+    monkeypatch.setattr(las, "write_las", broken)
+    with pytest.raises(InputError, match=r"map\.laz: disk full \(simulated\)"):
+        run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root)
+    written = {p.name for p in out.iterdir() if not p.name.startswith(".")}
+    assert "trees.csv" in written and "map.laz" not in written
+    assert not {"metrics.json", "report.html"} & written

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from canopy_kit.report.figures import figure_to_data_uri
-from canopy_kit.report.html import Check, ReportSection, render_report, write_report
+from canopy_kit.report.html import Check, ReportSection, render_report
 
 TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
                  "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
@@ -81,8 +80,8 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
     return checks
 
 
-def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path: str | Path) -> Path:
-    """Render and write ``report.html`` for a run."""
+def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
+    """The report of a run as one self-contained HTML page."""
     from canopy_kit.config import config_toml
     from canopy_kit.pipeline import comparable_aerial_sphere
     from canopy_kit.report import plots
@@ -164,7 +163,6 @@ def session_report(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any], path:
         "CRS": cloud.crs or "none",
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]
-    page = render_report(f"canopy-kit report: {ctx.config.name}", summary, table, sections,
+    return render_report(f"canopy-kit report: {ctx.config.name}", summary, table, sections,
                          build_checks(metrics, trees), config_toml(ctx.config),
                          subtitle="Per-tree canopy volumes from a mobile LiDAR drive")
-    return write_report(path, page)
