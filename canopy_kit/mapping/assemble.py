@@ -206,7 +206,7 @@ def merge_partial_maps(parts: list[tuple[np.ndarray, dict[str, np.ndarray]]],
     take, seen = [], np.zeros(0, np.int64)
     for xyz, _ in parts:
         keys = voxel_hash(xyz, voxel_size)
-        new = ~pd.Series(keys).isin(seen).to_numpy() if len(seen) else np.ones(len(keys), bool)
+        new = ~pd.Series(keys).isin(seen).to_numpy()
         take.append(new)
         seen = np.concatenate([seen, keys[new]])
     xyz = np.concatenate([p[0][t] for p, t in zip(parts, take, strict=True)])
