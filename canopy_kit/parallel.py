@@ -49,22 +49,37 @@ def worker_count(setting: int, most: int) -> int:
 
 
 def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str, total: int,
-               progress: Callable[[str, float, float], None] | None = None) -> list[Any]:
+               progress: Callable[[str, float, float], None] | None = None,
+               first_in_parent: bool = False) -> list[Any]:
     """``[function(job, tick) for job in jobs]``, one forked process per job.
 
     ``tick()`` advances the progress count reported as ``progress(label, count, total)``.
+    With ``first_in_parent`` the first job runs in this process while the others run in
+    theirs: one process fewer, and its result (a partial map of ~100 MB, say) never
+    crosses a pipe.
     """
     import multiprocessing as mp
 
     ctx = mp.get_context("fork")
     counter = ctx.Value("i", 0)
-    pipes = [ctx.Pipe(duplex=False) for _ in jobs]
+    forked = jobs[1:] if first_in_parent else jobs
+    pipes = [ctx.Pipe(duplex=False) for _ in forked]
     procs = [ctx.Process(target=_child, args=(function, job, counter, send), daemon=True)
-             for job, (_, send) in zip(jobs, pipes)]
+             for job, (_, send) in zip(forked, pipes)]
     for proc in procs:
         proc.start()
-    results: list = [None] * len(jobs)
+    results: list = [None] * len(forked)
+    finished = False
     try:
+        own = []
+        if first_in_parent:
+            def tick() -> None:
+                with counter.get_lock():
+                    counter.value += 1
+                if progress:
+                    progress(label, counter.value, total)
+
+            own = [("ok", function(jobs[0], tick))]
         while any(r is None for r in results):
             for i, (recv, _) in enumerate(pipes):
                 if results[i] is None and recv.poll(0.2):
@@ -74,24 +89,29 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
             dead = [i for i, p in enumerate(procs) if results[i] is None and not p.is_alive()
                     and not pipes[i][0].poll()]
             if dead:
-                raise ProcessingError(f"{label}: worker {dead[0]} ended without a result "
+                number = dead[0] + (1 if first_in_parent else 0)
+                raise ProcessingError(f"{label}: worker {number} ended without a result "
                                       f"(exit code {procs[dead[0]].exitcode})")
+        finished = True
     finally:
         for proc in procs:
+            if not finished:  # an error here: the others' results are not wanted
+                proc.terminate()
             proc.join(timeout=5)
             if proc.is_alive():
                 proc.terminate()
     for status, value in results:
         if status == "error":
             raise value
-    return [value for _, value in results]
+    return [value for _, value in own + results]
 
 
 def run_jobs(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str, total: int,
-             progress: Callable[[str, float, float], None] | None = None) -> list[Any]:
+             progress: Callable[[str, float, float], None] | None = None,
+             first_in_parent: bool = False) -> list[Any]:
     """:func:`run_forked`, or in this process when there is a single job."""
     if len(jobs) != 1:
-        return run_forked(function, jobs, label, total, progress)
+        return run_forked(function, jobs, label, total, progress, first_in_parent)
     done = 0
 
     def tick() -> None:

@@ -34,3 +34,28 @@ def test_a_worker_error_or_death_reaches_the_parent() -> None:
         run_forked(_fail_or_die, [0], "map", 1)
     with pytest.raises(ProcessingError, match="map: worker 0 ended without a result"):
         run_forked(_fail_or_die, [1], "map", 1)
+
+
+def _square_or_fail_in_parent(job: tuple[int, int], tick) -> tuple[int, int]:
+    x, parent = job
+    if x < 0 and os.getpid() == parent:
+        raise InputError("stretch 0: scan 5 has no points")
+    tick()
+    return x * x, os.getpid()
+
+
+def test_the_first_job_can_run_in_the_parent_while_the_others_fork() -> None:
+    me = os.getpid()
+    seen = []
+    out = run_forked(_square_or_fail_in_parent, [(3, me), (1, me), (2, me)], "squares", 3,
+                     lambda label, n, total: seen.append((label, n, total)), first_in_parent=True)
+    assert [r[0] for r in out] == [9, 1, 4]
+    assert out[0][1] == me
+    assert me not in {r[1] for r in out[1:]} and out[1][1] != out[2][1]
+    assert seen[-1] == ("squares", 3, 3)
+    # An error in the parent's own job is raised; the forked workers are not left behind.
+    import multiprocessing as mp
+
+    with pytest.raises(InputError, match="stretch 0: scan 5 has no points"):
+        run_forked(_square_or_fail_in_parent, [(-1, me), (2, me)], "squares", 2, first_in_parent=True)
+    assert not [p for p in mp.active_children() if p.is_alive()]

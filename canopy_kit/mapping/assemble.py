@@ -203,12 +203,14 @@ def merge_partial_maps(parts: list[tuple[np.ndarray, dict[str, np.ndarray]]],
     one point per voxel, so only the voxels of earlier parts are looked up (one hashed
     ``isin`` per part: 3x faster than inserting every key into a :class:`VoxelKeySet`).
     """
-    take, seen = [], np.zeros(0, np.int64)
-    for xyz, _ in parts:
+    take: list[np.ndarray | slice] = [slice(None)]  # the first part keeps every point (a view, no copy)
+    seen = voxel_hash(parts[0][0], voxel_size)
+    for k, (xyz, _) in enumerate(parts[1:], start=1):
         keys = voxel_hash(xyz, voxel_size)
         new = ~pd.Series(keys).isin(seen).to_numpy()
         take.append(new)
-        seen = np.concatenate([seen, keys[new]])
+        if k + 1 < len(parts):
+            seen = np.concatenate([seen, keys[new]])
     xyz = np.concatenate([p[0][t] for p, t in zip(parts, take, strict=True)])
     fields = {k: np.concatenate([p[1][k][t] for p, t in zip(parts, take, strict=True)]) for k in parts[0][1]}
     return xyz, fields
@@ -228,7 +230,9 @@ def assemble_map(bag_path: str, topic: str, sweeps: dict[int, bool], trajectory:
     total = len(sweeps)
     log_ns = np.zeros(0, np.int64) if scan_log_ns is None else np.asarray(scan_log_ns, np.int64)
     jobs = _jobs(str(bag_path), topic, sweeps, trajectory, config, n_workers, log_ns)
-    parts = run_jobs(_accumulate, jobs, "mapping: map", total, progress)
+    # The parent takes the first stretch: its partial map, the largest object of the pass,
+    # then never crosses a pipe.
+    parts = run_jobs(_accumulate, jobs, "mapping: map", total, progress, first_in_parent=True)
     if len(parts) == 1:
         xyz, fields, offered = parts[0]
     else:
