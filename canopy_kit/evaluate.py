@@ -288,7 +288,7 @@ def envelope_ceiling(xyz: np.ndarray, sim_dir: str | Path, min_height: float = 0
 
 def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
                  mode: str = "auto") -> SegmentationScore:
-    """Score a ``canopy-kit segment`` output folder against a simulated session's truth.
+    """Score a ``canopy-kit segment`` or ``canopy-kit run`` folder against a simulated session's truth.
 
     ``mode``: ``points`` (needs the truth field ``tree_id`` in the segmented map),
     ``footprints``, or ``auto`` (points when possible).

@@ -313,6 +313,8 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
 
 
 def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
+    from canopy_kit.segment.export import write_segmentation_summary
+
     files: dict[str, Path] = {}
     files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
     with atomic_path(out / "trees.parquet") as tmp:
@@ -322,6 +324,8 @@ def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, 
     files["trajectory.csv"] = atomic_write_text(
         out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
     files["config.toml"] = write_config(ctx.config, out / "config.toml")
+    # What `canopy-kit evaluate` needs besides trees.csv and map.laz.
+    files.update({p.name: p for p in write_segmentation_summary(out, ctx.segmentation).values()})
     return files
 
 

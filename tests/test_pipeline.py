@@ -42,6 +42,21 @@ def test_end_to_end_against_truth(pistachio_run, tiny_pistachio):
 
 
 @pytest.mark.slow
+def test_a_run_folder_can_be_scored_by_evaluate(pistachio_run, tiny_pistachio):
+    """`canopy-kit evaluate RUN --truth SIM` (the README's usage) on a `run` folder gives the
+    scores the run itself recorded; by crown footprints too."""
+    from canopy_kit.evaluate import evaluate_run
+
+    recorded = pistachio_run.metrics["evaluation"]["segmentation"]
+    points = evaluate_run(pistachio_run.out_dir, tiny_pistachio.root).to_dict()
+    for key in ("n_truth", "n_predicted", "n_correct", "n_label_correct", "mode"):
+        assert points[key] == recorded[key], key
+    footprints = evaluate_run(pistachio_run.out_dir, tiny_pistachio.root, mode="footprints").to_dict()
+    assert footprints["n_truth"] == recorded["n_truth"]
+    assert footprints["n_correct"] == recorded["n_truth"]  # every pistachio crown stands apart
+
+
+@pytest.mark.slow
 def test_outputs_are_complete_and_readable(pistachio_run):
     from canopy_kit.io.las import read_las
 

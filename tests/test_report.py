@@ -49,3 +49,16 @@ def test_report_renders_offline_in_chromium(tmp_path):
     # Clicking the volume header sorts ascending numerically.
     values = [float(v) for v in shown.sorted_first_cells]
     assert values == sorted(values) and values[0] == pytest.approx(8.0)
+
+
+def test_table_keeps_enough_decimals_for_geographic_coordinates() -> None:
+    """Two trees 5 m apart differ in the 5th decimal of latitude: 3 decimals would show
+    every tree at the same place."""
+    from canopy_kit.report.html import table_html
+
+    lat0 = 37.281002
+    df = pd.DataFrame({"tree_id": ["r0-L0", "r0-L1"], "lat": [lat0, lat0 + 5 / 111_320],
+                       "lon": [-120.419997, -120.419997], "height_m": [4.12345, 3.5]})
+    page = table_html(df, "trees")
+    assert ">37.281002<" in page and ">37.281047<" in page and ">-120.419997<" in page
+    assert ">4.123<" in page  # metres keep 3 decimals

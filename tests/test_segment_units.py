@@ -208,6 +208,30 @@ def test_rows_and_labels_at_any_bearing_and_curvature(bearing: float, bow: float
     assert not result.warnings
 
 
+@pytest.mark.parametrize("bearing", [0.0, 45.0])
+def test_stray_segments_between_rows_do_not_renumber_the_rows(bearing: float) -> None:
+    """Two stray segments in the alleys (measured on a simulated almond drive: lines of 6, 1,
+    7, 1, 7 trees) are labelled apart; the real rows keep their numbers and labels."""
+    spacing = 6.0
+    orch = synthetic_orchard(rows=3, trees_per_row=7, row_spacing=spacing, bearing_deg=bearing,
+                             trunks=False, density=5)
+    d = bearing_to_vector(bearing)
+    right = np.array([d[1], -d[0]])
+    first = orch.centres[orch.rows == 0].mean(axis=0)
+    # one alone, and two pieces 5 m apart in the other alley (a "row" of two between rows)
+    strays = np.array([first + 0.5 * spacing * right + 2.0 * d, first + 1.5 * spacing * right - 3.0 * d,
+                       first + 1.5 * spacing * right + 4.0 * d])
+    xy = np.vstack([orch.centres, strays])
+    result = assign_rows(xy, RowsConfig(), driving_direction=d)
+    assert result.row[:-3].tolist() == orch.rows.tolist()
+    assert result.labels[:-3] == [f"{'L' if r % 2 == 0 else 'R'}{i}"
+                                  for r, i in zip(orch.rows, orch.index_in_row)]
+    assert result.row[-3:].tolist() == [-1, -1, -1]
+    assert result.labels[-3:] == ["T1", "T0", "T2"]  # numbered along the driving direction
+    assert len(result.lines) == 3 and len(set(result.tree_ids)) == len(xy)
+    assert len(result.warnings) == 1 and "3 of 24 trees stand apart from the 3 rows" in result.warnings[0]
+
+
 def test_rows_default_direction_and_trajectory() -> None:
     assert np.allclose(default_direction(np.array([0.2, -1.0])), np.array([-0.2, 1.0]) / np.hypot(0.2, 1))
     assert default_direction(np.array([-1.0, 0.0])).tolist() == [1.0, 0.0]

@@ -8,7 +8,7 @@ import typer
 
 
 def evaluate(
-    run_dir: Path = typer.Argument(..., help="Folder written by 'canopy-kit segment'"),
+    run_dir: Path = typer.Argument(..., help="Folder written by 'canopy-kit segment' or 'canopy-kit run'"),
     truth: Path = typer.Option(..., "--truth", help="Simulated session folder (with truth/)"),
     mode: str = typer.Option("auto", help="points, footprints or auto (points when the map "
                                           "carries per-point truth)"),

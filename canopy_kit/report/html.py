@@ -33,15 +33,23 @@ class ReportSection:
     text: str = ""
 
 
+# Degrees need more decimals than metres: 6 decimals of latitude are 0.11 m.
+COLUMN_DIGITS = {"lat": 6, "lon": 6, "latitude": 6, "longitude": 6}
+
+
 def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3) -> str:
-    """A sortable HTML table (click a header) with numbers right-aligned."""
+    """A sortable HTML table (click a header) with numbers right-aligned.
+
+    Floats get ``float_digits`` decimals, geographic coordinates those of ``COLUMN_DIGITS``.
+    """
+    digits = [COLUMN_DIGITS.get(str(c).lower(), float_digits) for c in df.columns]
     head = "".join(f'<th data-col="{i}">{html.escape(str(c))}</th>' for i, c in enumerate(df.columns))
     rows = []
     for _, r in df.iterrows():
         cells = []
-        for v in r.tolist():
+        for v, places in zip(r.tolist(), digits, strict=True):
             if isinstance(v, float):
-                text = "" if pd.isna(v) else f"{v:.{float_digits}f}"
+                text = "" if pd.isna(v) else f"{v:.{places}f}"
                 cells.append(f'<td class="num" data-v="{"" if pd.isna(v) else v}">{text}</td>')
             elif isinstance(v, (bool,)) or str(type(v)).endswith("bool_'>"):
                 cells.append(f"<td>{'yes' if v else 'no'}</td>")

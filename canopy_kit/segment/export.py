@@ -5,6 +5,10 @@ input attribute kept), ``trees.csv``, ``trees.geojson`` (tree positions), ``crow
 (crown footprints), ``rows.geojson`` (row lines), ``segmentation.json`` (summary). GeoJSON
 coordinates are in the map's CRS (local coordinates plus the map origin) and name the CRS
 in a ``crs`` member, as GDAL and QGIS read it. Every file is written atomically.
+
+A ``canopy-kit run`` folder is a segmentation folder too: it holds the summary, crowns and
+rows beside its own ``trees.csv`` (segment ids in ``segment``) and ``map.laz`` (the map
+with ``segment_id``), so ``canopy-kit evaluate`` takes either.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from canopy_kit.segment.result import Segmentation
 
 FILES = {"cloud": "segmented.laz", "trees": "trees.csv", "positions": "trees.geojson",
          "crowns": "crowns.geojson", "rows": "rows.geojson", "summary": "segmentation.json"}
+RUN_CLOUD = "map.laz"  # the cloud of a ``canopy-kit run`` folder
 
 
 @dataclass
@@ -112,11 +117,17 @@ def write_segmentation(out_dir: str | Path, seg: Segmentation, cloud: PointCloud
         paths["cloud"] = write_cloud(out / FILES["cloud"], labelled)
     paths["trees"] = write_csv(seg.table(), out / FILES["trees"])
     paths["positions"] = atomic_write_text(out / FILES["positions"], positions_geojson(seg))
-    paths["crowns"] = atomic_write_text(out / FILES["crowns"], crowns_geojson(seg))
-    paths["rows"] = atomic_write_text(out / FILES["rows"], rows_geojson(seg))
-    paths["summary"] = atomic_write_text(out / FILES["summary"],
-                                         json.dumps(seg.summary(), indent=2, default=_plain) + "\n")
-    return paths
+    return paths | write_segmentation_summary(out, seg)
+
+
+def write_segmentation_summary(out_dir: str | Path, seg: Segmentation) -> dict[str, Path]:
+    """``crowns.geojson``, ``rows.geojson`` and ``segmentation.json``: what scoring a run needs
+    besides its tree table and labelled cloud."""
+    out = Path(out_dir)
+    return {"crowns": atomic_write_text(out / FILES["crowns"], crowns_geojson(seg)),
+            "rows": atomic_write_text(out / FILES["rows"], rows_geojson(seg)),
+            "summary": atomic_write_text(out / FILES["summary"],
+                                         json.dumps(seg.summary(), indent=2, default=_plain) + "\n")}
 
 
 def _las_compatible(cloud: PointCloud) -> PointCloud:
@@ -135,7 +146,8 @@ def _las_compatible(cloud: PointCloud) -> PointCloud:
 
 
 def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> SegmentationRun:
-    """Read a run folder written by :func:`write_segmentation` (``canopy-kit segment``)."""
+    """Read a folder written by :func:`write_segmentation` (``canopy-kit segment``) or by
+    ``canopy-kit run``."""
     from canopy_kit.io.clouds import read_cloud
 
     root = Path(run_dir)
@@ -146,6 +158,8 @@ def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> Segmentat
             raise InputError(f"{root}: not a segmentation folder (no {FILES[key]})")
     summary = json.loads((root / FILES["summary"]).read_text())
     trees = pd.read_csv(root / FILES["trees"], dtype={"tree_id": str, "label": str})
+    if "segment_id" not in trees and "segment" in trees:  # a run folder's table
+        trees = trees.rename(columns={"segment": "segment_id"})
     origin = np.asarray(summary.get("origin", [0, 0, 0]), float)
     footprints: dict[int, np.ndarray] = {}
     if (root / FILES["crowns"]).exists():
@@ -153,8 +167,11 @@ def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> Segmentat
             ring = np.asarray(f["geometry"]["coordinates"][0], float)[:-1] - origin[:2]
             footprints[int(f["properties"]["segment_id"])] = ring
     cloud = None
-    if with_cloud and (root / FILES["cloud"]).exists():
-        cloud = read_cloud(root / FILES["cloud"])
+    path = next((root / name for name in (FILES["cloud"], RUN_CLOUD) if (root / name).exists()), None)
+    if with_cloud and path is not None:
+        cloud = read_cloud(path)
+        if "segment_id" not in cloud.fields:
+            raise InputError(f"{path}: no segment_id field; is this a segmentation or run folder?")
         # LAS stores its own origin; bring the points into the run's local frame.
         cloud = PointCloud(cloud.absolute_xyz - origin, cloud.fields, cloud.crs, origin)
     return SegmentationRun(root, trees, footprints, summary, cloud)

@@ -186,6 +186,24 @@ def _drop_empty(groups: np.ndarray) -> np.ndarray:
     return inv.ravel()
 
 
+def _stray_groups(groups: np.ndarray, offset: dict[int, float], min_trees: int) -> set[int]:
+    """Groups of trees that are not rows: fewer than ``min_trees`` trees, or fewer than half
+    the trees of a typical row while bigger rows stand on both sides (pieces of crowns in an
+    alley). None when no group is a row."""
+    sizes = {g: int(np.sum(groups == g)) for g in offset}
+    rows = [g for g in offset if sizes[g] >= min_trees]
+    if not rows:
+        return set()
+    typical = float(np.median([sizes[g] for g in rows]))
+    strays = {g for g in offset if sizes[g] < min_trees}
+    for g in rows:
+        if sizes[g] < typical / 2:
+            bigger = [offset[h] for h in rows if sizes[h] >= typical / 2]
+            if any(o < offset[g] for o in bigger) and any(o > offset[g] for o in bigger):
+                strays.add(g)
+    return strays
+
+
 def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
                 driving_direction: np.ndarray | None = None,
                 direction_source: str | None = None) -> RowAssignment:
@@ -235,10 +253,14 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         groups = new
     coefs = {g: _fit_row(along[groups == g], across[groups == g], config.curved_rows)
              for g in np.unique(groups)}
+    # Where rows exist, a tree beyond reach of every one of them (a stray segment in an
+    # alley, a lone tree) is in no row: numbering it as a row would shift the numbers,
+    # L/R sides and spacing of the real rows.
     # Rows left to right as seen along d: increasing offset to the right.
     mean_offset = {g: np.median(across[groups == g]) for g in coefs}
-    order = sorted(coefs, key=lambda g: mean_offset[g])
-    row_of_group = {g: r for r, g in enumerate(order)}
+    strays = _stray_groups(groups, mean_offset, config.min_trees_per_row)
+    order = sorted(set(coefs) - strays, key=lambda g: mean_offset[g])
+    row_of_group = {g: r for r, g in enumerate(order)} | {g: -1 for g in strays}
     row = np.array([row_of_group[g] for g in groups], dtype=np.int64)
     index = np.zeros(n, dtype=np.int64)
     lines: list[RowLine] = []
@@ -251,6 +273,8 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         resid[m] = across[m] - (c[0] + c[1] * along[m] + c[2] * along[m] ** 2)
         lines.append(RowLine(row_of_group[g], d, tuple(map(float, c)),
                              (float(along[m].min()), float(along[m].max())), len(m)))
+    off_rows = np.flatnonzero(row < 0)
+    index[off_rows[np.argsort(along[off_rows], kind="stable")]] = np.arange(len(off_rows))
     warnings: list[str] = []
     in_rows = np.isin(row, [ln.row for ln in lines if ln.n_trees >= config.min_trees_per_row])
     spread = np.median(np.abs(resid[in_rows])) if in_rows.any() else np.inf
@@ -270,5 +294,12 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         idx = np.empty(n, dtype=np.int64)
         idx[order_xy] = np.arange(n)
         return RowAssignment(np.full(n, -1), idx, [f"T{i}" for i in idx], [], d, source, warnings)
-    labels = [row_label(int(r), int(i)) for r, i in zip(row, index)]
+    if len(off_rows):
+        warnings.append(
+            f"{len(off_rows)} of {n} trees stand apart from the {len(lines)} rows (more than "
+            f"rows.max_distance_to_row = {gap} m from every row line, alone or in groups of fewer "
+            f"than rows.min_trees_per_row = {config.min_trees_per_row} or, between two rows, of "
+            "fewer than half a row's trees): labelled T0, T1, ... along the driving direction, "
+            "in no row")
+    labels = [row_label(int(r), int(i)) if r >= 0 else f"T{i}" for r, i in zip(row, index)]
     return RowAssignment(row, index, labels, lines, d, source, warnings)
