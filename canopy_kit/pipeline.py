@@ -189,8 +189,12 @@ FIRST_COLUMNS = ["tree_id", "label", "row", "x", "y", "lat", "lon", "n_points", 
 
 
 def tree_table(ctx: RunContext) -> pd.DataFrame:
-    """The final per-tree table: LiDAR results, positions in WGS84 and aerial truth if any."""
+    """The final per-tree table: LiDAR results, positions in WGS84, crowns unlike the others
+    (``segment_flags``) and aerial truth if any."""
+    from canopy_kit.segment.qa import crown_outliers
+
     trees = ctx.trees.copy()
+    trees["segment_flags"] = crown_outliers(trees)
     frame = getattr(ctx.mapping, "frame", None)
     if frame is not None and len(trees):
         xyz = np.column_stack([trees["x"], trees["y"], np.zeros(len(trees))])
@@ -260,6 +264,8 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
     m["segmentation"] = ctx.segmentation.summary()
     flagged = trees["volume_flags"].astype(str).str.len() > 0 if "volume_flags" in trees else []
     m["flagged_volumes"] = int(np.sum(flagged))
+    odd = trees["segment_flags"].astype(str).str.len() > 0 if "segment_flags" in trees else []
+    m["flagged_segments"] = int(np.sum(odd))
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
         matched = trees["aerial_sphere_volume_m3"].notna()
         ok = comparable_aerial_sphere(trees).notna()

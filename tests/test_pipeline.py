@@ -39,6 +39,8 @@ def test_end_to_end_against_truth(pistachio_run, tiny_pistachio):
         truth, left_on="truth_tree_id", right_on="tree_id", suffixes=("", "_true"))
     assert np.allclose(m["lat"], m["lat_true"], atol=2e-5)  # ~2 m: GNSS-level
     assert (m["label"] == m["label_true"]).all()
+    # Every tree segmented one-to-one: no crown is flagged as a merge or a fragment.
+    assert (trees["segment_flags"] == "").all() and r.metrics["flagged_segments"] == 0
 
 
 @pytest.mark.slow

@@ -483,3 +483,19 @@ def test_first_minimum_and_voxel_representatives_match_a_plain_loop() -> None:
         dist = np.sum((xyz[members] - centre) ** 2, axis=1)
         best = members[dist == dist.min()]
         assert rep == min(best, key=lambda i: tuple(xyz[i]))  # nearest the centre, then smallest x, y, z
+
+
+def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
+    """Two neighbours merged into one segment measure about twice the typical crown; a
+    piece of a crown a fraction of it. Ordinary variation (±25 %) is not flagged."""
+    from canopy_kit.segment.qa import crown_outliers
+
+    rng = np.random.default_rng(4)
+    diameters = rng.uniform(3.3, 4.4, 12)
+    diameters[[3, 8]] = [9.1, 1.4]  # two trees in one segment; a fragment
+    trees = pd.DataFrame({"tree_id": [f"r0-L{i}" for i in range(12)], "crown_diameter_m": diameters})
+    notes = crown_outliers(trees)
+    assert [i for i, n in enumerate(notes) if n] == [3, 8]
+    assert "two or more trees" in notes[3] and "fragment" in notes[8]
+    assert not crown_outliers(trees.head(3)).str.len().any()  # too few trees to judge
+    assert not crown_outliers(trees.drop(index=[3, 8])).str.len().any()

@@ -14,7 +14,8 @@ TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", 
                  "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
                  "aerial_diameter_m", "aerial_sphere_volume_m3", "error_alpha_vs_aerial_pct",
                  "aerial_flag",
-                 "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags"]
+                 "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags",
+                 "segment_flags"]
 
 
 def _fmt(value: float | None, unit: str = "", digits: int = 2) -> str:
@@ -29,6 +30,14 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
     share = metrics.get("flagged_volumes", 0) / max(len(trees), 1)
     checks.append(Check("volumes flagged as unreliable", share <= 0.10,
                         f"{metrics.get('flagged_volumes', 0)} ({100 * share:.0f} %)", "≤ 10 % of trees"))
+    if "flagged_segments" in metrics:
+        odd = trees.loc[trees["segment_flags"].astype(str).str.len() > 0, "tree_id"].astype(str).tolist() \
+            if "segment_flags" in trees else []
+        share = metrics["flagged_segments"] / max(len(trees), 1)
+        checks.append(Check("crowns unlike the others (below 0.5x or above 1.6x the median "
+                            "diameter: fragments or merged trees?)", share <= 0.10,
+                            f"{metrics['flagged_segments']} ({100 * share:.0f} %)", "≤ 10 % of trees",
+                            ", ".join(odd[:12]) + (" ..." if len(odd) > 12 else "")))
     mapping = metrics.get("evaluation", {}).get("mapping", {})
     if "ate_rmse_m" in mapping:
         checks.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
