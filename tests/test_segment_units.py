@@ -229,7 +229,19 @@ def test_stray_segments_between_rows_do_not_renumber_the_rows(bearing: float) ->
     assert result.row[-3:].tolist() == [-1, -1, -1]
     assert result.labels[-3:] == ["T1", "T0", "T2"]  # numbered along the driving direction
     assert len(result.lines) == 3 and len(set(result.tree_ids)) == len(xy)
-    assert len(result.warnings) == 1 and "3 of 24 trees stand apart from the 3 rows" in result.warnings[0]
+    assert len(result.warnings) == 1 and "3 of 24 trees stand between the 3 rows" in result.warnings[0]
+
+
+def test_the_first_trees_on_both_sides_of_an_alley_are_two_rows() -> None:
+    """A streamed drive emits the first trees on both sides of the alley first: two or three
+    trees across it are two rows along the driving direction, not one row across."""
+    d = bearing_to_vector(30.0)
+    right = np.array([d[1], -d[0]])
+    xy = np.array([-3.5 * right, 3.5 * right + 0.5 * d, -3.5 * right + 5.0 * d])
+    two = assign_rows(xy[:2], RowsConfig(), driving_direction=d)
+    assert two.labels == ["L0", "R0"] and two.row.tolist() == [0, 1]
+    three = assign_rows(xy, RowsConfig(), driving_direction=d)
+    assert three.labels == ["L0", "R0", "L1"] and not three.warnings
 
 
 def test_rows_default_direction_and_trajectory() -> None:

@@ -24,6 +24,9 @@ from canopy_kit.config import RowsConfig
 from canopy_kit.errors import InputError
 
 
+MIN_TREES_FOR_AXIS = 4  # fewer trees: the row axis is the driving direction when it is known
+
+
 @dataclass(frozen=True)
 class RowLine:
     """One fitted row: ``across = c0 + c1 * along + c2 * along**2`` in the row frame."""
@@ -187,21 +190,17 @@ def _drop_empty(groups: np.ndarray) -> np.ndarray:
 
 
 def _stray_groups(groups: np.ndarray, offset: dict[int, float], min_trees: int) -> set[int]:
-    """Groups of trees that are not rows: fewer than ``min_trees`` trees, or fewer than half
-    the trees of a typical row while bigger rows stand on both sides (pieces of crowns in an
-    alley). None when no group is a row."""
+    """Groups of trees between two rows that are no row themselves: fewer than ``min_trees``
+    trees or than half a typical row's (pieces of crowns in an alley). A small group at the
+    edge stays a row (a short last row, or the first trees of a streamed drive)."""
     sizes = {g: int(np.sum(groups == g)) for g in offset}
     rows = [g for g in offset if sizes[g] >= min_trees]
     if not rows:
         return set()
-    typical = float(np.median([sizes[g] for g in rows]))
-    strays = {g for g in offset if sizes[g] < min_trees}
-    for g in rows:
-        if sizes[g] < typical / 2:
-            bigger = [offset[h] for h in rows if sizes[h] >= typical / 2]
-            if any(o < offset[g] for o in bigger) and any(o > offset[g] for o in bigger):
-                strays.add(g)
-    return strays
+    small = max(float(min_trees), float(np.median([sizes[g] for g in rows])) / 2)
+    big = [offset[g] for g in offset if sizes[g] >= small]
+    return {g for g in offset if sizes[g] < small
+            and any(o < offset[g] for o in big) and any(o > offset[g] for o in big)}
 
 
 def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
@@ -220,8 +219,14 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         d = default_direction(np.array([0.0, 1.0]) if driving_direction is None else driving_direction)
         return RowAssignment(np.zeros(0, int), np.zeros(0, int), [], [], d, "none",
                              ["no trees: no rows to label"])
-    axis = row_axis(xy) if n >= 2 else (
-        np.asarray(driving_direction, float) if driving_direction is not None else np.array([0.0, 1.0]))
+    # Links between two or three trees may cross an alley (a streamed drive emits the trees
+    # on both sides of the first alley first): with so few, a known driving direction is the
+    # better guess of the row axis.
+    if n >= 2 and (driving_direction is None or n >= MIN_TREES_FOR_AXIS):
+        axis = row_axis(xy)
+    else:
+        axis = np.asarray(driving_direction, float)[:2] if driving_direction is not None else np.array([0.0, 1.0])
+        axis = axis / np.linalg.norm(axis)
     if driving_direction is not None:
         dd = np.asarray(driving_direction, float)[:2]
         dd = dd / np.linalg.norm(dd)
@@ -253,9 +258,9 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         groups = new
     coefs = {g: _fit_row(along[groups == g], across[groups == g], config.curved_rows)
              for g in np.unique(groups)}
-    # Where rows exist, a tree beyond reach of every one of them (a stray segment in an
-    # alley, a lone tree) is in no row: numbering it as a row would shift the numbers,
-    # L/R sides and spacing of the real rows.
+    # Where rows exist, trees in an alley between two of them (stray segments) are in no
+    # row: numbering them as a row would shift the numbers, L/R sides and spacing of the
+    # real rows.
     # Rows left to right as seen along d: increasing offset to the right.
     mean_offset = {g: np.median(across[groups == g]) for g in coefs}
     strays = _stray_groups(groups, mean_offset, config.min_trees_per_row)
@@ -283,7 +288,8 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
     steps = [np.diff(np.sort(along[row == ln.row])) for ln in lines if ln.n_trees >= 2]
     in_row = np.median(np.concatenate(steps)) if steps else np.inf
     # In an orchard, trees in a row stand closer together than the rows do.
-    if n >= 3 and (in_rows.mean() < 0.8 or spread > min(gap / 3, 0.15 * spacing)
+    judged = n >= (MIN_TREES_FOR_AXIS if driving_direction is not None else 3)
+    if judged and (in_rows.mean() < 0.8 or spread > min(gap / 3, 0.15 * spacing)
                    or (len(lines) > 1 and in_row >= spacing)):
         warnings.append(
             f"no rows detected: {in_rows.sum()} of {n} trees lie in rows of at least "
@@ -296,10 +302,9 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         return RowAssignment(np.full(n, -1), idx, [f"T{i}" for i in idx], [], d, source, warnings)
     if len(off_rows):
         warnings.append(
-            f"{len(off_rows)} of {n} trees stand apart from the {len(lines)} rows (more than "
+            f"{len(off_rows)} of {n} trees stand between the {len(lines)} rows (more than "
             f"rows.max_distance_to_row = {gap} m from every row line, alone or in groups of fewer "
-            f"than rows.min_trees_per_row = {config.min_trees_per_row} or, between two rows, of "
-            "fewer than half a row's trees): labelled T0, T1, ... along the driving direction, "
-            "in no row")
+            f"than rows.min_trees_per_row = {config.min_trees_per_row} or half a row's trees): "
+            "labelled T0, T1, ... along the driving direction, in no row")
     labels = [row_label(int(r), int(i)) if r >= 0 else f"T{i}" for r, i in zip(row, index)]
     return RowAssignment(row, index, labels, lines, d, source, warnings)
