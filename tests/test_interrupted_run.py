@@ -81,8 +81,10 @@ def test_killed_after_mapping_leaves_no_output_and_resumes(tiny_pistachio, refer
     assert not _visible(out), f"outputs of a run killed during segmentation: {_visible(out)}"
     assert "map" in _check_cache_entries(out)
 
-    _finish(_args(tiny_pistachio, out))
+    result = _finish(_args(tiny_pistachio, out))
     metrics = json.loads((out / "metrics.json").read_text())
+    ate = metrics["evaluation"]["mapping"]["ate_rmse_m"]
+    assert f"trajectory vs truth: ATE {ate:.3f} m" in result.stdout  # printed, not only in the report
     assert "map" in metrics["cached_stages"]
     assert "map" not in metrics["stage_timings"]  # not recomputed
     assert {"segment", "volumes"} <= set(metrics["stage_timings"])

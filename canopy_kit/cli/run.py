@@ -42,6 +42,10 @@ def print_results(results) -> None:  # noqa: ANN001
     m = results.metrics
     console.print(f"[green]done[/]: {m['n_trees']} trees ({m['segmenter']})")
     ev = m.get("evaluation", {})
+    mapping = ev.get("mapping", {})
+    if "ate_rmse_m" in mapping:
+        console.print(f"  trajectory vs truth: ATE {mapping['ate_rmse_m']:.3f} m, "
+                      f"drift {mapping.get('drift_percent', float('nan')):.2f} % of the path")
     if "segmentation" in ev:
         s = ev["segmentation"]
         console.print(f"  segmentation vs truth: {s['n_correct']}/{s['n_truth']} "
@@ -55,6 +59,9 @@ def print_results(results) -> None:  # noqa: ANN001
         if isinstance(a, dict) and "mape_pct" in a:
             console.print(f"  {column} vs aerial sphere volume ({a['n']} trees compared): "
                           f"MAPE {a['mape_pct']:.1f} %, bias {a['bias_pct']:+.1f} %")
+    if m.get("flagged_segments"):
+        console.print(f"  [yellow]{m['flagged_segments']} crowns unlike the others[/] (merged trees or "
+                      "fragments?): see segment_flags in trees.csv")
     if results.cache_hits:
         console.print(f"  reused cached stages: {', '.join(results.cache_hits)}")
     for w in results.warnings:
