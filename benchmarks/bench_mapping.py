@@ -1,6 +1,6 @@
 """Mapping throughput, memory and accuracy: canopy-kit's mapping vs KISS-ICP's own pipeline.
 
-    .venv/bin/python benchmarks/bench_mapping.py [--session DIR] [--keep]
+    .venv/bin/python benchmarks/bench_mapping.py [--session DIR] [--keep] [--repeat N [--against DIR]]
 
 Without ``--session`` a 4-row pistachio session with the default 32-ring sensor is
 simulated into a temporary folder (about 1 GB; deleted afterwards unless ``--keep``).
@@ -8,7 +8,8 @@ Each pipeline runs in its own process, so peak memory (max RSS) is its own:
 
 - ``canopy-kit build_map``: the default MappingConfig (IMU + GNSS fusion, every third
   sweep registered or sooner in tight turns, ICP convergence 1e-3, the odometry in time
-  chunks on one process per core, the map pass on one process per core, each reading its
+  chunks on one process per core, the map pass in one stretch per core (the first in the
+  parent process, the others in forked workers), each reading its
   own stretch of the bag, KISS-ICP on 1 thread so runs are bit-reproducible);
 - the most accurate and slowest: every sweep registered, KISS-ICP's own convergence
   criterion, everything in one process (``workers = 1, odometry_every = 1,
@@ -40,7 +41,7 @@ from pathlib import Path
 from canopy_kit.parallel import cpu_seconds
 
 DEFAULT = ("canopy-kit build_map (defaults: IMU + GNSS, every 3rd sweep registered, odometry in "
-           "2 time chunks, 2 map workers)")
+           "2 time chunks, map pass in 2 stretches: the parent and 1 worker)")
 
 
 def _peak_mb() -> tuple[float, float]:
@@ -104,10 +105,11 @@ def _cm(metres: float | None) -> str:
     return "-" if metres is None else f"{100 * metres:.1f}"
 
 
-def _child(mode: str, session: Path) -> dict:
+def _child(mode: str, session: Path, code: Path | None = None) -> dict:
     load = os.getloadavg()[0]
+    env = {**os.environ, "PYTHONPATH": str(code)} if code else None
     out = subprocess.run([sys.executable, __file__, "--child", mode, "--session", str(session)],
-                         capture_output=True, text=True, check=False)
+                         capture_output=True, text=True, check=False, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"{mode} failed:\n{out.stderr[-3000:]}")
     result = json.loads(out.stdout.strip().splitlines()[-1])
@@ -126,6 +128,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--session", type=Path, help="Simulated session folder (default: simulate one)")
     parser.add_argument("--keep", action="store_true", help="Keep the simulated session")
+    parser.add_argument("--repeat", type=int, default=0,
+                        help="Then run the default pipeline this many more times and print the median "
+                             "(the machine's speed varies by up to 40 %% between identical runs)")
+    parser.add_argument("--against", type=Path,
+                        help="With --repeat: a checkout of other canopy-kit code (e.g. `git worktree add "
+                             "/tmp/old REV`), run alternately with this code under the same conditions")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -162,6 +170,28 @@ def main() -> None:
               f"{r['drift_pct']:.2f} | {_cm(r['map_median_m'])} / {_cm(r['map_p90_m'])} |")
     stages = runs[DEFAULT]["stages"]
     print("\nstages (default run): " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
+    if args.repeat:
+        _repeat(session, args.repeat, args.against, duration)
+
+
+def _repeat(session: Path, n: int, against: Path | None, duration: float) -> None:
+    """The default pipeline ``n`` times (alternating with the code at ``against``): medians."""
+    import statistics
+
+    codes = {"this code": None} | ({f"code at {against}": against} if against else {})
+    walls: dict[str, list[float]] = {name: [] for name in codes}
+    print(f"\nthe default pipeline {n} times" + (", alternating with the code at " + str(against)
+                                                  if against else "") + ": wall s (load average)")
+    for i in range(n):
+        line = []
+        for name, code in codes.items():
+            r = _child("{}", session, code)
+            walls[name].append(r["wall_s"])
+            line.append(f"{name} {r['wall_s']:.1f} ({r['load']:.1f})")
+        print(f"  run {i + 1}: " + ", ".join(line), flush=True)
+    for name, w in walls.items():
+        print(f"{name}: median {statistics.median(w):.1f} s = {duration / statistics.median(w):.1f}x wall "
+              f"(best {duration / min(w):.1f}x, worst {duration / max(w):.1f}x, {n} runs)")
 
 
 if __name__ == "__main__":
