@@ -30,7 +30,8 @@ def run_streaming(config: PipelineConfig, bag: Path, out: Path, extra_inputs: Pa
                       f"h {v['height_m']:.2f} m  d {v['crown_diameter_m']:.2f} m{volume}")
 
     if method:
-        console.print(f"streaming {bag}: one line per tree as the robot passes it (V: {method})")
+        console.print(f"streaming {bag}: one line per tree as the robot passes it (V: {method}); "
+                      "labels are provisional (the rows seen so far), trees.csv has the final ones")
     with progress_bar(transient=True) as progress:
         results = run_stream(config, bag, out, progress=progress, on_tree=show)
     m = results.metrics

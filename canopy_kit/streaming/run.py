@@ -1,6 +1,8 @@
 """``run_stream``: one session in streaming mode, trees written as they are emitted.
 
-``trees.live.csv`` grows by one line per emitted tree (for whoever watches the drive);
+``trees.live.csv`` grows by one line per emitted tree (for whoever watches the drive); its
+row and label are provisional: the rows seen so far, numbered at the moment the tree
+left (a tree emitted later may stand before it in its row);
 at the end the same files as the batch table are written atomically: ``trees.csv``,
 ``trees.parquet``, ``trees.geojson``, ``config.toml`` and ``metrics.json``. No map and no
 report: streaming keeps only a window of the map.
@@ -22,7 +24,7 @@ from canopy_kit.io.atomic import atomic_path, atomic_write_json, atomic_write_te
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
 
 Progress = Callable[[str, float, float], None]
-LIVE_COLUMNS = ["index", "label", "row", "x", "y", "lat", "lon", "n_points", "height_m",
+LIVE_COLUMNS = ["index", "provisional_label", "provisional_row", "x", "y", "lat", "lon", "n_points", "height_m",
                 "crown_diameter_m", "emitted_at_s", "emission_delay_s"]
 
 
