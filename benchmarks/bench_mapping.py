@@ -107,7 +107,9 @@ def _cm(metres: float | None) -> str:
 
 def _child(mode: str, session: Path, code: Path | None = None) -> dict:
     load = os.getloadavg()[0]
-    env = {**os.environ, "PYTHONPATH": str(code)} if code else None
+    env = None
+    if code:  # that checkout's canopy_kit first on the path (before the editable install)
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(code), os.environ.get("PYTHONPATH")]))}
     out = subprocess.run([sys.executable, __file__, "--child", mode, "--session", str(session)],
                          capture_output=True, text=True, check=False, env=env)
     if out.returncode != 0:
@@ -136,6 +138,8 @@ def main() -> None:
                              "/tmp/old REV`), run alternately with this code under the same conditions")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.against and not args.repeat:
+        parser.error("--against needs --repeat N (the number of alternating runs)")
     if args.child:
         result = (run_kiss_icp(args.session) if args.child == "kiss"
                   else run_canopy_kit(args.session, json.loads(args.child)))
@@ -154,10 +158,16 @@ def main() -> None:
                 '{"workers": 1, "odometry_every": 1, "kiss_convergence": 0.0001}', session),
             "KISS-ICP (Python API, unfiltered, all cores)": _child("kiss", session),
         }
+        duration = next(iter(runs.values()))["duration_s"]
+        _print_table(session, runs, duration)
+        if args.repeat:
+            _repeat(session, args.repeat, args.against, duration)
     finally:
         if tmp is not None and not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)
-    duration = next(iter(runs.values()))["duration_s"]
+
+
+def _print_table(session: Path, runs: dict[str, dict], duration: float) -> None:
     print(f"session: {session} ({duration:.0f} s of driving, 32 rings x 1024 columns, 10 Hz)")
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at the end\n")
     print("| pipeline | real-time factor, wall | real-time factor, CPU | wall s | CPU s | load avg "
@@ -169,9 +179,7 @@ def main() -> None:
               f"{r['wall_s']:.0f} | {r['cpu_s']:.0f} | {r['load']:.1f} | {peak} | {r['ate_m']:.3f} | "
               f"{r['drift_pct']:.2f} | {_cm(r['map_median_m'])} / {_cm(r['map_p90_m'])} |")
     stages = runs[DEFAULT]["stages"]
-    print("\nstages (default run): " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
-    if args.repeat:
-        _repeat(session, args.repeat, args.against, duration)
+    print("\nstages (default run): " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()), flush=True)
 
 
 def _repeat(session: Path, n: int, against: Path | None, duration: float) -> None:
@@ -184,7 +192,8 @@ def _repeat(session: Path, n: int, against: Path | None, duration: float) -> Non
                                                   if against else "") + ": wall s (load average)")
     for i in range(n):
         line = []
-        for name, code in codes.items():
+        order = list(codes.items()) if i % 2 == 0 else list(codes.items())[::-1]  # neither always first
+        for name, code in order:
             r = _child("{}", session, code)
             walls[name].append(r["wall_s"])
             line.append(f"{name} {r['wall_s']:.1f} ({r['load']:.1f})")

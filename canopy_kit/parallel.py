@@ -78,6 +78,10 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
                     counter.value += 1
                 if progress:
                     progress(label, counter.value, total)
+                killed = [i for i, p in enumerate(procs) if p.exitcode not in (None, 0)]
+                if killed:  # a worker killed (out of memory, a signal): no use finishing ours
+                    raise ProcessingError(f"{label}: worker {killed[0] + 1} ended without a result "
+                                          f"(exit code {procs[killed[0]].exitcode})")
 
             own = [("ok", function(jobs[0], tick))]
         while any(r is None for r in results):

@@ -59,3 +59,23 @@ def test_the_first_job_can_run_in_the_parent_while_the_others_fork() -> None:
     with pytest.raises(InputError, match="stretch 0: scan 5 has no points"):
         run_forked(_square_or_fail_in_parent, [(-1, me), (2, me)], "squares", 2, first_in_parent=True)
     assert not [p for p in mp.active_children() if p.is_alive()]
+
+
+def _die_or_wait(job: int, tick) -> int:
+    import time
+
+    if job == 1:
+        os._exit(9)  # a worker killed while the parent works
+    for _ in range(200):
+        time.sleep(0.05)
+        tick()
+    return job
+
+
+def test_a_worker_killed_while_the_parent_works_stops_the_parents_job() -> None:
+    import time
+
+    start = time.monotonic()
+    with pytest.raises(ProcessingError, match="squares: worker 1 ended without a result"):
+        run_forked(_die_or_wait, [0, 1], "squares", 201, first_in_parent=True)
+    assert time.monotonic() - start < 8  # not the parent's whole 10 s job

@@ -229,7 +229,28 @@ def test_stray_segments_between_rows_do_not_renumber_the_rows(bearing: float) ->
     assert result.row[-3:].tolist() == [-1, -1, -1]
     assert result.labels[-3:] == ["T1", "T0", "T2"]  # numbered along the driving direction
     assert len(result.lines) == 3 and len(set(result.tree_ids)) == len(xy)
-    assert len(result.warnings) == 1 and "3 of 24 trees stand between the 3 rows" in result.warnings[0]
+    assert len(result.warnings) == 1 and "3 of 24 trees stand in the alleys between the 3 rows" in result.warnings[0]
+
+
+def test_a_short_row_where_a_row_fits_stays_a_row() -> None:
+    """Six rows 6 m apart, the fourth cut short (12 of 30 trees): still row 3, and the rows
+    after it keep their numbers; the same 12 trees in an alley half-way between two rows
+    are strays."""
+    rows = []
+    for r in range(6):
+        n = 12 if r == 3 else 30
+        rows.append(np.column_stack([np.full(n, 6.0 * r), 5.0 * np.arange(n)]))
+    xy = np.vstack(rows)
+    truth = np.repeat(np.arange(6), [30, 30, 30, 12, 30, 30])
+    d = np.array([0.0, 1.0])
+    result = assign_rows(xy, RowsConfig(), driving_direction=d)
+    assert result.row.tolist() == truth.tolist() and not result.warnings
+    alley = xy.copy()
+    alley[truth == 3, 0] = 3.0  # into the alley between rows 0 and 1, the rows after it closing up
+    alley[truth > 3, 0] -= 6.0
+    moved = assign_rows(alley, RowsConfig(), driving_direction=d)
+    assert (moved.row[truth == 3] == -1).all()
+    assert moved.row[truth != 3].tolist() == np.where(truth > 3, truth - 1, truth)[truth != 3].tolist()
 
 
 def test_the_first_trees_on_both_sides_of_an_alley_are_two_rows() -> None:
@@ -511,3 +532,10 @@ def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
     assert "two or more trees" in notes[3] and "fragment" in notes[8]
     assert not crown_outliers(trees.head(3)).str.len().any()  # too few trees to judge
     assert not crown_outliers(trees.drop(index=[3, 8])).str.len().any()
+    # Rows of six or more trees are their own reference: a younger row is not flagged, a
+    # merge in it is; trees in no row and short rows are compared with all trees.
+    young = pd.DataFrame({"row": [0] * 8 + [1] * 8 + [-1, 2, 2],
+                          "crown_diameter_m": [4.0] * 8 + [1.8] * 7 + [3.7, 4.2, 3.9, 9.0]})
+    flagged = [i for i, n in enumerate(crown_outliers(young)) if n]
+    assert flagged == [15, 18] and "its row" in crown_outliers(young)[15]
+    assert "all trees" in crown_outliers(young)[18]

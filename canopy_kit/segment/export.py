@@ -158,7 +158,8 @@ def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> Segmentat
             raise InputError(f"{root}: not a segmentation folder (no {FILES[key]})")
     summary = json.loads((root / FILES["summary"]).read_text())
     trees = pd.read_csv(root / FILES["trees"], dtype={"tree_id": str, "label": str})
-    if "segment_id" not in trees and "segment" in trees:  # a run folder's table
+    run_folder = "segment_id" not in trees and "segment" in trees  # `canopy-kit run`'s table
+    if run_folder:
         trees = trees.rename(columns={"segment": "segment_id"})
     origin = np.asarray(summary.get("origin", [0, 0, 0]), float)
     footprints: dict[int, np.ndarray] = {}
@@ -167,7 +168,9 @@ def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> Segmentat
             ring = np.asarray(f["geometry"]["coordinates"][0], float)[:-1] - origin[:2]
             footprints[int(f["properties"]["segment_id"])] = ring
     cloud = None
-    path = next((root / name for name in (FILES["cloud"], RUN_CLOUD) if (root / name).exists()), None)
+    # A run's map.laz holds its segment ids; beside a `segment --no-cloud` table it is not ours.
+    path = root / (RUN_CLOUD if run_folder else FILES["cloud"])
+    path = path if path.exists() else None
     if with_cloud and path is not None:
         cloud = read_cloud(path)
         if "segment_id" not in cloud.fields:

@@ -70,7 +70,8 @@ class RowAssignment:
 
     @property
     def tree_ids(self) -> list[str]:
-        """Stable identifiers: ``r<row>-<label>`` (``t<k>`` when no rows were found)."""
+        """Stable identifiers: ``r<row>-<label>`` (``t<k>`` for trees in no row: when no rows
+        were found, or a stray in an alley)."""
         return [f"r{r}-{lab}" if r >= 0 else lab.lower() for r, lab in zip(self.row, self.labels)]
 
 
@@ -190,17 +191,31 @@ def _drop_empty(groups: np.ndarray) -> np.ndarray:
 
 
 def _stray_groups(groups: np.ndarray, offset: dict[int, float], min_trees: int) -> set[int]:
-    """Groups of trees between two rows that are no row themselves: fewer than ``min_trees``
-    trees or than half a typical row's (pieces of crowns in an alley). A small group at the
-    edge stays a row (a short last row, or the first trees of a streamed drive)."""
+    """Small groups of trees in an alley, no row themselves (pieces of crowns).
+
+    A group is small with fewer than ``min_trees`` trees or than half a typical row's. It is
+    a stray when the rows on both sides of it stand as close together as neighbouring rows
+    do elsewhere (less than 1.5 times their median spacing): no row fits between them. A
+    small group where a row fits (a row cut short, replants) or at the edge (a short last
+    row, the first trees of a streamed drive) stays a row. Needs three big rows to know
+    their spacing."""
     sizes = {g: int(np.sum(groups == g)) for g in offset}
     rows = [g for g in offset if sizes[g] >= min_trees]
     if not rows:
         return set()
     small = max(float(min_trees), float(np.median([sizes[g] for g in rows])) / 2)
-    big = [offset[g] for g in offset if sizes[g] >= small]
-    return {g for g in offset if sizes[g] < small
-            and any(o < offset[g] for o in big) and any(o > offset[g] for o in big)}
+    big = np.sort([offset[g] for g in offset if sizes[g] >= small])
+    if len(big) < 3:
+        return set()
+    spacing = float(np.median(np.diff(big)))
+    strays = set()
+    for g in offset:
+        if sizes[g] >= small or not big[0] < offset[g] < big[-1]:
+            continue
+        right = int(np.searchsorted(big, offset[g]))
+        if big[right] - big[right - 1] < 1.5 * spacing:
+            strays.add(g)
+    return strays
 
 
 def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
@@ -302,9 +317,9 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         return RowAssignment(np.full(n, -1), idx, [f"T{i}" for i in idx], [], d, source, warnings)
     if len(off_rows):
         warnings.append(
-            f"{len(off_rows)} of {n} trees stand between the {len(lines)} rows (more than "
-            f"rows.max_distance_to_row = {gap} m from every row line, alone or in groups of fewer "
-            f"than rows.min_trees_per_row = {config.min_trees_per_row} or half a row's trees): "
-            "labelled T0, T1, ... along the driving direction, in no row")
+            f"{len(off_rows)} of {n} trees stand in the alleys between the {len(lines)} rows "
+            f"(groups of fewer than rows.min_trees_per_row = {config.min_trees_per_row} or half a "
+            "row's trees, where the rows on both sides stand no further apart than rows do "
+            "elsewhere): labelled T0, T1, ... along the driving direction, in no row")
     labels = [row_label(int(r), int(i)) if r >= 0 else f"T{i}" for r, i in zip(row, index)]
     return RowAssignment(row, index, labels, lines, d, source, warnings)
