@@ -247,6 +247,7 @@ def _write_tables(ctx: Any, cache: Any, out: Path) -> Any:
     from canopy_kit import pipeline
     from canopy_kit.config import write_config
     from canopy_kit.io.atomic import atomic_path, atomic_write_text
+    from canopy_kit.segment.export import write_segmentation_summary
 
     metrics = pipeline.run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
@@ -255,6 +256,8 @@ def _write_tables(ctx: Any, cache: Any, out: Path) -> Any:
         ctx.table.to_parquet(tmp, index=False)
     files["trees.parquet"] = out / "trees.parquet"
     files["config.toml"] = write_config(ctx.config, out / "config.toml")
+    # segmentation.json and crowns: `canopy-kit evaluate` scores the session by footprints
+    files.update({p.name: p for p in write_segmentation_summary(out, ctx.segmentation).values()})
     files["metrics.json"] = atomic_write_text(
         out / "metrics.json", json.dumps(metrics, indent=2, default=str) + "\n")
     return pipeline.Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])))

@@ -208,3 +208,17 @@ def test_unreachable_scheduler_is_bad_input(tmp_path):
 
     with pytest.raises(InputError, match=r"--scheduler tcp://127\.0\.0\.1:9: cannot reach"):
         run_batch(_broken_manifest(tmp_path), tmp_path / "out", scheduler="tcp://127.0.0.1:9")
+
+
+@pytest.mark.slow
+def test_a_batch_session_without_report_can_be_scored_by_footprints(orchard_batch):
+    """`canopy-kit evaluate SESSION_DIR --truth SIM --mode footprints` on a batch session
+    folder (no map, no report): the crowns written beside its table are scored."""
+    from canopy_kit.evaluate import evaluate_run
+
+    report, sims, _, _ = orchard_batch
+    outcome = report.outcomes["spring"]
+    score = evaluate_run(outcome.out_dir, sims["spring"].root, mode="footprints")
+    assert score.n_truth == ORCHARD["rows"] * ORCHARD["trees_per_row"]
+    assert score.n_predicted == len(outcome.trees)
+    assert score.success_rate >= 0.95  # pistachio crowns stand apart
