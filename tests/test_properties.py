@@ -134,9 +134,13 @@ def _volumes():
 crown_coordinate = st.floats(-4.0, 4.0, allow_nan=False, allow_infinity=False)
 
 
+_A = 1.25788199e-07  # a plane 1e-7 m across at UTM coordinates, found by hypothesis in CI
+
+
 @FEW
 @given(xyz=st.integers(1, 40).flatmap(lambda n: hnp.arrays(np.float64, (n, 3), elements=crown_coordinate)),
        far=st.booleans())
+@example(xyz=np.array([[0.0, _A, _A], [_A, 0.0, _A]] + [[_A, _A, _A]] * 8), far=True)
 def test_every_volume_estimator_gives_a_finite_non_negative_volume(xyz, far) -> None:
     """Any finite points of a crown-sized extent (duplicates, planes, lines included), near
     the origin or at UTM-like coordinates: a finite volume >= 0, or invalid with a reason."""

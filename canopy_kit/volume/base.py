@@ -75,11 +75,14 @@ def degeneracy(xyz: np.ndarray) -> str | None:
     if n < MIN_POINTS:
         return f"too few points: {n} (a volume needs at least {MIN_POINTS})"
     s = np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)
-    if s[0] <= 0.0:
+    # Rounding of the coordinates themselves (1e-9 m at UTM northings) is no extent: points
+    # 1e-7 m apart in a plane at UTM coordinates gave s[2] = 2e-14, not 0.
+    noise = 4.0 * np.finfo(np.float64).eps * float(np.abs(xyz).max()) * np.sqrt(n)
+    if s[0] <= noise:
         return f"all {n} points are identical"
-    if s[1] <= FLATNESS_TOL * s[0]:
+    if s[1] <= max(FLATNESS_TOL * s[0], noise):
         return f"all {n} points are collinear"
-    if s[2] <= FLATNESS_TOL * s[0]:
+    if s[2] <= max(FLATNESS_TOL * s[0], noise):
         return f"all {n} points are coplanar"
     return None
 
