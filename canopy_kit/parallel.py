@@ -62,7 +62,8 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
 
     ctx = mp.get_context("fork")
     counter = ctx.Value("i", 0)
-    forked = jobs[1:] if first_in_parent else jobs
+    skip = 1 if first_in_parent else 0  # jobs[skip + i] runs in procs[i]
+    forked = jobs[skip:]
     pipes = [ctx.Pipe(duplex=False) for _ in forked]
     procs = [ctx.Process(target=_child, args=(function, job, counter, send), daemon=True)
              for job, (_, send) in zip(forked, pipes)]
@@ -80,7 +81,7 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
                     progress(label, counter.value, total)
                 killed = [i for i, p in enumerate(procs) if p.exitcode not in (None, 0)]
                 if killed:  # a worker killed (out of memory, a signal): no use finishing ours
-                    raise ProcessingError(f"{label}: worker {killed[0] + 1} ended without a result "
+                    raise ProcessingError(f"{label}: worker {killed[0] + skip} ended without a result "
                                           f"(exit code {procs[killed[0]].exitcode})")
 
             own = [("ok", function(jobs[0], tick))]
@@ -93,8 +94,7 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
             dead = [i for i, p in enumerate(procs) if results[i] is None and not p.is_alive()
                     and not pipes[i][0].poll()]
             if dead:
-                number = dead[0] + (1 if first_in_parent else 0)
-                raise ProcessingError(f"{label}: worker {number} ended without a result "
+                raise ProcessingError(f"{label}: worker {dead[0] + skip} ended without a result "
                                       f"(exit code {procs[dead[0]].exitcode})")
         finished = True
     finally:

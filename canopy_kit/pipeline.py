@@ -252,6 +252,13 @@ def comparable_aerial_sphere(trees: pd.DataFrame) -> pd.Series:
     return trees["aerial_sphere_volume_m3"].where(flag == "")
 
 
+def flagged(trees: pd.DataFrame, column: str) -> pd.Series:
+    """Trees with a note in ``column`` (``volume_flags``, ``segment_flags``); none without it."""
+    if column not in trees:
+        return pd.Series(False, index=trees.index)
+    return trees[column].astype(str).str.len() > 0
+
+
 def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
     """Summary numbers of the run (mapping diagnostics, counts, agreement, evaluation)."""
     from canopy_kit import stats
@@ -262,10 +269,8 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
     warnings += list(getattr(ctx.segmentation, "warnings", []))
     m["mapping"] = dict(getattr(ctx.mapping, "diagnostics", {}))
     m["segmentation"] = ctx.segmentation.summary()
-    flagged = trees["volume_flags"].astype(str).str.len() > 0 if "volume_flags" in trees else []
-    m["flagged_volumes"] = int(np.sum(flagged))
-    odd = trees["segment_flags"].astype(str).str.len() > 0 if "segment_flags" in trees else []
-    m["flagged_segments"] = int(np.sum(odd))
+    m["flagged_volumes"] = int(flagged(trees, "volume_flags").sum())
+    m["flagged_segments"] = int(flagged(trees, "segment_flags").sum())
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
         matched = trees["aerial_sphere_volume_m3"].notna()
         ok = comparable_aerial_sphere(trees).notna()

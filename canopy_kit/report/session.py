@@ -31,8 +31,9 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
     checks.append(Check("volumes flagged as unreliable", share <= 0.10,
                         f"{metrics.get('flagged_volumes', 0)} ({100 * share:.0f} %)", "≤ 10 % of trees"))
     if "flagged_segments" in metrics:
-        odd = trees.loc[trees["segment_flags"].astype(str).str.len() > 0, "tree_id"].astype(str).tolist() \
-            if "segment_flags" in trees else []
+        from canopy_kit.pipeline import flagged
+
+        odd = trees.loc[flagged(trees, "segment_flags"), "tree_id"].astype(str).tolist()
         share = metrics["flagged_segments"] / max(len(trees), 1)
         checks.append(Check("crowns unlike the others (below 0.5x or above 1.6x the median "
                             "diameter: fragments or merged trees?)", share <= 0.10,

@@ -23,7 +23,6 @@ import numpy as np
 from canopy_kit.config import RowsConfig
 from canopy_kit.errors import InputError
 
-
 MIN_TREES_FOR_AXIS = 4  # fewer trees: the row axis is the driving direction when it is known
 
 
@@ -209,10 +208,10 @@ def _stray_groups(groups: np.ndarray, offset: dict[int, float], min_trees: int) 
         return set()
     spacing = float(np.median(np.diff(big)))
     strays = set()
-    for g in offset:
-        if sizes[g] >= small or not big[0] < offset[g] < big[-1]:
+    for g, where in offset.items():
+        if sizes[g] >= small or not big[0] < where < big[-1]:
             continue
-        right = int(np.searchsorted(big, offset[g]))
+        right = int(np.searchsorted(big, where))
         if big[right] - big[right - 1] < 1.5 * spacing:
             strays.add(g)
     return strays
@@ -237,7 +236,8 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
     # Links between two or three trees may cross an alley (a streamed drive emits the trees
     # on both sides of the first alley first): with so few, a known driving direction is the
     # better guess of the row axis.
-    if n >= 2 and (driving_direction is None or n >= MIN_TREES_FOR_AXIS):
+    trust_direction = driving_direction is not None and n < MIN_TREES_FOR_AXIS
+    if n >= 2 and not trust_direction:
         axis = row_axis(xy)
     else:
         axis = np.asarray(driving_direction, float)[:2] if driving_direction is not None else np.array([0.0, 1.0])
@@ -273,12 +273,12 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         groups = new
     coefs = {g: _fit_row(along[groups == g], across[groups == g], config.curved_rows)
              for g in np.unique(groups)}
+    mean_offset = {g: np.median(across[groups == g]) for g in coefs}
     # Where rows exist, trees in an alley between two of them (stray segments) are in no
     # row: numbering them as a row would shift the numbers, L/R sides and spacing of the
     # real rows.
-    # Rows left to right as seen along d: increasing offset to the right.
-    mean_offset = {g: np.median(across[groups == g]) for g in coefs}
     strays = _stray_groups(groups, mean_offset, config.min_trees_per_row)
+    # Rows left to right as seen along d: increasing offset to the right.
     order = sorted(set(coefs) - strays, key=lambda g: mean_offset[g])
     row_of_group = {g: r for r, g in enumerate(order)} | {g: -1 for g in strays}
     row = np.array([row_of_group[g] for g in groups], dtype=np.int64)
@@ -303,8 +303,7 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
     steps = [np.diff(np.sort(along[row == ln.row])) for ln in lines if ln.n_trees >= 2]
     in_row = np.median(np.concatenate(steps)) if steps else np.inf
     # In an orchard, trees in a row stand closer together than the rows do.
-    judged = n >= (MIN_TREES_FOR_AXIS if driving_direction is not None else 3)
-    if judged and (in_rows.mean() < 0.8 or spread > min(gap / 3, 0.15 * spacing)
+    if n >= 3 and not trust_direction and (in_rows.mean() < 0.8 or spread > min(gap / 3, 0.15 * spacing)
                    or (len(lines) > 1 and in_row >= spacing)):
         warnings.append(
             f"no rows detected: {in_rows.sum()} of {n} trees lie in rows of at least "
