@@ -15,7 +15,7 @@ from canopy_kit.errors import InputError
 from canopy_kit.io.bag import GnssSeries, ImuSeries
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
-from canopy_kit.mapping.assemble import merge_partial_maps, stretches
+from canopy_kit.mapping.assemble import merge_partial_maps, stretches, transform_binned
 from canopy_kit.mapping.deskew import deskew_points, reference_time, rotate_small
 from canopy_kit.mapping.evaluate import segment_drift, trajectory_errors
 from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
@@ -153,6 +153,34 @@ def test_voxel_key_set_reports_new_keys_once() -> None:
     new = s.insert(b)
     assert np.array_equal(b[new], np.setdiff1d(b, a))
     assert s.size == len(np.union1d(a, b))
+
+
+def test_voxel_key_set_counts_a_key_repeated_in_one_insert_at_its_first_occurrence() -> None:
+    s = VoxelKeySet(capacity_bits=2)  # grows on the way
+    s.insert(np.array([5, 9], np.int64))
+    new = s.insert(np.array([7, 5, 7, 11, 9, 11, 7], np.int64))
+    assert new.tolist() == [True, False, False, True, False, False, False]
+    assert s.size == 4
+
+
+def test_voxel_hash_packs_floor_of_coordinates_over_voxel_size() -> None:
+    xyz = np.array([[0.0, 0.0, 0.0], [0.049, -0.001, 0.05], [-52_000.01, 52_000.01, 1.01]])
+    k = np.array([[0, 0, 0], [0, -1, 1], [-1_040_001, 1_040_000, 20]]) + (1 << 20)  # by hand
+    assert voxel_hash(xyz, 0.05).tolist() == ((k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]).tolist()
+    for bad in ([53_000.0, 0.0, 0.0], [np.nan, 0.0, 0.0]):
+        with pytest.raises(InputError, match="voxel grid range"):
+            voxel_hash(np.array([bad]), 0.05)
+
+
+def test_transform_binned_applies_each_points_own_pose() -> None:
+    rot = Rotation.random(8, random_state=3)
+    t = RNG.normal(0, 5, (8, 3))
+    xyz = RNG.normal(0, 10, (500, 3))
+    bins = RNG.integers(0, 8, 500)  # not sorted
+    expected = rot[bins].apply(xyz) + t[bins]
+    assert np.allclose(transform_binned(xyz, bins, rot.as_matrix(), t), expected, atol=1e-12)
+    with pytest.raises(ValueError, match="bins"):
+        transform_binned(xyz, bins + 1, rot.as_matrix(), t)
 
 
 def test_accumulator_keeps_first_point_per_voxel_with_fields_untouched() -> None:

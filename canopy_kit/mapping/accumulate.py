@@ -2,78 +2,55 @@
 
 The grid is fixed to the map's local frame (not to the data's extent), so adding sweeps
 in any grouping gives the same map. The first point to reach a voxel keeps it: a point's
-coordinates and attributes are never averaged. Occupied voxels live in a vectorised
-open-addressing hash set, so a sweep costs O(points) whatever the map size.
+coordinates and attributes are never averaged. Occupied voxels live in an open-addressing
+hash set with a compiled insert (:mod:`.kernels`), so a sweep costs O(points) whatever the
+map size.
 """
 
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.errors import InputError
+from canopy_kit.mapping.kernels import EMPTY, insert_keys, voxel_keys
 
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
-_MASK = (1 << _BITS) - 1
 
 
 def voxel_hash(xyz: np.ndarray, size: float) -> np.ndarray:
     """One int64 per point naming its voxel of edge ``size`` (±52 km at 5 cm voxels)."""
-    keys = np.floor(xyz / size).astype(np.int64) + _OFFSET
-    if len(keys) and (keys.min() < 0 or keys.max() > _MASK):
+    keys, fits = voxel_keys(np.ascontiguousarray(xyz, np.float64).reshape(-1, 3), float(size), _BITS)
+    if not fits:
         raise InputError(f"map extends beyond the voxel grid range for voxel size {size} m "
                          f"(±{_OFFSET * size / 1000:.0f} km from the origin)")
-    return (keys[:, 0] << (2 * _BITS)) | (keys[:, 1] << _BITS) | keys[:, 2]
-
-
-_EMPTY = np.int64(-1)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+    return keys
 
 
 class VoxelKeySet:
-    """A set of non-negative int64 keys with vectorised insert (linear probing, load <= 1/2)."""
+    """A set of non-negative int64 keys with compiled in-order insert (linear probing, load <= 1/2)."""
 
     def __init__(self, capacity_bits: int = 16) -> None:
         self._bits = capacity_bits
-        self._table = np.full(1 << capacity_bits, _EMPTY, np.int64)
+        self._table = np.full(1 << capacity_bits, EMPTY, np.int64)
         self.size = 0
 
-    def _slots(self, keys: np.ndarray) -> np.ndarray:
-        return ((keys.astype(np.uint64) * _GOLDEN) >> np.uint64(64 - self._bits)).astype(np.int64)
-
     def insert(self, keys: np.ndarray) -> np.ndarray:
-        """Insert unique ``keys``; returns a mask of those that were not in the set before."""
+        """Insert ``keys``; True where a key was not in the set before (a key repeated
+        within ``keys`` counts at its first occurrence only)."""
+        keys = np.ascontiguousarray(keys, np.int64)
         if 2 * (self.size + len(keys)) > len(self._table):
             self._grow(self.size + len(keys))
-        table = self._table
-        mask = len(table) - 1
-        new = np.zeros(len(keys), bool)
-        todo = np.arange(len(keys))
-        slot = self._slots(keys)
-        while len(todo):
-            s = slot[todo]
-            k = keys[todo]
-            current = table[s]
-            found = current == k
-            empty = current == _EMPTY
-            # Claim empty slots; when two keys race for one slot, one wins and the other probes on.
-            table[s[empty]] = k[empty]
-            won = empty.copy()
-            won[empty] = table[s[empty]] == k[empty]
-            new[todo[won]] = True
-            done = found | won
-            slot[todo[~done]] = (s[~done] + 1) & mask
-            todo = todo[~done]
-        self.size += int(new.sum())
+        new = insert_keys(keys, self._table, self._bits)
+        self.size += int(np.count_nonzero(new))
         return new
 
     def _grow(self, need: int) -> None:
-        old = self._table[self._table != _EMPTY]
+        old = self._table[self._table != EMPTY]
         while (1 << self._bits) < 2 * need:
             self._bits += 1
-        self._table = np.full(1 << self._bits, _EMPTY, np.int64)
+        self._table = np.full(1 << self._bits, EMPTY, np.int64)
         self.size = 0
         self.insert(old)
 
@@ -97,9 +74,7 @@ class MapAccumulator:
         self.n_offered += len(xyz)
         if len(xyz) == 0:
             return np.zeros(0, np.int64)
-        keys = voxel_hash(xyz, self.voxel_size)
-        first = np.flatnonzero(~pd.Series(keys).duplicated(keep="first").to_numpy())  # hashed: 2x np.unique
-        take = first[self._keys.insert(keys[first])]
+        take = np.flatnonzero(self._keys.insert(voxel_hash(xyz, self.voxel_size)))
         if len(take) == 0:
             return take
         if not self._dtypes:
