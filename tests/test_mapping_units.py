@@ -16,13 +16,14 @@ from canopy_kit.io.bag import GnssSeries, ImuSeries
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
 from canopy_kit.mapping.assemble import merge_partial_maps, stretches, transform_binned
-from canopy_kit.mapping.deskew import deskew_points, reference_time, rotate_small
+from canopy_kit.mapping.deskew import deskew_points, reference_time
 from canopy_kit.mapping.evaluate import segment_drift, trajectory_errors
 from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
 from canopy_kit.mapping.gnss import gnss_epochs, local_frame_for
 from canopy_kit.mapping.ground import GroundHeightGrid, apply_ground_correction, ground_correction
 from canopy_kit.mapping.imu import GRAVITY, RotationTrack, detect_standstill, level_rotation
+from canopy_kit.mapping.kernels import rotate_and_shift
 from canopy_kit.mapping.outputs import read_tum, tum_text
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
 
@@ -141,7 +142,11 @@ def test_quaternion_helpers_match_scipy() -> None:
     assert np.allclose(Rotation.from_quat(prod).as_matrix(), (r * r[::-1]).as_matrix())
     assert np.allclose(quat.cross(v, v[::-1]), np.cross(v, v[::-1]))
     small = RNG.normal(0, 0.02, (20, 3))
-    assert np.abs(rotate_small(v, small) - Rotation.from_rotvec(small).apply(v)).max() < 1e-4
+    bins = RNG.integers(0, 20, 20)
+    dt, velocity = RNG.normal(0, 0.05, 20), np.array([1.5, -0.2, 0.1])
+    moved = rotate_and_shift(v, bins, small, dt, velocity)
+    expected = Rotation.from_rotvec(small[bins]).apply(v) + dt[:, None] * velocity
+    assert np.abs(moved - expected).max() < 1e-4  # second order in angles of ~0.03 rad
 
 
 # -- map accumulation ----------------------------------------------------------------------

@@ -73,3 +73,18 @@ def voxel_keys(xyz: np.ndarray, size: float, bits: int) -> tuple[np.ndarray, boo
             key = (key << bits) | k
         keys[i] = key
     return keys, fits
+
+
+@numba.njit(cache=True, nogil=True)
+def rotate_and_shift(xyz: np.ndarray, bins: np.ndarray, rotvecs: np.ndarray, dt: np.ndarray,
+                     velocity: np.ndarray) -> np.ndarray:
+    """``p + w×p + ½ w×(w×p) + dt·v`` per point, ``w = rotvecs[bin]`` (second-order Rodrigues)."""
+    out = np.empty((xyz.shape[0], 3), np.float64)
+    for i in range(xyz.shape[0]):
+        wx, wy, wz = rotvecs[bins[i], 0], rotvecs[bins[i], 1], rotvecs[bins[i], 2]
+        px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        cx, cy, cz = wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px
+        out[i, 0] = px + cx + 0.5 * (wy * cz - wz * cy) + dt[i] * velocity[0]
+        out[i, 1] = py + cy + 0.5 * (wz * cx - wx * cz) + dt[i] * velocity[1]
+        out[i, 2] = pz + cz + 0.5 * (wx * cy - wy * cx) + dt[i] * velocity[2]
+    return out
