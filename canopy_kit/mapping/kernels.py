@@ -1,10 +1,12 @@
-"""Compiled per-point loops of the map pass (numba): the voxel set's insert and the binned pose.
+"""Compiled per-point loops of the mapping stage (numba): voxel keys, the voxel set's insert,
+the binned pose of the map pass and the deskew rotation.
 
 The map pass touches every point of every sweep (about 20,000 per sweep, 90 % of them in
-voxels the map already holds). In numpy each step is a pass over memory with temporary
-arrays; here one loop per point does the work with no temporaries. Both kernels give the
-same results as the numpy expressions they replace (tested), are compiled on first use
-and cached on disk (``cache=True``), and hold no global state, so forked workers share them.
+voxels the map already holds) and the odometry deskews every registered sweep. In numpy
+each step is a pass over memory with temporary arrays; here one loop per point does the
+work. Each kernel gives the results of the numpy expression it replaced (tested), is
+compiled on first use and cached on disk (``cache=True``), and holds no global state, so
+forked workers share it.
 """
 
 from __future__ import annotations
