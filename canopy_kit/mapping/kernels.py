@@ -90,3 +90,18 @@ def rotate_and_shift(xyz: np.ndarray, bins: np.ndarray, rotvecs: np.ndarray, dt:
         out[i, 1] = py + cy + 0.5 * (wz * cx - wx * cz) + dt[i] * velocity[1]
         out[i, 2] = pz + cz + 0.5 * (wx * cy - wy * cx) + dt[i] * velocity[2]
     return out
+
+
+def warm_up() -> None:
+    """Load (or compile) every kernel now, in this process.
+
+    The first call of a kernel in a process costs about 0.35 s (numba sets up its typing
+    context and reads the cache); worker processes forked afterwards inherit the loaded
+    kernels instead of paying it each.
+    """
+    xyz = np.zeros((1, 3))
+    index = np.zeros(1, np.int64)
+    keys, _ = voxel_keys(xyz, 1.0, 21)
+    insert_keys(keys, np.full(4, EMPTY, np.int64), 2)
+    transform_by_bin(xyz, index, np.eye(3)[None], np.zeros((1, 3)))
+    rotate_and_shift(xyz, index, np.zeros((1, 3)), np.zeros(1), np.zeros(3))

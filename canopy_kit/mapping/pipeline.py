@@ -28,6 +28,7 @@ from canopy_kit.mapping.chunks import run_odometry
 from canopy_kit.mapping.frontend import FrontendSweep, require_sweeps
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
 from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
+from canopy_kit.mapping.kernels import warm_up
 from canopy_kit.mapping.passone import PassOne, pass_warnings, quality_flags
 from canopy_kit.mapping.sensors import GnssBuffer
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
@@ -106,6 +107,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     _check_config(config)
     timing: dict[str, float] = {}
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
+    warm_up()  # before the workers fork: they inherit the loaded kernels
     with open_bag(bag_path) as bag:
         one = run_odometry(bag, config, progress)
     records = one.records
