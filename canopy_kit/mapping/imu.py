@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from canopy_kit.errors import InputError
 from canopy_kit.io.bag import ImuSeries
 from canopy_kit.mapping import quaternions as quat
+from canopy_kit.mapping.kernels import integrate_gyro
 
 GRAVITY = 9.80665
 
@@ -139,13 +140,10 @@ class RotationTrack:
             t, omega = t[1:], omega[1:]
             if len(t) == 0:
                 return
-        dt = np.diff(np.r_[self._t[self._n - 1], t])
-        w_all = np.vstack([self._omega_last, omega])
-        # Midpoint rule between samples, chained by a parallel prefix product.
-        steps = Rotation.from_rotvec(0.5 * (w_all[:-1] + w_all[1:]) * dt[:, None]).as_quat()
-        chained = quat.multiply(np.repeat(self._q[self._n - 1 : self._n], len(steps), axis=0),
-                                quat.prefix_products(steps))
-        self._append(t, chained / np.linalg.norm(chained, axis=1, keepdims=True))
+        # Midpoint rule between samples, chained sample by sample (a compiled loop).
+        self._append(t, integrate_gyro(self._q[self._n - 1].copy(), float(self._t[self._n - 1]),
+                                       np.ascontiguousarray(self._omega_last, np.float64),
+                                       np.ascontiguousarray(t), np.ascontiguousarray(omega)))
         self._omega_last = omega[-1]
 
     @property

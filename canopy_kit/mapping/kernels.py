@@ -1,5 +1,5 @@
 """Compiled per-point loops of the mapping stage (numba): voxel keys, the voxel set's insert,
-the binned pose of the map pass and the deskew rotation.
+the binned pose of the map pass, the deskew rotation and the gyro integration.
 
 The map pass touches every point of every sweep (about 20,000 per sweep, 90 % of them in
 voxels the map already holds) and the odometry deskews every registered sweep. In numpy
@@ -92,6 +92,29 @@ def rotate_and_shift(xyz: np.ndarray, bins: np.ndarray, rotvecs: np.ndarray, dt:
     return out
 
 
+
+@numba.njit(cache=True, nogil=True)
+def integrate_gyro(q: np.ndarray, t_last: float, omega_last: np.ndarray, t: np.ndarray,
+                   omega: np.ndarray) -> np.ndarray:
+    """Orientations (xyzw) at ``t`` from ``q`` at ``t_last``: body-frame gyro increments by the
+    midpoint rule, chained one after the other and normalised."""
+    out = np.empty((t.shape[0], 4), np.float64)
+    qx, qy, qz, qw = q[0], q[1], q[2], q[3]
+    t_prev, wx0, wy0, wz0 = t_last, omega_last[0], omega_last[1], omega_last[2]
+    for i in range(t.shape[0]):
+        dt = t[i] - t_prev
+        vx, vy, vz = 0.5 * (wx0 + omega[i, 0]) * dt, 0.5 * (wy0 + omega[i, 1]) * dt, 0.5 * (wz0 + omega[i, 2]) * dt
+        angle = np.sqrt(vx * vx + vy * vy + vz * vz)
+        k = np.sin(0.5 * angle) / angle if angle > 1e-12 else 0.5 - angle * angle / 48.0
+        sx, sy, sz, sw = vx * k, vy * k, vz * k, np.cos(0.5 * angle)
+        qx, qy, qz, qw = (qw * sx + qx * sw + qy * sz - qz * sy, qw * sy - qx * sz + qy * sw + qz * sx,
+                          qw * sz + qx * sy - qy * sx + qz * sw, qw * sw - qx * sx - qy * sy - qz * sz)
+        norm = np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = qx, qy, qz, qw
+        t_prev, wx0, wy0, wz0 = t[i], omega[i, 0], omega[i, 1], omega[i, 2]
+    return out
+
 def warm_up() -> None:
     """Load (or compile) every kernel now, in this process.
 
@@ -105,3 +128,4 @@ def warm_up() -> None:
     insert_keys(keys, np.full(4, EMPTY, np.int64), 2)
     transform_by_bin(xyz, index, np.eye(3)[None], np.zeros((1, 3)))
     rotate_and_shift(xyz, index, np.zeros((1, 3)), np.zeros(1), np.zeros(3))
+    integrate_gyro(np.array([0.0, 0.0, 0.0, 1.0]), 0.0, np.zeros(3), np.ones(1), np.zeros((1, 3)))

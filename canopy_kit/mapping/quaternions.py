@@ -89,13 +89,3 @@ def from_matrix(m: np.ndarray) -> np.ndarray:
 
     return Rotation.from_matrix(m).as_quat()
 
-
-def prefix_products(q: np.ndarray) -> np.ndarray:
-    """``out[i] = q[0] * q[1] * ... * q[i]`` in O(log n) vectorised passes."""
-    out = np.array(q, float)
-    shift = 1
-    while shift < len(out):
-        out[shift:] = multiply(out[:-shift], out[shift:])
-        out = normalize(out)
-        shift *= 2
-    return out
