@@ -256,7 +256,7 @@ def flagged(trees: pd.DataFrame, column: str) -> pd.Series:
     """Trees with a note in ``column`` (``volume_flags``, ``segment_flags``); none without it."""
     if column not in trees:
         return pd.Series(False, index=trees.index)
-    return trees[column].astype(str).str.len() > 0
+    return trees[column].fillna("").astype(str).str.len() > 0  # a missing note (NaN) is no note
 
 
 def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:

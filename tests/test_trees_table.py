@@ -53,3 +53,12 @@ def test_volume_voxel_size_zero_measures_every_point_and_bad_settings_are_named(
         VolumeConfig(voxel_size=-1)
     with pytest.raises(ConfigError, match="volume.workers"):
         VolumeConfig(workers=-2)
+
+
+def test_flagged_counts_trees_with_a_note_and_not_missing_values() -> None:
+    from canopy_kit.pipeline import flagged
+
+    trees = pd.DataFrame({"volume_flags": ["", "hull of fewer than 4 points", None, np.nan],
+                          "tree_id": ["a", "b", "c", "d"]})
+    assert flagged(trees, "volume_flags").tolist() == [False, True, False, False]
+    assert flagged(trees, "segment_flags").tolist() == [False] * 4  # no such column
