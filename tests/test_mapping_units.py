@@ -172,7 +172,7 @@ def test_voxel_hash_packs_floor_of_coordinates_over_voxel_size() -> None:
     xyz = np.array([[0.0, 0.0, 0.0], [0.049, -0.001, 0.05], [-52_000.01, 52_000.01, 1.01]])
     k = np.array([[0, 0, 0], [0, -1, 1], [-1_040_001, 1_040_000, 20]]) + (1 << 20)  # by hand
     assert voxel_hash(xyz, 0.05).tolist() == ((k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]).tolist()
-    for bad in ([53_000.0, 0.0, 0.0], [np.nan, 0.0, 0.0]):
+    for bad in ([53_000.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [0.0, -np.inf, 0.0], [0.0, 0.0, 1e300]):
         with pytest.raises(InputError, match="voxel grid range"):
             voxel_hash(np.array([bad]), 0.05)
 

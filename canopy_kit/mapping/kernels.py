@@ -68,10 +68,12 @@ def voxel_keys(xyz: np.ndarray, size: float, bits: int) -> tuple[np.ndarray, boo
     for i in range(xyz.shape[0]):
         key = np.int64(0)
         for axis in range(3):
-            k = np.int64(np.floor(xyz[i, axis] / size)) + offset
-            if k < 0 or k > limit:
+            v = np.floor(xyz[i, axis] / size) + offset
+            k = np.int64(0)
+            if v >= 0.0 and v <= limit:  # False for NaN and inf, which have no integer
+                k = np.int64(v)
+            else:
                 fits = False
-                k = 0
             key = (key << bits) | k
         keys[i] = key
     return keys, fits
