@@ -245,19 +245,12 @@ def _run_one(spec: SessionSpec, config: Any, out: Path) -> Any:
 def _write_tables(ctx: Any, cache: Any, out: Path) -> Any:
     """The per-tree table, metrics and config only (a batch that needs no report)."""
     from canopy_kit import pipeline
-    from canopy_kit.config import write_config
-    from canopy_kit.io.atomic import atomic_path, atomic_write_text
-    from canopy_kit.segment.export import write_segmentation_summary
+    from canopy_kit.io.atomic import atomic_write_text
 
     metrics = pipeline.run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
-    files = {"trees.csv": atomic_write_text(out / "trees.csv", ctx.table.to_csv(index=False))}
-    with atomic_path(out / "trees.parquet") as tmp:
-        ctx.table.to_parquet(tmp, index=False)
-    files["trees.parquet"] = out / "trees.parquet"
-    files["config.toml"] = write_config(ctx.config, out / "config.toml")
-    # segmentation.json and crowns: `canopy-kit evaluate` scores the session by footprints
-    files.update({p.name: p for p in write_segmentation_summary(out, ctx.segmentation).values()})
+    # segmentation.json and crowns among them: `canopy-kit evaluate` scores the session by footprints
+    files = pipeline.write_tree_tables(ctx, ctx.table, out)
     files["metrics.json"] = atomic_write_text(
         out / "metrics.json", json.dumps(metrics, indent=2, default=str) + "\n")
     return pipeline.Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])))

@@ -323,7 +323,9 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
     return files
 
 
-def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
+def write_tree_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
+    """trees.csv, trees.parquet, config.toml and what ``canopy-kit evaluate`` needs besides
+    them (segmentation.json, crowns, rows): the outputs of every run, batch ones included."""
     from canopy_kit.segment.export import write_segmentation_summary
 
     files: dict[str, Path] = {}
@@ -331,12 +333,16 @@ def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, 
     with atomic_path(out / "trees.parquet") as tmp:
         trees.to_parquet(tmp, index=False)
     files["trees.parquet"] = out / "trees.parquet"
+    files["config.toml"] = write_config(ctx.config, out / "config.toml")
+    files.update({p.name: p for p in write_segmentation_summary(out, ctx.segmentation).values()})
+    return files
+
+
+def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
+    files = write_tree_tables(ctx, trees, out)
     files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
     files["trajectory.csv"] = atomic_write_text(
         out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
-    files["config.toml"] = write_config(ctx.config, out / "config.toml")
-    # What `canopy-kit evaluate` needs besides trees.csv and map.laz.
-    files.update({p.name: p for p in write_segmentation_summary(out, ctx.segmentation).values()})
     return files
 
 
