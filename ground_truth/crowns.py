@@ -151,7 +151,7 @@ def canopy_mask(rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: Grid,
     below the crown), so "raised" is decided on the median-filtered CHM and widened by
     ``raised_reach_m``; the colour mask draws the outline.
     """
-    from scipy.ndimage import binary_closing, binary_fill_holes, binary_opening, label
+    from scipy.ndimage import binary_closing, binary_fill_holes, binary_opening
 
     res = grid.resolution
     raised = raised_mask(chm, res, options)

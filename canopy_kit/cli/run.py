@@ -19,7 +19,7 @@ def run(
                                 "it, keeping only a window of the map (no map or report)"),
 ) -> None:
     """Map, segment, measure and (optionally) validate one field session; write the report."""
-    from canopy_kit.cli.common import console, parse_overrides, progress_bar
+    from canopy_kit.cli.common import parse_overrides, progress_bar
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run as run_pipeline
 

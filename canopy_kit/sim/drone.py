@@ -76,7 +76,7 @@ def plan_flight(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> 
     """Lawn-mower photo positions over the crowns (plus ``area_margin``), with true-pose noise."""
     from scipy.spatial.transform import Rotation
 
-    d, right = orchard.row_direction, orchard.right_direction
+    d = orchard.row_direction
     corners = []
     for tree in orchard.trees:
         lo, hi = tree.crown.bounds

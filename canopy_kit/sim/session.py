@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from canopy_kit.config import from_dict, read_toml, to_dict, write_config
+from canopy_kit.config import from_dict, read_toml, write_config
 from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_write_text
 from canopy_kit.io.bag_writer import BagWriter, bag_path_for
