@@ -141,7 +141,7 @@ class RotationTrack:
             if len(t) == 0:
                 return
         # Midpoint rule between samples, chained sample by sample (a compiled loop).
-        self._append(t, integrate_gyro(self._q[self._n - 1].copy(), float(self._t[self._n - 1]),
+        self._append(t, integrate_gyro(self._q[self._n - 1], float(self._t[self._n - 1]),
                                        np.ascontiguousarray(self._omega_last, np.float64),
                                        np.ascontiguousarray(t), np.ascontiguousarray(omega)))
         self._omega_last = omega[-1]

@@ -94,7 +94,6 @@ def rotate_and_shift(xyz: np.ndarray, bins: np.ndarray, rotvecs: np.ndarray, dt:
     return out
 
 
-
 @numba.njit(cache=True, nogil=True)
 def integrate_gyro(q: np.ndarray, t_last: float, omega_last: np.ndarray, t: np.ndarray,
                    omega: np.ndarray) -> np.ndarray:
@@ -116,6 +115,7 @@ def integrate_gyro(q: np.ndarray, t_last: float, omega_last: np.ndarray, t: np.n
         out[i, 0], out[i, 1], out[i, 2], out[i, 3] = qx, qy, qz, qw
         t_prev, wx0, wy0, wz0 = t[i], omega[i, 0], omega[i, 1], omega[i, 2]
     return out
+
 
 def warm_up() -> None:
     """Load (or compile) every kernel now, in this process.
