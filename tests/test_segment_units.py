@@ -470,12 +470,14 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
 def test_reproduction_table_pools_trees_and_sets_the_paper_beside(tmp_path) -> None:
     from canopy_kit.segment.results import reproduction_results, reproduction_table
 
-    runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "dbscan"],
-                         "orchard": ["almond", "almond", "almond", "pistachio"],
-                         "seed": [201, 202, 201, 201], "n_truth": [10, 20, 10, 18],
-                         "success_points": [0.5, 0.25, 1.0, 17 / 18], "variant": "default"})
+    runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "dbscan", "dbscan"],
+                         "orchard": ["almond", "almond", "almond", "pistachio", "almond-paper"],
+                         "seed": [201, 202, 201, 201, 511], "n_truth": [10, 20, 10, 18, 17],
+                         "success_points": [0.5, 0.25, 1.0, 17 / 18, 8 / 17], "variant": "default"})
     t = reproduction_table(runs).set_index(["orchard", "method"])
-    assert list(t.index) == [("pistachio", "dbscan"), ("almond", "dbscan"), ("almond", "adaptive")]
+    assert list(t.index) == [("pistachio", "dbscan"), ("almond", "dbscan"), ("almond", "adaptive"),
+                             ("almond-paper", "dbscan")]
+    assert t.loc[("almond-paper", "dbscan"), "paper"] == 0.46  # a preset of kind almond
     assert t.loc[("almond", "dbscan"), "correct"] == 10 and t.loc[("almond", "dbscan"), "trees"] == 30
     assert t.loc[("almond", "dbscan"), "success"] == pytest.approx(1 / 3)
     assert t.loc[("almond", "dbscan"), "seeds"] == "201 202"
@@ -485,6 +487,7 @@ def test_reproduction_table_pools_trees_and_sets_the_paper_beside(tmp_path) -> N
     runs.to_csv(tmp_path / "r.csv", index=False)
     only = reproduction_results(tmp_path / "r.csv", seeds=[202])
     assert len(only) == 1 and only.iloc[0]["success"] == 0.25
+    assert t.loc[("almond-paper", "dbscan"), "correct"] == 8
     with pytest.raises(InputError, match="column 'seed' missing"):
         reproduction_table(runs.drop(columns="seed"))
 

@@ -44,7 +44,7 @@ def _overlap_fraction(a, b, rng, n=200_000):
 
 def test_pistachio_crowns_do_not_overlap_and_almond_crowns_do():
     rng = np.random.default_rng(5)
-    for kind, expect_overlap in (("pistachio", False), ("almond", True)):
+    for kind, expect_overlap in (("pistachio", False), ("almond", True), ("almond-paper", True)):
         orchard = _orchard(kind)
         overlaps = []
         for a in orchard.trees:
@@ -108,3 +108,22 @@ def test_impossible_parameters_name_the_parameter(overrides, parameter):
 def test_unknown_parameter_is_named():
     with pytest.raises(ConfigError, match="crown_colour"):
         load_sim_config("almond", {"orchard": {"crown_colour": "green"}})
+
+
+def test_preset_extends_another_and_lists_only_what_differs(tmp_path):
+    from dataclasses import asdict
+
+    almond, paper = asdict(load_sim_config("almond")), asdict(load_sim_config("almond-paper"))
+    differs = {k for k in almond["orchard"] if almond["orchard"][k] != paper["orchard"][k]}
+    assert differs == {"crown_diameter_range"}
+    assert paper["orchard"]["crown_diameter_range"] == [3.5, 5.0]
+    assert all(almond[section] == paper[section] for section in almond if section != "orchard")
+    # A user's file may extend a preset that itself extends another.
+    mine = tmp_path / "mine.toml"
+    mine.write_text('extends = "almond-paper"\n[orchard]\nrows = 2\n')
+    cfg = load_sim_config(mine)
+    assert (cfg.orchard.kind, cfg.orchard.rows, cfg.orchard.crown_diameter_range) == (
+        "almond", 2, [3.5, 5.0])
+    mine.write_text('extends = "walnut"\n')
+    with pytest.raises(ConfigError, match=r"mine\.toml: extends 'walnut'"):
+        load_sim_config(mine)

@@ -205,11 +205,14 @@ def sim_preset_names() -> list[str]:
 
 def load_sim_config(orchard: str | Path = "pistachio", overrides: Mapping[str, Any] | None = None,
                     sensor: str | None = None) -> SimConfig:
-    """Simulator config from a shipped orchard preset (or TOML path), a sensor model and overrides."""
+    """Simulator config from a shipped orchard preset (or TOML path), a sensor model and overrides.
+
+    A preset or TOML file may start from another preset with ``extends = "<preset>"`` and
+    then list only what differs.
+    """
     name = str(orchard)
     if name in sim_preset_names():
-        text = (resources.files("canopy_kit") / "presets" / "sim" / f"{name}.toml").read_text()
-        data, where = tomllib.loads(text), f"simulator preset {name!r}"
+        data, where = _preset_data(name), f"simulator preset {name!r}"
     else:
         path = Path(orchard)
         if not path.exists():
@@ -217,7 +220,7 @@ def load_sim_config(orchard: str | Path = "pistachio", overrides: Mapping[str, A
                 f"orchard {name!r} is neither a simulator preset ({', '.join(sim_preset_names())}) "
                 "nor an existing TOML file"
             )
-        data, where = read_toml(path), str(path)
+        data, where = _resolve_extends(read_toml(path), str(path)), str(path)
     if sensor is not None:
         if sensor not in SENSOR_MODELS:
             raise ConfigError(f"sensor {sensor!r} is not one of {', '.join(SENSOR_MODELS)}")
@@ -227,6 +230,23 @@ def load_sim_config(orchard: str | Path = "pistachio", overrides: Mapping[str, A
     config = from_dict(SimConfig, data, where)
     validate(config)
     return config
+
+
+def _preset_data(name: str) -> dict[str, Any]:
+    text = (resources.files("canopy_kit") / "presets" / "sim" / f"{name}.toml").read_text()
+    return _resolve_extends(tomllib.loads(text), f"simulator preset {name!r}")
+
+
+def _resolve_extends(data: dict[str, Any], where: str) -> dict[str, Any]:
+    """``data`` merged onto the preset its ``extends`` key names (if any)."""
+    if "extends" not in data:
+        return data
+    data = dict(data)
+    base = data.pop("extends")
+    if base not in sim_preset_names():
+        raise ConfigError(f"{where}: extends {base!r}, which is not a simulator preset "
+                          f"({', '.join(sim_preset_names())})")
+    return merge(_preset_data(base), data)
 
 
 def _check(ok: bool, name: str, message: str) -> None:
