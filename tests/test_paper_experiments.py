@@ -155,6 +155,9 @@ def test_settings_are_checked():
         ex.ExperimentConfig(methods=("kmeans",)).validate()
     with pytest.raises(InputError, match="seeds repeat"):
         ex.ExperimentConfig(seeds=(1, 1)).validate()
+    ex.ExperimentConfig(orchards=("almond-paper",)).validate()
+    with pytest.raises(InputError, match="unknown orchard 'walnut'"):
+        ex.ExperimentConfig(orchards=("walnut",)).validate()
     with pytest.raises(InputError, match="no experiment results"):
         ex.load_results("/nonexistent/folder")
 

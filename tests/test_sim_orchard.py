@@ -124,6 +124,10 @@ def test_preset_extends_another_and_lists_only_what_differs(tmp_path):
     cfg = load_sim_config(mine)
     assert (cfg.orchard.kind, cfg.orchard.rows, cfg.orchard.crown_diameter_range) == (
         "almond", 2, [3.5, 5.0])
+    from canopy_kit.sim.config import orchard_kind
+
+    assert [orchard_kind(o) for o in ("almond-paper", "pistachio", "walnut")] == [
+        "almond", "pistachio", "walnut"]
     mine.write_text('extends = "walnut"\n')
     with pytest.raises(ConfigError, match=r"mine\.toml: extends 'walnut'"):
         load_sim_config(mine)

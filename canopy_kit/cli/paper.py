@@ -206,7 +206,8 @@ def experiments(
     rows: int = typer.Option(3, "--rows", min=1, help="Rows per simulated orchard."),
     trees_per_row: int = typer.Option(8, "--trees-per-row", min=2, help="Trees per row."),
     orchard: list[str] = typer.Option(["pistachio", "almond"], "--orchard",
-                                      help="Orchard (repeat for several)."),
+                                      help="Orchard (repeat for several): pistachio, almond, "
+                                           "almond-paper (calibrated on the paper's DBSCAN)."),
     method: list[str] = typer.Option(["dbscan", "dbscan_spectral", "adaptive"], "--method",
                                      help="Segmenter (repeat): dbscan = the pistachio preset, "
                                           "dbscan_spectral = the almond preset, adaptive."),

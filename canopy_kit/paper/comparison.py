@@ -74,6 +74,7 @@ def compare(runs: pd.DataFrame, trees: pd.DataFrame, paper: dict[str, Any],
     """One row per orchard x method x mapping of ``config``: the paper's figure beside ours
     for segmentation success and volume errors."""
     from canopy_kit.segment.results import success_table
+    from canopy_kit.sim.config import orchard_kind
 
     rows = []
     ok_runs = runs[runs["error"] == ""] if "error" in runs else runs
@@ -82,7 +83,7 @@ def compare(runs: pd.DataFrame, trees: pd.DataFrame, paper: dict[str, Any],
         seeds = success_table(sub, "success_rate") if len(sub) else pd.DataFrame()
         for orchard in config.orchards:
             for method in config.methods:
-                key = (orchard, method)
+                key = (orchard_kind(orchard), method)
                 r = sub[(sub["orchard"] == orchard) & (sub["method"] == method)]
                 row: dict[str, Any] = {
                     "orchard": orchard, "method": method, "mapping": mapping,
@@ -103,7 +104,7 @@ def compare(runs: pd.DataFrame, trees: pd.DataFrame, paper: dict[str, Any],
                 row["map_points_per_tree_median"] = (float(r["map_points_per_tree_median"].median())
                                                      if "map_points_per_tree_median" in r else np.nan)
                 row["ate_rmse_m"] = float(r["ate_rmse_m"].mean()) if len(r) else np.nan
-                paper_volumes = orchard == "pistachio" and method == "dbscan"
+                paper_volumes = key == ("pistachio", "dbscan")
                 for est in ESTIMATORS:
                     row[f"paper_{est}_mape_vs_sphere_pct"] = (
                         paper["mape_vs_sphere_pct"][est] if paper_volumes else np.nan)

@@ -56,18 +56,11 @@ TARGETS = {("pistachio", "adaptive"): 0.98, ("almond", "adaptive"): 0.95,
            ("almond", "dbscan_spectral"): 0.80}
 
 
-def orchard_kind(orchard: str) -> str:
-    """The kind of a simulator preset (``almond-paper`` is an almond orchard), else the name:
-    the paper's figures and our targets are per kind."""
-    from canopy_kit.sim.config import load_sim_config, sim_preset_names
-
-    return load_sim_config(orchard).orchard.kind if orchard in sim_preset_names() else orchard
-
-
 def reproduction_table(runs: pd.DataFrame, metric: str = "success_points") -> pd.DataFrame:
     """Method x orchard, flat: trees correct over all sessions (pooled), the per-session
     range, the paper's figure and our target beside; one row per method and orchard."""
     from canopy_kit.paper.comparison import PAPER_SEGMENTATION
+    from canopy_kit.sim.config import orchard_kind
 
     if runs.empty:
         return pd.DataFrame()

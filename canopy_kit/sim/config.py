@@ -203,6 +203,12 @@ def sim_preset_names() -> list[str]:
     return sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".toml"))
 
 
+def orchard_kind(orchard: str) -> str:
+    """The kind of orchard a simulator preset makes (``almond-paper``: ``almond``); any other
+    name is returned as it is. The paper's figures and our targets are per kind."""
+    return load_sim_config(orchard).orchard.kind if orchard in sim_preset_names() else orchard
+
+
 def load_sim_config(orchard: str | Path = "pistachio", overrides: Mapping[str, Any] | None = None,
                     sensor: str | None = None) -> SimConfig:
     """Simulator config from a shipped orchard preset (or TOML path), a sensor model and overrides.
