@@ -1,11 +1,11 @@
 """The paper's experiments re-run on simulated orchards, beside the paper's figures.
 
-For every orchard (pistachio, almond; optionally almond-paper) and seed a session is simulated, then the whole
-pipeline (:func:`canopy_kit.pipeline.compute`, with its own LiDAR-inertial mapping) runs it
-once per segmenter with the preset that sets it up: ``dbscan`` = the paper's pistachio
-preset (eps 0.8 m, N_min 1300), ``dbscan_spectral`` = the paper's almond preset (split
-above 45,000 points, k = 10), ``adaptive`` = canopy-kit's own; every preset measures convex
-hull and alpha shape (alpha = 0.9 m). Optionally the same runs on a map built from the
+For every orchard (pistachio, almond; optionally almond-paper) and seed a session is
+simulated, then the whole pipeline (:func:`canopy_kit.pipeline.compute`, with its own
+LiDAR-inertial mapping) runs it once per segmenter with the preset that sets it up:
+``dbscan`` = the paper's pistachio preset (eps 0.8 m, N_min 1300), ``dbscan_spectral`` =
+the paper's almond preset (split above 45,000 points, k = 10), ``adaptive`` = canopy-kit's
+own; every preset measures convex hull and alpha shape (alpha = 0.9 m). Optionally the same runs on a map built from the
 true poses separate mapping error from segmentation and volume error.
 
 Scored against the simulator's truth: segmentation success (:mod:`canopy_kit.evaluate`,
