@@ -88,7 +88,7 @@ def test_adaptive_targets_with_the_same_settings_on_both_orchards(scores) -> Non
 
 def test_adaptive_almond_target_on_the_paper_like_orchard(scores) -> None:
     """On ``almond-paper`` (crowns calibrated so that the paper's DBSCAN scores about its
-    46 %) adaptive meets the 95 % target over 409 held-out trees (docs/SEGMENTATION.md); on
+    46 %) adaptive meets the 95 % target over 519 never-seen trees (docs/SEGMENTATION.md); on
     one small session: every tree the exact crown envelopes separate, at most one missed."""
     adaptive, seg = scores["almond-paper", "adaptive"]
     ceiling = scores["almond-paper", "ceiling"]
