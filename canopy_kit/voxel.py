@@ -76,8 +76,21 @@ def voxel_downsample(cloud: PointCloud, size: float,
     reps, inverse = voxel_representatives(cloud.xyz, size)
     out = cloud.select(reps)
     if mode == "centroid" and len(cloud):
-        counts = np.bincount(inverse)
-        sums = np.zeros((len(counts), 3))
-        np.add.at(sums, inverse, cloud.xyz)
-        out.xyz = (sums / counts[:, None])[inverse[reps]]
+        out.xyz = group_means(cloud.xyz, inverse)[inverse[reps]]
     return out
+
+
+def group_means(xyz: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Mean point of each group (groups: non-negative ints, every one up to the largest used)."""
+    counts = np.bincount(groups)
+    return np.stack([np.bincount(groups, xyz[:, i]) for i in range(xyz.shape[1])], 1) / \
+        counts[:, None]
+
+
+def voxel_centroids(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mean point of each occupied voxel (V, 3), and each point's voxel (N,)."""
+    if len(xyz) == 0:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    _, inverse = np.unique(linear_keys(voxel_keys(xyz, size)), return_inverse=True)
+    inverse = inverse.ravel()
+    return group_means(xyz, inverse), inverse

@@ -24,6 +24,8 @@ from canopy_kit.segment.rows import (assign_rows, bearing_to_vector, default_dir
 from canopy_kit.segment.stems import detect_stems
 from canopy_kit.segment.verb import make_segmenter, segment
 
+from canopy_kit.voxel import voxel_centroids
+
 from fixtures_sim import synthetic_orchard
 
 
@@ -157,6 +159,31 @@ def test_spectral_splits_clusters_by_size() -> None:
     assert seg.splits_ == {0: 3} and labels.max() == 2
     truth = np.repeat([0, 1, 2], 600)
     assert adjusted_rand_score(truth, labels) > 0.6
+
+
+def test_spectral_split_on_graph_cells() -> None:
+    rng = np.random.default_rng(1)
+    xyz = np.concatenate([rng.normal([x, 0, 2], [0.7, 0.5, 0.5], (600, 3)) for x in (0, 2.2, 4.4)])
+    seg = make_segmenter("dbscan_spectral", {"min_samples": 20, "max_cluster_size": 600,
+                                             "graph_cell": 0.3, "n_neighbors": 15})
+    labels = seg.fit_predict(xyz)
+    assert seg.splits_ == {0: 3} and labels.max() == 2
+    assert adjusted_rand_score(np.repeat([0, 1, 2], 600), labels) > 0.6
+    # every point of the split cluster takes its cell's part (cells from the cluster's corner)
+    member = labels >= 0
+    _, cell = voxel_centroids(xyz[member], 0.3)
+    per_cell = pd.Series(labels[member]).groupby(cell).nunique()
+    assert (per_cell == 1).all()
+    with pytest.raises(InputError, match="graph_cell"):
+        make_segmenter("dbscan_spectral", {"graph_cell": -0.3}).fit_predict(xyz)
+
+
+def test_voxel_centroids_by_hand() -> None:
+    xyz = np.array([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [1.2, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    centroids, cell = voxel_centroids(xyz, 1.0)
+    assert cell[0] == cell[1] == cell[3] != cell[2]
+    np.testing.assert_allclose(centroids[cell[0]], [0.4 / 3, 0.2 / 3, 0.2 / 3])
+    np.testing.assert_allclose(centroids[cell[2]], [1.2, 0.0, 0.0])
 
 
 def test_make_segmenter_errors() -> None:

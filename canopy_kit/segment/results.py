@@ -14,7 +14,10 @@ import pandas as pd
 from canopy_kit.errors import InputError
 
 RESULTS_CSV = Path(__file__).resolve().parents[2] / "docs" / "segmentation_results.csv"
-METHOD_ORDER = ["dbscan", "dbscan_spectral", "adaptive"]
+#: ``dbscan_spectral_scaled``: the paper's almond method with the ``almond-scaled`` preset;
+#: ``dbscan_spectral_cells``: only its graph on 0.3 m cells, the paper's threshold
+METHOD_ORDER = ["dbscan", "dbscan_spectral", "dbscan_spectral_cells", "dbscan_spectral_scaled",
+                "adaptive"]
 
 
 def success_table(runs: pd.DataFrame, metric: str = "success_points") -> pd.DataFrame:
@@ -53,7 +56,7 @@ def results_table(path: str | Path | None = None, variant: str = "default",
 #: Our targets (issue: adaptive >= 98 % pistachio and >= 95 % almond with the same settings;
 #: dbscan_spectral at least the paper's 80 % on almond).
 TARGETS = {("pistachio", "adaptive"): 0.98, ("almond", "adaptive"): 0.95,
-           ("almond", "dbscan_spectral"): 0.80}
+           ("almond", "dbscan_spectral"): 0.80, ("almond", "dbscan_spectral_scaled"): 0.80}
 
 
 def reproduction_table(runs: pd.DataFrame, metric: str = "success_points") -> pd.DataFrame:

@@ -3,6 +3,12 @@
 Clusters above ``max_cluster_size`` map points likely hold several overlapping trees; each
 is split into ``round(size / max_cluster_size)`` parts by spectral clustering on its
 k-nearest-neighbour graph (k = 10): a spectral embedding, then k-means in it.
+
+The paper does not say at what scale the graph's nodes lie. ``graph_cell = 0`` (the
+default, the literal reading) makes every voxel point a node, so k = 10 neighbours reach
+a few centimetres; ``graph_cell > 0`` puts the nodes at the centroids of cells of that
+size (m) and each point takes its cell's part, so the graph spans branches rather than
+leaves (measured in docs/SEGMENTATION.md; the ``almond-scaled`` preset).
 """
 
 from __future__ import annotations
@@ -14,11 +20,16 @@ import numpy as np
 from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
 from canopy_kit.segment.dbscan import run_dbscan
 from canopy_kit.segment.density import first_appearance_order
+from canopy_kit.voxel import voxel_centroids
 
 
 def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
-                   eigen_solver: str = "amg", random_state: int = 0) -> np.ndarray:
+                   eigen_solver: str = "amg", random_state: int = 0,
+                   graph_cell: float = 0.0) -> np.ndarray:
     """Split points into ``n_parts`` by spectral clustering on their kNN graph (labels 0..n-1).
+
+    With ``graph_cell > 0`` the graph joins the centroids of cells of that size instead of
+    the points, and every point takes its cell's part.
 
     The symmetrised k-nearest-neighbour connectivity graph of sparse foliage falls apart
     into many small pieces, and each piece would take an eigenvector of its own; so the
@@ -34,6 +45,10 @@ def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
     n = len(xyz)
     if n_parts <= 1 or n <= n_parts:
         return np.zeros(n, dtype=np.int64)
+    if graph_cell > 0:
+        nodes, cell = voxel_centroids(xyz, graph_cell)
+        if len(nodes) > n_parts:
+            return spectral_split(nodes, n_parts, n_neighbors, eigen_solver, random_state)[cell]
     graph = kneighbors_graph(xyz, min(n_neighbors, n - 1), include_self=False)
     graph = 0.5 * (graph + graph.T)
     _, comp = connected_components(graph, directed=False)
@@ -57,13 +72,14 @@ def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
 class DBSCANSpectralSegmenter(Segmenter):
     """DBSCAN (``eps``, ``min_samples``) plus spectral splits above ``max_cluster_size``.
 
-    Sizes count map points (``sample_weight``), like ``min_samples``.
+    Sizes count map points (``sample_weight``), like ``min_samples``. ``graph_cell`` (m):
+    0 = every point a node of the kNN graph (the paper), else nodes on cells of that size.
     """
 
     def __init__(self, eps: float = 0.8, min_samples: float = 1300,
                  max_cluster_size: float = 45000, n_neighbors: int = 10,
                  eigen_solver: str = "amg", random_state: int = 0,
-                 algorithm: str = "auto") -> None:
+                 algorithm: str = "auto", graph_cell: float = 0.0) -> None:
         self.eps = eps
         self.min_samples = min_samples
         self.max_cluster_size = max_cluster_size
@@ -71,12 +87,15 @@ class DBSCANSpectralSegmenter(Segmenter):
         self.eigen_solver = eigen_solver
         self.random_state = random_state
         self.algorithm = algorithm
+        self.graph_cell = graph_cell
 
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None  # noqa: N803
             ) -> "DBSCANSpectralSegmenter":
         """Cluster ``X`` (N, 3); sets ``labels_``, ``n_clusters_`` and ``splits_``."""
         for name in ("eps", "min_samples", "max_cluster_size", "n_neighbors"):
             check_positive(getattr(self, name), name)
+        if self.graph_cell != 0:
+            check_positive(self.graph_cell, "graph_cell (0 = every point a node, else m)")
         xyz = check_points(X)
         w = check_weight(sample_weight, len(xyz))
         labels, _ = run_dbscan(xyz, self.eps, self.min_samples, w, self.algorithm)
@@ -90,7 +109,7 @@ class DBSCANSpectralSegmenter(Segmenter):
             if n_parts < 2:
                 continue
             parts = spectral_split(xyz[members], n_parts, self.n_neighbors, self.eigen_solver,
-                                   self.random_state)
+                                   self.random_state, self.graph_cell)
             self.splits_[cluster] = n_parts
             out[members[parts > 0]] = next_label + parts[parts > 0] - 1
             next_label += n_parts - 1
