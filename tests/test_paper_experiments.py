@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from canopy_kit.config import load_preset
 from canopy_kit.errors import InputError
 from canopy_kit.paper import experiments as ex
 
@@ -156,6 +157,11 @@ def test_settings_are_checked():
     with pytest.raises(InputError, match="seeds repeat"):
         ex.ExperimentConfig(seeds=(1, 1)).validate()
     ex.ExperimentConfig(orchards=("almond-paper",)).validate()
+    # the scaled almond method on request, through a preset that sets it up
+    ex.ExperimentConfig(methods=("dbscan_spectral_scaled",)).validate()
+    assert load_preset(ex.METHOD_PRESETS["dbscan_spectral_scaled"]).segment.params[
+        "graph_cell"] > 0
+    assert "dbscan_spectral_scaled" not in ex.ExperimentConfig().methods
     with pytest.raises(InputError, match="unknown orchard 'walnut'"):
         ex.ExperimentConfig(orchards=("walnut",)).validate()
     with pytest.raises(InputError, match="no experiment results"):

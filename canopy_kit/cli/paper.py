@@ -210,7 +210,8 @@ def experiments(
                                            "almond-paper (calibrated on the paper's DBSCAN)."),
     method: list[str] = typer.Option(["dbscan", "dbscan_spectral", "adaptive"], "--method",
                                      help="Segmenter (repeat): dbscan = the pistachio preset, "
-                                          "dbscan_spectral = the almond preset, adaptive."),
+                                          "dbscan_spectral = the almond preset, adaptive, "
+                                          "dbscan_spectral_scaled = almond-scaled."),
     true_poses: bool = typer.Option(
         False, "--true-poses", help="Also run every method on a map from the true poses "
                                     "(separates mapping error from the rest)."),
