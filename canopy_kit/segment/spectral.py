@@ -6,9 +6,9 @@ k-nearest-neighbour graph (k = 10): a spectral embedding, then k-means in it.
 
 The paper does not say at what scale the graph's nodes lie. ``graph_cell = 0`` (the
 default, the literal reading) makes every voxel point a node, so k = 10 neighbours reach
-about 0.16 m in simulated almond foliage; ``graph_cell > 0`` puts the nodes at the centroids of cells of that
-size (m) and each point takes its cell's part, so the graph spans branches rather than
-leaves (measured in docs/SEGMENTATION.md; the ``almond-scaled`` preset).
+about 0.16 m in simulated almond foliage; ``graph_cell > 0`` puts the nodes at the
+centroids of cells of that size (m) and each point takes its cell's part, so the graph
+spans branches rather than leaves (docs/SEGMENTATION.md; the ``almond-scaled`` preset).
 """
 
 from __future__ import annotations
