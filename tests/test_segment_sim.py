@@ -138,9 +138,10 @@ def test_cli_segment_and_evaluate_round_trip(sessions, tmp_path: Path) -> None:
     s, cloud = sessions["pistachio"]
     map_path = write_cloud(tmp_path / "map.laz", _las_compatible(cloud))
     out = tmp_path / "run"
-    exe = [sys.executable, "-m", "canopy_kit.cli"] if False else [str(Path(sys.executable).parent / "canopy-kit")]
-    res = subprocess.run(exe + ["segment", str(map_path), "--preset", "almond", "--method", "adaptive",
-                                "--out", str(out), "--trajectory", str(s.root / "truth" / "trajectory.csv")],
+    exe = [str(Path(sys.executable).parent / "canopy-kit")]
+    res = subprocess.run(exe + ["segment", str(map_path), "--preset", "almond", "--method",
+                                "adaptive", "--out", str(out), "--trajectory",
+                                str(s.root / "truth" / "trajectory.csv")],
                          capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert "segmented 6 trees in 2 rows (adaptive" in res.stdout
