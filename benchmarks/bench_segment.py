@@ -14,7 +14,10 @@ points of maps with more and more rows (the two rows of one simulated session re
 across), each run in a fresh process for its peak memory.
 ``real`` scores every method on the labelled airborne scan in ../shared/data/lidr;
 ``table`` prints the reproduction table of docs/SEGMENTATION.md from the saved results;
-``figures`` draws the top views and failure galleries in docs/figures. The numbers in
+``figures`` draws the top views and failure galleries in docs/figures. ``accuracy``,
+``figures`` and ``real`` run DEFAULT_METHODS unless ``--methods`` says otherwise: the
+paper's two, ``dbscan_spectral_scaled`` (its almond method with the almond-scaled preset's
+settings) and ``adaptive``. The numbers in
 docs/SEGMENTATION.md and docs/BENCHMARKS.md come from these commands.
 """
 

@@ -3,6 +3,7 @@ number (the runs, the truth folder, the paper), files, resume and the CLI."""
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 
@@ -10,6 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from canopy_kit.cli import paper as paper_cli
 from canopy_kit.config import load_preset
 from canopy_kit.errors import InputError
 from canopy_kit.paper import experiments as ex
@@ -162,6 +164,9 @@ def test_settings_are_checked():
     assert load_preset(ex.METHOD_PRESETS["dbscan_spectral_scaled"]).segment.params[
         "graph_cell"] > 0
     assert "dbscan_spectral_scaled" not in ex.ExperimentConfig().methods
+    # the CLI (which keeps pandas out of its start-up) offers the same default methods
+    cli_default = inspect.signature(paper_cli.experiments).parameters["method"].default
+    assert tuple(cli_default.default) == ex.DEFAULT_METHODS
     with pytest.raises(InputError, match="unknown orchard 'walnut'"):
         ex.ExperimentConfig(orchards=("walnut",)).validate()
     with pytest.raises(InputError, match="no experiment results"):

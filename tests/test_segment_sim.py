@@ -55,6 +55,7 @@ def scores(sessions):
         tl = truth.trees.set_index("tree_id")[["row", "label"]]
         runs = {m: (m, p) for m, p in PAPER.items()}
         runs["scaled"] = (SCALED.method, SCALED.params)
+        runs["scaled_points"] = (SCALED.method, {**SCALED.params, "graph_cell": 0.0})
         for method, (name, params) in runs.items():
             seg = segment(cloud, make_segmenter(name, params), driving_direction=direction)
             pl = seg.table().set_index("segment_id")[["row", "label"]]
@@ -107,13 +108,19 @@ def test_adaptive_almond_target_on_the_paper_like_orchard(scores) -> None:
 def test_paper_method_at_our_map_scale_reaches_the_paper_on_the_paper_like_orchard(scores
                                                                                   ) -> None:
     """The ``almond-scaled`` preset (split threshold = a typical tree's map points, kNN graph
-    on 0.3 m cells) gets 83-90 % of never-seen almond-paper trees (docs/SEGMENTATION.md); on
-    one small session: within one tree of the envelope ceiling and better than the paper's
-    literal settings, and it still leaves every pistachio tree whole."""
+    on 0.3 m cells) gets 81-90 % of never-seen almond-paper trees per set (88.1 % of 519,
+    docs/SEGMENTATION.md); on
+    one small session: within one tree of the envelope ceiling, better than the paper's
+    literal settings and no worse than the same settings on the point graph, and it still
+    leaves every pistachio tree whole."""
     scaled, _ = scores["almond-paper", "scaled"]
     literal, _ = scores["almond-paper", "dbscan_spectral"]
     ceiling = scores["almond-paper", "ceiling"]
     assert scaled.n_correct >= ceiling.n_correct - 1 and scaled.n_correct > literal.n_correct
+    # no worse than the same threshold and k on the point graph (on 7 trees they may tie;
+    # over 102 calibration trees the cells gave 79 against 73; that the cells are used at
+    # all is test_segment_units.test_spectral_split_on_graph_cells)
+    assert scaled.n_correct >= scores["almond-paper", "scaled_points"][0].n_correct
     assert scores["pistachio", "scaled"][0].success_rate == 1.0
 
 

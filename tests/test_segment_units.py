@@ -21,9 +21,9 @@ from canopy_kit.segment.ground import fit_ground, ransac_plane
 from canopy_kit.segment.preprocess import prepare
 from canopy_kit.segment.rows import (assign_rows, bearing_to_vector, default_direction,
                                      driving_direction_from_trajectory)
+from canopy_kit.segment.spectral import spectral_split
 from canopy_kit.segment.stems import detect_stems
 from canopy_kit.segment.verb import make_segmenter, segment
-
 from canopy_kit.voxel import voxel_centroids
 
 from fixtures_sim import synthetic_orchard
@@ -176,6 +176,8 @@ def test_spectral_split_on_graph_cells() -> None:
     assert (per_cell == 1).all()
     with pytest.raises(InputError, match="graph_cell"):
         make_segmenter("dbscan_spectral", {"graph_cell": -0.3}).fit_predict(xyz)
+    with pytest.raises(ConfigError, match="graph_cell"):
+        spectral_split(xyz, 3, graph_cell=-0.3)
 
 
 def test_voxel_centroids_by_hand() -> None:

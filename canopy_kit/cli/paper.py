@@ -208,6 +208,7 @@ def experiments(
     orchard: list[str] = typer.Option(["pistachio", "almond"], "--orchard",
                                       help="Orchard (repeat for several): pistachio, almond, "
                                            "almond-paper (calibrated on the paper's DBSCAN)."),
+    # = canopy_kit.paper.experiments.DEFAULT_METHODS (not imported: it pulls in pandas)
     method: list[str] = typer.Option(["dbscan", "dbscan_spectral", "adaptive"], "--method",
                                      help="Segmenter (repeat): dbscan = the pistachio preset, "
                                           "dbscan_spectral = the almond preset, adaptive, "

@@ -6,8 +6,9 @@ LiDAR-inertial mapping) runs it once per segmenter with the preset that sets it 
 ``dbscan`` = the paper's pistachio preset (eps 0.8 m, N_min 1300), ``dbscan_spectral`` =
 the paper's almond preset (split above 45,000 points, k = 10), ``adaptive`` = canopy-kit's
 own (and on request ``dbscan_spectral_scaled`` = the ``almond-scaled`` preset); every
-preset measures convex hull and alpha shape (alpha = 0.9 m). Optionally the same runs on a map built from the true poses separate mapping error from segmentation and
-volume error.
+preset measures convex hull and alpha shape (alpha = 0.9 m). Optionally the same runs
+on a map built from the true poses separate mapping error from segmentation and volume
+error.
 
 Scored against the simulator's truth: segmentation success (:mod:`canopy_kit.evaluate`,
 one-to-one point IoU >= 0.5), and, on the correctly segmented trees, volume errors against

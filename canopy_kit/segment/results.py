@@ -54,7 +54,9 @@ def results_table(path: str | Path | None = None, variant: str = "default",
 
 
 #: Our targets (issue: adaptive >= 98 % pistachio and >= 95 % almond with the same settings;
-#: dbscan_spectral at least the paper's 80 % on almond).
+#: dbscan_spectral at least the paper's 80 % on almond). The almond rows apply to every
+#: almond-like orchard; on the default ``almond`` the ``almond-scaled`` preset's 30,000-point
+#: threshold is below a typical tree's map points there, so it is not expected to meet it.
 TARGETS = {("pistachio", "adaptive"): 0.98, ("almond", "adaptive"): 0.95,
            ("almond", "dbscan_spectral"): 0.80, ("almond", "dbscan_spectral_scaled"): 0.80}
 

@@ -17,6 +17,7 @@ import warnings
 
 import numpy as np
 
+from canopy_kit.errors import ConfigError
 from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
 from canopy_kit.segment.dbscan import run_dbscan
 from canopy_kit.segment.density import first_appearance_order
@@ -29,7 +30,9 @@ def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
     """Split points into ``n_parts`` by spectral clustering on their kNN graph (labels 0..n-1).
 
     With ``graph_cell > 0`` the graph joins the centroids of cells of that size instead of
-    the points, and every point takes its cell's part.
+    the points, and every point takes its cell's part; k-means then weighs every cell the
+    same, however many points it holds. When there are no more cells than parts the split
+    falls back to the point graph.
 
     The symmetrised k-nearest-neighbour connectivity graph of sparse foliage falls apart
     into many small pieces, and each piece would take an eigenvector of its own; so the
@@ -42,6 +45,9 @@ def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
     from sklearn.manifold import spectral_embedding
     from sklearn.neighbors import kneighbors_graph
 
+    if graph_cell < 0:
+        raise ConfigError(f"spectral split: graph_cell must be >= 0 m (0 = a node per point), "
+                          f"got {graph_cell}")
     n = len(xyz)
     if n_parts <= 1 or n <= n_parts:
         return np.zeros(n, dtype=np.int64)
