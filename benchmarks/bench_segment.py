@@ -33,19 +33,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from canopy_kit.config import load_preset
+
 PAPER = {
     "dbscan": {"eps": 0.8, "min_samples": 1300},
     "dbscan_spectral": {"eps": 0.8, "min_samples": 1300, "max_cluster_size": 45000,
                         "n_neighbors": 10},
     "adaptive": {},
-    # the paper's almond method with its split threshold and graph at our map's scale
-    # (canopy_kit/presets/almond-scaled.toml)
-    "dbscan_spectral_scaled": {"eps": 0.8, "min_samples": 1300, "max_cluster_size": 30000,
-                               "n_neighbors": 30, "graph_cell": 0.3},
-    # only the graph at our scale, the paper's threshold (an ablation)
-    "dbscan_spectral_cells": {"eps": 0.8, "min_samples": 1300, "max_cluster_size": 45000,
-                              "n_neighbors": 30, "graph_cell": 0.3},
 }
+# the paper's almond method with its split threshold and graph at our map's scale, as the
+# shipped preset sets it (canopy_kit/presets/almond-scaled.toml)
+PAPER["dbscan_spectral_scaled"] = dict(load_preset("almond-scaled").segment.params)
+# only the graph at our scale, the paper's threshold (an ablation)
+PAPER["dbscan_spectral_cells"] = {**PAPER["dbscan_spectral_scaled"],
+                                  "max_cluster_size": PAPER["dbscan_spectral"]["max_cluster_size"]}
 #: what the benchmark runs unless told (the ablation only when asked for)
 DEFAULT_METHODS = ["dbscan", "dbscan_spectral", "dbscan_spectral_scaled", "adaptive"]
 #: method names of this benchmark that run a segmenter under another name

@@ -29,6 +29,12 @@ def linear_keys(keys: np.ndarray) -> np.ndarray:
     return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
 
 
+def voxel_index(keys: np.ndarray) -> np.ndarray:
+    """Each point's voxel (N,), numbered 0..V-1 in ascending key order, from voxel keys."""
+    _, inverse = np.unique(linear_keys(keys), return_inverse=True)
+    return inverse.ravel()
+
+
 def first_minimum(groups: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Per group (non-negative ints), in ascending group order: the index of its smallest
     value, the first such index on ties. No sort of all points (a lexsort of a 4 M-point map
@@ -50,8 +56,7 @@ def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     origin = xyz.min(axis=0)
     keys = voxel_keys(xyz, size, origin)
-    _, inverse = np.unique(linear_keys(keys), return_inverse=True)
-    inverse = inverse.ravel()
+    inverse = voxel_index(keys)
     centre = origin + (keys + 0.5) * size
     dist = np.einsum("ij,ij->i", xyz - centre, xyz - centre)
     reps = first_minimum(inverse, dist)  # reps[v]: the point kept for voxel v
@@ -91,6 +96,5 @@ def voxel_centroids(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarra
     """The mean point of each occupied voxel (V, 3), and each point's voxel (N,)."""
     if len(xyz) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
-    _, inverse = np.unique(linear_keys(voxel_keys(xyz, size)), return_inverse=True)
-    inverse = inverse.ravel()
+    inverse = voxel_index(voxel_keys(xyz, size))
     return group_means(xyz, inverse), inverse

@@ -24,6 +24,12 @@ from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.voxel import voxel_centroids
 
 
+def check_graph_cell(graph_cell: float) -> None:
+    """ConfigError unless ``graph_cell`` is 0 (a node per point) or a positive size in m."""
+    if not (isinstance(graph_cell, int | float) and graph_cell >= 0):
+        raise ConfigError(f"graph_cell must be >= 0 m (0 = a node per point), got {graph_cell!r}")
+
+
 def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
                    eigen_solver: str = "amg", random_state: int = 0,
                    graph_cell: float = 0.0) -> np.ndarray:
@@ -45,9 +51,7 @@ def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
     from sklearn.manifold import spectral_embedding
     from sklearn.neighbors import kneighbors_graph
 
-    if graph_cell < 0:
-        raise ConfigError(f"spectral split: graph_cell must be >= 0 m (0 = a node per point), "
-                          f"got {graph_cell}")
+    check_graph_cell(graph_cell)
     n = len(xyz)
     if n_parts <= 1 or n <= n_parts:
         return np.zeros(n, dtype=np.int64)
@@ -100,8 +104,7 @@ class DBSCANSpectralSegmenter(Segmenter):
         """Cluster ``X`` (N, 3); sets ``labels_``, ``n_clusters_`` and ``splits_``."""
         for name in ("eps", "min_samples", "max_cluster_size", "n_neighbors"):
             check_positive(getattr(self, name), name)
-        if self.graph_cell != 0:
-            check_positive(self.graph_cell, "graph_cell (0 = every point a node, else m)")
+        check_graph_cell(self.graph_cell)
         xyz = check_points(X)
         w = check_weight(sample_weight, len(xyz))
         labels, _ = run_dbscan(xyz, self.eps, self.min_samples, w, self.algorithm)
