@@ -66,7 +66,8 @@ class MappingConfig:
     accel_noise_density: float = 0.05
     gyro_bias_walk: float = 5e-5
     accel_bias_walk: float = 1e-3
-    # GNSS: epochs, error model, antenna lever arm in the LiDAR frame
+    # GNSS: epochs, error model, and the antenna lever arm in the LiDAR frame (used only
+    # when neither /tf_static nor the rig relates the receiver's frame to the LiDAR's)
     gnss_epoch: float = 1.0
     gnss_correlation_time: float = 30.0
     gnss_white_fraction: float = 0.3
@@ -77,6 +78,17 @@ class MappingConfig:
     pointcloud_topic: str = ""
     imu_topic: str = ""
     gnss_topic: str = ""
+    # Sensor rig (docs/MAPPING.md, "Sensor rigs"): extrinsics from the bag's /tf_static,
+    # given or overridden by ``rig`` (a rig file's tables; ``--rig FILE`` puts them here and
+    # its path in ``rig_name``). ``extrinsics``: "auto" stops when the LiDAR and the IMU
+    # stamp different frames and nothing relates them; "identity" takes them for one frame;
+    # "calibrate" estimates the IMU's rotation from the drive (one more odometry pass).
+    # The rotation is always checked against the data: a warning past ``extrinsic_tolerance_deg``.
+    rig: dict[str, Any] = field(default_factory=dict)
+    rig_name: str = ""
+    extrinsics: Literal["auto", "identity", "calibrate"] = "auto"
+    base_frame: str = ""  # the frame the trajectory is reported in (default: base_link, else the LiDAR's)
+    extrinsic_tolerance_deg: float = 2.0
 
 
 @dataclass

@@ -38,7 +38,12 @@ def map_bag(
 
 
 def _evaluate(result, bag: Path, truth: Path | None, progress):  # noqa: ANN001, ANN202
-    from canopy_kit.mapping.evaluate import evaluate_against_simulation, reference_from_bag, trajectory_errors
+    from canopy_kit.mapping.evaluate import (
+        estimate_in_frame,
+        evaluate_against_simulation,
+        reference_from_bag,
+        trajectory_errors,
+    )
 
     reference = reference_from_bag(bag)
     sim_dir = truth
@@ -49,7 +54,7 @@ def _evaluate(result, bag: Path, truth: Path | None, progress):  # noqa: ANN001,
         if progress:
             progress("evaluation: map vs true scene", 0, 1)
         return evaluate_against_simulation(result, sim_dir, reference), reference
-    return trajectory_errors(result.trajectory, reference), reference
+    return trajectory_errors(estimate_in_frame(result, reference.attrs.get("frame")), reference), reference
 
 
 def _write_plots(result, out: Path, reference, evaluation) -> dict[str, Path]:  # noqa: ANN001

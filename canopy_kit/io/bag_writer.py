@@ -93,9 +93,25 @@ class BagWriter:
             f["path"] = f["path"].replace(self._tmp.name, self.path.name)
         meta_path.write_text(yaml.safe_dump(meta, sort_keys=False))
 
+    def _connect(self, topic: str, msgtype: str, latched: bool = False) -> None:
+        """Open a connection; ``latched`` as /tf_static is (ROS1 latching, ROS2 transient local)."""
+        if not latched:
+            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
+        elif self.ros1:
+            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore, latching=1)
+        else:
+            from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                            QosTime)
+
+            never = QosTime(0x7FFFFFFF, 0xFFFFFFFF)
+            qos = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
+                      never, never, QosLiveliness.AUTOMATIC, never, False)
+            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
+                                                             offered_qos_profiles=[qos])
+
     def _write(self, topic: str, msgtype: str, msg: Any, stamp: float) -> None:
         if topic not in self._conns:
-            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
+            self._connect(topic, msgtype)
         if self.ros1:
             data = self.typestore.serialize_ros1(msg, msgtype)
         else:
@@ -153,6 +169,26 @@ class BagWriter:
             position_covariance=cov, position_covariance_type=2,
         )
         self._write(topic, "sensor_msgs/msg/NavSatFix", msg, stamp)
+
+    def write_tf_static(self, stamp: float, transforms: list[tuple[str, str, np.ndarray]],
+                        topic: str = "/tf_static") -> None:
+        """One latched tf2_msgs/TFMessage of ``(parent, child, parent_from_child 4x4)`` transforms."""
+        from scipy.spatial.transform import Rotation
+
+        from canopy_kit.io.tf import TF_MESSAGE, ensure_tf_types
+
+        ensure_tf_types(self.typestore)
+        t = self.typestore.types
+        items = []
+        for parent, child, matrix in transforms:
+            m = np.asarray(matrix, float)
+            items.append(t["geometry_msgs/msg/TransformStamped"](
+                header=self._header(topic, stamp, parent), child_frame_id=child,
+                transform=t["geometry_msgs/msg/Transform"](
+                    translation=self._vec3(m[:3, 3]), rotation=self._quat(Rotation.from_matrix(m[:3, :3]).as_quat()))))
+        if topic not in self._conns:
+            self._connect(topic, TF_MESSAGE, latched=True)
+        self._write(topic, TF_MESSAGE, t[TF_MESSAGE](transforms=items), stamp)
 
     def write_odometry(self, topic: str, stamp: float, position: Any, orientation: Any,
                        frame_id: str = "map", child_frame_id: str = "lidar") -> None:

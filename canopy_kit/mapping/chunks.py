@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from canopy_kit.config import MappingConfig
 from canopy_kit.io.bag import BagSession, open_bag
+from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass, scan_count
 from canopy_kit.mapping.sensors import resolve_topics
 from canopy_kit.parallel import Tick, run_forked, worker_count
@@ -44,9 +45,12 @@ class Chunk:
     first: int
     own: int
     end: int | None  # None: to the end of the bag
+    rig: SensorRig | None = None
+    lidar_only: bool = False
 
 
-def chunk_plan(bag_path: str, n_scans: int, config: MappingConfig) -> list[Chunk]:
+def chunk_plan(bag_path: str, n_scans: int, config: MappingConfig, rig: SensorRig | None = None,
+               lidar_only: bool = False) -> list[Chunk]:
     """The chunks for ``n_scans`` scans: one per worker (``mapping.workers``, 0: every core)."""
     workers = worker_count(config.workers, n_scans // max(config.odometry_chunk_sweeps, 1))
     bounds = balanced_bounds(n_scans, workers)
@@ -55,7 +59,8 @@ def chunk_plan(bag_path: str, n_scans: int, config: MappingConfig) -> list[Chunk
     def start(own: int) -> int:  # early enough for the overlap, in step with the chunk before
         return max(0, (own - OVERLAP_SWEEPS) // step * step)
 
-    return [Chunk(bag_path, config, start(int(a)) if k else 0, int(a), int(b) if k < workers - 1 else None)
+    return [Chunk(bag_path, config, start(int(a)) if k else 0, int(a), int(b) if k < workers - 1 else None,
+                  rig, lidar_only)
             for k, (a, b) in enumerate(itertools.pairwise(bounds))]
 
 
@@ -93,7 +98,8 @@ def _run_chunk(chunk: Chunk, tick: Tick) -> OdometryPass:
             tick()
 
     with open_bag(chunk.bag_path) as bag:
-        return odometry_pass(bag, chunk.config, progress, (chunk.first, chunk.end), count_from=chunk.own)
+        return odometry_pass(bag, chunk.config, progress, (chunk.first, chunk.end), count_from=chunk.own,
+                             rig=chunk.rig, lidar_only=chunk.lidar_only)
 
 
 def tie(previous: list[SweepRecord], current: list[SweepRecord], own: int) -> np.ndarray | None:
@@ -150,23 +156,30 @@ def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | Non
         bag_warnings=list(dict.fromkeys(w for p in parts for w in p.bag_warnings)),
         recovered=first.recovered, workers=len(parts),
         stray=sorted({(i, n) for p, c in zip(parts, chunks) for i, n in p.stray if i >= c.own}),
-        scan_log_ns=last.scan_log_ns)  # the last chunk read every scan message from the start
+        scan_log_ns=last.scan_log_ns,  # the last chunk read every scan message from the start
+        rig=first.rig)
 
 
-def run_odometry(bag: BagSession, config: MappingConfig, progress: Progress | None = None) -> OdometryPass:
-    """Pass 1 over the whole bag: in chunks on several cores when the drive is long enough."""
-    topic = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
-                           config.use_imu, config.use_gnss).scans
-    n_scans = scan_count(bag, topic)
-    chunks = chunk_plan(str(bag.path), n_scans, config)
+def run_odometry(bag: BagSession, config: MappingConfig, progress: Progress | None = None,
+                 rig: SensorRig | None = None, lidar_only: bool = False) -> OdometryPass:
+    """Pass 1 over the whole bag: in chunks on several cores when the drive is long enough.
+
+    ``rig`` (resolved from the bag when None) says how the IMU sits in the LiDAR frame;
+    ``lidar_only`` collects the IMU without using it (to estimate that mounting)."""
+    topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
+                            config.use_imu, config.use_gnss)
+    if rig is None:
+        rig = resolve_rig(bag, topics, config)
+    n_scans = scan_count(bag, topics.scans)
+    chunks = chunk_plan(str(bag.path), n_scans, config, rig, lidar_only)
     if len(chunks) > 1 and not bag.recovered:
         parts = run_forked(_run_chunk, chunks, "mapping: odometry", n_scans, progress)
         stitched = stitch(chunks, parts)
         if stitched is not None:
             return stitched
-        single = odometry_pass(bag, config, progress)
+        single = odometry_pass(bag, config, progress, rig=rig, lidar_only=lidar_only)
         single.state.warnings.append(
             f"odometry: the {len(chunks)} parallel chunks of the drive could not be tied together "
             f"(fewer than {MIN_TIE_SWEEPS} sweeps registered in an overlap); ran in one process")
         return single
-    return odometry_pass(bag, config, progress)
+    return odometry_pass(bag, config, progress, rig=rig, lidar_only=lidar_only)

@@ -149,6 +149,17 @@ def map_accuracy(cloud: PointCloud, raycasting_scene: Any, to_scene: np.ndarray 
     return distance_summary(surface_distances(xyz, raycasting_scene))
 
 
+def estimate_in_frame(result: Any, frame: str | None) -> pd.DataFrame:
+    """A mapping result's poses of ``frame``: its trajectory frame's or the LiDAR's.
+
+    ``None`` or an unknown frame gives the trajectory as reported (the caller's reference
+    says nothing about its frame)."""
+    rig = getattr(result, "rig", None)
+    if frame and rig is not None and frame != rig.base_name and frame == rig.lidar_frame:
+        return result.sensor_trajectory
+    return result.trajectory
+
+
 def evaluate_against_simulation(result: Any, sim_dir: str | Path, reference: pd.DataFrame | None = None,
                                 truth_map_sample: bool = True) -> dict[str, Any]:
     """Trajectory and map errors of a :class:`MappingResult` on a simulated session."""
@@ -157,15 +168,21 @@ def evaluate_against_simulation(result: Any, sim_dir: str | Path, reference: pd.
 
     truth = load_truth(sim_dir)
     if reference is None:
-        reference = truth.trajectory
-    report = trajectory_errors(result.trajectory, reference)
+        reference = truth.trajectory_of(getattr(result, "trajectory_frame", ""))
+        if reference is None:  # a base frame the simulator does not know: compare the LiDAR's poses
+            reference = truth.trajectory
+            reference.attrs["frame"] = truth.info.get("sensor_frame", "")
+    estimate = estimate_in_frame(result, reference.attrs.get("frame"))
+    report = trajectory_errors(estimate, reference)
+    report["trajectory_frame"] = getattr(result, "trajectory_frame", "")
+    # The map is in the frame of the poses, whichever frame they describe.
     align = np.array(report["alignment"])
     _, _, scene, _ = build_world(load_sim_config_of(sim_dir))
     rc = scene.raycasting_scene()
     report["map_aligned"] = map_accuracy(result.map, rc, align)
     if result.frame is not None:
         offset = result.frame.origin - truth.frame.origin
-        report["georeferenced"] = absolute_errors(result.trajectory, reference, offset)
+        report["georeferenced"] = absolute_errors(estimate, reference, offset)
         shift = np.eye(4)
         shift[:3, 3] = offset
         report["map_georeferenced"] = map_accuracy(result.map, rc, shift)
@@ -182,7 +199,9 @@ def reference_from_bag(bag_path: str | Path, topic: str | None = None) -> pd.Dat
         raise InputError(f"{bag_path}: no ground-truth odometry topic (nav_msgs/msg/Odometry) to "
                          "evaluate against")
     order = np.argsort(odo.t)
-    return pd.DataFrame({"time": odo.t[order], "x": odo.position[order, 0], "y": odo.position[order, 1],
-                         "z": odo.position[order, 2], "qx": odo.orientation[order, 0],
-                         "qy": odo.orientation[order, 1], "qz": odo.orientation[order, 2],
-                         "qw": odo.orientation[order, 3]})
+    table = pd.DataFrame({"time": odo.t[order], "x": odo.position[order, 0], "y": odo.position[order, 1],
+                          "z": odo.position[order, 2], "qx": odo.orientation[order, 0],
+                          "qy": odo.orientation[order, 1], "qz": odo.orientation[order, 2],
+                          "qw": odo.orientation[order, 3]})
+    table.attrs["frame"] = odo.child_frame_id  # the frame whose poses these are
+    return table

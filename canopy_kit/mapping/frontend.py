@@ -80,8 +80,11 @@ class LidarFrontend:
     """Feed scans in time order; get registered sweeps back (possibly a few scans later)."""
 
     def __init__(self, config: MappingConfig, imu: ImuBuffer | None, where: str = "bag",
-                 keep_all_points: bool = True) -> None:
+                 keep_all_points: bool = True, lidar_from_base: np.ndarray | None = None) -> None:
         self.config = config
+        # The vehicle's axes in the LiDAR frame: the first sweep's heading is the vehicle's,
+        # and without an IMU the vehicle's z is the first guess of "up" (a tilted LiDAR).
+        self.lidar_from_base = np.eye(4) if lidar_from_base is None else np.asarray(lidar_from_base, float)
         self.keep_all_points = keep_all_points
         # Register every sweep when the caller needs every sweep's points (streaming).
         self.register_every = 1 if keep_all_points else max(1, config.odometry_every)
@@ -138,7 +141,7 @@ class LidarFrontend:
                 st.warnings.append("IMU topic has fewer than 20 samples; mapping with LiDAR only")
                 self.imu = None
             keep = range_mask(first.xyz, self.config.min_range, self.config.max_range)
-            plane = fit_ground_plane(first.xyz[keep])
+            plane = fit_ground_plane(first.xyz[keep], up=self.lidar_from_base[:3, 2])
             if plane is not None:
                 st.initial_rotation = level_rotation(plane[:3]).as_matrix()
                 st.up_source = "ground plane of the first scan"
@@ -146,6 +149,7 @@ class LidarFrontend:
                 st.up_source = "sensor z axis"
             st.warnings.append(f"no IMU: 'up' taken from the {st.up_source}; map tilt follows any "
                                "terrain slope under the first scan")
+        st.initial_rotation = _vehicle_heading_zero(st.initial_rotation, self.lidar_from_base[:3, :3])
         t0 = np.eye(4)
         t0[:3, :3] = st.initial_rotation
         self._odometry = LidarOdometry(OdometrySettings(
@@ -229,14 +233,16 @@ class LidarFrontend:
             use_gyro = st.rotations is not None and st.rotations.covers(float(times.min()), float(times.max()))
             xyz = deskew_points(xyz, times, t_ref, self._velocity, self._omega,
                                 st.rotations if use_gyro else None)
-        ground = ground_mask(xyz, cfg.odometry_ground_band)
+        guess = self._predict(t_ref)
+        # "Up" in the sensor frame from the predicted attitude (gravity-aligned odometry frame),
+        # never the sensor's own z axis: a tilted LiDAR keeps its ground filter right.
+        ground = ground_mask(xyz, cfg.odometry_ground_band, up=guess[2, :3])
         odo_points = xyz[~ground]
         if len(odo_points) < max(cfg.min_points_per_scan // 4, 50):
             odo_points = xyz  # nothing but ground in view: better the trap than no odometry
             st.ground_fallbacks += 1
         if self.keep_all_points and cfg.odometry_point_stride > 1:
             odo_points = odo_points[:: cfg.odometry_point_stride]
-        guess = self._predict(t_ref)
         # Few points above the ground (an open headland) make ICP weak: say so to the graph.
         uncertainty = float(np.clip(STRUCTURE_POINTS / max(len(odo_points), 1), 1.0, WEAK_REGISTRATION_MAX))
         pose = self._odometry.align(odo_points, guess)
@@ -365,6 +371,13 @@ class LidarFrontend:
             delta[:3, :3] = Rotation.from_rotvec(self._omega * dt).as_matrix()
         delta[:3, 3] = self._velocity * dt
         return pose @ delta
+
+
+def _vehicle_heading_zero(world_from_lidar: np.ndarray, lidar_from_base: np.ndarray) -> np.ndarray:
+    """The first sweep's attitude turned about the vertical so that the vehicle heads along +x."""
+    world_from_base = world_from_lidar @ lidar_from_base
+    yaw = float(np.arctan2(world_from_base[1, 0], world_from_base[0, 0]))
+    return Rotation.from_euler("z", -yaw).as_matrix() @ world_from_lidar
 
 
 def require_sweeps(n: int, where: str) -> None:

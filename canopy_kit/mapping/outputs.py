@@ -23,6 +23,7 @@ TRAJECTORY_CSV = "trajectory.csv"
 TRAJECTORY_TUM = "trajectory.tum"
 REPORT_JSON = "mapping.json"
 CONFIG_TOML = "mapping_config.toml"
+RIG_TOML = "rig.toml"
 
 
 def tum_text(trajectory: pd.DataFrame) -> str:
@@ -40,6 +41,20 @@ def read_tum(path: str | Path) -> pd.DataFrame:
 
 
 
+def write_rig(rig: Any, path: str | Path) -> Path:
+    """The rig a run used (frames, mounts, their sources as comments) as a rig file."""
+    import tomlkit
+
+    doc = tomlkit.document()
+    doc.add(tomlkit.comment(f"The sensor rig a canopy-kit mapping run used (trajectory frame {rig.base_name!r})."))
+    for key, source in sorted(rig.sources.items()):
+        doc.add(tomlkit.comment(f"{key}: {source}"))
+    tables = rig.rig_file_tables()
+    doc["rig"] = tables["rig"]
+    doc["frames"] = tables["frames"]
+    return atomic_write_text(path, tomlkit.dumps(doc))
+
+
 def write_mapping_outputs(result: Any, out_dir: str | Path,
                           evaluation: dict[str, Any] | None = None) -> dict[str, Path]:
     """Write a :class:`~canopy_kit.mapping.MappingResult` into ``out_dir``; the written paths."""
@@ -53,6 +68,8 @@ def write_mapping_outputs(result: Any, out_dir: str | Path,
         "trajectory_tum": atomic_write_text(out / TRAJECTORY_TUM, tum_text(result.trajectory)),
         "config": write_config(result.config, out / CONFIG_TOML),
     }
+    if getattr(result, "rig", None) is not None:
+        paths["rig"] = write_rig(result.rig, out / RIG_TOML)
     report = {
         "frame": result.frame.to_dict() if result.frame is not None else None,
         "map": {"points": len(result.map), "crs": result.map.crs,

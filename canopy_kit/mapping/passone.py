@@ -18,6 +18,7 @@ import numpy as np
 from canopy_kit.config import MappingConfig
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.bag import BagSession, stray_times_warning
+from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.frontend import (
     DROPOUT_S,
     STANDSTILL_M,
@@ -68,6 +69,7 @@ class OdometryPass:
     stray: list[tuple[int, int]] = field(default_factory=list)  # (scan, points with corrupt times)
     # The bag's log time (ns) of scan 0, 1, ... as far as they were read (the map pass seeks with it).
     scan_log_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    rig: SensorRig | None = None  # the frames the pass ran with
 
 
 def scan_count(bag: BagSession, topic: str) -> int:
@@ -85,15 +87,20 @@ class PassOne:
 
     def __init__(self, bag: BagSession, config: MappingConfig, progress: Progress | None,
                  keep_all_points: bool, scan_range: tuple[int, int | None] = (0, None),
-                 count_from: int = 0) -> None:
+                 count_from: int = 0, rig: SensorRig | None = None, lidar_only: bool = False) -> None:
         self.bag = bag
         self.config = config
         self.topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
                                      config.use_imu, config.use_gnss)
-        self.imu = ImuBuffer() if self.topics.imu else None
+        self.rig = rig if rig is not None else resolve_rig(bag, self.topics, config)
+        # ``lidar_only``: the IMU is collected (as recorded) but the front end does not use it.
+        self.lidar_only = lidar_only
+        self.imu = ImuBuffer(mounting=self.rig.imu_mounting()) if self.topics.imu else None
         self.gnss = GnssBuffer() if self.topics.gnss else None
-        self.frontend = LidarFrontend(config, self.imu, where=f"{bag.path}: topic {self.topics.scans!r}",
-                                      keep_all_points=keep_all_points)
+        self.frontend = LidarFrontend(config, None if lidar_only else self.imu,
+                                      where=f"{bag.path}: topic {self.topics.scans!r}",
+                                      keep_all_points=keep_all_points,
+                                      lidar_from_base=self.rig.lidar_from_base)
         self.total = scan_count(bag, self.topics.scans)
         self.progress = progress
         self.scan_range = scan_range
@@ -122,7 +129,7 @@ class PassOne:
     def result(self, records: list[SweepRecord]) -> OdometryPass:
         """The pass's output once :meth:`sweeps` is exhausted."""
         imu = self.imu.series() if self.imu is not None and len(self.imu) >= 20 else None
-        if self.frontend.imu is None:
+        if self.frontend.imu is None and not self.lidar_only:
             imu = None
         skip = self.bag.stray_warning_index
         bag_warnings = [w for i, w in enumerate(self.bag.warnings) if i != skip]
@@ -130,7 +137,7 @@ class PassOne:
         return OdometryPass(str(self.bag.path), self.topics, records, self.frontend.state, imu, self.gnss,
                             self.n_scans, self.n_without_time, self.first_stamp, self.last_stamp,
                             bag_warnings, self.bag.recovered, stray=stray,
-                            scan_log_ns=np.asarray(self.scan_log_ns, np.int64))
+                            scan_log_ns=np.asarray(self.scan_log_ns, np.int64), rig=self.rig)
 
 
 def record(sweep: FrontendSweep) -> SweepRecord:
@@ -140,10 +147,11 @@ def record(sweep: FrontendSweep) -> SweepRecord:
 
 
 def odometry_pass(bag: BagSession, config: MappingConfig, progress: Progress | None = None,
-                  scan_range: tuple[int, int | None] = (0, None), count_from: int = 0) -> OdometryPass:
+                  scan_range: tuple[int, int | None] = (0, None), count_from: int = 0,
+                  rig: SensorRig | None = None, lidar_only: bool = False) -> OdometryPass:
     """Run the front end over the bag (or a range of its scans) in this process."""
     one = PassOne(bag, config, progress, keep_all_points=False, scan_range=scan_range,
-                  count_from=count_from)
+                  count_from=count_from, rig=rig, lidar_only=lidar_only)
     return one.result([record(s) for s in one.sweeps()])
 
 

@@ -24,13 +24,15 @@ from canopy_kit.errors import InputError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.bag import open_bag
 from canopy_kit.mapping.assemble import TIME_FIELD, assemble_map, point_fields
+from canopy_kit.mapping.calibration import calibrate_rig, check_rig
 from canopy_kit.mapping.chunks import run_odometry
+from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.frontend import FrontendSweep, require_sweeps
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
 from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
 from canopy_kit.mapping.kernels import warm_up
 from canopy_kit.mapping.passone import PassOne, pass_warnings, quality_flags
-from canopy_kit.mapping.sensors import GnssBuffer
+from canopy_kit.mapping.sensors import GnssBuffer, resolve_topics
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
 from canopy_kit.parallel import cpu_seconds
 
@@ -62,10 +64,19 @@ class MappingResult:
     diagnostics: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     config: MappingConfig = field(default_factory=MappingConfig)
+    rig: SensorRig | None = None  # the sensors' frames the map was built with
+    # The LiDAR's own poses (``trajectory`` is the base frame's, ``rig.base_name``).
+    sensor_trajectory: pd.DataFrame | None = None
+
+    @property
+    def trajectory_frame(self) -> str:
+        """The frame whose poses ``trajectory`` holds."""
+        return self.rig.base_name if self.rig is not None else ""
 
 
-def fusion_settings(config: MappingConfig) -> FusionSettings:
-    """The pose-graph settings a mapping config asks for."""
+def fusion_settings(config: MappingConfig, rig: SensorRig | None = None) -> FusionSettings:
+    """The pose-graph settings a mapping config asks for (the antenna lever arm from the rig)."""
+    lever = rig.gnss_lever_arm if rig is not None else np.asarray(config.gnss_lever_arm, float)
     return FusionSettings(
         keyframe_every=config.keyframe_every,
         odometry_jitter_rotation=config.odometry_jitter_rotation,
@@ -78,7 +89,7 @@ def fusion_settings(config: MappingConfig) -> FusionSettings:
         accel_bias_walk=config.accel_bias_walk,
         gnss_correlation_time=config.gnss_correlation_time,
         gnss_white_fraction=config.gnss_white_fraction,
-        gnss_lever_arm=tuple(float(v) for v in config.gnss_lever_arm),  # type: ignore[arg-type]
+        gnss_lever_arm=tuple(float(v) for v in lever),  # type: ignore[arg-type]
     )
 
 
@@ -93,6 +104,12 @@ def _check_config(config: MappingConfig) -> None:
             raise ConfigError(f"mapping.{name}: must be positive, got {getattr(config, name)}")
     if len(config.gnss_lever_arm) != 3:
         raise ConfigError(f"mapping.gnss_lever_arm: expected [x, y, z], got {config.gnss_lever_arm}")
+    if not config.extrinsic_tolerance_deg > 0:
+        raise ConfigError(f"mapping.extrinsic_tolerance_deg: must be positive, got {config.extrinsic_tolerance_deg}")
+    if config.rig:
+        from canopy_kit.rig import parse_rig
+
+        parse_rig(config.rig, config.rig_name or "mapping.rig")
     for name in ("keyframe_every", "odometry_point_stride", "odometry_every", "odometry_chunk_sweeps"):
         if getattr(config, name) < 1:
             raise ConfigError(f"mapping.{name}: must be >= 1, got {getattr(config, name)}")
@@ -108,8 +125,16 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     timing: dict[str, float] = {}
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
     warm_up()  # before the workers fork: they inherit the loaded kernels
+    extrinsics: dict = {}
     with open_bag(bag_path) as bag:
-        one = run_odometry(bag, config, progress)
+        topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
+                                config.use_imu, config.use_gnss)
+        rig = resolve_rig(bag, topics, config)
+        rig_warnings = list(rig.warnings)
+        if rig.calibrate:
+            rig, extrinsics, more = calibrate_rig(bag, config, rig, progress)
+            rig_warnings += more
+        one = run_odometry(bag, config, progress, rig)
     records = one.records
     registered = [r for r in records if r.registered]
     require_sweeps(len(registered), f"{one.bag_path}: topic {one.topics.scans!r}")
@@ -121,12 +146,15 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     uncertainty = np.array([r.uncertainty for r in registered])
     t_ref = np.array([r.t_ref for r in records])
     deskewed = {r.index: r.deskewed for r in records}
-    warnings = pass_warnings(one, config)
+    warnings = rig_warnings + pass_warnings(one, config)
+    if not extrinsics:
+        extrinsics, more = check_rig(one, rig, config)
+        warnings += more
     imu = one.imu
     st = one.state
     frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings)
     cpu1 = cpu_seconds()
-    fused = fuse_trajectory(odo_times, odometry, fusion_settings(config), imu=imu,
+    fused = fuse_trajectory(odo_times, odometry, fusion_settings(config, rig), imu=imu,
                             standstill=st.standstill, gnss=epochs, uncertainty=uncertainty)
     if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
         why = fused.diagnostics.get("no_heading", "GNSS fixes do not overlap the LiDAR sweeps")
@@ -143,8 +171,9 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
 
     cloud = PointCloud(xyz, fields, crs=frame.crs if frame is not None else None,
                        origin=frame.origin if frame is not None else np.zeros(3))
-    poses = trajectory.matrices(t_ref)
-    table = pose_table(t_ref, poses)
+    poses = trajectory.matrices(t_ref)  # the LiDAR's
+    base_poses = poses @ rig.lidar_from_base
+    table = pose_table(t_ref, base_poses)
     timing["total_cpu_s"] = cpu_seconds() - cpu0
     timing["total_wall_s"] = time.perf_counter() - wall0
     duration = float(one.last_stamp - one.first_stamp + 0.1) if one.n_scans else 0.0
@@ -159,7 +188,10 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "scans_without_point_time": one.n_without_time,
         "sweeps_deskewed": int(sum(deskewed.values())),
         "duration_s": duration,
-        "path_length_m": float(np.sum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))),
+        "path_length_m": float(np.sum(np.linalg.norm(np.diff(base_poses[:, :3, 3], axis=0), axis=1))),
+        "trajectory_frame": rig.base_name,
+        "rig": rig.to_dict(),
+        "extrinsics": extrinsics,
         "map_points": len(cloud),
         "points_offered": offered,
         "up_source": st.up_source,
@@ -183,7 +215,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         if fused.gnss_bias is not None:
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
-    return MappingResult(cloud, table, frame, diagnostics, warnings, config)
+    return MappingResult(cloud, table, frame, diagnostics, warnings, config, rig, pose_table(t_ref, poses))
 
 
 def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig,

@@ -16,6 +16,7 @@ import numpy as np
 from canopy_kit.errors import InputError
 from canopy_kit.io import pointcloud2 as pc2
 from canopy_kit.io.bag import IMU, NAVSATFIX, POINTCLOUD2, BagSession, GnssSeries, ImuSeries, Scan
+from canopy_kit.mapping.imu_mounting import ImuMounting
 
 
 @dataclass
@@ -56,11 +57,16 @@ class _Growable:
 
 
 class ImuBuffer:
-    """IMU samples received so far (time, gyro xyz, accel xyz)."""
+    """IMU samples received so far (time, gyro xyz, accel xyz), as recorded.
 
-    def __init__(self, frame_id: str = "") -> None:
+    With a ``mounting`` the samples come out of :meth:`series` in the LiDAR frame and on
+    the LiDAR clock (see :mod:`.imu_mounting`); :attr:`last_time` is on that clock too.
+    """
+
+    def __init__(self, frame_id: str = "", mounting: ImuMounting | None = None) -> None:
         self._rows = _Growable(7)
         self.frame_id = frame_id
+        self.mounting = None if mounting is None or mounting.is_identity else mounting
 
     def __len__(self) -> int:
         return self._rows.n
@@ -70,14 +76,22 @@ class ImuBuffer:
 
     @property
     def last_time(self) -> float:
-        return float(self._rows.rows[-1, 0]) if len(self) else -np.inf
+        if not len(self):
+            return -np.inf
+        offset = self.mounting.time_offset if self.mounting is not None else 0.0
+        return float(self._rows.rows[-1, 0]) - offset
 
     def series(self, start: int = 0) -> ImuSeries:
-        """Samples from index ``start`` on, sorted by time (no orientation)."""
+        """Samples from index ``start`` on, sorted by time (no orientation).
+
+        With a mounting, the lever-arm terms of a slice are computed from that slice alone
+        (their first and last few samples are less smooth than in the whole series)."""
         r = self._rows.rows[start:]
         r = r[np.argsort(r[:, 0], kind="stable")]
-        return ImuSeries(r[:, 0].copy(), r[:, 1:4].copy(), r[:, 4:7].copy(),
-                         np.tile([0.0, 0.0, 0.0, 1.0], (len(r), 1)), self.frame_id)
+        t, gyro, accel = r[:, 0].copy(), r[:, 1:4].copy(), r[:, 4:7].copy()
+        if self.mounting is not None:
+            t, gyro, accel = self.mounting.apply(t, gyro, accel)
+        return ImuSeries(t, gyro, accel, np.tile([0.0, 0.0, 0.0, 1.0], (len(r), 1)), self.frame_id)
 
 
 class GnssBuffer:

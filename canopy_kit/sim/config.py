@@ -166,6 +166,23 @@ class DroneSpec:
 
 
 @dataclass
+class RigSimSpec:
+    """Where the sensors sit on the vehicle (``canopy_kit.sim.rig``).
+
+    ``name``: ``identity`` (every sensor in the LiDAR's frame at ``lidar.mount_height``, no
+    /tf_static), a rig preset (``canopy_kit/presets/rigs``: tower, imu-flipped, yawed-lever,
+    side-tilt) or a rig file. ``write_tf_static = false`` leaves the mounts out of the bag;
+    ``tf_imu_error_rpy_deg`` makes /tf_static wrong about the IMU by that rotation;
+    ``imu_time_offset`` stamps the IMU this many seconds late against the LiDAR.
+    """
+
+    name: str = "identity"
+    write_tf_static: bool = True
+    tf_imu_error_rpy_deg: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    imu_time_offset: float = 0.0
+
+
+@dataclass
 class SimConfig:
     """A whole field session: orchard, sensors, drive and optional drone flight.
 
@@ -181,6 +198,7 @@ class SimConfig:
     imu: ImuSpec = field(default_factory=ImuSpec)
     gnss: GnssSpec = field(default_factory=GnssSpec)
     drone: DroneSpec = field(default_factory=DroneSpec)
+    rig: RigSimSpec = field(default_factory=RigSimSpec)
 
 
 SENSOR_MODELS: dict[str, dict[str, Any]] = {
@@ -317,6 +335,14 @@ def validate(c: SimConfig) -> None:
     _check(d.acceleration > 0, "drive.acceleration", f"must be positive, got {d.acceleration}")
     _check(0 <= d.speed_variation < d.cruise_speed, "drive.speed_variation", "must be below cruise_speed")
     _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")
+    _check(len(c.rig.tf_imu_error_rpy_deg) == 3, "rig.tf_imu_error_rpy_deg",
+           f"expected [roll, pitch, yaw], got {c.rig.tf_imu_error_rpy_deg}")
+    _check(abs(c.rig.imu_time_offset) < 1.0, "rig.imu_time_offset",
+           f"must be below 1 s in magnitude, got {c.rig.imu_time_offset}")
+    if c.rig.name != "identity":
+        from canopy_kit.sim.rig import sensor_mounts
+
+        sensor_mounts(c)  # the rig exists and names its frames
     _check(0 < c.drone.forward_overlap < 1 and 0 < c.drone.side_overlap < 1, "drone.*_overlap",
            "must be in (0, 1)")
     _check(c.drone.altitude > 0, "drone.altitude", f"must be positive, got {c.drone.altitude}")

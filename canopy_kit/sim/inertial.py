@@ -44,7 +44,7 @@ def simulate_imu(trajectory: Trajectory, spec: ImuSpec, rng: np.random.Generator
 def simulate_gnss(trajectory: Trajectory, spec: GnssSpec, rng: np.random.Generator) -> GnssFixes:
     """GNSS fixes: a correlated (Gauss-Markov) error plus white noise, or RTK-grade noise."""
     t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / spec.rate_hz)
-    pos, _ = trajectory.poses(t)
+    pos = trajectory.antenna_positions(t)
     n = len(t)
     if spec.mode == "rtk":
         sh, sv = spec.rtk_sigma_horizontal, spec.rtk_sigma_vertical

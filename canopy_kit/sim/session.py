@@ -19,6 +19,7 @@ from canopy_kit.sim.config import SimConfig, validate
 from canopy_kit.sim.inertial import simulate_gnss, simulate_imu
 from canopy_kit.sim.lidar import SpinningLidar
 from canopy_kit.sim.orchard import Orchard, generate_orchard
+from canopy_kit.sim.rig import SensorMounts, sensor_mounts
 from canopy_kit.sim.scene import Scene, build_scene
 from canopy_kit.sim.trajectory import Trajectory
 from canopy_kit.sim.truth import tree_table, write_csv
@@ -59,7 +60,8 @@ def build_world(config: SimConfig) -> tuple[Orchard, Trajectory, Scene, dict[str
     rngs = _streams(config.seed, config.session_seed)
     orchard = generate_orchard(config.orchard, rngs["orchard"])
     trajectory = Trajectory(orchard, config.drive, config.lidar.mount_height, rngs["drive"],
-                            t0=SESSION_EPOCH, mount_pitch_deg=config.lidar.mount_pitch_deg)
+                            t0=SESSION_EPOCH, mount_pitch_deg=config.lidar.mount_pitch_deg,
+                            mounts=sensor_mounts(config))
     t = np.linspace(trajectory.start_time, trajectory.end_time, 2000)
     path, _ = trajectory.poses(t)
     scene = build_scene(orchard, rngs["scene"], (path.min(axis=0), path.max(axis=0)))
@@ -93,8 +95,9 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     root.mkdir(parents=True, exist_ok=True)
     report = progress or (lambda *_: None)
     orchard, trajectory, scene, rngs = build_world(config)
+    mounts = sensor_mounts(config)
     truth_dir = root / "truth"
-    _write_truth(truth_dir, config, orchard, trajectory, fmt, truth_field)
+    _write_truth(truth_dir, config, orchard, trajectory, fmt, truth_field, mounts)
     lidar = SpinningLidar(config.lidar, scene, trajectory, rngs["lidar"], truth_field)
     sweeps = lidar.sweep_times()
     imu = simulate_imu(trajectory, config.imu, rngs["imu"]) if config.imu.enabled else None
@@ -102,14 +105,16 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     odo_t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
     n_points = 0
     with BagWriter(bag_path, fmt) as writer:
+        if mounts.tf_static:
+            writer.write_tf_static(trajectory.start_time, [(t.parent, t.child, t.matrix) for t in mounts.tf_static])
         cursors = {"imu": 0, "gnss": 0, "odom": 0}
 
         def flush(until: float) -> None:
             if imu is not None:
                 i = cursors["imu"]
                 while i < len(imu.t) and imu.t[i] < until:
-                    writer.write_imu(config.imu.topic, imu.t[i], imu.angular_velocity[i],
-                                     imu.linear_acceleration[i], None, config.imu.frame_id)
+                    writer.write_imu(config.imu.topic, imu.t[i] + mounts.imu_time_offset, imu.angular_velocity[i],
+                                     imu.linear_acceleration[i], None, mounts.imu_frame)
                     i += 1
                 cursors["imu"] = i
             if gnss is not None:
@@ -118,7 +123,7 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
                     lat, lon, h = orchard.frame.to_wgs84(gnss.local_xyz[i : i + 1])
                     writer.write_fix(config.gnss.topic, gnss.t[i], lat[0], lon[0], h[0],
                                      gnss.sigma_horizontal, gnss.sigma_vertical, gnss.status,
-                                     config.gnss.frame_id)
+                                     mounts.gnss_frame)
                     i += 1
                 cursors["gnss"] = i
             i = cursors["odom"]
@@ -130,7 +135,7 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
                 quat = rot.as_quat()
                 for k in range(j - i):
                     writer.write_odometry(config.drive.odometry_topic, odo_t[i + k], pos[k], quat[k],
-                                          "map", config.lidar.frame_id)
+                                          "map", mounts.lidar_frame)
             cursors["odom"] = j
 
         for k, stamp in enumerate(sweeps):
@@ -138,7 +143,7 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
             flush(end)
             scan = lidar.sweep(stamp)
             n_points += len(scan.columns["x"])
-            writer.write_points(config.lidar.topic, stamp, scan.columns, config.lidar.frame_id)
+            writer.write_points(config.lidar.topic, stamp, scan.columns, mounts.lidar_frame)
             report("LiDAR sweeps", k + 1, len(sweeps))
         flush(trajectory.end_time + 1.0)
     drone_dir = None
@@ -152,16 +157,21 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
                             drone_dir)
 
 
+def _pose_frame(t: np.ndarray, pos: np.ndarray, rot: object) -> pd.DataFrame:
+    q = rot.as_quat()  # type: ignore[attr-defined]
+    return pd.DataFrame({"time": t, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
+                         "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
+
+
 def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajectory: Trajectory,
-                 fmt: str, truth_field: bool) -> None:
+                 fmt: str, truth_field: bool, mounts: SensorMounts) -> None:
     truth_dir.mkdir(parents=True, exist_ok=True)
     write_csv(tree_table(orchard), truth_dir / "trees.csv")
     t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
-    pos, rot = trajectory.poses(t)
-    q = rot.as_quat()
-    traj = pd.DataFrame({"time": t, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
-                         "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
-    write_csv(traj, truth_dir / "trajectory.csv", float_format="%.9f")
+    write_csv(_pose_frame(t, *trajectory.poses(t)), truth_dir / "trajectory.csv", float_format="%.9f")
+    if not mounts.identity:  # the vehicle frame's poses, which a rig-aware mapping reports
+        base = trajectory.mounted_poses(t, np.eye(4))
+        write_csv(_pose_frame(t, *base), truth_dir / "base_trajectory.csv", float_format="%.9f")
     info = {
         "frame": orchard.frame.to_dict(),
         "row_direction": orchard.row_direction.tolist(),
@@ -170,9 +180,9 @@ def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajector
         "path_length_m": trajectory.length,
         "duration_s": trajectory.duration,
         "start_time": trajectory.start_time,
-        "sensor_frame": config.lidar.frame_id,
-        "imu_extrinsic": "identity (IMU frame = LiDAR frame)",
-        "gnss_lever_arm_m": [0.0, 0.0, 0.0],
+        "sensor_frame": mounts.lidar_frame,
+        "base_frame": mounts.base_frame if not mounts.identity else mounts.lidar_frame,
+        "rig": dict(mounts.to_dict(), name=config.rig.name),
         "label_convention": "rows numbered left to right along the first pass; "
                             "even rows L, odd rows R; index along the row direction",
     }

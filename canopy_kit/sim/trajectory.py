@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from canopy_kit.sim.config import DriveSpec
 from canopy_kit.sim.orchard import Orchard
+from canopy_kit.sim.rig import SensorMounts, legacy_lidar_mount
 
 GRAVITY = 9.80665
 
@@ -55,15 +56,28 @@ class _Arc:
 
 
 class Trajectory:
-    """Sensor poses over time for one session (local frame, sensor = body = IMU frame)."""
+    """Vehicle and sensor poses over time for one session (local frame).
+
+    The vehicle frame has its origin on the ground midway between the wheels; ``mounts``
+    place the LiDAR, the IMU and the antenna on it (default: all three at one point,
+    ``mount_height`` above the ground, pitched ``mount_pitch_deg``). :meth:`poses` gives
+    the LiDAR's poses, :meth:`imu` what the IMU measures in its own frame.
+    """
 
     def __init__(self, orchard: Orchard, spec: DriveSpec, mount_height: float,
-                 rng: np.random.Generator, t0: float = 1.7e9, mount_pitch_deg: float = 0.0) -> None:
+                 rng: np.random.Generator, t0: float = 1.7e9, mount_pitch_deg: float = 0.0,
+                 mounts: SensorMounts | None = None) -> None:
         self.orchard = orchard
         self.spec = spec
         self.mount_height = mount_height
         self.t0 = t0
-        self._mount = Rotation.from_euler("y", mount_pitch_deg, degrees=True)
+        if mounts is None:
+            lidar = legacy_lidar_mount(mount_height, mount_pitch_deg)
+            self.base_from_lidar, self.base_from_imu, self.base_from_antenna = lidar, lidar, lidar
+        else:
+            self.base_from_lidar = mounts.base_from_lidar
+            self.base_from_imu = mounts.base_from_imu
+            self.base_from_antenna = mounts.base_from_antenna
         self.segments, self.turn_flags = _plan_segments(orchard, spec)
         starts = np.concatenate([[0.0], np.cumsum([seg.length for seg in self.segments])])
         self._seg_start = starts
@@ -143,7 +157,21 @@ class Trajectory:
         return out * moving[:, None]
 
     def poses(self, t: np.ndarray) -> tuple[np.ndarray, Rotation]:
-        """Sensor positions (N, 3) and orientations at times ``t`` (seconds, absolute)."""
+        """LiDAR positions (N, 3) and orientations at times ``t`` (seconds, absolute)."""
+        return self.mounted_poses(t, self.base_from_lidar)
+
+    def mounted_poses(self, t: np.ndarray, base_from_sensor: np.ndarray) -> tuple[np.ndarray, Rotation]:
+        """Positions and orientations of a frame mounted on the vehicle at ``base_from_sensor``."""
+        position, body = self.vehicle_poses(t)
+        mount = np.asarray(base_from_sensor, float)
+        return position + body.apply(mount[:3, 3]), body * Rotation.from_matrix(mount[:3, :3])
+
+    def antenna_positions(self, t: np.ndarray) -> np.ndarray:
+        """Positions (N, 3) of the GNSS antenna's phase centre."""
+        return self.mounted_poses(t, self.base_from_antenna)[0]
+
+    def vehicle_poses(self, t: np.ndarray) -> tuple[np.ndarray, Rotation]:
+        """The vehicle frame (origin on the ground between the wheels): positions and orientations."""
         t = np.atleast_1d(np.asarray(t, float))
         s = self.arc_length(t)
         xy, heading = self._xy_heading(s)
@@ -159,16 +187,17 @@ class Trajectory:
         vib = self._vibration(t)
         body = Rotation.from_euler("ZYX", np.column_stack([heading + vib[:, 2], pitch + vib[:, 1],
                                                            roll + vib[:, 0]]))
-        ground = np.column_stack([xy, 0.25 * (z_front + z_rear + z_left + z_right)])
-        position = ground + body.apply(np.array([0.0, 0.0, self.mount_height]))
-        return position, body * self._mount
+        return np.column_stack([xy, 0.25 * (z_front + z_rear + z_left + z_right)]), body
 
     def imu(self, t: np.ndarray, h: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
-        """True body angular velocity (rad/s) and specific force (m/s²) at times ``t``."""
+        """True angular velocity (rad/s) and specific force (m/s²) in the IMU's frame at times ``t``.
+
+        The IMU's own motion: away from the rotation centre it feels the centripetal and
+        tangential accelerations of the vehicle's turns and vibration."""
         t = np.atleast_1d(np.asarray(t, float))
-        p_m, r_m = self.poses(t - h)
-        p_0, r_0 = self.poses(t)
-        p_p, r_p = self.poses(t + h)
+        p_m, r_m = self.mounted_poses(t - h, self.base_from_imu)
+        p_0, r_0 = self.mounted_poses(t, self.base_from_imu)
+        p_p, r_p = self.mounted_poses(t + h, self.base_from_imu)
         omega = (r_m.inv() * r_p).as_rotvec() / (2 * h)
         acc = (p_p - 2 * p_0 + p_m) / h**2
         specific = r_0.inv().apply(acc + np.array([0.0, 0.0, GRAVITY]))

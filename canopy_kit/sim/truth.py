@@ -57,9 +57,21 @@ class SessionTruth:
 
     root: Path
     trees: pd.DataFrame
-    trajectory: pd.DataFrame
+    trajectory: pd.DataFrame  # the LiDAR's poses (``info["sensor_frame"]``)
     frame: LocalFrame
     info: dict
+    base_trajectory: pd.DataFrame | None = None  # the vehicle frame's, when the rig has one
+
+    def trajectory_of(self, frame: str) -> pd.DataFrame | None:
+        """The true poses of ``frame`` (the LiDAR's or the vehicle's), None for another frame."""
+        if frame in ("", self.info.get("sensor_frame")):
+            out = self.trajectory
+        elif frame == self.info.get("base_frame"):
+            out = self.base_trajectory if self.base_trajectory is not None else self.trajectory
+        else:
+            return None
+        out.attrs["frame"] = frame
+        return out
 
     def orchard(self) -> Orchard:
         """Regenerate the exact orchard (crown envelopes included) from the stored config."""
@@ -76,5 +88,7 @@ def load_truth(sim_dir: str | Path) -> SessionTruth:
         if not (truth / name).exists():
             raise InputError(f"{truth}: not a simulated session's truth folder (no {name})")
     info = json.loads((truth / "frame.json").read_text())
+    base = truth / "base_trajectory.csv"
     return SessionTruth(truth.parent, pd.read_csv(truth / "trees.csv"),
-                        pd.read_csv(truth / "trajectory.csv"), LocalFrame.from_dict(info["frame"]), info)
+                        pd.read_csv(truth / "trajectory.csv"), LocalFrame.from_dict(info["frame"]), info,
+                        pd.read_csv(base) if base.exists() else None)
