@@ -25,7 +25,7 @@ from canopy_kit.errors import CanopyKitError, ConfigError, InputError
 
 Progress = Callable[[str, float, float], None]
 SESSION_KEYS = {"id", "bag", "orchard", "date", "preset", "drone_images", "truth", "report",
-                "stream", "set"}
+                "stream", "set", "rig"}
 
 
 @dataclass
@@ -88,11 +88,12 @@ class BatchReport:
 
 
 # -- manifest -------------------------------------------------------------------------------
-def load_manifest(path: str | Path) -> list[SessionSpec]:
+def load_manifest(path: str | Path, default_rig: str | Path | None = None) -> list[SessionSpec]:
     """Sessions listed in a TOML (``[[session]]`` tables) or CSV (one row each) manifest.
 
     Relative paths are relative to the manifest's folder. Top-level TOML keys (``preset``,
-    ``orchard``, ``report``, ``stream``, ``[set]``) are defaults for every session.
+    ``orchard``, ``report``, ``stream``, ``rig``, ``[set]``) are defaults for every session;
+    ``default_rig`` is the rig file of sessions that name none.
     """
     from canopy_kit.config import read_toml
 
@@ -113,6 +114,9 @@ def load_manifest(path: str | Path) -> list[SessionSpec]:
             raise ConfigError(f"{path}: unknown top-level key {unknown[0]!r}")
     if not entries:
         raise InputError(f"{path}: manifest lists no session")
+    if default_rig is not None:
+        defaults.setdefault("rig", str(Path(default_rig).resolve()) if Path(default_rig).exists()
+                            else str(default_rig))
     specs = [_spec(path, i, {**defaults, **entry}) for i, entry in enumerate(entries, 1)]
     seen: set[str] = set()
     for s in specs:
@@ -152,6 +156,12 @@ def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
             return None
         p = Path(str(value)).expanduser()
         return p if p.is_absolute() else (path.parent / p)
+
+    if "rig" in entry:  # a shipped rig's name, or a rig file relative to the manifest
+        from canopy_kit.rig import rig_overrides, rig_preset_names
+
+        rig = str(entry["rig"])
+        overrides = merge(overrides, rig_overrides(rig if rig in rig_preset_names() else resolve(rig)))
 
     orchard = str(entry["orchard"])
     return SessionSpec(str(entry.get("id", f"{orchard}-{date.isoformat()}")), resolve(entry["bag"]),

@@ -334,6 +334,11 @@ def write_tree_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[s
         trees.to_parquet(tmp, index=False)
     files["trees.parquet"] = out / "trees.parquet"
     files["config.toml"] = write_config(ctx.config, out / "config.toml")
+    rig = getattr(ctx.mapping, "rig", None)
+    if rig is not None:
+        from canopy_kit.mapping.outputs import RIG_TOML, write_rig
+
+        files[RIG_TOML] = write_rig(rig, out / RIG_TOML)
     files.update({p.name: p for p in write_segmentation_summary(out, ctx.segmentation).values()})
     return files
 

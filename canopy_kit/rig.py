@@ -162,3 +162,26 @@ def rig_tables(base_frame: str, transforms: list[FrameTransform], **names: str |
                         "translation": [round(float(v), 6) for v in t.matrix[:3, 3]],
                         "rpy_deg": [round(v, 6) for v in rpy_deg(t.matrix)]} for t in transforms}
     return {"rig": head, "frames": frames}
+
+
+def rig_overrides(rig: str | Path | None = None, extrinsics: str | None = None) -> dict[str, Any]:
+    """Config overrides (``mapping.rig``, ``rig_name``, ``extrinsics``) for a rig file and a mode.
+
+    The rig file is read and checked here, so that the config written next to the results
+    holds the rig itself, not only its path."""
+    mapping: dict[str, Any] = {}
+    if rig is not None:
+        data, where = rig_data(rig)
+        parse_rig(data, where)
+        mapping.update(rig=data, rig_name=str(rig))
+    if extrinsics is not None:
+        mapping["extrinsics"] = extrinsics
+    return {"mapping": mapping} if mapping else {}
+
+
+def extrinsics_mode(assume_identity: bool, calibrate: bool) -> str | None:
+    """``mapping.extrinsics`` from the two command-line flags (None: neither given)."""
+    if assume_identity and calibrate:
+        raise ConfigError("--assume-identity-extrinsics and --calibrate-extrinsics exclude each other")
+    return "identity" if assume_identity else "calibrate" if calibrate else None
+

@@ -20,13 +20,15 @@ def batch(
     gate: float = typer.Option(1.5, "--gate", help="Largest distance (m) between a tree and its "
                                "match in an earlier session"),
     rerun: bool = typer.Option(False, "--rerun", help="Also process sessions already stored"),
+    rig: Path = typer.Option(None, "--rig", help="Rig file for every session that names none in the "
+                             "manifest (docs/MAPPING.md, 'Sensor rigs')"),
 ) -> None:
     """Process every session of a manifest on Dask and track each tree in the store."""
     from canopy_kit.batch import load_manifest, run_batch
     from canopy_kit.cli.common import console, err_console, progress_bar
     from canopy_kit.store import MatchSettings
 
-    specs = load_manifest(manifest)
+    specs = load_manifest(manifest, default_rig=rig)
     console.print(f"{len(specs)} sessions from {manifest} on "
                   f"{scheduler or 'a LocalCluster'}")
 

@@ -8,6 +8,17 @@ from typing import Any
 
 from rich.console import Console
 
+import typer
+
+RIG_OPTION = typer.Option(None, "--rig", help="Rig file (TOML: sensor frames and mounts) or shipped rig; "
+                          "gives or overrides the bag's /tf_static (docs/MAPPING.md, 'Sensor rigs')")
+ASSUME_IDENTITY_OPTION = typer.Option(False, "--assume-identity-extrinsics",
+                                      help="Take the LiDAR's and the IMU's frames for one when nothing "
+                                           "relates them")
+CALIBRATE_OPTION = typer.Option(False, "--calibrate-extrinsics",
+                                help="Estimate the IMU's mount from the drive and map with it (one more "
+                                     "odometry pass)")
+
 console = Console(stderr=False, soft_wrap=True)  # lines stay whole in logs and pipes
 err_console = Console(stderr=True)
 

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from canopy_kit.cli.common import ASSUME_IDENTITY_OPTION, CALIBRATE_OPTION, RIG_OPTION
+
 
 def map_bag(
     bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
@@ -17,14 +19,18 @@ def map_bag(
     preset: str = typer.Option(None, help="Use the mapping section of a preset (name or TOML file)"),
     set_: list[str] = typer.Option([], "--set", help="Override a mapping setting: key=value"),
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write trajectory and top-view PNGs"),
+    rig: Path = RIG_OPTION,
+    assume_identity: bool = ASSUME_IDENTITY_OPTION,
+    calibrate: bool = CALIBRATE_OPTION,
 ) -> None:
     """Map a bag: deskewed, gravity-aligned, georeferenced, voxel-thinned LAZ plus trajectory."""
     from canopy_kit.cli.common import console, parse_overrides, progress_bar
     from canopy_kit.config import MappingConfig, from_dict, load_preset, merge, to_dict
     from canopy_kit.mapping import build_map
     from canopy_kit.mapping.outputs import write_mapping_outputs
+    from canopy_kit.rig import extrinsics_mode, rig_overrides
 
-    overrides = parse_overrides(set_)
+    overrides = merge(parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate)))
     overrides = merge({k: v for k, v in overrides.items() if k != "mapping"}, overrides.get("mapping", {}))
     base = to_dict(load_preset(preset).mapping) if preset else {}
     config = from_dict(MappingConfig, merge(base, overrides), "mapping")

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from canopy_kit.cli.common import ASSUME_IDENTITY_OPTION, CALIBRATE_OPTION, RIG_OPTION
+
 
 def run(
     bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
@@ -17,13 +19,18 @@ def run(
     no_cache: bool = typer.Option(False, "--no-cache", help="Recompute every stage"),
     stream: bool = typer.Option(False, "--stream", help="Emit each tree once the robot has passed "
                                 "it, keeping only a window of the map (no map or report)"),
+    rig: Path = RIG_OPTION,
+    assume_identity: bool = ASSUME_IDENTITY_OPTION,
+    calibrate: bool = CALIBRATE_OPTION,
 ) -> None:
     """Map, segment, measure and (optionally) validate one field session; write the report."""
     from canopy_kit.cli.common import parse_overrides, progress_bar
-    from canopy_kit.config import load_preset
+    from canopy_kit.config import load_preset, merge
     from canopy_kit.pipeline import run as run_pipeline
+    from canopy_kit.rig import extrinsics_mode, rig_overrides
 
-    config = load_preset(preset, parse_overrides(set_))
+    overrides = merge(parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate)))
+    config = load_preset(preset, overrides)
     if stream:
         from canopy_kit.cli.stream import run_streaming
 

@@ -20,6 +20,10 @@ def simulate(
     no_truth_field: bool = typer.Option(False, "--no-truth-field",
                                         help="Do not add the per-point tree_id field"),
     gnss_mode: str = typer.Option(None, "--gnss", help="standard or rtk"),
+    rig: str = typer.Option(None, "--rig", help="Sensor rig: identity (one frame, the default), tower, "
+                            "imu-flipped, yawed-lever, side-tilt, or a rig file (TOML)"),
+    no_tf_static: bool = typer.Option(False, "--no-tf-static",
+                                      help="Leave the rig's /tf_static out of the bag"),
     set_: list[str] = typer.Option([], "--set", help="Override any parameter: section.key=value"),
     overwrite: bool = typer.Option(False, help="Replace a non-empty output folder"),
 ) -> None:
@@ -38,6 +42,13 @@ def simulate(
         overrides.setdefault("drone", {})["enabled"] = True
     if gnss_mode:
         overrides.setdefault("gnss", {})["mode"] = gnss_mode
+    if rig:
+        from canopy_kit.rig import rig_preset_names
+
+        known = rig in rig_preset_names() or rig == "identity"
+        overrides.setdefault("rig", {})["name"] = rig if known else str(Path(rig).resolve())
+    if no_tf_static:
+        overrides.setdefault("rig", {})["write_tf_static"] = False
     config = load_sim_config(orchard, overrides, sensor=sensor)
     with progress_bar() as progress:
         session = simulate_session(out, config, fmt=fmt, truth_field=not no_truth_field,

@@ -172,7 +172,8 @@ class BagWriter:
 
     def write_tf_static(self, stamp: float, transforms: list[tuple[str, str, np.ndarray]],
                         topic: str = "/tf_static") -> None:
-        """One latched tf2_msgs/TFMessage of ``(parent, child, parent_from_child 4x4)`` transforms."""
+        """One tf2_msgs/TFMessage of ``(parent, child, parent_from_child 4x4)`` transforms
+        (latched on a ``*tf_static`` topic, as robots record it)."""
         from scipy.spatial.transform import Rotation
 
         from canopy_kit.io.tf import TF_MESSAGE, ensure_tf_types
@@ -187,7 +188,7 @@ class BagWriter:
                 transform=t["geometry_msgs/msg/Transform"](
                     translation=self._vec3(m[:3, 3]), rotation=self._quat(Rotation.from_matrix(m[:3, :3]).as_quat()))))
         if topic not in self._conns:
-            self._connect(topic, TF_MESSAGE, latched=True)
+            self._connect(topic, TF_MESSAGE, latched=topic.rstrip("/").endswith("tf_static"))
         self._write(topic, TF_MESSAGE, t[TF_MESSAGE](transforms=items), stamp)
 
     def write_odometry(self, topic: str, stamp: float, position: Any, orientation: Any,

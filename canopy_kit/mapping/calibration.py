@@ -18,6 +18,7 @@ from canopy_kit.errors import InputError
 from canopy_kit.frames import rotation_angle_deg, rpy_deg
 from canopy_kit.mapping.extrinsics import ESTIMATED, SensorRig
 from canopy_kit.mapping.handeye import RotationEstimate, estimate_imu_rotation
+from canopy_kit.mapping.imu import detect_standstill
 from canopy_kit.mapping.passone import OdometryPass
 
 Progress = Callable[[str, float, float], None]
@@ -33,6 +34,8 @@ def _tilt(rig: SensorRig, one: OdometryPass, lidar_from_imu: np.ndarray | None =
     """The LiDAR's tilt from the vertical: by the IMU's gravity at standstill, and by the rig's base."""
     out: dict[str, float] = {}
     still = one.state.standstill
+    if still is None and one.imu is not None:  # a LiDAR-only pass: the IMU was only collected
+        still = detect_standstill(one.imu)
     if still is not None and np.linalg.norm(still.gravity_body) > 0:
         up = still.gravity_body / np.linalg.norm(still.gravity_body)
         if lidar_from_imu is not None:  # the standstill was measured in the IMU's own axes
