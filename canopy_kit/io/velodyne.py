@@ -158,47 +158,60 @@ def packet_model(packets: np.ndarray) -> VelodyneModel:
     return MODELS[int(packets["product"][0])] if len(packets) else VLP16
 
 
-def firing_azimuths(block_azimuth: np.ndarray, model: VelodyneModel) -> np.ndarray:
-    """(P, 12, 32) azimuth (0.01°, in [0, 36000)) of every return from the blocks' azimuths.
+def firing_azimuths(block_azimuth: np.ndarray, model: VelodyneModel,
+                    returns: np.ndarray | None = None) -> np.ndarray:
+    """Azimuth (0.01°, in [0, 36000)) of every return, (P, 12, 32), from the (P, 12) blocks'
+    azimuths; or of the returns at the flat indices ``returns`` only.
 
     Each return's azimuth is its block's plus the step to the next block in proportion to its
     firing time; the last block takes the step before it, and a step of more than 10° (a gap
     in the packets) takes the median step instead.
     """
-    az = np.asarray(block_azimuth, np.float64)
-    p = len(az)
-    flat = az.reshape(-1)
-    gap = np.empty_like(flat)
-    gap[:-1] = np.mod(flat[1:] - flat[:-1], 36000.0)
-    gap[-1] = gap[-2] if len(gap) > 1 else 0.0
-    gap = np.where(gap > 1000.0, np.median(gap), gap).reshape(p, BLOCKS)
+    az = np.asarray(block_azimuth, np.float64).reshape(-1)
+    gap = np.empty_like(az)
+    gap[:-1] = np.mod(az[1:] - az[:-1], 36000.0)
+    gap[-1:] = gap[-2] if len(gap) > 1 else 0.0
+    jumps = gap > 1000.0
+    if jumps.any():  # a jump is not a step
+        gap[jumps] = np.median(gap)
+    index = np.arange(az.size * CHANNELS) if returns is None else returns
+    block, slot = index // CHANNELS, index % CHANNELS
     fraction = np.asarray(model.slot_us) / model.block_us
     offset = 100.0 * np.asarray(model.azimuth_offset_deg)[list(model.slot_laser)]
-    return np.mod(az[:, :, None] + gap[:, :, None] * fraction + offset, 36000.0)
+    azimuth = np.mod(az[block] + gap[block] * fraction[slot] + offset[slot], 36000.0)
+    return azimuth.reshape(-1, BLOCKS, CHANNELS) if returns is None else azimuth
 
 
 def decode_packets(payloads: bytes | Sequence[bytes], where: str = "Velodyne",
                    first_packet: int = 0) -> dict[str, np.ndarray]:
-    """Per-return arrays of Velodyne data packets in firing order (zero ranges, i.e. no
-    return, kept): ``time_us`` (µs past the hour, sensor clock), ``azimuth`` (0.01°),
-    ``distance`` (m), ``laser`` (id), ``ring`` (by elevation), ``elevation`` (°),
-    ``intensity`` (reflectivity) and ``packet`` (index of its packet)."""
+    """Per-return arrays of Velodyne data packets in firing order, zero ranges (no return)
+    kept; see :func:`decode_array` (packets checked by :func:`packet_array`)."""
     data = payloads if isinstance(payloads, bytes | bytearray) else b"".join(payloads)
-    packets = packet_array(bytes(data), where, first_packet)
+    return decode_array(packet_array(bytes(data), where, first_packet))
+
+
+def decode_array(packets: np.ndarray, returns_only: bool = False) -> dict[str, np.ndarray]:
+    """Per-return arrays of checked packets in firing order: ``time_us`` (µs past the hour,
+    sensor clock), ``azimuth`` (0.01°), ``distance`` (m), ``laser`` (id), ``ring`` (by
+    elevation), ``elevation`` (°), ``intensity`` (reflectivity) and ``packet`` (index of its
+    packet); every slot, or with ``returns_only`` the returns with a range."""
     model = packet_model(packets)
-    p = len(packets)
-    laser = np.broadcast_to(np.asarray(model.slot_laser, np.uint8), (p, BLOCKS, CHANNELS)).reshape(-1)
-    time_us = packets["timestamp"].astype(np.float64)[:, None, None] + model.slot_offsets_us()[None]
-    returns = packets["blocks"]["returns"]
+    returns = packets["blocks"]["returns"].reshape(-1)
+    raw = returns["distance"]
+    index = np.flatnonzero(raw) if returns_only else np.arange(len(raw))
+    packet, slot = index // SLOTS, index % CHANNELS
+    laser = np.asarray(model.slot_laser, np.uint8)[slot]
+    time_us = packets["timestamp"].astype(np.float64)[packet] + model.slot_offsets_us().reshape(-1)[
+        index % SLOTS]
     return {
-        "time_us": time_us.reshape(-1),
-        "azimuth": firing_azimuths(packets["blocks"]["azimuth"], model).reshape(-1),
-        "distance": returns["distance"].astype(np.float64).reshape(-1) * model.distance_unit_m,
+        "time_us": time_us,
+        "azimuth": firing_azimuths(packets["blocks"]["azimuth"], model, index),
+        "distance": raw[index].astype(np.float64) * model.distance_unit_m,
         "laser": laser,
         "ring": model.ring_of_laser[laser],
         "elevation": np.asarray(model.elevation_deg)[laser],
-        "intensity": returns["reflectivity"].reshape(-1).copy(),
-        "packet": np.repeat(np.arange(p), SLOTS),
+        "intensity": returns["reflectivity"][index],
+        "packet": packet,
     }
 
 

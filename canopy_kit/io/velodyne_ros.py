@@ -28,9 +28,9 @@ from canopy_kit.io.bag import VELODYNE_SCAN, Scan
 from canopy_kit.io.velodyne import (
     DATA_PACKET_BYTES,
     HOUR_US,
-    SLOTS,
-    decode_packets,
+    decode_array,
     hour_base,
+    packet_array,
     xyz_from,
 )
 
@@ -76,25 +76,24 @@ def scan_from_message(msg: Any, where: str, index: int) -> Scan:
 def scan_from_packets(stamps: np.ndarray, data: bytes, frame_id: str, where: str, index: int,
                       header_stamp: float | None = None) -> Scan:
     """A Scan from packet stamps (s, bag clock) and the packets' bytes (see the module notes)."""
-    points = decode_packets(data, where)
-    n_packets = len(stamps)
-    if n_packets == 0:
+    packets = packet_array(data, where)
+    if len(packets) == 0:
         stamp = header_stamp if header_stamp is not None else 0.0
         empty = {"intensity": np.zeros(0, np.float32), "ring": np.zeros(0, np.uint16),
                  "time": np.zeros(0, np.float32)}
         return Scan(stamp, np.zeros((0, 3)), empty, np.zeros(0), frame_id, index)
-    counter = points["time_us"][::SLOTS]  # each packet's timestamp, µs past the hour
+    points = decode_array(packets, returns_only=True)
+    counter = packets["timestamp"].astype(np.float64)  # µs past the hour
     # the counter restarts every hour: count the restarts within the message
     hours = np.concatenate([[0], np.cumsum(np.diff(counter) < -HOUR_US / 2)]) * float(HOUR_US)
     base = hour_base(float(stamps[0]), float(counter[0]))
     clock_offset = float(np.median(stamps - (base + (counter + hours) * 1e-6)))
-    keep = points["distance"] > 0
-    times = base + clock_offset + (points["time_us"][keep] + hours[points["packet"][keep]]) * 1e-6
-    xyz = xyz_from(points["azimuth"][keep], points["elevation"][keep], points["distance"][keep], "ros")
+    times = base + clock_offset + (points["time_us"] + hours[points["packet"]]) * 1e-6
+    xyz = xyz_from(points["azimuth"], points["elevation"], points["distance"], "ros")
     stamp = float(times[0]) if len(times) else base + clock_offset + float(counter[0] + hours[0]) * 1e-6
     fields = {
-        "intensity": points["intensity"][keep].astype(np.float32),
-        "ring": points["ring"][keep],
+        "intensity": points["intensity"].astype(np.float32),
+        "ring": points["ring"],
         "time": (times - stamp).astype(np.float32),
     }
     return Scan(stamp, xyz, fields, times, frame_id, index)

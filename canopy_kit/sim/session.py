@@ -137,8 +137,8 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
             end = stamp + lidar.sweep_period
             flush(end)
             scan = lidar.sweep(stamp)
-            n_points += len(scan.columns["x"])
-            writer.write_points(config.lidar.topic, stamp, scan.columns, config.lidar.frame_id)
+            n_points += scan.n_points
+            scan.write(writer, config.lidar.topic, config.lidar.frame_id)
             report("LiDAR sweeps", k + 1, len(sweeps))
         flush(trajectory.end_time + 1.0)
     drone_dir = None
