@@ -124,15 +124,18 @@ class BagWriter:
 
     def write_velodyne_scan(self, topic: str, packet_stamps: Any, packets: Any,
                             frame_id: str = "velodyne", stamp: float | None = None) -> None:
-        """One velodyne_msgs/VelodyneScan: per-packet stamps (s) and (P, 1206) packet bytes.
-
-        The header stamp (and the log time) is ``stamp``, by default the first packet's.
+        """One velodyne_msgs/VelodyneScan: per-packet stamps (s) and the packets, a (P, 1206)
+        uint8 array or P byte strings. The header stamp (and the log time) is ``stamp``, by
+        default the first packet's.
         """
         from canopy_kit.io.velodyne_ros import VELODYNE_PACKET, register_velodyne_types
 
         register_velodyne_types(self.typestore)
         t = self.typestore.types
-        data = np.asarray(packets, np.uint8).reshape(len(packet_stamps), -1)
+        if isinstance(packets, list | tuple):
+            data = [np.frombuffer(bytes(p), np.uint8) for p in packets]
+        else:
+            data = list(np.asarray(packets, np.uint8).reshape(len(packet_stamps), -1))
         stamps = [float(s) for s in packet_stamps]
         header_stamp = stamps[0] if stamp is None else float(stamp)
         msg = t["velodyne_msgs/msg/VelodyneScan"](

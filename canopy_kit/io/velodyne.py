@@ -159,18 +159,22 @@ def packet_model(packets: np.ndarray) -> VelodyneModel:
 
 
 def firing_azimuths(block_azimuth: np.ndarray, model: VelodyneModel,
-                    returns: np.ndarray | None = None) -> np.ndarray:
+                    returns: np.ndarray | None = None, next_azimuth: float | None = None) -> np.ndarray:
     """Azimuth (0.01°, in [0, 36000)) of every return, (P, 12, 32), from the (P, 12) blocks'
     azimuths; or of the returns at the flat indices ``returns`` only.
 
     Each return's azimuth is its block's plus the step to the next block in proportion to its
-    firing time; the last block takes the step before it, and a step of more than 10° (a gap
-    in the packets) takes the median step instead.
+    firing time; the last block steps towards ``next_azimuth`` (the block after the packets)
+    or, when None, takes the step before it. A step of more than 10° (a gap in the packets)
+    takes the median step instead.
     """
     az = np.asarray(block_azimuth, np.float64).reshape(-1)
     gap = np.empty_like(az)
     gap[:-1] = np.mod(az[1:] - az[:-1], 36000.0)
-    gap[-1:] = gap[-2] if len(gap) > 1 else 0.0
+    if next_azimuth is not None:
+        gap[-1:] = np.mod(next_azimuth - az[-1:], 36000.0)
+    else:
+        gap[-1:] = gap[-2] if len(gap) > 1 else 0.0
     jumps = gap > 1000.0
     if jumps.any():  # a jump is not a step
         gap[jumps] = np.median(gap)
@@ -183,18 +187,20 @@ def firing_azimuths(block_azimuth: np.ndarray, model: VelodyneModel,
 
 
 def decode_packets(payloads: bytes | Sequence[bytes], where: str = "Velodyne",
-                   first_packet: int = 0) -> dict[str, np.ndarray]:
+                   first_packet: int = 0, next_azimuth: float | None = None) -> dict[str, np.ndarray]:
     """Per-return arrays of Velodyne data packets in firing order, zero ranges (no return)
     kept; see :func:`decode_array` (packets checked by :func:`packet_array`)."""
     data = payloads if isinstance(payloads, bytes | bytearray) else b"".join(payloads)
-    return decode_array(packet_array(bytes(data), where, first_packet))
+    return decode_array(packet_array(bytes(data), where, first_packet), next_azimuth=next_azimuth)
 
 
-def decode_array(packets: np.ndarray, returns_only: bool = False) -> dict[str, np.ndarray]:
+def decode_array(packets: np.ndarray, returns_only: bool = False,
+                 next_azimuth: float | None = None) -> dict[str, np.ndarray]:
     """Per-return arrays of checked packets in firing order: ``time_us`` (µs past the hour,
     sensor clock), ``azimuth`` (0.01°), ``distance`` (m), ``laser`` (id), ``ring`` (by
     elevation), ``elevation`` (°), ``intensity`` (reflectivity) and ``packet`` (index of its
-    packet); every slot, or with ``returns_only`` the returns with a range."""
+    packet); every slot, or with ``returns_only`` the returns with a range. ``next_azimuth``:
+    see :func:`firing_azimuths`."""
     model = packet_model(packets)
     returns = packets["blocks"]["returns"].reshape(-1)
     raw = returns["distance"]
@@ -205,7 +211,7 @@ def decode_array(packets: np.ndarray, returns_only: bool = False) -> dict[str, n
         index % SLOTS]
     return {
         "time_us": time_us,
-        "azimuth": firing_azimuths(packets["blocks"]["azimuth"], model, index),
+        "azimuth": firing_azimuths(packets["blocks"]["azimuth"], model, index, next_azimuth),
         "distance": raw[index].astype(np.float64) * model.distance_unit_m,
         "laser": laser,
         "ring": model.ring_of_laser[laser],

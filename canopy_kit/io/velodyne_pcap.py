@@ -124,19 +124,24 @@ def scans(path: str | Path) -> Iterator[Scan]:
     with path.open("rb") as fh:
         batch: list[bytes] = []
         packets = _udp_packets(fh, path)
-        while True:
-            batch.clear()
+        exhausted = False
+        while not exhausted:
+            exhausted = True
             for capture, port, payload in packets:
                 if port == DATA_PORT and len(payload) == DATA_PACKET_BYTES:
                     if base is None:
                         base = hour_base(capture, struct.unpack("<I", payload[1200:1204])[0])
                     batch.append(payload)
-                    if len(batch) >= BATCH_PACKETS:
+                    if len(batch) > BATCH_PACKETS:
+                        exhausted = False
                         break
             if not batch:
                 break
-            buffer = _concat(buffer, decode_packets(batch, str(path), decoded))
-            decoded += len(batch)
+            # a batch's last packet waits for the next batch: the block before it steps towards it
+            ready, batch = (batch, []) if exhausted else (batch[:-1], batch[-1:])
+            following = None if exhausted else struct.unpack("<H", batch[0][2:4])[0]
+            buffer = _concat(buffer, decode_packets(ready, str(path), decoded, following))
+            decoded += len(ready)
             wraps = np.flatnonzero(np.diff(buffer["azimuth"]) < -18000.0) + 1
             start = 0
             for cut in wraps:
