@@ -89,7 +89,8 @@ VLP16 = VelodyneModel(
     tuple(list(range(16)) * 2),
     tuple(f * 55.296 + laser * 2.304 for f in range(2) for laser in range(16)),
 )
-# VLP-32C manual, vertical angle and azimuth offset by laser id.
+# VLP-32C manual, vertical angle and azimuth offset by laser id (VeloView's VLP-32c.xml has the same,
+# its rotCorrection being minus the offset).
 _VLP32C = (
     (-25, 1.4), (-1, -4.2), (-1.667, 1.4), (-15.639, -1.4), (-11.31, 1.4), (0, -1.4),
     (-0.667, 4.2), (-8.843, -1.4), (-7.254, 1.4), (0.333, -4.2), (-0.333, 1.4), (-6.148, -1.4),

@@ -3,10 +3,10 @@
 The packets are decoded by :mod:`canopy_kit.io.velodyne` (also VLP-32C and HDL-32E): on a
 VLP-16 a point's time is ``packet time + block × 110.592 µs + firing × 55.296 µs + laser ×
 2.304 µs`` and its azimuth is interpolated within the block by that time. Point times are
-the sensor's clock (µs past the hour) on the hour nearest the capture time; coordinates are
-in Velodyne's (and VeloView's) frame, azimuth 0 along +y; ``ring`` is the laser id. Scans
-are full rotations, split where the azimuth wraps past 0°; zero ranges (no return) are
-dropped.
+the sensor's clock (µs past the hour, counted on across its hourly restarts) on the hour
+nearest the first packet's capture time; coordinates are in Velodyne's (and VeloView's)
+frame, azimuth 0 along +y; ``ring`` is the laser id. Scans are full rotations, split where
+the azimuth wraps past 0°; zero ranges (no return) are dropped.
 
 Checked against VeloView's export of frame 0 of a real capture (tests/test_velodyne_pcap.py).
 """
@@ -26,7 +26,9 @@ from canopy_kit.io.bag import Scan
 from canopy_kit.io.clouds import check_input_file
 from canopy_kit.io.velodyne import (
     DATA_PACKET_BYTES,
+    HOUR_US,
     RETURN_MODES,
+    SLOTS,
     decode_packets,
     hour_base,
     xyz_from,
@@ -97,7 +99,7 @@ def _points_to_scan(points: dict[str, np.ndarray], base: float, index: int) -> S
         "ring": points["laser"][keep],
         "azimuth_deg": points["azimuth"][keep] * 0.01,
         "distance_m": d,
-        "timestamp_us": points["time_us"][keep],  # µs past the hour, as the sensor counts
+        "timestamp_us": np.mod(points["time_us"][keep], HOUR_US),  # µs past the hour, as counted
     }
     stamp = float(times[0]) if len(times) else base
     return Scan(stamp, xyz, fields, times, "velodyne", index)
@@ -120,7 +122,8 @@ def scans(path: str | Path) -> Iterator[Scan]:
     path = check_input_file(path, "pcap file")
     buffer: dict[str, np.ndarray] = {}
     base: float | None = None
-    index = decoded = 0
+    index = decoded = hours = 0
+    last_counter: float | None = None  # the previous batch's last packet counter
     with path.open("rb") as fh:
         batch: list[bytes] = []
         packets = _udp_packets(fh, path)
@@ -140,8 +143,15 @@ def scans(path: str | Path) -> Iterator[Scan]:
             # a batch's last packet waits for the next batch: the block before it steps towards it
             ready, batch = (batch, []) if exhausted else (batch[:-1], batch[-1:])
             following = None if exhausted else struct.unpack("<H", batch[0][2:4])[0]
-            buffer = _concat(buffer, decode_packets(ready, str(path), decoded, following))
+            points = decode_packets(ready, str(path), decoded, following)
             decoded += len(ready)
+            # the sensor's counter restarts every hour: count on from the first packet's hour
+            counter = points["time_us"][::SLOTS]
+            previous = counter[0] if last_counter is None else last_counter
+            restarts = hours + np.cumsum(np.diff(counter, prepend=previous) < -HOUR_US / 2)
+            hours, last_counter = int(restarts[-1]), float(counter[-1])
+            points["time_us"] = points["time_us"] + float(HOUR_US) * restarts[points["packet"]]
+            buffer = _concat(buffer, points)
             wraps = np.flatnonzero(np.diff(buffer["azimuth"]) < -18000.0) + 1
             start = 0
             for cut in wraps:
