@@ -58,8 +58,8 @@ def _renderables(facts: dict[str, Any]) -> list[Any]:
             attrs.add_row(a["name"], a["dtype"], "yes" if a.get("extra") else "")
         out.append(attrs)
     if "topics" in facts:
-        topics = Table("topic", "type", "messages", title="topics")
+        topics = Table("topic", "type", "messages", "role", title="topics")
         for t in facts["topics"]:
-            topics.add_row(t["name"], t["type"], str(t["count"]))
+            topics.add_row(t["name"], t["type"], str(t["count"]), t.get("role", ""))
         out.append(topics)
     return out

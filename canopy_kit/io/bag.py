@@ -1,7 +1,9 @@
 """ROS1 (.bag) and ROS2 (sqlite3 / mcap) bags through rosbags' ``AnyReader``.
 
 Scans stream out one at a time (:meth:`BagSession.scans`); IMU, GNSS and odometry are
-small and come out as whole arrays. Topics are found by message type when not named.
+small and come out as whole arrays. Topics are found by message type when not named. The
+LiDAR is a PointCloud2 topic or, in a bag without one, the raw packets of the Velodyne
+driver (``velodyne_msgs/VelodyneScan``, decoded by :mod:`canopy_kit.io.velodyne_ros`).
 """
 
 from __future__ import annotations
@@ -20,7 +22,11 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMU = "sensor_msgs/msg/Imu"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 ODOMETRY = "nav_msgs/msg/Odometry"
-KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY)
+VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
+LIDAR_TYPES = (POINTCLOUD2, VELODYNE_SCAN)  # in order of preference
+KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY, VELODYNE_SCAN)
+TOPIC_ROLES = {POINTCLOUD2: "lidar", VELODYNE_SCAN: "lidar", IMU: "imu", NAVSATFIX: "gnss",
+               ODOMETRY: "odometry"}
 # A point timed this far from the rest of its sweep is corrupt (a sweep lasts 0.05-0.2 s):
 # one such time stretched its sweep's deskew window and moved the pose by metres.
 MAX_POINT_TIME_OFFSET_S = 1.0
@@ -139,16 +145,22 @@ class BagSession:
         if self.path.is_file() and self.path.suffix in (".db3", ".mcap"):
             target = self.path.parent
         from canopy_kit.io.bag_recovery import sqlite_cut_short
+        from canopy_kit.io.velodyne_ros import register_velodyne_types
 
         if sqlite_cut_short(self.path):
             self._recover("the sqlite3 file is shorter than its header says")
+            register_velodyne_types(self._reader.typestore)
             return self
+        default = get_typestore(Stores.ROS2_HUMBLE)
+        register_velodyne_types(default)  # for bags that carry no message definitions
         try:
-            self._reader = AnyReader([target], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            self._reader = AnyReader([target], default_typestore=default)
             self._reader.open()
         except Exception as exc:  # rosbags raises several unrelated types for bad files
             self._reader = None
             self._recover(f"{type(exc).__name__}: {exc}")
+        # for bags that define their other types but not these (and for recovered bags)
+        register_velodyne_types(self._reader.typestore)
         return self
 
     def _recover(self, reason: str) -> None:
@@ -194,8 +206,15 @@ class BagSession:
     def end_time(self) -> float:
         return self.reader.end_time * 1e-9
 
-    def find_topic(self, msgtype: str, topic: str | None = None, required: bool = True) -> str | None:
-        """The topic to read for ``msgtype``: the named one (checked) or the busiest of that type."""
+    def find_topic(self, msgtype: str | tuple[str, ...], topic: str | None = None,
+                   required: bool = True) -> str | None:
+        """The topic to read for ``msgtype``: the named one (checked) or the busiest of that type.
+
+        ``msgtype`` may list several types in order of preference (e.g. :data:`LIDAR_TYPES`): the
+        named topic may carry any of them; otherwise the first type the bag has is chosen.
+        """
+        types = (msgtype,) if isinstance(msgtype, str) else tuple(msgtype)
+        others = f" (or {', '.join(types[1:])})" if len(types) > 1 else ""
         topics = self.topics()
         if topic:
             match = [t for t in topics if t.name == topic]
@@ -203,16 +222,17 @@ class BagSession:
                 raise InputError(
                     f"{self.path}: no topic {topic!r} (topics: {', '.join(t.name for t in topics)})"
                 )
-            if match[0].msgtype != msgtype:
-                raise InputError(
-                    f"{self.path}: topic {topic!r} carries {match[0].msgtype}, expected {msgtype}"
-                )
+            if match[0].msgtype not in types:
+                raise InputError(f"{self.path}: topic {topic!r} carries {match[0].msgtype}, "
+                                 f"expected {types[0]}{others}")
             return topic
-        candidates = [t for t in topics if t.msgtype == msgtype and t.count > 0]
+        candidates: list[TopicInfo] = []
+        for wanted in types:
+            candidates = candidates or [t for t in topics if t.msgtype == wanted and t.count > 0]
         if not candidates:
             if required:
                 part = " part recovered from the damaged" if self.recovered else ""
-                raise InputError(f"{self.path}: no {msgtype} topic in the{part} bag")
+                raise InputError(f"{self.path}: no {types[0]} topic{others} in the{part} bag")
             return None
         # Prefer names that do not look like ground truth or debug output.
         candidates.sort(key=lambda t: ("ground_truth" in t.name or "truth" in t.name, -t.count))
@@ -391,5 +411,8 @@ class RosbagReader:
                 "start_time": bag.start_time,
                 "end_time": bag.end_time,
                 "duration_s": bag.end_time - bag.start_time,
-                "topics": [{"name": t.name, "type": t.msgtype, "count": t.count} for t in topics],
+                # the LiDAR topic mapping would read (None: no PointCloud2 or VelodyneScan topic)
+                "lidar_topic": bag.find_topic(LIDAR_TYPES, required=False),
+                "topics": [{"name": t.name, "type": t.msgtype, "count": t.count,
+                            "role": TOPIC_ROLES.get(t.msgtype, "")} for t in topics],
             }

@@ -138,6 +138,29 @@ class BagWriter:
         msg = pc2.build_message(self.typestore, columns, stamp, frame_id, self.ros1, seq, height)
         self._write(topic, "sensor_msgs/msg/PointCloud2", msg, stamp)
 
+    def write_velodyne_scan(self, topic: str, packet_stamps: Any, packets: Any,
+                            frame_id: str = "velodyne", stamp: float | None = None) -> None:
+        """One velodyne_msgs/VelodyneScan: per-packet stamps (s) and the packets, a (P, 1206)
+        uint8 array or P byte strings. The header stamp (and the log time) is ``stamp``, by
+        default the first packet's.
+        """
+        from canopy_kit.io.velodyne_ros import VELODYNE_PACKET, register_velodyne_types
+
+        register_velodyne_types(self.typestore)
+        t = self.typestore.types
+        if isinstance(packets, list | tuple):
+            data = [np.frombuffer(bytes(p), np.uint8) for p in packets]
+        else:
+            data = list(np.asarray(packets, np.uint8).reshape(len(packet_stamps), -1))
+        stamps = [float(s) for s in packet_stamps]
+        header_stamp = stamps[0] if stamp is None else float(stamp)
+        msg = t["velodyne_msgs/msg/VelodyneScan"](
+            header=self._header(topic, header_stamp, frame_id),
+            packets=[t[VELODYNE_PACKET](stamp=pc2.make_header(self.typestore, s, "", self.ros1).stamp,
+                                        data=row) for s, row in zip(stamps, data, strict=True)],
+        )
+        self._write(topic, "velodyne_msgs/msg/VelodyneScan", msg, header_stamp)
+
     def write_imu(self, topic: str, stamp: float, angular_velocity: Any, linear_acceleration: Any,
                   orientation: Any | None = None, frame_id: str = "imu") -> None:
         """One sensor_msgs/Imu; orientation xyzw or None (covariance[0] = -1, per REP-145)."""

@@ -1,12 +1,12 @@
 """Velodyne VLP-16 captures (classic libpcap files of the sensor's UDP packets) as scans.
 
-Decoding follows the VLP-16 manual: a 1206-byte data packet holds 12 blocks of
-(0xFFEE, azimuth in 0.01°, 32 × (distance in 2 mm, reflectivity)), then a 4-byte
-timestamp (µs past the hour) and two factory bytes (return mode, product 0x22).
-Each block fires the 16 lasers twice; point time is
-``packet time + block × 110.592 µs + firing × 55.296 µs + laser × 2.304 µs`` and the
-azimuth is interpolated within the block by that time. Scans are full rotations, split
-where the azimuth wraps past 0°; zero ranges (no return) are dropped.
+The packets are decoded by :mod:`canopy_kit.io.velodyne` (also VLP-32C and HDL-32E): on a
+VLP-16 a point's time is ``packet time + block × 110.592 µs + firing × 55.296 µs + laser ×
+2.304 µs`` and its azimuth is interpolated within the block by that time. Point times are
+the sensor's clock (µs past the hour, counted on across its hourly restarts) on the hour
+nearest the first packet's capture time; coordinates are in Velodyne's (and VeloView's)
+frame, azimuth 0 along +y; ``ring`` is the laser id. Scans are full rotations, split where
+the azimuth wraps past 0°; zero ranges (no return) are dropped.
 
 Checked against VeloView's export of frame 0 of a real capture (tests/test_velodyne_pcap.py).
 """
@@ -24,6 +24,15 @@ import numpy as np
 from canopy_kit.errors import InputError
 from canopy_kit.io.bag import Scan
 from canopy_kit.io.clouds import check_input_file
+from canopy_kit.io.velodyne import (
+    DATA_PACKET_BYTES,
+    HOUR_US,
+    RETURN_MODES,
+    SLOTS,
+    decode_packets,
+    hour_base,
+    xyz_from,
+)
 
 PCAP_MAGICS = {  # magic bytes -> (byte order, timestamp fraction unit in seconds)
     b"\xd4\xc3\xb2\xa1": ("<", 1e-6),
@@ -32,35 +41,9 @@ PCAP_MAGICS = {  # magic bytes -> (byte order, timestamp fraction unit in second
     b"\xa1\xb2\x3c\x4d": (">", 1e-9),
 }
 LINKTYPE_ETHERNET = 1
-DATA_PACKET_BYTES = 1206
 DATA_PORT = 2368
 POSITION_PORT = 8308
-PRODUCT_VLP16 = 0x22
-RETURN_MODES = {0x37: "strongest", 0x38: "last", 0x39: "dual"}
-# Laser elevation by laser id (VLP-16 manual, table 9-1).
-VLP16_ELEVATION_DEG = np.array(
-    [-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], float
-)
-BLOCK_US, FIRING_US, LASER_US = 110.592, 55.296, 2.304
-DISTANCE_UNIT_M = 0.002
 BATCH_PACKETS = 512
-
-_BLOCK_DTYPE = np.dtype(
-    [
-        ("flag", "<u2"),
-        ("azimuth", "<u2"),
-        ("returns", [("distance", "<u2"), ("reflectivity", "u1")], (32,)),
-    ]
-)
-_PACKET_DTYPE = np.dtype(
-    [
-        ("blocks", _BLOCK_DTYPE, (12,)),
-        ("timestamp", "<u4"),
-        ("return_mode", "u1"),
-        ("product", "u1"),
-    ]
-)
-assert _PACKET_DTYPE.itemsize == DATA_PACKET_BYTES
 
 
 def _udp_packets(fh: BinaryIO, path: Path) -> Iterator[tuple[float, int, bytes]]:
@@ -106,75 +89,17 @@ def _ipv4_udp_payload(frame: bytes) -> tuple[int, bytes] | None:
     return port, frame[udp + 8 : udp + length]
 
 
-def _hour_base(capture_time: float, us_past_hour: int) -> float:
-    """Epoch seconds of the hour the sensor timestamp counts from (nearest the capture)."""
-    base = np.floor(capture_time / 3600.0) * 3600.0
-    offset = capture_time - (base + us_past_hour * 1e-6)
-    if offset > 1800:
-        base += 3600.0
-    elif offset < -1800:
-        base -= 3600.0
-    return float(base)
-
-
-def decode_packets(payloads: list[bytes], path: Path | str = "VLP-16") -> dict[str, np.ndarray]:
-    """Decode VLP-16 data packets into per-point arrays in firing order (zero ranges kept)."""
-    packets = np.frombuffer(b"".join(payloads), dtype=_PACKET_DTYPE)
-    if not len(packets):
-        return {k: np.zeros(0) for k in ("time_us", "azimuth", "distance", "laser", "intensity")}
-    blocks = packets["blocks"]
-    if np.any(blocks["flag"] != 0xEEFF):
-        raise InputError(f"{path}: VLP-16 data packet with a bad block flag (corrupt capture?)")
-    if np.any(packets["product"] != PRODUCT_VLP16):
-        products = sorted({int(p) for p in packets["product"]})
-        raise InputError(
-            f"{path}: sensor product byte(s) {products}; only the VLP-16 (0x22) is decoded"
-        )
-    if np.any(packets["return_mode"] == 0x39):
-        raise InputError(f"{path}: dual-return packets are not supported yet")
-    p = len(packets)
-    firing = np.repeat(np.arange(2), 16)  # per channel slot 0..31
-    laser = np.tile(np.arange(16), 2)
-    offset_us = (
-        np.arange(12)[:, None] * BLOCK_US + firing[None, :] * FIRING_US + laser[None, :] * LASER_US
-    )  # (12, 32)
-    time_us = packets["timestamp"].astype(np.float64)[:, None, None] + offset_us[None]
-    az = blocks["azimuth"].astype(np.float64)  # (P, 12) in 0.01°
-    flat = az.reshape(-1)
-    gap = np.empty_like(flat)
-    gap[:-1] = np.mod(flat[1:] - flat[:-1], 36000.0)
-    gap[-1] = gap[-2] if len(gap) > 1 else 0.0
-    gap = np.where(gap > 1000.0, np.median(gap), gap).reshape(p, 12)  # a jump is not a step
-    azimuth = np.mod(
-        az[:, :, None] + gap[:, :, None] * ((offset_us - offset_us[:, :1]) / (2 * FIRING_US))[None],
-        36000.0,
-    )
-    returns = blocks["returns"]
-    shape = (p, 12, 32)
-    return {
-        "time_us": time_us.reshape(-1),
-        "azimuth": azimuth.reshape(-1),
-        "distance": returns["distance"].astype(np.float64).reshape(-1) * DISTANCE_UNIT_M,
-        "laser": np.broadcast_to(laser, shape).reshape(-1).astype(np.uint8),
-        "intensity": returns["reflectivity"].reshape(-1).copy(),
-    }
-
-
 def _points_to_scan(points: dict[str, np.ndarray], base: float, index: int) -> Scan:
     keep = points["distance"] > 0
     d = points["distance"][keep]
-    omega = np.deg2rad(VLP16_ELEVATION_DEG[points["laser"][keep]])
-    alpha = np.deg2rad(points["azimuth"][keep] * 0.01)
-    xyz = np.column_stack(
-        [d * np.cos(omega) * np.sin(alpha), d * np.cos(omega) * np.cos(alpha), d * np.sin(omega)]
-    )
+    xyz = xyz_from(points["azimuth"][keep], points["elevation"][keep], d, "velodyne")
     times = base + points["time_us"][keep] * 1e-6
     fields = {
         "intensity": points["intensity"][keep],
         "ring": points["laser"][keep],
         "azimuth_deg": points["azimuth"][keep] * 0.01,
         "distance_m": d,
-        "timestamp_us": points["time_us"][keep],  # µs past the hour, as the sensor counts
+        "timestamp_us": np.mod(points["time_us"][keep], HOUR_US),  # µs past the hour, as counted
     }
     stamp = float(times[0]) if len(times) else base
     return Scan(stamp, xyz, fields, times, "velodyne", index)
@@ -197,22 +122,36 @@ def scans(path: str | Path) -> Iterator[Scan]:
     path = check_input_file(path, "pcap file")
     buffer: dict[str, np.ndarray] = {}
     base: float | None = None
-    index = 0
+    index = decoded = hours = 0
+    last_counter: float | None = None  # the previous batch's last packet counter
     with path.open("rb") as fh:
         batch: list[bytes] = []
         packets = _udp_packets(fh, path)
-        while True:
-            batch.clear()
+        exhausted = False
+        while not exhausted:
+            exhausted = True
             for capture, port, payload in packets:
                 if port == DATA_PORT and len(payload) == DATA_PACKET_BYTES:
                     if base is None:
-                        base = _hour_base(capture, struct.unpack("<I", payload[1200:1204])[0])
+                        base = hour_base(capture, struct.unpack("<I", payload[1200:1204])[0])
                     batch.append(payload)
-                    if len(batch) >= BATCH_PACKETS:
+                    if len(batch) > BATCH_PACKETS:
+                        exhausted = False
                         break
             if not batch:
                 break
-            buffer = _concat(buffer, decode_packets(batch, path))
+            # a batch's last packet waits for the next batch: the block before it steps towards it
+            ready, batch = (batch, []) if exhausted else (batch[:-1], batch[-1:])
+            following = None if exhausted else struct.unpack("<H", batch[0][2:4])[0]
+            points = decode_packets(ready, str(path), decoded, following)
+            decoded += len(ready)
+            # the sensor's counter restarts every hour: count on from the first packet's hour
+            counter = points["time_us"][::SLOTS]
+            previous = counter[0] if last_counter is None else last_counter
+            restarts = hours + np.cumsum(np.diff(counter, prepend=previous) < -HOUR_US / 2)
+            hours, last_counter = int(restarts[-1]), float(counter[-1])
+            points["time_us"] = points["time_us"] + float(HOUR_US) * restarts[points["packet"]]
+            buffer = _concat(buffer, points)
             wraps = np.flatnonzero(np.diff(buffer["azimuth"]) < -18000.0) + 1
             start = 0
             for cut in wraps:

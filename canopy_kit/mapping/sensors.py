@@ -15,7 +15,17 @@ import numpy as np
 
 from canopy_kit.errors import InputError
 from canopy_kit.io import pointcloud2 as pc2
-from canopy_kit.io.bag import IMU, NAVSATFIX, POINTCLOUD2, BagSession, GnssSeries, ImuSeries, Scan
+from canopy_kit.io.bag import (
+    IMU,
+    LIDAR_TYPES,
+    NAVSATFIX,
+    VELODYNE_SCAN,
+    BagSession,
+    GnssSeries,
+    ImuSeries,
+    Scan,
+)
+from canopy_kit.io.velodyne_ros import scan_from_message
 from canopy_kit.mapping.imu_mounting import ImuMounting
 
 
@@ -30,8 +40,9 @@ class SensorTopics:
 
 def resolve_topics(bag: BagSession, scans: str = "", imu: str = "", gnss: str = "",
                    use_imu: bool = True, use_gnss: bool = True) -> SensorTopics:
-    """Named topics (checked) or the busiest topic of each message type."""
-    scan_topic = bag.find_topic(POINTCLOUD2, scans or None)
+    """Named topics (checked) or the busiest topic of each message type; the scans are a
+    PointCloud2 topic or, when the bag has none (or it is named), a VelodyneScan topic."""
+    scan_topic = bag.find_topic(LIDAR_TYPES, scans or None)
     assert scan_topic is not None
     imu_topic = bag.find_topic(IMU, imu or None, required=bool(imu)) if use_imu else None
     gnss_topic = bag.find_topic(NAVSATFIX, gnss or None, required=bool(gnss)) if use_gnss else None
@@ -115,7 +126,12 @@ class GnssBuffer:
 
 
 def decode_scan(bag: BagSession, topic: str, msg: object, index: int) -> Scan:
-    """A PointCloud2 message as a :class:`Scan` (same conventions as ``BagSession.scans``)."""
+    """A PointCloud2 message (same conventions as ``BagSession.scans``) or a VelodyneScan of raw
+    packets (:mod:`canopy_kit.io.velodyne_ros`) as a :class:`Scan`."""
+    if getattr(msg, "__msgtype__", "") == VELODYNE_SCAN:
+        scan = scan_from_message(msg, f"{bag.path}: topic {topic!r}, message {index}", index)
+        xyz, fields, times = bag.drop_stray_times(topic, index, scan.xyz, scan.fields, scan.times)
+        return Scan(scan.stamp, xyz, fields, times, scan.frame_id, index)
     where = f"{bag.path}: topic {topic!r}, scan {index}"
     points = pc2.decode(msg, where)
     xyz = pc2.xyz_from(points, where)

@@ -64,7 +64,14 @@ class OrchardSpec:
 
 @dataclass
 class LidarSpec:
-    """Spinning LiDAR; ``vertical_fov`` is [lowest, highest] beam elevation in degrees."""
+    """Spinning LiDAR; ``vertical_fov`` is [lowest, highest] beam elevation in degrees.
+
+    ``firing``: ``columns`` (``columns`` evenly spaced columns, every ring at once) or
+    ``vlp16`` (a VLP-16's firing sequence and laser table; ``rings``, ``vertical_fov``,
+    ``columns`` and ``time_field`` are then unused). ``output``: ``points``
+    (sensor_msgs/PointCloud2) or ``velodyne_packets`` (velodyne_msgs/VelodyneScan, the raw
+    packets; fires as a VLP-16).
+    """
 
     rings: int = 32
     vertical_fov: list[float] = field(default_factory=lambda: [-45.0, 45.0])
@@ -79,6 +86,8 @@ class LidarSpec:
     time_field: Literal["t", "time", "timestamp"] = "t"
     frame_id: str = "lidar"
     topic: str = "/points"
+    firing: Literal["columns", "vlp16"] = "columns"
+    output: Literal["points", "velodyne_packets"] = "points"
 
 
 @dataclass
@@ -330,6 +339,11 @@ def validate(c: SimConfig) -> None:
            f"need 0 < min_range < max_range, got {li.min_range}, {li.max_range}")
     _check(li.range_noise >= 0 and 0 <= li.dropout < 1, "lidar.range_noise/dropout", "out of range")
     _check(li.mount_height > 0, "lidar.mount_height", f"must be positive, got {li.mount_height}")
+    if li.firing == "vlp16" or li.output == "velodyne_packets":  # canopy_kit.sim.velodyne
+        _check(5.0 <= li.rate_hz <= 20.0, "lidar.rate_hz",
+               f"a VLP-16 turns at 5-20 Hz (300-1200 rpm), got {li.rate_hz}")
+        _check(li.max_range <= 131.07, "lidar.max_range",
+               f"a VLP-16 packet holds ranges up to 131.07 m, got {li.max_range}")
     _check(d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive")
     _check(d.lead_in >= 0, "drive.lead_in", f"must not be negative, got {d.lead_in}")
     _check(d.acceleration > 0, "drive.acceleration", f"must be positive, got {d.acceleration}")

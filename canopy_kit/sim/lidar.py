@@ -9,6 +9,7 @@ and an intensity model (material reflectivity times incidence) are applied.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -16,15 +17,32 @@ from canopy_kit.sim.config import LidarSpec
 from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, WOOD, Scene
 from canopy_kit.sim.trajectory import Trajectory
 
+if TYPE_CHECKING:
+    from canopy_kit.io.bag_writer import BagWriter
+    from canopy_kit.sim.velodyne import VelodynePackets
+
 REFLECTIVITY = {GROUND: 0.30, GRASS: 0.45, WOOD: 0.35, FOLIAGE: 0.60}
 
 
 @dataclass
 class SimulatedScan:
-    """One sweep: header stamp (sweep start) and the per-point columns to publish."""
+    """One sweep: header stamp (sweep start) and the per-point columns to publish, or the raw
+    packets of a simulated Velodyne (``lidar.output = "velodyne_packets"``)."""
 
     stamp: float
     columns: dict[str, np.ndarray]
+    packets: VelodynePackets | None = None
+
+    @property
+    def n_points(self) -> int:
+        return self.packets.returns if self.packets is not None else len(self.columns["x"])
+
+    def write(self, writer: BagWriter, topic: str, frame_id: str) -> None:
+        """Write the sweep to a bag: a PointCloud2, or the packets as one VelodyneScan."""
+        if self.packets is not None:
+            writer.write_velodyne_scan(topic, self.packets.stamps, self.packets.data, frame_id)
+        else:
+            writer.write_points(topic, self.stamp, self.columns, frame_id)
 
 
 class SpinningLidar:
@@ -47,6 +65,11 @@ class SpinningLidar:
             [np.cos(az)[:, None] * ce[None, :], np.sin(az)[:, None] * ce[None, :],
              np.broadcast_to(np.sin(self.elevations), (spec.columns, spec.rings))], axis=-1)
         self._reflectivity = np.array([REFLECTIVITY[m] for m in range(4)], np.float32)
+        self._vlp16 = None  # fires like a VLP-16 (canopy_kit.sim.velodyne) instead of in columns
+        if spec.firing == "vlp16" or spec.output == "velodyne_packets":
+            from canopy_kit.sim.velodyne import Vlp16Firing
+
+            self._vlp16 = Vlp16Firing(self)
 
     @property
     def sweep_period(self) -> float:
@@ -66,25 +89,21 @@ class SpinningLidar:
         """
         n_col = self.spec.columns
         col_t = stamp + np.arange(n_col) * (self.sweep_period / n_col)
-        knot_t = np.linspace(col_t[0], col_t[-1], knots)
-        pos_k, rot_k = self.trajectory.poses(knot_t)
-        mats_k = rot_k.as_matrix().reshape(knots, 9)
-        pos = np.column_stack([np.interp(col_t, knot_t, pos_k[:, i]) for i in range(3)])
-        mats = np.column_stack([np.interp(col_t, knot_t, mats_k[:, i]) for i in range(9)])
-        return pos, mats.reshape(n_col, 3, 3)
+        return interpolated_poses(self.trajectory, col_t, knots)
 
-    def sweep(self, stamp: float) -> SimulatedScan:
-        """Simulate the sweep that starts at ``stamp``."""
+    def poses_at(self, times: np.ndarray, knots: int = 33) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor positions and rotation matrices at sorted firing ``times`` (as for columns)."""
+        return interpolated_poses(self.trajectory, times, knots)
+
+    def cast(self, rays: np.ndarray, world_dirs: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Cast (N, 6) float32 rays (origin, unit direction; ``world_dirs`` the directions in
+        float64): indices of the rays that return, their noisy ranges, scene primitives and
+        intensities (0-255). Range noise, range limits and dropouts are applied here."""
         import open3d as o3d
 
         sp = self.spec
-        n_col, n_ring = sp.columns, sp.rings
-        pos, mats = self._column_poses(stamp)
-        world_dirs = np.matmul(self.directions, mats.transpose(0, 2, 1))
-        rays = np.empty((n_col, n_ring, 6), np.float32)
-        rays[..., :3] = pos[:, None, :]
-        rays[..., 3:] = world_dirs
-        hit = self._raycaster.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)))
+        hit = self._raycaster.cast_rays(o3d.core.Tensor(rays))
         t_hit = hit["t_hit"].numpy().astype(np.float64)
         prim = hit["primitive_ids"].numpy().astype(np.int64)
         normals = hit["primitive_normals"].numpy()
@@ -93,16 +112,31 @@ class SpinningLidar:
         ranges = t_hit + rng_noise
         valid = np.isfinite(t_hit) & (ranges >= sp.min_range) & (ranges <= sp.max_range)
         valid &= rng.random(t_hit.shape) >= sp.dropout
-        idx = np.flatnonzero(valid)  # column-major order: time increases with the index
+        idx = np.flatnonzero(valid)
         ranges = ranges[idx]
         prim = prim[idx]
-        dirs_local = self.directions.reshape(-1, 3)[idx]
-        xyz = (dirs_local * ranges[:, None]).astype(np.float32)
         material = self.scene.material[prim]
-        cos_inc = np.abs(np.sum(normals[idx] * world_dirs.reshape(-1, 3)[idx], axis=1))
+        cos_inc = np.abs(np.sum(normals[idx] * world_dirs[idx], axis=1))
         intensity = self._reflectivity[material] * (0.35 + 0.65 * cos_inc) * self.scene.shade[prim]
         intensity = intensity * 255.0 / (1.0 + (ranges / 40.0) ** 2)
         intensity = np.clip(intensity + rng.normal(0, 2.0, len(idx)), 0, 255).astype(np.float32)
+        return idx, ranges, prim, intensity
+
+    def sweep(self, stamp: float) -> SimulatedScan:
+        """Simulate the sweep that starts at ``stamp``."""
+        if self._vlp16 is not None:
+            return self._vlp16.sweep(stamp)
+        sp = self.spec
+        n_col, n_ring = sp.columns, sp.rings
+        pos, mats = self._column_poses(stamp)
+        world_dirs = np.matmul(self.directions, mats.transpose(0, 2, 1))
+        rays = np.empty((n_col, n_ring, 6), np.float32)
+        rays[..., :3] = pos[:, None, :]
+        rays[..., 3:] = world_dirs
+        # column-major order: time increases with the index
+        idx, ranges, prim, intensity = self.cast(rays.reshape(-1, 6), world_dirs.reshape(-1, 3))
+        dirs_local = self.directions.reshape(-1, 3)[idx]
+        xyz = (dirs_local * ranges[:, None]).astype(np.float32)
         col = idx // n_ring
         ring = (idx % n_ring).astype(np.uint16)
         dt = col * (self.sweep_period / n_col)
@@ -118,3 +152,15 @@ class SpinningLidar:
         if self.truth_field:
             columns["tree_id"] = self.scene.tree_id[prim].astype(np.int32)
         return SimulatedScan(stamp, columns)
+
+
+def interpolated_poses(trajectory: Trajectory, times: np.ndarray, knots: int = 33
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 3) and rotation matrices (N, 3, 3) at sorted ``times``: exact at ``knots``
+    times spread over them, linear in between (see ``SpinningLidar._column_poses``)."""
+    knot_t = np.linspace(times[0], times[-1], knots)
+    pos_k, rot_k = trajectory.poses(knot_t)
+    mats_k = rot_k.as_matrix().reshape(knots, 9)
+    pos = np.column_stack([np.interp(times, knot_t, pos_k[:, i]) for i in range(3)])
+    mats = np.column_stack([np.interp(times, knot_t, mats_k[:, i]) for i in range(9)])
+    return pos, mats.reshape(len(times), 3, 3)

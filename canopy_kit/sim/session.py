@@ -142,8 +142,8 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
             end = stamp + lidar.sweep_period
             flush(end)
             scan = lidar.sweep(stamp)
-            n_points += len(scan.columns["x"])
-            writer.write_points(config.lidar.topic, stamp, scan.columns, mounts.lidar_frame)
+            n_points += scan.n_points
+            scan.write(writer, config.lidar.topic, mounts.lidar_frame)
             report("LiDAR sweeps", k + 1, len(sweeps))
         flush(trajectory.end_time + 1.0)
     drone_dir = None
