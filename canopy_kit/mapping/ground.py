@@ -89,17 +89,39 @@ def ground_correction(ground_world: np.ndarray, sensor_xy: np.ndarray, grid: Gro
         return None
     d = ground_world[ok, :2] - sensor_xy
     r = ground_world[ok, 2] - h[ok]
-    a = np.column_stack([np.ones(len(r)), d])
+    if np.ptp(d, axis=0).min() < 2.0:
+        return None
+    axes = two_sided_axes(d)
+    a = np.column_stack([np.ones(len(r)), d @ axes])
     coef = None
     use = np.abs(r - np.median(r)) <= 2 * trim
     for _ in range(2):
-        if use.sum() < min_points or np.ptp(d[use], axis=0).min() < 2.0:
+        if use.sum() < min_points:
             return None
         coef, *_ = np.linalg.lstsq(a[use], r[use], rcond=None)
         use = np.abs(r - a @ coef) <= trim
     if coef is None:
         return None
-    return np.r_[np.clip(coef[0], -max_shift, max_shift), np.clip(coef[1:], -max_tilt, max_tilt)]
+    slope = axes @ coef[1:] if axes.shape[1] else np.zeros(2)
+    return np.r_[np.clip(coef[0], -max_shift, max_shift), np.clip(slope, -max_tilt, max_tilt)]
+
+
+def two_sided_axes(offsets: np.ndarray, min_share: float = 0.2) -> np.ndarray:
+    """Principal directions (2, k) along which the ground points lie on both sides of the sensor.
+
+    A tilt about an axis is fitted only where the ground straddles the sensor: from ground
+    seen on one side only (a LiDAR pitched down to the rear sees ground behind it alone),
+    the slope picks up whatever makes near and far ground differ (grass seen at grazing
+    angles far away, ground at steep angles nearby) and biases the pitch (measured: 0.25 deg
+    in the alleys driven one way, and a 9 cm height ramp across a 4-row block).
+    """
+    _, vectors = np.linalg.eigh(np.cov(offsets.T))
+    keep = []
+    for k in range(2):
+        proj = offsets @ vectors[:, k]
+        if min(np.mean(proj > 0), np.mean(proj < 0)) >= min_share:
+            keep.append(vectors[:, k])
+    return np.array(keep).T.reshape(2, len(keep))
 
 
 def apply_ground_correction(pose: np.ndarray, coef: np.ndarray) -> np.ndarray:
