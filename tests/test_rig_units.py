@@ -218,3 +218,32 @@ def test_shipped_presets_know_the_rig_settings() -> None:
     assert cfg.extrinsics == "calibrate"
     with pytest.raises(ConfigError, match="mapping.extrinsics"):
         from_dict(MappingConfig, {"extrinsics": "guess"}, "mapping")
+
+
+# -- the report ---------------------------------------------------------------------------
+def test_report_shows_the_rig_and_checks_the_imu_mount() -> None:
+    from canopy_kit.mapping.extrinsics import SensorRig
+    from canopy_kit.report.html import render_report
+    from canopy_kit.report.rig import rig_check, rig_section
+
+    base_from_lidar = from_rpy([0.3, 0, 1.9], [0, 12, 180])
+    base_from_imu = from_rpy([0.3, 0, 1.55], [180, 0, 90])
+    rig = SensorRig("velodyne", "imu_link", "gps", "base_link", invert(base_from_lidar) @ base_from_imu,
+                    invert(base_from_lidar) @ rigid(translation=[0.3, 0, 2.8]), invert(base_from_lidar),
+                    {"imu": "tf_static", "gnss": "rig file", "base": "tf_static"}, tf_topics=["/tf_static"])
+    diag = {"rig": rig.to_dict(), "extrinsics": {"mode": "auto", "difference_deg": 2.6, "tolerance_deg": 2.0,
+                                                 "estimated": {"rpy_deg": [1, 2, 3], "sigma_deg": [0.1, 0.1, 0.3]}}}
+    section = rig_section(diag)
+    table = section.table.set_index("sensor")
+    # Each sensor's mount on the vehicle, as the rig gives it, whatever frame the odometry ran in.
+    assert table.loc["IMU", "position in base_link [m]"] == "0.300, 0.000, 1.550"
+    assert table.loc["IMU", "roll, pitch, yaw [deg]"] == "180.00, 0.00, 90.00" or \
+        table.loc["IMU", "roll, pitch, yaw [deg]"] == "-180.00, 0.00, 90.00"
+    assert table.loc["GNSS antenna", "source"] == "rig file"
+    assert table.loc["LiDAR", "roll, pitch, yaw [deg]"] in ("0.00, 12.00, 180.00", "0.00, 12.00, -180.00")
+    assert "2.60 deg from the given mount" in section.text
+    check = rig_check(diag)
+    assert check is not None and check.passed is False and check.target == "≤ 2°"
+    assert rig_check({**diag, "extrinsics": {**diag["extrinsics"], "difference_deg": 0.4}}).passed is True
+    page = render_report("r", {}, section.table, [section], [check], "")
+    assert "Sensor rig" in page and "imu_link" in page and "IMU mount agrees with the drive" in page

@@ -48,7 +48,7 @@ def _tilt(rig: SensorRig, one: OdometryPass, lidar_from_imu: np.ndarray | None =
 
 def check_rig(one: OdometryPass, rig: SensorRig, config: MappingConfig) -> tuple[dict[str, Any], list[str]]:
     """How far the drive puts the IMU from where the rig says; a warning past the tolerance."""
-    diag: dict[str, Any] = {"mode": config.extrinsics}
+    diag: dict[str, Any] = {"mode": config.extrinsics, "tolerance_deg": config.extrinsic_tolerance_deg}
     if one.imu is None or rig.imu_frame is None:
         return diag, []
     times, poses = _registered(one)

@@ -96,6 +96,13 @@ class SensorRig:
         if self.gnss_frame is not None:
             out["gnss_lever_arm_m"] = [round(float(v), 4) for v in self.gnss_lever_arm]
         out["lidar_from_base"] = pose(self.lidar_from_base)
+        # The mounts on the vehicle, as a rig file gives them.
+        base_from_lidar = invert(self.lidar_from_base)
+        out["mounts_in_base"] = {"lidar": pose(base_from_lidar)}
+        if self.imu_frame is not None:
+            out["mounts_in_base"]["imu"] = pose(base_from_lidar @ self.lidar_from_imu)
+        if self.gnss_frame is not None:
+            out["mounts_in_base"]["gnss"] = pose(base_from_lidar @ self.lidar_from_gnss)
         out["transforms"] = [t.to_dict() for t in self.transforms]
         return out
 

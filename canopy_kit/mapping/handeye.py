@@ -25,9 +25,9 @@ from canopy_kit.mapping.imu import RotationTrack, detect_standstill
 SPANS_S = (0.3, 1.0)  # increments between registered sweeps about this far apart
 MAX_SPAN_S = 2.5  # longer increments (a gap in the registrations) are left out
 MIN_INCREMENTS = 30
-OBSERVABLE_SIGMA_DEG = 0.3
+OBSERVABLE_SIGMA_DEG = 0.5  # an axis known better than this is well determined (within 1 deg at 2 sigma)
 JITTER_RAD = 0.002  # the odometry's rotation error per increment that does not grow with the turn
-PROPORTIONAL_ERROR = 0.02  # and the part that does (a share of the increment's rotation)  # an axis known better than this is well determined
+PROPORTIONAL_ERROR = 0.02  # and the part that does (a share of the increment's rotation)
 OFFSET_COARSE_S = 0.01
 OFFSET_FINE_S = 0.001
 

@@ -39,6 +39,11 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
                             "diameter: fragments or merged trees?)", share <= 0.10,
                             f"{metrics['flagged_segments']} ({100 * share:.0f} %)", "≤ 10 % of trees",
                             ", ".join(odd[:12]) + (" ..." if len(odd) > 12 else "")))
+    from canopy_kit.report.rig import rig_check
+
+    imu_check = rig_check(metrics.get("mapping", {}))
+    if imu_check is not None:
+        checks.append(imu_check)
     mapping = metrics.get("evaluation", {}).get("mapping", {})
     if "ate_rmse_m" in mapping:
         checks.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
@@ -121,13 +126,19 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         from canopy_kit.mapping.plots import mapping_figures
         from canopy_kit.sim.truth import load_truth
 
-        reference = load_truth(ctx.truth_dir).trajectory
-        mfigs = mapping_figures(ctx.mapping, reference, mapping_eval)
+        truth = load_truth(ctx.truth_dir)
+        reference = truth.trajectory_of(getattr(ctx.mapping, "trajectory_frame", ""))
+        mfigs = mapping_figures(ctx.mapping, truth.trajectory if reference is None else reference, mapping_eval)
         sections.append(ReportSection("Mapping", [
             ("Estimated trajectory (SE(3)-aligned) against the true one, and the position error "
              "over time.", figure_to_data_uri(mfigs["trajectory"])),
             ("The map from above: highest point per cell, coloured by height.",
              figure_to_data_uri(mfigs["map"]))]))
+    from canopy_kit.report.rig import rig_section
+
+    rig = rig_section(metrics.get("mapping", {}))
+    if rig is not None:
+        sections.append(rig)
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
         ok = comparable_aerial_sphere(trees).notna() & trees["volume_alpha_m3"].notna()
         figs = []

@@ -88,10 +88,11 @@ class TruthMapping:
 
 
 def truth_mapping(sim_dir: str | Path, voxel_size: float = 0.05,
-                  progress: Callable[[str, float, float], None] | None = None) -> TruthMapping:
+                  progress: Callable[[str, float, float], None] | None = None,
+                  max_range: float = 30.0) -> TruthMapping:
     """Map and trajectory of a simulated session from its true poses (for controlled studies)."""
     truth = load_truth(sim_dir)
-    cloud = truth_map(sim_dir, voxel_size, progress=progress)
+    cloud = truth_map(sim_dir, voxel_size, max_range=max_range, progress=progress)
     traj = truth.trajectory.copy()
     steps = np.linalg.norm(np.diff(traj[["x", "y", "z"]].to_numpy(), axis=0), axis=1)
     return TruthMapping(cloud, traj, truth.frame,

@@ -1,0 +1,72 @@
+"""The report's sensor-rig section: which frame each sensor stamped, where its mount came
+from, and whether the drive agrees with the IMU mount (``mapping.json``'s ``rig`` and
+``extrinsics`` diagnostics)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pandas as pd
+
+from canopy_kit.report.html import Check, ReportSection
+
+
+def _pose(entry: dict[str, Any] | None) -> tuple[str, str]:
+    if not entry:
+        return "", ""
+    def text(values: list[float], digits: int) -> str:  # no "-0.000"
+        return ", ".join(f"{round(v, digits) + 0.0:.{digits}f}" for v in values)
+
+    return text(entry["translation"], 3), text(entry["rpy_deg"], 2)
+
+
+def rig_table(rig: dict[str, Any]) -> pd.DataFrame:
+    """One row per sensor: its frame, its mount on the vehicle and where the mount came from."""
+    sources = rig.get("sources", {})
+    mounts = rig.get("mounts_in_base", {})
+    rows = [("LiDAR", rig.get("lidar_frame", ""), "lidar", sources.get("base", ""))]
+    if rig.get("imu_frame"):
+        rows.append(("IMU", rig["imu_frame"], "imu", sources.get("imu", "")))
+    if rig.get("gnss_frame"):
+        rows.append(("GNSS antenna", rig["gnss_frame"], "gnss", sources.get("gnss", "")))
+    out = []
+    for sensor, frame, key, source in rows:
+        position, rpy = _pose(mounts.get(key))
+        out.append({"sensor": sensor, "frame": frame,
+                    f"position in {rig.get('base_frame', 'base')} [m]": position,
+                    "roll, pitch, yaw [deg]": rpy if key != "gnss" else "", "source": source})
+    return pd.DataFrame(out)
+
+
+def rig_section(mapping: dict[str, Any]) -> ReportSection | None:
+    """The section for a run's mapping diagnostics (None when they hold no rig)."""
+    rig = mapping.get("rig")
+    if not rig:
+        return None
+    ext = mapping.get("extrinsics", {})
+    text = (f"Trajectory reported for the frame '{rig.get('base_frame', '')}'. "
+            f"Transforms read from {', '.join(rig.get('tf_topics') or []) or 'no tf topic'}"
+            f"{' and a rig file' if 'rig file' in str(rig.get('sources')) else ''}.")
+    est = ext.get("estimated")
+    if est:
+        verb = "Estimated" if ext.get("mode") == "calibrate" else "Checked against the drive"
+        text += (f" {verb}: IMU mount roll/pitch/yaw {', '.join(f'{v:.2f}' for v in est['rpy_deg'])} deg "
+                 f"(1-sigma {', '.join(f'{v:.2f}' for v in est['sigma_deg'])} deg about the LiDAR's x, y, z)")
+        if "difference_deg" in ext:
+            text += f", {ext['difference_deg']:.2f} deg from the given mount"
+        text += "."
+    if "lidar_tilt_from_gravity_deg" in ext:
+        text += f" LiDAR tilted {ext['lidar_tilt_from_gravity_deg']:.1f} deg from the vertical at the start."
+    return ReportSection("Sensor rig", text=text, table=rig_table(rig))
+
+
+def rig_check(mapping: dict[str, Any]) -> Check | None:
+    """Pass when the drive puts the IMU where the rig says (hand-eye on the rotations)."""
+    ext = mapping.get("extrinsics", {})
+    if "difference_deg" not in ext or ext.get("mode") == "calibrate":
+        return None
+    angle = float(ext["difference_deg"])
+    tolerance_deg = float(ext.get("tolerance_deg", 2.0))
+    return Check("IMU mount agrees with the drive (gyro vs LiDAR rotations)", angle <= tolerance_deg,
+                 f"{angle:.2f}°", f"≤ {tolerance_deg:g}°",
+                 f"mount from {mapping.get('rig', {}).get('sources', {}).get('imu', '?')}")
