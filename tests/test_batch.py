@@ -222,3 +222,25 @@ def test_a_batch_session_without_report_can_be_scored_by_footprints(orchard_batc
     assert score.n_truth == ORCHARD["rows"] * ORCHARD["trees_per_row"]
     assert score.n_predicted == len(outcome.trees)
     assert score.success_rate >= 0.95  # pistachio crowns stand apart
+
+
+def test_manifest_rigs_reach_each_sessions_mapping_config(tmp_path):
+    """A rig per session (shipped or a file relative to the manifest), a default for the others."""
+    from canopy_kit.errors import ConfigError
+
+    (tmp_path / "rigs").mkdir()
+    (tmp_path / "rigs" / "ours.toml").write_text(
+        '[rig]\nbase_frame = "base_link"\n[frames.lidar]\ntranslation = [0, 0, 2.0]\n')
+    manifest = tmp_path / "sessions.toml"
+    manifest.write_text(
+        '[[session]]\nid = "a"\nbag = "a.mcap"\norchard = "o"\ndate = 2025-04-01\nrig = "rigs/ours.toml"\n'
+        '[[session]]\nid = "b"\nbag = "b.mcap"\norchard = "o"\ndate = 2025-05-01\nrig = "tower"\n'
+        '[[session]]\nid = "c"\nbag = "c.mcap"\norchard = "o"\ndate = 2025-06-01\n')
+    specs = {s.session_id: s for s in load_manifest(manifest, default_rig="imu-flipped")}
+    a, b, c = (specs[k].overrides["mapping"] for k in "abc")
+    assert a["rig"]["frames"]["lidar"]["translation"] == [0, 0, 2.0]
+    assert a["rig_name"] == str(tmp_path / "rigs" / "ours.toml")
+    assert b["rig"]["rig"]["lidar_frame"] == "velodyne" and c["rig"]["rig"]["lidar_frame"] == "os_sensor"
+    (tmp_path / "rigs" / "ours.toml").write_text('[frames.lidar]\nrpy_deg = [0, 0]\n')
+    with pytest.raises(ConfigError, match=r"ours.toml: frames.lidar.rpy_deg"):
+        load_manifest(manifest)
