@@ -69,7 +69,11 @@ class ImuSeries:
 
 @dataclass
 class GnssSeries:
-    """GNSS fixes: time (s), latitude, longitude (deg), altitude (m), status and covariance."""
+    """GNSS fixes: time (s), latitude, longitude (deg), altitude (m), status and covariance.
+
+    ``covariance_type`` is NavSatFix's ``position_covariance_type`` per fix (0 unknown,
+    1 approximated, 2 diagonal known, 3 known); empty when the source did not say.
+    """
 
     t: np.ndarray
     latitude: np.ndarray
@@ -77,6 +81,7 @@ class GnssSeries:
     altitude: np.ndarray
     status: np.ndarray
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 9)))
+    covariance_type: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
 
 @dataclass
@@ -323,11 +328,11 @@ class BagSession:
         rows, cov = [], []
         for _, msg in self._messages(name):
             rows.append((pc2.stamp_seconds(msg.header), msg.latitude, msg.longitude, msg.altitude,
-                         msg.status.status))
+                         msg.status.status, msg.position_covariance_type))
             cov.append(np.asarray(msg.position_covariance, dtype=float))
-        a = np.array(rows, dtype=float).reshape(-1, 5)
+        a = np.array(rows, dtype=float).reshape(-1, 6)
         return GnssSeries(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4].astype(int),
-                          np.array(cov).reshape(-1, 9))
+                          np.array(cov).reshape(-1, 9), a[:, 5].astype(int))
 
     def odometry(self, topic: str | None = None) -> OdometrySeries | None:
         """All Odometry poses of ``topic`` (auto-detected), or None when absent."""

@@ -181,15 +181,19 @@ class BagWriter:
 
     def write_fix(self, topic: str, stamp: float, lat: float, lon: float, alt: float,
                   sigma_h: float = 1.0, sigma_v: float = 2.0, status: int = 0,
-                  frame_id: str = "gnss") -> None:
-        """One sensor_msgs/NavSatFix with a diagonal covariance."""
+                  frame_id: str = "gnss", covariance_type: int = 2) -> None:
+        """One sensor_msgs/NavSatFix with a diagonal covariance.
+
+        ``covariance_type`` 0 (COVARIANCE_TYPE_UNKNOWN) writes an all-zero covariance, as
+        receivers that do not know their accuracy do; NaN positions are written as they are."""
         t = self.typestore.types
-        status_msg = t["sensor_msgs/msg/NavSatStatus"](status=status, service=1)
-        cov = np.diag([sigma_h**2, sigma_h**2, sigma_v**2]).ravel()
+        status_msg = t["sensor_msgs/msg/NavSatStatus"](status=int(status), service=1)
+        cov = (np.zeros(9) if covariance_type == 0 else
+               np.diag([sigma_h**2, sigma_h**2, sigma_v**2]).ravel().astype(float))
         msg = t["sensor_msgs/msg/NavSatFix"](
             header=self._header(topic, stamp, frame_id), status=status_msg,
             latitude=float(lat), longitude=float(lon), altitude=float(alt),
-            position_covariance=cov, position_covariance_type=2,
+            position_covariance=cov, position_covariance_type=int(covariance_type),
         )
         self._write(topic, "sensor_msgs/msg/NavSatFix", msg, stamp)
 

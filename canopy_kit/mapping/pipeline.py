@@ -22,14 +22,23 @@ from canopy_kit.cloud import PointCloud
 from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 from canopy_kit.geo import LocalFrame
-from canopy_kit.io.bag import open_bag
+from canopy_kit.io.bag import GnssSeries, open_bag
 from canopy_kit.mapping.assemble import TIME_FIELD, assemble_map, point_fields
 from canopy_kit.mapping.calibration import calibrate_rig, check_rig
 from canopy_kit.mapping.chunks import run_odometry
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.frontend import FrontendSweep, require_sweeps
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
-from canopy_kit.mapping.gnss import GnssEpochs, gnss_epochs, local_frame_for
+from canopy_kit.mapping.gnss import (
+    GnssEpochs,
+    fix_report,
+    gnss_epochs,
+    local_frame_for,
+    rejection_reasons,
+    report_warning,
+    reported_sigmas,
+)
+from canopy_kit.mapping.gnss_jumps import odometry_outliers
 from canopy_kit.mapping.kernels import warm_up
 from canopy_kit.mapping.passone import PassOne, pass_warnings, quality_flags
 from canopy_kit.mapping.sensors import GnssBuffer, resolve_topics
@@ -152,7 +161,9 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         warnings += more
     imu = one.imu
     st = one.state
-    frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings)
+    antenna = odometry[:, :3, 3] + odometry[:, :3, :3] @ rig.gnss_lever_arm  # where the fixes are taken
+    frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings, one.topics.gnss or "",
+                                            (odo_times, antenna), (one.first_stamp, one.last_stamp))
     cpu1 = cpu_seconds()
     fused = fuse_trajectory(odo_times, odometry, fusion_settings(config, rig), imu=imu,
                             standstill=st.standstill, gnss=epochs, uncertainty=uncertainty)
@@ -212,29 +223,58 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
             diagnostics["imu"]["accel_bias_end"] = fused.accel_bias[-1].tolist()
             diagnostics["imu"]["gyro_bias_end"] = fused.gyro_bias[-1].tolist()
     if gnss_diag:
+        gnss_diag["mode_changes"] = int(fused.diagnostics.get("gnss_mode_changes", 0))
         if fused.gnss_bias is not None:
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
     return MappingResult(cloud, table, frame, diagnostics, warnings, config, rig, pose_table(t_ref, poses))
 
 
-def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig,
-                 warnings: list[str]) -> tuple[LocalFrame | None, GnssEpochs | None, dict]:
+def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig, warnings: list[str],
+                 topic: str = "", odometry: tuple[np.ndarray, np.ndarray] | None = None,
+                 span: tuple[float, float] | None = None,
+                 ) -> tuple[LocalFrame | None, GnssEpochs | None, dict]:
+    """The local frame, the epochs for the graph and the GNSS diagnostics of a drive.
+
+    ``odometry`` (times, positions) lets the fixes it contradicts be rejected as jumps;
+    ``span`` (first and last sweep) places the outages in time.
+    """
     if buffer is None or len(buffer) == 0:
         return None, None, {}
     series = buffer.series()
+    reasons = rejection_reasons(series)
     try:
         frame = local_frame_for(series)
+        if odometry is not None:
+            reasons[_jumps(series, frame, reasons == "", odometry, config)] = "jump"
         epochs = gnss_epochs(series, frame, config.gnss_epoch, config.gnss_default_sigma_horizontal,
-                             config.gnss_default_sigma_vertical)
+                             config.gnss_default_sigma_vertical, exclude=reasons == "jump")
     except InputError as exc:
-        warnings.append(f"GNSS not used: {exc}")
+        warnings.append(f"GNSS topic {topic!r} not used: {exc}")
         return None, None, {}
-    if epochs.n_rejected:
-        warnings.append(f"GNSS: {epochs.n_rejected} fixes without a valid position were ignored")
-    diag = {"fixes": epochs.n_fixes, "epochs": len(epochs.t), "rejected": epochs.n_rejected,
-            "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])), "crs": frame.crs}
+    diag = fix_report(series, reasons, span)
+    diag.update({"fixes": epochs.n_fixes, "epochs": len(epochs.t), "superseded": epochs.n_superseded,
+                 "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])), "crs": frame.crs})
+    line = report_warning(topic, diag)
+    if line:
+        warnings.append(line)
     return frame, epochs, diag
+
+
+def _jumps(series: GnssSeries, frame: LocalFrame, usable: np.ndarray,
+           odometry: tuple[np.ndarray, np.ndarray], config: MappingConfig) -> np.ndarray:
+    """Usable fixes the odometry contradicts (see :func:`odometry_outliers`)."""
+    out = np.zeros(len(series.t), bool)
+    idx = np.flatnonzero(usable)
+    if len(idx) < 3:
+        return out
+    xyz = frame.to_local(series.latitude[idx], series.longitude[idx], series.altitude[idx])
+    sigma = reported_sigmas(series, config.gnss_default_sigma_horizontal,
+                            config.gnss_default_sigma_vertical)[idx]
+    out[idx] = odometry_outliers(series.t[idx], xyz, sigma, series.status[idx], odometry[0], odometry[1],
+                                 config.gnss_correlation_time, config.gnss_white_fraction,
+                                 config.odometry_jitter_translation)
+    return out
 
 
 def stream_map(bag_path: str | Path, config: MappingConfig | None = None,

@@ -106,23 +106,28 @@ class ImuBuffer:
 
 
 class GnssBuffer:
-    """NavSatFix messages received so far."""
+    """NavSatFix messages received so far: time, position, status, covariance and its type."""
 
     def __init__(self) -> None:
-        self._rows = _Growable(5 + 9)
+        self._rows = _Growable(5 + 9 + 1)
 
     def __len__(self) -> int:
         return self._rows.n
 
     def append(self, t: float, lat: float, lon: float, alt: float, status: int,
-               covariance: np.ndarray) -> None:
-        self._rows.append((t, lat, lon, alt, float(status), *np.asarray(covariance, float).ravel()[:9]))
+               covariance: np.ndarray, covariance_type: int = 2) -> None:
+        """One fix; ``covariance_type`` is the message's ``position_covariance_type``."""
+        cov = np.full(9, np.nan)
+        given = np.asarray(covariance, float).ravel()[:9]
+        cov[: len(given)] = given
+        self._rows.append((t, lat, lon, alt, float(status), *cov, float(covariance_type)))
 
     def series(self) -> GnssSeries:
+        """Every fix so far, sorted by time (NO_FIX and non-finite ones included)."""
         r = self._rows.rows
         r = r[np.argsort(r[:, 0], kind="stable")]
         return GnssSeries(r[:, 0].copy(), r[:, 1].copy(), r[:, 2].copy(), r[:, 3].copy(),
-                          r[:, 4].astype(int), r[:, 5:14].copy())
+                          r[:, 4].astype(int), r[:, 5:14].copy(), r[:, 14].astype(int))
 
 
 def decode_scan(bag: BagSession, topic: str, msg: object, index: int) -> Scan:
@@ -228,7 +233,8 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
                 imu.append(pc2.stamp_seconds(msg.header), (w.x, w.y, w.z), (a.x, a.y, a.z))
             elif conn.topic == topics.gnss and gnss is not None:
                 gnss.append(pc2.stamp_seconds(msg.header), msg.latitude, msg.longitude, msg.altitude,
-                            int(msg.status.status), np.asarray(msg.position_covariance, float))
+                            int(msg.status.status), np.asarray(msg.position_covariance, float),
+                            int(msg.position_covariance_type))
     except InputError:
         raise
     except Exception as exc:

@@ -126,7 +126,16 @@ class ImuSpec:
 
 @dataclass
 class GnssSpec:
-    """GNSS antenna at the LiDAR; ``mode`` standard (metre level) or rtk (centimetre)."""
+    """GNSS antenna at the LiDAR; ``mode`` standard (metre level) or rtk (centimetre).
+
+    The receiver's behaviour under canopy is off by default. Times are seconds from the
+    drive start; intervals are ``[start_s, duration_s]``. Outages write NO_FIX messages
+    (``outage_fill``: NaN or the last known position, or no message at all); jumps offset
+    the fixes horizontally by ``offset_m`` in a random direction (multipath), with the
+    reported covariance unchanged; ``rtk_intervals`` (mode standard) give RTK fixes
+    (status 2, RTK sigmas) inside and standalone fixes (``standalone_status``) outside.
+    ``covariance_type`` 0 (unknown) writes a zero covariance, as cheap receivers do.
+    """
 
     enabled: bool = True
     rate_hz: float = 10.0
@@ -138,6 +147,18 @@ class GnssSpec:
     rtk_sigma_vertical: float = 0.04
     topic: str = "/gps/fix"
     frame_id: str = "gnss"
+    outages: list[list[float]] = field(default_factory=list)
+    outage_count: int = 0  # random outages besides the listed ones
+    outage_duration_range: list[float] = field(default_factory=lambda: [3.0, 6.0])
+    outage_fill: Literal["nan", "last", "none"] = "nan"
+    outage_status: int = -1  # status written during an outage (-1 NO_FIX; 0: a receiver that lies)
+    jumps: list[list[float]] = field(default_factory=list)  # [start_s, duration_s, offset_m]
+    jump_count: int = 0
+    jump_duration_range: list[float] = field(default_factory=lambda: [2.0, 4.0])
+    jump_offset_range: list[float] = field(default_factory=lambda: [1.0, 4.0])
+    rtk_intervals: list[list[float]] = field(default_factory=list)
+    standalone_status: int = 0  # 0 FIX or 1 SBAS
+    covariance_type: int = 2  # 0 unknown, 1 approximated, 2 diagonal known, 3 known
 
 
 @dataclass
@@ -349,6 +370,7 @@ def validate(c: SimConfig) -> None:
     _check(d.acceleration > 0, "drive.acceleration", f"must be positive, got {d.acceleration}")
     _check(0 <= d.speed_variation < d.cruise_speed, "drive.speed_variation", "must be below cruise_speed")
     _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")
+    _validate_gnss(c.gnss)
     _check(len(c.rig.tf_imu_error_rpy_deg) == 3, "rig.tf_imu_error_rpy_deg",
            f"expected [roll, pitch, yaw], got {c.rig.tf_imu_error_rpy_deg}")
     _check(abs(c.rig.imu_time_offset) < 1.0, "rig.imu_time_offset",
@@ -367,3 +389,25 @@ def validate(c: SimConfig) -> None:
     _check(1 <= c.drone.jpeg_quality <= 100, "drone.jpeg_quality",
            f"must be in [1, 100], got {c.drone.jpeg_quality}")
     _check(c.drone.flight_speed > 0, "drone.flight_speed", f"must be positive, got {c.drone.flight_speed}")
+
+
+def _validate_gnss(g: GnssSpec) -> None:
+    """The receiver-behaviour settings of ``[gnss]``."""
+    for name, width in (("outages", 2), ("jumps", 3), ("rtk_intervals", 2)):
+        for i, item in enumerate(getattr(g, name)):
+            _check(len(item) == width, f"gnss.{name}[{i}]",
+                   f"expected [{'start_s, duration_s' + (', offset_m' if width == 3 else '')}], got {item}")
+            _check(item[0] >= 0 and item[1] > 0, f"gnss.{name}[{i}]",
+                   f"start must be >= 0 and duration positive, got {item}")
+    _check(g.outage_count >= 0 and g.jump_count >= 0, "gnss.outage_count/jump_count", "must not be negative")
+    _check_range(g.outage_duration_range, "gnss.outage_duration_range")
+    _check_range(g.jump_duration_range, "gnss.jump_duration_range")
+    _check_range(g.jump_offset_range, "gnss.jump_offset_range", strict=False)
+    _check(g.outage_status in (-1, 0, 1, 2), "gnss.outage_status",
+           f"must be -1, 0, 1 or 2, got {g.outage_status}")
+    _check(g.standalone_status in (0, 1), "gnss.standalone_status", f"must be 0 (FIX) or 1 (SBAS), got "
+           f"{g.standalone_status}")
+    _check(g.covariance_type in (0, 1, 2, 3), "gnss.covariance_type",
+           f"must be 0, 1, 2 or 3 (NavSatFix COVARIANCE_TYPE_*), got {g.covariance_type}")
+    _check(not (g.rtk_intervals and g.mode == "rtk"), "gnss.rtk_intervals",
+           "mode 'rtk' is RTK for the whole drive; rtk_intervals need mode 'standard'")

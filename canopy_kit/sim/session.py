@@ -102,6 +102,8 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     sweeps = lidar.sweep_times()
     imu = simulate_imu(trajectory, config.imu, rngs["imu"]) if config.imu.enabled else None
     gnss = simulate_gnss(trajectory, config.gnss, rngs["gnss"]) if config.gnss.enabled else None
+    if gnss is not None:  # where the receiver lost its fix or jumped
+        atomic_write_text(truth_dir / "gnss_events.json", json.dumps(gnss.events, indent=2) + "\n")
     odo_t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
     n_points = 0
     with BagWriter(bag_path, fmt) as writer:
@@ -122,8 +124,8 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
                 while i < len(gnss.t) and gnss.t[i] < until:
                     lat, lon, h = orchard.frame.to_wgs84(gnss.local_xyz[i : i + 1])
                     writer.write_fix(config.gnss.topic, gnss.t[i], lat[0], lon[0], h[0],
-                                     gnss.sigma_horizontal, gnss.sigma_vertical, gnss.status,
-                                     mounts.gnss_frame)
+                                     gnss.sigma_horizontal[i], gnss.sigma_vertical[i], gnss.status[i],
+                                     mounts.gnss_frame, gnss.covariance_type)
                     i += 1
                 cursors["gnss"] = i
             i = cursors["odom"]
