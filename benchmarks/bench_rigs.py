@@ -65,7 +65,7 @@ def run_session(sim: Path, out: Path, preset: str) -> dict:
             "warnings": res.warnings}
 
 
-def true_pose_trees(sim: Path, config) -> pd.DataFrame:  # noqa: ANN001
+def true_pose_trees(sim: Path, config) -> pd.DataFrame:
     """The same session's trees measured on a map built with the true poses (same range limit)."""
     from canopy_kit.pipeline import RunContext, segment_stage, tree_table, volume_stage
     from canopy_kit.sim.truth_map import truth_mapping

@@ -10,7 +10,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from canopy_kit.errors import ConfigError, InputError
-from canopy_kit.frames import FrameGraph, FrameTransform, from_rpy, invert, rigid, rotation_angle_deg, rpy_deg
+from canopy_kit.frames import (
+    FrameGraph,
+    FrameTransform,
+    from_rpy,
+    invert,
+    rigid,
+    rotation_angle_deg,
+    rpy_deg,
+)
 from canopy_kit.rig import extrinsics_mode, load_rig, parse_rig, rig_overrides, rig_preset_names
 
 

@@ -22,7 +22,7 @@ from canopy_kit.sim.truth import load_truth
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
 
 
-def _session(sim_factory, rig: str, seed: int = 41, **rig_settings):  # noqa: ANN001, ANN202
+def _session(sim_factory, rig: str, seed: int = 41, **rig_settings):
     return sim_factory("pistachio", seed=seed, overrides={**SMALL, "rig": {"name": rig, **rig_settings}})
 
 
@@ -33,7 +33,7 @@ def _true_lidar_from_imu(sim_dir: Path) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def identity_run(sim_factory):  # noqa: ANN001, ANN201
+def identity_run(sim_factory):
     sim = _session(sim_factory, "identity")
     res = build_map(sim.bag, MappingConfig())
     return sim, res, evaluate_against_simulation(res, sim.root)
@@ -41,7 +41,7 @@ def identity_run(sim_factory):  # noqa: ANN001, ANN201
 
 @pytest.mark.slow
 @pytest.mark.parametrize("rig", ["tower", "imu-flipped"])
-def test_a_rig_maps_the_drive_as_well_as_one_frame(sim_factory, identity_run, rig: str) -> None:  # noqa: ANN001
+def test_a_rig_maps_the_drive_as_well_as_one_frame(sim_factory, identity_run, rig: str) -> None:
     sim = _session(sim_factory, rig)
     res = build_map(sim.bag, MappingConfig())
     ev = evaluate_against_simulation(res, sim.root)
@@ -57,7 +57,7 @@ def test_a_rig_maps_the_drive_as_well_as_one_frame(sim_factory, identity_run, ri
     assert res.rig.sources == {"base": "tf_static", "imu": "tf_static", "gnss": "tf_static"}
 
 
-def test_different_frames_and_no_extrinsics_stop_with_both_frames_named(sim_factory, tmp_path) -> None:  # noqa: ANN001
+def test_different_frames_and_no_extrinsics_stop_with_both_frames_named(sim_factory, tmp_path) -> None:
     from test_cli_foundation import run_cli
 
     sim = _session(sim_factory, "tower", write_tf_static=False)
@@ -70,7 +70,7 @@ def test_different_frames_and_no_extrinsics_stop_with_both_frames_named(sim_fact
 
 
 @pytest.mark.slow
-def test_calibrate_extrinsics_estimates_the_imu_mount_within_a_degree(sim_factory, identity_run) -> None:  # noqa: ANN001
+def test_calibrate_extrinsics_estimates_the_imu_mount_within_a_degree(sim_factory, identity_run) -> None:
     sim = _session(sim_factory, "tower", write_tf_static=False)
     res = build_map(sim.bag, MappingConfig(extrinsics="calibrate"))
     error = rotation_angle_deg(res.rig.lidar_from_imu, _true_lidar_from_imu(sim.root))
@@ -85,7 +85,7 @@ def test_calibrate_extrinsics_estimates_the_imu_mount_within_a_degree(sim_factor
 
 
 @pytest.mark.slow
-def test_a_rig_file_wrong_by_five_degrees_is_named_with_its_angle(sim_factory, tmp_path) -> None:  # noqa: ANN001
+def test_a_rig_file_wrong_by_five_degrees_is_named_with_its_angle(sim_factory, tmp_path) -> None:
     from canopy_kit.rig import rig_data, rig_overrides
 
     sim = _session(sim_factory, "tower", write_tf_static=False)
@@ -106,10 +106,9 @@ def test_a_rig_file_wrong_by_five_degrees_is_named_with_its_angle(sim_factory, t
 
 
 @pytest.mark.slow
-def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, identity_run, tmp_path) -> None:  # noqa: ANN001
+def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, identity_run, tmp_path) -> None:
     """The bag without /tf_static plus the rig file maps as the bag with it does."""
     import pandas as pd
-
     from test_cli_foundation import run_cli
 
     with_tf = _session(sim_factory, "tower")

@@ -162,8 +162,11 @@ class BagWriter:
         self._write(topic, "velodyne_msgs/msg/VelodyneScan", msg, header_stamp)
 
     def write_imu(self, topic: str, stamp: float, angular_velocity: Any, linear_acceleration: Any,
-                  orientation: Any | None = None, frame_id: str = "imu") -> None:
-        """One sensor_msgs/Imu; orientation xyzw or None (covariance[0] = -1, per REP-145)."""
+                  orientation: Any | None = None, frame_id: str = "lidar") -> None:
+        """One sensor_msgs/Imu; orientation xyzw or None (covariance[0] = -1, per REP-145).
+
+        ``frame_id`` defaults to the LiDAR's (``write_points``): without /tf_static a bag
+        maps only when its sensors share a frame."""
         t = self.typestore.types
         ocov = np.zeros(9)
         if orientation is None:
@@ -181,7 +184,7 @@ class BagWriter:
 
     def write_fix(self, topic: str, stamp: float, lat: float, lon: float, alt: float,
                   sigma_h: float = 1.0, sigma_v: float = 2.0, status: int = 0,
-                  frame_id: str = "gnss", covariance_type: int = 2) -> None:
+                  frame_id: str = "lidar", covariance_type: int = 2) -> None:
         """One sensor_msgs/NavSatFix with a diagonal covariance.
 
         ``covariance_type`` 0 (COVARIANCE_TYPE_UNKNOWN) writes an all-zero covariance, as

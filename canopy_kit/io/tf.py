@@ -44,7 +44,7 @@ def ensure_tf_types(typestore: Any) -> None:
 
 def _strip(frame: str) -> str:
     """Frame ids without tf1's leading slash (``/velodyne`` and ``velodyne`` are one frame)."""
-    return frame[1:] if frame.startswith("/") else frame
+    return frame.removeprefix("/")
 
 
 def _edges(msg: Any) -> list[tuple[str, str, np.ndarray]]:
@@ -96,7 +96,7 @@ def read_transforms(bag: Any, dynamic_window: float = DYNAMIC_WINDOW_S) -> Recor
     return out
 
 
-def _read(bag: Any, conns: list, stop_ns: int | None = None):  # noqa: ANN202
+def _read(bag: Any, conns: list, stop_ns: int | None = None):
     if not conns:
         return
     reader = bag.reader
@@ -126,7 +126,7 @@ def first_frame_id(bag: Any, topic: str | None) -> str | None:
         for conn, _, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             return _strip(str(msg.header.frame_id))
-    except Exception as exc:  # a topic that cannot be read is reported by the pass that reads it
+    except Exception as exc:  # rosbags raises several unrelated types
         raise InputError(f"{bag.path}: topic {topic!r}: cannot read its first message "
                          f"({type(exc).__name__}: {exc})") from None
     return None

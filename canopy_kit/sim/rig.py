@@ -58,7 +58,7 @@ def legacy_lidar_mount(mount_height: float, mount_pitch_deg: float) -> np.ndarra
     return rigid(Rotation.from_euler("y", mount_pitch_deg, degrees=True), [0.0, 0.0, mount_height])
 
 
-def sensor_mounts(config) -> SensorMounts:  # noqa: ANN001 - a SimConfig (import cycle)
+def sensor_mounts(config) -> SensorMounts:
     """The :class:`SensorMounts` a simulator config asks for."""
     spec = config.rig
     if spec.name == IDENTITY:

@@ -148,6 +148,19 @@ def _sensors(**kw: object) -> Callable[[Path], tuple[list[str], str]]:
     return build
 
 
+def _frames(*extra: str, rig_text: str | None = None) -> Callable[[Path], tuple[list[str], str]]:
+    """The IMU stamps its own frame and nothing in the bag relates it to the LiDAR's."""
+    def build(root: Path) -> tuple[list[str], str]:
+        bag = _drive(root, imu_frame="imu_link")
+        if rig_text is None:
+            return _map(bag, root, *extra), str(bag)
+        rig = root / "rig.toml"
+        rig.write_text(rig_text)
+        return _map(bag, root, "--rig", str(rig)), str(rig)
+
+    return build
+
+
 def _missing_bag(root: Path) -> tuple[list[str], str]:
     bag = root / "nowhere.bag"
     return ["run", str(bag), "--out", str(root / "out")], str(bag)
@@ -301,6 +314,17 @@ CASES: tuple[Case, ...] = (
     Case("bag-gnss-without-imu", "GNSS but no IMU topic",
          "georeferenced map, LiDAR-only odometry; warning; flag no_imu", 0, _sensors(imu=False),
          ("no IMU topic",), ("no_imu",), ("not_georeferenced",)),
+    Case("bag-frames-unrelated", "the LiDAR stamps 'lidar', the IMU 'imu_link'; no /tf_static, no rig file",
+         "error naming both frames and topics and the ways out (--rig, --calibrate-extrinsics, "
+         "--assume-identity-extrinsics)", 2, _frames(),
+         ("'lidar'", "'imu_link'", "--rig FILE", "--calibrate-extrinsics", "--assume-identity-extrinsics")),
+    Case("bag-frames-assumed-identity", "the same bag with --assume-identity-extrinsics",
+         "map as if the frames were one; warning naming both", 0, _frames("--assume-identity-extrinsics"),
+         ("'imu_link' differ and nothing relates them",)),
+    Case("bag-rig-file-bad", "--rig file whose IMU mount has two angles (rpy_deg = [180, 0])",
+         "error naming the file and the key", 2,
+         _frames(rig_text='[frames.imu_link]\nparent = "lidar"\nrpy_deg = [180, 0]\n'),
+         ("frames.imu_link.rpy_deg", "a list of 3 numbers")),
     # -- point clouds ----------------------------------------------------------------------------
     Case("las-zero-points", "LAS file with a header and no points", "error: no points", 2,
          _las(n_points=0), ("has no points",)),

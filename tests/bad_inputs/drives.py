@@ -73,7 +73,7 @@ def _acceleration(t: np.ndarray, speed: float, standstill: float, accel: float =
 def write_drive(path: str | Path, fmt: str = "ros2-mcap", *, duration: float = 12.0,
                 speed: float = 1.5, standstill: float = 1.5, imu: bool = True, gnss: bool = True,
                 points_per_scan: int = 2500, view_range: float = 9.0, trees_per_row: int = 4,
-                fault: Fault | None = None, seed: int = 0) -> Drive:
+                fault: Fault | None = None, seed: int = 0, imu_frame: str = "lidar") -> Drive:
     """Write a drive of ``duration`` s (``standstill`` s at rest first) and return it."""
     rng = np.random.default_rng(seed)
     world, centres = orchard_points(trees_per_row, seed)
@@ -95,7 +95,8 @@ def write_drive(path: str | Path, fmt: str = "ros2-mcap", *, duration: float = 1
             # IMU and GNSS up to the end of this sweep first (log-time order, as drivers do).
             while imu and k_imu < len(t_imu) and t_imu[k_imu] < rel + SWEEP:
                 w.write_imu(IMU_TOPIC, T0 + t_imu[k_imu], noise[k_imu, :3],
-                            (noise[k_imu, 3], acc[k_imu] + noise[k_imu, 4], 9.81 + noise[k_imu, 5]))
+                            (noise[k_imu, 3], acc[k_imu] + noise[k_imu, 4], 9.81 + noise[k_imu, 5]),
+                            frame_id=imu_frame)
                 k_imu += 1
             while gnss and k_fix < len(t_fix) and t_fix[k_fix] < rel + SWEEP:
                 w.write_fix(GNSS_TOPIC, T0 + t_fix[k_fix], lat[k_fix], lon[k_fix], alt[k_fix],
