@@ -60,7 +60,8 @@ TUM = ["time", "x", "y", "z", "qx", "qy", "qz", "qw"]
 # starts at its parent's peak (exec keeps the high-water mark of the memory it replaces), so
 # rko_lio is started from this small process rather than from the benchmark's.
 WAIT4 = ("import os, subprocess, sys; p = subprocess.Popen(sys.argv[2:]); _, s, r = os.wait4(p.pid, 0); "
-         "open(sys.argv[1], 'w').write(f'{os.waitstatus_to_exitcode(s)} {r.ru_utime + r.ru_stime} {r.ru_maxrss}')")
+         "open(sys.argv[1], 'w').write("
+         "f'{os.waitstatus_to_exitcode(s)} {r.ru_utime + r.ru_stime} {r.ru_maxrss}')")
 
 
 def _peak_mb() -> tuple[float, float]:
@@ -152,16 +153,19 @@ def run_rko_lio(session: Path, exe: Path) -> dict:
         subprocess.run([sys.executable, "-c", WAIT4, str(out / "usage.txt"), *cmd], stdout=log,
                        stderr=subprocess.STDOUT, cwd=out, check=False)
     wall = time.perf_counter() - wall0
-    code, cpu, max_rss_kb = (float(v) for v in (out / "usage.txt").read_text().split())
+    usage = out / "usage.txt"  # missing: the command did not start (the log says why)
+    code, cpu, max_rss_kb = (float(v) for v in usage.read_text().split()) if usage.exists() else (1, 0, 0)
     poses = sorted(out.glob("run_*/*_tum.txt"))  # TUM: time x y z qx qy qz qw, time = sweep end
     if code != 0 or not poses:
-        raise RuntimeError(f"rko_lio failed ({' '.join(cmd)}):\n{(out / 'log.txt').read_text()[-3000:]}")
+        tail = (out / "log.txt").read_text()[-3000:]
+        raise RuntimeError(f"rko_lio failed ({' '.join(cmd)}):\n{tail}")
     table = pd.read_csv(poses[0], sep=" ", header=None, names=TUM)
     t = table["time"].to_numpy()
     print(f"rko_lio: {' '.join(cmd)}\n  poses: {poses[0]}", file=sys.stderr)
     errors = trajectory_errors(table, truth.trajectory_of(frame))
-    return _result(t[-1] - t[0] + float(pd.Series(t).diff().median()), wall, cpu, max_rss_kb / 1024.0, errors,
-                   frame, load=0.5 * (load + os.getloadavg()[0]))
+    duration = t[-1] - t[0] + float(pd.Series(t).diff().median())  # stamps at the sweeps' ends
+    return _result(duration, wall, cpu, max_rss_kb / 1024.0, errors, frame,
+                   load=0.5 * (load + os.getloadavg()[0]))
 
 
 def _rko_extrinsics(rig: dict) -> str:
@@ -187,7 +191,8 @@ def _rko_version(exe: Path) -> str | None:
         return None
     code = ("import importlib.metadata as m; "
             "print(f\"rko_lio {m.version('rko_lio')}, rosbags {m.version('rosbags')}\")")
-    out = subprocess.run([str(exe.parent / "python"), "-c", code], capture_output=True, text=True, check=False)
+    out = subprocess.run([str(exe.parent / "python"), "-c", code], capture_output=True, text=True,
+                         check=False)
     return out.stdout.strip() if out.returncode == 0 else None
 
 
@@ -222,11 +227,12 @@ def main() -> None:
     parser.add_argument("--session", type=Path, help="Simulated session folder (default: simulate one)")
     parser.add_argument("--rig", help="Simulate the session on this sensor rig (identity, the default, "
                                       "tower, imu-flipped, yawed-lever, side-tilt)")
-    parser.add_argument("--sensor", help="Simulated sensor model (default: the 32-ring sensor), e.g. vlp16")
+    parser.add_argument("--sensor", help="Simulated sensor model, e.g. vlp16 (default: the 32-ring one)")
     parser.add_argument("--seed", type=int, default=0, help="Simulation seed")
     parser.add_argument("--keep", action="store_true", help="Keep the simulated session")
     parser.add_argument("--rko-lio", type=Path, default=RKO_LIO,
-                        help="rko_lio's command, in its own virtual environment (default: $RKO_LIO or %(default)s)")
+                        help="rko_lio's command, in its own virtual environment "
+                             "(default: $RKO_LIO or %(default)s)")
     parser.add_argument("--repeat", type=int, default=0,
                         help="Then run the default pipeline this many more times and print the median "
                              "(the machine's speed varies by up to 40 %% between identical runs)")
@@ -252,7 +258,8 @@ def main() -> None:
     if session is None:
         tmp = Path(tempfile.mkdtemp(prefix="bench_mapping_", dir="/tmp"))
         # in a child too: the simulator's peak memory would count in every later child's max RSS
-        sim_args = ["--rig", args.rig, "--seed", str(args.seed), *(["--sensor", args.sensor] if args.sensor else [])]
+        sim_args = ["--rig", args.rig, "--seed", str(args.seed)]
+        sim_args += ["--sensor", args.sensor] if args.sensor else []
         session = Path(_child("simulate", tmp, None, *sim_args)["session"])
     rko_version = _rko_version(args.rko_lio)
     try:
@@ -283,7 +290,8 @@ def _inputs(session: Path) -> dict[str, str]:
     else:
         ours = "no /tf_static: every sensor in the LiDAR's frame"
         theirs = "no /tf_static: extrinsics from truth/frame.json in --config"
-    return {"canopy-kit": f"LiDAR + IMU + GNSS; {ours}", "KISS-ICP": "LiDAR", "rko_lio": f"LiDAR + IMU; {theirs}"}
+    return {"canopy-kit": f"LiDAR + IMU + GNSS; {ours}", "KISS-ICP": "LiDAR",
+            "rko_lio": f"LiDAR + IMU; {theirs}"}
 
 
 def _print_table(session: Path, runs: dict[str, dict | None], duration: float,
@@ -295,8 +303,8 @@ def _print_table(session: Path, runs: dict[str, dict | None], duration: float,
 
     cfg = load_sim_config_of(session)
     lidar = cfg.lidar
-    print(f"session: {session} ({duration:.0f} s of driving, {lidar.rings} rings x {lidar.columns} columns, "
-          f"{lidar.rate_hz:g} Hz, rig {cfg.rig.name}, seed {cfg.seed})")
+    print(f"session: {session} ({duration:.0f} s of driving, {lidar.rings} rings x {lidar.columns} "
+          f"columns, {lidar.rate_hz:g} Hz, rig {cfg.rig.name}, seed {cfg.seed})")
     print(f"versions: canopy-kit {canopy_kit.__version__}, kiss-icp {version('kiss-icp')}, "
           f"{rko_version or 'rko_lio not installed'}")
     print(f"machine: {os.cpu_count()} cores, load average at the end "
@@ -313,9 +321,9 @@ def _print_table(session: Path, runs: dict[str, dict | None], duration: float,
             continue
         peak = f"{r['peak_mb']:.0f}" + (f" + {r['worker_peak_mb']:.0f}/worker" if r["worker_peak_mb"] else "")
         print(f"| {name} | {what} | {r['frame']} | {r['duration_s'] / r['wall_s']:.1f}x | "
-              f"{r['duration_s'] / r['cpu_s']:.1f}x | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | {r['load']:.1f} | "
-              f"{peak} | {r['ate_m']:.3f} | {r['drift_pct']:.2f} | {_cm(r['map_median_m'])} / "
-              f"{_cm(r['map_p90_m'])} |")
+              f"{r['duration_s'] / r['cpu_s']:.1f}x | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | "
+              f"{r['load']:.1f} | {peak} | {r['ate_m']:.3f} | {r['drift_pct']:.2f} | "
+              f"{_cm(r['map_median_m'])} / {_cm(r['map_p90_m'])} |")
     stages = runs[DEFAULT]["stages"]
     print("\nstages (default run): " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()), flush=True)
 
