@@ -32,10 +32,15 @@ RIGS = ("identity", "tower", "imu-flipped", "yawed-lever", "side-tilt")
 
 
 def simulate(folder: Path, orchard: str, rig: str, args: argparse.Namespace) -> Path:
+    from canopy_kit.errors import InputError
     from canopy_kit.sim import load_sim_config, simulate_session
+    from canopy_kit.sim.session import find_bag
 
-    if (folder / "truth" / "frame.json").exists():
+    try:
+        find_bag(folder)  # a complete session from an earlier run (the bag is renamed into place last)
         return folder
+    except InputError:
+        pass
     overrides = {"seed": args.seed, "orchard": {"rows": args.rows, "trees_per_row": args.trees_per_row},
                  "rig": {"name": rig}}
     simulate_session(folder, load_sim_config(orchard, overrides, sensor=args.sensor), overwrite=True)
