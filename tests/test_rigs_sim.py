@@ -125,3 +125,25 @@ def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, identity_run, tmp_p
     assert report["diagnostics"]["rig"]["sources"]["imu"] == "rig file"
     assert report["diagnostics"]["trajectory_frame"] == "base_link"
     assert "rig_name" in (tmp_path / "m" / "mapping_config.toml").read_text()
+
+
+@pytest.mark.slow
+def test_a_rig_finds_the_same_trees_with_the_same_volumes(sim_factory, tmp_path_factory) -> None:  # noqa: ANN001
+    """The whole pipeline on the same drive recorded by the identity and the tower rig: the
+    same trees, and each tree's volume within 2 % of the identity rig's (sums within 2 %)."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.pipeline import run
+
+    tables = {}
+    for rig in ("identity", "tower"):
+        sim = _session(sim_factory, rig)
+        res = run(load_preset("adaptive"), sim.bag, tmp_path_factory.mktemp(f"run_{rig}"), truth=sim.root)
+        seg = res.metrics["evaluation"]["segmentation"]
+        assert seg["n_correct"] == seg["n_truth"] == len(res.trees), rig
+        tables[rig] = res.trees.set_index("truth_tree_id")
+    a, b = tables["tower"], tables["identity"]
+    assert sorted(a.index) == sorted(b.index)
+    for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
+        ratio = a.loc[b.index, col] / b[col]
+        assert abs(a[col].sum() / b[col].sum() - 1) < 0.02, col
+        assert (ratio - 1).abs().mean() < 0.02, (col, ratio.round(3).tolist())
