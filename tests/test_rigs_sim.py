@@ -147,3 +147,17 @@ def test_a_rig_finds_the_same_trees_with_the_same_volumes(sim_factory, tmp_path_
         ratio = a.loc[b.index, col] / b[col]
         assert abs(a[col].sum() / b[col].sum() - 1) < 0.02, col
         assert (ratio - 1).abs().mean() < 0.02, (col, ratio.round(3).tolist())
+
+
+@pytest.mark.slow
+def test_streaming_uses_the_rig(sim_factory, tmp_path) -> None:  # noqa: ANN001
+    """Streaming reads the same frames: a tower session streams its six trees (with the IMU
+    taken as in the LiDAR's frame the window never closed: 17 "trees", a 4 M point window)."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.streaming import run_stream
+
+    sim = _session(sim_factory, "tower")
+    res = run_stream(load_preset("adaptive"), sim.bag, tmp_path / "s")
+    assert len(res.trees) == len(load_truth(sim.root).trees)
+    with pytest.raises(InputError, match="does not stream"):
+        run_stream(load_preset("adaptive", {"mapping": {"extrinsics": "calibrate"}}), sim.bag, tmp_path / "c")

@@ -92,7 +92,8 @@ class TreeStream:
         s = self.settings
         for k, sweep in enumerate(self.source):
             self.now = sweep.time
-            self.georef.add_pose(sweep.time, sweep.pose[:3, 3])
+            lever = getattr(self.source, "gnss_lever_arm", np.zeros(3))  # the fixes are the antenna's
+            self.georef.add_pose(sweep.time, sweep.pose[:3, 3] + sweep.pose[:3, :3] @ lever)
             changed = self.layout.update(sweep.pose[:2, 3])
             self._add(sweep.points)
             if changed or k % s.check_every == 0:
