@@ -47,13 +47,13 @@ def simulate(folder: Path, orchard: str, rig: str, args: argparse.Namespace) -> 
     return folder
 
 
-def run_session(sim: Path, out: Path, preset: str) -> dict:
+def run_session(sim: Path, out: Path, preset: str, overrides: dict | None = None) -> dict:
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run
     from canopy_kit.sim.session import find_bag
 
     t0 = time.perf_counter()
-    res = run(load_preset(preset), find_bag(sim), out, truth=sim, use_cache=False)
+    res = run(load_preset(preset, overrides), find_bag(sim), out, truth=sim, use_cache=False)
     wall = time.perf_counter() - t0
     m = res.metrics
     ev = m.get("evaluation", {})
@@ -113,7 +113,13 @@ def main() -> None:
     parser.add_argument("--preset", default="adaptive")
     parser.add_argument("--keep", type=Path, help="Keep the sessions and runs in this folder (and reuse them)")
     parser.add_argument("--csv", type=Path, help="Also write the table as CSV")
+    parser.add_argument("--set", dest="set_", action="append", default=[],
+                        help="Override a pipeline setting for the rig runs (not the identity yardstick), "
+                             "e.g. mapping.workers=1")
     args = parser.parse_args()
+    from canopy_kit.cli.common import parse_overrides
+
+    overrides = parse_overrides(args.set_)
     root = args.keep or Path(tempfile.mkdtemp(prefix="bench_rigs_"))
     rows = []
     try:
@@ -121,7 +127,9 @@ def main() -> None:
             reference = None
             for rig in (["identity"] if "identity" not in args.rigs else []) + list(args.rigs):
                 sim = simulate(root / f"{orchard}_{rig}", orchard, rig, args)
-                r = run_session(sim, root / f"{orchard}_{rig}_run", args.preset)
+                tag = "_".join(a.replace("=", "-") for a in args.set_) if rig != "identity" else ""
+                r = run_session(sim, root / f"{orchard}_{rig}_run{tag}", args.preset,
+                                overrides if rig != "identity" else None)
                 if rig == "identity":
                     reference = r["trees"]
                 diff = volume_differences(r["trees"], reference, "vs_identity") if reference is not None else {}
