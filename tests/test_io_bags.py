@@ -91,7 +91,7 @@ def write_full_bag(path: Path, fmt: str) -> Path:
             )
         w.write_points("/hesai/pandar", T0, _hesai_columns(0, T0), frame_id="hesai")
         for stamp, gyro, acc, quat in IMU:
-            w.write_imu("/imu/data", stamp, gyro, acc, quat)
+            w.write_imu("/imu/data", stamp, gyro, acc, quat, frame_id="imu")
         for stamp, lat, lon, alt in FIXES:
             w.write_fix("/gps/fix", stamp, lat, lon, alt, sigma_h=0.02, sigma_v=0.05, status=2)
         for stamp, pos, quat in ODOM:

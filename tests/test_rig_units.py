@@ -255,3 +255,16 @@ def test_report_shows_the_rig_and_checks_the_imu_mount() -> None:
     assert rig_check({**diag, "extrinsics": {**diag["extrinsics"], "difference_deg": 0.4}}).passed is True
     page = render_report("r", {}, section.table, [section], [check], "")
     assert "Sensor rig" in page and "imu_link" in page and "IMU mount agrees with the drive" in page
+
+
+def test_a_tilted_lidar_keeps_the_odometry_in_one_process() -> None:
+    from canopy_kit.mapping.chunks import MAX_CHUNKED_TILT_DEG, lidar_tilt_deg
+    from canopy_kit.mapping.extrinsics import SensorRig
+
+    def tilt(rpy: list[float]) -> float:
+        return lidar_tilt_deg(SensorRig("lidar", lidar_from_base=invert(from_rpy([0.3, 0, 1.9], rpy))))
+
+    assert tilt([0, 12, 180]) == pytest.approx(12.0) and tilt([20, 0, 0]) == pytest.approx(20.0)
+    assert tilt([0, 0, 137]) == pytest.approx(0.0, abs=1e-6)  # a yawed LiDAR is still level
+    assert tilt([0, 12, 180]) > MAX_CHUNKED_TILT_DEG > tilt([2, 2, 90])
+    assert lidar_tilt_deg(None) == 0.0
