@@ -122,11 +122,6 @@ def first_frame_id(bag: Any, topic: str | None) -> str | None:
         return None
     reader = bag.reader
     conns = [c for c in reader.connections if c.topic == topic]
-    try:
-        for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            return _strip(str(msg.header.frame_id))
-    except Exception as exc:  # rosbags raises several unrelated types
-        raise InputError(f"{bag.path}: topic {topic!r}: cannot read its first message "
-                         f"({type(exc).__name__}: {exc})") from None
+    for conn, msg in _read(bag, conns):
+        return _strip(str(msg.header.frame_id))
     return None

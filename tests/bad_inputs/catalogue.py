@@ -245,12 +245,12 @@ CASES: tuple[Case, ...] = (
     Case("bag-corrupt-bytes-ros1", "ROS1 bag with 16 random bytes overwritten at seeded random "
          "offsets in its messages", "map; the points whose per-point time the damage scrambled "
          "dropped with a warning (before the fix: one such time stretched its sweep and moved the "
-         "trajectory by 2.6 m, silently); flag point_times_dropped", 0, _corrupt_bytes("ros1", 1), ("per-point times more than 1 s",), ("point_times_dropped",)),
+         "trajectory by 2.6 m, silently); flag point_times_dropped", 0, _corrupt_bytes("ros1", 2), ("per-point times more than 1 s",), ("point_times_dropped",)),
     Case("bag-corrupt-bytes-sqlite3", "ROS2 sqlite3 bag with random bytes overwritten in its rows",
          "map; scrambled points dropped with a warning; flag point_times_dropped", 0, _corrupt_bytes("ros2-sqlite3", 1),
          ("per-point times more than 1 s",), ("point_times_dropped",)),
     Case("bag-corrupt-bytes-mcap", "ROS2 MCAP bag with random bytes overwritten in its chunks",
-         "map; scrambled points dropped with a warning; flag point_times_dropped", 0, _corrupt_bytes("ros2-mcap", 1),
+         "map; scrambled points dropped with a warning; flag point_times_dropped", 0, _corrupt_bytes("ros2-mcap", 2),
          ("per-point times more than 1 s",), ("point_times_dropped",)),
     Case("bag-cut-at-start", "ROS1 bag cut 64 bytes in, before any message",
          "error: cannot open bag, nothing recoverable", 2, _cut_at_start,
