@@ -52,7 +52,8 @@ from pathlib import Path
 from canopy_kit.parallel import cpu_seconds
 
 DEFAULT = ("canopy-kit build_map (defaults: IMU + GNSS, every 3rd sweep registered, odometry in "
-           "2 time chunks, map pass in 2 stretches: the parent and 1 worker)")
+           "one time chunk per core unless the LiDAR is tilted over 5 deg, map pass in 2 stretches: "
+           "the parent and 1 worker)")
 RKO_LIO = Path(os.environ.get("RKO_LIO", "/work/rko_venv/bin/rko_lio"))
 RKO_INSTALL = "python3 -m venv /work/rko_venv && /work/rko_venv/bin/pip install rko_lio rosbags"
 TUM = ["time", "x", "y", "z", "qx", "qy", "qz", "qw"]
@@ -93,7 +94,8 @@ def run_canopy_kit(session: Path, overrides: dict) -> dict:
     d = result.diagnostics
     return _result(d["duration_s"], wall, cpu, own, ev, ev["trajectory_frame"], worker_peak_mb=children,
                    map_median_m=ev["map_aligned"]["median_m"], map_p90_m=ev["map_aligned"]["p90_m"],
-                   map_points=d["map_points"], stages=d["timing"])
+                   map_points=d["map_points"], stages=d["timing"],
+                   odometry_processes=d["odometry_workers"])
 
 
 def run_kiss_icp(session: Path) -> dict:
@@ -325,7 +327,8 @@ def _print_table(session: Path, runs: dict[str, dict | None], duration: float,
               f"{r['load']:.1f} | {peak} | {r['ate_m']:.3f} | {r['drift_pct']:.2f} | "
               f"{_cm(r['map_median_m'])} / {_cm(r['map_p90_m'])} |")
     stages = runs[DEFAULT]["stages"]
-    print("\nstages (default run): " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()), flush=True)
+    print(f"\nstages (default run, odometry in {runs[DEFAULT]['odometry_processes']} process(es)): "
+          + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()), flush=True)
 
 
 def _repeat(session: Path, n: int, against: Path | None, duration: float) -> None:
