@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import io
 import json
 import os
+import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -26,6 +28,8 @@ from canopy_kit.errors import CanopyKitError, ConfigError, InputError
 Progress = Callable[[str, float, float], None]
 SESSION_KEYS = {"id", "bag", "orchard", "date", "preset", "drone_images", "truth", "report",
                 "stream", "set", "rig"}
+# A session id names one folder under OUT/sessions/: a name, never a path.
+SESSION_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
 @dataclass
@@ -101,9 +105,7 @@ def load_manifest(path: str | Path, default_rig: str | Path | None = None) -> li
     if not path.exists():
         raise InputError(f"{path}: manifest does not exist")
     if path.suffix.lower() == ".csv":
-        with path.open(newline="") as fh:
-            entries = [{k: v for k, v in row.items() if v not in (None, "")}
-                       for row in csv.DictReader(fh)]
+        entries = _csv_entries(path)
         defaults: dict[str, Any] = {}
     else:
         data = read_toml(path)
@@ -118,12 +120,67 @@ def load_manifest(path: str | Path, default_rig: str | Path | None = None) -> li
         defaults.setdefault("rig", str(Path(default_rig).resolve()) if Path(default_rig).exists()
                             else str(default_rig))
     specs = [_spec(path, i, {**defaults, **entry}) for i, entry in enumerate(entries, 1)]
-    seen: set[str] = set()
-    for s in specs:
-        if s.session_id in seen:
-            raise ConfigError(f"{path}: session id {s.session_id!r} appears twice")
-        seen.add(s.session_id)
+    check_distinct_folders(specs, str(path))
     return specs
+
+
+def check_distinct_folders(specs: list[SessionSpec], where: str) -> None:
+    """A ConfigError when two sessions would share a folder (also where case is ignored)."""
+    seen: dict[str, str] = {}
+    for s in specs:
+        folder = s.session_id.casefold()
+        if folder in seen:
+            same = "appears twice" if seen[folder] == s.session_id else f"names the folder of {seen[folder]!r}"
+            raise ConfigError(f"{where}: session id {s.session_id!r} {same}")
+        seen[folder] = s.session_id
+
+
+def _csv_entries(path: Path) -> list[dict[str, str]]:
+    """The rows of a CSV manifest: UTF-8 (with or without Excel's BOM) or UTF-16 with a BOM."""
+    raw = path.read_bytes()
+    encoding = "utf-16" if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
+    try:
+        text = raw.decode(encoding)
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise InputError(f"{path}: not {encoding.split('-sig')[0].upper()} text (line {line}, byte "
+                         f"{exc.start}: {raw[exc.start:exc.start + 1]!r}); save the manifest as UTF-8"
+                         ) from None
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    entries = []
+    for number, row in enumerate(reader, 1):
+        if None in row:  # more cells than the header has columns
+            raise ConfigError(f"{path}: session {number} (line {reader.line_num}) has "
+                              f"{len(reader.fieldnames or []) + len(row[None])} cells, the header "
+                              f"{len(reader.fieldnames or [])} columns ({', '.join(reader.fieldnames or [])})")
+        entries.append({k.strip(): v for k, v in row.items() if v not in (None, "")})
+    return entries
+
+
+def check_session_id(session_id: str, where: str) -> str:
+    """``session_id`` when it can name a folder under ``OUT/sessions/``, else a ConfigError.
+
+    Letters, digits, ``.``, ``_`` and ``-``, starting with a letter or digit: no separator,
+    no ``..``, nothing absolute, no control character, so no manifest writes outside --out."""
+    if not SESSION_ID.fullmatch(session_id):
+        raise ConfigError(f"{where}: session id {session_id!r} cannot name a folder: use letters, "
+                          "digits, '.', '_' and '-', starting with a letter or digit (at most 128)")
+    return session_id
+
+
+def default_session_id(orchard: str, date: dt.date) -> str:
+    """``ORCHARD-DATE`` with every run of characters a folder name cannot hold made ``-``."""
+    name = re.sub(r"[^A-Za-z0-9._-]+", "-", orchard).strip("-.")
+    return f"{name or 'orchard'}-{date.isoformat()}"
+
+
+def session_folder(out_root: str | Path, session_id: str) -> Path:
+    """``OUT/sessions/<id>``, checked to lie inside ``OUT/sessions``."""
+    sessions = Path(out_root).resolve() / "sessions"
+    folder = (sessions / check_session_id(session_id, str(out_root))).resolve()
+    if folder.parent != sessions:  # e.g. a symbolic link planted under sessions/
+        raise InputError(f"{folder}: session folder resolves outside {sessions}")
+    return folder
 
 
 def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
@@ -164,7 +221,8 @@ def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
         overrides = merge(overrides, rig_overrides(rig if rig in rig_preset_names() else resolve(rig)))
 
     orchard = str(entry["orchard"])
-    return SessionSpec(str(entry.get("id", f"{orchard}-{date.isoformat()}")), resolve(entry["bag"]),
+    session_id = check_session_id(str(entry["id"]), where) if "id" in entry else default_session_id(orchard, date)
+    return SessionSpec(session_id, resolve(entry["bag"]),
                        orchard, date, str(entry.get("preset", "adaptive")), overrides,
                        resolve(entry.get("drone_images")), resolve(entry.get("truth")),
                        _flag(entry.get("report", True), where, "report"),
@@ -218,7 +276,7 @@ def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1) 
 
     from canopy_kit.config import load_preset
 
-    out = Path(out_root) / "sessions" / spec.session_id
+    out = session_folder(out_root, spec.session_id)
     wall = time.perf_counter()
     worker = f"{socket.gethostname()}:{os.getpid()}"
     try:
@@ -281,6 +339,9 @@ def run_batch(sessions: list[SessionSpec], out: str | Path, scheduler: str | Non
     from canopy_kit.store import MatchSettings, OrchardStore
 
     out = Path(out)
+    check_distinct_folders(sessions, "batch")
+    for spec in sessions:  # before anything runs: no session may write outside ``out``
+        session_folder(out, spec.session_id)
     out.mkdir(parents=True, exist_ok=True)
     report = progress or (lambda *_: None)
     store_path = out / "orchard.duckdb" if store is None else (Path(store) if store else None)
@@ -344,7 +405,7 @@ def _collect(client: Any, todo: list[SessionSpec], out: Path, retries: int, mapp
             outcome = future.result()
         except Exception as exc:  # the task itself died: a lost worker, memory, a bug
             outcome = SessionOutcome(spec.session_id, spec.orchard, spec.date, False,
-                                     str(out / "sessions" / spec.session_id),
+                                     str(session_folder(out, spec.session_id)),
                                      error=f"{type(exc).__name__}: {exc}")
         outcomes[spec.session_id] = outcome
         if not outcome.ok:

@@ -155,6 +155,28 @@ def test_errors_name_the_store_and_session(tmp_path):
         OrchardStore(tmp_path / "nothing.duckdb", read_only=True)
 
 
+def test_a_store_cut_short_is_bad_input_naming_it(tmp_path):
+    """A copy interrupted half-way: every read or write that reaches past the end is an
+    InputError naming the file (exit 2 from the CLI), never DuckDB's raw IOException."""
+    from test_cli_foundation import run_cli
+
+    with OrchardStore(tmp_path / "full.duckdb") as store:
+        for sid, month in (("spring", 4), ("summer", 6)):
+            store.ingest(record(sid, month), visit(seed=month))
+    data = (tmp_path / "full.duckdb").read_bytes()
+    cut = tmp_path / "cut.duckdb"
+    cut.write_bytes(data[: int(0.4 * len(data))])
+    with pytest.raises(InputError, match=r"cut\.duckdb: the store is damaged or cut short"):
+        with OrchardStore(cut, read_only=True) as store:
+            growth(store)
+    with pytest.raises(InputError, match=r"cut\.duckdb: the store is damaged or cut short"):
+        with OrchardStore(cut) as store:
+            store.ingest(record("autumn", 9), visit(seed=9))
+    result = run_cli("store", "growth", str(cut))
+    assert result.returncode == 2 and result.stderr.startswith(f"error: {cut}: the store is damaged"), result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
 def test_regular_grid_offset_is_not_taken_for_the_neighbour():
     # A 2.3 m shift along rows of trees 5 m apart: the neighbour is 2.7 m the other way.
     session = LAYOUT + [0.0, 2.3]

@@ -85,7 +85,11 @@ class OrchardStore:
             raise InputError(f"{self.path}: cannot open the store ({exc})") from None
         self.volume_method = volume_method
         if not read_only:
-            self._create()
+            try:
+                self._create()
+            except Exception as exc:
+                self.__exit__(type(exc), exc, None)  # closes; a damaged file is bad input
+                raise
 
     def _create(self) -> None:
         with self.transaction():
@@ -105,8 +109,12 @@ class OrchardStore:
     def __enter__(self) -> OrchardStore:
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: object) -> None:
         self.close()
+        damaged = damaged_store_error(self.path, exc) if exc is not None else None
+        if damaged is not None:
+            raise damaged from None
 
     @contextmanager
     def transaction(self) -> Iterator[None]:
@@ -114,8 +122,15 @@ class OrchardStore:
         self.run("BEGIN TRANSACTION")
         try:
             yield
-        except BaseException:
-            self.run("ROLLBACK")
+        except BaseException as exc:
+            damaged = damaged_store_error(self.path, exc)
+            try:
+                self.run("ROLLBACK")
+            except Exception:  # noqa: BLE001 - the file itself failed: report the first fault
+                if damaged is None:
+                    raise exc from None
+            if damaged is not None:
+                raise damaged from None
             raise
         self.run("COMMIT")
 
@@ -314,6 +329,19 @@ class OrchardStore:
             self.run(f"INSERT INTO {table} ({cols}) SELECT {cols} FROM _incoming")
         finally:
             self.con.unregister("_incoming")
+
+
+def damaged_store_error(path: Path, exc: BaseException) -> InputError | None:
+    """An ``InputError`` naming the store when DuckDB failed on the file itself, else None.
+
+    A store cut short (a copy interrupted, a full disk) opens, and fails at the first read
+    of a block past its end; that is bad input, not a fault of canopy-kit."""
+    import duckdb
+
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    if isinstance(exc, (duckdb.IOException, duckdb.SerializationException)) or "corrupt" in text.lower():
+        return InputError(f"{path}: the store is damaged or cut short ({text})")
+    return None
 
 
 def _fault(stage: str) -> None:
