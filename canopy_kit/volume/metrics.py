@@ -51,15 +51,54 @@ def sphere_volume(diameter: float) -> float:
 
 
 def horizontal_hull(xy: np.ndarray) -> np.ndarray:
-    """Vertices of the 2-D convex hull of (N, 2) points; the points themselves if degenerate."""
+    """Vertices of the 2-D convex hull of (N, 2) points, counter-clockwise.
+
+    Degenerate sets give their extreme points: the two ends of points on one line (a tree
+    seen edge-on, a wall), the one point of points that coincide."""
     from scipy.spatial import ConvexHull, QhullError
 
-    if len(xy) < 3:
-        return xy
-    try:
-        return xy[ConvexHull(xy - xy.mean(axis=0)).vertices]
-    except QhullError:
-        return xy
+    xy = np.asarray(xy, dtype=float)
+    if len(xy) >= 3:
+        try:
+            return xy[ConvexHull(xy - xy.mean(axis=0)).vertices]
+        except QhullError:
+            pass
+    if len(xy) == 0:
+        return xy.reshape(0, 2)
+    centred = xy - xy.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    along = centred @ axes[0]
+    ends = xy[[int(np.argmin(along)), int(np.argmax(along))]]
+    return ends[:1] if np.array_equal(ends[0], ends[1]) else ends
+
+
+def _farthest_pair(hull: np.ndarray) -> tuple[int, int]:
+    """Indices of the two vertices of a convex polygon (counter-clockwise) farthest apart.
+
+    Rotating calipers: O(h) time and memory in the h vertices, where all pairs would take
+    h² (a hull of 30,000 vertices asks 13 GiB for the pair distances)."""
+    n = len(hull)
+    if n <= 3:
+        d2 = ((hull[:, None, :] - hull[None, :, :]) ** 2).sum(axis=2)
+        i, j = np.unravel_index(np.argmax(d2), d2.shape)
+        return int(i), int(j)
+
+    def height(a: int, b: int, c: int) -> float:  # twice the area of triangle a b c
+        (ax, ay), (bx, by), (cx, cy) = hull[a], hull[b], hull[c]
+        return abs((bx - ax) * (cy - ay) - (by - ay) * (cx - ax))
+
+    best, pair, j = -1.0, (0, 1), 1
+    for i in range(n):
+        k = (i + 1) % n
+        for _ in range(n):  # the vertex farthest from edge i-k (advances at most once around)
+            if height(i, k, (j + 1) % n) <= height(i, k, j):
+                break
+            j = (j + 1) % n
+        for a in (i, k):
+            d = float(((hull[a] - hull[j]) ** 2).sum())
+            if d > best:
+                best, pair = d, (a, j)
+    return pair
 
 
 def widest_extents(xy: np.ndarray) -> tuple[float, float]:
@@ -67,9 +106,8 @@ def widest_extents(xy: np.ndarray) -> tuple[float, float]:
     hull = horizontal_hull(xy)
     if len(hull) < 2:
         return 0.0, 0.0
-    d2 = ((hull[:, None, :] - hull[None, :, :]) ** 2).sum(axis=2)
-    i, j = np.unravel_index(np.argmax(d2), d2.shape)
-    widest = float(np.sqrt(d2[i, j]))
+    i, j = _farthest_pair(hull)
+    widest = float(np.linalg.norm(hull[j] - hull[i]))
     if widest == 0.0:
         return 0.0, 0.0
     axis = (hull[j] - hull[i]) / widest
