@@ -265,22 +265,13 @@ def feret_extents(rows: np.ndarray, cols: np.ndarray, resolution: float) -> tupl
 
     Extents of pixel centres plus one cell: unbiased for regions much larger than a cell.
     """
-    from scipy.spatial import ConvexHull, QhullError
+    from canopy_kit.volume.metrics import widest_axis
 
     pts = np.column_stack([cols, -rows]).astype(float) * resolution
     if len(pts) < 3:
         return resolution, resolution, 0.0
-    try:
-        hull = pts[ConvexHull(pts).vertices]
-    except QhullError:  # collinear cells
-        hull = pts
-    d = np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=2)
-    i, j = np.unravel_index(np.argmax(d), d.shape)
-    axis = (hull[j] - hull[i]) / max(d[i, j], 1e-12)
-    perp = np.array([-axis[1], axis[0]])
-    proj = hull @ perp
-    return (float(d[i, j]) + resolution, float(proj.max() - proj.min()) + resolution,
-            float(np.arctan2(axis[1], axis[0])))
+    widest, across, axis = widest_axis(pts)
+    return widest + resolution, across + resolution, float(np.arctan2(axis[1], axis[0]))
 
 
 def shared_outline_fraction(region: np.ndarray, others: np.ndarray) -> float:

@@ -13,7 +13,6 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 from canopy_kit import plugins
 from canopy_kit.cloud import PointCloud
@@ -23,6 +22,7 @@ from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.segment.preprocess import prepare
 from canopy_kit.segment.result import Segmentation, TreeRecord
 from canopy_kit.segment.rows import assign_rows
+from canopy_kit.volume.metrics import horizontal_hull, polygon_area, widest_extents
 
 Progress = Callable[[str, float, float], None]
 
@@ -115,9 +115,9 @@ def _describe(cloud: PointCloud, labels: np.ndarray, prepared: Any, segmenter: A
         members = order[bounds[s]:bounds[s + 1]]
         xyz = cloud.xyz[members]
         h = prepared.height[members]
-        hull = _hull(xyz[:, :2])
+        hull = horizontal_hull(xyz[:, :2])
         stats.append((xyz.mean(axis=0), len(members), float(h.max()), float(np.percentile(h, 1)),
-                      _diameter(hull), _area(hull)))
+                      widest_extents(hull)[0], polygon_area(hull)))
         hulls.append(hull)
     centroids = np.array([s[0][:2] for s in stats]).reshape(-1, 2)
     rows = assign_rows(centroids, rows_config, driving_direction, direction_source)
@@ -143,26 +143,3 @@ def _describe(cloud: PointCloud, labels: np.ndarray, prepared: Any, segmenter: A
     return Segmentation(out, trees, footprints, rows, prepared.ground, prepared.height,
                         type(segmenter).__name__, params, cloud.crs, cloud.origin.copy(),
                         warnings)
-
-
-def _hull(xy: np.ndarray) -> np.ndarray:
-    if len(xy) < 3:
-        return xy.copy()
-    try:
-        return xy[ConvexHull(xy).vertices]
-    except QhullError:  # collinear points
-        return xy[[np.argmin(xy[:, 0]), np.argmax(xy[:, 0])]]
-
-
-def _diameter(hull: np.ndarray) -> float:
-    if len(hull) < 2:
-        return 0.0
-    d = np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=2)
-    return float(d.max())
-
-
-def _area(hull: np.ndarray) -> float:
-    if len(hull) < 3:
-        return 0.0
-    x, y = hull[:, 0], hull[:, 1]
-    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))

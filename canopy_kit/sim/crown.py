@@ -110,16 +110,9 @@ class CrownEnvelope:
     @cached_property
     def horizontal_extents(self) -> tuple[float, float]:
         """(widest horizontal extent, extent perpendicular to it), in metres."""
-        from scipy.spatial import ConvexHull
+        from canopy_kit.volume.metrics import widest_extents
 
-        xy = self._surface[:, :2]
-        hull = xy[ConvexHull(xy).vertices]
-        d = np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=2)
-        i, j = np.unravel_index(np.argmax(d), d.shape)
-        axis = (hull[j] - hull[i]) / d[i, j]
-        perp = np.array([-axis[1], axis[0]])
-        proj = hull @ perp
-        return float(d[i, j]), float(proj.max() - proj.min())
+        return widest_extents(self._surface[:, :2])
 
     @property
     def z_range(self) -> tuple[float, float]:

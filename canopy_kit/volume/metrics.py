@@ -101,18 +101,24 @@ def _farthest_pair(hull: np.ndarray) -> tuple[int, int]:
     return pair
 
 
-def widest_extents(xy: np.ndarray) -> tuple[float, float]:
-    """(widest horizontal extent, extent perpendicular to it) of (N, 2) points."""
+def widest_axis(xy: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """(widest extent, extent perpendicular to it, unit vector along the widest) of (N, 2) points."""
     hull = horizontal_hull(xy)
     if len(hull) < 2:
-        return 0.0, 0.0
+        return 0.0, 0.0, np.array([1.0, 0.0])
     i, j = _farthest_pair(hull)
     widest = float(np.linalg.norm(hull[j] - hull[i]))
     if widest == 0.0:
-        return 0.0, 0.0
+        return 0.0, 0.0, np.array([1.0, 0.0])
     axis = (hull[j] - hull[i]) / widest
     across = hull @ np.array([-axis[1], axis[0]])
-    return widest, float(np.ptp(across))
+    return widest, float(np.ptp(across)), axis
+
+
+def widest_extents(xy: np.ndarray) -> tuple[float, float]:
+    """(widest horizontal extent, extent perpendicular to it) of (N, 2) points."""
+    widest, across, _ = widest_axis(xy)
+    return widest, across
 
 
 def polygon_area(vertices: np.ndarray) -> float:
