@@ -19,6 +19,10 @@ from canopy_kit.geo import LocalFrame
 
 JPEG_SUFFIXES = (".jpg", ".jpeg")
 MIN_IMAGES = 3
+# Structure from motion triangulates from the camera's motion between photos: photos whose GPS
+# positions all lie within this many metres (a hover, one photo copied with new bytes) have
+# no baseline, and pycolmap spends minutes matching them before it registers none.
+MIN_BASELINE_M = 2.0
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF FocalPlaneResolutionUnit → mm
 
 
@@ -192,4 +196,11 @@ def read_flight(folder: str | Path, min_images: int = MIN_IMAGES) -> Flight:
         if (im.width, im.height) != (first.width, first.height):
             raise InputError(f"{im.path}: {im.width}x{im.height} px while {first.name} is "
                              f"{first.width}x{first.height} px; all photos must have one size")
-    return Flight(folder, tuple(images))
+    flight = Flight(folder, tuple(images))
+    positions = flight.local_positions(flight.default_frame())
+    span = float(np.max(np.linalg.norm(positions - positions.mean(axis=0), axis=1))) * 2.0
+    if span < MIN_BASELINE_M:
+        raise InputError(f"{folder}: the {len(images)} photos were all taken within {span:.2f} m of "
+                         f"each other (GPS): structure from motion needs photos taken along a flight "
+                         f"path, at least {MIN_BASELINE_M:g} m apart")
+    return flight

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -140,10 +141,10 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     opts = options or GroundTruthOptions()
     report = progress or (lambda *_: None)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
 
-    flight = read_flight(images_dir)
+    flight = read_flight(images_dir)  # checked before anything is written
+    out.mkdir(parents=True, exist_ok=True)
     frame = frame or (reuse.frame if reuse is not None else flight.default_frame())
     if reuse is not None:
         if reuse.model is None:
@@ -159,7 +160,13 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
         gsd, ortho_res, top = (reuse.report["ground_sampling_distance_m"],
                                reuse.report["orthomosaic_resolution_m"], reuse.report["canopy_search_height_m"])
     else:
-        model, surface, mosaic, gsd, ortho_res, top = _reconstruct(flight, out, frame, opts, report, timings)
+        fresh = not (out / "sfm").exists()
+        try:
+            model, surface, mosaic, gsd, ortho_res, top = _reconstruct(flight, out, frame, opts, report, timings)
+        except BaseException:
+            if fresh:  # no half-made reconstruction left behind under --out
+                shutil.rmtree(out / "sfm", ignore_errors=True)
+            raise
     grid = surface.grid
 
     t0 = time.perf_counter()

@@ -137,3 +137,19 @@ def test_real_drone_photo_focal_length(shared_data):
     # Canon SX260: 4.5 mm lens, 4000 px per 0.244 inch of sensor width.
     assert im.focal_px == pytest.approx(4.5 * (4000 / 0.244) / 25.4, rel=1e-6)
     assert 30.0 < im.lat < 30.3 and -98.2 < im.lon < -98.0
+
+
+def test_photos_taken_at_one_place_are_refused_before_any_work(tmp_path):
+    """No baseline, no structure from motion: said at once, not after minutes of matching,
+    and nothing is written under the output folder."""
+    from ground_truth.pipeline import process_flight
+
+    folder = tmp_path / "hover"
+    folder.mkdir()
+    for k in range(6):  # one GPS point, a few decimetres of jitter, different pixels
+        _photo(folder / f"IMG_{k:04d}.jpg", lat=37.281 + 2e-6 * (k % 2), seed=k)
+    with pytest.raises(InputError, match=r"hover: the 6 photos were all taken within 0\.\d\d m of each other"):
+        read_flight(folder)
+    with pytest.raises(InputError, match="structure from motion needs photos taken along a flight path"):
+        process_flight(folder, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
