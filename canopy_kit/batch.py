@@ -170,7 +170,7 @@ def check_session_id(session_id: str, where: str) -> str:
 
 def default_session_id(orchard: str, date: dt.date) -> str:
     """``ORCHARD-DATE`` with every run of characters a folder name cannot hold made ``-``."""
-    name = re.sub(r"[^A-Za-z0-9._-]+", "-", orchard).strip("-.")
+    name = re.sub(r"[^A-Za-z0-9._-]+", "-", orchard)[:100].strip("-._")
     return f"{name or 'orchard'}-{date.isoformat()}"
 
 

@@ -99,3 +99,36 @@ def test_cli_refuses_an_escaping_manifest_in_one_line(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error: ") and "sessions.toml" in lines[0], lines
     assert (target / "trees.csv").read_text() == "keep me\n"
     assert not (tmp_path / "out").exists()
+
+
+def test_fuzzed_ids_and_manifest_bytes_give_a_folder_inside_out_or_a_named_error(tmp_path):
+    """Seeded fuzz: ids drawn from separators, dots, control and non-ASCII characters; CSV
+    manifests of random bytes and random cuts of a good one. Each gives a session folder that
+    is a child of OUT/sessions, or a ConfigError/InputError naming the manifest."""
+    import random
+
+    rng = random.Random(27)
+    alphabet = list("aZ09._-/\\:~ $*?\"'") + ["..", "\x00", "\x1b", "\n", "é", "\u202e", "…"]
+    sessions = (tmp_path / "out" / "sessions").resolve()
+    for k in range(300):
+        sid = "".join(rng.choice(alphabet) for _ in range(rng.randint(0, 12)))
+        manifest = _toml(tmp_path, f'orchard = {json.dumps(sid)}\nid = {json.dumps(sid)}'
+                         if k % 2 else f'orchard = {json.dumps(sid)}')
+        try:
+            specs = load_manifest(manifest)
+        except InputError as exc:  # ConfigError is an InputError
+            assert str(manifest) in str(exc)
+            continue
+        folder = session_folder(tmp_path / "out", specs[0].session_id)
+        assert folder.parent == sessions, (sid, folder)
+    good = (HEADER + "s1,b.mcap,o,2025-04-01\ns2,b.mcap,o,2025-05-01\n").encode()
+    blobs = [bytes(rng.randrange(256) for _ in range(rng.randint(1, 200))) for _ in range(100)]
+    blobs += [good[:cut] for cut in range(len(good))]
+    for i, blob in enumerate(blobs):
+        path = tmp_path / f"m{i}.csv"
+        path.write_bytes(blob)
+        try:
+            for spec in load_manifest(path):
+                assert session_folder(tmp_path / "out", spec.session_id).parent == sessions
+        except InputError as exc:
+            assert str(path) in str(exc), exc
