@@ -22,6 +22,8 @@ SECTIONS = {
     "las": "Point-cloud files",
     "drone": "Drone photos",
     "preset": "Presets and settings",
+    "batch": "Batch manifests",
+    "store": "The orchard store",
 }
 OUTCOME = {0: "0 (result)", 2: "2 (bad input)", 3: "3 (processing failed)"}
 

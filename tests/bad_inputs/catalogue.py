@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bad_inputs import clouds, corrupt, drives, drone, presets
+from bad_inputs import clouds, corrupt, drives, drone, manifests, presets
 
 MAP = ("--no-plots",)
 
@@ -213,6 +213,19 @@ def _drone_in_run(root: Path) -> tuple[list[str], str]:
     return ["run", str(bag), "--out", str(root / "out"), "--drone-images", str(folder)], str(bad)
 
 
+def _batch(make: Callable[[Path], Path]) -> Callable[[Path], tuple[list[str], str]]:
+    def build(root: Path) -> tuple[list[str], str]:
+        manifest = make(root)
+        return ["batch", str(manifest), "--out", str(root / "out")], str(manifest)
+
+    return build
+
+
+def _store_cut(root: Path) -> tuple[list[str], str]:
+    store = manifests.store_cut_short(root)
+    return ["store", "growth", str(store)], str(store)
+
+
 def _preset(case: str, named: str | None = None) -> Callable[[Path], tuple[list[str], str]]:
     def build(root: Path) -> tuple[list[str], str]:
         bag = _valid_bag(root)
@@ -393,4 +406,30 @@ CASES: tuple[Case, ...] = (
                         "--preset", "walnut"], "walnut"), ("pistachio",)),
     Case("preset-bad-override", "--set preprocess.voxel_size=-1", "error naming the setting", 2,
          _override("preprocess.voxel_size=-1", "preprocess.voxel_size"), ("must be positive",)),
+    # -- batch manifests and the orchard store ----------------------------------------------
+    Case("batch-id-absolute", "manifest session id = \"/tmp/victim\" (an absolute path)",
+         "error naming the manifest and the id, before anything is written (it wrote into "
+         "/tmp/victim, overwriting its trees.csv)", 2,
+         _batch(lambda root: manifests.toml_manifest(root, "/tmp/victim")), ("cannot name a folder",)),
+    Case("batch-id-parent", "manifest session id = \"../../x\"", "error naming the manifest and "
+         "the id; ids are names (letters, digits, '.', '_', '-'), never paths", 2,
+         _batch(lambda root: manifests.toml_manifest(root, "../../x")), ("cannot name a folder",)),
+    Case("batch-ids-one-folder", "two sessions with ids \"same\" and \"Same\" (one folder where "
+         "case is ignored)", "error naming both ids (the second overwrote the first)", 2,
+         _batch(lambda root: manifests.toml_manifest(root, "same", "Same")), ("names the folder of 'same'",)),
+    Case("batch-csv-extra-cells", "CSV manifest with a row of more cells than the header",
+         "error naming the row, its line and the header's columns (was exit 3, unknown key None)", 2,
+         _batch(lambda root: manifests.csv_manifest(root, b"s1,b.mcap,o,2025-04-01,oops\n")),
+         ("has 5 cells, the header 4",)),
+    Case("batch-csv-not-utf8", "CSV manifest saved as Latin-1 (an accented orchard name)",
+         "error naming the file, line and byte (was exit 3); UTF-8 with BOM and UTF-16 are read", 2,
+         _batch(lambda root: manifests.csv_manifest(root, "s1,b.mcap,Höhe,2025-04-01\n".encode("latin-1"))),
+         ("not UTF-8 text (line 2",)),
+    Case("store-cut-short", "orchard store (DuckDB) copied up to 40 % of its bytes",
+         "error naming the store (was exit 3, DuckDB's IOException)", 2, _store_cut,
+         ("the store is damaged or cut short",)),
+    Case("drone-one-place", "six photos taken at one GPS point (a hover)",
+         "error at once naming the folder and the spread (200 such photos ran SfM for 4.5 min, "
+         "then exit 3, leaving sfm/ behind)", 2, _drone(drone.one_place, name_folder=True),
+         ("all taken within",)),
 )

@@ -76,3 +76,11 @@ def other_size(folder: Path) -> Path:
 def too_few(folder: Path) -> Path:
     """Two photos: structure from motion needs at least three."""
     return flight(folder, n=2)
+
+
+def one_place(folder: Path) -> Path:
+    """Six photos taken at one GPS point (a hover): no baseline for structure from motion."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for k in range(6):
+        photo(folder / f"DJI_{k:04d}.JPG", lat=38.54 + 2e-6 * (k % 2), seed=k)
+    return folder
