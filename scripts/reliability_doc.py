@@ -59,7 +59,7 @@ def catalogue_block(cases: tuple) -> str:
     categories = list(dict.fromkeys(c.category for c in cases))
     for category in categories:
         chosen = [c for c in cases if c.category == category]
-        lines += [f"### {SECTIONS.get(category, category)} ({len(chosen)} cases)", "",
+        lines += [f"### {SECTIONS.get(category, category)} ({len(chosen)} case{'s' if len(chosen) != 1 else ''})", "",
                   "| case | input | behaviour | exit | message or warnings hold | quality flags |",
                   "|---|---|---|---|---|---|"]
         for c in chosen:
