@@ -9,6 +9,7 @@ one-line message and an exit code: 2 for bad input, 3 for a processing failure.
 from __future__ import annotations
 
 import os
+import re
 import sys
 
 import typer
@@ -43,6 +44,14 @@ def _register_commands() -> None:
 _register_commands()
 
 
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")
+
+
+def one_line(message: str) -> str:
+    """A message as one line without terminal escapes (a library's text may carry both)."""
+    return " ".join(_ANSI.sub("", message).split())
+
+
 def main() -> None:
     """Console-script entry point: run the app, turning library errors into exit codes.
 
@@ -51,7 +60,7 @@ def main() -> None:
     try:
         app()
     except CanopyKitError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {one_line(str(exc))}", file=sys.stderr)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -62,6 +71,6 @@ def main() -> None:
         if os.environ.get("CANOPY_KIT_DEBUG"):
             raise
         where = type(exc).__name__
-        print(f"error: processing failed ({where}: {exc}); set CANOPY_KIT_DEBUG=1 for the "
+        print(f"error: processing failed ({where}: {one_line(str(exc))}); set CANOPY_KIT_DEBUG=1 for the "
               "traceback and please report it", file=sys.stderr)
         sys.exit(3)
