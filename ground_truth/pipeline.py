@@ -232,12 +232,12 @@ def _write_outputs(out: Path, frame: LocalFrame, model: SparseModel, surface: Su
         "crown_labels_tif": write_geotiff(out / "crown_labels.tif", seg.labels.astype(np.int32),
                                           mosaic.grid, frame, nodata=0),
         "crowns_png": atomic_write_bytes(out / "crowns.png", png_bytes(overlay_crowns_rgb(mosaic, seg))),
-        "crowns_csv": atomic_write_text(out / "crowns.csv", crowns.to_csv(index=False, float_format="%.4f")),
+        "crowns_csv": atomic_write_text(out / "crowns.csv", crowns.to_csv(index=False, float_format="%.9f")),
     }
     paths["cameras_csv"] = atomic_write_text(out / "cameras.csv", cameras_table(model).to_csv(
         index=False, float_format="%.6f"))
     if trees is not None:
-        paths["trees_csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False, float_format="%.4f"))
+        paths["trees_csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False, float_format="%.9f"))
     paths["report_json"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=2, default=str))
     paths["config_json"] = atomic_write_text(out / "ground_truth_config.json",
                                              json.dumps(asdict(opts), indent=2, default=str))

@@ -184,3 +184,15 @@ def test_a_library_message_with_escapes_and_lines_is_printed_as_one_plain_line(m
     err = capsys.readouterr().err
     assert err == ("error: tree.ply: [Open3D WARNING] Read PLY failed: unable to read file: "
                    "/src/io/FilePLY.cpp:42\n")
+
+
+def test_version_and_help_name_what_is_shipped() -> None:
+    from canopy_kit import __version__
+    from canopy_kit.config import preset_names
+
+    version = run_cli("--version")
+    assert version.returncode == 0 and version.stdout.strip() == f"canopy-kit {__version__}"
+    for command in ("run", "segment"):
+        text = " ".join(run_cli(command, "--help").stdout.split())
+        assert all(name in text for name in preset_names()), text
+    assert "[[session]]" in " ".join(run_cli("batch", "--help").stdout.split())

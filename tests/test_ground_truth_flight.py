@@ -168,3 +168,17 @@ def test_real_drone_photos_register_and_georeference(shared_data, tmp_path):
     assert report["gps_residual_rms_horizontal_m"] <= 1.25 * scatter, (report, scatter)
     spread = np.ptp(gps[:, :2], axis=0).max()
     assert spread > 5 * report["gps_residual_rms_horizontal_m"]
+
+
+def test_crown_positions_keep_full_precision(processed):
+    """crowns.csv and trees.csv lat/lon hold each crown's position to the centimetre: converted
+    back into the flight's frame they land on its x/y (rounded to 1e-4 deg they moved by up to 10 m)."""
+    from canopy_kit.geo import LocalFrame
+
+    _, out, _ = processed
+    frame = LocalFrame.from_dict(json.loads((out / "report.json").read_text())["frame"])
+    for name, prefix in (("crowns.csv", ""), ("trees.csv", "aerial_")):
+        table = pd.read_csv(out / name).dropna(subset=[f"{prefix}lat"])
+        xyz = frame.to_local(table[f"{prefix}lat"].to_numpy(), table[f"{prefix}lon"].to_numpy(), 0.0)
+        err = np.hypot(xyz[:, 0] - table[f"{prefix}x"], xyz[:, 1] - table[f"{prefix}y"])
+        assert len(table) and err.max() < 0.01, (name, err.max())

@@ -25,6 +25,20 @@ app = typer.Typer(
 )
 
 
+def _show_version(value: bool) -> None:
+    if value:
+        from canopy_kit import __version__
+
+        print(f"canopy-kit {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(version: bool = typer.Option(False, "--version", callback=_show_version, is_eager=True,
+                                          help="Print the version and exit")) -> None:
+    """Per-tree canopy volumes from mobile LiDAR orchard drives, checked against drone photos."""
+
+
 def _register_commands() -> None:
     from canopy_kit import plugins
 

@@ -8,7 +8,7 @@ import typer
 
 
 def batch(
-    manifest: Path = typer.Argument(..., help="Sessions to process: TOML ([[session]]) or CSV"),
+    manifest: Path = typer.Argument(..., help="Sessions to process: TOML (\\[\\[session]] tables) or CSV"),
     out: Path = typer.Option(..., "--out", help="Output folder (sessions/<id>/, orchard.duckdb)"),
     scheduler: str = typer.Option(None, "--scheduler",
                                   help="Address of a running Dask scheduler, e.g. tcp://host:8786 "

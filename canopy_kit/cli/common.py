@@ -10,6 +10,13 @@ from rich.console import Console
 
 import typer
 
+def preset_help(extra: str = "") -> str:
+    """The ``--preset`` help with the shipped presets' names (read from the package)."""
+    from canopy_kit.config import preset_names
+
+    return f"Preset name ({', '.join(preset_names())}) or TOML file{extra}"
+
+
 RIG_OPTION = typer.Option(None, "--rig", help="Rig file (TOML: sensor frames and mounts) or shipped rig; "
                           "gives or overrides the bag's /tf_static (docs/MAPPING.md, 'Sensor rigs')")
 ASSUME_IDENTITY_OPTION = typer.Option(False, "--assume-identity-extrinsics",

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import typer
 
-from canopy_kit.cli.common import ASSUME_IDENTITY_OPTION, CALIBRATE_OPTION, RIG_OPTION
+from canopy_kit.cli.common import ASSUME_IDENTITY_OPTION, CALIBRATE_OPTION, RIG_OPTION, preset_help
 
 
 def run(
     bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
     out: Path = typer.Option(..., "--out", help="Output folder"),
-    preset: str = typer.Option("adaptive", help="Preset name (adaptive, pistachio, almond) or TOML file"),
+    preset: str = typer.Option("adaptive", help=preset_help()),
     drone_images: Path = typer.Option(None, "--drone-images", help="Folder of geotagged drone JPEGs"),
     truth: Path = typer.Option(None, "--truth", help="Simulated session folder to evaluate against"),
     set_: list[str] = typer.Option([], "--set", help="Override a setting: section.key=value"),

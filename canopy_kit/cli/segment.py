@@ -6,11 +6,12 @@ from pathlib import Path
 
 import typer
 
+from canopy_kit.cli.common import preset_help
+
 
 def segment(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map point cloud (LAS/LAZ/PLY/PCD)"),
-    preset: str = typer.Option("adaptive", help="Preset name (adaptive, pistachio, almond) or TOML file; "
-                               "the default is the same as canopy-kit run's"),
+    preset: str = typer.Option("adaptive", help=preset_help("; the default is the same as canopy-kit run's")),
     out: Path = typer.Option(..., "--out", help="Output folder"),
     method: str = typer.Option(None, help="Segmenter plugin, overriding the preset's"),
     trajectory: Path = typer.Option(None, help="CSV with x, y columns (map frame): the drive, "

@@ -90,7 +90,7 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     bag_path = bag_path_for(root / BAG_NAME, fmt)
     if root.exists() and any(root.iterdir()):
         if not overwrite:
-            raise InputError(f"{root}: output folder is not empty (use overwrite to replace it)")
+            raise InputError(f"{root}: output folder is not empty (--overwrite, or overwrite=True from Python, replaces it)")
         shutil.rmtree(root)
     root.mkdir(parents=True, exist_ok=True)
     report = progress or (lambda *_: None)
