@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 
 class CanopyKitError(Exception):
     """Base class of every error canopy-kit raises on purpose."""
@@ -29,3 +31,23 @@ class ProcessingError(CanopyKitError, RuntimeError):
     """Valid input that a processing stage could not turn into a result."""
 
     exit_code = 3
+
+
+class InputWarning(UserWarning):
+    """An input was usable but not whole (e.g. a file cut short): the result is partial.
+
+    Readers issue it with :func:`warnings.warn`; the CLI prints it as one ``warning:`` line
+    and ``canopy-kit info`` lists it under ``warnings``.
+    """
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+# Open3D's C++ errors: "[Open3D Error] (void open3d::f(int)) /path/to/file.cpp:123: text"
+_OPEN3D_TAG = re.compile(r"\[Open3D [A-Za-z]+\]\s*(?:\(.*\)\s+)?(?:\S+\.(?:cpp|cc|h|hpp):\d+:\s*)?")
+_SOURCE_PATH = re.compile(r"\S+\.(?:cpp|cc|h|hpp):\d+:\s*")
+
+
+def one_line(text: str) -> str:
+    """A foreign library's message as one plain line: no ANSI colours, no C++ source path."""
+    text = _SOURCE_PATH.sub("", _OPEN3D_TAG.sub("", _ANSI.sub("", str(text))))
+    return "; ".join(part.strip() for part in text.splitlines() if part.strip())

@@ -11,10 +11,11 @@ from __future__ import annotations
 import os
 import re
 import sys
+import warnings
 
 import typer
 
-from canopy_kit.errors import CanopyKitError
+from canopy_kit.errors import CanopyKitError, InputWarning, one_line
 
 app = typer.Typer(
     name="canopy-kit",
@@ -69,8 +70,10 @@ def one_line(message: str) -> str:
 def main() -> None:
     """Console-script entry point: run the app, turning library errors into exit codes.
 
-    Usage errors are handled by typer itself (message and exit code 2).
+    Usage errors are handled by typer itself (message and exit code 2). An
+    :class:`InputWarning` from the library (a file read in part) is one ``warning:`` line.
     """
+    warnings.showwarning = _show_warning
     try:
         app()
     except CanopyKitError as exc:
@@ -88,3 +91,13 @@ def main() -> None:
         print(f"error: processing failed ({where}: {one_line(str(exc))}); set CANOPY_KIT_DEBUG=1 for the "
               "traceback and please report it", file=sys.stderr)
         sys.exit(3)
+
+
+_python_showwarning = warnings.showwarning
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    if issubclass(category, InputWarning):
+        print(f"warning: {one_line(str(message))}", file=sys.stderr)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)

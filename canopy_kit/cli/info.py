@@ -15,7 +15,7 @@ def info(
     json_output: bool = typer.Option(False, "--json", help="Print the facts as JSON"),
 ) -> None:
     """Show what a bag (topics, types, counts, time span) or point cloud (points,
-    attributes, bounds, CRS) holds."""
+    attributes, bounds computed from the points, CRS) holds, and what is wrong with it."""
     from canopy_kit.cli.common import console, print_json
     from canopy_kit.io.info import describe_path
 
@@ -25,6 +25,8 @@ def info(
         return
     for renderable in _renderables(facts):
         console.print(renderable)
+    for w in facts.get("warnings", []):
+        console.print(f"[yellow]warning[/]: {w}", markup=True, highlight=False)
 
 
 def _renderables(facts: dict[str, Any]) -> list[Any]:
@@ -33,7 +35,7 @@ def _renderables(facts: dict[str, Any]) -> list[Any]:
     summary = Table(show_header=False, box=None, pad_edge=False)
     summary.add_column(style="bold")
     summary.add_column()
-    skip = {"topics", "attributes", "bounds"}
+    skip = {"topics", "attributes", "bounds", "header_bounds", "warnings"}
     for key, value in facts.items():
         if key in skip:
             continue

@@ -9,27 +9,31 @@ standard dimensions of the point format become extra-bytes dimensions.
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError
+from canopy_kit.errors import InputError, InputWarning, one_line
 from canopy_kit.io.atomic import atomic_path
 from canopy_kit.io.clouds import LOCAL_LIMIT_M, check_input_file, local_origin
+from canopy_kit.io.las_header import LAS_MAGIC, LasLayout, read_las_layout
 
-LAS_MAGIC = b"LASF"
 # Point formats without waveform packets, smallest first.
 WRITABLE_FORMATS: tuple[int, ...] = (0, 1, 2, 3, 6, 7, 8)
 EXTRA_BYTES_DTYPES = {"u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8", "f4", "f8"}
 INT32_MAX = 2**31 - 1
+READ_CHUNK = 1_000_000  # points per laspy read: memory follows the points really decoded
 
 
 def _open_error(path: Path, exc: Exception) -> InputError:
     return InputError(
         f"{path}: cannot read the LAS/LAZ data; the file is corrupt or truncated "
-        f"({type(exc).__name__}: {exc})"
+        f"({type(exc).__name__}: {one_line(str(exc))})"
     )
 
 
@@ -38,11 +42,42 @@ def _is_las(path: Path) -> bool:
         return fh.read(4) == LAS_MAGIC
 
 
-def _checked(path: str | Path) -> Path:
-    path = check_input_file(path, "LAS/LAZ file")
-    if not _is_las(path):
-        raise InputError(f"{path}: not a LAS/LAZ file (no 'LASF' signature)")
-    return path
+def _checked(path: str | Path) -> LasLayout:
+    """The header checked against the file (:mod:`canopy_kit.io.las_header`)."""
+    return read_las_layout(check_input_file(path, "LAS/LAZ file"))
+
+
+@contextmanager
+def _las_reader(layout: LasLayout) -> Iterator[Any]:
+    """laspy's reader on a checked file, its errors as InputError."""
+    import laspy
+
+    try:
+        with laspy.open(layout.path) as reader:
+            yield reader
+    except InputError:
+        raise
+    except Exception as exc:  # laspy/lazrs raise LaspyException, LazrsError, ValueError, OSError...
+        raise _open_error(layout.path, exc) from None
+
+
+def _point_chunks(reader: Any, layout: LasLayout) -> Iterator[Any]:
+    """The point records present in the file, at most READ_CHUNK at a time."""
+    remaining = layout.points_in_file
+    while remaining > 0:
+        n = min(READ_CHUNK, remaining)
+        chunk = reader.read_points(n)
+        if len(chunk) != n:
+            raise InputError(f"{layout.path}: cannot read the LAS/LAZ data; the file is corrupt or "
+                             f"truncated ({len(chunk)} of {n} points read)")
+        remaining -= n
+        yield chunk
+
+
+def cut_short_warning(layout: LasLayout) -> str:
+    """The warning for a LAS file holding fewer point records than its header declares."""
+    return (f"{layout.path}: only {layout.points_in_file} of {layout.point_count} points are in "
+            "the file (cut short, or the header's point count is wrong); read those")
 
 
 def crs_string(crs: Any) -> str | None:
@@ -58,7 +93,7 @@ def _parse_crs(header: Any, path: Path) -> str | None:
         return crs_string(header.parse_crs())
     except Exception as exc:  # pyproj and laspy raise several types for odd CRS records
         raise InputError(
-            f"{path}: CRS record cannot be parsed ({type(exc).__name__}: {exc})"
+            f"{path}: CRS record cannot be parsed ({type(exc).__name__}: {one_line(str(exc))})"
         ) from None
 
 
@@ -73,78 +108,89 @@ def _no_data_values(header: Any) -> dict[str, float]:
     return out
 
 
-def _check_scale(header: Any, path: Path) -> None:
-    """Coordinates are integers times the header scale plus the offset: both must be usable.
+def las_origin(offsets: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Per axis: the header offset when the points lie within 10 km of it, else a round origin.
 
-    A zero scale collapses every point onto the offset and a NaN or infinite one makes
-    every coordinate NaN; neither is a cloud, whatever laspy returns.
-    """
-    scales = np.asarray(header.scales, dtype=np.float64)
-    offsets = np.asarray(header.offsets, dtype=np.float64)
-    if not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
-        raise InputError(f"{path}: LAS header scale factors {scales.tolist()} are not positive "
-                         "finite numbers; the header is corrupt")
-    if not np.all(np.isfinite(offsets)):
-        raise InputError(f"{path}: LAS header offsets {offsets.tolist()} are not finite; "
-                         "the header is corrupt")
-
-
-def las_origin(header: Any) -> np.ndarray:
-    """Per axis: the header offset when the data lie within 10 km of it, else a round origin.
-
+    ``lower``/``upper`` are the points' bounds (never the header's: some writers leave them 0).
     Keeping the offset makes a re-write at the same scale reproduce the file's integers.
     """
-    offsets = np.asarray(header.offsets, dtype=np.float64)
-    mins = np.asarray(header.mins, dtype=np.float64)
-    maxs = np.asarray(header.maxs, dtype=np.float64)
-    near = np.maximum(np.abs(mins - offsets), np.abs(maxs - offsets)) <= LOCAL_LIMIT_M
-    return np.where(near, offsets, local_origin(mins, maxs)) + 0.0
+    offsets = np.asarray(offsets, dtype=np.float64)
+    near = np.maximum(np.abs(lower - offsets), np.abs(upper - offsets)) <= LOCAL_LIMIT_M
+    return np.where(near, offsets, local_origin(lower, upper)) + 0.0
+
+
+def _integer_bounds(chunks: Iterator[Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest and largest stored X, Y, Z integers over the chunks."""
+    lo = np.full(3, np.iinfo(np.int64).max)
+    hi = np.full(3, np.iinfo(np.int64).min)
+    for chunk in chunks:
+        for axis, name in enumerate("XYZ"):
+            values = np.asarray(chunk[name])
+            lo[axis] = min(lo[axis], int(values.min()))
+            hi[axis] = max(hi[axis], int(values.max()))
+    return lo, hi
+
+
+def _scaled(layout: LasLayout, integers: np.ndarray) -> np.ndarray:
+    return integers * np.asarray(layout.scales) + np.asarray(layout.offsets)
 
 
 def read_las(path: str | Path) -> PointCloud:
-    """Read a LAS/LAZ file: local float64 xyz, origin, CRS and every dimension as a field."""
+    """Read a LAS/LAZ file: local float64 xyz, origin, CRS and every dimension as a field.
+
+    A file holding fewer point records than its header declares gives the records present
+    and an :class:`InputWarning` saying how many.
+    """
     import laspy
 
-    path = _checked(path)
-    try:
-        las = laspy.read(path)
-    except Exception as exc:  # laspy/lazrs raise LaspyException, ValueError, OSError...
-        raise _open_error(path, exc) from None
-    header = las.header
-    if len(las.points) == 0:
-        raise InputError(f"{path}: LAS file has no points")
-    _check_scale(header, path)
-    origin = las_origin(header)
-    raw = [np.asarray(las[c]) for c in ("X", "Y", "Z")]
-    xyz = np.column_stack(
-        [
-            r.astype(np.float64) * s + (o - g)
-            for r, s, o, g in zip(raw, header.scales, header.offsets, origin)
-        ]
-    )
-    no_data = _no_data_values(header)
+    layout = _checked(path)
+    with _las_reader(layout) as reader:
+        header = reader.header
+        chunks = [c.array for c in _point_chunks(reader, layout)]
+        points = laspy.ScaleAwarePointRecord(
+            chunks[0] if len(chunks) == 1 else np.concatenate(chunks),
+            header.point_format, header.scales, header.offsets,
+        )
+        crs = _parse_crs(header, layout.path)
+        no_data = _no_data_values(header)
+    raw = np.column_stack([np.asarray(points[c]) for c in ("X", "Y", "Z")])
+    origin = las_origin(layout.offsets, _scaled(layout, raw.min(axis=0)),
+                        _scaled(layout, raw.max(axis=0)))
+    xyz = raw * np.asarray(layout.scales) + (np.asarray(layout.offsets) - origin)
     fields: dict[str, np.ndarray] = {}
-    for name in las.point_format.dimension_names:
+    for name in points.point_format.dimension_names:
         if name in ("X", "Y", "Z"):
             continue
-        values = np.array(las[name])
+        values = np.array(points[name])
         if name in no_data and values.dtype.kind == "f":
             values[values == no_data[name]] = np.nan
         fields[name] = values
-    return PointCloud(xyz, fields, crs=_parse_crs(header, path), origin=origin)
+    if layout.cut_short:
+        warnings.warn(InputWarning(cut_short_warning(layout)), stacklevel=2)
+    return PointCloud(xyz, fields, crs=crs, origin=origin)
+
+
+def _header_bounds_note(layout: LasLayout, lo: np.ndarray, hi: np.ndarray) -> str | None:
+    """A warning when the header's min/max differ from the points' by more than a step."""
+    head_lo, head_hi = np.asarray(layout.header_min), np.asarray(layout.header_max)
+    tol = np.asarray(layout.scales) + 1e-9 * np.maximum(np.abs(lo), np.abs(hi))
+    if np.all(np.abs(head_lo - lo) <= tol) and np.all(np.abs(head_hi - hi) <= tol):
+        return None
+    def span(a: np.ndarray, b: np.ndarray) -> str:
+        return ", ".join(f"{axis} {x:.10g}..{y:.10g}" for axis, x, y in zip("xyz", a, b))
+    return (f"{layout.path}: the header's bounds ({span(head_lo, head_hi)}) disagree with the "
+            f"points' ({span(lo, hi)}); the bounds shown are the points'")
 
 
 def describe_las(path: str | Path) -> dict[str, Any]:
-    """Header facts of a LAS/LAZ file without reading its points."""
-    import laspy
-
-    path = _checked(path)
-    try:
-        with laspy.open(path) as reader:
-            header = reader.header
-    except Exception as exc:
-        raise _open_error(path, exc) from None
-    _check_scale(header, path)
+    """Facts of a LAS/LAZ file: header fields, and bounds computed from its points (read in
+    chunks); :class:`InputWarning` when the header's bounds or point count are wrong."""
+    layout = _checked(path)
+    with _las_reader(layout) as reader:
+        header = reader.header
+        lo_int, hi_int = _integer_bounds(_point_chunks(reader, layout))
+        crs = _parse_crs(header, layout.path)
+    lo, hi = _scaled(layout, lo_int), _scaled(layout, hi_int)
     attributes = []
     for dim in header.point_format.dimensions:
         if dim.name in ("X", "Y", "Z"):
@@ -155,17 +201,23 @@ def describe_las(path: str | Path) -> dict[str, Any]:
         attributes.append(
             {"name": dim.name, "dtype": str(np.dtype(dtype)), "extra": not dim.is_standard}
         )
+    notes = [cut_short_warning(layout)] if layout.cut_short else []
+    notes += [n for n in [_header_bounds_note(layout, lo, hi)] if n]
+    for note in notes:
+        warnings.warn(InputWarning(note), stacklevel=2)
     return {
-        "path": str(path),
-        "format": "LAZ" if header.are_points_compressed else "LAS",
-        "version": str(header.version),
-        "point_format": header.point_format.id,
-        "points": int(header.point_count),
+        "path": str(layout.path),
+        "format": "LAZ" if layout.compressed else "LAS",
+        "version": layout.version,
+        "point_format": layout.point_format,
+        "points": layout.points_in_file,
+        "points_declared": layout.point_count,
         "attributes": attributes,
-        "bounds": {"min": [float(v) for v in header.mins], "max": [float(v) for v in header.maxs]},
-        "scale": [float(v) for v in header.scales],
-        "offset": [float(v) + 0.0 for v in header.offsets],
-        "crs": _parse_crs(header, path),
+        "bounds": {"min": lo.tolist(), "max": hi.tolist()},
+        "header_bounds": {"min": list(layout.header_min), "max": list(layout.header_max)},
+        "scale": list(layout.scales),
+        "offset": [v + 0.0 for v in layout.offsets],
+        "crs": crs,
     }
 
 
@@ -303,7 +355,7 @@ def write_las(
             else:
                 las.write(tmp, do_compress=True, laz_backend=backend)
         except Exception as exc:
-            raise InputError(f"{path}: writing failed ({type(exc).__name__}: {exc})") from None
+            raise InputError(f"{path}: writing failed ({type(exc).__name__}: {one_line(str(exc))})") from None
     return path
 
 

@@ -1,9 +1,10 @@
-"""PLY and PCD through Open3D's tensor I/O (``open3d.t.io``), every vertex property kept.
+"""PLY and PCD files: read with numpy after checking the header, written with Open3D.
 
-Open3D reads a truncated PLY or ASCII PCD without failing (the missing points come back
-as zeros), so the header is checked first: the point count it declares must fit the
-file's size. Open3D maps ``nx/ny/nz`` to ``normals`` and ``red/green/blue`` (PCD ``rgb``)
-to ``colors``; these stay (N, 3) fields. Other fields are (N,) arrays.
+Reading is :mod:`canopy_kit.io.ply` and :mod:`canopy_kit.io.pcd`: Open3D's readers trust the
+header (a short file or a face element before the vertices gave uninitialised memory as
+points, a lone ``normal_x`` crashed the process), so the header is checked against the file
+and the points present are read with numpy. The fields keep Open3D's names: ``normals`` and
+``colors`` are (N, 3) fields, other fields (N,) arrays.
 
 PLY cannot store int8/int16/uint32/int64/uint64 through Open3D; the writer widens them
 to int32, or float64 when int32 cannot hold the values (exact up to 2**53). Files are
@@ -15,193 +16,19 @@ double-precision x/y/z PCD fields as zeros or not at all, while PLY doubles are 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError
+from canopy_kit.errors import InputError, one_line
 from canopy_kit.io.atomic import atomic_path
-from canopy_kit.io.clouds import check_input_file, local_origin
+from canopy_kit.io.clouds import check_input_file
+from canopy_kit.io import pcd, ply
 
-PLY_SIZES = {
-    "char": 1,
-    "int8": 1,
-    "uchar": 1,
-    "uint8": 1,
-    "short": 2,
-    "int16": 2,
-    "ushort": 2,
-    "uint16": 2,
-    "int": 4,
-    "int32": 4,
-    "uint": 4,
-    "uint32": 4,
-    "float": 4,
-    "float32": 4,
-    "double": 8,
-    "float64": 8,
-}
 PLY_WRITABLE = {"u1", "u2", "i4", "f4", "f8"}
 VECTOR_FIELDS = ("normals", "colors")  # Open3D's (N, 3) attributes
-MAX_HEADER_BYTES = 1 << 16
-
-
-@dataclass
-class CloudHeader:
-    """What a PLY/PCD header declares: encoding, point count, whether the size fits."""
-
-    encoding: str
-    points: int
-    complete: bool
-    detail: str = ""
-
-
-def _header_lines(path: Path, end: tuple[bytes, ...]) -> tuple[list[str], int]:
-    """Header lines up to and including the first line starting with one of ``end``."""
-    lines: list[str] = []
-    with path.open("rb") as fh:
-        head = fh.read(MAX_HEADER_BYTES)
-    pos = 0
-    while pos < len(head):
-        nl = head.find(b"\n", pos)
-        if nl < 0:
-            break
-        line = head[pos:nl].rstrip(b"\r")
-        pos = nl + 1
-        lines.append(line.decode("ascii", "replace"))
-        if line.startswith(end):
-            return lines, pos
-    raise InputError(f"{path}: header is incomplete (no {end[0].decode()!r} line)")
-
-
-def _count_data_lines(path: Path, start: int) -> int:
-    with path.open("rb") as fh:
-        fh.seek(start)
-        return sum(1 for line in fh if line.strip())
-
-
-def ply_header(path: Path) -> CloudHeader:
-    """Parse a PLY header and check the file is long enough for its vertices."""
-    if not PlyReader().sniff(path):
-        raise InputError(f"{path}: not a PLY file (first line is not 'ply')")
-    lines, body = _header_lines(path, (b"end_header",))
-    encoding, elements = "", []  # elements: [name, count, property sizes or None for lists]
-    for line in lines[1:]:
-        words = line.split()
-        if not words:
-            continue
-        if words[0] == "format" and len(words) >= 2:
-            encoding = words[1]
-        elif words[0] == "element" and len(words) == 3:
-            try:
-                elements.append([words[1], int(words[2]), []])
-            except ValueError:
-                raise InputError(f"{path}: bad PLY element line {line!r}") from None
-        elif words[0] == "property" and elements:
-            size = None if words[1] == "list" else PLY_SIZES.get(words[1])
-            elements[-1][2].append(size)
-    vertex = next((e for e in elements if e[0] == "vertex"), None)
-    if vertex is None:
-        raise InputError(f"{path}: PLY file has no 'vertex' element")
-    count = vertex[1]
-    size = path.stat().st_size - body
-    if encoding == "ascii":
-        before = sum(e[1] for e in elements[: elements.index(vertex)])
-        lines_found = _count_data_lines(path, body)
-        return CloudHeader(
-            encoding,
-            count,
-            lines_found >= before + count,
-            f"{lines_found} data lines for {before + count} declared",
-        )
-    if elements[0] is vertex and None not in vertex[2]:
-        needed = count * sum(vertex[2])
-        return CloudHeader(encoding, count, size >= needed, f"{size} data bytes, {needed} needed")
-    return CloudHeader(encoding, count, True)
-
-
-def pcd_header(path: Path) -> CloudHeader:
-    """Parse a PCD header and check the file is long enough for its points."""
-    if not PcdReader().sniff(path):
-        raise InputError(f"{path}: not a PCD file (no '# .PCD', VERSION or FIELDS header)")
-    lines, body = _header_lines(path, (b"DATA",))
-    keys: dict[str, list[str]] = {}
-    for line in lines:
-        words = line.split()
-        if words and not words[0].startswith("#"):
-            keys[words[0].upper()] = words[1:]
-    if "FIELDS" not in keys or "DATA" not in keys:
-        raise InputError(f"{path}: not a PCD file (no FIELDS or DATA line)")
-    try:
-        if "POINTS" in keys:
-            count = int(keys["POINTS"][0])
-        else:
-            count = int(keys["WIDTH"][0]) * int(keys.get("HEIGHT", ["1"])[0])
-        sizes = [int(v) for v in keys.get("SIZE", [])]
-        counts = [int(v) for v in keys.get("COUNT", ["1"] * len(sizes))]
-    except (ValueError, IndexError, KeyError):
-        raise InputError(f"{path}: PCD header has a bad POINTS/WIDTH/SIZE/COUNT line") from None
-    encoding = keys["DATA"][0] if keys["DATA"] else ""
-    size = path.stat().st_size - body
-    if encoding == "ascii":
-        found = _count_data_lines(path, body)
-        return CloudHeader(
-            encoding, count, found >= count, f"{found} data lines for {count} points"
-        )
-    if encoding == "binary" and sizes:
-        needed = count * sum(s * c for s, c in zip(sizes, counts))
-        return CloudHeader(encoding, count, size >= needed, f"{size} data bytes, {needed} needed")
-    if encoding == "binary_compressed":
-        with path.open("rb") as fh:
-            fh.seek(body)
-            sizes_raw = fh.read(8)
-        compressed = int.from_bytes(sizes_raw[:4], "little") if len(sizes_raw) == 8 else -1
-        return CloudHeader(
-            encoding,
-            count,
-            0 <= compressed <= size - 8,
-            f"{size - 8} data bytes, {compressed} compressed bytes declared",
-        )
-    return CloudHeader(encoding, count, True)
-
-
-def _read_open3d(path: Path, header: CloudHeader, fmt: str) -> PointCloud:
-    """Read with open3d.t.io after the header check; fields as numpy arrays."""
-    if header.points == 0:
-        raise InputError(f"{path}: {fmt} file has no points")
-    if not header.complete:
-        raise InputError(f"{path}: {fmt} file is truncated or corrupt ({header.detail})")
-    import open3d as o3d
-
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        try:
-            pcd = o3d.t.io.read_point_cloud(str(path), format=fmt.lower())  # not by suffix
-        except Exception as exc:
-            raise InputError(
-                f"{path}: {fmt} file cannot be read ({type(exc).__name__}: {exc})"
-            ) from None
-    if "positions" not in pcd.point or len(pcd.point.positions) != header.points:
-        got = len(pcd.point.positions) if "positions" in pcd.point else 0
-        raise InputError(
-            f"{path}: {fmt} file cannot be read (header declares {header.points} "
-            f"points, Open3D read {got}; is it corrupt or missing x/y/z?)"
-        )
-    absolute = pcd.point.positions.numpy().astype(np.float64)
-    origin = local_origin(absolute.min(axis=0), absolute.max(axis=0))
-    fields: dict[str, np.ndarray] = {}
-    for name in sorted(
-        pcd.point
-    ):  # Open3D's attribute order is not the file's; sort for stable output
-        if name == "positions":
-            continue
-        values = pcd.point[name].numpy()
-        fields[name] = (
-            values[:, 0].copy() if values.ndim == 2 and values.shape[1] == 1 else values.copy()
-        )
-    return PointCloud(absolute - origin, fields, crs=None, origin=origin)
 
 
 def _ply_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
@@ -259,7 +86,11 @@ def _write_open3d(path: Path, cloud: PointCloud, fmt: str) -> Path:
         atomic_path(path) as tmp,
         o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error),
     ):
-        ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False)
+        try:
+            ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False)
+        except RuntimeError as exc:
+            raise InputError(f"{path}: Open3D could not write the {fmt} file: "
+                             f"{one_line(str(exc))}") from None
         if not ok:
             raise InputError(f"{path}: Open3D could not write the {fmt} file")
     return path
@@ -267,14 +98,12 @@ def _write_open3d(path: Path, cloud: PointCloud, fmt: str) -> Path:
 
 def read_ply(path: str | Path) -> PointCloud:
     """Read a PLY file: float64 xyz (local, with origin) and every vertex property."""
-    path = check_input_file(path, "PLY file")
-    return _read_open3d(path, ply_header(path), "PLY")
+    return ply.read_ply(check_input_file(path, "PLY file"))
 
 
 def read_pcd(path: str | Path) -> PointCloud:
     """Read a PCD file: float64 xyz (local, with origin) and every field."""
-    path = check_input_file(path, "PCD file")
-    return _read_open3d(path, pcd_header(path), "PCD")
+    return pcd.read_pcd(check_input_file(path, "PCD file"))
 
 
 def write_ply(path: str | Path, cloud: PointCloud) -> Path:
@@ -287,12 +116,14 @@ def write_pcd(path: str | Path, cloud: PointCloud) -> Path:
     return _write_open3d(Path(path), cloud, "PCD")
 
 
-def _describe(path: Path, cloud: PointCloud, fmt: str, header: CloudHeader) -> dict[str, Any]:
+def _describe(path: Path, cloud: PointCloud, fmt: str, encoding: str,
+              declared: int) -> dict[str, Any]:
     lo, hi = cloud.bounds()
     return {
         "path": str(path),
-        "format": f"{fmt} ({header.encoding})",
+        "format": f"{fmt} ({encoding})",
         "points": len(cloud),
+        "points_declared": declared,
         "attributes": [
             {
                 "name": k,
@@ -324,7 +155,8 @@ class PlyReader:
     def describe(self, path: Path) -> dict[str, Any]:
         """Point count, attributes with dtypes, bounds (PLY has no CRS)."""
         path = check_input_file(path, "PLY file")
-        return _describe(path, read_ply(path), "PLY", ply_header(path))
+        header = ply.read_ply_header(path)
+        return _describe(path, read_ply(path), "PLY", header.encoding, header.vertices)
 
     def read(self, path: Path) -> PointCloud:
         """The whole file as a PointCloud."""
@@ -354,7 +186,8 @@ class PcdReader:
     def describe(self, path: Path) -> dict[str, Any]:
         """Point count, attributes with dtypes, bounds (PCD has no CRS)."""
         path = check_input_file(path, "PCD file")
-        return _describe(path, read_pcd(path), "PCD", pcd_header(path))
+        header = pcd.read_pcd_header(path)
+        return _describe(path, read_pcd(path), "PCD", header.encoding, header.points)
 
     def read(self, path: Path) -> PointCloud:
         """The whole file as a PointCloud."""
