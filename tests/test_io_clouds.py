@@ -403,20 +403,29 @@ def test_truncated_laz(tmp_path: Path, fraction: float) -> None:
     assert "corrupt or truncated" in _message(path)
 
 
-def test_truncated_las_uncompressed(tmp_path: Path) -> None:
-    data = write_cloud(tmp_path / "whole.las", synthetic_cloud()).read_bytes()
-    path = tmp_path / "cut.las"
-    path.write_bytes(data[: len(data) - 100])
-    assert "corrupt or truncated" in _message(path)
+def _read_with_warnings(path: Path) -> tuple[PointCloud, list[str]]:
+    import warnings
+
+    from canopy_kit.errors import InputWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_cloud(path)
+    return cloud, [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
 
 
-@pytest.mark.parametrize("suffix", [".ply", ".pcd"])
-def test_truncated_ply_pcd(tmp_path: Path, suffix: str) -> None:
-    # Open3D alone returns the declared number of points, zeros for the missing ones.
-    data = write_cloud(tmp_path / f"whole{suffix}", synthetic_cloud()).read_bytes()
+@pytest.mark.parametrize("suffix", [".las", ".ply", ".pcd"])
+def test_truncated_uncompressed_gives_the_records_present(tmp_path: Path, suffix: str) -> None:
+    # Fixed-size records: the complete ones before the cut are read, with a warning saying
+    # how many (Open3D alone returned the declared number of points, zeros for the missing).
+    cloud = synthetic_cloud()
+    data = write_cloud(tmp_path / f"whole{suffix}", cloud).read_bytes()
     path = tmp_path / f"cut{suffix}"
     path.write_bytes(data[: len(data) * 2 // 3])
-    assert "truncated or corrupt" in _message(path)
+    back, notes = _read_with_warnings(path)
+    assert 0 < len(back) < len(cloud) and len(notes) == 1
+    assert f"of {len(cloud)} points are in the file" in notes[0] and str(path) in notes[0]
+    np.testing.assert_allclose(back.absolute_xyz, cloud.absolute_xyz[: len(back)], atol=1e-6)
 
 
 def test_truncated_ascii_ply(tmp_path: Path) -> None:
@@ -426,7 +435,9 @@ def test_truncated_ascii_ply(tmp_path: Path) -> None:
         "ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
         f"property float z\nend_header\n{rows}\n"
     )
-    assert "5 data lines for 10 declared" in _message(path)
+    back, notes = _read_with_warnings(path)
+    assert len(back) == 5 and notes and "only 5 of 10 points" in notes[0]
+    np.testing.assert_array_equal(back.absolute_xyz[:, 0], np.arange(5))
 
 
 def test_garbage_with_las_suffix(tmp_path: Path) -> None:

@@ -289,12 +289,12 @@ def _check_point_space(path: Path, fixed: _Fixed, in_file: int, needed: int) -> 
     """Fewer records than declared is a cut file, unless the record length is the liar."""
     if in_file == fixed.point_count:
         return
-    if in_file == 0:
-        raise InputError(f"{path}: LAS file is truncated: no complete point record of "
-                         f"{fixed.record_length} bytes after byte {fixed.offset_to_points} "
-                         f"(header declares {fixed.point_count} points)")
     if fixed.record_length != needed:
         raise _fail(path, "point data record length",
                     f"is {fixed.record_length} bytes (point format {fixed.format_byte & 0x3F} "
                     f"with its extra bytes: {needed}) and the file holds only {in_file} of the "
                     f"{fixed.point_count} records declared")
+    if in_file == 0:
+        raise InputError(f"{path}: LAS file is truncated: no complete point record of "
+                         f"{fixed.record_length} bytes after byte {fixed.offset_to_points} "
+                         f"(header declares {fixed.point_count} points)")

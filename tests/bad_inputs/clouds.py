@@ -38,3 +38,137 @@ def write_truncated_laz(path: Path, fraction: float = 0.6) -> Path:
     data = path.read_bytes()
     path.write_bytes(data[: int(len(data) * fraction)])
     return path
+
+
+# --- hand-built files: every byte written here, so the numbers in them are the truth ---------
+
+import struct  # noqa: E402
+
+LAS_RECORD = {0: 20, 1: 28, 6: 30}  # point formats the builder writes
+
+
+def las_record_bytes(ints: np.ndarray, point_format: int, intensity: np.ndarray) -> bytes:
+    """Point records of format 0, 1 or 6: X, Y, Z, intensity; every other attribute 0."""
+    n = len(ints)
+    if point_format == 6:
+        dtype = np.dtype([("xyz", "<i4", 3), ("intensity", "<u2"), ("rest", "V8"), ("gps", "<f8")])
+    else:
+        rest = 8 if point_format == 1 else 0
+        dtype = np.dtype([("xyz", "<i4", 3), ("intensity", "<u2"), ("rest", "V6")]
+                         + ([("gps", "<f8")] if rest else []))
+    rec = np.zeros(n, dtype)
+    rec["xyz"] = ints
+    rec["intensity"] = intensity
+    assert dtype.itemsize == LAS_RECORD[point_format]
+    return rec.tobytes()
+
+
+def vlr_bytes(user: bytes, record: int, payload: bytes) -> bytes:
+    """One VLR: 54-byte header (reserved, user id, record id, length, description) + payload."""
+    return struct.pack("<H16sHH32s", 0, user, record, len(payload), b"") + payload
+
+
+def las_bytes(ints: np.ndarray, *, scale: float = 0.01, offset: tuple[float, float, float] = (0, 0, 0),
+              point_format: int = 0, minor: int = 2, vlrs: tuple[bytes, ...] = (),
+              header_bounds: tuple[tuple, tuple] | None = None, **fields: int) -> bytes:
+    """A LAS 1.2 (or 1.4) file of the integer coordinates ``ints``; ``fields`` overwrite what
+    the header declares (``point_count``, ``record_length``, ``n_vlrs``, ``offset_to_points``,
+    ``header_size``, ``evlr_start``, ``n_evlrs``) however wrong."""
+    ints = np.asarray(ints, dtype=np.int32)
+    n = len(ints)
+    header_size = 375 if minor == 4 else 227
+    vlr_data = b"".join(vlrs)
+    offset_to_points = header_size + len(vlr_data)
+    scales = np.full(3, scale)
+    with np.errstate(invalid="ignore", over="ignore"):  # the scale may be as wrong as asked
+        absolute = ints * scales + np.asarray(offset)
+    lo, hi = header_bounds or (absolute.min(axis=0), absolute.max(axis=0))
+    decl = {"point_count": n, "record_length": LAS_RECORD[point_format], "n_vlrs": len(vlrs),
+            "offset_to_points": offset_to_points, "header_size": header_size, "evlr_start": 0,
+            "n_evlrs": 0, **fields}
+    head = bytearray(header_size)
+    head[0:4] = b"LASF"
+    head[24], head[25] = 1, minor
+    head[26:58] = b"canopy-kit test".ljust(32, b"\0")
+    legacy = decl["point_count"] if point_format < 6 and decl["point_count"] < 2**32 else 0
+    struct.pack_into("<HIIBHI", head, 94, decl["header_size"], decl["offset_to_points"],
+                     decl["n_vlrs"], point_format, decl["record_length"], legacy)
+    struct.pack_into("<3d3d", head, 131, *scales, *offset)
+    struct.pack_into("<6d", head, 179, hi[0], lo[0], hi[1], lo[1], hi[2], lo[2])
+    if minor == 4:
+        struct.pack_into("<QIQ", head, 235, decl["evlr_start"], decl["n_evlrs"], decl["point_count"])
+    intensity = np.arange(n) % 65536
+    return bytes(head) + vlr_data + las_record_bytes(ints, point_format, intensity)
+
+
+def grid_points(n: int = 1000, seed: int = 0) -> np.ndarray:
+    """Seeded integer coordinates in a 10 x 10 x 8 m box at 1 cm (with scale 0.01)."""
+    rng = np.random.default_rng(seed)
+    return rng.integers([0, 0, 0], [1000, 1000, 800], (n, 3)).astype(np.int32)
+
+
+def ply_bytes(xyz: np.ndarray, encoding: str = "binary_little_endian", *,
+              before: tuple[tuple[str, int, str, bytes], ...] = (),
+              after: tuple[tuple[str, int, str, bytes], ...] = (),
+              vertices: int | None = None, extra: dict[str, np.ndarray] | None = None) -> bytes:
+    """A PLY file: float64 x, y, z (+ ``extra`` float32 properties) per vertex; elements
+    ``before``/``after`` the vertices as (name, count, property lines, data bytes)."""
+    extra = extra or {}
+    n = len(xyz) if vertices is None else vertices
+    lines = [b"ply", f"format {encoding} 1.0".encode(), b"comment hand-built"]
+    for name, count, props, _ in before:
+        lines += [f"element {name} {count}".encode(), props.encode()]
+    lines += [f"element vertex {n}".encode(), b"property double x", b"property double y",
+              b"property double z"] + [f"property float {k}".encode() for k in extra]
+    for name, count, props, _ in after:
+        lines += [f"element {name} {count}".encode(), props.encode()]
+    lines.append(b"end_header")
+    if encoding == "ascii":
+        cols = [np.asarray(xyz, float)] + [np.asarray(v, float)[:, None] for v in extra.values()]
+        table = np.hstack(cols)
+        body = b"".join((" ".join(repr(float(v)) for v in row) + "\n").encode() for row in table)
+    else:
+        order = "<" if encoding == "binary_little_endian" else ">"
+        dtype = np.dtype([(c, order + "f8") for c in "xyz"] + [(k, order + "f4") for k in extra])
+        rec = np.zeros(len(xyz), dtype)
+        for i, c in enumerate("xyz"):
+            rec[c] = xyz[:, i]
+        for k, v in extra.items():
+            rec[k] = v
+        body = rec.tobytes()
+    data_before = b"".join(d for *_, d in before)
+    data_after = b"".join(d for *_, d in after)
+    return b"\n".join(lines) + b"\n" + data_before + body + data_after
+
+
+def lzf_literals(data: bytes) -> bytes:
+    """``data`` as a valid LZF stream of literal runs only (an independent encoder)."""
+    out = bytearray()
+    for i in range(0, len(data), 32):
+        chunk = data[i:i + 32]
+        out.append(len(chunk) - 1)
+        out += chunk
+    return bytes(out)
+
+
+def pcd_bytes(xyz: np.ndarray, encoding: str = "binary", *, intensity: np.ndarray | None = None,
+              points: int | None = None, width: int | None = None,
+              sizes: tuple[int, int] | None = None) -> bytes:
+    """A PCD v0.7 file of float32 x, y, z and intensity; ``points``/``width`` overwrite what
+    the header declares, ``sizes`` the binary_compressed (compressed, uncompressed) sizes."""
+    n = len(xyz)
+    intensity = np.arange(n, dtype=np.float32) if intensity is None else intensity
+    declared = n if points is None else points
+    head = (f"# .PCD v0.7 - hand-built\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\n"
+            f"TYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {declared if width is None else width}\n"
+            f"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {declared}\nDATA {encoding}\n").encode()
+    table = np.column_stack([np.asarray(xyz, np.float32), intensity]).astype("<f4")
+    if encoding == "ascii":
+        return head + b"".join((" ".join(repr(float(v)) for v in row) + "\n").encode()
+                               for row in table)
+    if encoding == "binary":
+        return head + table.tobytes()
+    columns = np.ascontiguousarray(table.T).tobytes()  # field by field
+    packed = lzf_literals(columns)
+    compressed, uncompressed = sizes or (len(packed), len(columns))
+    return head + struct.pack("<II", compressed, uncompressed) + packed
