@@ -39,14 +39,15 @@ def header_lines(path: Path, end: bytes, what: str) -> tuple[list[str], int]:
 
 
 def ascii_rows(path: Path, start: int, skip: int, rows: int, columns: int,
-               what: str) -> np.ndarray:
+               what: str) -> tuple[np.ndarray, str | None]:
     """``rows`` lines of ``columns`` numbers after ``skip`` lines from byte ``start``; fewer
-    when the file ends first (a last line without its newline counts only when whole).
+    when the file ends first. A last line without its line end counts only when whole, and
+    then with a note (it may be cut inside its last number).
 
     InputError naming the line when a value is not a number or a line has another length.
     """
     if rows == 0:
-        return np.zeros((0, columns))
+        return np.zeros((0, columns)), None
     with path.open("rb") as fh:
         fh.seek(start)
         body = fh.read()
@@ -55,12 +56,16 @@ def ascii_rows(path: Path, start: int, skip: int, rows: int, columns: int,
     last = skip + rows - 1
     end = int(newlines[last]) + 1 if last < len(newlines) else len(body)
     text = body[begin:end].decode("ascii", "replace")
-    if end == len(body) and not text.endswith("\n") and text:
-        tail = text.rsplit("\n", 1)[-1]
-        if len(tail.split()) != columns:  # cut inside the last line
+    note = None
+    tail = text.rsplit("\n", 1)[-1]
+    if tail.strip():  # the file ends inside this line
+        if len(tail.split()) == columns:
+            note = (f"{path}: the last {what} data line has no line end; the file may be cut "
+                    "short inside it")
+        else:
             text = text[: len(text) - len(tail)]
     if not text.strip():
-        return np.zeros((0, columns))
+        return np.zeros((0, columns)), note
     try:
         values = np.loadtxt(io.StringIO(text), dtype=np.float64, comments=None, ndmin=2)
     except ValueError as exc:
@@ -70,7 +75,7 @@ def ascii_rows(path: Path, start: int, skip: int, rows: int, columns: int,
     if values.shape[1] != columns:
         raise InputError(f"{path}: {what} data lines have {values.shape[1]} values, the header "
                          f"declares {columns}")
-    return values
+    return values, note
 
 
 def cast_column(path: Path, name: str, values: np.ndarray, dtype: np.dtype) -> np.ndarray:
@@ -96,11 +101,14 @@ def cut_short_warning(path: Path, found: int, declared: int) -> str:
 
 
 def build_cloud(path: Path, fmt: str, xyz: np.ndarray, fields: dict[str, np.ndarray],
-                declared: int) -> PointCloud:
+                declared: int, notes: list[str]) -> PointCloud:
     """The cloud of absolute ``xyz`` with its fields, re-localised; points with a non-finite
-    coordinate dropped. Warns when fewer than ``declared`` points were in the file or some
-    were dropped; InputError when no point is left."""
-    notes = [cut_short_warning(path, len(xyz), declared)] if len(xyz) < declared else []
+    coordinate dropped. Warns with ``notes``, when fewer than ``declared`` points were in the
+    file and when some were dropped (only once the cloud is whole); InputError when no point
+    is left."""
+    notes = list(notes)
+    if len(xyz) < declared:
+        notes.insert(0, cut_short_warning(path, len(xyz), declared))
     if len(xyz) == 0:
         raise InputError(f"{path}: {fmt} file has no points" if declared == 0 else
                          f"{path}: {fmt} file is truncated: no complete point (header declares "

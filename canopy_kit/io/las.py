@@ -9,6 +9,7 @@ standard dimensions of the point format become extra-bytes dimensions.
 
 from __future__ import annotations
 
+import logging
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -28,6 +29,9 @@ WRITABLE_FORMATS: tuple[int, ...] = (0, 1, 2, 3, 6, 7, 8)
 EXTRA_BYTES_DTYPES = {"u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8", "f4", "f8"}
 INT32_MAX = 2**31 - 1
 READ_CHUNK = 1_000_000  # points per laspy read: memory follows the points really decoded
+# lazrs' parallel reader sizes a buffer by the LASzip chunk size (a damaged one asked for
+# 3 GB and aborted the process): parallel only for chunks up to this many bytes.
+PARALLEL_CHUNK_BYTES = 64 << 20
 
 
 def _open_error(path: Path, exc: Exception) -> InputError:
@@ -49,16 +53,36 @@ def _checked(path: str | Path) -> LasLayout:
 
 @contextmanager
 def _las_reader(layout: LasLayout) -> Iterator[Any]:
-    """laspy's reader on a checked file, its errors as InputError."""
+    """laspy's reader on a checked file, its errors as InputError (its log lines held back:
+    what they say about a damaged file is in our errors and warnings)."""
     import laspy
 
+    log = logging.getLogger("laspy")
+    level = log.level
+    log.setLevel(logging.ERROR)
     try:
-        with laspy.open(layout.path) as reader:
+        with laspy.open(layout.path, laz_backend=_read_backend(layout)) as reader:
             yield reader
     except InputError:
         raise
     except Exception as exc:  # laspy/lazrs raise LaspyException, LazrsError, ValueError, OSError...
         raise _open_error(layout.path, exc) from None
+    finally:
+        log.setLevel(level)
+
+
+def _read_backend(layout: LasLayout) -> Any:
+    """lazrs on every core for LAZ whose chunk size is known and modest, else one core."""
+    import laspy
+
+    if not layout.compressed:
+        return None
+    chunk = layout.laz_chunk_points
+    parallel = chunk is not None and chunk * layout.record_length <= PARALLEL_CHUNK_BYTES
+    for backend in (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs):
+        if backend.is_available() and (parallel or backend is laspy.LazBackend.Lazrs):
+            return backend
+    return None
 
 
 def _point_chunks(reader: Any, layout: LasLayout) -> Iterator[Any]:

@@ -57,6 +57,7 @@ class LasLayout:
     offsets: tuple[float, float, float]
     header_min: tuple[float, float, float]
     header_max: tuple[float, float, float]
+    laz_chunk_points: int | None = None  # LAZ with fixed-size chunks: points per chunk
 
     @property
     def cut_short(self) -> bool:
@@ -196,8 +197,9 @@ def _check_record(path: Path, fixed: _Fixed, extra: int) -> int:
 
 
 def _laz_point_bytes(path: Path, fixed: _Fixed, laszip: bytes | None, data_end: int,
-                     read_at: ReadAt) -> None:
-    """A LAZ point count must fit its LASzip record and chunk table (no decompression)."""
+                     read_at: ReadAt) -> int | None:
+    """A LAZ point count must fit its LASzip record and chunk table (no decompression); the
+    points per chunk when chunks have one size."""
     if laszip is None or len(laszip) < 34:
         raise InputError(f"{path}: LAZ file without a valid LASzip record (VLR 'laszip encoded' "
                          f"{LASZIP_RECORD}); the file is corrupt")
@@ -217,7 +219,7 @@ def _laz_point_bytes(path: Path, fixed: _Fixed, laszip: bytes | None, data_end: 
                     f"is {fixed.point_count}: {data_bytes} compressed bytes hold at most "
                     f"{MAX_LAZ_POINTS_PER_BYTE * data_bytes}")
     if compressor not in (2, 3):
-        return  # not chunked: no chunk table
+        return None  # not chunked: no chunk table
     table = _chunk_table_offset(fixed, read_at, data_end)
     if not fixed.offset_to_points + 8 <= table <= data_end - 8:
         raise InputError(f"{path}: LAZ chunk table offset {table} lies outside the point data "
@@ -236,6 +238,7 @@ def _laz_point_bytes(path: Path, fixed: _Fixed, laszip: bytes | None, data_end: 
         raise _fail(path, "number of point records",
                     f"is {fixed.point_count}; the LAZ chunk table lists {n_chunks} chunks of "
                     f"{chunk_size} points")
+    return None if chunk_size == VARIABLE_CHUNKS else chunk_size
 
 
 def _chunk_table_offset(fixed: _Fixed, read_at: ReadAt, data_end: int) -> int:
@@ -273,8 +276,10 @@ def read_las_layout(path: Path) -> LasLayout:
         compressed = fixed.format_byte & 0xC0 == 0x80  # bit 7 without bit 6, as laspy reads it
         if fixed.point_count == 0:
             raise InputError(f"{path}: LAS file has no points")
+        chunk_points = None
         if compressed:
-            _laz_point_bytes(path, fixed, vlrs.get((LASZIP_USER, LASZIP_RECORD)), data_end, read_at)
+            chunk_points = _laz_point_bytes(path, fixed, vlrs.get((LASZIP_USER, LASZIP_RECORD)),
+                                            data_end, read_at)
             in_file = fixed.point_count
         else:
             in_file = min(fixed.point_count,
@@ -282,7 +287,8 @@ def read_las_layout(path: Path) -> LasLayout:
             _check_point_space(path, fixed, in_file, needed)
     return LasLayout(path, file_size, f"1.{fixed.minor}", fixed.format_byte & 0x3F, compressed,
                      fixed.record_length, fixed.offset_to_points, fixed.point_count, in_file,
-                     fixed.scales, fixed.offsets, fixed.header_min, fixed.header_max)
+                     fixed.scales, fixed.offsets, fixed.header_min, fixed.header_max,
+                     chunk_points)
 
 
 def _check_point_space(path: Path, fixed: _Fixed, in_file: int, needed: int) -> None:

@@ -34,6 +34,8 @@ KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPO
         "DATA")
 GROUPS = {"normals": ("normal_x", "normal_y", "normal_z")}
 PADDING = "_"  # PCL's name for padding bytes
+MAX_POINT_BYTES = 1 << 20  # a point of more than a MiB is a damaged SIZE or COUNT
+LZF_MAX_RATIO = 88  # LZF's longest back reference: 264 bytes from 3
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,10 @@ def _fields(path: Path, keys: dict[str, list[str]]) -> tuple[PcdField, ...]:
     missing = [c for c in "xyz" if c not in real]
     if missing:
         raise InputError(f"{path}: PCD file has no {'/'.join(missing)} field")
+    point_bytes = sum(size * count for size, count in zip(sizes, counts))
+    if point_bytes > MAX_POINT_BYTES:
+        raise InputError(f"{path}: PCD header SIZE x COUNT makes {point_bytes} bytes a point "
+                         f"(more than {MAX_POINT_BYTES}); the header is corrupt")
     if any(f.count != 1 for f in out if f.name in ("x", "y", "z")):
         raise InputError(f"{path}: PCD fields x, y, z must have COUNT 1 ({' '.join(map(str, counts))})")
     return tuple(out)
@@ -118,17 +124,18 @@ def read_pcd_header(path: Path) -> PcdHeader:
     return PcdHeader(fields, points, encoding, data_start)
 
 
-def _binary_columns(path: Path, header: PcdHeader) -> dict[str, np.ndarray]:
+def _binary_columns(path: Path, header: PcdHeader) -> tuple[dict[str, np.ndarray], list[str]]:
     """Columns of the points present in a binary (row-major) body."""
     dtype = np.dtype([(f"{f.name}{i}" if f.name == PADDING else f.name, f.dtype, (f.count,))
                       for i, f in enumerate(header.fields)])
     size = path.stat().st_size - header.data_start
     present = min(header.points, size // dtype.itemsize)
-    rows = np.fromfile(path, dtype=dtype, count=present, offset=header.data_start)
-    return {f.name: rows[f.name] for f in header.fields if f.name != PADDING}
+    rows = np.fromfile(path, dtype=dtype, count=present, offset=header.data_start) if present else (
+        np.zeros(0, dtype))
+    return {f.name: rows[f.name] for f in header.fields if f.name != PADDING}, []
 
 
-def _compressed_columns(path: Path, header: PcdHeader) -> dict[str, np.ndarray]:
+def _compressed_columns(path: Path, header: PcdHeader) -> tuple[dict[str, np.ndarray], list[str]]:
     """Columns of a binary_compressed body: LZF of the points stored field by field."""
     size = path.stat().st_size - header.data_start
     with path.open("rb") as fh:
@@ -147,6 +154,10 @@ def _compressed_columns(path: Path, header: PcdHeader) -> dict[str, np.ndarray]:
             raise InputError(f"{path}: PCD binary_compressed compressed size is {compressed} "
                              f"bytes; the file holds {size - 8} after the sizes; it is "
                              "corrupt or truncated")
+        if uncompressed > LZF_MAX_RATIO * compressed + 32:
+            raise InputError(f"{path}: PCD binary_compressed uncompressed size {uncompressed} "
+                             f"bytes cannot come from {compressed} compressed bytes (LZF expands "
+                             f"at most {LZF_MAX_RATIO} times); the file is corrupt")
         data = lzf_decompress(fh.read(compressed), uncompressed)
     if data is None:
         raise InputError(f"{path}: PCD binary_compressed data do not decompress to "
@@ -157,18 +168,18 @@ def _compressed_columns(path: Path, header: PcdHeader) -> dict[str, np.ndarray]:
         if f.name != PADDING:
             out[f.name] = data[pos:pos + n].view(f.dtype).reshape(header.points, f.count)
         pos += n
-    return out
+    return out, []
 
 
-def _ascii_columns(path: Path, header: PcdHeader) -> dict[str, np.ndarray]:
+def _ascii_columns(path: Path, header: PcdHeader) -> tuple[dict[str, np.ndarray], list[str]]:
     width = sum(f.count for f in header.fields)
-    values = ascii_rows(path, header.data_start, 0, header.points, width, "PCD")
+    values, note = ascii_rows(path, header.data_start, 0, header.points, width, "PCD")
     out, col = {}, 0
     for f in header.fields:
         if f.name != PADDING:
             out[f.name] = cast_column(path, f.name, values[:, col:col + f.count], f.dtype)
         col += f.count
-    return out
+    return out, [note] if note else []
 
 
 def _colors(packed: np.ndarray) -> np.ndarray:
@@ -183,11 +194,11 @@ def read_pcd(path: Path) -> PointCloud:
     header = read_pcd_header(path)
     read = {"ascii": _ascii_columns, "binary": _binary_columns,
             "binary_compressed": _compressed_columns}[header.encoding]
-    columns = {k: v[:, 0] if v.ndim == 2 and v.shape[1] == 1 else v
-               for k, v in read(path, header).items()}
+    raw, notes = read(path, header)
+    columns = {k: v[:, 0] if v.ndim == 2 and v.shape[1] == 1 else v for k, v in raw.items()}
     xyz = np.column_stack([columns.pop(c) for c in "xyz"]).astype(np.float64)
     for name in ("rgb", "rgba"):
         if name in columns and columns[name].ndim == 1 and columns[name].dtype.itemsize == 4:
             columns["colors"] = _colors(columns.pop(name))
     fields = {k: v.astype(v.dtype.newbyteorder("=")) for k, v in group_columns(columns, GROUPS).items()}
-    return build_cloud(path, "PCD", xyz, fields, header.points)
+    return build_cloud(path, "PCD", xyz, fields, header.points, notes)

@@ -11,14 +11,13 @@ A list property of one length on every vertex becomes an (N, k) field.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError, InputWarning
+from canopy_kit.errors import InputError
 from canopy_kit.io.cloud_records import (
     ascii_rows,
     build_cloud,
@@ -146,9 +145,10 @@ def _check_vertex(path: Path, header: PlyHeader) -> None:
 
 
 def _uniform_rows(buf: np.ndarray, pos: int, element: PlyElement,
-                  order: str) -> tuple[np.ndarray, bool]:
+                  order: str) -> tuple[np.ndarray | None, bool]:
     """The rows present from ``pos`` as a structured array whose lists have the first row's
-    lengths, and whether every row present really has those lengths."""
+    lengths, and whether every row present really has those lengths; None when not even
+    the first row is there."""
     fields: list[tuple] = []
     cursor = pos
     for prop in element.properties:
@@ -158,12 +158,16 @@ def _uniform_rows(buf: np.ndarray, pos: int, element: PlyElement,
             continue
         size = np.dtype(prop.count).itemsize
         head = buf[cursor:cursor + size]
-        length = int(head.view(order + prop.count)[0]) if len(head) == size else 0
+        if len(head) < size:
+            return None, True
+        length = int(head.view(order + prop.count)[0])
         if length < 0:
-            return np.zeros(0, np.uint8), False
+            return None, False
         fields += [(f"{prop.name}__length", order + prop.count),
                    (prop.name, order + prop.dtype, (length,))]
         cursor += size + length * np.dtype(prop.dtype).itemsize
+    if element.rows == 0 or cursor > len(buf):
+        return None, True
     dtype = np.dtype(fields)
     present = min(element.rows, (len(buf) - pos) // dtype.itemsize)
     rows = buf[pos:pos + present * dtype.itemsize].view(dtype)
@@ -194,26 +198,30 @@ def _walk_rows(path: Path, buf: np.ndarray, pos: int, element: PlyElement,
     return pos, element.rows
 
 
-def _binary_vertices(path: Path, header: PlyHeader) -> tuple[np.ndarray, list[str]]:
-    """The vertex rows present (structured array) and a note when an element after them is
-    cut short. InputError when the data before the vertices are."""
+def _binary_vertices(path: Path, header: PlyHeader) -> tuple[np.ndarray | None, list[str]]:
+    """The vertex rows present (structured array; None: not one) and a note when an element
+    after them is cut short. InputError when the data before the vertices are."""
     order = ENCODINGS[header.encoding]
     with path.open("rb") as fh:
         fh.seek(header.data_start)
         buf = np.frombuffer(fh.read(), np.uint8)
-    pos, vertices, notes = 0, np.zeros(0, np.uint8), []
+    pos, vertices, notes = 0, None, []
     for index, element in enumerate(header.elements):
         rows, uniform = _uniform_rows(buf, pos, element, order)
         if index == header.vertex_index:
             if not uniform:
                 raise InputError(f"{path}: PLY vertex list property changes length from row to "
                                  "row; only lists of one length are read")
-            vertices = rows
-            if len(rows) < element.rows:
+            if rows is None or len(rows) < element.rows:
+                vertices = rows
                 break
-            pos += rows.nbytes
+            vertices, pos = rows, pos + rows.nbytes
             continue
-        end, present = (pos + rows.nbytes, len(rows)) if uniform else _walk_rows(path, buf, pos, element, order)
+        if uniform:
+            present = 0 if rows is None else len(rows)
+            end = pos + (0 if rows is None else rows.nbytes)
+        else:
+            end, present = _walk_rows(path, buf, pos, element, order)
         if present < element.rows:
             if index < header.vertex_index:
                 raise InputError(f"{path}: PLY file is truncated or corrupt: the {element.name!r} "
@@ -234,7 +242,7 @@ def _ascii_vertices(path: Path, header: PlyHeader) -> tuple[dict[str, np.ndarray
     skip = sum(e.rows for e in header.elements[:index])
     lists = any(p.count for p in vertex.properties)
     width = _ascii_width(path, header, skip) if lists else len(vertex.properties)
-    values = ascii_rows(path, header.data_start, skip, vertex.rows, width, "PLY vertex")
+    values, line_note = ascii_rows(path, header.data_start, skip, vertex.rows, width, "PLY vertex")
     columns, col = {}, 0
     for prop in vertex.properties:
         if prop.count is None:
@@ -248,7 +256,7 @@ def _ascii_vertices(path: Path, header: PlyHeader) -> tuple[dict[str, np.ndarray
         columns[prop.name] = cast_column(path, prop.name, values[:, col + 1:col + 1 + length],
                                          prop.dtype)
         col += 1 + length
-    notes = []
+    notes = [line_note] if line_note else []
     declared = sum(e.rows for e in header.elements)
     if len(values) == vertex.rows and index < len(header.elements) - 1:
         found = _line_count(path, header.data_start)
@@ -262,7 +270,7 @@ def _line_count(path: Path, start: int) -> int:
     with path.open("rb") as fh:
         fh.seek(start)
         body = fh.read()
-    return body.count(b"\n") + (0 if body.endswith(b"\n") or not body else 1)
+    return body.count(b"\n")  # a last line without its line end may be cut: not counted
 
 
 def _columns(vertices: np.ndarray, vertex: PlyElement) -> dict[str, np.ndarray]:
@@ -283,9 +291,10 @@ def read_ply(path: Path) -> PointCloud:
         columns, notes = _ascii_vertices(path, header)
     else:
         vertices, notes = _binary_vertices(path, header)
+        if vertices is None:
+            raise InputError(f"{path}: PLY file has no points" if vertex.rows == 0 else
+                             f"{path}: PLY file is truncated: no complete vertex (header "
+                             f"declares {vertex.rows})")
         columns = _columns(vertices, vertex)
     xyz = np.column_stack([columns.pop(c) for c in "xyz"]).astype(np.float64)
-    fields = group_columns(columns, GROUPS)
-    for note in notes:
-        warnings.warn(InputWarning(note), stacklevel=2)
-    return build_cloud(path, "PLY", xyz, fields, header.vertices)
+    return build_cloud(path, "PLY", xyz, group_columns(columns, GROUPS), header.vertices, notes)

@@ -47,20 +47,34 @@ import struct  # noqa: E402
 LAS_RECORD = {0: 20, 1: 28, 6: 30}  # point formats the builder writes
 
 
-def las_record_bytes(ints: np.ndarray, point_format: int, intensity: np.ndarray) -> bytes:
-    """Point records of format 0, 1 or 6: X, Y, Z, intensity; every other attribute 0."""
+def las_record_bytes(ints: np.ndarray, point_format: int, intensity: np.ndarray,
+                     extra: int = 0) -> bytes:
+    """Point records of format 0, 1 or 6: X, Y, Z, intensity; every other attribute 0; then
+    ``extra`` bytes per point holding the point's index (little-endian)."""
     n = len(ints)
     if point_format == 6:
-        dtype = np.dtype([("xyz", "<i4", 3), ("intensity", "<u2"), ("rest", "V8"), ("gps", "<f8")])
+        fields = [("xyz", "<i4", 3), ("intensity", "<u2"), ("rest", "V8"), ("gps", "<f8")]
     else:
-        rest = 8 if point_format == 1 else 0
-        dtype = np.dtype([("xyz", "<i4", 3), ("intensity", "<u2"), ("rest", "V6")]
-                         + ([("gps", "<f8")] if rest else []))
+        fields = [("xyz", "<i4", 3), ("intensity", "<u2"), ("rest", "V6")]
+        fields += [("gps", "<f8")] if point_format == 1 else []
+    dtype = np.dtype(fields + ([("extra", f"V{extra}")] if extra else []))
     rec = np.zeros(n, dtype)
     rec["xyz"] = ints
     rec["intensity"] = intensity
-    assert dtype.itemsize == LAS_RECORD[point_format]
+    if extra:
+        index = np.arange(n, dtype="<u8").view(np.uint8).reshape(n, 8)
+        rec["extra"] = np.ascontiguousarray(np.pad(index, ((0, 0), (0, max(0, extra - 8))))[:, :extra]
+                                            ).view(f"V{extra}")[:, 0]
+    assert dtype.itemsize == LAS_RECORD[point_format] + extra
     return rec.tobytes()
+
+
+def extra_bytes_vlr(name: bytes, data_type: int) -> bytes:
+    """An Extra Bytes VLR (LASF_Spec 4) describing one extra dimension."""
+    descriptor = bytearray(192)
+    descriptor[2], descriptor[3] = data_type, 0
+    descriptor[4:4 + len(name)] = name
+    return vlr_bytes(b"LASF_Spec", 4, bytes(descriptor))
 
 
 def vlr_bytes(user: bytes, record: int, payload: bytes) -> bytes:
@@ -70,10 +84,12 @@ def vlr_bytes(user: bytes, record: int, payload: bytes) -> bytes:
 
 def las_bytes(ints: np.ndarray, *, scale: float = 0.01, offset: tuple[float, float, float] = (0, 0, 0),
               point_format: int = 0, minor: int = 2, vlrs: tuple[bytes, ...] = (),
-              header_bounds: tuple[tuple, tuple] | None = None, **fields: int) -> bytes:
+              header_bounds: tuple[tuple, tuple] | None = None, extra: int = 0,
+              evlrs: tuple[bytes, ...] = (), **fields: int) -> bytes:
     """A LAS 1.2 (or 1.4) file of the integer coordinates ``ints``; ``fields`` overwrite what
     the header declares (``point_count``, ``record_length``, ``n_vlrs``, ``offset_to_points``,
-    ``header_size``, ``evlr_start``, ``n_evlrs``) however wrong."""
+    ``header_size``, ``evlr_start``, ``n_evlrs``) however wrong. ``extra`` bytes follow each
+    standard record; ``evlrs`` (LAS 1.4) follow the points."""
     ints = np.asarray(ints, dtype=np.int32)
     n = len(ints)
     header_size = 375 if minor == 4 else 227
@@ -83,9 +99,11 @@ def las_bytes(ints: np.ndarray, *, scale: float = 0.01, offset: tuple[float, flo
     with np.errstate(invalid="ignore", over="ignore"):  # the scale may be as wrong as asked
         absolute = ints * scales + np.asarray(offset)
     lo, hi = header_bounds or (absolute.min(axis=0), absolute.max(axis=0))
-    decl = {"point_count": n, "record_length": LAS_RECORD[point_format], "n_vlrs": len(vlrs),
-            "offset_to_points": offset_to_points, "header_size": header_size, "evlr_start": 0,
-            "n_evlrs": 0, **fields}
+    record_length = LAS_RECORD[point_format] + extra
+    evlr_start = offset_to_points + n * record_length if evlrs else 0
+    decl = {"point_count": n, "record_length": record_length, "n_vlrs": len(vlrs),
+            "offset_to_points": offset_to_points, "header_size": header_size,
+            "evlr_start": evlr_start, "n_evlrs": len(evlrs), **fields}
     head = bytearray(header_size)
     head[0:4] = b"LASF"
     head[24], head[25] = 1, minor
@@ -98,7 +116,13 @@ def las_bytes(ints: np.ndarray, *, scale: float = 0.01, offset: tuple[float, flo
     if minor == 4:
         struct.pack_into("<QIQ", head, 235, decl["evlr_start"], decl["n_evlrs"], decl["point_count"])
     intensity = np.arange(n) % 65536
-    return bytes(head) + vlr_data + las_record_bytes(ints, point_format, intensity)
+    return (bytes(head) + vlr_data + las_record_bytes(ints, point_format, intensity, extra)
+            + b"".join(evlrs))
+
+
+def evlr_bytes(user: bytes, record: int, payload: bytes) -> bytes:
+    """One EVLR: 60-byte header (reserved, user id, record id, u64 length, description)."""
+    return struct.pack("<H16sHQ32s", 0, user, record, len(payload), b"") + payload
 
 
 def grid_points(n: int = 1000, seed: int = 0) -> np.ndarray:
