@@ -19,7 +19,9 @@ END = "<!-- END catalogue -->"
 
 SECTIONS = {
     "bag": "Bags",
-    "las": "Point-cloud files",
+    "las": "Point-cloud files: LAS/LAZ",
+    "ply": "Point-cloud files: PLY",
+    "pcd": "Point-cloud files: PCD",
     "drone": "Drone photos",
     "preset": "Presets and settings",
     "batch": "Batch manifests",

@@ -197,6 +197,15 @@ def _las_garbage(root: Path) -> tuple[list[str], str]:
     return ["volume", str(path)], str(path)
 
 
+def _cloud(make: Callable[[Path], Path], name: str, *command: str) -> Callable[[Path], tuple[list[str], str]]:
+    """A point-cloud file ``name`` made by ``make``, given to ``canopy-kit COMMAND FILE``."""
+    def build(root: Path) -> tuple[list[str], str]:
+        path = make(root / name)
+        return [command[0], str(path), *command[1:]], str(path)
+
+    return build
+
+
 def _drone(make: Callable[[Path], Path], name_folder: bool = False) -> Callable[[Path], tuple[list[str], str]]:
     def build(root: Path) -> tuple[list[str], str]:
         folder = root / "photos"
@@ -353,6 +362,45 @@ CASES: tuple[Case, ...] = (
          ("corrupt or truncated",)),
     Case("las-garbage", "random bytes named .las", "error: not a LAS/LAZ file", 2, _las_garbage,
          ("not a LAS/LAZ file",)),
+    Case("las-vlr-bomb", "3 KB: a LAS header claiming 4,000,000,000 VLRs, then random bytes",
+         "error naming the header field, at once (before the fix: 131 s and 5.6 GB, then "
+         "MemoryError)", 2, _cloud(clouds.write_las_vlr_bomb, "bomb.las", "info"),
+         ("'number of variable length records'",)),
+    Case("las-count-claimed-1e8", "LAS of 20,000 points whose header claims 100,000,000",
+         "the 20,000 points, warning 'N of M points' (before the fix: 3.5 GB, no warning)", 0,
+         _cloud(lambda p: clouds.write_las_claiming(p, 20_000, point_count=100_000_000),
+                "tree.las", "volume", "--method", "convex_hull"),
+         ("only 20000 of 100000000 points are in the file",)),
+    Case("las-record-length-65535", "LAS header point record length 65535 (36 written)",
+         "error naming the header field (before the fix: 2.4 GB, then an error)", 2,
+         _cloud(lambda p: clouds.write_las_claiming(p, 20_000, record_length=65535), "tree.las",
+                "volume"), ("'point data record length' is 65535",)),
+    Case("las-scale-tiny", "LAS header scale factors 1e-300", "error naming the header scale "
+         "(before the fix: MemoryError 21.1 GiB, exit 3)", 2, _las(scale=1e-300),
+         ("scale factors", "1e-09")),
+    Case("las-cut-at-record", "LAS of 37,657 points cut exactly after record 20,000",
+         "flagged result: the 20,000 complete records and a warning 'N of M points' (before the "
+         "fix: silently 20,000 points)", 0,
+         _cloud(lambda p: clouds.write_las_cut(p, 37_657, 20_000), "cut.las", "volume",
+                "--method", "convex_hull"), ("only 20000 of 37657 points are in the file",)),
+    Case("las-zero-header-bounds", "LAS whose header min/max are all 0 (like the real "
+         "pointcloudset_test_tree.las)", "info shows the bounds of the points and warns that the "
+         "header's disagree (before the fix: bounds 0..0)", 0,
+         _cloud(clouds.write_las_zero_bounds, "tree.las", "info"),
+         ("disagree with the points' (x 300000..300009.99, y 4100000..4100009.99, z 50..57.99)",
+          "300009.990")),
+    Case("pcd-compressed-empty", "PCD binary_compressed whose compressed size is 0 (no data)",
+         "error naming the field (before the fix: bounds from uninitialised memory)", 2,
+         _cloud(clouds.write_pcd_compressed_empty, "tree.pcd", "info"),
+         ("compressed size is 0 bytes",)),
+    Case("ply-face-before-vertex", "binary PLY with a face element before the vertices",
+         "the vertices and their true bounds (before the fix: NaN bounds from info, MemoryError "
+         "3.52 PiB from volume)", 0, _cloud(clouds.write_ply_face_before_vertex, "tree.ply", "info"),
+         ("249.750",)),
+    Case("ply-face-before-vertex-short", "binary PLY declaring 500 faces before the vertices, "
+         "holding 2", "error naming the element", 2,
+         _cloud(lambda p: clouds.write_ply_face_before_vertex(p, faces=500), "tree.ply", "volume"),
+         ("'face' element before the vertices holds",)),
     # -- drone photos ----------------------------------------------------------------------------
     Case("drone-no-gps", "one photo without GPS EXIF", "error naming the photo", 2,
          _drone(drone.without_gps), ("no GPS position in EXIF",)),

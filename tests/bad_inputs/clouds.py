@@ -196,3 +196,59 @@ def pcd_bytes(xyz: np.ndarray, encoding: str = "binary", *, intensity: np.ndarra
     packed = lzf_literals(columns)
     compressed, uncompressed = sizes or (len(packed), len(columns))
     return head + struct.pack("<II", compressed, uncompressed) + packed
+
+
+# --- files of the bad-input catalogue (tests/bad_inputs/catalogue.py) ---------------------------
+
+CATALOGUE_OFFSET = (300000.0, 4100000.0, 50.0)
+
+
+def catalogue_points(n: int) -> np.ndarray:
+    """Seeded integer coordinates whose extremes are the corners (0, 0, 0) and (999, 999, 799):
+    at scale 0.01 the bounds are the offset plus (0..9.99, 0..9.99, 0..7.99) m."""
+    ints = grid_points(n, seed=9)
+    ints[0], ints[1] = (0, 0, 0), (999, 999, 799)
+    return ints
+
+
+def write_las_vlr_bomb(path: Path) -> Path:
+    """3 KB: a LAS 1.2 header claiming 4,000,000,000 VLRs, then random bytes."""
+    head = las_bytes(catalogue_points(10), n_vlrs=4_000_000_000)[:227]
+    tail = np.random.default_rng(5).integers(0, 256, 3000 - 227, dtype=np.uint8).tobytes()
+    path.write_bytes(head + tail)
+    return path
+
+
+def write_las_claiming(path: Path, n: int, **fields: int) -> Path:
+    """A LAS of ``n`` points whose header fields are overwritten with ``fields``."""
+    path.write_bytes(las_bytes(catalogue_points(n), offset=CATALOGUE_OFFSET, **fields))
+    return path
+
+
+def write_las_cut(path: Path, n: int, kept: int) -> Path:
+    """A LAS of ``n`` points cut exactly after point record ``kept``."""
+    data = las_bytes(catalogue_points(n), offset=CATALOGUE_OFFSET)
+    path.write_bytes(data[: 227 + kept * LAS_RECORD[0]])
+    return path
+
+
+def write_las_zero_bounds(path: Path) -> Path:
+    """A LAS whose header min/max are all 0 (like the real pointcloudset_test_tree.las)."""
+    path.write_bytes(las_bytes(catalogue_points(2000), offset=CATALOGUE_OFFSET,
+                               header_bounds=((0, 0, 0), (0, 0, 0))))
+    return path
+
+
+def write_pcd_compressed_empty(path: Path) -> Path:
+    """A binary_compressed PCD of 2000 points whose compressed size is 0, no data after it."""
+    head = pcd_bytes(catalogue_points(2000) * 0.01, "binary_compressed").split(b"DATA ")[0]
+    path.write_bytes(head + b"DATA binary_compressed\n" + struct.pack("<II", 0, 2000 * 16))
+    return path
+
+
+def write_ply_face_before_vertex(path: Path, faces: int = 2) -> Path:
+    """A binary PLY of 2000 vertices after ``faces`` declared triangles (2 present)."""
+    triangles = struct.pack("<B3i", 3, 0, 1, 2) * 2
+    face = ("face", faces, "property list uchar int vertex_indices", triangles)
+    path.write_bytes(ply_bytes(catalogue_points(2000) * 0.25, before=(face,)))
+    return path
