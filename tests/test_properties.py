@@ -416,7 +416,11 @@ def las_bytes() -> dict[str, bytes]:
 @given(suffix=st.sampled_from([".las", ".laz"]), data=st.data())
 def test_damaged_las_is_read_or_refused_with_an_input_error(las_bytes, suffix, data) -> None:
     """Cut or overwritten LAS/LAZ bytes: a cloud of finite points or an InputError, never
-    another exception (the bounded fuzz of the reader)."""
+    another exception, and never a cut file read without a warning (a bounded fuzz of the
+    reader; tests/test_fuzz_readers.py is the wider one)."""
+    import warnings
+
+    from canopy_kit.errors import InputWarning
     from canopy_kit.io.las import read_las
 
     raw = bytearray(las_bytes[suffix])
@@ -429,11 +433,15 @@ def test_damaged_las_is_read_or_refused_with_an_input_error(las_bytes, suffix, d
         path = Path(tmp) / f"damaged{suffix}"
         path.write_bytes(bytes(raw[:cut]) if cut < len(raw) else bytes(raw))
         try:
-            cloud = read_las(path)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                cloud = read_las(path)
         except InputError as exc:
             assert str(path) in str(exc)
             return
-    assert len(cloud) > 0
+    assert len(cloud) > 0 and np.isfinite(cloud.xyz).all()
+    if cut < len(raw):  # a cut file is read in part, and says so
+        assert any(issubclass(w.category, InputWarning) for w in caught)
 
 
 # -- geo --------------------------------------------------------------------------------------
