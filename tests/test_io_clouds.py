@@ -403,7 +403,8 @@ def test_truncated_laz(tmp_path: Path, fraction: float) -> None:
     assert "corrupt or truncated" in _message(path)
 
 
-def _read_with_warnings(path: Path) -> tuple[PointCloud, list[str]]:
+def read_with_warnings(path: Path) -> tuple[PointCloud, list[str]]:
+    """``read_cloud(path)`` and the messages of the InputWarnings it gave."""
     import warnings
 
     from canopy_kit.errors import InputWarning
@@ -422,7 +423,7 @@ def test_truncated_uncompressed_gives_the_records_present(tmp_path: Path, suffix
     data = write_cloud(tmp_path / f"whole{suffix}", cloud).read_bytes()
     path = tmp_path / f"cut{suffix}"
     path.write_bytes(data[: len(data) * 2 // 3])
-    back, notes = _read_with_warnings(path)
+    back, notes = read_with_warnings(path)
     assert 0 < len(back) < len(cloud) and len(notes) == 1
     assert f"of {len(cloud)} points are in the file" in notes[0] and str(path) in notes[0]
     np.testing.assert_allclose(back.absolute_xyz, cloud.absolute_xyz[: len(back)], atol=1e-6)
@@ -435,7 +436,7 @@ def test_truncated_ascii_ply(tmp_path: Path) -> None:
         "ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
         f"property float z\nend_header\n{rows}\n"
     )
-    back, notes = _read_with_warnings(path)
+    back, notes = read_with_warnings(path)
     assert len(back) == 5 and notes and "only 5 of 10 points" in notes[0]
     np.testing.assert_array_equal(back.absolute_xyz[:, 0], np.arange(5))
 

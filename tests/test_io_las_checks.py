@@ -7,16 +7,17 @@ from __future__ import annotations
 import io
 import struct
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bad_inputs.clouds import grid_points, las_bytes, vlr_bytes
-from canopy_kit.errors import InputError, InputWarning
+from canopy_kit.errors import InputError
+from canopy_kit.io.info import describe_path
 from canopy_kit.io.las import describe_las, read_las
 from canopy_kit.io.las_header import read_las_layout
+from test_io_clouds import read_with_warnings
 
 laspy = pytest.importorskip("laspy")
 
@@ -43,18 +44,11 @@ def refused(path: Path, *fragments: str) -> str:
     return message
 
 
-def read_warned(path: Path) -> tuple[object, list[str]]:
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        cloud = read_las(path)
-    return cloud, [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
-
-
 @pytest.mark.parametrize("point_format,minor", [(0, 2), (1, 2), (6, 4)])
 def test_hand_built_las_reads_exactly(tmp_path: Path, point_format: int, minor: int) -> None:
     ints = grid_points(N)
     path = write(tmp_path, las_bytes(ints, offset=OFFSET, point_format=point_format, minor=minor))
-    cloud, notes = read_warned(path)
+    cloud, notes = read_with_warnings(path)
     assert notes == []
     np.testing.assert_allclose(cloud.absolute_xyz, ints * 0.01 + np.asarray(OFFSET), rtol=0, atol=1e-9)
     np.testing.assert_array_equal(cloud.fields["intensity"], np.arange(N))
@@ -116,7 +110,7 @@ def test_non_finite_offsets_are_refused(tmp_path: Path, offset: float) -> None:
 def test_claimed_points_beyond_the_file_give_the_points_present(tmp_path: Path) -> None:
     # Before: 3.5 GB allocated for 1e8 points, exit 0 and no warning.
     ints = grid_points(N)
-    cloud, notes = read_warned(write(tmp_path, las_bytes(ints, point_count=100_000_000)))
+    cloud, notes = read_with_warnings(write(tmp_path, las_bytes(ints, point_count=100_000_000)))
     assert len(cloud) == N
     assert notes == [f"{tmp_path / 't.las'}: only {N} of 100000000 points are in the file (cut "
                      "short, or the header's point count is wrong); read those"]
@@ -127,7 +121,7 @@ def test_cut_file_gives_the_complete_records_and_a_warning(tmp_path: Path, keep_
     ints = grid_points(N)
     data = las_bytes(ints, offset=OFFSET)
     path = write(tmp_path, data[: 227 + 600 * 20 + keep_bytes])
-    cloud, notes = read_warned(path)
+    cloud, notes = read_with_warnings(path)
     assert len(cloud) == 600 and len(notes) == 1 and f"only 600 of {N} points" in notes[0]
     np.testing.assert_allclose(cloud.absolute_xyz, ints[:600] * 0.01 + np.asarray(OFFSET), atol=1e-9)
     facts, _ = describe_warned(path)
@@ -136,7 +130,7 @@ def test_cut_file_gives_the_complete_records_and_a_warning(tmp_path: Path, keep_
 
 
 def describe_warned(path: Path) -> tuple[dict, list[str]]:
-    from canopy_kit.io.info import describe_path
+    """info's facts and the warnings among them."""
 
     facts = describe_path(path)
     return facts, facts["warnings"]

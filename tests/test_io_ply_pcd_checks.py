@@ -5,17 +5,17 @@ names kept. The truth is what tests/bad_inputs/clouds.py wrote into each file.""
 from __future__ import annotations
 
 import struct
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bad_inputs.clouds import grid_points, lzf_literals, pcd_bytes, ply_bytes
-from canopy_kit.errors import InputError, InputWarning, one_line
+from canopy_kit.errors import InputError, one_line
 from canopy_kit.io.clouds import read_cloud
 from canopy_kit.io.info import describe_path
 from canopy_kit.io.lzf import lzf_decompress
+from test_io_clouds import read_with_warnings
 
 XYZ = grid_points(300) * 0.01 + np.array([500.0, 200.0, 10.0])
 TRIANGLES = struct.pack("<B3i", 3, 0, 1, 2) * 2
@@ -25,13 +25,6 @@ def write(tmp_path: Path, name: str, data: bytes) -> Path:
     path = tmp_path / name
     path.write_bytes(data)
     return path
-
-
-def read(path: Path) -> tuple[object, list[str]]:
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        cloud = read_cloud(path)
-    return cloud, [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
 
 
 def refused(path: Path, *fragments: str) -> str:
@@ -50,7 +43,7 @@ def refused(path: Path, *fragments: str) -> str:
 @pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian", "binary_big_endian"])
 def test_ply_reads_exactly(tmp_path: Path, encoding: str) -> None:
     q = np.arange(len(XYZ), dtype=np.float32) / 4
-    cloud, notes = read(write(tmp_path, "a.ply", ply_bytes(XYZ, encoding, extra={"q": q})))
+    cloud, notes = read_with_warnings(write(tmp_path, "a.ply", ply_bytes(XYZ, encoding, extra={"q": q})))
     assert notes == []
     np.testing.assert_array_equal(cloud.absolute_xyz, XYZ)
     np.testing.assert_array_equal(cloud.fields["q"], q)
@@ -66,7 +59,7 @@ def test_ply_face_before_vertex(tmp_path: Path, encoding: str) -> None:
         faces = ("face", 2, "property list uchar int vertex_indices",
                  struct.pack("<B3i", 3, 0, 1, 2) + struct.pack("<B4i", 4, 0, 1, 2, 3))
     path = write(tmp_path, "f.ply", ply_bytes(XYZ, encoding, before=(faces,)))
-    cloud, notes = read(path)
+    cloud, notes = read_with_warnings(path)
     assert notes == []
     np.testing.assert_array_equal(cloud.absolute_xyz, XYZ)
     facts = describe_path(path)
@@ -81,14 +74,14 @@ def test_ply_face_before_vertex_declared_longer_than_it_is(tmp_path: Path) -> No
 
 def test_ply_faces_after_vertices_cut_short(tmp_path: Path) -> None:
     faces = ("face", 50, "property list uchar int vertex_indices", TRIANGLES)
-    cloud, notes = read(write(tmp_path, "f.ply", ply_bytes(XYZ, after=(faces,))))
+    cloud, notes = read_with_warnings(write(tmp_path, "f.ply", ply_bytes(XYZ, after=(faces,))))
     np.testing.assert_array_equal(cloud.absolute_xyz, XYZ)
     assert len(notes) == 1 and "'face' element after the vertices is cut short" in notes[0]
 
 
 @pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
 def test_ply_more_vertices_declared_than_present(tmp_path: Path, encoding: str) -> None:
-    cloud, notes = read(write(tmp_path, "v.ply", ply_bytes(XYZ, encoding, vertices=10**9)))
+    cloud, notes = read_with_warnings(write(tmp_path, "v.ply", ply_bytes(XYZ, encoding, vertices=10**9)))
     np.testing.assert_array_equal(cloud.absolute_xyz, XYZ)
     assert notes == [f"{tmp_path / 'v.ply'}: only {len(XYZ)} of 1000000000 points are in the "
                      "file (cut short, or the header's point count is wrong); read those"]
@@ -116,7 +109,7 @@ def test_ply_lists_and_unusual_types(tmp_path: Path) -> None:
             b"property list uchar float h\nend_header\n")
     rows = b"".join(struct.pack("<3fHfB2f", i, 2 * i, 3 * i, 1000 + i, 0.5, 2, i, -i)
                     for i in range(3))
-    cloud, _ = read(write(tmp_path, "l.ply", head + rows))
+    cloud, _ = read_with_warnings(write(tmp_path, "l.ply", head + rows))
     np.testing.assert_array_equal(cloud.absolute_xyz[:, 1], [0, 2, 4])
     np.testing.assert_array_equal(cloud.fields["intensity"], [1000, 1001, 1002])  # Open3D dropped
     np.testing.assert_array_equal(cloud.fields["nx"], [0.5] * 3)  # alone: not a normals field
@@ -130,7 +123,7 @@ def test_ply_normals_and_colours_like_open3d(tmp_path: Path) -> None:
     head = (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty double x\nproperty double y\n"
             b"property double z\nproperty float nx\nproperty float ny\nproperty float nz\n"
             b"property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    cloud, _ = read(write(tmp_path, "c.ply", head + b"1 2 3 0 0 1 10 20 30\n4 5 6 1 0 0 1 2 3\n"))
+    cloud, _ = read_with_warnings(write(tmp_path, "c.ply", head + b"1 2 3 0 0 1 10 20 30\n4 5 6 1 0 0 1 2 3\n"))
     np.testing.assert_array_equal(cloud.fields["normals"], [[0, 0, 1], [1, 0, 0]])
     np.testing.assert_array_equal(cloud.fields["colors"], [[10, 20, 30], [1, 2, 3]])
     assert cloud.fields["colors"].dtype == np.uint8
@@ -144,7 +137,7 @@ def test_non_finite_points_are_dropped_with_a_warning(tmp_path: Path, suffix: st
     xyz[[3, 7], 1] = np.nan
     xyz[11, 2] = np.inf
     data = ply_bytes(xyz) if suffix == ".ply" else pcd_bytes(xyz, "binary")
-    cloud, notes = read(write(tmp_path, f"n{suffix}", data))
+    cloud, notes = read_with_warnings(write(tmp_path, f"n{suffix}", data))
     assert len(cloud) == len(XYZ) - 3 and np.isfinite(cloud.xyz).all()
     assert notes == [f"{tmp_path / f'n{suffix}'}: dropped 3 of {len(XYZ)} points with non-finite "
                      "coordinates (NaN or infinite x/y/z)"]
@@ -158,7 +151,7 @@ def test_non_finite_points_are_dropped_with_a_warning(tmp_path: Path, suffix: st
 @pytest.mark.parametrize("encoding", ["ascii", "binary", "binary_compressed"])
 def test_pcd_reads_exactly(tmp_path: Path, encoding: str) -> None:
     xyz = XYZ.astype(np.float32)
-    cloud, notes = read(write(tmp_path, "a.pcd", pcd_bytes(xyz, encoding)))
+    cloud, notes = read_with_warnings(write(tmp_path, "a.pcd", pcd_bytes(xyz, encoding)))
     assert notes == []
     np.testing.assert_array_equal(cloud.absolute_xyz, xyz.astype(np.float64))
     np.testing.assert_array_equal(cloud.fields["intensity"], np.arange(len(xyz)))
@@ -189,7 +182,7 @@ def test_pcd_damaged_lzf_stream_is_refused(tmp_path: Path) -> None:
 @pytest.mark.parametrize("encoding", ["ascii", "binary"])
 def test_pcd_cut_short_gives_the_points_present(tmp_path: Path, encoding: str) -> None:
     data = pcd_bytes(XYZ, encoding)
-    cloud, notes = read(write(tmp_path, "c.pcd", data[: len(data) - len(data) // 3]))
+    cloud, notes = read_with_warnings(write(tmp_path, "c.pcd", data[: len(data) - len(data) // 3]))
     assert 0 < len(cloud) < len(XYZ) and len(notes) == 1
     assert f"of {len(XYZ)} points are in the file" in notes[0]
     np.testing.assert_allclose(cloud.absolute_xyz, XYZ[: len(cloud)], atol=1e-4)
@@ -215,7 +208,7 @@ def test_pcd_fields_like_open3d(tmp_path: Path) -> None:
     head = (b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z normal_x rgb h _\nSIZE 4 4 4 4 4 4 1\n"
             b"TYPE F F F F F F U\nCOUNT 1 1 1 1 1 2 3\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA binary\n")
     rows = b"".join(struct.pack("<5f2f3B", i, i, i, 0.5, rgb[i], i, -i, 0, 0, 0) for i in range(2))
-    cloud, _ = read(write(tmp_path, "f.pcd", head + rows))  # Open3D crashed on a lone normal_x
+    cloud, _ = read_with_warnings(write(tmp_path, "f.pcd", head + rows))  # Open3D crashed on a lone normal_x
     np.testing.assert_array_equal(cloud.fields["colors"], [[10, 20, 30], [1, 2, 3]])
     np.testing.assert_array_equal(cloud.fields["normal_x"], [0.5, 0.5])
     np.testing.assert_array_equal(cloud.fields["h"], [[0, 0], [1, -1]])
