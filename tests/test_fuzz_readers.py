@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from bad_inputs import fuzz
 from bad_inputs.clouds import grid_points, las_bytes, pcd_bytes, ply_bytes
 from test_cli_foundation import cli_command

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from bad_inputs.clouds import grid_points, las_bytes, vlr_bytes
+from test_io_clouds import read_with_warnings
+
 from canopy_kit.errors import InputError
 from canopy_kit.io.info import describe_path
 from canopy_kit.io.las import describe_las, read_las
 from canopy_kit.io.las_header import read_las_layout
-from test_io_clouds import read_with_warnings
 
 laspy = pytest.importorskip("laspy")
 
@@ -112,8 +112,8 @@ def test_claimed_points_beyond_the_file_give_the_points_present(tmp_path: Path) 
     ints = grid_points(N)
     cloud, notes = read_with_warnings(write(tmp_path, las_bytes(ints, point_count=100_000_000)))
     assert len(cloud) == N
-    assert notes == [f"{tmp_path / 't.las'}: only {N} of 100000000 points are in the file (cut "
-                     "short, or the header's point count is wrong); read those"]
+    assert notes == [(f"{tmp_path / 't.las'}: only {N} of 100000000 points are in the file (cut "
+                     "short, or the header's point count is wrong); read those")]
 
 
 @pytest.mark.parametrize("keep_bytes", [0, 1, 19])  # at a record boundary, 1 and 19 bytes in

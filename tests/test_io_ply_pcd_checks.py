@@ -9,13 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from bad_inputs.clouds import grid_points, lzf_literals, pcd_bytes, ply_bytes
+from test_io_clouds import read_with_warnings
+
 from canopy_kit.errors import InputError, one_line
 from canopy_kit.io.clouds import read_cloud
 from canopy_kit.io.info import describe_path
 from canopy_kit.io.lzf import lzf_decompress
-from test_io_clouds import read_with_warnings
 
 XYZ = grid_points(300) * 0.01 + np.array([500.0, 200.0, 10.0])
 TRIANGLES = struct.pack("<B3i", 3, 0, 1, 2) * 2
@@ -81,10 +81,11 @@ def test_ply_faces_after_vertices_cut_short(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("encoding", ["ascii", "binary_little_endian"])
 def test_ply_more_vertices_declared_than_present(tmp_path: Path, encoding: str) -> None:
-    cloud, notes = read_with_warnings(write(tmp_path, "v.ply", ply_bytes(XYZ, encoding, vertices=10**9)))
+    data = ply_bytes(XYZ, encoding, vertices=10**9)
+    cloud, notes = read_with_warnings(write(tmp_path, "v.ply", data))
     np.testing.assert_array_equal(cloud.absolute_xyz, XYZ)
-    assert notes == [f"{tmp_path / 'v.ply'}: only {len(XYZ)} of 1000000000 points are in the "
-                     "file (cut short, or the header's point count is wrong); read those"]
+    assert notes == [(f"{tmp_path / 'v.ply'}: only {len(XYZ)} of 1000000000 points are in the "
+                     "file (cut short, or the header's point count is wrong); read those")]
 
 
 @pytest.mark.parametrize("text,named", [
@@ -119,6 +120,15 @@ def test_ply_lists_and_unusual_types(tmp_path: Path) -> None:
     refused(write(tmp_path, "q.ply", varying), "changes length from row to row")
 
 
+def test_ply_ascii_vertex_list(tmp_path: Path) -> None:
+    head = (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+            b"property list uchar int ids\nproperty float z\nend_header\n")
+    cloud, _ = read_with_warnings(write(tmp_path, "l.ply", head + b"1 2 2 7 8 3\n4 5 2 9 10 6\n"))
+    np.testing.assert_array_equal(cloud.absolute_xyz, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(cloud.fields["ids"], [[7, 8], [9, 10]])
+    refused(write(tmp_path, "v.ply", head + b"1 2 2 7 8 3\n4 5 1 9 6 0\n"), "changes length")
+
+
 def test_ply_normals_and_colours_like_open3d(tmp_path: Path) -> None:
     head = (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty double x\nproperty double y\n"
             b"property double z\nproperty float nx\nproperty float ny\nproperty float nz\n"
@@ -139,8 +149,8 @@ def test_non_finite_points_are_dropped_with_a_warning(tmp_path: Path, suffix: st
     data = ply_bytes(xyz) if suffix == ".ply" else pcd_bytes(xyz, "binary")
     cloud, notes = read_with_warnings(write(tmp_path, f"n{suffix}", data))
     assert len(cloud) == len(XYZ) - 3 and np.isfinite(cloud.xyz).all()
-    assert notes == [f"{tmp_path / f'n{suffix}'}: dropped 3 of {len(XYZ)} points with non-finite "
-                     "coordinates (NaN or infinite x/y/z)"]
+    assert notes == [(f"{tmp_path / f'n{suffix}'}: dropped 3 of {len(XYZ)} points with non-finite "
+                     "coordinates (NaN or infinite x/y/z)")]
     data = ply_bytes(xyz * np.nan) if suffix == ".ply" else pcd_bytes(xyz * np.nan, "binary")
     refused(write(tmp_path, f"all{suffix}", data), f"all {len(XYZ)} points have non-finite")
 

@@ -88,8 +88,8 @@ def main() -> None:
         if os.environ.get("CANOPY_KIT_DEBUG"):
             raise
         where = type(exc).__name__
-        print(f"error: processing failed ({where}: {one_line(str(exc))}); set CANOPY_KIT_DEBUG=1 for the "
-              "traceback and please report it", file=sys.stderr)
+        print(f"error: processing failed ({where}: {one_line(str(exc))}); set "
+              "CANOPY_KIT_DEBUG=1 for the traceback and please report it", file=sys.stderr)
         sys.exit(3)
 
 

@@ -52,7 +52,10 @@ def ascii_rows(path: Path, start: int, skip: int, rows: int, columns: int,
         fh.seek(start)
         body = fh.read()
     newlines = np.flatnonzero(np.frombuffer(body, np.uint8) == ord("\n"))
-    begin = 0 if skip == 0 else (int(newlines[skip - 1]) + 1 if skip <= len(newlines) else len(body))
+    if skip == 0:
+        begin = 0
+    else:
+        begin = int(newlines[skip - 1]) + 1 if skip <= len(newlines) else len(body)
     last = skip + rows - 1
     end = int(newlines[last]) + 1 if last < len(newlines) else len(body)
     text = body[begin:end].decode("ascii", "replace")
@@ -85,12 +88,15 @@ def cast_column(path: Path, name: str, values: np.ndarray, dtype: np.dtype) -> n
     if dtype.kind == "f":
         return values.astype(dtype)
     info = np.iinfo(dtype)
-    bad = ~np.isfinite(values) | (values != np.round(values)) | (values < info.min) | (values > info.max)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(values) | (values != np.round(values))
+        bad |= (values < info.min) | (values > info.max)
     if bad.any():
-        flat = values.reshape(len(values), -1)
-        row = int(np.flatnonzero(bad.reshape(len(values), -1).any(axis=1))[0])
-        raise InputError(f"{path}: field {name!r} ({dtype}) holds {float(flat[row][0])!r} at "
-                         f"point {row}, not a {dtype} value")
+        flat, bad = values.reshape(len(values), -1), bad.reshape(len(values), -1)
+        row = int(np.flatnonzero(bad.any(axis=1))[0])
+        value = float(flat[row][np.flatnonzero(bad[row])[0]])
+        raise InputError(f"{path}: field {name!r} ({dtype}) holds {value!r} at point {row}, "
+                         f"not a {dtype} value")
     return values.astype(dtype)
 
 

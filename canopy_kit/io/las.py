@@ -379,7 +379,9 @@ def write_las(
             else:
                 las.write(tmp, do_compress=True, laz_backend=backend)
         except Exception as exc:
-            raise InputError(f"{path}: writing failed ({type(exc).__name__}: {one_line(str(exc))})") from None
+            raise InputError(
+                f"{path}: writing failed ({type(exc).__name__}: {one_line(str(exc))})"
+            ) from None
     return path
 
 

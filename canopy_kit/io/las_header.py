@@ -88,10 +88,12 @@ def _fail(path: Path, field: str, text: str, cause: str = "corrupt or truncated"
 
 def _fixed_header(path: Path, head: bytes, file_size: int) -> _Fixed:
     if len(head) < 227:
-        raise InputError(f"{path}: LAS header is cut short ({len(head)} bytes, at least 227 needed)")
+        raise InputError(f"{path}: LAS header is cut short ({len(head)} bytes, at least 227 "
+                         "needed)")
     major, minor = head[24], head[25]
     if major != 1 or minor not in HEADER_SIZES:
-        raise _fail(path, "version", f"is {major}.{minor}; LAS 1.0-1.4 is read", "corrupt or not LAS")
+        raise _fail(path, "version", f"is {major}.{minor}; LAS 1.0-1.4 is read",
+                    "corrupt or not LAS")
     header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
     fmt_byte, record_length, legacy_count = struct.unpack_from("<BHI", head, 104)
     scales = struct.unpack_from("<3d", head, 131)
@@ -131,7 +133,8 @@ def _vlrs(path: Path, fixed: _Fixed, read_at: ReadAt) -> dict[tuple[bytes, int],
     pos = fixed.header_size
     for i in range(fixed.n_vlrs):
         raw = read_at(pos, VLR_HEADER)
-        end = pos + VLR_HEADER + struct.unpack_from("<H", raw, 20)[0] if len(raw) == VLR_HEADER else -1
+        whole = len(raw) == VLR_HEADER
+        end = pos + VLR_HEADER + struct.unpack_from("<H", raw, 20)[0] if whole else -1
         if not pos + VLR_HEADER <= end <= fixed.offset_to_points:
             raise _fail(path, f"record length after header (VLR {i})",
                         f"makes VLR {i} (at byte {pos}) end after the point data start "
@@ -155,7 +158,8 @@ def _check_evlrs(path: Path, fixed: _Fixed, file_size: int, read_at: ReadAt) -> 
     pos = start
     for i in range(fixed.n_evlrs):
         raw = read_at(pos, EVLR_HEADER)
-        end = pos + EVLR_HEADER + struct.unpack_from("<Q", raw, 20)[0] if len(raw) == EVLR_HEADER else -1
+        whole = len(raw) == EVLR_HEADER
+        end = pos + EVLR_HEADER + struct.unpack_from("<Q", raw, 20)[0] if whole else -1
         if not pos + EVLR_HEADER <= end <= file_size:
             raise _fail(path, f"record length after header (EVLR {i})",
                         f"makes EVLR {i} (at byte {pos}) end after the file ({file_size} bytes)")
@@ -169,7 +173,7 @@ def _extra_bytes(path: Path, payload: bytes | None) -> int:
         return 0
     total = 0
     for i in range(len(payload) // EXTRA_BYTES_RECORD):
-        data_type, options = payload[i * EXTRA_BYTES_RECORD + 2], payload[i * EXTRA_BYTES_RECORD + 3]
+        data_type, options = payload[i * EXTRA_BYTES_RECORD + 2: i * EXTRA_BYTES_RECORD + 4]
         if data_type == 0:
             total += options  # undocumented bytes: the options field holds their number
         elif data_type <= 30:
@@ -229,8 +233,8 @@ def _laz_point_bytes(path: Path, fixed: _Fixed, laszip: bytes | None, data_end: 
     raw_points = table - fixed.offset_to_points - 8
     # Each chunk starts with one uncompressed point.
     if version != 0 or n_chunks * fixed.record_length > raw_points:
-        raise InputError(f"{path}: LAZ chunk table (version {version}) lists {n_chunks} chunks that "
-                         f"do not fit {raw_points} compressed bytes; the file is corrupt or "
+        raise InputError(f"{path}: LAZ chunk table (version {version}) lists {n_chunks} chunks "
+                         f"that do not fit {raw_points} compressed bytes; the file is corrupt or "
                          "truncated")
     if chunk_size != VARIABLE_CHUNKS and not (
         (n_chunks - 1) * chunk_size < fixed.point_count <= n_chunks * chunk_size

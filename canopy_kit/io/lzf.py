@@ -46,7 +46,7 @@ def _lzf_kernel(src: np.ndarray, dst: np.ndarray) -> int:
 
 
 @cache
-def _compiled():  # noqa: ANN202
+def _compiled():
     import numba
 
     return numba.njit(cache=True, nogil=True)(_lzf_kernel)

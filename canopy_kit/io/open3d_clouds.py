@@ -23,9 +23,9 @@ import numpy as np
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.errors import InputError, one_line
+from canopy_kit.io import pcd, ply
 from canopy_kit.io.atomic import atomic_path
 from canopy_kit.io.clouds import check_input_file
-from canopy_kit.io import pcd, ply
 
 PLY_WRITABLE = {"u1", "u2", "i4", "f4", "f8"}
 VECTOR_FIELDS = ("normals", "colors")  # Open3D's (N, 3) attributes

@@ -95,7 +95,8 @@ def _fields(path: Path, keys: dict[str, list[str]]) -> tuple[PcdField, ...]:
         raise InputError(f"{path}: PCD header SIZE x COUNT makes {point_bytes} bytes a point "
                          f"(more than {MAX_POINT_BYTES}); the header is corrupt")
     if any(f.count != 1 for f in out if f.name in ("x", "y", "z")):
-        raise InputError(f"{path}: PCD fields x, y, z must have COUNT 1 ({' '.join(map(str, counts))})")
+        raise InputError(f"{path}: PCD fields x, y, z must have COUNT 1 (COUNT "
+                         f"{' '.join(map(str, counts))})")
     return tuple(out)
 
 
@@ -120,7 +121,8 @@ def read_pcd_header(path: Path) -> PcdHeader:
                          f"POINTS ({points})")
     encoding = keys["DATA"][0].lower() if keys.get("DATA") else ""
     if encoding not in ENCODINGS:
-        raise InputError(f"{path}: PCD header DATA {encoding!r} is not one of {', '.join(ENCODINGS)}")
+        raise InputError(f"{path}: PCD header DATA {encoding!r} is not one of "
+                         f"{', '.join(ENCODINGS)}")
     return PcdHeader(fields, points, encoding, data_start)
 
 
@@ -200,5 +202,6 @@ def read_pcd(path: Path) -> PointCloud:
     for name in ("rgb", "rgba"):
         if name in columns and columns[name].ndim == 1 and columns[name].dtype.itemsize == 4:
             columns["colors"] = _colors(columns.pop(name))
-    fields = {k: v.astype(v.dtype.newbyteorder("=")) for k, v in group_columns(columns, GROUPS).items()}
+    fields = {k: v.astype(v.dtype.newbyteorder("="))
+              for k, v in group_columns(columns, GROUPS).items()}
     return build_cloud(path, "PCD", xyz, fields, header.points, notes)

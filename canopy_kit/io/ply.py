@@ -198,6 +198,11 @@ def _walk_rows(path: Path, buf: np.ndarray, pos: int, element: PlyElement,
     return pos, element.rows
 
 
+def _shortest_row(element: PlyElement) -> int:
+    """Bytes of a binary row whose lists are all empty."""
+    return sum(np.dtype(p.count or p.dtype).itemsize for p in element.properties)
+
+
 def _binary_vertices(path: Path, header: PlyHeader) -> tuple[np.ndarray | None, list[str]]:
     """The vertex rows present (structured array; None: not one) and a note when an element
     after them is cut short. InputError when the data before the vertices are."""
@@ -220,8 +225,10 @@ def _binary_vertices(path: Path, header: PlyHeader) -> tuple[np.ndarray | None, 
         if uniform:
             present = 0 if rows is None else len(rows)
             end = pos + (0 if rows is None else rows.nbytes)
-        else:
+        elif index < header.vertex_index:
             end, present = _walk_rows(path, buf, pos, element, order)
+        else:  # after the vertices, only whether the shortest rows could fit (no Python walk)
+            end, present = pos, min(element.rows, (len(buf) - pos) // _shortest_row(element))
         if present < element.rows:
             if index < header.vertex_index:
                 raise InputError(f"{path}: PLY file is truncated or corrupt: the {element.name!r} "
@@ -264,6 +271,16 @@ def _ascii_vertices(path: Path, header: PlyHeader) -> tuple[dict[str, np.ndarray
             notes.append(f"{path}: the elements after the vertices are cut short ({found} of "
                          f"{declared} data lines); the vertices are complete")
     return columns, notes
+
+
+def _ascii_width(path: Path, header: PlyHeader, skip: int) -> int:
+    """Values on the first vertex line (lists make it differ from the property count)."""
+    with path.open("rb") as fh:
+        fh.seek(header.data_start)
+        for number, line in enumerate(fh):
+            if number == skip:
+                return len(line.split())
+    return len(header.elements[header.vertex_index].properties)
 
 
 def _line_count(path: Path, start: int) -> int:

@@ -42,7 +42,7 @@ def write_truncated_laz(path: Path, fraction: float = 0.6) -> Path:
 
 # --- hand-built files: every byte written here, so the numbers in them are the truth ---------
 
-import struct  # noqa: E402
+import struct
 
 LAS_RECORD = {0: 20, 1: 28, 6: 30}  # point formats the builder writes
 

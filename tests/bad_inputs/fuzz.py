@@ -305,7 +305,7 @@ def _read(path: Path) -> tuple[list, list, list]:
     return lo.tolist(), hi.tolist(), []
 
 
-def _alarm(signum, frame):  # noqa: ANN001, ANN202
+def _alarm(signum, frame):
     raise TimeoutError(f"over {CASE_SECONDS} s")
 
 
