@@ -1,0 +1,181 @@
+"""Writing LAS/LAZ through laspy (LAZ via lazrs): absolute = xyz + origin, every field kept.
+
+Fields that are not standard dimensions of the chosen point format become extra-bytes
+dimensions; the smallest format that holds the standard fields exactly is chosen.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.errors import InputError, one_line
+from canopy_kit.io.atomic import atomic_path
+
+# Point formats without waveform packets, smallest first.
+WRITABLE_FORMATS: tuple[int, ...] = (0, 1, 2, 3, 6, 7, 8)
+EXTRA_BYTES_DTYPES = {"u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8", "f4", "f8"}
+INT32_MAX = 2**31 - 1
+
+
+def _fits_standard(values: np.ndarray, dim: Any) -> bool:
+    """Whether ``values`` can be stored exactly in a standard LAS dimension."""
+    if values.ndim != 1:
+        return False
+    if dim.kind.name == "FloatingPoint":
+        return values.dtype.kind in "fiub"
+    if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
+        return False
+    if values.size == 0:
+        return True
+    if values.dtype.kind == "f" and not np.array_equal(values, np.round(values)):
+        return False
+    return bool(values.min() >= dim.min and values.max() <= dim.max)
+
+
+def choose_point_format(fields: dict[str, np.ndarray]) -> int:
+    """The smallest point format whose standard dimensions hold the most fields exactly."""
+    import laspy
+
+    best: tuple[int, int] | None = None
+    for fmt_id in WRITABLE_FORMATS:
+        fmt = laspy.PointFormat(fmt_id)
+        standard = set(fmt.dimension_names)
+        if any(
+            k in standard and not _fits_standard(np.asarray(v), fmt.dimension_by_name(k))
+            for k, v in fields.items()
+        ):
+            continue
+        extras = sum(1 for k in fields if k not in standard)
+        if best is None or extras < best[0]:
+            best = (extras, fmt_id)
+    return best[1] if best is not None else 6
+
+
+def _extra_bytes_type(name: str, values: np.ndarray, path: Path) -> str:
+    if values.ndim not in (1, 2) or (values.ndim == 2 and values.shape[1] > 3):
+        raise InputError(
+            f"{path}: field {name!r} has shape {values.shape}; LAS extra bytes "
+            f"hold 1-3 values per point"
+        )
+    if len(name) > 32:
+        raise InputError(f"{path}: field name {name!r} is longer than the 32 characters LAS allows")
+    code = "u1" if values.dtype.kind == "b" else values.dtype.newbyteorder("<").str[1:]
+    if code not in EXTRA_BYTES_DTYPES:
+        raise InputError(f"{path}: field {name!r} has dtype {values.dtype} that LAS cannot store")
+    return code if values.ndim == 1 else f"{values.shape[1]}{code}"
+
+
+def _write_offsets(cloud: PointCloud, scale: float, path: Path) -> np.ndarray:
+    """Header offsets: the origin, moved to the data when integers would overflow int32."""
+    offsets = cloud.origin.copy()
+    if len(cloud):
+        lo, hi = cloud.bounds()
+        for axis in range(3):
+            if max(abs(lo[axis]), abs(hi[axis])) / scale > INT32_MAX:
+                centre = np.round((lo[axis] + hi[axis]) / 2 / scale) * scale
+                if (hi[axis] - lo[axis]) / 2 / scale > INT32_MAX:
+                    raise InputError(f"{path}: extent too large for LAS integers at scale {scale}")
+                offsets[axis] += centre
+    return offsets
+
+
+def las_ready(cloud: PointCloud) -> PointCloud:
+    """LAS stores intensity as uint16: round a float intensity (drivers publish float32 0-255)."""
+    value = cloud.fields.get("intensity")
+    if value is not None and np.issubdtype(np.asarray(value).dtype, np.floating):
+        value = np.nan_to_num(np.asarray(value, dtype=np.float64), nan=0.0)
+        return cloud.with_field("intensity", np.clip(np.round(value), 0, 65535).astype(np.uint16))
+    return cloud
+
+
+def write_las(
+    path: str | Path, cloud: PointCloud, point_format: int | None = None, scale: float = 0.001
+) -> Path:
+    """Write a PointCloud as LAS or LAZ (by suffix), absolute = xyz + origin, atomically.
+
+    ``point_format`` None picks the smallest format that holds the standard fields; fields
+    that are not standard dimensions become extra-bytes dimensions.
+    """
+    import laspy
+
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise InputError(f"{path}: LAS output needs a .las or .laz suffix")
+    if len(cloud) == 0:
+        raise InputError(f"{path}: refusing to write a point cloud with no points")
+    if not scale > 0:
+        raise InputError(f"{path}: scale must be positive, got {scale}")
+    fields = {k: np.asarray(v) for k, v in cloud.fields.items()}
+    fmt_id = choose_point_format(fields) if point_format is None else int(point_format)
+    if fmt_id not in WRITABLE_FORMATS:
+        raise InputError(f"{path}: point format {fmt_id} is not one of {WRITABLE_FORMATS}")
+    fmt = laspy.PointFormat(fmt_id)
+    standard = set(fmt.dimension_names)
+    crs = _pyproj_crs(cloud.crs, path)
+    wkt_only = crs is not None and crs.to_epsg() is None
+    version = "1.4" if fmt_id >= 6 or wkt_only else "1.2"
+    header = laspy.LasHeader(point_format=fmt_id, version=version)
+    header.scales = np.full(3, float(scale))
+    header.offsets = _write_offsets(cloud, float(scale), path)
+    extra = [k for k in fields if k not in standard]
+    header.add_extra_dims(
+        [laspy.ExtraBytesParams(name=k, type=_extra_bytes_type(k, fields[k], path)) for k in extra]
+    )
+    if crs is not None:
+        header.add_crs(crs, keep_compatibility=not wkt_only)
+    # Sized up front: filling an empty LasData grows its record once per dimension.
+    las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(cloud), header=header))
+    local_shift = cloud.origin - header.offsets
+    integers = np.round((cloud.xyz + local_shift) / scale)
+    if np.abs(integers).max() > INT32_MAX:
+        raise InputError(f"{path}: coordinates do not fit LAS integers at scale {scale}")
+    las.X, las.Y, las.Z = (integers[:, i].astype(np.int32) for i in range(3))
+    for name, values in fields.items():
+        if name in standard and not _fits_standard(values, fmt.dimension_by_name(name)):
+            dim = fmt.dimension_by_name(name)
+            raise InputError(
+                f"{path}: field {name!r} ({values.dtype}) does not fit LAS point "
+                f"format {fmt_id} dimension {name} (range {dim.min}..{dim.max})"
+            )
+        if name in standard and fmt.dimension_by_name(name).kind.name != "FloatingPoint":
+            values = values.astype(fmt.dimension_by_name(name).dtype or np.uint8)
+        las[name] = values.astype(np.uint8) if values.dtype.kind == "b" else values
+    # LAZ is compressed with lazrs on every core when it is there (a 3.8 M-point map:
+    # 4.7 -> 3.2 s).
+    compressed = path.suffix.lower() == ".laz"
+    backend = _laz_backend() if compressed else None
+    with atomic_path(path) as tmp:
+        try:
+            if backend is None:
+                las.write(tmp, do_compress=compressed)
+            else:
+                las.write(tmp, do_compress=True, laz_backend=backend)
+        except Exception as exc:
+            raise InputError(
+                f"{path}: writing failed ({type(exc).__name__}: {one_line(str(exc))})"
+            ) from None
+    return path
+
+
+def _pyproj_crs(crs: str | None, path: Path) -> Any:
+    if crs is None:
+        return None
+    import pyproj
+
+    try:
+        return pyproj.CRS.from_user_input(crs)
+    except pyproj.exceptions.CRSError as exc:
+        raise InputError(f"{path}: CRS {crs[:60]!r} is not understood by pyproj: {exc}") from None
+
+
+def _laz_backend() -> Any:
+    """lazrs with parallel compression when installed, else laspy's own choice."""
+    import laspy
+
+    if laspy.LazBackend.LazrsParallel.is_available():
+        return laspy.LazBackend.LazrsParallel
+    return None
