@@ -47,7 +47,8 @@ _OPEN3D_TAG = re.compile(r"\[Open3D [A-Za-z]+\]\s*(?:\(.*\)\s+)?(?:\S+\.(?:cpp|c
 _SOURCE_PATH = re.compile(r"\S+\.(?:cpp|cc|h|hpp):\d+:\s*")
 
 
-def one_line(text: str) -> str:
-    """A foreign library's message as one plain line: no ANSI colours, no C++ source path."""
+def foreign_message(text: str) -> str:
+    """Another library's message as one plain line for ours: no ANSI colours, no Open3D
+    ``[Open3D Error] (function) file.cpp:123:`` prefix, lines joined by ``; ``."""
     text = _SOURCE_PATH.sub("", _OPEN3D_TAG.sub("", _ANSI.sub("", str(text))))
     return "; ".join(part.strip() for part in text.splitlines() if part.strip())

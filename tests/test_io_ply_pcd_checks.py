@@ -12,7 +12,7 @@ import pytest
 from bad_inputs.clouds import grid_points, lzf_literals, pcd_bytes, ply_bytes
 from test_io_clouds import read_with_warnings
 
-from canopy_kit.errors import InputError, one_line
+from canopy_kit.errors import InputError, foreign_message
 from canopy_kit.io.clouds import read_cloud
 from canopy_kit.io.info import describe_path
 from canopy_kit.io.lzf import lzf_decompress
@@ -239,4 +239,4 @@ def test_open3d_messages_become_one_plain_line() -> None:
     raw = ("\x1b[1;31m[Open3D Error] (std::shared_ptr<T> open3d::io::Read(const std::string&)) "
            "/root/Open3D/cpp/open3d/io/PointCloudIO.cpp:112: Read PCD failed: unable to read "
            "data.\x1b[0;m\nRPly: Error reading value\n")
-    assert one_line(raw) == "Read PCD failed: unable to read data.; RPly: Error reading value"
+    assert foreign_message(raw) == "Read PCD failed: unable to read data.; RPly: Error reading value"

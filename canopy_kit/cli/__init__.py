@@ -15,7 +15,7 @@ import warnings
 
 import typer
 
-from canopy_kit.errors import CanopyKitError, InputWarning, one_line
+from canopy_kit.errors import CanopyKitError, InputWarning
 
 app = typer.Typer(
     name="canopy-kit",

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError, InputWarning, one_line
+from canopy_kit.errors import InputError, InputWarning, foreign_message
 from canopy_kit.io.clouds import LOCAL_LIMIT_M, check_input_file, local_origin
 from canopy_kit.io.las_header import LAS_MAGIC, LasLayout, read_las_layout
 from canopy_kit.io.las_write import choose_point_format, las_ready, write_las
@@ -37,7 +37,7 @@ PARALLEL_CHUNK_BYTES = 64 << 20
 def _open_error(path: Path, exc: Exception) -> InputError:
     return InputError(
         f"{path}: cannot read the LAS/LAZ data; the file is corrupt or truncated "
-        f"({type(exc).__name__}: {one_line(str(exc))})"
+        f"({type(exc).__name__}: {foreign_message(str(exc))})"
     )
 
 
@@ -116,9 +116,8 @@ def _parse_crs(header: Any, path: Path) -> str | None:
     try:
         return crs_string(header.parse_crs())
     except Exception as exc:  # pyproj and laspy raise several types for odd CRS records
-        raise InputError(
-            f"{path}: CRS record cannot be parsed ({type(exc).__name__}: {one_line(str(exc))})"
-        ) from None
+        reason = f"{type(exc).__name__}: {foreign_message(str(exc))}"
+        raise InputError(f"{path}: CRS record cannot be parsed ({reason})") from None
 
 
 def _no_data_values(header: Any) -> dict[str, float]:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError, one_line
+from canopy_kit.errors import InputError, foreign_message
 from canopy_kit.io.atomic import atomic_path
 
 # Point formats without waveform packets, smallest first.
@@ -156,7 +156,7 @@ def write_las(
                 las.write(tmp, do_compress=True, laz_backend=backend)
         except Exception as exc:
             raise InputError(
-                f"{path}: writing failed ({type(exc).__name__}: {one_line(str(exc))})"
+                f"{path}: writing failed ({type(exc).__name__}: {foreign_message(str(exc))})"
             ) from None
     return path
 

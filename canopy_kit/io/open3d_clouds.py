@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError, one_line
+from canopy_kit.errors import InputError, foreign_message
 from canopy_kit.io import pcd, ply
 from canopy_kit.io.atomic import atomic_path
 from canopy_kit.io.clouds import check_input_file
@@ -90,7 +90,7 @@ def _write_open3d(path: Path, cloud: PointCloud, fmt: str) -> Path:
             ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False)
         except RuntimeError as exc:
             raise InputError(f"{path}: Open3D could not write the {fmt} file: "
-                             f"{one_line(str(exc))}") from None
+                             f"{foreign_message(str(exc))}") from None
         if not ok:
             raise InputError(f"{path}: Open3D could not write the {fmt} file")
     return path
