@@ -246,6 +246,9 @@ class LidarFrontend:
         # Few points above the ground (an open headland) make ICP weak: say so to the graph.
         uncertainty = float(np.clip(STRUCTURE_POINTS / max(len(odo_points), 1), 1.0, WEAK_REGISTRATION_MAX))
         pose = self._odometry.align(odo_points, guess)
+        if self._odometry.failed:  # no valid pose from ICP (non-finite): the prediction stands in
+            st.rejected_registrations += 1
+            uncertainty = WEAK_REGISTRATION_MAX
         if self._prev_t is not None:
             shift, turn = self._correction(guess, pose)
             # The limits below are per sweep of prediction: registering every n-th sweep
