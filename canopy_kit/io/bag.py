@@ -303,8 +303,9 @@ class BagSession:
         if unused:
             described = int(msg.width) * int(msg.height) * int(msg.point_step)
             log.trim(index, unused, described, (
-                f"{where}: data holds {unused + described} bytes, width x height x point_step = "
-                f"{msg.width} x {msg.height} x {msg.point_step} = {described} (row_step {msg.row_step})"))
+                f"{where}: data holds {len(msg.data)} bytes, {unused} more than the "
+                f"width x height x point_step = {msg.width} x {msg.height} x {msg.point_step} = "
+                f"{described} its points take (row_step {msg.row_step})"))
         xyz, fields, times = self.drop_stray_times(topic, index, xyz, fields, times)
         return Scan(stamp, xyz, fields, times, msg.header.frame_id, index)
 

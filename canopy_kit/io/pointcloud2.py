@@ -68,8 +68,10 @@ def check_fields(msg: Any, where: str = "PointCloud2") -> None:
 
 
 def unused_bytes(msg: Any, n_data: int, where: str = "PointCloud2") -> int:
-    """Bytes of ``data`` that no point covers (row padding, a tail); a :class:`MessageError`
-    naming the header field when ``row_step`` or ``data`` is too short for the points claimed."""
+    """Bytes of ``data`` beyond the points the header describes: past ``height`` rows of
+    ``row_step``, and the padding of rows with room for another point (alignment padding,
+    shorter than a point, is part of the format). A :class:`MessageError` naming the header
+    field when ``row_step`` or ``data`` is too short for the points claimed."""
     width, height = int(msg.width), int(msg.height)
     step, row_step = int(msg.point_step), int(msg.row_step)
     if width * height == 0:
@@ -83,7 +85,8 @@ def unused_bytes(msg: Any, n_data: int, where: str = "PointCloud2") -> int:
             f"{where}: data has {n_data} bytes, too few for {height}x{width} points of {step} bytes "
             f"(row_step {row_step}: {needed} bytes needed); width, height or point_step is wrong "
             "or the data is cut")
-    return n_data - width * height * step
+    padding = row_step - width * step
+    return max(0, n_data - row_step * height) + (height * padding if padding >= max(step, 1) else 0)
 
 
 def decode_checked(msg: Any, where: str = "PointCloud2") -> tuple[np.ndarray, int]:
