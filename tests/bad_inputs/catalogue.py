@@ -394,3 +394,7 @@ CASES: tuple[Case, ...] = (
     Case("preset-bad-override", "--set preprocess.voxel_size=-1", "error naming the setting", 2,
          _override("preprocess.voxel_size=-1", "preprocess.voxel_size"), ("must be positive",)),
 )
+
+from bad_inputs.message_cases import MESSAGE_CASES  # noqa: E402 (they use Case)
+
+CASES = CASES + MESSAGE_CASES

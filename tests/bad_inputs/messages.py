@@ -92,6 +92,18 @@ def cloud_header(topic: str = "/points", every: int = 1, **changes: Any) -> Edit
     return edit
 
 
+def padded_data(topic: str = "/points", n_bytes: int = 48, every: int = 1) -> Edit:
+    """Every ``every``-th PointCloud2 of ``topic`` with ``n_bytes`` of zeros after its data
+    (the header unchanged: more data than it describes)."""
+    def edit(t: str, i: int, log_ns: int, msg: Any) -> list | None:
+        if t != topic or i % every:
+            return None
+        data = np.concatenate([np.asarray(msg.data, np.uint8), np.zeros(n_bytes, np.uint8)])
+        return _keep(t, POINTCLOUD2, log_ns, dataclasses.replace(msg, data=data))
+
+    return edit
+
+
 def field_changed(name: str, **changes: int) -> Callable[[list, type], list]:
     """A ``fields`` edit for :func:`cloud_header`: the field ``name`` with ``offset``,
     ``datatype`` or ``count`` changed."""
