@@ -93,10 +93,10 @@ def decode_checked(msg: Any, where: str = "PointCloud2") -> tuple[np.ndarray, in
     """The points of a PointCloud2 (1-D structured array, rows flattened) and the number of
     data bytes no point covers. A malformed message raises a :class:`MessageError` naming
     the field that does not fit (see :func:`check_fields`, :func:`unused_bytes`)."""
-    dtype = structured_dtype(msg, where)
     data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), np.uint8)
     data = data.reshape(-1).view(np.uint8)
-    unused = unused_bytes(msg, len(data), where)
+    unused = unused_bytes(msg, len(data), where)  # the sizes first: they need no allocation
+    dtype = structured_dtype(msg, where)
     width, height = int(msg.width), int(msg.height)
     step, row_step = int(msg.point_step), int(msg.row_step)
     n = width * height
@@ -134,7 +134,8 @@ def xyz_from(points: np.ndarray, where: str = "PointCloud2") -> np.ndarray:
         (a0, a1), (b0, b1) = spans[a], spans[b]
         if a0 < b1 and b0 < a1:
             raise MessageError(f"{where}: fields {a!r} and {b!r} overlap (bytes {a0}-{a1} and {b0}-{b1})")
-    return np.column_stack([points[c].astype(np.float64) for c in ("x", "y", "z")])
+    with np.errstate(invalid="ignore"):  # a signalling NaN among corrupt bytes raises the flag
+        return np.column_stack([points[c].astype(np.float64) for c in ("x", "y", "z")])
 
 
 def time_field_name(names: tuple[str, ...] | list[str]) -> str | None:

@@ -104,6 +104,17 @@ def padded_data(topic: str = "/points", n_bytes: int = 48, every: int = 1) -> Ed
     return edit
 
 
+def data_cut(topic: str = "/points", keep: float = 0.0) -> Edit:
+    """Every PointCloud2 of ``topic`` with only the first ``keep`` of its data (header unchanged)."""
+    def edit(t: str, i: int, log_ns: int, msg: Any) -> list | None:
+        if t != topic:
+            return None
+        data = np.asarray(msg.data, np.uint8)
+        return _keep(t, POINTCLOUD2, log_ns, dataclasses.replace(msg, data=data[: int(keep * len(data))].copy()))
+
+    return edit
+
+
 def field_changed(name: str, **changes: int) -> Callable[[list, type], list]:
     """A ``fields`` edit for :func:`cloud_header`: the field ``name`` with ``offset``,
     ``datatype`` or ``count`` changed."""
