@@ -33,6 +33,7 @@ from canopy_kit.mapping.gnss import (
     GnssEpochs,
     fix_report,
     gnss_epochs,
+    invalid_fix_warning,
     local_frame_for,
     rejection_reasons,
     report_warning,
@@ -210,7 +211,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "registrations_rejected": st.rejected_registrations,
         "ground_corrections": st.ground_corrections,
         "georeferenced": frame is not None,
-        "quality_flags": quality_flags(one, frame, imu),
+        "quality_flags": quality_flags(one, frame, imu) + gnss_flags(gnss_diag),
         "odometry_workers": one.workers,
         "fusion": fused.diagnostics,
         "timing": timing,
@@ -230,6 +231,12 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         diagnostics["gnss"] = gnss_diag
     return MappingResult(cloud, table, frame, diagnostics, warnings, config_used(config, one.topics), rig,
                          pose_table(t_ref, poses))
+
+
+def gnss_flags(gnss_diag: dict) -> list[str]:
+    """``gnss_fixes_dropped`` when fixes carried non-finite or impossible positions."""
+    rejected = gnss_diag.get("rejected", {})
+    return ["gnss_fixes_dropped"] if rejected.get("non_finite", 0) + rejected.get("out_of_range", 0) else []
 
 
 def config_used(config: MappingConfig, topics: SensorTopics) -> MappingConfig:
@@ -274,9 +281,7 @@ def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig, warnings: lis
     diag = fix_report(series, reasons, span)
     diag.update({"fixes": epochs.n_fixes, "epochs": len(epochs.t), "superseded": epochs.n_superseded,
                  "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])), "crs": frame.crs})
-    line = report_warning(topic, diag)
-    if line:
-        warnings.append(line)
+    warnings += [line for line in (report_warning(topic, diag), invalid_fix_warning(topic, series, reasons)) if line]
     return frame, epochs, diag
 
 

@@ -50,6 +50,14 @@ MESSAGE_CASES: tuple[Case, ...] = (
          "error naming the topic, the share and the first bad message", 2,
          _rewritten(messages.imu_sample(-3, linear_acceleration=(float("nan"), 0.0, 9.8))),
          ("topic '/imu/data'", "IMU samples unusable", "linear acceleration not finite", "message 0")),
+    Case("bag-gnss-nonfinite", "three GNSS fixes that claim a fix: latitude NaN, altitude +Inf, "
+         "latitude 95 deg", "the three dropped and counted; georeferenced map; warning naming the "
+         "topic and the first; flag gnss_fixes_dropped", 0,
+         _rewritten(messages.chain(messages.gnss_fix((5,), latitude=float("nan")),
+                                   messages.gnss_fix((10,), altitude=float("inf")),
+                                   messages.gnss_fix((15,), latitude=95.0))),
+         ("'/gps/fix': 3 of 26 fixes had a non-finite or impossible latitude", "first: fix 5"),
+         ("gnss_fixes_dropped",), ("not_georeferenced",)),
     Case("bag-pc2-half-width", "PointCloud2 width (and row_step) halved on every scan: the data "
          "holds twice the points", "error naming the topic, the header fields and the first message "
          "(before the fix: half of every sweep mapped, 5 trees instead of 3, no warning)", 2,

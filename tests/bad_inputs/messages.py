@@ -72,6 +72,17 @@ def imu_sample(index: int, angular_velocity: tuple[float, float, float] | None =
     return edit
 
 
+def gnss_fix(indices: tuple[int, ...], topic: str = "/gps/fix", **values: float) -> Edit:
+    """NavSatFix messages ``indices`` of ``topic`` with ``latitude``, ``longitude`` or
+    ``altitude`` replaced (their status left as it is: they still claim a fix)."""
+    def edit(t: str, i: int, log_ns: int, msg: Any) -> list | None:
+        if t != topic or i not in indices:
+            return None
+        return _keep(t, "sensor_msgs/msg/NavSatFix", log_ns, dataclasses.replace(msg, **values))
+
+    return edit
+
+
 def cloud_header(topic: str = "/points", every: int = 1, **changes: Any) -> Edit:
     """Every ``every``-th PointCloud2 of ``topic`` with header fields replaced: ``width``,
     ``height``, ``point_step``, ``row_step`` as numbers, ``fields`` as a function of the
