@@ -125,7 +125,10 @@ class LidarFrontend:
             st.standstill = detect_standstill(series)
             st.rotations = RotationTrack(series, st.standstill.gyro_bias)
             self._imu_used = len(self.imu)
-            st.initial_rotation = st.standstill.level_rotation().as_matrix()
+            try:
+                st.initial_rotation = st.standstill.level_rotation().as_matrix()
+            except InputError as exc:
+                raise InputError(f"{self.imu.source or 'IMU'}: {exc}".replace(": IMU: ", ": ")) from None
             t_first = reference_time(first.times, first.stamp)
             if st.standstill.found and st.rotations.covers(st.standstill.end, t_first):
                 # The first sweep comes after the standstill (a late LiDAR, or a later part of

@@ -98,7 +98,8 @@ class PassOne:
         self.rig = rig if rig is not None else resolve_rig(bag, self.topics, config)
         # ``lidar_only``: the IMU is collected (as recorded) but the front end does not use it.
         self.lidar_only = lidar_only
-        self.imu = ImuBuffer(mounting=self.rig.imu_mounting()) if self.topics.imu else None
+        self.imu = (ImuBuffer(mounting=self.rig.imu_mounting(), source=f"{bag.path}: topic {self.topics.imu!r}")
+                    if self.topics.imu else None)
         self.gnss = GnssBuffer() if self.topics.gnss else None
         self.frontend = LidarFrontend(config, None if lidar_only else self.imu,
                                       where=f"{bag.path}: topic {self.topics.scans!r}",

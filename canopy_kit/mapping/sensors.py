@@ -90,9 +90,10 @@ class ImuBuffer:
     the LiDAR clock (see :mod:`.imu_mounting`); :attr:`last_time` is on that clock too.
     """
 
-    def __init__(self, frame_id: str = "", mounting: ImuMounting | None = None) -> None:
+    def __init__(self, frame_id: str = "", mounting: ImuMounting | None = None, source: str = "") -> None:
         self._rows = _Growable(7)
         self.frame_id = frame_id
+        self.source = source  # "<bag>: topic '<imu topic>'", to start errors about these samples
         self.mounting = None if mounting is None or mounting.is_identity else mounting
 
     def __len__(self) -> int:

@@ -69,7 +69,8 @@ class SweepSource:
             self.topics = topics
             self.warnings.extend(rig.warnings + topics.notes)
             self.gnss_lever_arm = rig.gnss_lever_arm
-            imu = ImuBuffer(mounting=rig.imu_mounting()) if topics.imu else None
+            imu = (ImuBuffer(mounting=rig.imu_mounting(), source=f"{bag.path}: topic {topics.imu!r}")
+                   if topics.imu else None)
             self.gnss = GnssBuffer() if topics.gnss else None
             if topics.gnss is None:
                 self.warnings.append(f"{self.bag}: no GNSS topic: tree positions stay in the "

@@ -50,6 +50,10 @@ MESSAGE_CASES: tuple[Case, ...] = (
          "error naming the topic, the share and the first bad message", 2,
          _rewritten(messages.imu_sample(-3, linear_acceleration=(float("nan"), 0.0, 9.8))),
          ("topic '/imu/data'", "IMU samples unusable", "linear acceleration not finite", "message 0")),
+    Case("bag-imu-accel-zero", "every IMU sample's linear acceleration is (0, 0, 0) (a dead "
+         "accelerometer)", "error naming the topic and the way out (before: the NaN attitude reached "
+         "the odometry)", 2, _rewritten(messages.imu_sample(-1, linear_acceleration=(0.0, 0.0, 0.0))),
+         ("topic '/imu/data'", "no direction of gravity", "mapping.use_imu=false")),
     Case("bag-gnss-nonfinite", "three GNSS fixes that claim a fix: latitude NaN, altitude +Inf, "
          "latitude 95 deg", "the three dropped and counted; georeferenced map; warning naming the "
          "topic and the first; flag gnss_fixes_dropped", 0,
