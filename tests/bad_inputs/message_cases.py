@@ -1,5 +1,7 @@
 """Catalogue cases for faults inside a bag's messages (PointCloud2 headers, IMU samples,
-clocks, topics), built by rewriting a short clean drive (:mod:`bad_inputs.messages`)."""
+clocks, topics), built by rewriting a short clean drive (:mod:`bad_inputs.messages`).
+
+``bad_inputs.catalogue`` appends them to its ``CASES``: import them through it."""
 
 from __future__ import annotations
 
@@ -47,12 +49,13 @@ MESSAGE_CASES: tuple[Case, ...] = (
          ("'/imu/data': 1 of 501 IMU samples dropped", "angular velocity not finite", "message 250"),
          ("imu_samples_dropped",)),
     Case("bag-imu-mostly-nonfinite", "every third IMU sample has a NaN acceleration",
-         "error naming the topic, the share and the first bad message", 2,
+         "error naming the topic, the share and the first bad message (before: SOPHUS_ENSURE abort, "
+         "exit 134)", 2,
          _rewritten(messages.imu_sample(-3, linear_acceleration=(float("nan"), 0.0, 9.8))),
          ("topic '/imu/data'", "IMU samples unusable", "linear acceleration not finite", "message 0")),
     Case("bag-imu-accel-zero", "every IMU sample's linear acceleration is (0, 0, 0) (a dead "
-         "accelerometer)", "error naming the topic and the way out (before: the NaN attitude reached "
-         "the odometry)", 2, _rewritten(messages.imu_sample(-1, linear_acceleration=(0.0, 0.0, 0.0))),
+         "accelerometer)", "error naming the topic and the way out (before: a NaN attitude, SOPHUS_ENSURE "
+         "abort, exit 134)", 2, _rewritten(messages.imu_sample(-1, linear_acceleration=(0.0, 0.0, 0.0))),
          ("topic '/imu/data'", "no direction of gravity", "mapping.use_imu=false")),
     Case("bag-gnss-nonfinite", "three GNSS fixes that claim a fix: latitude NaN, altitude +Inf, "
          "latitude 95 deg", "the three dropped and counted; georeferenced map; warning naming the "
@@ -86,7 +89,8 @@ MESSAGE_CASES: tuple[Case, ...] = (
          ("topic '/points'", "field 'x' has unknown datatype 11", "message 0")),
     Case("bag-pc2-few-malformed", "3 of 50 scans with an unknown datatype, 2 with 48 bytes more "
          "data than their header describes", "the 3 dropped and counted, the extra bytes ignored; "
-         "warnings naming topic, field and message; flags scans_malformed, scan_bytes_ignored", 0,
+         "warnings naming topic, field and message; flags scans_malformed, scan_bytes_ignored (before: "
+         "exit 2 at the first malformed scan)", 0,
          _rewritten(few_malformed()),
          ("3 of 50 scans dropped", "message 10: field 'x' has unknown datatype 11",
           "2 of 50 scans hold more data", "message 15"), ("scans_malformed", "scan_bytes_ignored")),
@@ -97,6 +101,6 @@ MESSAGE_CASES: tuple[Case, ...] = (
          ("header stamps jump back", "the sensor clock jumped back")),
     Case("bag-two-pointclouds", "two PointCloud2 topics with as many messages: '/points' and a "
          "thinned copy '/points_raw'", "map of '/points'; warning naming both and the one read; the "
-         "topic written to the config saved with the map", 0, _rewritten(messages.second_cloud()),
+         "topic written to the config saved with the map (before: no warning, pointcloud_topic = \"\")", 0, _rewritten(messages.second_cloud()),
          ("2 sensor_msgs/msg/PointCloud2 topics", "read '/points'")),
 )
