@@ -34,6 +34,11 @@ MAX_ACCEL_M_S2 = 500.0  # 50 g: beyond any MEMS IMU's range on a vehicle
 def imu_sample_fault(angular_velocity: tuple[float, float, float],
                      linear_acceleration: tuple[float, float, float]) -> str | None:
     """Why an IMU sample cannot be used (non-finite or impossible values), None when it can."""
+    gx, gy, gz = angular_velocity
+    ax, ay, az = linear_acceleration
+    # The common case in two comparisons (NaN compares false, an overflow to inf fails too).
+    if gx * gx + gy * gy + gz * gz <= MAX_GYRO_RAD_S**2 and ax * ax + ay * ay + az * az <= MAX_ACCEL_M_S2**2:
+        return None
     for name, values, limit, unit in (("angular velocity", angular_velocity, MAX_GYRO_RAD_S, "rad/s"),
                                       ("linear acceleration", linear_acceleration, MAX_ACCEL_M_S2, "m/s²")):
         if not all(math.isfinite(v) for v in values):
@@ -62,17 +67,21 @@ class TopicLog:
     _latest: float = -math.inf  # newest header stamp so far
     _behind: tuple[int, float, int, float] | None = None  # first index, stamp, log ns; run length
 
-    def _see(self, index: int) -> None:
-        lo, hi = self.index_range if self.seen else (index, index)
-        self.index_range = (min(lo, index), max(hi, index + 1))
+    def _see(self, index: int) -> None:  # indices come in increasing order
+        if not self.seen:
+            self.index_range = (index, index + 1)
+        elif index >= self.index_range[1]:
+            self.index_range = (self.index_range[0], index + 1)
         self.seen += 1
 
     def use(self, index: int, stamp: float, frame_id: str = "") -> None:
         """Message ``index`` (header ``stamp``) was used."""
         self._see(index)
         self.used += 1
-        self.first_stamp = min(self.first_stamp, stamp)
-        self.last_stamp = max(self.last_stamp, stamp)
+        if stamp < self.first_stamp:
+            self.first_stamp = stamp
+        if stamp > self.last_stamp:
+            self.last_stamp = stamp
         if frame_id and not self.frame_id:
             self.frame_id = frame_id
 
