@@ -61,8 +61,9 @@ def _choice_note(bag: BagSession, topic: str, setting: str) -> str | None:
     if len(same) < 2:
         return None
     listed = ", ".join(f"{t.name!r} ({t.count} messages)" for t in same)
-    return (f"{bag.path}: {len(same)} {msgtype} topics: {listed}; read {topic!r} (the busiest, the first by name among equals; "
-            f"mapping.{setting} chooses another) and wrote it to the config saved with the results")
+    return (f"{bag.path}: {len(same)} {msgtype} topics: {listed}; read {topic!r} (the busiest, the "
+            f"first by name among equals; mapping.{setting} chooses another) and wrote it to the "
+            "config saved with the results")
 
 
 class _Growable:
