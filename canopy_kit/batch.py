@@ -270,25 +270,37 @@ def _flag(value: Any, where: str, name: str) -> bool:
 
 
 # -- one session (runs on a worker) ---------------------------------------------------------
-def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1) -> SessionOutcome:
-    """Run one session's pipeline; bad input is returned as a failed outcome (not retried)."""
+def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1,
+                    token: str = "") -> SessionOutcome:
+    """Run one session's pipeline; bad input is returned as a failed outcome (not retried),
+    naming the stage. ``token`` (one per batch) marks the session's trail on disk
+    (:mod:`canopy_kit.session_log`): a session whose worker crashed is not run again."""
     import socket
 
     from canopy_kit.config import load_preset
+    from canopy_kit.session_log import SessionTrail, crash_message, own_worker_process, read_trail
 
     out = session_folder(out_root, spec.session_id)
     wall = time.perf_counter()
     worker = f"{socket.gethostname()}:{os.getpid()}"
+    earlier = read_trail(out, token) if token else None
+    if earlier is not None and earlier["signal"]:
+        return SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(out),
+                              error=f"WorkerCrash: {spec.bag}: {crash_message(earlier)}; not run again "
+                              "(the same input crashes the same code)", worker=worker)
+    trail = SessionTrail(out, token or "-", own_process=own_worker_process())
     try:
-        config = load_preset(spec.preset, spec.overrides)
-        config.mapping.workers = 1  # a Dask worker is daemonic: no child processes
-        if mapping_threads > 0:
-            config.mapping.threads = mapping_threads
-        results = _run_one(spec, config, out)
+        with trail:
+            config = load_preset(spec.preset, spec.overrides)
+            config.mapping.workers = 1  # a Dask worker is daemonic: no child processes
+            if mapping_threads > 0:
+                config.mapping.threads = mapping_threads
+            results = _run_one(spec, config, out, trail.progress)
     except CanopyKitError as exc:
         message = str(exc) if str(spec.bag) in str(exc) else f"{spec.bag}: {exc}"
+        stage = f" in stage {trail.stage!r}" if trail.stage else ""
         return SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(out),
-                              error=f"{type(exc).__name__}: {message}",
+                              error=f"{type(exc).__name__}{stage}: {message}",
                               wall_s=time.perf_counter() - wall, worker=worker)
     m = results.metrics
     summary = {"n_trees": m.get("n_trees"), "warnings": m.get("warnings", []),
@@ -297,16 +309,17 @@ def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1) 
                           summary=summary, wall_s=time.perf_counter() - wall, worker=worker)
 
 
-def _run_one(spec: SessionSpec, config: Any, out: Path) -> Any:
+def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | None = None) -> Any:
     from canopy_kit import pipeline
 
     if spec.stream:
         from canopy_kit.streaming import run_stream
 
-        return run_stream(config, spec.bag, out)
+        return run_stream(config, spec.bag, out, progress=progress)
     if spec.report:
-        return pipeline.run(config, spec.bag, out, drone_images=spec.drone_images, truth=spec.truth)
-    ctx, cache = pipeline.compute(config, spec.bag, out, spec.drone_images, spec.truth)
+        return pipeline.run(config, spec.bag, out, drone_images=spec.drone_images, truth=spec.truth,
+                            progress=progress)
+    ctx, cache = pipeline.compute(config, spec.bag, out, spec.drone_images, spec.truth, progress=progress)
     return _write_tables(ctx, cache, out)
 
 
@@ -396,7 +409,10 @@ def _collect(client: Any, todo: list[SessionSpec], out: Path, retries: int, mapp
              on_session: Callable[[SessionOutcome], None] | None, ingest: Callable[[], None]) -> None:
     from distributed import as_completed
 
-    futures = {client.submit(process_session, spec, str(out.resolve()), mapping_threads,
+    from canopy_kit.session_log import crash_message, read_trail
+
+    token = f"{os.getpid()}-{time.time_ns()}"  # marks this batch's session trails
+    futures = {client.submit(process_session, spec, str(out.resolve()), mapping_threads, token,
                              key=f"canopy-kit-session-{spec.session_id}-{time.time_ns()}",
                              retries=retries, pure=False): spec for spec in todo}
     for n, future in enumerate(as_completed(futures), 1):
@@ -404,9 +420,10 @@ def _collect(client: Any, todo: list[SessionSpec], out: Path, retries: int, mapp
         try:
             outcome = future.result()
         except Exception as exc:  # the task itself died: a lost worker, memory, a bug
-            outcome = SessionOutcome(spec.session_id, spec.orchard, spec.date, False,
-                                     str(session_folder(out, spec.session_id)),
-                                     error=f"{type(exc).__name__}: {exc}")
+            folder = session_folder(out, spec.session_id)
+            why = crash_message(read_trail(folder, token))
+            outcome = SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(folder),
+                                     error=f"{type(exc).__name__}: {spec.bag}: {why} ({exc})")
         outcomes[spec.session_id] = outcome
         if not outcome.ok:
             failures[spec.session_id] = outcome.error or "failed"

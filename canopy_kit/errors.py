@@ -17,6 +17,10 @@ class InputError(CanopyKitError, ValueError):
     exit_code = 2
 
 
+class MessageError(InputError):
+    """One message of a topic is malformed; a reader may skip it and count it instead."""
+
+
 class ConfigError(InputError):
     """A preset or config value is unknown, of the wrong type or out of range."""
 

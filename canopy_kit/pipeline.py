@@ -323,6 +323,17 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
     return files
 
 
+def config_used(ctx: RunContext) -> PipelineConfig:
+    """The run's config with what the mapping resolved filled in (the topics it read): written
+    as config.toml and shown in the report, so a run with that file reads the same topics."""
+    from dataclasses import replace
+
+    from canopy_kit.config import MappingConfig
+
+    mapping = getattr(ctx.mapping, "config", None)
+    return replace(ctx.config, mapping=mapping) if isinstance(mapping, MappingConfig) else ctx.config
+
+
 def write_tree_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
     """trees.csv, trees.parquet, config.toml and what ``canopy-kit evaluate`` needs besides
     them (segmentation.json, crowns, rows): the outputs of every run, batch ones included."""
@@ -333,7 +344,7 @@ def write_tree_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[s
     with atomic_path(out / "trees.parquet") as tmp:
         trees.to_parquet(tmp, index=False)
     files["trees.parquet"] = out / "trees.parquet"
-    files["config.toml"] = write_config(ctx.config, out / "config.toml")
+    files["config.toml"] = write_config(config_used(ctx), out / "config.toml")
     rig = getattr(ctx.mapping, "rig", None)
     if rig is not None:
         from canopy_kit.mapping.outputs import RIG_TOML, write_rig

@@ -321,7 +321,7 @@ def test_pointcloud2_without_xyz(tmp_path: Path, fmt: str) -> None:
     with open_bag(w.path) as bag, pytest.raises(InputError) as err:
         next(bag.scans())
     message = str(err.value)
-    assert str(w.path) in message and "'/points'" in message and "scan 0" in message
+    assert str(w.path) in message and "'/points'" in message and "message 0" in message
     assert "no x/y/z field" in message and "range, azimuth" in message
 
 

@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.errors import InputError
+from canopy_kit.errors import InputError, MessageError
 from canopy_kit.io import pointcloud2 as pc2
+from canopy_kit.io.message_log import MessageLog, imu_sample_fault
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMU = "sensor_msgs/msg/Imu"
@@ -121,7 +122,7 @@ def stray_times_warning(path: str, topic: str, stray: list[tuple[int, int]]) -> 
     """The one warning that counts the points dropped for corrupt per-point times."""
     return (f"{path}: topic {topic!r}: {sum(n for _, n in stray)} points in "
             f"{len(stray)} scans had per-point times more than {MAX_POINT_TIME_OFFSET_S:g} s "
-            f"from the rest of their scan (corrupt data) and were dropped (first: scan "
+            f"from the rest of their scan or not finite (corrupt data) and were dropped (first: scan "
             f"{min(i for i, _ in stray)})")
 
 
@@ -141,6 +142,7 @@ class BagSession:
         self.recovered = False  # read in file order after rosbags refused the bag (cut short?)
         self._stray: list[tuple[int, int]] = []  # (scan, points dropped for corrupt times)
         self._stray_warning: int | None = None
+        self.log = MessageLog(str(self.path))  # messages met, dropped or trimmed per topic
 
     def __enter__(self) -> "BagSession":
         from rosbags.highlevel import AnyReader
@@ -263,20 +265,49 @@ class BagSession:
             ) from None
 
     def scans(self, topic: str | None = None) -> Iterator[Scan]:
-        """Stream the PointCloud2 scans of ``topic`` (auto-detected when None)."""
+        """Stream the PointCloud2 scans of ``topic`` (auto-detected when None); malformed ones
+        are left out and counted (:attr:`log`), and too many of them are an error."""
         name = self.find_topic(POINTCLOUD2, topic)
         assert name is not None
         for index, (_, msg) in enumerate(self._messages(name)):
-            where = f"{self.path}: topic {name!r}, scan {index}"
-            points = pc2.decode(msg, where)
-            xyz = pc2.xyz_from(points, where)
-            stamp = pc2.stamp_seconds(msg.header)
-            names = points.dtype.names or ()
-            time_name = pc2.time_field_name(names)
-            times = pc2.point_times(points[time_name], stamp) if time_name else None
-            fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
-            xyz, fields, times = self.drop_stray_times(name, index, xyz, fields, times)
-            yield Scan(stamp, xyz, fields, times, msg.header.frame_id, index)
+            scan = self.decode_scan(name, msg, index)
+            if scan is not None:
+                yield scan
+        self.log.topic(name, "scans").check()
+
+    def decode_scan(self, topic: str, msg: Any, index: int) -> Scan | None:
+        """Message ``index`` of ``topic``, a PointCloud2 or a VelodyneScan of raw packets
+        (:mod:`canopy_kit.io.velodyne_ros`), as a :class:`Scan`; None when it is malformed
+        (dropped and counted in :attr:`log`, with the field that does not fit)."""
+        log = self.log.topic(topic, "scans")
+        where = f"message {index}"
+        try:
+            if getattr(msg, "__msgtype__", "") == VELODYNE_SCAN:
+                from canopy_kit.io.velodyne_ros import scan_from_message
+
+                scan = scan_from_message(msg, where, index)
+                stamp, xyz, fields, times, unused = scan.stamp, scan.xyz, scan.fields, scan.times, 0
+            else:
+                points, unused = pc2.decode_checked(msg, where)
+                xyz = pc2.xyz_from(points, where)
+                stamp = pc2.stamp_seconds(msg.header)
+                names = points.dtype.names or ()
+                time_name = pc2.time_field_name(names)
+                times = (pc2.point_times(points[time_name], stamp)
+                         if time_name and points[time_name].ndim == 1 else None)
+                fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
+        except MessageError as exc:
+            log.drop(index, "malformed", str(exc))
+            return None
+        log.use(index, stamp, msg.header.frame_id)
+        if unused:
+            described = int(msg.width) * int(msg.height) * int(msg.point_step)
+            log.trim(index, unused, described, (
+                f"{where}: data holds {len(msg.data)} bytes, {unused} more than the "
+                f"width x height x point_step = {msg.width} x {msg.height} x {msg.point_step} = "
+                f"{described} its points take (row_step {msg.row_step})"))
+        xyz, fields, times = self.drop_stray_times(topic, index, xyz, fields, times)
+        return Scan(stamp, xyz, fields, times, msg.header.frame_id, index)
 
     def drop_stray_times(self, topic: str, index: int, xyz: np.ndarray, fields: dict[str, np.ndarray],
                          times: np.ndarray | None) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
@@ -311,14 +342,32 @@ class BagSession:
         if name is None:
             return None
         t, gyro, acc, quat, frame = [], [], [], [], ""
-        for _, msg in self._messages(name):
+        log = self.log.topic(name, "IMU samples")
+        for index, (_, msg) in enumerate(self._messages(name)):
+            w, a = msg.angular_velocity, msg.linear_acceleration
+            if not self.imu_sample_ok(log, index, pc2.stamp_seconds(msg.header), (w.x, w.y, w.z),
+                                      (a.x, a.y, a.z), msg.header.frame_id):
+                continue
             t.append(pc2.stamp_seconds(msg.header))
-            gyro.append((msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z))
-            acc.append((msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z))
+            gyro.append((w.x, w.y, w.z))
+            acc.append((a.x, a.y, a.z))
             quat.append((msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w))
             frame = msg.header.frame_id
+        log.check()
         return ImuSeries(np.array(t), np.array(gyro).reshape(-1, 3), np.array(acc).reshape(-1, 3),
                          np.array(quat).reshape(-1, 4), frame)
+
+    @staticmethod
+    def imu_sample_ok(log: Any, index: int, stamp: float, gyro: tuple[float, float, float],
+                      acc: tuple[float, float, float], frame_id: str) -> bool:
+        """Is IMU message ``index`` usable (finite, possible values)? Counted in ``log`` either way."""
+        fault = imu_sample_fault(gyro, acc)
+        if fault is None:
+            log.use(index, stamp, frame_id)
+            return True
+        log.drop(index, fault, f"message {index} at t={stamp:.3f} s: {fault} (angular velocity "
+                               f"{gyro}, linear acceleration {acc})")
+        return False
 
     def gnss(self, topic: str | None = None) -> GnssSeries | None:
         """All NavSatFix messages of ``topic`` (auto-detected), or None when absent."""
@@ -359,23 +408,25 @@ class BagSession:
 
 
 def _stray_times(times: np.ndarray | None) -> np.ndarray | None:
-    """Mask of the few points whose time lies far from their sweep's, or None when there are none.
+    """Mask of the points whose time is not finite or lies far from their sweep's, or None
+    when there are none.
 
-    Only a handful (at most 1 %) count as corrupt; a scan whose times spread widely throughout
-    is left alone (another convention, handled downstream).
+    Only a handful (at most 1 %) of far times count as corrupt; a scan whose times spread
+    widely throughout is left alone (another convention, handled downstream), and so is a
+    scan without a single finite time (mapped without deskew).
     """
     if times is None or len(times) == 0:
         return None
     finite = np.isfinite(times)
     if not finite.any():
         return None
-    if np.ptp(times[finite]) <= MAX_POINT_TIME_OFFSET_S:  # no point can be that far from the median
-        return None
-    stray = np.zeros(len(times), bool)
-    stray[finite] = np.abs(times[finite] - np.median(times[finite])) > MAX_POINT_TIME_OFFSET_S
-    if not stray.any() or stray.sum() > 0.01 * len(times):
-        return None
-    return stray
+    far = np.zeros(len(times), bool)
+    if np.ptp(times[finite]) > MAX_POINT_TIME_OFFSET_S:  # else no point can be that far from the median
+        far[finite] = np.abs(times[finite] - np.median(times[finite])) > MAX_POINT_TIME_OFFSET_S
+        if far.sum() > 0.01 * len(times):
+            far[:] = False
+    stray = far | ~finite
+    return stray if stray.any() else None
 
 
 def read_scan(path: str | Path, index: int, topic: str | None = None) -> Scan:

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.errors import InputError
+from canopy_kit.errors import InputError, MessageError
 
 # sensor_msgs/PointField datatype constants
 POINTFIELD_DTYPES: dict[int, str] = {
@@ -28,56 +28,114 @@ TIME_FIELD_NAMES: tuple[str, ...] = ("t", "time", "timestamp", "time_stamp", "of
 
 
 def structured_dtype(msg: Any, where: str = "PointCloud2") -> np.dtype:
-    """The numpy structured dtype that the message's ``fields`` describe."""
+    """The numpy structured dtype that the message's ``fields`` describe (checked against
+    ``point_step``: see :func:`check_fields`)."""
+    check_fields(msg, where)
     endian = ">" if msg.is_bigendian else "<"
     names, formats, offsets = [], [], []
     for f in msg.fields:
-        code = POINTFIELD_DTYPES.get(int(f.datatype))
-        if code is None:
-            raise InputError(f"{where}: field {f.name!r} has unknown datatype {f.datatype}")
+        code = POINTFIELD_DTYPES[int(f.datatype)]
         count = max(int(f.count), 1)
         names.append(f.name)
         formats.append((endian + code, (count,)) if count > 1 else endian + code)
         offsets.append(int(f.offset))
-    if len(set(names)) != len(names):
-        raise InputError(f"{where}: duplicate field names {names}")
     try:
         return np.dtype(
             {"names": names, "formats": formats, "offsets": offsets, "itemsize": int(msg.point_step)}
         )
-    except ValueError as exc:
-        raise InputError(f"{where}: field layout does not fit point_step {msg.point_step}: {exc}") from None
+    except (ValueError, TypeError) as exc:
+        raise MessageError(f"{where}: field layout does not fit point_step {msg.point_step}: {exc}") from None
+
+
+def check_fields(msg: Any, where: str = "PointCloud2") -> None:
+    """Raise a :class:`MessageError` naming the field when the ``fields`` cannot describe the
+    points: an unknown datatype, a repeated name or a field reaching past ``point_step``."""
+    step = int(msg.point_step)
+    spans: dict[str, tuple[int, int]] = {}
+    for f in msg.fields:
+        code = POINTFIELD_DTYPES.get(int(f.datatype))
+        if code is None:
+            raise MessageError(f"{where}: field {f.name!r} has unknown datatype {f.datatype} "
+                               f"(PointField knows 1-8: INT8 ... FLOAT64)")
+        if f.name in spans:
+            raise MessageError(f"{where}: field {f.name!r} appears twice")
+        count = max(int(f.count), 1)
+        offset, size = int(f.offset), np.dtype(code).itemsize * count
+        if offset + size > step:
+            raise MessageError(f"{where}: field {f.name!r} (offset {offset}, {count} x {size // count} "
+                               f"bytes) ends at byte {offset + size}, beyond point_step {step}")
+        spans[f.name] = (offset, offset + size)
+
+
+def unused_bytes(msg: Any, n_data: int, where: str = "PointCloud2") -> int:
+    """Bytes of ``data`` beyond the points the header describes: past ``height`` rows of
+    ``row_step``, and the padding of rows with room for another point (alignment padding,
+    shorter than a point, is part of the format). A :class:`MessageError` naming the header
+    field when ``row_step`` or ``data`` is too short for the points claimed."""
+    width, height = int(msg.width), int(msg.height)
+    step, row_step = int(msg.point_step), int(msg.row_step)
+    if width * height == 0:
+        return n_data
+    if row_step < width * step:
+        raise MessageError(f"{where}: row_step {row_step} is shorter than width x point_step = "
+                           f"{width} x {step} = {width * step} bytes")
+    needed = row_step * (height - 1) + width * step
+    if n_data < needed:
+        raise MessageError(
+            f"{where}: data has {n_data} bytes, too few for {height}x{width} points of {step} bytes "
+            f"(row_step {row_step}: {needed} bytes needed); width, height or point_step is wrong "
+            "or the data is cut")
+    padding = row_step - width * step
+    return max(0, n_data - row_step * height) + (height * padding if padding >= max(step, 1) else 0)
+
+
+def decode_checked(msg: Any, where: str = "PointCloud2") -> tuple[np.ndarray, int]:
+    """The points of a PointCloud2 (1-D structured array, rows flattened) and the number of
+    data bytes no point covers. A malformed message raises a :class:`MessageError` naming
+    the field that does not fit (see :func:`check_fields`, :func:`unused_bytes`)."""
+    data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), np.uint8)
+    data = data.reshape(-1).view(np.uint8)
+    unused = unused_bytes(msg, len(data), where)  # the sizes first: they need no allocation
+    dtype = structured_dtype(msg, where)
+    width, height = int(msg.width), int(msg.height)
+    step, row_step = int(msg.point_step), int(msg.row_step)
+    n = width * height
+    if n == 0:
+        return np.zeros(0, dtype=dtype), unused
+    if row_step == width * step or height == 1:
+        flat = np.ascontiguousarray(data[: n * step])
+    else:  # rows with padding: one strided view, no Python loop over rows
+        data = np.ascontiguousarray(data)
+        rows = np.lib.stride_tricks.as_strided(data, shape=(height, width * step), strides=(row_step, 1),
+                                               writeable=False)
+        flat = np.ascontiguousarray(rows).reshape(-1)
+    return np.frombuffer(flat, dtype=dtype, count=n), unused
 
 
 def decode(msg: Any, where: str = "PointCloud2") -> np.ndarray:
     """Decode a PointCloud2 message into a 1-D structured array (rows flattened)."""
-    dtype = structured_dtype(msg, where)
-    width, height = int(msg.width), int(msg.height)
-    step, row_step = int(msg.point_step), int(msg.row_step)
-    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, np.uint8)
-    n = width * height
-    if n == 0:
-        return np.zeros(0, dtype=dtype)
-    if row_step < width * step or len(data) < row_step * (height - 1) + width * step:
-        raise InputError(
-            f"{where}: data has {len(data)} bytes, too few for {height}x{width} points of "
-            f"{step} bytes (row_step {row_step})"
-        )
-    if row_step == width * step:
-        flat = data[: n * step]
-    else:
-        rows = [data[r * row_step : r * row_step + width * step] for r in range(height)]
-        flat = np.concatenate(rows)
-    return np.frombuffer(flat.tobytes(), dtype=dtype, count=n)
+    return decode_checked(msg, where)[0]
 
 
 def xyz_from(points: np.ndarray, where: str = "PointCloud2") -> np.ndarray:
-    """The (N, 3) float64 coordinates of decoded points; error naming missing fields."""
-    names = points.dtype.names or ()
-    missing = [c for c in ("x", "y", "z") if c not in names]
+    """The (N, 3) float64 coordinates of decoded points; a :class:`MessageError` naming the
+    field when x, y or z is missing, holds several values or shares bytes with another."""
+    fields = points.dtype.fields or {}
+    missing = [c for c in ("x", "y", "z") if c not in fields]
     if missing:
-        raise InputError(f"{where}: no {'/'.join(missing)} field (fields: {', '.join(names)})")
-    return np.column_stack([points[c].astype(np.float64) for c in ("x", "y", "z")])
+        raise MessageError(f"{where}: no {'/'.join(missing)} field (fields: {', '.join(fields) or 'none'})")
+    spans = {}
+    for c in ("x", "y", "z"):
+        dtype, offset = fields[c][0], fields[c][1]
+        if dtype.shape:
+            raise MessageError(f"{where}: field {c!r} has count {dtype.shape[0]}, expected 1")
+        spans[c] = (offset, offset + dtype.itemsize)
+    for a, b in (("x", "y"), ("x", "z"), ("y", "z")):
+        (a0, a1), (b0, b1) = spans[a], spans[b]
+        if a0 < b1 and b0 < a1:
+            raise MessageError(f"{where}: fields {a!r} and {b!r} overlap (bytes {a0}-{a1} and {b0}-{b1})")
+    with np.errstate(invalid="ignore"):  # a signalling NaN among corrupt bytes raises the flag
+        return np.column_stack([points[c].astype(np.float64) for c in ("x", "y", "z")])
 
 
 def time_field_name(names: tuple[str, ...] | list[str]) -> str | None:

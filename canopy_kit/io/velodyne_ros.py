@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.errors import InputError
+from canopy_kit.errors import InputError, MessageError
 from canopy_kit.io.bag import VELODYNE_SCAN, Scan
 from canopy_kit.io.velodyne import (
     DATA_PACKET_BYTES,
@@ -65,12 +65,15 @@ def scan_from_message(msg: Any, where: str, index: int) -> Scan:
     packets = list(msg.packets)
     for k, packet in enumerate(packets):
         if len(packet.data) != DATA_PACKET_BYTES:
-            raise InputError(f"{where}: packet {k} has {len(packet.data)} bytes; a Velodyne data "
+            raise MessageError(f"{where}: packet {k} has {len(packet.data)} bytes; a Velodyne data "
                              f"packet has {DATA_PACKET_BYTES}")
     stamps = np.array([_seconds(p.stamp) for p in packets], np.float64)
     data = b"".join(np.asarray(p.data, np.uint8).tobytes() for p in packets)
-    return scan_from_packets(stamps, data, msg.header.frame_id, where, index,
-                             header_stamp=_seconds(msg.header.stamp))
+    try:
+        return scan_from_packets(stamps, data, msg.header.frame_id, where, index,
+                                 header_stamp=_seconds(msg.header.stamp))
+    except InputError as exc:  # a packet that is not a Velodyne data packet: this message only
+        raise MessageError(str(exc)) from None
 
 
 def scan_from_packets(stamps: np.ndarray, data: bytes, frame_id: str, where: str, index: int,

@@ -23,7 +23,6 @@ from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
 from canopy_kit.mapping.filters import range_mask
 from canopy_kit.mapping.kernels import transform_by_bin
-from canopy_kit.mapping.sensors import decode_scan
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
 from canopy_kit.parallel import run_jobs, worker_count
 
@@ -109,7 +108,9 @@ def selected_scans(bag: BagSession, topic: str, wanted: Callable[[int], bool], f
     messages = reader.messages(connections=conns, **seek)
     for index, (conn, _, raw) in enumerate(messages, start=first if start_ns is not None else 0):
         if wanted(index):
-            yield decode_scan(bag, topic, reader.deserialize(raw, conn.msgtype), index)
+            scan = bag.decode_scan(topic, reader.deserialize(raw, conn.msgtype), index)
+            if scan is not None:  # pass 1 dropped it too: it is not wanted
+                yield scan
 
 
 def batched(items: Iterable[T], size: int) -> Iterator[list[T]]:

@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from canopy_kit.config import MappingConfig
 from canopy_kit.io.bag import BagSession, open_bag
+from canopy_kit.io.message_log import MessageLog, merged
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass, scan_count
 from canopy_kit.mapping.sensors import resolve_topics
@@ -163,7 +164,21 @@ def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | Non
         recovered=first.recovered, workers=len(parts),
         stray=sorted({(i, n) for p, c in zip(parts, chunks) for i, n in p.stray if i >= c.own}),
         scan_log_ns=last.scan_log_ns,  # the last chunk read every scan message from the start
-        rig=first.rig)
+        rig=first.rig, log=_stitched_log(chunks, parts))
+
+
+def _stitched_log(chunks: list[Chunk], parts: list[OdometryPass]) -> MessageLog | None:
+    """The scans' log from each chunk's own scans; the IMU's and GNSS's from the last chunk,
+    which read them from the start of the bag."""
+    if any(p.log is None for p in parts):
+        return None
+    topic = parts[0].topics.scans
+    log = MessageLog(parts[0].bag_path)
+    log.topics = dict(parts[-1].log.topics)  # type: ignore[union-attr]
+    ends = [c.own for c in chunks[1:]] + [np.inf]
+    log.topics[topic] = merged([p.log.topic(topic, "scans").restricted(c.own, end)  # type: ignore[union-attr]
+                                for p, c, end in zip(parts, chunks, ends, strict=True)])
+    return log
 
 
 def lidar_tilt_deg(rig: SensorRig | None) -> float:

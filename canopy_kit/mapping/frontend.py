@@ -125,7 +125,10 @@ class LidarFrontend:
             st.standstill = detect_standstill(series)
             st.rotations = RotationTrack(series, st.standstill.gyro_bias)
             self._imu_used = len(self.imu)
-            st.initial_rotation = st.standstill.level_rotation().as_matrix()
+            try:
+                st.initial_rotation = st.standstill.level_rotation().as_matrix()
+            except InputError as exc:
+                raise InputError(f"{self.imu.source or 'IMU'}: {exc}".replace(": IMU: ", ": ")) from None
             t_first = reference_time(first.times, first.stamp)
             if st.standstill.found and st.rotations.covers(st.standstill.end, t_first):
                 # The first sweep comes after the standstill (a late LiDAR, or a later part of
@@ -246,6 +249,9 @@ class LidarFrontend:
         # Few points above the ground (an open headland) make ICP weak: say so to the graph.
         uncertainty = float(np.clip(STRUCTURE_POINTS / max(len(odo_points), 1), 1.0, WEAK_REGISTRATION_MAX))
         pose = self._odometry.align(odo_points, guess)
+        if self._odometry.failed:  # no valid pose from ICP (non-finite): the prediction stands in
+            st.rejected_registrations += 1
+            uncertainty = WEAK_REGISTRATION_MAX
         if self._prev_t is not None:
             shift, turn = self._correction(guess, pose)
             # The limits below are per sweep of prediction: registering every n-th sweep

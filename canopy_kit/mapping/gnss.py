@@ -276,3 +276,21 @@ def report_warning(topic: str, report: dict) -> str | None:
         text += (f"; {outages['count']} outage(s), the longest {outages['longest_s']:.1f} s at "
                  f"{outages['longest_at_s']:.1f} s after the {report['time_origin']}")
     return text + "; the trajectory there rests on the LiDAR/IMU odometry alone"
+
+
+def invalid_fix_warning(topic: str, gnss: GnssSeries, reasons: np.ndarray) -> str | None:
+    """One line on fixes the receiver sent with numbers no position has (non-finite, out of
+    range) and on covariances it said were known that cannot be (non-finite, not positive):
+    the former dropped, the latter replaced by the default sigmas. None when there are none."""
+    bad = np.flatnonzero(np.isin(reasons, ("non_finite", "out_of_range")))
+    claimed = np.isin(covariance_types(gnss), (1, 2, 3)) & (reasons == "")
+    broken_cov = int((claimed & ~covariance_used(gnss)).sum())
+    parts = []
+    if len(bad):
+        parts.append(f"{len(bad)} of {len(reasons)} fixes had a non-finite or impossible latitude, "
+                     f"longitude or altitude and were dropped (first: fix {int(bad[0])} at "
+                     f"t={float(gnss.t[bad[0]]):.3f} s)")
+    if broken_cov:
+        parts.append(f"{broken_cov} fixes claimed a covariance whose diagonal is not finite and positive; "
+                     "the default sigmas stood in")
+    return f"GNSS topic {topic!r}: " + "; ".join(parts) if parts else None

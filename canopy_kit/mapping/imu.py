@@ -45,7 +45,12 @@ class Standstill:
 def level_rotation(specific_force: np.ndarray) -> Rotation:
     """Roll/pitch-only rotation mapping the specific-force direction onto +z (yaw kept 0)."""
     f = np.asarray(specific_force, float)
-    f = f / np.linalg.norm(f)
+    norm = float(np.linalg.norm(f))
+    if not np.isfinite(norm) or norm < 1e-3:  # no direction: the rotation would be NaN
+        raise InputError(f"IMU: the specific force averages {norm:.3g} m/s² where the robot stands "
+                         "still, so it gives no direction of gravity (a dead accelerometer, or "
+                         "linear_acceleration not filled in?); map without it: --set mapping.use_imu=false")
+    f = f / norm
     roll = np.arctan2(f[1], f[2])
     pitch = np.arctan2(-f[0], np.hypot(f[1], f[2]))
     return Rotation.from_euler("YX", [pitch, roll])

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from canopy_kit.errors import ProcessingError
+
 
 @dataclass
 class OdometrySettings:
@@ -44,6 +46,7 @@ class LidarOdometry:
         self.pose = np.eye(4) if initial_pose is None else np.array(initial_pose, float)
         self._kiss.last_pose = self.pose.copy()
         self.n_frames = 0
+        self.failed = False  # the last alignment gave no valid pose (the guess stands in)
 
     def register(self, points: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
         """Register deskewed sensor-frame ``points`` starting from ``initial_guess``; the new pose."""
@@ -54,18 +57,28 @@ class LidarOdometry:
     def align(self, points: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
         """ICP of ``points`` against the local map (no state change until :meth:`commit`)."""
         kiss = self._kiss
-        self._source, self._frame_downsample = kiss.voxelize(points)
-        self._guess = np.array(initial_guess, float)
+        points = np.asarray(points, np.float64)
+        self._source, self._frame_downsample = kiss.voxelize(points[np.isfinite(points).all(axis=1)])
+        self._guess = checked_pose(initial_guess, "the initial guess")
+        self.failed = False
         if self.n_frames == 0 or kiss.local_map.empty():
             return self._guess.copy()
         sigma = kiss.adaptive_threshold.get_threshold()
-        return kiss.registration.align_points_to_map(
+        if not (np.isfinite(sigma) and sigma > 0):
+            self.failed = True
+            return self._guess.copy()
+        pose = kiss.registration.align_points_to_map(
             points=self._source, voxel_map=kiss.local_map, initial_guess=self._guess,
             max_correspondance_distance=3 * sigma, kernel=sigma)
+        if not np.isfinite(pose).all():  # a failed registration: the prediction stands in
+            self.failed = True
+            return self._guess.copy()
+        return checked_pose(pose, "the registration")
 
     def commit(self, pose: np.ndarray) -> None:
         """Accept ``pose`` for the last aligned sweep: threshold model and local map updated."""
         kiss = self._kiss
+        pose = checked_pose(pose, "the committed pose")
         if self.n_frames > 0:
             kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(self._guess) @ pose)
         kiss.local_map.update(self._frame_downsample, pose)
@@ -73,3 +86,21 @@ class LidarOdometry:
         kiss.last_pose = pose
         self.pose = pose
         self.n_frames += 1
+
+
+def checked_pose(pose: np.ndarray, what: str) -> np.ndarray:
+    """A 4x4 pose safe to hand to KISS-ICP (Sophus aborts the process on a rotation that is not
+    orthogonal): finite, its rotation re-orthonormalised when rounding has bent it; a
+    :class:`ProcessingError` for a non-finite one."""
+    pose = np.array(pose, np.float64)
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise ProcessingError(f"odometry: {what} is not a finite 4x4 pose; registration cannot go on")
+    r = pose[:3, :3]
+    if np.abs(r.T @ r - np.eye(3)).max() > 1e-9 or np.linalg.det(r) < 0:
+        u, _, vt = np.linalg.svd(r)
+        r = u @ vt
+        if np.linalg.det(r) < 0:
+            r = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+        pose[:3, :3] = r
+    pose[3] = (0.0, 0.0, 0.0, 1.0)
+    return pose

@@ -18,6 +18,7 @@ import numpy as np
 from canopy_kit.config import MappingConfig
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.bag import BagSession, stray_times_warning
+from canopy_kit.io.message_log import MessageLog
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.frontend import (
     DROPOUT_S,
@@ -70,6 +71,8 @@ class OdometryPass:
     # The bag's log time (ns) of scan 0, 1, ... as far as they were read (the map pass seeks with it).
     scan_log_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     rig: SensorRig | None = None  # the frames the pass ran with
+    # What the reader met on each topic: messages used, dropped or trimmed, time spans, frames.
+    log: MessageLog | None = None
 
 
 def scan_count(bag: BagSession, topic: str) -> int:
@@ -95,7 +98,8 @@ class PassOne:
         self.rig = rig if rig is not None else resolve_rig(bag, self.topics, config)
         # ``lidar_only``: the IMU is collected (as recorded) but the front end does not use it.
         self.lidar_only = lidar_only
-        self.imu = ImuBuffer(mounting=self.rig.imu_mounting()) if self.topics.imu else None
+        self.imu = (ImuBuffer(mounting=self.rig.imu_mounting(), source=f"{bag.path}: topic {self.topics.imu!r}")
+                    if self.topics.imu else None)
         self.gnss = GnssBuffer() if self.topics.gnss else None
         self.frontend = LidarFrontend(config, None if lidar_only else self.imu,
                                       where=f"{bag.path}: topic {self.topics.scans!r}",
@@ -137,7 +141,8 @@ class PassOne:
         return OdometryPass(str(self.bag.path), self.topics, records, self.frontend.state, imu, self.gnss,
                             self.n_scans, self.n_without_time, self.first_stamp, self.last_stamp,
                             bag_warnings, self.bag.recovered, stray=stray,
-                            scan_log_ns=np.asarray(self.scan_log_ns, np.int64), rig=self.rig)
+                            scan_log_ns=np.asarray(self.scan_log_ns, np.int64), rig=self.rig,
+                            log=self.bag.log)
 
 
 def record(sweep: FrontendSweep) -> SweepRecord:
@@ -168,7 +173,9 @@ def _input_warnings(topics: SensorTopics, config: MappingConfig, bag_path: str) 
 
 def pass_warnings(p: OdometryPass, config: MappingConfig) -> list[str]:
     """Everything about the input and the odometry a user should hear of, one line each."""
-    out = list(p.bag_warnings) + _input_warnings(p.topics, config, p.bag_path)
+    out = list(p.bag_warnings) + list(p.topics.notes) + _input_warnings(p.topics, config, p.bag_path)
+    if p.log is not None:
+        out += p.log.warnings()
     if p.stray:
         out.append(stray_times_warning(p.bag_path, p.topics.scans, p.stray))
     st = p.state
@@ -215,4 +222,4 @@ def quality_flags(p: OdometryPass, frame: LocalFrame | None, imu: object) -> lis
              "point_times_dropped": bool(p.stray),
              "standing_still": st.max_displacement < STANDSTILL_M, "no_imu": imu is None,
              "not_georeferenced": frame is None}
-    return [name for name, raised in flags.items() if raised]
+    return [name for name, raised in flags.items() if raised] + (p.log.flags() if p.log is not None else [])

@@ -33,6 +33,7 @@ from canopy_kit.mapping.gnss import (
     GnssEpochs,
     fix_report,
     gnss_epochs,
+    invalid_fix_warning,
     local_frame_for,
     rejection_reasons,
     report_warning,
@@ -40,8 +41,8 @@ from canopy_kit.mapping.gnss import (
 )
 from canopy_kit.mapping.gnss_jumps import odometry_outliers
 from canopy_kit.mapping.kernels import warm_up
-from canopy_kit.mapping.passone import PassOne, pass_warnings, quality_flags
-from canopy_kit.mapping.sensors import GnssBuffer, resolve_topics
+from canopy_kit.mapping.passone import OdometryPass, PassOne, pass_warnings, quality_flags
+from canopy_kit.mapping.sensors import GnssBuffer, SensorTopics, resolve_topics
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
 from canopy_kit.parallel import cpu_seconds
 
@@ -192,6 +193,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "bag": str(bag_path),
         "topics": {"pointcloud": one.topics.scans, "imu": one.topics.imu if imu is not None else None,
                    "gnss": one.topics.gnss if frame is not None else None},
+        "inputs": input_summary(one),
         "scans": one.n_scans,
         "sweeps_mapped": len(records),
         "sweeps_registered": len(registered),
@@ -209,7 +211,7 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "registrations_rejected": st.rejected_registrations,
         "ground_corrections": st.ground_corrections,
         "georeferenced": frame is not None,
-        "quality_flags": quality_flags(one, frame, imu),
+        "quality_flags": quality_flags(one, frame, imu) + gnss_flags(gnss_diag),
         "odometry_workers": one.workers,
         "fusion": fused.diagnostics,
         "timing": timing,
@@ -227,7 +229,31 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         if fused.gnss_bias is not None:
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
-    return MappingResult(cloud, table, frame, diagnostics, warnings, config, rig, pose_table(t_ref, poses))
+    return MappingResult(cloud, table, frame, diagnostics, warnings, config_used(config, one.topics), rig,
+                         pose_table(t_ref, poses))
+
+
+def gnss_flags(gnss_diag: dict) -> list[str]:
+    """``gnss_fixes_dropped`` when fixes carried non-finite or impossible positions."""
+    rejected = gnss_diag.get("rejected", {})
+    return ["gnss_fixes_dropped"] if rejected.get("non_finite", 0) + rejected.get("out_of_range", 0) else []
+
+
+def config_used(config: MappingConfig, topics: SensorTopics) -> MappingConfig:
+    """``config`` with the topics actually read filled in (written next to the results, so a
+    run with that config reads the same topics even when the bag offers several)."""
+    from dataclasses import replace
+
+    return replace(config, pointcloud_topic=topics.scans, imu_topic=topics.imu or config.imu_topic,
+                   gnss_topic=topics.gnss or config.gnss_topic)
+
+
+def input_summary(one: OdometryPass) -> dict:
+    """Per role (pointcloud, imu, gnss): the topic read, its frame, messages used and dropped,
+    and the time span of the used ones (``mapping.json`` → ``diagnostics.inputs``)."""
+    if one.log is None:
+        return {}
+    return one.log.summary({"pointcloud": one.topics.scans, "imu": one.topics.imu, "gnss": one.topics.gnss})
 
 
 def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig, warnings: list[str],
@@ -255,9 +281,7 @@ def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig, warnings: lis
     diag = fix_report(series, reasons, span)
     diag.update({"fixes": epochs.n_fixes, "epochs": len(epochs.t), "superseded": epochs.n_superseded,
                  "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])), "crs": frame.crs})
-    line = report_warning(topic, diag)
-    if line:
-        warnings.append(line)
+    warnings += [line for line in (report_warning(topic, diag), invalid_fix_warning(topic, series, reasons)) if line]
     return frame, epochs, diag
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -19,13 +19,12 @@ from canopy_kit.io.bag import (
     IMU,
     LIDAR_TYPES,
     NAVSATFIX,
-    VELODYNE_SCAN,
     BagSession,
     GnssSeries,
     ImuSeries,
     Scan,
 )
-from canopy_kit.io.velodyne_ros import scan_from_message
+from canopy_kit.io.message_log import TopicLog
 from canopy_kit.mapping.imu_mounting import ImuMounting
 
 
@@ -36,17 +35,35 @@ class SensorTopics:
     scans: str
     imu: str | None
     gnss: str | None
+    notes: list[str] = field(default_factory=list)  # topics chosen among several, one line each
 
 
 def resolve_topics(bag: BagSession, scans: str = "", imu: str = "", gnss: str = "",
                    use_imu: bool = True, use_gnss: bool = True) -> SensorTopics:
     """Named topics (checked) or the busiest topic of each message type; the scans are a
-    PointCloud2 topic or, when the bag has none (or it is named), a VelodyneScan topic."""
+    PointCloud2 topic or, when the bag has none (or it is named), a VelodyneScan topic.
+    A topic chosen among several of its type is named in ``notes``."""
     scan_topic = bag.find_topic(LIDAR_TYPES, scans or None)
     assert scan_topic is not None
     imu_topic = bag.find_topic(IMU, imu or None, required=bool(imu)) if use_imu else None
     gnss_topic = bag.find_topic(NAVSATFIX, gnss or None, required=bool(gnss)) if use_gnss else None
-    return SensorTopics(scan_topic, imu_topic, gnss_topic)
+    chosen = [(scan_topic, scans, "pointcloud_topic"), (imu_topic, imu, "imu_topic"),
+              (gnss_topic, gnss, "gnss_topic")]
+    notes = [_choice_note(bag, topic, setting) for topic, named, setting in chosen if topic and not named]
+    return SensorTopics(scan_topic, imu_topic, gnss_topic, [n for n in notes if n])
+
+
+def _choice_note(bag: BagSession, topic: str, setting: str) -> str | None:
+    """The warning for a topic chosen among several of its type (None: it was the only one)."""
+    topics = bag.topics()
+    msgtype = next(t.msgtype for t in topics if t.name == topic)
+    same = [t for t in topics if t.msgtype == msgtype and t.count > 0]
+    if len(same) < 2:
+        return None
+    listed = ", ".join(f"{t.name!r} ({t.count} messages)" for t in same)
+    return (f"{bag.path}: {len(same)} {msgtype} topics: {listed}; read {topic!r} (the busiest, the "
+            f"first by name among equals; mapping.{setting} chooses another) and wrote it to the "
+            "config saved with the results")
 
 
 class _Growable:
@@ -74,9 +91,10 @@ class ImuBuffer:
     the LiDAR clock (see :mod:`.imu_mounting`); :attr:`last_time` is on that clock too.
     """
 
-    def __init__(self, frame_id: str = "", mounting: ImuMounting | None = None) -> None:
+    def __init__(self, frame_id: str = "", mounting: ImuMounting | None = None, source: str = "") -> None:
         self._rows = _Growable(7)
         self.frame_id = frame_id
+        self.source = source  # "<bag>: topic '<imu topic>'", to start errors about these samples
         self.mounting = None if mounting is None or mounting.is_identity else mounting
 
     def __len__(self) -> int:
@@ -128,25 +146,6 @@ class GnssBuffer:
         r = r[np.argsort(r[:, 0], kind="stable")]
         return GnssSeries(r[:, 0].copy(), r[:, 1].copy(), r[:, 2].copy(), r[:, 3].copy(),
                           r[:, 4].astype(int), r[:, 5:14].copy(), r[:, 14].astype(int))
-
-
-def decode_scan(bag: BagSession, topic: str, msg: object, index: int) -> Scan:
-    """A PointCloud2 message (same conventions as ``BagSession.scans``) or a VelodyneScan of raw
-    packets (:mod:`canopy_kit.io.velodyne_ros`) as a :class:`Scan`."""
-    if getattr(msg, "__msgtype__", "") == VELODYNE_SCAN:
-        scan = scan_from_message(msg, f"{bag.path}: topic {topic!r}, message {index}", index)
-        xyz, fields, times = bag.drop_stray_times(topic, index, scan.xyz, scan.fields, scan.times)
-        return Scan(scan.stamp, xyz, fields, times, scan.frame_id, index)
-    where = f"{bag.path}: topic {topic!r}, scan {index}"
-    points = pc2.decode(msg, where)
-    xyz = pc2.xyz_from(points, where)
-    stamp = pc2.stamp_seconds(msg.header)  # type: ignore[attr-defined]
-    names = points.dtype.names or ()
-    time_name = pc2.time_field_name(names)
-    times = pc2.point_times(points[time_name], stamp) if time_name else None
-    fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
-    xyz, fields, times = bag.drop_stray_times(topic, index, xyz, fields, times)
-    return Scan(stamp, xyz, fields, times, msg.header.frame_id, index)  # type: ignore[attr-defined]
 
 
 _IMU_SIZE_AFTER_HEADER = 296  # orientation, 3 vectors and 3 covariances: 37 float64
@@ -202,7 +201,10 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
         {topics.gnss} if topics.gnss and gnss is not None else set())
     conns = [c for c in reader.connections if c.topic in wanted]
     ros2 = getattr(reader, "is2", None)  # None: a recovered bag's reader; decode fully
-    index = 0
+    scan_log = bag.log.topic(topics.scans, "scans")
+    imu_log = bag.log.topic(topics.imu, "IMU samples") if topics.imu and imu is not None else None
+    gnss_log = bag.log.topic(topics.gnss, "GNSS fixes") if topics.gnss and gnss is not None else None
+    index = n_imu = n_gnss = 0
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
             if log_times is not None and conn.topic == topics.scans:
@@ -210,11 +212,11 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
             if index < first_scan and conn.topic == topics.scans:
                 index += 1
                 continue
-            if imu is not None and ros2 is not None and conn.topic == topics.imu:
+            if imu_log is not None and ros2 is not None and conn.topic == topics.imu:
                 fields = imu_fields(raw, ros2)
                 if fields is not None:
-                    imu.frame_id = fields[1]
-                    imu.append(fields[0], fields[2], fields[3])
+                    _add_imu(bag, imu, imu_log, n_imu, timestamp, *fields)  # type: ignore[arg-type]
+                    n_imu += 1
                     continue
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
@@ -223,19 +225,37 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
                     f"{bag.path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} message "
                     f"at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})") from None
             if conn.topic == topics.scans:
-                yield decode_scan(bag, conn.topic, msg, index)
+                scan_log.watch_clock(index, pc2.stamp_seconds(msg.header), timestamp)
+                scan = bag.decode_scan(conn.topic, msg, index)
+                if scan is not None:
+                    yield scan
                 index += 1
                 if end_scan is not None and index >= end_scan:
-                    return
-            elif conn.topic == topics.imu and imu is not None:
+                    break
+            elif imu_log is not None and conn.topic == topics.imu:
                 w, a = msg.angular_velocity, msg.linear_acceleration
-                imu.frame_id = msg.header.frame_id
-                imu.append(pc2.stamp_seconds(msg.header), (w.x, w.y, w.z), (a.x, a.y, a.z))
-            elif conn.topic == topics.gnss and gnss is not None:
-                gnss.append(pc2.stamp_seconds(msg.header), msg.latitude, msg.longitude, msg.altitude,
+                _add_imu(bag, imu, imu_log, n_imu, timestamp, pc2.stamp_seconds(msg.header),  # type: ignore[arg-type]
+                         msg.header.frame_id, (w.x, w.y, w.z), (a.x, a.y, a.z))
+                n_imu += 1
+            elif gnss_log is not None and conn.topic == topics.gnss:
+                stamp = pc2.stamp_seconds(msg.header)
+                gnss_log.watch_clock(n_gnss, stamp, timestamp)
+                gnss_log.use(n_gnss, stamp, msg.header.frame_id)
+                n_gnss += 1
+                gnss.append(stamp, msg.latitude, msg.longitude, msg.altitude,  # type: ignore[union-attr]
                             int(msg.status.status), np.asarray(msg.position_covariance, float),
                             int(msg.position_covariance_type))
     except InputError:
         raise
     except Exception as exc:
         raise InputError(f"{bag.path}: reading failed ({type(exc).__name__}: {exc})") from None
+    bag.log.check()
+
+
+def _add_imu(bag: BagSession, imu: ImuBuffer, log: TopicLog, index: int, log_ns: int, stamp: float,
+             frame_id: str, gyro: tuple[float, float, float], acc: tuple[float, float, float]) -> None:
+    """One IMU sample into the buffer, unless it is unusable (then dropped and counted)."""
+    log.watch_clock(index, stamp, log_ns)
+    if bag.imu_sample_ok(log, index, stamp, gyro, acc, frame_id):
+        imu.frame_id = frame_id
+        imu.append(stamp, gyro, acc)

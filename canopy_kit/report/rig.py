@@ -20,22 +20,39 @@ def _pose(entry: dict[str, Any] | None) -> tuple[str, str]:
     return text(entry["translation"], 3), text(entry["rpy_deg"], 2)
 
 
-def rig_table(rig: dict[str, Any]) -> pd.DataFrame:
-    """One row per sensor: its frame, its mount on the vehicle and where the mount came from."""
+def rig_table(rig: dict[str, Any], inputs: dict[str, Any] | None = None) -> pd.DataFrame:
+    """One row per sensor: the topic read (messages used of those met, time span), its frame,
+    its mount on the vehicle and where the mount came from."""
     sources = rig.get("sources", {})
     mounts = rig.get("mounts_in_base", {})
-    rows = [("LiDAR", rig.get("lidar_frame", ""), "lidar", sources.get("base", ""))]
+    rows = [("LiDAR", rig.get("lidar_frame", ""), "lidar", sources.get("base", ""), "pointcloud")]
     if rig.get("imu_frame"):
-        rows.append(("IMU", rig["imu_frame"], "imu", sources.get("imu", "")))
+        rows.append(("IMU", rig["imu_frame"], "imu", sources.get("imu", ""), "imu"))
     if rig.get("gnss_frame"):
-        rows.append(("GNSS antenna", rig["gnss_frame"], "gnss", sources.get("gnss", "")))
+        rows.append(("GNSS antenna", rig["gnss_frame"], "gnss", sources.get("gnss", ""), "gnss"))
     out = []
-    for sensor, frame, key, source in rows:
+    for sensor, frame, key, source, role in rows:
         position, rpy = _pose(mounts.get(key))
-        out.append({"sensor": sensor, "frame": frame,
-                    f"position in {rig.get('base_frame', 'base')} [m]": position,
+        row = {"sensor": sensor}
+        if inputs:
+            row.update(_topic_columns((inputs or {}).get(role)))
+        row.update({"frame": frame, f"position in {rig.get('base_frame', 'base')} [m]": position,
                     "roll, pitch, yaw [deg]": rpy if key != "gnss" else "", "source": source})
+        out.append(row)
     return pd.DataFrame(out)
+
+
+def _topic_columns(summary: dict[str, Any] | None) -> dict[str, str]:
+    """Topic, messages used of those read, and the time span (bag clock) of the used ones."""
+    if not summary:
+        return {"topic": "not read", "messages used": "", "time span [s]": ""}
+    span = ""
+    if summary.get("first_stamp") is not None:
+        span = f"{summary['first_stamp']:.3f} - {summary['last_stamp']:.3f} ({summary['duration_s']:.1f} s)"
+    used = f"{summary['used']} of {summary['messages']}"
+    if summary.get("trimmed"):
+        used += f" ({summary['trimmed']} with extra bytes ignored)"
+    return {"topic": summary["topic"], "messages used": used, "time span [s]": span}
 
 
 def rig_section(mapping: dict[str, Any]) -> ReportSection | None:
@@ -57,7 +74,9 @@ def rig_section(mapping: dict[str, Any]) -> ReportSection | None:
         text += "."
     if "lidar_tilt_from_gravity_deg" in ext:
         text += f" LiDAR tilted {ext['lidar_tilt_from_gravity_deg']:.1f} deg from the vertical at the start."
-    return ReportSection("Sensor rig", text=text, table=rig_table(rig))
+    if mapping.get("bag"):
+        text = f"Read from {mapping['bag']}. " + text
+    return ReportSection("Sensor rig and topics", text=text, table=rig_table(rig, mapping.get("inputs")))
 
 
 def rig_check(mapping: dict[str, Any]) -> Check | None:

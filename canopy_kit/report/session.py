@@ -98,7 +98,7 @@ def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
 def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
     """The report of a run as one self-contained HTML page."""
     from canopy_kit.config import config_toml
-    from canopy_kit.pipeline import comparable_aerial_sphere
+    from canopy_kit.pipeline import comparable_aerial_sphere, config_used
     from canopy_kit.report import plots
 
     cloud, seg = ctx.mapping.map, ctx.segmentation
@@ -185,5 +185,5 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]
     return render_report(f"canopy-kit report: {ctx.config.name}", summary, table, sections,
-                         build_checks(metrics, trees), config_toml(ctx.config),
+                         build_checks(metrics, trees), config_toml(config_used(ctx)),
                          subtitle="Per-tree canopy volumes from a mobile LiDAR drive")

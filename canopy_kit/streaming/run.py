@@ -59,9 +59,18 @@ def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
         trees.to_parquet(tmp, index=False)
     files["trees.parquet"] = out / "trees.parquet"
     files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
-    files["config.toml"] = write_config(config, out / "config.toml")
+    files["config.toml"] = write_config(_config_used(config, stream.source.topics), out / "config.toml")
     files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
     return Results(out, trees, metrics, files, list(metrics["warnings"]))
+
+
+def _config_used(config: PipelineConfig, topics: object | None) -> PipelineConfig:
+    """``config`` with the topics the stream read (see ``mapping.pipeline.config_used``)."""
+    from dataclasses import replace
+
+    from canopy_kit.mapping.pipeline import config_used
+
+    return config if topics is None else replace(config, mapping=config_used(config.mapping, topics))  # type: ignore[arg-type]
 
 
 def _live_cells(tree: StreamedTree, t0: float) -> list[str]:

@@ -45,6 +45,7 @@ class SweepSource:
     gnss_lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # antenna in the LiDAR frame
     n_scans: int = 0
     warnings: list[str] = field(default_factory=list)
+    topics: object | None = None  # mapping.sensors.SensorTopics once the bag is open
 
     def __iter__(self) -> Iterator[OdometrySweep]:
         from canopy_kit.errors import InputError
@@ -65,9 +66,11 @@ class SweepSource:
                                  "the whole drive before the first sweep; it does not stream. Estimate the mount "
                                  "with `canopy-kit map BAG --calibrate-extrinsics` and stream with the rig.toml it "
                                  "writes (--rig)")
-            self.warnings.extend(rig.warnings)
+            self.topics = topics
+            self.warnings.extend(rig.warnings + topics.notes)
             self.gnss_lever_arm = rig.gnss_lever_arm
-            imu = ImuBuffer(mounting=rig.imu_mounting()) if topics.imu else None
+            imu = (ImuBuffer(mounting=rig.imu_mounting(), source=f"{bag.path}: topic {topics.imu!r}")
+                   if topics.imu else None)
             self.gnss = GnssBuffer() if topics.gnss else None
             if topics.gnss is None:
                 self.warnings.append(f"{self.bag}: no GNSS topic: tree positions stay in the "
@@ -93,7 +96,7 @@ class SweepSource:
                 n_sweeps += 1
                 yield OdometrySweep(scan.index, sweep.t_ref, pose, PointCloud(xyz, fields))
             require_sweeps(n_sweeps, where)
-            self.warnings.extend(frontend.state.warnings)
+            self.warnings.extend(frontend.state.warnings + bag.log.warnings())
 
 
 class RunningGeoreference:

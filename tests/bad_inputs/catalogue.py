@@ -481,3 +481,7 @@ CASES: tuple[Case, ...] = (
          "then exit 3, leaving sfm/ behind)", 2, _drone(drone.one_place, name_folder=True),
          ("all taken within",)),
 )
+
+from bad_inputs.message_cases import MESSAGE_CASES  # noqa: E402 (they use Case)
+
+CASES = CASES + MESSAGE_CASES
