@@ -84,6 +84,20 @@ def test_a_late_or_repeated_stamp_passes_and_a_clock_that_stays_behind_is_an_err
     assert "stay behind for 12 messages over 1.1 s of recording" in str(err.value)
 
 
+def test_a_second_pass_over_the_bag_is_not_a_clock_jump() -> None:
+    """Calibration reads the bag twice through one session: the second pass starts again at
+    message 0, whose stamp is behind the first pass's last (measured: exit 2 on a tower
+    session before this was told apart)."""
+    log = TopicLog("/imu/data", "IMU samples", "bag")
+    ns = 1_000_000_000
+    for _ in range(2):
+        for k in range(300):
+            log.watch_clock(k, 100.0 + 0.005 * k, k * ns // 200)
+    with pytest.raises(InputError, match="jump back"):  # a real jump within the second pass
+        for k in range(300, 600):
+            log.watch_clock(k, 80.0 + 0.005 * k, k * ns // 200)
+
+
 def test_chunk_logs_restricted_to_their_own_scans_merge_into_the_whole() -> None:
     parts = []
     for first, last, bad in ((0, 60, {10}), (40, 100, {50, 90})):  # chunk 2 re-reads 40-59

@@ -34,9 +34,12 @@ def _selected(request: pytest.FixtureRequest) -> list[Case]:
     that ``-k las-`` does not map every bag first."""
     wanted = set()
     for item in request.session.items:
+        if getattr(item, "module", None) is not request.module:
+            continue  # other modules' tests may have a parameter called "case" too
         callspec = getattr(item, "callspec", None)
-        if callspec is not None and "case" in callspec.params:
-            wanted.add(callspec.params["case"].id)
+        case = callspec.params.get("case") if callspec is not None else None
+        if isinstance(case, Case):
+            wanted.add(case.id)
         elif "outcomes" in getattr(item, "fixturenames", ()):
             return list(CASES)
     return [c for c in CASES if c.id in wanted]

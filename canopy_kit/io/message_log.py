@@ -66,6 +66,7 @@ class TopicLog:
     index_range: tuple[int, int] = (0, 0)  # [first, last + 1) of the indices seen
     _latest: float = -math.inf  # newest header stamp so far
     _behind: tuple[int, float, int, float] | None = None  # first index, stamp, log ns; run length
+    _clock_index: int = -1  # the last message index the clock was watched at
 
     def _see(self, index: int) -> None:  # indices come in increasing order
         if not self.seen:
@@ -105,6 +106,9 @@ class TopicLog:
 
     def watch_clock(self, index: int, stamp: float, log_ns: int) -> None:
         """Raise when the header stamps jumped back and stay behind (see ``CLOCK_JUMP_S``)."""
+        if index <= self._clock_index:  # the bag read again from an earlier message: a new pass
+            self._latest, self._behind = -math.inf, None
+        self._clock_index = index
         if stamp > self._latest:
             self._latest, self._behind = stamp, None
             return
