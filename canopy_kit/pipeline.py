@@ -49,6 +49,7 @@ class RunContext:
     evaluation: dict[str, Any] = field(default_factory=dict)
     truth_matches: pd.DataFrame | None = None  # per true tree: status and matched segment
     truth_dir: Path | None = None  # simulated session the run was checked against
+    layout: Any = None  # row and tree spacing, trunks per segment (segment.layout.Layout)
 
 
 def run(config: PipelineConfig, bag: str | Path, out: str | Path,
@@ -100,6 +101,7 @@ def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
         gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
         ctx.aerial = cache.get_or_compute(
             "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report))
+    ctx.layout = layout_stage(ctx)
     ctx.table = tree_table(ctx)
     if truth is not None:
         from canopy_kit.validation import evaluate_against_truth
@@ -167,6 +169,14 @@ def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
     return table
 
 
+def layout_stage(ctx: RunContext) -> Any:
+    """Row and tree spacing and the trunks under each segment, measured on the map."""
+    from canopy_kit.segment.layout import measure_layout
+
+    seg = ctx.segmentation
+    return measure_layout(ctx.mapping.map.xyz, seg.height, seg, tuple(ctx.config.preprocess.stem_band))
+
+
 def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -> Any:
     """Drone photogrammetry ground truth, seeded with the LiDAR tree positions."""
     from ground_truth import process_flight
@@ -195,6 +205,8 @@ def tree_table(ctx: RunContext) -> pd.DataFrame:
 
     trees = ctx.trees.copy()
     trees["segment_flags"] = crown_outliers(trees)
+    if ctx.layout is not None:
+        trees["n_trunks"] = ctx.layout.trunks_per_segment(trees["segment"].to_numpy())
     frame = getattr(ctx.mapping, "frame", None)
     if frame is not None and len(trees):
         xyz = np.column_stack([trees["x"], trees["y"], np.zeros(len(trees))])
@@ -262,6 +274,8 @@ def flagged(trees: pd.DataFrame, column: str) -> pd.Series:
 def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
     """Summary numbers of the run (mapping diagnostics, counts, agreement, evaluation)."""
     from canopy_kit import stats
+    from canopy_kit.checks import Check, run_checks
+    from canopy_kit.checks import summary as checks_summary
 
     m: dict[str, Any] = {"n_trees": int(len(trees)), "preset": ctx.config.name,
                          "segmenter": ctx.config.segment.method}
@@ -282,9 +296,13 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
                 good = ok & trees[col].notna()
                 m["aerial"][col] = stats.agreement(trees.loc[good, col].to_numpy(),
                                                    trees.loc[good, "aerial_sphere_volume_m3"].to_numpy()).as_dict()
+    if ctx.layout is not None:
+        m["layout"] = ctx.layout.as_dict()
     if ctx.evaluation:
         m["evaluation"] = ctx.evaluation
     m["warnings"] = warnings
+    m["checks"] = [c.as_dict() for c in run_checks(m, trees, ctx.config.checks)]
+    m["checks_summary"] = checks_summary([Check(**c) for c in m["checks"]])
     return m
 
 

@@ -232,7 +232,8 @@ def test_shipped_presets_know_the_rig_settings() -> None:
 def test_report_shows_the_rig_and_checks_the_imu_mount() -> None:
     from canopy_kit.mapping.extrinsics import SensorRig
     from canopy_kit.report.html import render_report
-    from canopy_kit.report.rig import rig_check, rig_section
+    from canopy_kit.checks import imu_mount_check as rig_check
+    from canopy_kit.report.rig import rig_section
 
     base_from_lidar = from_rpy([0.3, 0, 1.9], [0, 12, 180])
     base_from_imu = from_rpy([0.3, 0, 1.55], [180, 0, 90])
@@ -251,8 +252,8 @@ def test_report_shows_the_rig_and_checks_the_imu_mount() -> None:
     assert table.loc["LiDAR", "roll, pitch, yaw [deg]"] in ("0.00, 12.00, 180.00", "0.00, 12.00, -180.00")
     assert "2.60 deg from the given mount" in section.text
     check = rig_check(diag)
-    assert check is not None and check.passed is False and check.target == "≤ 2°"
-    assert rig_check({**diag, "extrinsics": {**diag["extrinsics"], "difference_deg": 0.4}}).passed is True
+    assert check is not None and check.status == "fail" and check.threshold == "fail > 2°"
+    assert rig_check({**diag, "extrinsics": {**diag["extrinsics"], "difference_deg": 0.4}}).status == "pass"
     page = render_report("r", {}, section.table, [section], [check], "")
     assert "Sensor rig" in page and "imu_link" in page and "IMU mount agrees with the drive" in page
 

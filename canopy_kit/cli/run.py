@@ -8,6 +8,8 @@ import typer
 
 from canopy_kit.cli.common import ASSUME_IDENTITY_OPTION, CALIBRATE_OPTION, RIG_OPTION, preset_help
 
+CHECKS_FAILED_EXIT = 4  # run --strict: every output written, but a check failed
+
 
 def run(
     bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
@@ -22,8 +24,14 @@ def run(
     rig: Path = RIG_OPTION,
     assume_identity: bool = ASSUME_IDENTITY_OPTION,
     calibrate: bool = CALIBRATE_OPTION,
+    strict: bool = typer.Option(False, "--strict", help="Exit with code 4 when any check fails "
+                                "(after writing every output: they should not be trusted)"),
 ) -> None:
-    """Map, segment, measure and (optionally) validate one field session; write the report."""
+    """Map, segment, measure and (optionally) validate one field session; write the report.
+
+    Exit codes: 0 done (also when checks failed, unless --strict), 2 bad input, 3 processing
+    failed, 4 with --strict: done, but a check failed (docs/RELIABILITY.md).
+    """
     from canopy_kit.cli.common import parse_overrides, progress_bar
     from canopy_kit.config import load_preset, merge
     from canopy_kit.pipeline import run as run_pipeline
@@ -40,6 +48,8 @@ def run(
         results = run_pipeline(config, bag, out, drone_images=drone_images, truth=truth,
                                use_cache=not no_cache, progress=progress)
     print_results(results)
+    if strict and results.metrics.get("checks_summary", {}).get("fail", 0):
+        raise typer.Exit(CHECKS_FAILED_EXIT)
 
 
 def print_results(results) -> None:  # noqa: ANN001
@@ -74,3 +84,11 @@ def print_results(results) -> None:  # noqa: ANN001
     for w in results.warnings:
         console.print(f"  [yellow]warning[/]: {w}")
     console.print(f"  report: {results.files['report.html']}")
+    bad = [c for c in m.get("checks", []) if c["status"] == "fail"]
+    warned = sum(1 for c in m.get("checks", []) if c["status"] == "warn")
+    if bad:
+        names = "; ".join(f"{c['name']} ({c['value']})" for c in bad)
+        console.print(f"[bold red]{len(bad)} check{'s' if len(bad) > 1 else ''} failed: do not trust "
+                      f"this run[/]: {names}")
+    elif warned:
+        console.print(f"[yellow]{warned} check{'s' if warned > 1 else ''} warned[/], none failed")

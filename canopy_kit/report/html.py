@@ -9,18 +9,10 @@ from typing import Any
 
 import pandas as pd
 
+from canopy_kit.checks import Check, failed
 from canopy_kit.io.atomic import atomic_write_text
 
-
-@dataclass
-class Check:
-    """One validation check shown with a pass/fail badge."""
-
-    name: str
-    passed: bool | None
-    value: str
-    target: str = ""
-    note: str = ""
+__all__ = ["Check", "ReportSection", "render_report", "table_html", "verdict", "write_report"]
 
 
 @dataclass
@@ -62,6 +54,22 @@ def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3) -> str:
             f'<tbody>{"".join(rows)}</tbody></table>')
 
 
+def verdict(checks: list[Check]) -> dict[str, Any]:
+    """The report's headline: do not trust (a check failed), caution (one warned) or fine."""
+    bad = failed(checks)
+    warned = [c for c in checks if c.status == "warn"]
+    if bad:
+        return {"level": "fail", "title": f"Do not trust this run: {len(bad)} "
+                f"check{'s' if len(bad) > 1 else ''} failed",
+                "lines": [f"{c.name}: {c.value} ({c.threshold})" for c in bad]}
+    if warned:
+        return {"level": "warn", "title": f"Use with care: {len(warned)} "
+                f"check{'s' if len(warned) > 1 else ''} warned, none failed",
+                "lines": [f"{c.name}: {c.value}" + (f" ({c.threshold})" if c.threshold else "")
+                          for c in warned]}
+    return {"level": "pass", "title": "Every check passed", "lines": []}
+
+
 def render_report(title: str, summary: dict[str, Any], trees: pd.DataFrame,
                   sections: list[ReportSection], checks: list[Check], config_toml: str,
                   subtitle: str = "") -> str:
@@ -81,8 +89,11 @@ def render_report(title: str, summary: dict[str, Any], trees: pd.DataFrame,
     return template.render(
         title=title, subtitle=subtitle, summary=summary,
         trees_table=jinja2.utils.markupsafe.Markup(table_html(trees, "trees")),
-        n_trees=len(trees), sections=section_ctx, checks=checks,
-        n_passed=sum(1 for c in checks if c.passed), n_checks=sum(1 for c in checks if c.passed is not None),
+        n_trees=len(trees), sections=section_ctx, checks=checks, verdict=verdict(checks),
+        n_passed=sum(1 for c in checks if c.status == "pass"),
+        n_checks=sum(1 for c in checks if c.status in ("pass", "fail")),
+        n_warned=sum(1 for c in checks if c.status == "warn"),
+        n_info=sum(1 for c in checks if c.status == "info"),
         config_toml=config_toml,
     )
 

@@ -1,6 +1,6 @@
 """The report's sensor-rig section: which frame each sensor stamped, where its mount came
 from, and whether the drive agrees with the IMU mount (``mapping.json``'s ``rig`` and
-``extrinsics`` diagnostics)."""
+``extrinsics`` diagnostics; the check itself is ``checks.imu_mount_check``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any
 
 import pandas as pd
 
-from canopy_kit.report.html import Check, ReportSection
+from canopy_kit.report.html import ReportSection
 
 
 def _pose(entry: dict[str, Any] | None) -> tuple[str, str]:
@@ -77,15 +77,3 @@ def rig_section(mapping: dict[str, Any]) -> ReportSection | None:
     if mapping.get("bag"):
         text = f"Read from {mapping['bag']}. " + text
     return ReportSection("Sensor rig and topics", text=text, table=rig_table(rig, mapping.get("inputs")))
-
-
-def rig_check(mapping: dict[str, Any]) -> Check | None:
-    """Pass when the drive puts the IMU where the rig says (hand-eye on the rotations)."""
-    ext = mapping.get("extrinsics", {})
-    if "difference_deg" not in ext or ext.get("mode") == "calibrate":
-        return None
-    angle = float(ext["difference_deg"])
-    tolerance_deg = float(ext.get("tolerance_deg", 2.0))
-    return Check("IMU mount agrees with the drive (gyro vs LiDAR rotations)", angle <= tolerance_deg,
-                 f"{angle:.2f}°", f"≤ {tolerance_deg:g}°",
-                 f"mount from {mapping.get('rig', {}).get('sources', {}).get('imu', '?')}")

@@ -7,8 +7,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from canopy_kit.checks import Check
 from canopy_kit.report.figures import figure_to_data_uri
-from canopy_kit.report.html import Check, ReportSection, render_report
+from canopy_kit.report.html import ReportSection, render_report
 
 TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
                  "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
@@ -22,77 +23,6 @@ def _fmt(value: float | None, unit: str = "", digits: int = 2) -> str:
     if value is None or (isinstance(value, float) and not np.isfinite(value)):
         return "n/a"
     return f"{value:.{digits}f}{unit}"
-
-
-def build_checks(metrics: dict[str, Any], trees: pd.DataFrame) -> list[Check]:
-    """Validation checks with targets; ``passed`` None for information only."""
-    checks = [Check("trees segmented", len(trees) > 0, str(len(trees)), "≥ 1")]
-    share = metrics.get("flagged_volumes", 0) / max(len(trees), 1)
-    checks.append(Check("volumes flagged as unreliable", share <= 0.10,
-                        f"{metrics.get('flagged_volumes', 0)} ({100 * share:.0f} %)", "≤ 10 % of trees"))
-    if "flagged_segments" in metrics:
-        from canopy_kit.pipeline import flagged
-
-        odd = trees.loc[flagged(trees, "segment_flags"), "tree_id"].astype(str).tolist()
-        share = metrics["flagged_segments"] / max(len(trees), 1)
-        checks.append(Check("crowns unlike the others (below 0.5x or above 1.6x the median "
-                            "diameter: fragments or merged trees?)", share <= 0.10,
-                            f"{metrics['flagged_segments']} ({100 * share:.0f} %)", "≤ 10 % of trees",
-                            ", ".join(odd[:12]) + (" ..." if len(odd) > 12 else "")))
-    from canopy_kit.report.rig import rig_check
-
-    imu_check = rig_check(metrics.get("mapping", {}))
-    if imu_check is not None:
-        checks.append(imu_check)
-    mapping = metrics.get("evaluation", {}).get("mapping", {})
-    if "ate_rmse_m" in mapping:
-        checks.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
-                            _fmt(mapping["ate_rmse_m"], " m", 3), "≤ 0.20 m"))
-    if "drift_percent" in mapping:
-        checks.append(Check("drift (% of path length)", mapping["drift_percent"] <= 0.5,
-                            _fmt(mapping["drift_percent"], " %", 3), "≤ 0.5 %"))
-    if "map_aligned" in mapping:
-        d = mapping["map_aligned"]
-        checks.append(Check("map points to true surfaces, after alignment (median)",
-                            d["median_m"] <= 0.05, _fmt(d["median_m"], " m", 3), "≤ 0.05 m",
-                            f"90 % within {_fmt(d['p90_m'], ' m', 3)}"))
-    if "georeferenced" in mapping:
-        g = mapping["georeferenced"]
-        checks.append(Check("absolute position error of the trajectory (GNSS-limited)", None,
-                            _fmt(g["horizontal_rmse_m"], " m", 2), "information",
-                            f"vertical {_fmt(g['vertical_rmse_m'], ' m', 2)}"))
-    seg = metrics.get("evaluation", {}).get("segmentation")
-    if seg:
-        checks.append(Check("trees segmented one-to-one (IoU ≥ 0.5)", seg["success_rate"] >= 0.95,
-                            f"{seg['n_correct']}/{seg['n_truth']} ({100 * seg['success_rate']:.0f} %)",
-                            "≥ 95 %", f"merged {seg['n_merged']}, split {seg['n_split']}, "
-                            f"missed {seg['n_missed']}"))
-        checks.append(Check("row and label correct", seg["label_accuracy"] >= 0.95,
-                            f"{100 * seg['label_accuracy']:.0f} %", "≥ 95 % of matched trees"))
-    vols = metrics.get("evaluation", {}).get("volumes", {})
-    for method, target in (("alpha_shape", None), ("convex_hull", None)):
-        if method in vols:
-            checks.append(Check(f"{method} volume vs true crown volume (MAPE)", target,
-                                _fmt(vols[method]["mape_pct"], " %", 1), "information",
-                                f"bias {_fmt(vols[method]['bias_pct'], ' %', 1)}"))
-    aerial = metrics.get("aerial")
-    if aerial:
-        matched = aerial.get("matched_trees", 0)
-        checks.append(Check("LiDAR trees matched to an aerial crown", matched >= 0.9 * len(trees),
-                            f"{matched}/{len(trees)}", "≥ 90 %"))
-        compared = aerial.get("compared_trees", matched)
-        checks.append(Check("matched aerial crowns of plausible size", compared >= 0.9 * matched,
-                            f"{compared}/{matched}", "≥ 90 %",
-                            "others are fragments or merged neighbours: flagged in the table, "
-                            "left out of the comparison" if compared < matched else ""))
-        for col, name in (("volume_alpha_m3", "alpha shape"), ("volume_convex_hull_m3", "convex hull")):
-            if col in aerial:
-                checks.append(Check(f"{name} vs aerial sphere volume (MAPE)", None,
-                                    _fmt(aerial[col]["mape_pct"], " %", 1), "paper: 0-23 % per tree",
-                                    f"R² {_fmt(aerial[col]['r_squared'])}"))
-    for w in metrics.get("warnings", []):
-        checks.append(Check("warning", None, "", "", str(w)))
-    return checks
 
 
 def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
@@ -185,5 +115,5 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]
     return render_report(f"canopy-kit report: {ctx.config.name}", summary, table, sections,
-                         build_checks(metrics, trees), config_toml(config_used(ctx)),
+                         [Check(**c) for c in metrics["checks"]], config_toml(config_used(ctx)),
                          subtitle="Per-tree canopy volumes from a mobile LiDAR drive")

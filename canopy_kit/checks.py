@@ -1,0 +1,301 @@
+"""Checks of one run, each pass / warn / fail / info with its threshold (docs/VALIDATION.md).
+
+Most checks need no truth and can fail: crowns several tree or row spacings wide, segments
+holding several trunks, crowns unlike the rest of their row, a map whose registration or
+GNSS went wrong, LiDAR volumes far from the drone's. Checks against simulator truth are
+added when the run has it. ``run_checks`` reads the per-tree table and metrics.json's
+content, so it works on a finished run folder as well as inside the pipeline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.config import ChecksConfig
+
+Status = Literal["pass", "warn", "fail", "info"]
+STATUSES = ("pass", "warn", "fail", "info")
+
+
+@dataclass
+class Check:
+    """One check: its status, the measured value and the threshold it was held to.
+
+    ``status`` may be given as a bool (pass/fail) or None (info).
+    """
+
+    name: str
+    status: Status | bool | None
+    value: str
+    threshold: str = ""
+    note: str = ""
+
+    def __post_init__(self) -> None:
+        if self.status is None:
+            self.status = "info"
+        elif isinstance(self.status, bool | np.bool_):
+            self.status = "pass" if self.status else "fail"
+        elif self.status not in STATUSES:
+            raise ValueError(f"check {self.name!r}: status {self.status!r} is not one of {STATUSES}")
+
+    def as_dict(self) -> dict[str, str]:
+        """Plain data for metrics.json."""
+        return asdict(self)
+
+
+def grade(value: float, warn: float, fail: float, lower_is_worse: bool = False) -> Status:
+    """``fail`` beyond ``fail``, ``warn`` beyond ``warn``, else ``pass`` (NaN: info)."""
+    if not np.isfinite(value):
+        return "info"
+    if lower_is_worse:
+        return "fail" if value < fail else "warn" if value < warn else "pass"
+    return "fail" if value > fail else "warn" if value > warn else "pass"
+
+
+def failed(checks: list[Check]) -> list[Check]:
+    """The checks that failed: outputs of such a run should not be trusted."""
+    return [c for c in checks if c.status == "fail"]
+
+
+def _fmt(value: float | None, unit: str = "", digits: int = 2) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}f}{unit}"
+
+
+def _names(trees: pd.DataFrame, mask: np.ndarray, limit: int = 8) -> str:
+    names = trees.loc[mask, "tree_id"].astype(str).tolist() if "tree_id" in trees else []
+    return ", ".join(names[:limit]) + (" ..." if len(names) > limit else "")
+
+
+def _share(n: int, total: int) -> float:
+    return n / total if total else 0.0
+
+
+def _thresholds(warn: float, fail: float, unit: str = "", digits: int = 2, below: bool = False) -> str:
+    sign = "<" if below else ">"
+    return f"warn {sign} {warn:.{digits}f}{unit}, fail {sign} {fail:.{digits}f}{unit}"
+
+
+# -- without truth --------------------------------------------------------------------------
+def crown_spacing_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) -> list[Check]:
+    """Crowns far wider than the spacing of the trees along the row or of the rows: merged."""
+    out = []
+    if "crown_diameter_m" not in trees or not len(trees):
+        return out
+    diameter = trees["crown_diameter_m"].to_numpy(float)
+    for key, what, warn, fail in (
+            ("tree_spacing_m", "tree spacing along the row", st.crown_tree_spacing_warn,
+             st.crown_tree_spacing_fail),
+            ("row_spacing_m", "row spacing", st.crown_row_spacing_warn, st.crown_row_spacing_fail)):
+        spacing = layout.get(key)
+        if spacing is None or not np.isfinite(spacing) or spacing <= 0:
+            continue
+        ratio = diameter / spacing
+        worst = float(np.nanmax(ratio))
+        status = grade(worst, warn, fail)
+        source = layout.get("tree_spacing_source", "") if key == "tree_spacing_m" else "fitted rows"
+        note = f"{what} {spacing:.1f} m (from {source})"
+        wide = ratio > warn
+        if wide.any():
+            note += f"; wider than {warn:g}x: {_names(trees, wide)} (merged trees?)"
+        out.append(Check(f"widest crown over the {what}", status, f"{worst:.2f}x",
+                         _thresholds(warn, fail, "x"), note))
+    return out
+
+
+def trunk_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) -> list[Check]:
+    """Segments standing on several detected trunks hold several trees."""
+    if "n_trunks" not in trees or not layout.get("trunks"):
+        return []
+    n = trees["n_trunks"].to_numpy(int)
+    worst = int(n.max()) if len(n) else 0
+    status: Status = ("fail" if worst >= st.trunks_per_segment_fail
+                      else "warn" if worst >= st.trunks_per_segment_warn else "pass")
+    many = n >= st.trunks_per_segment_warn
+    note = f"{layout['trunks']} trunks found in the stem band, {int((n > 0).sum())} trees stand on one or more"
+    if many.any():
+        note += f"; on {st.trunks_per_segment_warn} or more: {_names(trees, many)}"
+    return [Check("most trunks under one segmented tree", status, str(worst),
+                  f"warn ≥ {st.trunks_per_segment_warn}, fail ≥ {st.trunks_per_segment_fail}", note)]
+
+
+def table_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
+    """Trees found, volumes flagged unreliable, crowns unlike the others of their row."""
+    from canopy_kit.pipeline import flagged
+
+    n = len(trees)
+    out = [Check("trees segmented", n > 0, str(n), "fail < 1")]
+    for column, name, warn, fail in (
+            ("volume_flags", "volumes flagged as unreliable", st.flagged_volume_share_warn,
+             st.flagged_volume_share_fail),
+            ("segment_flags", "crowns unlike the others of their row (below 0.5x or above 1.6x "
+             "the median diameter: fragments or merged trees?)", st.crown_outlier_share_warn,
+             st.crown_outlier_share_fail)):
+        if column not in trees:
+            continue
+        odd = flagged(trees, column).to_numpy()
+        share = _share(int(odd.sum()), n)
+        out.append(Check(name, grade(share, warn, fail), f"{int(odd.sum())} ({100 * share:.0f} %)",
+                         _thresholds(100 * warn, 100 * fail, " %", 0), _names(trees, odd, 12)))
+    return out
+
+
+def map_checks(mapping: dict[str, Any], st: ChecksConfig) -> list[Check]:
+    """Map quality from the mapping diagnostics: ICP registrations rejected, GNSS fixes
+    rejected and the GNSS bias the pose graph had to absorb, the quality flags."""
+    out = []
+    registered = mapping.get("sweeps_registered")
+    if registered:
+        rejected = int(mapping.get("registrations_rejected", 0))
+        share = _share(rejected, int(registered) + rejected)
+        out.append(Check("ICP registrations rejected (correction too large)",
+                         grade(share, st.rejected_registrations_share_warn,
+                               st.rejected_registrations_share_fail),
+                         f"{rejected} of {int(registered) + rejected} ({100 * share:.1f} %)",
+                         _thresholds(100 * st.rejected_registrations_share_warn,
+                                     100 * st.rejected_registrations_share_fail, " %", 0)))
+    gnss = mapping.get("gnss") or {}
+    if "rejected_share" in gnss:
+        share = float(gnss["rejected_share"])
+        out.append(Check("GNSS fixes rejected", grade(share, st.gnss_rejected_share_warn,
+                                                      st.gnss_rejected_share_fail),
+                         f"{100 * share:.1f} %", _thresholds(100 * st.gnss_rejected_share_warn,
+                                                             100 * st.gnss_rejected_share_fail, " %", 0)))
+    if "bias_rms_m" in gnss and np.isfinite(gnss["bias_rms_m"]):
+        bias = float(gnss["bias_rms_m"])
+        out.append(Check("GNSS bias absorbed by the pose graph (RMS)",
+                         grade(bias, st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m),
+                         _fmt(bias, " m"), _thresholds(st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m, " m", 1),
+                         f"{gnss.get('mode_changes', 0)} receiver mode changes"))
+    flags = list(mapping.get("quality_flags", []))
+    if flags:
+        out.append(Check("map quality flags", "warn", str(len(flags)), "warn ≥ 1", ", ".join(flags)))
+    rig = imu_mount_check(mapping)
+    if rig is not None:
+        out.append(rig)
+    return out
+
+
+def imu_mount_check(mapping: dict[str, Any]) -> Check | None:
+    """Pass when the drive puts the IMU where the rig says (hand-eye on the rotations)."""
+    ext = mapping.get("extrinsics", {})
+    if "difference_deg" not in ext or ext.get("mode") == "calibrate":
+        return None
+    angle = float(ext["difference_deg"])
+    tolerance_deg = float(ext.get("tolerance_deg", 2.0))
+    return Check("IMU mount agrees with the drive (gyro vs LiDAR rotations)", angle <= tolerance_deg,
+                 f"{angle:.2f}°", f"fail > {tolerance_deg:g}°",
+                 f"mount from {mapping.get('rig', {}).get('sources', {}).get('imu', '?')}")
+
+
+def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
+    """LiDAR trees matched to drone crowns, crowns of plausible size, volume disagreement.
+
+    The disagreement is the MAPE of the alpha-shape volume against the aerial height-aware
+    ellipsoid (bias -4 % to +1 % against true crowns); against the paper's sphere (biased
+    +28 % to +85 %) a large MAPE is expected of an honest run, so that row only warns.
+    """
+    from canopy_kit import stats
+    from canopy_kit.pipeline import comparable_aerial_sphere
+
+    aerial = metrics.get("aerial")
+    if not aerial:
+        return []
+    n = len(trees)
+    matched = int(aerial.get("matched_trees", 0))
+    compared = int(aerial.get("compared_trees", matched))
+    out = [Check("LiDAR trees matched to an aerial crown",
+                 grade(_share(matched, n), st.aerial_matched_share_warn, st.aerial_matched_share_fail,
+                       lower_is_worse=True), f"{matched}/{n}",
+                 _thresholds(100 * st.aerial_matched_share_warn, 100 * st.aerial_matched_share_fail,
+                             " %", 0, below=True)),
+           Check("matched aerial crowns of plausible size",
+                 grade(_share(compared, matched) if matched else float("nan"),
+                       st.aerial_matched_share_warn, st.aerial_matched_share_fail, lower_is_worse=True),
+                 f"{compared}/{matched}",
+                 _thresholds(100 * st.aerial_matched_share_warn, 100 * st.aerial_matched_share_fail,
+                             " %", 0, below=True),
+                 "others are fragments or merged neighbours: flagged in the table, left out of the "
+                 "comparison" if compared < matched else "")]
+    if "volume_alpha_m3" not in trees or "aerial_sphere_volume_m3" not in trees:
+        return out
+    usable = comparable_aerial_sphere(trees).notna() & trees["volume_alpha_m3"].notna()
+    for column, model in (("aerial_ellipsoid_volume_m3", "height-aware ellipsoid"),
+                          ("aerial_sphere_volume_m3", "paper's sphere")):
+        if column not in trees:
+            continue
+        ok = usable & trees[column].notna()
+        if ok.sum() < 2:
+            out.append(Check(f"alpha shape vs aerial {model} volume (MAPE)", "info", "n/a",
+                             "", f"{int(ok.sum())} trees comparable"))
+            continue
+        a = stats.agreement(trees.loc[ok, "volume_alpha_m3"].to_numpy(), trees.loc[ok, column].to_numpy())
+        status = grade(a.mape_pct, st.aerial_mape_warn_pct, st.aerial_mape_fail_pct)
+        note = f"{int(ok.sum())} trees, bias {a.bias_pct:+.1f} %, R² {_fmt(a.r_squared)}"
+        if column == "aerial_sphere_volume_m3":
+            status = "warn" if status == "fail" else status
+            note += "; the sphere itself is biased +28 % to +85 %: warns at most"
+        out.append(Check(f"alpha shape vs aerial {model} volume (MAPE)", status, _fmt(a.mape_pct, " %", 1),
+                         _thresholds(st.aerial_mape_warn_pct, st.aerial_mape_fail_pct, " %", 0), note))
+    return out
+
+
+# -- against simulator truth ----------------------------------------------------------------
+def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
+    """Mapping, segmentation and volumes against a simulated session's truth."""
+    out = []
+    mapping = evaluation.get("mapping", {})
+    if "ate_rmse_m" in mapping:
+        out.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
+                         _fmt(mapping["ate_rmse_m"], " m", 3), "fail > 0.20 m"))
+    if "drift_percent" in mapping:
+        out.append(Check("drift (% of path length)", mapping["drift_percent"] <= 0.5,
+                         _fmt(mapping["drift_percent"], " %", 3), "fail > 0.5 %"))
+    if "map_aligned" in mapping:
+        d = mapping["map_aligned"]
+        out.append(Check("map points to true surfaces, after alignment (median)", d["median_m"] <= 0.05,
+                         _fmt(d["median_m"], " m", 3), "fail > 0.05 m",
+                         f"90 % within {_fmt(d['p90_m'], ' m', 3)}"))
+    if "georeferenced" in mapping:
+        g = mapping["georeferenced"]
+        out.append(Check("absolute position error of the trajectory (GNSS-limited)", None,
+                         _fmt(g["horizontal_rmse_m"], " m", 2), "",
+                         f"vertical {_fmt(g['vertical_rmse_m'], ' m', 2)}"))
+    seg = evaluation.get("segmentation")
+    if seg:
+        out.append(Check("trees segmented one-to-one (IoU ≥ 0.5)", seg["success_rate"] >= 0.95,
+                         f"{seg['n_correct']}/{seg['n_truth']} ({100 * seg['success_rate']:.0f} %)",
+                         "fail < 95 %", f"merged {seg['n_merged']}, split {seg['n_split']}, "
+                         f"missed {seg['n_missed']}"))
+        out.append(Check("row and label correct", seg["label_accuracy"] >= 0.95,
+                         f"{100 * seg['label_accuracy']:.0f} %", "fail < 95 % of matched trees"))
+    for method, v in evaluation.get("volumes", {}).items():
+        if isinstance(v, dict) and "mape_pct" in v and method in ("alpha_shape", "convex_hull"):
+            out.append(Check(f"{method} volume vs true crown volume (MAPE)", None,
+                             _fmt(v["mape_pct"], " %", 1), "", f"bias {_fmt(v['bias_pct'], ' %', 1)}"))
+    return out
+
+
+def run_checks(metrics: dict[str, Any], trees: pd.DataFrame,
+               settings: ChecksConfig | None = None) -> list[Check]:
+    """Every check of a run, from its metrics (metrics.json's content) and per-tree table."""
+    st = settings or ChecksConfig()
+    layout = metrics.get("layout", {})
+    checks = table_checks(metrics, trees, st)
+    checks += crown_spacing_checks(trees, layout, st)
+    checks += trunk_checks(trees, layout, st)
+    checks += map_checks(metrics.get("mapping", {}), st)
+    checks += aerial_checks(metrics, trees, st)
+    checks += truth_checks(metrics.get("evaluation", {}))
+    checks += [Check("warning", "warn", "", "", str(w)) for w in metrics.get("warnings", [])]
+    return checks
+
+
+def summary(checks: list[Check]) -> dict[str, int]:
+    """How many checks have each status."""
+    return {s: sum(1 for c in checks if c.status == s) for s in STATUSES}
