@@ -1,0 +1,157 @@
+"""Checks that need no truth, on hand-built tables whose answer is known by construction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.checks import Check, aerial_checks, crown_spacing_checks, grade, map_checks, run_checks
+from canopy_kit.checks import summary, trunk_checks
+from canopy_kit.config import ChecksConfig, load_preset
+from canopy_kit.errors import ConfigError
+
+ST = ChecksConfig()
+
+
+def _row(diameters: list[float], spacing: float = 5.0) -> pd.DataFrame:
+    n = len(diameters)
+    return pd.DataFrame({"tree_id": [f"r0-L{i}" for i in range(n)], "row": 0,
+                         "x": np.zeros(n), "y": spacing * np.arange(n),
+                         "crown_diameter_m": diameters, "segment_flags": "", "volume_flags": ""})
+
+
+def _by_name(checks: list[Check], start: str) -> Check:
+    (c,) = [c for c in checks if c.name.startswith(start)]
+    return c
+
+
+def test_regular_trees_pass_the_spacing_checks() -> None:
+    trees = _row([4.0, 4.2, 3.9, 4.1, 4.0, 4.3])
+    checks = crown_spacing_checks(trees, {"tree_spacing_m": 5.0, "row_spacing_m": 6.0,
+                                          "tree_spacing_source": "trunks"}, ST)
+    assert [c.status for c in checks] == ["pass", "pass"]
+    assert _by_name(checks, "widest crown over the tree").value == "0.86x"  # 4.3 / 5.0
+
+
+def test_a_crown_three_spacings_wide_fails() -> None:
+    trees = _row([4.0, 4.2, 15.0, 4.1, 4.0, 4.3])  # 15 m = 3x the 5 m spacing, 2.5x the rows'
+    checks = crown_spacing_checks(trees, {"tree_spacing_m": 5.0, "row_spacing_m": 6.0,
+                                          "tree_spacing_source": "trunks"}, ST)
+    tree, row = _by_name(checks, "widest crown over the tree"), _by_name(checks, "widest crown over the row")
+    assert tree.value == "3.00x" and tree.status == "warn"  # fail beyond 3.0x, not at it
+    assert row.value == "2.50x" and row.status == "fail" and "r0-L2" in row.note
+    assert row.threshold == "warn > 1.00x, fail > 1.50x"
+
+
+def test_unknown_spacings_give_no_spacing_check() -> None:
+    assert crown_spacing_checks(_row([4.0, 4.0]), {"tree_spacing_m": None, "row_spacing_m": None}, ST) == []
+
+
+def test_trunks_per_segment() -> None:
+    trees = _row([4.0] * 4).assign(n_trunks=[1, 1, 0, 1])
+    (one,) = trunk_checks(trees, {"trunks": 3}, ST)
+    assert one.status == "pass" and one.value == "1"
+    (two,) = trunk_checks(trees.assign(n_trunks=[1, 2, 1, 1]), {"trunks": 5}, ST)
+    assert two.status == "warn" and "r0-L1" in two.note
+    (five,) = trunk_checks(trees.assign(n_trunks=[5, 1, 1, 1]), {"trunks": 8}, ST)
+    assert five.status == "fail"
+    assert trunk_checks(trees, {"trunks": 0}, ST) == []  # no trunks seen: nothing to say
+
+
+def test_crown_outliers_share() -> None:
+    trees = _row([4.0] * 10)
+    assert _by_name(run_checks({}, trees), "crowns unlike").status == "pass"
+    one = trees.assign(segment_flags=[""] * 9 + ["crown 9 m wide"])
+    assert _by_name(run_checks({}, one), "crowns unlike").status == "warn"  # 10 %: not beyond
+    two = trees.assign(segment_flags=[""] * 8 + ["wide"] * 2)
+    assert _by_name(run_checks({}, two), "crowns unlike").status == "fail"
+
+
+def test_map_quality_from_the_mapping_diagnostics() -> None:
+    clean = {"sweeps_registered": 200, "registrations_rejected": 1,
+             "gnss": {"rejected_share": 0.01, "bias_rms_m": 0.8, "mode_changes": 0}}
+    assert [c.status for c in map_checks(clean, ST)] == ["pass", "pass", "pass"]
+    bad = {"sweeps_registered": 150, "registrations_rejected": 50,  # 25 % rejected
+           "gnss": {"rejected_share": 0.6, "bias_rms_m": 4.0}, "quality_flags": ["scan_gaps"]}
+    checks = map_checks(bad, ST)
+    assert [c.status for c in checks] == ["fail", "fail", "warn", "warn"]
+    assert checks[0].value == "50 of 200 (25.0 %)"
+
+
+def _aerial_table(alpha: list[float], ellipsoid: list[float]) -> tuple[dict, pd.DataFrame]:
+    n = len(alpha)
+    trees = _row([4.0] * n).assign(volume_alpha_m3=alpha, aerial_ellipsoid_volume_m3=ellipsoid,
+                                   aerial_sphere_volume_m3=np.asarray(ellipsoid) * 1.5, aerial_flag="")
+    return {"aerial": {"matched_trees": n, "compared_trees": n}}, trees
+
+
+def test_aerial_disagreement_against_the_ellipsoid() -> None:
+    metrics, trees = _aerial_table([10.0, 20.0, 30.0], [11.0, 19.0, 33.0])
+    ell = _by_name(aerial_checks(metrics, trees, ST), "alpha shape vs aerial height-aware")
+    assert ell.status == "pass"
+    metrics, trees = _aerial_table([10.0, 20.0, 30.0], [40.0, 80.0, 120.0])  # 75 % below
+    checks = aerial_checks(metrics, trees, ST)
+    assert _by_name(checks, "alpha shape vs aerial height-aware").value == "75.0 %"
+    assert _by_name(checks, "alpha shape vs aerial height-aware").status == "fail"
+    # The paper's sphere is biased +28..+85 % itself: it warns, it never fails the run.
+    assert _by_name(checks, "alpha shape vs aerial paper's sphere").status == "warn"
+
+
+def test_few_trees_matched_to_the_drone_fails() -> None:
+    metrics, trees = _aerial_table([10.0] * 10, [10.0] * 10)
+    metrics["aerial"]["matched_trees"] = 8
+    assert _by_name(aerial_checks(metrics, trees, ST), "LiDAR trees matched").status == "fail"
+
+
+def test_checks_status_and_summary() -> None:
+    checks = [Check("a", True, "1"), Check("b", False, "2"), Check("c", None, "3"), Check("d", "warn", "4")]
+    assert [c.status for c in checks] == ["pass", "fail", "info", "warn"]
+    assert summary(checks) == {"pass": 1, "warn": 1, "fail": 1, "info": 1}
+    with pytest.raises(ValueError, match="status 'bad'"):
+        Check("e", "bad", "")
+    assert grade(float("nan"), 1, 2) == "info"
+    assert grade(0.5, 0.95, 0.9, lower_is_worse=True) == "fail"
+
+
+def test_thresholds_are_settings_and_checked() -> None:
+    cfg = load_preset("pistachio", {"checks": {"aerial_mape_warn_pct": 20.0}})
+    assert cfg.checks.aerial_mape_warn_pct == 20.0
+    with pytest.raises(ConfigError, match=r"checks\.aerial_mape_warn_pct/aerial_mape_fail_pct"):
+        load_preset("pistachio", {"checks": {"aerial_mape_warn_pct": 70.0}})
+    with pytest.raises(ConfigError, match=r"checks\.aerial_matched_share_warn/aerial_matched_share_fail"):
+        ChecksConfig(aerial_matched_share_warn=0.5)
+
+
+def test_the_report_headline_says_when_not_to_trust_a_run() -> None:
+    from canopy_kit.report.html import render_report
+
+    checks = [Check("trees segmented", True, "4", "fail < 1"),
+              Check("widest crown over the row spacing", "fail", "2.50x", "warn > 1.00x, fail > 1.50x"),
+              Check("GNSS bias", "warn", "4.00 m", "warn > 3.0 m, fail > 10.0 m"),
+              Check("absolute position error", None, "1.2 m")]
+    page = render_report("r", {}, _row([4.0]), [], checks, "")
+    assert "Do not trust this run: 1 check failed" in page
+    assert "widest crown over the row spacing: 2.50x (warn &gt; 1.00x, fail &gt; 1.50x)" in page
+    assert "Validation checks (1 of 2 passed, 1 warned, 1 for information)" in page
+    assert 'class="verdict verdict-fail"' in page
+    calm = render_report("r", {}, _row([4.0]), [], checks[:1], "")
+    assert "Every check passed" in calm and "verdict-pass" in calm
+    amber = render_report("r", {}, _row([4.0]), [], [checks[0], checks[2]], "")
+    assert "Use with care: 1 check warned, none failed" in amber
+
+
+def test_layout_spacings_on_a_synthetic_orchard() -> None:
+    """Rows 6 m apart with trees every 5 m: the layout measures both from the map."""
+    from canopy_kit.segment.layout import measure_layout
+    from canopy_kit.segment.verb import segment
+    from tests.fixtures_sim import synthetic_orchard
+
+    orchard = synthetic_orchard(rows=2, trees_per_row=5, spacing=5.0, row_spacing=6.0, crown_radius=1.6)
+    seg = segment(orchard.cloud, "adaptive")
+    layout = measure_layout(orchard.cloud.xyz, seg.height, seg)
+    assert layout.row_spacing_m == pytest.approx(6.0, abs=0.2)
+    assert layout.tree_spacing_m == pytest.approx(5.0, abs=0.2)
+    ids = np.array([t.segment_id for t in seg.trees])
+    if layout.tree_spacing_source == "trunks":
+        assert (layout.trunks_per_segment(ids) <= 1).all()
