@@ -61,7 +61,8 @@ def failed(checks: list[Check]) -> list[Check]:
     return [c for c in checks if c.status == "fail"]
 
 
-def _fmt(value: float | None, unit: str = "", digits: int = 2) -> str:
+def format_value(value: float | None, unit: str = "", digits: int = 2) -> str:
+    """A number with ``digits`` decimals and its unit; "n/a" when missing or not finite."""
     if value is None or (isinstance(value, float) and not np.isfinite(value)):
         return "n/a"
     return f"{value:.{digits}f}{unit}"
@@ -124,7 +125,7 @@ def trunk_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) 
                   f"warn ≥ {st.trunks_per_segment_warn}, fail ≥ {st.trunks_per_segment_fail}", note)]
 
 
-def table_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
+def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     """Trees found, volumes flagged unreliable, crowns unlike the others of their row."""
     from canopy_kit.pipeline import flagged
 
@@ -133,8 +134,8 @@ def table_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig)
     for column, name, warn, fail in (
             ("volume_flags", "volumes flagged as unreliable", st.flagged_volume_share_warn,
              st.flagged_volume_share_fail),
-            ("segment_flags", "crowns unlike the others of their row (below 0.5x or above 1.6x "
-             "the median diameter: fragments or merged trees?)", st.crown_outlier_share_warn,
+            ("segment_flags", ("crowns unlike the others of their row (below 0.5x or above 1.6x "
+                               "the median diameter: fragments or merged trees?)"), st.crown_outlier_share_warn,
              st.crown_outlier_share_fail)):
         if column not in trees:
             continue
@@ -170,7 +171,7 @@ def map_checks(mapping: dict[str, Any], st: ChecksConfig) -> list[Check]:
         bias = float(gnss["bias_rms_m"])
         out.append(Check("GNSS bias absorbed by the pose graph (RMS)",
                          grade(bias, st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m),
-                         _fmt(bias, " m"), _thresholds(st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m, " m", 1),
+                         format_value(bias, " m"), _thresholds(st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m, " m", 1),
                          f"{gnss.get('mode_changes', 0)} receiver mode changes"))
     flags = list(mapping.get("quality_flags", []))
     if flags:
@@ -241,7 +242,7 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
         if column == "aerial_sphere_volume_m3":
             status = "warn" if status == "fail" else status
             note += "; the sphere itself is biased +28 % to +85 %: warns at most"
-        out.append(Check(f"alpha shape vs aerial {model} volume (MAPE)", status, _fmt(mape, " %", 1),
+        out.append(Check(f"alpha shape vs aerial {model} volume (MAPE)", status, format_value(mape, " %", 1),
                          _thresholds(st.aerial_mape_warn_pct, st.aerial_mape_fail_pct, " %", 0), note))
     return out
 
@@ -253,20 +254,20 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
     mapping = evaluation.get("mapping", {})
     if "ate_rmse_m" in mapping:
         out.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
-                         _fmt(mapping["ate_rmse_m"], " m", 3), "fail > 0.20 m"))
+                         format_value(mapping["ate_rmse_m"], " m", 3), "fail > 0.20 m"))
     if "drift_percent" in mapping:
         out.append(Check("drift (% of path length)", mapping["drift_percent"] <= 0.5,
-                         _fmt(mapping["drift_percent"], " %", 3), "fail > 0.5 %"))
+                         format_value(mapping["drift_percent"], " %", 3), "fail > 0.5 %"))
     if "map_aligned" in mapping:
         d = mapping["map_aligned"]
         out.append(Check("map points to true surfaces, after alignment (median)", d["median_m"] <= 0.05,
-                         _fmt(d["median_m"], " m", 3), "fail > 0.05 m",
-                         f"90 % within {_fmt(d['p90_m'], ' m', 3)}"))
+                         format_value(d["median_m"], " m", 3), "fail > 0.05 m",
+                         f"90 % within {format_value(d['p90_m'], ' m', 3)}"))
     if "georeferenced" in mapping:
         g = mapping["georeferenced"]
         out.append(Check("absolute position error of the trajectory (GNSS-limited)", None,
-                         _fmt(g["horizontal_rmse_m"], " m", 2), "",
-                         f"vertical {_fmt(g['vertical_rmse_m'], ' m', 2)}"))
+                         format_value(g["horizontal_rmse_m"], " m", 2), "",
+                         f"vertical {format_value(g['vertical_rmse_m'], ' m', 2)}"))
     seg = evaluation.get("segmentation")
     if seg:
         out.append(Check("trees segmented one-to-one (IoU ≥ 0.5)", seg["success_rate"] >= 0.95,
@@ -278,7 +279,7 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
     for method, v in evaluation.get("volumes", {}).items():
         if isinstance(v, dict) and "mape_pct" in v and method in ("alpha_shape", "convex_hull"):
             out.append(Check(f"{method} volume vs true crown volume (MAPE)", None,
-                             _fmt(v["mape_pct"], " %", 1), "", f"bias {_fmt(v['bias_pct'], ' %', 1)}"))
+                             format_value(v["mape_pct"], " %", 1), "", f"bias {format_value(v['bias_pct'], ' %', 1)}"))
     return out
 
 
@@ -287,7 +288,7 @@ def run_checks(metrics: dict[str, Any], trees: pd.DataFrame,
     """Every check of a run, from its metrics (metrics.json's content) and per-tree table."""
     st = settings or ChecksConfig()
     layout = metrics.get("layout", {})
-    checks = table_checks(metrics, trees, st)
+    checks = table_checks(trees, st)
     checks += crown_spacing_checks(trees, layout, st)
     checks += trunk_checks(trees, layout, st)
     checks += map_checks(metrics.get("mapping", {}), st)

@@ -6,8 +6,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from canopy_kit.checks import Check, aerial_checks, crown_spacing_checks, grade, map_checks, run_checks
-from canopy_kit.checks import summary, trunk_checks
+from canopy_kit.checks import (
+    Check,
+    aerial_checks,
+    crown_spacing_checks,
+    grade,
+    map_checks,
+    run_checks,
+    summary,
+    trunk_checks,
+)
 from canopy_kit.config import ChecksConfig, load_preset
 from canopy_kit.errors import ConfigError
 

@@ -230,9 +230,9 @@ def test_shipped_presets_know_the_rig_settings() -> None:
 
 # -- the report ---------------------------------------------------------------------------
 def test_report_shows_the_rig_and_checks_the_imu_mount() -> None:
+    from canopy_kit.checks import imu_mount_check as rig_check
     from canopy_kit.mapping.extrinsics import SensorRig
     from canopy_kit.report.html import render_report
-    from canopy_kit.checks import imu_mount_check as rig_check
     from canopy_kit.report.rig import rig_section
 
     base_from_lidar = from_rpy([0.3, 0, 1.9], [0, 12, 180])

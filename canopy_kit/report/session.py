@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.checks import Check
+from canopy_kit.checks import Check, format_value
 from canopy_kit.report.figures import figure_to_data_uri
 from canopy_kit.report.html import ReportSection, render_report
 
@@ -17,12 +17,6 @@ TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", 
                  "aerial_flag",
                  "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags",
                  "segment_flags"]
-
-
-def _fmt(value: float | None, unit: str = "", digits: int = 2) -> str:
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return "n/a"
-    return f"{value:.{digits}f}{unit}"
 
 
 def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
@@ -109,8 +103,8 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         "rows": seg_m.get("n_rows", "n/a"),
         "segmenter": metrics.get("segmenter", ""),
         "map points": f"{len(cloud):,}",
-        "drive": _fmt(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
-        "median alpha volume": _fmt(float(trees["volume_alpha_m3"].median()) if len(trees) and "volume_alpha_m3" in trees else None, " m³", 1),
+        "drive": format_value(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
+        "median alpha volume": format_value(float(trees["volume_alpha_m3"].median()) if len(trees) and "volume_alpha_m3" in trees else None, " m³", 1),
         "CRS": cloud.crs or "none",
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]

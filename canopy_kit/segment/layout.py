@@ -44,7 +44,7 @@ class Layout:
             return float(v) if np.isfinite(v) else None
 
         return {"row_spacing_m": num(self.row_spacing_m), "tree_spacing_m": num(self.tree_spacing_m),
-                "tree_spacing_source": self.tree_spacing_source, "trunks": int(len(self.stems)),
+                "tree_spacing_source": self.tree_spacing_source, "trunks": len(self.stems),
                 "trunks_under_a_segment": int((self.stem_segment >= 0).sum())}
 
 
