@@ -102,8 +102,11 @@ def test_aerial_disagreement_against_the_ellipsoid() -> None:
     checks = aerial_checks(metrics, trees, ST)
     assert _by_name(checks, "alpha shape vs aerial height-aware").value == "75.0 %"
     assert _by_name(checks, "alpha shape vs aerial height-aware").status == "fail"
-    # The paper's sphere is biased +28..+85 % itself: it warns, it never fails the run.
-    assert _by_name(checks, "alpha shape vs aerial paper's sphere").status == "warn"
+    # The paper's sphere is biased +28..+85 % itself: information beside the ellipsoid,
+    # a warning at most without it; it never fails the run.
+    assert _by_name(checks, "alpha shape vs aerial paper's sphere").status == "info"
+    alone = aerial_checks(metrics, trees.drop(columns="aerial_ellipsoid_volume_m3"), ST)
+    assert [c.status for c in alone][-1] == "warn"
 
 
 def test_few_trees_matched_to_the_drone_fails() -> None:

@@ -1,0 +1,76 @@
+"""The checks on whole runs without truth (issue 26): the paper's pistachio DBSCAN on an almond
+drive merges trees and must fail, say so at the top of the report and exit 4 with --strict;
+the demo's runs (each orchard with its own preset, and adaptive) must not fail a check.
+
+The simulator's per-tree truth is the independent reference: the almond session holds
+12 trees (minus missing, plus doubled ones), and the merged run segments far fewer.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pandas as pd
+import pytest
+
+from test_cli_foundation import cli_command
+
+SMALL = {"orchard": {"rows": 2, "trees_per_row": 6}, "lidar": {"columns": 512}}
+
+
+@pytest.fixture(scope="module")
+def small_almond(sim_factory):
+    return sim_factory("almond", overrides=SMALL, truth_field=False)
+
+
+@pytest.fixture(scope="module")
+def small_pistachio(sim_factory):
+    return sim_factory("pistachio", overrides=SMALL, truth_field=False)
+
+
+def _cli_run(session, out, preset: str, *extra: str):
+    import subprocess
+
+    return subprocess.run([*cli_command(), "run", str(session.bag), "--out", str(out), "--preset", preset,
+                           *extra], capture_output=True, text=True, timeout=900, check=False,
+                          env={**os.environ, "COLUMNS": "400"})
+
+
+def _failed(out) -> list[dict]:
+    metrics = json.loads((out / "metrics.json").read_text())
+    return [c for c in metrics["checks"] if c["status"] == "fail"]
+
+
+@pytest.mark.slow
+def test_merged_almond_trees_fail_the_run(small_almond, tmp_path):
+    out = tmp_path / "merged"
+    strict = _cli_run(small_almond, out, "pistachio", "--strict")
+    assert strict.returncode == 4, strict.stdout + strict.stderr
+    truth = pd.read_csv(small_almond.truth_dir / "trees.csv")
+    trees = pd.read_csv(out / "trees.csv")
+    assert len(trees) <= len(truth) / 2  # the independent count: trees were merged
+    names = {c["name"] for c in _failed(out)}
+    assert "widest crown over the row spacing" in names
+    assert "most trunks under one segmented tree" in names
+    assert trees["n_trunks"].max() >= 3
+    # Every output is still written; the report says at its top that it should not be trusted.
+    for name in ("trees.csv", "map.laz", "metrics.json", "report.html"):
+        assert (out / name).exists()
+    page = (out / "report.html").read_text()
+    assert page.index("Do not trust this run") < page.index('id="summary"')
+    assert "checks failed: do not trust this run" in strict.stdout
+    # Without --strict the exit is 0 (cached stages: no new mapping), and the line is printed.
+    lenient = _cli_run(small_almond, out, "pistachio")
+    assert lenient.returncode == 0, lenient.stderr
+    assert "checks failed: do not trust this run" in lenient.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("orchard", "preset"), [("almond", "almond"), ("almond", "adaptive"),
+                                                 ("pistachio", "pistachio"), ("pistachio", "adaptive")])
+def test_the_demo_runs_fail_no_check(orchard, preset, small_almond, small_pistachio, tmp_path):
+    session = small_almond if orchard == "almond" else small_pistachio
+    result = _cli_run(session, tmp_path / "run", preset, "--strict")
+    failed = _failed(tmp_path / "run")
+    assert result.returncode == 0 and failed == [], failed
