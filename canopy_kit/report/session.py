@@ -19,6 +19,15 @@ TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", 
                  "segment_flags"]
 
 
+def report_checks(metrics: dict[str, Any], trees: pd.DataFrame, config: Any) -> list[Check]:
+    """The run's checks: those in ``metrics`` (metrics.json), else computed now."""
+    from canopy_kit.checks import run_checks
+
+    if "checks" in metrics:
+        return [Check(**c) for c in metrics["checks"]]
+    return run_checks(metrics, trees, config.checks)
+
+
 def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
     """The report of a run as one self-contained HTML page."""
     from canopy_kit.config import config_toml
@@ -109,5 +118,5 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]
     return render_report(f"canopy-kit report: {ctx.config.name}", summary, table, sections,
-                         [Check(**c) for c in metrics["checks"]], config_toml(config_used(ctx)),
+                         report_checks(metrics, trees, ctx.config), config_toml(config_used(ctx)),
                          subtitle="Per-tree canopy volumes from a mobile LiDAR drive")
