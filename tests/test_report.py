@@ -43,6 +43,7 @@ def test_report_renders_offline_in_chromium(tmp_path):
     assert shown.title == "Test session"
     assert shown.tree_rows == 12
     assert shown.check_rows == 2
+    assert shown.headline == "Do not trust this run: 1 check failed"
     assert shown.images_loaded == 2 and shown.images_broken == 0
     assert shown.blocked_requests == []
     assert shown.console_errors == []

@@ -24,6 +24,7 @@ class RenderedPage:
     blocked_requests: list[str] = field(default_factory=list)
     console_errors: list[str] = field(default_factory=list)
     sorted_first_cells: list[str] = field(default_factory=list)
+    headline: str = ""  # the verdict banner's title, as rendered
 
 
 def find_chromium() -> str:
@@ -74,5 +75,8 @@ def render_page(path: str | Path, screenshot: str | Path | None = None,
             Path(screenshot).parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(screenshot), full_page=True)
         title = page.title()
+        banner = page.locator("#verdict h2")
+        headline = banner.inner_text() if banner.count() else ""
         browser.close()
-    return RenderedPage(title, tree_rows, loaded, broken, check_rows, blocked, errors, first_cells)
+    return RenderedPage(title, tree_rows, loaded, broken, check_rows, blocked, errors, first_cells,
+                        headline)
