@@ -188,7 +188,7 @@ class ChecksConfig:
     """
 
     crown_row_spacing_warn: float = 1.0
-    crown_row_spacing_fail: float = 1.5
+    crown_row_spacing_fail: float = 1.75
     crown_tree_spacing_warn: float = 2.0
     crown_tree_spacing_fail: float = 3.0
     trunks_per_segment_warn: int = 2
@@ -205,7 +205,7 @@ class ChecksConfig:
     gnss_bias_rms_fail_m: float = 10.0
     aerial_matched_share_warn: float = 0.95
     aerial_matched_share_fail: float = 0.90
-    aerial_mape_warn_pct: float = 35.0
+    aerial_mape_warn_pct: float = 40.0
     aerial_mape_fail_pct: float = 60.0
 
     def __post_init__(self) -> None:

@@ -49,7 +49,7 @@ def test_a_crown_three_spacings_wide_fails() -> None:
     tree, row = _by_name(checks, "widest crown over the tree"), _by_name(checks, "widest crown over the row")
     assert tree.value == "3.00x" and tree.status == "warn"  # fail beyond 3.0x, not at it
     assert row.value == "2.50x" and row.status == "fail" and "r0-L2" in row.note
-    assert row.threshold == "warn > 1.00x, fail > 1.50x"
+    assert row.threshold == "warn > 1.00x, fail > 1.75x"
 
 
 def test_unknown_spacings_give_no_spacing_check() -> None:
