@@ -166,3 +166,19 @@ def test_layout_spacings_on_a_synthetic_orchard() -> None:
     ids = np.array([t.segment_id for t in seg.trees])
     if layout.tree_spacing_source == "trunks":
         assert (layout.trunks_per_segment(ids) <= 1).all()
+
+
+def test_strict_refuses_a_streamed_run_it_could_not_check(tmp_path) -> None:
+    from test_cli_foundation import run_cli
+
+    result = run_cli("run", str(tmp_path / "none.bag"), "--out", str(tmp_path / "o"), "--stream", "--strict")
+    assert result.returncode == 2
+    assert "--strict: a --stream run has no checks" in result.stderr + result.stdout
+    assert "Traceback" not in result.stderr
+
+
+def test_run_help_documents_the_strict_exit_code() -> None:
+    from test_cli_foundation import run_cli
+
+    result = run_cli("run", "--help")
+    assert "--strict" in result.stdout and "4 with --strict" in " ".join(result.stdout.split())

@@ -34,9 +34,13 @@ def run(
     """
     from canopy_kit.cli.common import parse_overrides, progress_bar
     from canopy_kit.config import load_preset, merge
+    from canopy_kit.errors import InputError
     from canopy_kit.pipeline import run as run_pipeline
     from canopy_kit.rig import extrinsics_mode, rig_overrides
 
+    if stream and strict:  # a streamed run has no checks: --strict would pass it unchecked
+        raise InputError("--strict: a --stream run has no checks to hold it to; run without "
+                         "--stream for the checks and the report")
     overrides = merge(parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate)))
     config = load_preset(preset, overrides)
     if stream:
