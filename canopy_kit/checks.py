@@ -89,6 +89,8 @@ def crown_spacing_checks(trees: pd.DataFrame, layout: dict[str, Any], st: Checks
     if "crown_diameter_m" not in trees or not len(trees):
         return out
     diameter = trees["crown_diameter_m"].to_numpy(float)
+    if not np.isfinite(diameter).any():
+        return out
     for key, what, warn, fail in (
             ("tree_spacing_m", "tree spacing along the row", st.crown_tree_spacing_warn,
              st.crown_tree_spacing_fail),
