@@ -156,7 +156,7 @@ def test_layout_spacings_on_a_synthetic_orchard() -> None:
     """Rows 6 m apart with trees every 5 m: the layout measures both from the map."""
     from canopy_kit.segment.layout import measure_layout
     from canopy_kit.segment.verb import segment
-    from tests.fixtures_sim import synthetic_orchard
+    from fixtures_sim import synthetic_orchard
 
     orchard = synthetic_orchard(rows=2, trees_per_row=5, spacing=5.0, row_spacing=6.0, crown_radius=1.6)
     seg = segment(orchard.cloud, "adaptive")

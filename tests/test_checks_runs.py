@@ -13,7 +13,6 @@ import os
 
 import pandas as pd
 import pytest
-
 from test_cli_foundation import cli_command
 
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 6}, "lidar": {"columns": 512}}
