@@ -277,7 +277,7 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
     from canopy_kit.checks import Check, run_checks
     from canopy_kit.checks import summary as checks_summary
 
-    m: dict[str, Any] = {"n_trees": len(trees), "preset": ctx.config.name,
+    m: dict[str, Any] = {"n_trees": int(len(trees)), "preset": ctx.config.name,
                          "segmenter": ctx.config.segment.method}
     warnings = list(getattr(ctx.mapping, "warnings", []))
     warnings += list(getattr(ctx.segmentation, "warnings", []))

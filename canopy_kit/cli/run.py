@@ -56,7 +56,7 @@ def run(
         raise typer.Exit(CHECKS_FAILED_EXIT)
 
 
-def print_results(results) -> None:
+def print_results(results) -> None:  # noqa: ANN001
     """One screen of what a run found and where its files are."""
     from canopy_kit.cli.common import console
 

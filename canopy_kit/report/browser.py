@@ -50,7 +50,7 @@ def render_page(path: str | Path, screenshot: str | Path | None = None,
                                      headless=True)
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
 
-        def route(r):
+        def route(r):  # noqa: ANN001, ANN202
             if r.request.url.startswith(("file:", "data:")):
                 return r.continue_()
             blocked.append(r.request.url)
