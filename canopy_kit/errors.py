@@ -45,14 +45,19 @@ class InputWarning(UserWarning):
     """
 
 
-_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")  # terminal control sequences (CSI)
 # Open3D's C++ errors: "[Open3D Error] (void open3d::f(int)) /path/to/file.cpp:123: text"
 _OPEN3D_TAG = re.compile(r"\[Open3D [A-Za-z]+\]\s*(?:\(.*\)\s+)?(?:\S+\.(?:cpp|cc|h|hpp):\d+:\s*)?")
 _SOURCE_PATH = re.compile(r"\S+\.(?:cpp|cc|h|hpp):\d+:\s*")
 
 
+def strip_ansi(text: str) -> str:
+    """``text`` without terminal colour and cursor escapes."""
+    return _ANSI.sub("", text)
+
+
 def foreign_message(text: str) -> str:
     """Another library's message as one plain line for ours: no ANSI colours, no Open3D
     ``[Open3D Error] (function) file.cpp:123:`` prefix, lines joined by ``; ``."""
-    text = _SOURCE_PATH.sub("", _OPEN3D_TAG.sub("", _ANSI.sub("", str(text))))
+    text = _SOURCE_PATH.sub("", _OPEN3D_TAG.sub("", strip_ansi(str(text))))
     return "; ".join(part.strip() for part in text.splitlines() if part.strip())

@@ -9,13 +9,12 @@ one-line message and an exit code: 2 for bad input, 3 for a processing failure.
 from __future__ import annotations
 
 import os
-import re
 import sys
 import warnings
 
 import typer
 
-from canopy_kit.errors import CanopyKitError, InputWarning
+from canopy_kit.errors import CanopyKitError, InputWarning, strip_ansi
 
 app = typer.Typer(
     name="canopy-kit",
@@ -59,12 +58,9 @@ def _register_commands() -> None:
 _register_commands()
 
 
-_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")
-
-
 def one_line(message: str) -> str:
     """A message as one line without terminal escapes (a library's text may carry both)."""
-    return " ".join(_ANSI.sub("", message).split())
+    return " ".join(strip_ansi(message).split())
 
 
 def main() -> None:
