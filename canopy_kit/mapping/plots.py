@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -80,16 +81,32 @@ def height_raster(cloud: PointCloud, cell: float = 0.1) -> tuple[np.ndarray, tup
     return top.reshape(shape[1], shape[0]), extent
 
 
+def above_ground(raster: np.ndarray, extent: tuple[float, float, float, float], cell: float,
+                 ground_height: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """A :func:`height_raster` less the ground height ``ground_height(xy)`` at each cell centre."""
+    rows, cols = np.nonzero(np.isfinite(raster))
+    xy = np.column_stack([extent[0] + (cols + 0.5) * cell, extent[2] + (rows + 0.5) * cell])
+    out = np.full_like(raster, np.nan)
+    out[rows, cols] = raster[rows, cols] - ground_height(xy)
+    return out
+
+
 def plot_map_top_view(cloud: PointCloud, trajectory: pd.DataFrame | None = None, cell: float = 0.1,
-                      title: str = "", ax: Any = None) -> Any:
-    """Top view of a map: highest point per cell coloured by height, trajectory on top."""
+                      title: str = "", ax: Any = None,
+                      ground_height: Callable[[np.ndarray], np.ndarray] | None = None) -> Any:
+    """Top view of a map: highest point per cell coloured by its height above the ground
+    (``ground_height(xy) -> z``, e.g. a segmentation's ground model) or, without one, by the
+    map's z, labelled so; trajectory on top."""
     fig, ax = _figure(ax, (7, 7))
     raster, extent = height_raster(cloud, cell)
+    if ground_height is not None:
+        raster = above_ground(raster, extent, cell, ground_height)
     z0 = np.nanpercentile(raster, 2)
     z1 = np.nanpercentile(raster, 99.5)
     im = ax.imshow(raster, origin="lower", extent=extent, cmap="viridis", vmin=z0, vmax=z1,
                    interpolation="nearest")
-    fig.colorbar(im, ax=ax, shrink=0.7, label="height [m]")
+    label = "height above ground [m]" if ground_height is not None else "map z (not above ground) [m]"
+    fig.colorbar(im, ax=ax, shrink=0.7, label=label)
     if trajectory is not None:
         ax.plot(trajectory["x"], trajectory["y"], color="w", lw=0.8, alpha=0.9)
     ax.set_aspect("equal")
@@ -100,8 +117,10 @@ def plot_map_top_view(cloud: PointCloud, trajectory: pd.DataFrame | None = None,
 
 
 def mapping_figures(result: Any, reference: pd.DataFrame | None = None,
-                    evaluation: dict | None = None) -> dict[str, Any]:
-    """The standard figures of a run: ``trajectory`` (with errors when a reference is given) and ``map``."""
+                    evaluation: dict | None = None,
+                    ground_height: Callable[[np.ndarray], np.ndarray] | None = None) -> dict[str, Any]:
+    """The standard figures of a run: ``trajectory`` (with errors when a reference is given) and
+    ``map`` (coloured by height above ``ground_height`` when given, else by map z)."""
     import matplotlib.pyplot as plt
 
     figs: dict[str, Any] = {}
@@ -115,5 +134,5 @@ def mapping_figures(result: Any, reference: pd.DataFrame | None = None,
         figs["trajectory"] = fig
     else:
         figs["trajectory"] = plot_trajectories(result.trajectory)
-    figs["map"] = plot_map_top_view(result.map, result.trajectory)
+    figs["map"] = plot_map_top_view(result.map, result.trajectory, ground_height=ground_height)
     return figs

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import html
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,8 @@ import pandas as pd
 from canopy_kit.checks import Check, failed
 from canopy_kit.io.atomic import atomic_write_text
 
-__all__ = ["Check", "ReportSection", "render_report", "table_html", "verdict", "write_report"]
+__all__ = ["Check", "ReportSection", "render_report", "script_json", "table_html", "verdict",
+           "write_report"]
 
 
 @dataclass
@@ -29,15 +31,22 @@ class ReportSection:
 COLUMN_DIGITS = {"lat": 6, "lon": 6, "latitude": 6, "longitude": 6}
 
 
-def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3) -> str:
+def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3,
+               labels: dict[str, str] | None = None, row_key: str | None = None) -> str:
     """A sortable HTML table (click a header) with numbers right-aligned.
 
     Floats get ``float_digits`` decimals, geographic coordinates those of ``COLUMN_DIGITS``.
+    ``labels`` gives headers for columns (the column name is kept in ``data-key`` and the
+    tooltip); ``row_key`` names a column whose value each ``<tr>`` carries as ``data-id``.
     """
+    labels = labels or {}
     digits = [COLUMN_DIGITS.get(str(c).lower(), float_digits) for c in df.columns]
-    head = "".join(f'<th data-col="{i}">{html.escape(str(c))}</th>' for i, c in enumerate(df.columns))
+    head = "".join(
+        f'<th data-col="{i}" data-key="{html.escape(str(c))}" title="{html.escape(str(c))}">'
+        f'{html.escape(labels.get(str(c), str(c)))}</th>' for i, c in enumerate(df.columns))
+    ids = df[row_key].astype(str).tolist() if row_key is not None else None
     rows = []
-    for _, r in df.iterrows():
+    for k, (_, r) in enumerate(df.iterrows()):
         cells = []
         for v, places in zip(r.tolist(), digits, strict=True):
             if isinstance(v, float):
@@ -49,7 +58,8 @@ def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3) -> str:
                 cells.append(f'<td class="num" data-v="{v}">{v}</td>')
             else:
                 cells.append(f"<td>{html.escape(str(v))}</td>")
-        rows.append("<tr>" + "".join(cells) + "</tr>")
+        attr = f' data-id="{html.escape(ids[k])}"' if ids is not None else ""
+        rows.append(f"<tr{attr}>" + "".join(cells) + "</tr>")
     return (f'<table class="sortable" id="{table_id}"><thead><tr>{head}</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table>')
 
@@ -70,31 +80,54 @@ def verdict(checks: list[Check]) -> dict[str, Any]:
     return {"level": "pass", "title": "Every check passed", "lines": []}
 
 
+def script_json(data: Any) -> str:
+    """``data`` as JSON safe inside a ``<script type="application/json">`` element."""
+    text = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+
+
 def render_report(title: str, summary: dict[str, Any], trees: pd.DataFrame,
                   sections: list[ReportSection], checks: list[Check], config_toml: str,
-                  subtitle: str = "") -> str:
-    """The complete report page as one HTML string (CSS and JS inlined, images as data URIs)."""
+                  subtitle: str = "", provenance: dict[str, Any] | None = None,
+                  explorer: dict[str, Any] | None = None,
+                  row_table: pd.DataFrame | None = None) -> str:
+    """The complete report page as one HTML string (CSS and JS inlined, images as data URIs).
+
+    ``explorer`` (:func:`canopy_kit.report.explorer.explorer_data`) adds the interactive map,
+    histogram, drill-down and downloads, drawn by the vendored plotly.js inlined in the page;
+    ``provenance`` is shown in the header, ``row_table`` above the per-tree table.
+    """
     import jinja2
+
+    from canopy_kit.report.columns import column_label
+    from canopy_kit.report.assets import page_script, plotly_js
 
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("canopy_kit", "report/templates"),
         autoescape=jinja2.select_autoescape(["html", "j2"]),
     )
+    markup = jinja2.utils.markupsafe.Markup
     template = env.get_template("report.html.j2")
     section_ctx = [
         {"title": s.title, "figures": s.figures, "text": s.text,
-         "table": jinja2.utils.markupsafe.Markup(table_html(s.table, f"t{i}")) if s.table is not None else None}
+         "table": markup(table_html(s.table, f"t{i}")) if s.table is not None else None}
         for i, s in enumerate(sections)
     ]
+    labels = {str(c): column_label(str(c)) for c in trees.columns}
+    row_key = "tree_id" if "tree_id" in trees else None
     return template.render(
-        title=title, subtitle=subtitle, summary=summary,
-        trees_table=jinja2.utils.markupsafe.Markup(table_html(trees, "trees")),
+        title=title, subtitle=subtitle, summary=summary, provenance=provenance or {},
+        trees_table=markup(table_html(trees, "trees", labels=labels, row_key=row_key)),
+        rows_table=markup(table_html(row_table, "rows-table")) if row_table is not None else None,
         n_trees=len(trees), sections=section_ctx, checks=checks, verdict=verdict(checks),
         n_passed=sum(1 for c in checks if c.status == "pass"),
         n_checks=sum(1 for c in checks if c.status in ("pass", "fail")),
         n_warned=sum(1 for c in checks if c.status == "warn"),
         n_info=sum(1 for c in checks if c.status == "info"),
         config_toml=config_toml,
+        explorer=markup(script_json(explorer)) if explorer is not None else None,
+        plotly_js=markup(plotly_js()) if explorer is not None else None,
+        page_js=markup(page_script()),
     )
 
 

@@ -10,11 +10,12 @@ import pandas as pd
 from canopy_kit.checks import Check, format_value
 from canopy_kit.report.figures import figure_to_data_uri
 from canopy_kit.report.html import ReportSection, render_report
+from canopy_kit.report.mapdecor import add_north_arrow_and_scale
 
 TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
                  "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
                  "aerial_diameter_m", "aerial_sphere_volume_m3", "error_alpha_vs_aerial_pct",
-                 "aerial_flag",
+                 "aerial_flag", "n_trunks",
                  "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags",
                  "segment_flags"]
 
@@ -41,6 +42,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
 
     map_fig = plot_top_view(cloud, seg)
     map_fig.axes[0].plot(traj["x"], traj["y"], "-", color="0.4", lw=0.7)
+    add_north_arrow_and_scale(map_fig.axes[0])
     figs = [("Map from above, each segmented tree in its own colour, labelled row:label; "
              "dashed: fitted rows; grey: the estimated drive.", figure_to_data_uri(map_fig))]
     volume_columns = {"convex hull": "volume_convex_hull_m3", "alpha shape": "volume_alpha_m3"}
@@ -61,11 +63,14 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
 
         truth = load_truth(ctx.truth_dir)
         reference = truth.trajectory_of(getattr(ctx.mapping, "trajectory_frame", ""))
-        mfigs = mapping_figures(ctx.mapping, truth.trajectory if reference is None else reference, mapping_eval)
+        mfigs = mapping_figures(ctx.mapping, truth.trajectory if reference is None else reference,
+                                mapping_eval, ground_height=seg.ground.height)
+        add_north_arrow_and_scale(mfigs["map"].axes[0])
         sections.append(ReportSection("Mapping", [
             ("Estimated trajectory (SE(3)-aligned) against the true one, and the position error "
              "over time.", figure_to_data_uri(mfigs["trajectory"])),
-            ("The map from above: highest point per cell, coloured by height.",
+            ("The map from above: highest point per cell, coloured by its height above the "
+             "segmentation's ground surface.",
              figure_to_data_uri(mfigs["map"]))]))
     from canopy_kit.report.rig import rig_section
 
@@ -81,12 +86,15 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                          "trees with a flagged aerial crown left out.",
                          figure_to_data_uri(plots.plot_agreement(
                              sub["volume_alpha_m3"].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
-                             ("LiDAR alpha shape", "aerial sphere"), list(sub["label"])))))
+                             ("LiDAR alpha shape", "aerial sphere"), list(sub["tree_id"])))))
         from ground_truth.plots import plot_crowns
 
-        ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation, ctx.aerial.crowns)
-        figs.append(("Orthomosaic from the drone photos with the delineated crowns (red) and "
-                     "their numbers.", figure_to_data_uri(ax.figure)))
+        ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation,
+                         crowns_by_tree_id(ctx.aerial, trees), label_column="tree_id")
+        add_north_arrow_and_scale(ax)
+        figs.append(("Orthomosaic from the drone photos with the delineated crowns (red), each "
+                     "labelled with the ID of the LiDAR tree it was matched to (c<n>: crown n, "
+                     "matched to none).", figure_to_data_uri(ax.figure)))
         sections.append(ReportSection("LiDAR against drone photogrammetry", figs))
     if "true_crown_volume_m3" in trees:
         ok = trees["true_crown_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
@@ -96,7 +104,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                 ("Alpha-shape volume against the exact crown volume.",
                  figure_to_data_uri(plots.plot_agreement(
                      sub["volume_alpha_m3"].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
-                     ("LiDAR alpha shape", "true crown"), list(sub["label"]))))]))
+                     ("LiDAR alpha shape", "true crown"), list(sub["tree_id"]))))]))
     if ctx.truth_matches is not None and "tree_id" in cloud.fields:
         from canopy_kit.evaluate import score_point_labels
 
@@ -117,6 +125,47 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         "CRS": cloud.crs or "none",
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]
-    return render_report(f"canopy-kit report: {ctx.config.name}", summary, table, sections,
+    provenance = dict(metrics.get("provenance") or {})
+    name = provenance.get("orchard") or ctx.config.name
+    from canopy_kit.report.explorer import explorer_data, row_summary
+
+    return render_report(f"canopy-kit report: {name}", summary, table, sections,
                          report_checks(metrics, trees, ctx.config), config_toml(config_used(ctx)),
-                         subtitle="Per-tree canopy volumes from a mobile LiDAR drive")
+                         subtitle="Per-tree canopy volumes from a mobile LiDAR drive"
+                                  + (f" (preset {ctx.config.name})" if name != ctx.config.name else ""),
+                         provenance=provenance,
+                         explorer=explorer_data(ctx, trees, report_downloads(ctx, trees)),
+                         row_table=row_table(row_summary(trees)))
+
+
+def crowns_by_tree_id(aerial: Any, trees: pd.DataFrame) -> pd.DataFrame:
+    """The drone crowns with a ``tree_id`` column: that of the LiDAR tree each was matched to,
+    ``c<crown_id>`` for a crown matched to none."""
+    matched = aerial.trees[aerial.trees["matched"].to_numpy(bool)]
+    ids = dict(zip(trees["segment"], trees["tree_id"], strict=True))
+    crown_tree = {int(c): ids.get(s) for c, s in zip(matched["aerial_crown_id"], matched["segment"],
+                                                     strict=True)}
+    crowns = aerial.crowns.copy()
+    crowns["tree_id"] = [crown_tree.get(int(c)) or f"c{int(c)}" for c in crowns["crown_id"]]
+    return crowns
+
+
+def report_downloads(ctx: Any, trees: pd.DataFrame) -> list[dict[str, str]]:
+    """The files the page offers for download, made as the run writes them."""
+    from canopy_kit.pipeline import trees_geojson
+    from canopy_kit.segment.export import crowns_geojson, rows_geojson
+
+    geo = "application/geo+json"
+    return [{"name": "trees.csv", "mime": "text/csv", "text": trees.to_csv(index=False)},
+            {"name": "trees.geojson", "mime": geo, "text": trees_geojson(trees)},
+            {"name": "crowns.geojson", "mime": geo, "text": crowns_geojson(ctx.segmentation)},
+            {"name": "rows.geojson", "mime": geo, "text": rows_geojson(ctx.segmentation)}]
+
+
+def row_table(rows: list[dict[str, Any]]) -> pd.DataFrame | None:
+    """The per-row summary with human headers; None without rows."""
+    if not rows:
+        return None
+    return pd.DataFrame(rows).rename(columns={
+        "row": "Row", "trees": "Trees", "median_m3": "Median alpha-shape volume [m³]",
+        "total_m3": "Total alpha-shape volume [m³]", "flagged": "Flagged trees"})

@@ -1,0 +1,71 @@
+"""Human names with units for the per-tree table's columns: the one place the report gets them."""
+
+from __future__ import annotations
+
+import re
+
+# snake_case column of trees.csv -> what the report's table header says
+COLUMN_LABELS: dict[str, str] = {
+    "tree_id": "Tree ID",
+    "label": "Label in row",
+    "row": "Row",
+    "index_in_row": "Position in row",
+    "segment": "Segment",
+    "x": "x east (local) [m]",
+    "y": "y north (local) [m]",
+    "lat": "Latitude [°]",
+    "lon": "Longitude [°]",
+    "n_points": "LiDAR points",
+    "height_m": "Tree height [m]",
+    "crown_base_height_m": "Crown base height [m]",
+    "crown_diameter_m": "Crown diameter (max) [m]",
+    "crown_diameter_mean_m": "Crown diameter (mean) [m]",
+    "projected_area_m2": "Crown projected area [m²]",
+    "sphere_volume_m3": "Sphere volume from the crown diameter [m³]",
+    "volume_convex_hull_m3": "Convex-hull volume [m³]",
+    "volume_alpha_m3": "Alpha-shape volume [m³]",
+    "volume_alpha_hull_m3": "Alpha-hull volume [m³]",
+    "volume_voxel_m3": "Voxel volume [m³]",
+    "volume_slices_m3": "Slice volume [m³]",
+    "volume_mirror_m3": "Mirrored-crown volume [m³]",
+    "volume_alpha_auto_m3": "Alpha-shape volume, automatic α [m³]",
+    "volume_flags": "Volume flags",
+    "segment_flags": "Segment flags",
+    "n_trunks": "Trunks detected",
+    "aerial_diameter_m": "Drone crown diameter (max) [m]",
+    "aerial_diameter_mean_m": "Drone crown diameter (mean) [m]",
+    "aerial_sphere_volume_m3": "Drone sphere volume [m³]",
+    "aerial_ellipsoid_volume_m3": "Drone ellipsoid volume [m³]",
+    "aerial_chm_volume_m3": "Drone canopy-height-model volume [m³]",
+    "aerial_height_m": "Drone tree height [m]",
+    "aerial_match_distance_m": "Drone crown match distance [m]",
+    "aerial_flag": "Drone crown flag",
+    "error_convex_hull_vs_aerial_pct": "Convex hull vs drone sphere [%]",
+    "error_alpha_vs_aerial_pct": "Alpha shape vs drone sphere [%]",
+    "truth_id": "Simulator tree",
+    "truth_row": "Simulator row",
+    "true_crown_volume_m3": "True crown volume (simulator) [m³]",
+    "true_sphere_volume_m3": "True sphere volume (simulator) [m³]",
+    "true_crown_diameter_m": "True crown diameter (simulator) [m]",
+    "true_height_m": "True height (simulator) [m]",
+    "error_convex_hull_vs_true_pct": "Convex hull vs true crown [%]",
+    "error_alpha_shape_vs_true_pct": "Alpha shape vs true crown [%]",
+}
+
+_UNITS = [("_pct", "%"), ("_m3", "m³"), ("_m2", "m²"), ("_m", "m"), ("_s", "s"), ("_deg", "°")]
+
+
+def column_label(column: str) -> str:
+    """The header for ``column``: its entry in ``COLUMN_LABELS``, else the name in words with
+    the unit its suffix says (``foo_bar_m3`` -> ``Foo bar [m³]``)."""
+    if column in COLUMN_LABELS:
+        return COLUMN_LABELS[column]
+    for suffix, unit in _UNITS:
+        if column.endswith(suffix) and len(column) > len(suffix):
+            return f"{_words(column[: -len(suffix)])} [{unit}]"
+    return _words(column)
+
+
+def _words(name: str) -> str:
+    text = re.sub(r"_+", " ", name).strip()
+    return text[:1].upper() + text[1:]

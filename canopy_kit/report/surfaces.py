@@ -1,0 +1,62 @@
+"""The surfaces the volume estimators measure, as triangle meshes for the report's 3-D view.
+
+The convex hull is qhull's (as :class:`~canopy_kit.volume.hull.ConvexHullVolume`); the alpha
+shape is the boundary of the tetrahedra :class:`~canopy_kit.volume.alpha.AlphaShapeVolume`
+sums (those with circumradius below α): the triangles that belong to exactly one of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A triangle mesh: vertices (V, 3) and triangles (F, 3) of vertex indices, with the
+    volume the estimator reports for the solid it bounds."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    volume_m3: float
+
+
+def _compact(name: str, xyz: np.ndarray, faces: np.ndarray, volume: float) -> Surface:
+    """Keep only the vertices the faces use, re-indexed."""
+    used, inverse = np.unique(faces.ravel(), return_inverse=True)
+    return Surface(name, xyz[used], inverse.reshape(-1, 3).astype(np.int64), float(volume))
+
+
+def hull_surface(xyz: np.ndarray) -> Surface | None:
+    """The convex hull of (N, 3) points; None when qhull cannot build one (flat or too few)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(xyz - xyz.mean(axis=0))
+    except (QhullError, ValueError):
+        return None
+    return _compact("convex hull", xyz, hull.simplices, hull.volume)
+
+
+def alpha_surface(xyz: np.ndarray, alpha: float) -> Surface | None:
+    """The boundary of the alpha complex of (N, 3) points; None when it is empty."""
+    from scipy.spatial import QhullError
+
+    from canopy_kit.volume.alpha import alpha_tetrahedra
+
+    try:
+        tetra = alpha_tetrahedra(xyz, alpha)
+    except (QhullError, ValueError):
+        return None
+    kept = tetra.simplices[tetra.circumradius < alpha]
+    if not len(kept):
+        return None
+    faces = np.concatenate([kept[:, [0, 1, 2]], kept[:, [0, 1, 3]],
+                            kept[:, [0, 2, 3]], kept[:, [1, 2, 3]]])
+    key = np.sort(faces, axis=1)
+    _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    boundary = faces[first[counts == 1]]
+    volume = float(tetra.volume[tetra.circumradius < alpha].sum())
+    return _compact("alpha shape", xyz, boundary, volume)
