@@ -50,15 +50,19 @@ def vendor(package: str, version: str, expected: str, files: dict[str, str]) -> 
     if got != expected:
         raise SystemExit(f"{package}@{version}: integrity mismatch\n  expected {expected}\n  got      {got}")
     VENDOR.mkdir(parents=True, exist_ok=True)
+    sha256 = {}
     with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
         for member, name in files.items():
             fh = tar.extractfile(member)
             if fh is None:
                 raise SystemExit(f"{package}@{version}: {member} missing from the tarball")
+            content = fh.read()
             tmp = VENDOR / f".{name}.tmp"
-            tmp.write_bytes(fh.read())
+            tmp.write_bytes(content)
             tmp.replace(VENDOR / name)
-    return {"version": version, "integrity": expected, "tarball": url, "files": sorted(files.values())}
+            sha256[name] = hashlib.sha256(content).hexdigest()
+    return {"version": version, "integrity": expected, "tarball": url,
+            "files": dict(sorted(sha256.items()))}
 
 
 def main() -> int:

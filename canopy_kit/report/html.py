@@ -46,9 +46,9 @@ def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3,
         f'{html.escape(labels.get(str(c), str(c)))}</th>' for i, c in enumerate(df.columns))
     ids = df[row_key].astype(str).tolist() if row_key is not None else None
     rows = []
-    for k, (_, r) in enumerate(df.iterrows()):
+    for k, values in enumerate(df.itertuples(index=False, name=None)):  # keeps each column's type
         cells = []
-        for v, places in zip(r.tolist(), digits, strict=True):
+        for v, places in zip(values, digits, strict=True):
             if isinstance(v, float):
                 text = "" if pd.isna(v) else f"{v:.{places}f}"
                 cells.append(f'<td class="num" data-v="{"" if pd.isna(v) else v}">{text}</td>')

@@ -126,16 +126,24 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]
     provenance = dict(metrics.get("provenance") or {})
-    name = provenance.get("orchard") or ctx.config.name
     from canopy_kit.report.explorer import explorer_data, row_summary
 
-    return render_report(f"canopy-kit report: {name}", summary, table, sections,
+    title, subtitle = report_title(provenance, ctx.config.name)
+    return render_report(title, summary, table, sections,
                          report_checks(metrics, trees, ctx.config), config_toml(config_used(ctx)),
-                         subtitle="Per-tree canopy volumes from a mobile LiDAR drive"
-                                  + (f" (preset {ctx.config.name})" if name != ctx.config.name else ""),
-                         provenance=provenance,
+                         subtitle=subtitle, provenance=provenance,
                          explorer=explorer_data(ctx, trees, report_downloads(ctx, trees)),
                          row_table=row_table(row_summary(trees)))
+
+
+def report_title(provenance: dict[str, Any], preset: str) -> tuple[str, str]:
+    """The page's title and subtitle: named after the orchard when the provenance names one,
+    else after the preset."""
+    orchard = str(provenance.get("orchard") or "").strip()
+    subtitle = "Per-tree canopy volumes from a mobile LiDAR drive"
+    if orchard:
+        return f"canopy-kit report: {orchard}", f"{subtitle} (preset {preset})"
+    return f"canopy-kit report: {preset}", subtitle
 
 
 def crowns_by_tree_id(aerial: Any, trees: pd.DataFrame) -> pd.DataFrame:

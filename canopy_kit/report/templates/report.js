@@ -142,7 +142,7 @@
       marker.colorscale = "Viridis"; marker.cmin = vmin; marker.cmax = vmax; marker.showscale = true;
       marker.colorbar = {title: {text: label[VOL] || VOL, side: "right"}, thickness: 14};
     }
-    return {type: "scatter", mode: "markers+text", name: "trees", meta: {markers: true},
+    return {type: "scatter", mode: "markers+text", name: "trees", meta: {markers: true}, showlegend: mode !== "flag",
             x: D.trees.map(function (t) { return t.x; }), y: D.trees.map(function (t) { return t.y; }),
             text: D.trees.map(function (t) { return t.tree_id; }), textposition: "top center",
             textfont: {size: 10, color: "#222"}, customdata: D.trees.map(function (t) { return t.tree_id; }),
@@ -181,11 +181,19 @@
   // -- histogram -------------------------------------------------------------------------------
   var histEl = document.getElementById("hist");
   if (histEl) {
-    var hist = [];
+    var hist = [], series = [], all = [];
     ["volume_alpha_m3", "volume_convex_hull_m3", "aerial_sphere_volume_m3"].forEach(function (k) {
       if (!(k in (D.trees[0] || {}))) { return; }
-      hist.push({type: "histogram", name: label[k] || k, opacity: 0.6, nbinsx: 20,
-                 x: D.trees.map(function (t) { return t[k]; }).filter(function (v) { return v !== null; })});
+      var v = D.trees.filter(function (t) { return k !== "aerial_sphere_volume_m3" || !t.aerial_flag; })
+        .map(function (t) { return t[k]; }).filter(function (x) { return x !== null && x !== undefined; });
+      series.push([k, v]); all = all.concat(v);
+    });
+    var lo = Math.min.apply(null, all), hi = Math.max.apply(null, all);
+    var size = hi > lo ? (hi - lo) / Math.min(20, Math.max(5, Math.ceil(Math.sqrt(D.trees.length)) * 2)) : 1;
+    series.forEach(function (kv) { // one set of bins for every method, so the bars compare
+      var name = (label[kv[0]] || kv[0]) + (kv[0] === "aerial_sphere_volume_m3" ? " (flagged crowns left out)" : "");
+      hist.push({type: "histogram", name: name, opacity: 0.6, x: kv[1],
+                 xbins: {start: lo - size / 2, end: hi + size / 2, size: size}});
     });
     Plotly.newPlot(histEl, hist, {barmode: "overlay", margin: {l: 50, r: 10, t: 30, b: 45},
       title: {text: "Volume per tree", font: {size: 14}}, xaxis: {title: {text: "volume [m³]"}},

@@ -1,0 +1,288 @@
+"""The interactive report: map, searchable and sortable table, drill-down and downloads, offline.
+
+The browser test opens a real run's report in headless Chromium with every request recorded
+(only data:, blob: and about: may load besides the page itself) and checks what it shows
+against the run's trees.csv.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
+ALLOWED = ("data:", "blob:", "about:")
+
+
+def test_columns_get_human_names_with_units() -> None:
+    from canopy_kit.report.columns import column_label
+
+    assert column_label("volume_alpha_m3") == "Alpha-shape volume [m³]"
+    assert column_label("tree_id") == "Tree ID"
+    # Columns without an entry get words and the unit their suffix names.
+    assert column_label("error_voxel_vs_true_pct") == "Error voxel vs true [%]"
+    assert column_label("projected_gap_m2") == "Projected gap [m²]"
+    assert column_label("volume_flags") == "Volume flags"
+
+
+def test_report_title_names_the_orchard_when_the_provenance_does() -> None:
+    from canopy_kit.report.session import report_title
+
+    assert report_title({"orchard": "Block 7 pistachio"}, "adaptive")[0] == "canopy-kit report: Block 7 pistachio"
+    assert "adaptive" in report_title({"orchard": "Block 7 pistachio"}, "adaptive")[1]
+    assert report_title({}, "adaptive")[0] == "canopy-kit report: adaptive"
+
+
+def test_scale_bar_lengths_are_round() -> None:
+    from canopy_kit.report.mapdecor import nice_length
+
+    assert nice_length(14.0) == 2.0
+    assert nice_length(60.0) == 10.0
+    assert nice_length(260.0) == 50.0
+    assert nice_length(1.2) == pytest.approx(0.2)
+
+
+def test_map_figures_get_a_north_arrow_and_a_scale_bar() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    from canopy_kit.report.mapdecor import add_north_arrow_and_scale
+
+    _, ax = plt.subplots()
+    ax.set_xlim(0, 40)
+    add_north_arrow_and_scale(ax)
+    bars = [a for a in ax.artists if isinstance(a, AnchoredSizeBar)]
+    assert len(bars) == 1 and bars[0].txt_label.get_text() == "5 m"
+    assert [t.get_text() for t in ax.texts] == ["N"]
+    plt.close("all")
+
+
+def test_mapping_map_is_coloured_by_height_above_the_ground() -> None:
+    """On sloping ground a 3 m tree at the top of the slope and one at the bottom have the
+    same colour once the ground is subtracted; the colour bar says which it is."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from canopy_kit.cloud import PointCloud
+    from canopy_kit.mapping.plots import plot_map_top_view
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 20, (4000, 2))
+    ground = 0.5 * xy[:, 0]  # 10 m of slope
+    cloud = PointCloud(np.column_stack([xy, ground + 3.0]))
+    fig = plot_map_top_view(cloud, ground_height=lambda p: 0.5 * p[:, 0])
+    image = fig.axes[0].images[0].get_array()
+    assert np.nanmax(image) - np.nanmin(image) < 0.1  # 3 m everywhere
+    assert fig.axes[1].get_ylabel() == "height above ground [m]"
+    plain = plot_map_top_view(cloud)
+    assert "not above ground" in plain.axes[1].get_ylabel()
+
+
+def _ball(n: int = 600, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    return 2.0 * v / np.linalg.norm(v, axis=1, keepdims=True) * rng.uniform(0.6, 1.0, (n, 1)) ** (1 / 3)
+
+
+def _closed(faces: np.ndarray) -> bool:
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [0, 2]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts % 2 == 0))
+
+
+def test_surfaces_are_the_estimators_solids() -> None:
+    """The drawn surfaces bound what the estimators measure: same volumes, closed meshes."""
+    from canopy_kit.report.surfaces import alpha_surface, hull_surface
+    from canopy_kit.volume.alpha import AlphaShapeVolume
+    from canopy_kit.volume.hull import hull_volume
+
+    xyz = _ball()
+    hull = hull_surface(xyz)
+    assert hull is not None and hull.volume_m3 == pytest.approx(hull_volume(xyz))
+    assert _closed(hull.faces) and hull.faces.max() < len(hull.vertices)
+    alpha = alpha_surface(xyz, 0.9)
+    assert alpha is not None
+    assert alpha.volume_m3 == pytest.approx(AlphaShapeVolume(alpha=0.9)(xyz).volume_m3)
+    assert _closed(alpha.faces)
+    assert alpha_surface(xyz, 1e-4) is None  # α below the point spacing: nothing to draw
+    assert hull_surface(np.zeros((5, 3))) is None
+
+
+def test_encoded_points_round_trip_to_the_centimetre() -> None:
+    import base64
+
+    from canopy_kit.report.explorer import downsample, encode_xyz
+
+    xyz = _ball() + [500.0, 300.0, 20.0]
+    centre = np.array([500.0, 300.0, 18.0])
+    back = np.frombuffer(base64.b64decode(encode_xyz(xyz, centre)), "<i2").reshape(-1, 3) / 100 + centre
+    assert np.abs(back - xyz).max() <= 0.005 + 1e-9
+    idx = downsample(10_000, 2000, seed=3)
+    assert len(idx) == 2000 and len(np.unique(idx)) == 2000 and np.all(np.diff(idx) > 0)
+    assert np.array_equal(idx, downsample(10_000, 2000, seed=3))
+    assert np.array_equal(downsample(50, 2000), np.arange(50))
+
+
+def test_ortho_crop_is_around_the_tree() -> None:
+    from ground_truth.ortho import Orthomosaic
+    from ground_truth.raster import Grid
+
+    from canopy_kit.report.explorer import ortho_crop
+
+    grid = Grid(x0=0.0, y0=50.0, resolution=0.05, rows=1000, cols=1000)  # 50 m x 50 m
+    rgba = np.zeros((1000, 1000, 4), np.uint8)
+    rgba[..., 3] = 255
+    x, y = grid.centers()
+    rgba[((x - 20) ** 2 + (y - 30) ** 2) < 4, 1] = 200  # a green crown of 2 m radius at (20, 30)
+    crop = ortho_crop(Orthomosaic(grid, rgba, np.zeros((1000, 1000), int), ["a"]), 20.0, 30.0, 3.0)
+    assert crop is not None and crop["uri"].startswith("data:image/jpeg;base64,")
+    assert crop["x0"] == pytest.approx(17.0, abs=0.1) and crop["x1"] == pytest.approx(23.0, abs=0.1)
+    assert crop["y0"] == pytest.approx(27.0, abs=0.1) and crop["y1"] == pytest.approx(33.0, abs=0.1)
+    assert ortho_crop(Orthomosaic(grid, rgba, np.zeros((1000, 1000), int), ["a"]), 200.0, 30.0, 3.0) is None
+
+
+def test_script_json_cannot_close_its_script_element() -> None:
+    import json
+
+    from canopy_kit.report.html import script_json
+
+    text = script_json({"flag": "</script><script>alert(1)</script>", "a&b": 1})
+    assert "</" not in text and "<" not in text
+    assert json.loads(text) == {"flag": "</script><script>alert(1)</script>", "a&b": 1}
+
+
+def test_the_vendored_files_are_those_of_the_pinned_tarball() -> None:
+    """scripts/vendor_js.py records each file's hash as unpacked from the integrity-checked
+    tarball: an edited or truncated vendored file fails here."""
+    import hashlib
+    from importlib.resources import files
+
+    from canopy_kit.report.assets import plotly_js, vendored
+
+    record = vendored()["plotly.js-dist-min"]
+    assert record["integrity"].startswith("sha512-") and record["version"] in record["tarball"]
+    vendor = files("canopy_kit.report").joinpath("vendor")  # as installed: package data
+    for name, digest in record["files"].items():
+        assert hashlib.sha256(vendor.joinpath(name).read_bytes()).hexdigest() == digest, name
+    assert "MIT License" in vendor.joinpath("plotly.LICENSE.txt").read_text()
+    assert "</script" not in plotly_js()
+
+
+def _marker_position(page, tree_id: str) -> tuple[float, float]:
+    """Where the map draws ``tree_id``'s marker, in page pixels (from plotly's own axes)."""
+    return tuple(page.evaluate("""id => {
+        const gd = document.getElementById('map'), fl = gd._fullLayout, r = gd.getBoundingClientRect();
+        const tr = gd.data.find(t => t.meta && t.meta.markers);
+        const k = tr.customdata.indexOf(id);
+        return [r.left + fl._size.l + fl.xaxis.l2p(tr.x[k]), r.top + fl._size.t + fl.yaxis.l2p(tr.y[k])];
+    }""", tree_id))
+
+
+@pytest.mark.browser
+def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_run) -> None:
+    from playwright.sync_api import sync_playwright
+
+    from canopy_kit.report.browser import CHROMIUM_ARGS, find_chromium
+
+    run = tiny_pistachio_run
+    path = Path(run.files["report.html"])
+    csv_text = (run.out_dir / "trees.csv").read_text()
+    trees = pd.read_csv(run.out_dir / "trees.csv")
+    page_url = path.resolve().as_uri()
+    requests: list[str] = []
+    blocked: list[str] = []
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+
+        def route(r):  # noqa: ANN001, ANN202
+            url = r.request.url
+            requests.append(url)
+            if url == page_url or url.startswith(ALLOWED):
+                return r.continue_()
+            blocked.append(url)
+            return r.abort()
+
+        page.route("**/*", route)
+        page.on("request", lambda r: requests.append(r.url))
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(page_url, wait_until="load")
+        page.wait_for_function("window.canopyReport !== undefined")
+
+        # The map: one crown polygon and one marker per tree, named by trees.csv's tree_id.
+        crowns = page.evaluate("document.getElementById('map').data.filter(t => t.meta && t.meta.crown)"
+                               ".map(t => t.meta.crown)")
+        markers = page.evaluate("document.getElementById('map').data.find(t => t.meta && t.meta.markers)"
+                                ".customdata")
+        assert sorted(crowns) == sorted(trees["tree_id"]) and sorted(markers) == sorted(trees["tree_id"])
+        page.locator("#explore").scroll_into_view_if_needed()
+        page.screenshot(path=str(ARTIFACTS / "report_interactive_map.png"))
+
+        # Clicking a tree on the map opens its drill-down, whose numbers are trees.csv's.
+        tree = trees.iloc[len(trees) // 2]
+        page.locator("#map").scroll_into_view_if_needed()
+        x, y = _marker_position(page, tree["tree_id"])
+        page.mouse.move(x, y)  # as a hand would: plotly reports the click on what it hovers
+        page.mouse.click(x, y)
+        summary = page.locator("#drill-summary")
+        assert summary.get_attribute("data-tree") == tree["tree_id"]
+        assert int(summary.get_attribute("data-points")) == int(tree["n_points"])
+        shown = float(page.locator("#drill-values td[data-key='volume_alpha_m3']").get_attribute("data-v"))
+        assert shown == pytest.approx(tree["volume_alpha_m3"], rel=1e-9)
+        surfaces = page.evaluate(f"window.canopyReport.data.details['{tree['tree_id']}'].surfaces"
+                                 ".map(s => [s.name, s.volume_m3])")
+        volumes = {name.split(" (")[0]: v for name, v in surfaces}
+        assert volumes["alpha shape"] == pytest.approx(tree["volume_alpha_m3"], rel=1e-9)
+        assert volumes["convex hull"] == pytest.approx(tree["volume_convex_hull_m3"], rel=1e-9)
+        n_drawn = page.evaluate("document.getElementById('drill-3d').data[0].x.length")
+        assert 0 < n_drawn <= min(2000, int(tree["n_points"]))
+        page.wait_for_timeout(300)
+        page.locator("#drill").screenshot(path=str(ARTIFACTS / "report_interactive_drilldown.png"))
+
+        # Search: typing a tree_id leaves that tree's row only.
+        target = trees["tree_id"].iloc[-1]
+        page.fill("#tree-search", target)
+        visible = page.eval_on_selector_all("#trees tbody tr", "rs => rs.filter(r => r.style.display !== 'none')"
+                                            ".map(r => r.dataset.id)")
+        assert visible == [target]
+        assert page.locator("#tree-count").inner_text() == f"1 of {len(trees)} trees shown"
+        page.fill("#tree-search", "")
+        assert page.locator("#trees tbody tr:visible").count() == len(trees)
+
+        # Sorting a numeric column orders it by value; a click on a row opens that tree.
+        page.locator("#trees th[data-key='volume_alpha_m3']").click()
+        col = int(page.locator("#trees th[data-key='volume_alpha_m3']").get_attribute("data-col"))
+        values = page.eval_on_selector_all(f"#trees tbody tr td:nth-child({col + 1})",
+                                           "els => els.map(e => parseFloat(e.dataset.v))")
+        assert values == pytest.approx(sorted(trees["volume_alpha_m3"]))
+        smallest = trees.loc[trees["volume_alpha_m3"].idxmin(), "tree_id"]
+        page.locator("#trees tbody tr").first.click()
+        assert summary.get_attribute("data-tree") == smallest
+        page.locator("#per-tree").scroll_into_view_if_needed()
+        page.screenshot(path=str(ARTIFACTS / "report_interactive_table.png"))
+
+        # Downloads are Blobs of the embedded files: trees.csv is byte for byte the run's.
+        names = page.eval_on_selector_all("#downloads a", "as => as.map(a => [a.dataset.name, a.href])")
+        assert [n for n, _ in names] == ["trees.csv", "trees.geojson", "crowns.geojson", "rows.geojson"]
+        assert all(href.startswith("blob:") for _, href in names)
+        embedded = page.evaluate("fetch(document.querySelector('#downloads a').href).then(r => r.text())")
+        assert embedded == csv_text
+        geo = page.evaluate("fetch(document.querySelectorAll('#downloads a')[1].href).then(r => r.json())")
+        assert len(geo["features"]) == len(trees)
+
+        # Colouring by flag redraws the map with the same trees.
+        page.select_option("#map-colour", "flag")
+        again = page.evaluate("document.getElementById('map').data.filter(t => t.meta && t.meta.crown).length")
+        assert again == len(trees)
+        browser.close()
+    assert blocked == []
+    assert all(u == page_url or u.startswith(ALLOWED) for u in requests), requests
+    assert errors == []
