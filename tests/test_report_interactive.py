@@ -23,7 +23,9 @@ def test_columns_get_human_names_with_units() -> None:
     assert column_label("volume_alpha_m3") == "Alpha-shape volume [m³]"
     assert column_label("tree_id") == "Tree ID"
     # Columns without an entry get words and the unit their suffix names.
-    assert column_label("error_voxel_vs_true_pct") == "Error voxel vs true [%]"
+    assert column_label("error_alpha_vs_aerial_pct") == "Alpha shape vs drone sphere: error [%]"
+    assert column_label("error_voxel_vs_true_pct") == "Voxel vs true crown: error [%]"
+    assert column_label("aerial_gap_m") == "Aerial gap [m]"
     assert column_label("projected_gap_m2") == "Projected gap [m²]"
     assert column_label("volume_flags") == "Volume flags"
 

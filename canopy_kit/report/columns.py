@@ -40,19 +40,21 @@ COLUMN_LABELS: dict[str, str] = {
     "aerial_height_m": "Drone tree height [m]",
     "aerial_match_distance_m": "Drone crown match distance [m]",
     "aerial_flag": "Drone crown flag",
-    "error_convex_hull_vs_aerial_pct": "Convex hull vs drone sphere [%]",
-    "error_alpha_vs_aerial_pct": "Alpha shape vs drone sphere [%]",
     "truth_id": "Simulator tree",
+    "truth_tree_id": "Simulator tree",
+    "truth_label": "Simulator label",
     "truth_row": "Simulator row",
     "true_crown_volume_m3": "True crown volume (simulator) [m³]",
     "true_sphere_volume_m3": "True sphere volume (simulator) [m³]",
     "true_crown_diameter_m": "True crown diameter (simulator) [m]",
     "true_height_m": "True height (simulator) [m]",
-    "error_convex_hull_vs_true_pct": "Convex hull vs true crown [%]",
-    "error_alpha_shape_vs_true_pct": "Alpha shape vs true crown [%]",
 }
 
 _UNITS = [("_pct", "%"), ("_m3", "m³"), ("_m2", "m²"), ("_m", "m"), ("_s", "s"), ("_deg", "°")]
+# error_<method>_vs_<reference>_pct: the relative error of a volume column against a reference
+_ERROR = re.compile(r"error_(?P<method>.+)_vs_(?P<ref>true|aerial)_pct")
+_REFERENCES = {"true": "true crown", "aerial": "drone sphere"}
+_METHODS = {"alpha": "alpha shape"}
 
 
 def column_label(column: str) -> str:
@@ -60,6 +62,11 @@ def column_label(column: str) -> str:
     the unit its suffix says (``foo_bar_m3`` -> ``Foo bar [m³]``)."""
     if column in COLUMN_LABELS:
         return COLUMN_LABELS[column]
+    error = _ERROR.fullmatch(column)
+    if error:
+        method = error["method"]
+        name = _METHODS.get(method, method.replace("_", " "))
+        return f"{_words(name)} vs {_REFERENCES[error['ref']]}: error [%]"
     for suffix, unit in _UNITS:
         if column.endswith(suffix) and len(column) > len(suffix):
             return f"{_words(column[: -len(suffix)])} [{unit}]"

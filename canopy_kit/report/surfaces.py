@@ -55,8 +55,17 @@ def alpha_surface(xyz: np.ndarray, alpha: float) -> Surface | None:
         return None
     faces = np.concatenate([kept[:, [0, 1, 2]], kept[:, [0, 1, 3]],
                             kept[:, [0, 2, 3]], kept[:, [1, 2, 3]]])
-    key = np.sort(faces, axis=1)
-    _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
-    boundary = faces[first[counts == 1]]
+    boundary = faces[_once(np.sort(faces, axis=1).astype(np.int64), len(xyz))]
     volume = float(tetra.volume[tetra.circumradius < alpha].sum())
     return _compact("alpha shape", xyz, boundary, volume)
+
+
+def _once(sorted_faces: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the triangles (vertex indices sorted per row, all below ``n``) that occur
+    exactly once: each as one int64 key, which sorts ten times faster than rows do."""
+    if n < 2_000_000:  # n³ < 2⁶³
+        key = (sorted_faces[:, 0] * n + sorted_faces[:, 1]) * n + sorted_faces[:, 2]
+        _, first, counts = np.unique(key, return_index=True, return_counts=True)
+    else:
+        _, first, counts = np.unique(sorted_faces, axis=0, return_index=True, return_counts=True)
+    return first[counts == 1]

@@ -189,15 +189,18 @@
       series.push([k, v]); all = all.concat(v);
     });
     var lo = Math.min.apply(null, all), hi = Math.max.apply(null, all);
-    var size = hi > lo ? (hi - lo) / Math.min(20, Math.max(5, Math.ceil(Math.sqrt(D.trees.length)) * 2)) : 1;
+    var raw = hi > lo ? (hi - lo) / Math.min(20, Math.max(5, 2 * Math.ceil(Math.sqrt(D.trees.length)))) : 1;
+    var pow = Math.pow(10, Math.floor(Math.log10(raw)));
+    var size = [1, 2, 5, 10].map(function (m) { return m * pow; }).find(function (v) { return v >= raw; });
+    var start = Math.floor(lo / size) * size, end = (Math.floor(hi / size) + 1) * size;  // round bin edges
     series.forEach(function (kv) { // one set of bins for every method, so the bars compare
       var name = (label[kv[0]] || kv[0]) + (kv[0] === "aerial_sphere_volume_m3" ? " (flagged crowns left out)" : "");
-      hist.push({type: "histogram", name: name, opacity: 0.6, x: kv[1],
-                 xbins: {start: lo - size / 2, end: hi + size / 2, size: size}});
+      hist.push({type: "histogram", name: name, opacity: 0.85, x: kv[1],
+                 xbins: {start: start, end: end, size: size}});
     });
-    Plotly.newPlot(histEl, hist, {barmode: "overlay", margin: {l: 50, r: 10, t: 30, b: 45},
-      title: {text: "Volume per tree", font: {size: 14}}, xaxis: {title: {text: "volume [m³]"}},
-      yaxis: {title: {text: "trees"}}, legend: {orientation: "h", y: -0.25}}, config);
+    Plotly.newPlot(histEl, hist, {barmode: "group", bargap: 0.15, margin: {l: 50, r: 10, t: 30, b: 70},
+      title: {text: "Volume per tree", font: {size: 14}}, xaxis: {title: {text: "volume [m³]"}, dtick: 2 * size, tick0: 0},
+      yaxis: {title: {text: "trees"}}, legend: {orientation: "h", y: -0.32}}, config);
   }
 
   // -- downloads: Blobs made from the embedded text --------------------------------------
@@ -212,7 +215,13 @@
   }
 
   // -- drill-down --------------------------------------------------------------------------------
-  var SKIP = {};
+  var GROUPS = ["Flags", "Volumes", "Against the drone and the truth", "Tree"];
+  function groupOf(key) { // the drill-down's sections: what to look at first, first
+    if (/flag/.test(key)) { return "Flags"; }
+    if (/^(error_|true_|truth_|aerial_)/.test(key)) { return "Against the drone and the truth"; }
+    if (/volume/.test(key)) { return "Volumes"; }
+    return "Tree";
+  }
   function showTree(id) {
     var t = byId[id], d = D.details[id];
     if (!t) { return; }
@@ -231,13 +240,20 @@
     if (d) { draw3d(d); drawOrtho(id, d); }
     var body = document.querySelector("#drill-values tbody");
     body.innerHTML = "";
-    D.columns.forEach(function (c) {
-      var v = t[c.key];
-      if (SKIP[c.key] || v === null || v === undefined || v === "") { return; }
-      var tr = document.createElement("tr"), k = document.createElement("td"), val = document.createElement("td");
-      k.textContent = c.label; k.title = c.key; val.textContent = c.numeric ? fmt(v, c.digits) : String(v);
-      val.dataset.key = c.key; if (c.numeric) { val.className = "num"; val.dataset.v = v; }
-      tr.appendChild(k); tr.appendChild(val); body.appendChild(tr);
+    GROUPS.forEach(function (g) {
+      var cols = D.columns.filter(function (c) {
+        var v = t[c.key];
+        return groupOf(c.key) === g && v !== null && v !== undefined && v !== ""; });
+      if (!cols.length) { return; }
+      var head = document.createElement("tr"), th = document.createElement("th");
+      th.colSpan = 2; th.textContent = g; head.appendChild(th); body.appendChild(head);
+      cols.forEach(function (c) {
+        var v = t[c.key];
+        var tr = document.createElement("tr"), k = document.createElement("td"), val = document.createElement("td");
+        k.textContent = c.label; k.title = c.key; val.textContent = c.numeric ? fmt(v, c.digits) : String(v);
+        val.dataset.key = c.key; if (c.numeric) { val.className = "num"; val.dataset.v = v; }
+        tr.appendChild(k); tr.appendChild(val); body.appendChild(tr);
+      });
     });
     var drill = document.getElementById("drill");
     if (drill.scrollIntoView) { drill.scrollIntoView({block: "nearest"}); }
