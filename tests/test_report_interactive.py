@@ -288,3 +288,16 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
     assert blocked == []
     assert all(u == page_url or u.startswith(ALLOWED) for u in requests), requests
     assert errors == []
+
+
+def test_header_shows_every_provenance_key_present() -> None:
+    from canopy_kit.report import render_report
+
+    trees = pd.DataFrame({"tree_id": ["r0-L0"], "volume_alpha_m3": [12.5]})
+    provenance = {"orchard": "Block 7", "bag_sha256": "9f" * 32, "run_seconds": 81.5}
+    page = render_report("t", {}, trees, [], [], "", provenance=provenance)
+    for key, value in provenance.items():
+        assert f"<dt>{key.replace('_', ' ')}</dt><dd>{value}</dd>" in page
+    assert 'id="provenance"' not in render_report("t", {}, trees, [], [], "")
+    assert ">Alpha-shape volume [m³]</th>" in page  # human headers, trees.csv's name in the tooltip
+    assert 'title="volume_alpha_m3"' in page and 'data-id="r0-L0"' in page
