@@ -25,7 +25,7 @@ def add_north_arrow_and_scale(ax: Any) -> Any:
     x0, x1 = ax.get_xlim()
     length = nice_length(abs(x1 - x0))
     label = f"{length:g} m" if length >= 1 else f"{100 * length:g} cm"
-    bar = AnchoredSizeBar(ax.transData, length, label, "lower left", pad=0.4, sep=3,
+    bar = AnchoredSizeBar(ax.transData, length, label, "lower right", pad=0.4, sep=3,
                           borderpad=0.6, frameon=True, size_vertical=0, color="black")
     bar.patch.set_alpha(0.8)
     ax.add_artist(bar)
