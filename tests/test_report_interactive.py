@@ -301,3 +301,17 @@ def test_header_shows_every_provenance_key_present() -> None:
     assert 'id="provenance"' not in render_report("t", {}, trees, [], [], "")
     assert ">Alpha-shape volume [m³]</th>" in page  # human headers, trees.csv's name in the tooltip
     assert 'title="volume_alpha_m3"' in page and 'data-id="r0-L0"' in page
+
+
+def test_row_summary_counts_sums_and_flags_per_row() -> None:
+    from canopy_kit.report.explorer import row_summary
+
+    trees = pd.DataFrame({"row": [0, 0, 0, 1], "volume_alpha_m3": [1.0, 3.0, 8.0, np.nan],
+                          "volume_flags": ["", "alpha_shape: too few points", None, ""],
+                          "aerial_flag": ["", "", "", "aerial crown merged with neighbours"]})
+    rows = row_summary(trees)
+    assert rows["row"].tolist() == [0, 1] and rows["trees"].tolist() == [3, 1]
+    assert rows["median_m3"].iloc[0] == 3.0 and rows["total_m3"].iloc[0] == 12.0
+    assert np.isnan(rows["median_m3"].iloc[1]) and np.isnan(rows["total_m3"].iloc[1])
+    assert rows["flagged"].tolist() == [1, 1]
+    assert row_summary(trees.drop(columns="row")).empty

@@ -165,27 +165,25 @@ def map_layers(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
     return {"footprints": footprints, "rows": rows, "drive": drive}
 
 
-def row_summary(trees: pd.DataFrame, volume: str = "volume_alpha_m3") -> list[dict[str, Any]]:
-    """Per row: trees, median and total of ``volume`` (m³), flagged trees."""
-    out = []
-    if "row" not in trees or volume not in trees:
-        return out
-    flags = _flagged(trees)
-    for row, sub in trees.groupby("row", sort=True):
-        v = sub[volume]
-        out.append({"row": int(row), "trees": int(len(sub)),
-                    "median_m3": None if v.isna().all() else float(v.median()),
-                    "total_m3": float(v.sum(skipna=True)),
-                    "flagged": int(flags[sub.index].sum())})
-    return out
+def row_summary(trees: pd.DataFrame, volume: str = "volume_alpha_m3") -> pd.DataFrame:
+    """Per row: trees, median and total of ``volume`` (m³; NaN for a row without one) and
+    flagged trees. Empty without a row or ``volume`` column."""
+    columns = ["row", "trees", "median_m3", "total_m3", "flagged"]
+    if "row" not in trees or volume not in trees or not len(trees):
+        return pd.DataFrame(columns=columns)
+    grouped = trees.assign(_flag=_flagged(trees)).groupby("row", sort=True)
+    out = pd.DataFrame({"trees": grouped.size(), "median_m3": grouped[volume].median(),
+                        "total_m3": grouped[volume].sum(min_count=1),
+                        "flagged": grouped["_flag"].sum().astype(int)})
+    return out.reset_index()[columns]
 
 
 def _flagged(trees: pd.DataFrame) -> pd.Series:
-    flag = pd.Series(False, index=trees.index)
-    for col in ("volume_flags", "segment_flags", "aerial_flag"):
-        if col in trees:
-            flag |= trees[col].fillna("").astype(str).str.len() > 0
-    return flag
+    """Trees with a volume, segment or drone-crown flag."""
+    from canopy_kit.pipeline import flagged
+
+    return (flagged(trees, "volume_flags") | flagged(trees, "segment_flags")
+            | flagged(trees, "aerial_flag"))
 
 
 def explorer_data(ctx: Any, trees: pd.DataFrame, downloads: list[dict[str, str]],
@@ -193,5 +191,5 @@ def explorer_data(ctx: Any, trees: pd.DataFrame, downloads: list[dict[str, str]]
     """Everything the page's script draws, as one JSON-ready dict."""
     return {"trees": json_records(trees), "columns": column_specs(trees),
             "flagged": [bool(f) for f in _flagged(trees)],
-            "rows": row_summary(trees), "map": map_layers(ctx, trees),
+            "map": map_layers(ctx, trees),
             "details": tree_details(ctx, trees, max_points), "downloads": downloads}

@@ -170,10 +170,11 @@ def report_downloads(ctx: Any, trees: pd.DataFrame) -> list[dict[str, str]]:
             {"name": "rows.geojson", "mime": geo, "text": rows_geojson(ctx.segmentation)}]
 
 
-def row_table(rows: list[dict[str, Any]]) -> pd.DataFrame | None:
-    """The per-row summary with human headers; None without rows."""
-    if not rows:
+def row_table(rows: pd.DataFrame) -> pd.DataFrame | None:
+    """The per-row summary (:func:`~canopy_kit.report.explorer.row_summary`) with human
+    headers; None without rows."""
+    if not len(rows):
         return None
-    return pd.DataFrame(rows).rename(columns={
+    return rows.rename(columns={
         "row": "Row", "trees": "Trees", "median_m3": "Median alpha-shape volume [m³]",
         "total_m3": "Total alpha-shape volume [m³]", "flagged": "Flagged trees"})
