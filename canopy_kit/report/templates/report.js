@@ -180,7 +180,8 @@
 
   // -- histogram -------------------------------------------------------------------------------
   var histEl = document.getElementById("hist");
-  if (histEl) {
+  if (histEl && !vols.length) { histEl.parentNode.style.display = "none"; }
+  if (histEl && vols.length) {
     var hist = [], series = [], all = [];
     ["volume_alpha_m3", "volume_convex_hull_m3", "aerial_sphere_volume_m3"].forEach(function (k) {
       if (!(k in (D.trees[0] || {}))) { return; }
