@@ -44,7 +44,7 @@ def tarball_url(package: str, version: str) -> str:
 def vendor(package: str, version: str, expected: str, files: dict[str, str]) -> dict[str, str]:
     """Download, check and unpack one pinned package; returns its VENDORED.json entry."""
     url = tarball_url(package, version)
-    with urllib.request.urlopen(url, timeout=120) as resp:  # noqa: S310 (fixed https URL)
+    with urllib.request.urlopen(url, timeout=120) as resp:
         data = resp.read()
     got = integrity(data)
     if got != expected:

@@ -132,10 +132,9 @@ def test_encoded_points_round_trip_to_the_centimetre() -> None:
 
 
 def test_ortho_crop_is_around_the_tree() -> None:
+    from canopy_kit.report.explorer import ortho_crop
     from ground_truth.ortho import Orthomosaic
     from ground_truth.raster import Grid
-
-    from canopy_kit.report.explorer import ortho_crop
 
     grid = Grid(x0=0.0, y0=50.0, resolution=0.05, rows=1000, cols=1000)  # 50 m x 50 m
     rgba = np.zeros((1000, 1000, 4), np.uint8)
@@ -204,7 +203,7 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
 
-        def route(r):  # noqa: ANN001, ANN202
+        def route(r):
             url = r.request.url
             requests.append(url)
             if url == page_url or url.startswith(ALLOWED):

@@ -41,7 +41,7 @@ def encode_surface(surface: Surface, centre: np.ndarray) -> dict[str, Any]:
     uint32 from 65536 vertices on, as ``index_bytes`` says)."""
     wide = len(surface.vertices) > np.iinfo(np.uint16).max
     return {"name": surface.name, "volume_m3": surface.volume_m3,
-            "n_vertices": int(len(surface.vertices)), "n_faces": int(len(surface.faces)),
+            "n_vertices": len(surface.vertices), "n_faces": len(surface.faces),
             "vertices": encode_xyz(surface.vertices, centre), "index_bytes": 4 if wide else 2,
             "faces": _b64(surface.faces, "<u4" if wide else "<u2")}
 
@@ -77,8 +77,8 @@ def ortho_crop(mosaic: Any, x: float, y: float, half: float) -> dict[str, Any] |
     r0, c0 = mosaic.grid.index(np.array([x - half]), np.array([y + half]))
     r1, c1 = mosaic.grid.index(np.array([x + half]), np.array([y - half]))
     rows, cols = mosaic.rgba.shape[:2]
-    top, left = max(0, int(math.floor(r0[0]))), max(0, int(math.floor(c0[0])))
-    bottom, right = min(rows, int(math.ceil(r1[0])) + 1), min(cols, int(math.ceil(c1[0])) + 1)
+    top, left = max(0, math.floor(r0[0])), max(0, math.floor(c0[0]))
+    bottom, right = min(rows, math.ceil(r1[0]) + 1), min(cols, math.ceil(c1[0]) + 1)
     if bottom - top < 2 or right - left < 2:
         return None
     crop = mosaic.rgba[top:bottom, left:right]
@@ -136,7 +136,7 @@ def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) ->
         centre = np.array([rec.x, rec.y, float(xyz[:, 2].min())])
         shown = xyz[downsample(len(xyz), max_points, seed=int(rec.segment))]
         item: dict[str, Any] = {
-            "centre": centre.tolist(), "n_points": int(len(xyz)), "n_shown": int(len(shown)),
+            "centre": centre.tolist(), "n_points": len(xyz), "n_shown": len(shown),
             "points": encode_xyz(shown, centre),
             "surfaces": [encode_surface(s, centre) for s in tree_surfaces(xyz, ctx.config.volume)],
         }

@@ -99,8 +99,8 @@ def render_report(title: str, summary: dict[str, Any], trees: pd.DataFrame,
     """
     import jinja2
 
-    from canopy_kit.report.columns import column_label
     from canopy_kit.report.assets import page_script, plotly_js
+    from canopy_kit.report.columns import column_label
 
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("canopy_kit", "report/templates"),
