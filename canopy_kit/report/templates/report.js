@@ -105,6 +105,7 @@
   // -- the map ---------------------------------------------------------------------------------
   var mapEl = document.getElementById("map");
   var mode = "volume";
+  var MAX_LABELS = 60; // more tree IDs than this on the map overlap: hover tells them then
   var crownIds = Object.keys(D.map.footprints).filter(function (id) { return id in byId; });
   function mapTraces() {
     var traces = [];
@@ -142,7 +143,7 @@
       marker.colorscale = "Viridis"; marker.cmin = vmin; marker.cmax = vmax; marker.showscale = true;
       marker.colorbar = {title: {text: label[VOL] || VOL, side: "right"}, thickness: 14};
     }
-    return {type: "scatter", mode: "markers+text", name: "trees", meta: {markers: true}, showlegend: mode !== "flag",
+    return {type: "scatter", mode: D.trees.length <= MAX_LABELS ? "markers+text" : "markers", name: "trees", meta: {markers: true}, showlegend: mode !== "flag",
             x: D.trees.map(function (t) { return t.x; }), y: D.trees.map(function (t) { return t.y; }),
             text: D.trees.map(function (t) { return t.tree_id; }), textposition: "top center",
             textfont: {size: 10, color: "#222"}, customdata: D.trees.map(function (t) { return t.tree_id; }),
@@ -164,6 +165,7 @@
                   legend: {orientation: "h", y: 1.02, x: 0, yanchor: "bottom"}, plot_bgcolor: "#fbfcfa",
                   annotations: [{text: "N ↑", xref: "paper", yref: "paper", x: 0.99, y: 0.99, showarrow: false,
                                  font: {size: 16}, bgcolor: "rgba(255,255,255,0.8)"}]};
+    if (mapEl.layout && mapEl.layout.shapes) { layout.shapes = mapEl.layout.shapes; }
     Plotly.react(mapEl, mapTraces().concat(flagLegend()), layout, config);
   }
   if (mapEl) {
@@ -223,16 +225,21 @@
     if (/volume/.test(key)) { return "Volumes"; }
     return "Tree";
   }
-  function showTree(id) {
+  function showTree(id, quiet) { // quiet: do not scroll the panel into view
     var t = byId[id], d = D.details[id];
     if (!t) { return; }
     document.getElementById("drill-title").textContent = "Tree " + id;
-    document.getElementById("drill-hint").textContent = "";
+    document.getElementById("drill-hint").textContent = "Click another tree on the map or a row of the table.";
+    if (mapEl) { // ring the shown tree on the map
+      var r = Math.max(0.5, (t.crown_diameter_m || 2) / 2 + 0.4);
+      Plotly.relayout(mapEl, {shapes: [{type: "circle", xref: "x", yref: "y", x0: t.x - r, x1: t.x + r,
+        y0: t.y - r, y1: t.y + r, line: {color: "#d32f2f", width: 3}}]});
+    }
     var summary = document.getElementById("drill-summary");
     summary.dataset.tree = id;
     summary.dataset.points = d ? d.n_points : "";
     summary.textContent = d ? (d.n_points.toLocaleString("en") + " LiDAR points (" + d.n_shown.toLocaleString("en") +
-      " shown); surfaces as the volume stage measured them: " + d.surfaces.map(function (s) {
+      " shown; metres from the tree's centre and lowest point); surfaces as the volume stage measured them: " + d.surfaces.map(function (s) {
         return s.name + " " + s.volume_m3.toFixed(2) + " m³"; }).join(", ")) : "no points for this tree";
     if (treeTable) {
       Array.prototype.forEach.call(treeTable.tBodies[0].rows, function (r) {
@@ -257,7 +264,7 @@
       });
     });
     var drill = document.getElementById("drill");
-    if (drill.scrollIntoView) { drill.scrollIntoView({block: "nearest"}); }
+    if (!quiet && drill.scrollIntoView) { drill.scrollIntoView({block: "nearest"}); }
   }
   function draw3d(d) {
     var p = xyz(d.points);
@@ -275,7 +282,7 @@
     });
     Plotly.react("drill-3d", traces, {margin: {l: 0, r: 0, t: 0, b: 0}, legend: {x: 0, y: 1},
       scene: {aspectmode: "data", xaxis: {title: {text: "east [m]"}}, yaxis: {title: {text: "north [m]"}},
-              zaxis: {title: {text: "up from lowest point [m]"}}}}, config);
+              zaxis: {title: {text: "up [m]"}}}}, config);
   }
   function drawOrtho(id, d) {
     var el = document.getElementById("drill-ortho");
@@ -303,5 +310,8 @@
       if (tr && tr.dataset.id) { showTree(tr.dataset.id); }
     });
   }
+  // Open the first flagged tree (else the first one), so the panel starts with something to read.
+  var first = D.trees.filter(function (t, k) { return D.flagged[k]; })[0] || D.trees[0];
+  if (first) { showTree(first.tree_id, true); }
   window.canopyReport = {data: D, showTree: showTree, crowns: crownIds.length};
 })();
