@@ -193,7 +193,6 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
 
     run = tiny_pistachio_run
     path = Path(run.files["report.html"])
-    csv_text = (run.out_dir / "trees.csv").read_text()
     trees = pd.read_csv(run.out_dir / "trees.csv")
     page_url = path.resolve().as_uri()
     requests: list[str] = []
@@ -270,14 +269,13 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         page.locator("#per-tree").scroll_into_view_if_needed()
         page.screenshot(path=str(ARTIFACTS / "report_interactive_table.png"))
 
-        # Downloads are Blobs of the embedded files: trees.csv is byte for byte the run's.
+        # Downloads are Blobs of the embedded files, each byte for byte the file the run wrote.
         names = page.eval_on_selector_all("#downloads a", "as => as.map(a => [a.dataset.name, a.href])")
         assert [n for n, _ in names] == ["trees.csv", "trees.geojson", "crowns.geojson", "rows.geojson"]
         assert all(href.startswith("blob:") for _, href in names)
-        embedded = page.evaluate("fetch(document.querySelector('#downloads a').href).then(r => r.text())")
-        assert embedded == csv_text
-        geo = page.evaluate("fetch(document.querySelectorAll('#downloads a')[1].href).then(r => r.json())")
-        assert len(geo["features"]) == len(trees)
+        for name, href in names:
+            embedded = page.evaluate("href => fetch(href).then(r => r.text())", href)
+            assert embedded == (run.out_dir / name).read_text(), name
 
         # Colouring by flag redraws the map with the same trees.
         page.select_option("#map-colour", "flag")
@@ -314,3 +312,54 @@ def test_row_summary_counts_sums_and_flags_per_row() -> None:
     assert np.isnan(rows["median_m3"].iloc[1]) and np.isnan(rows["total_m3"].iloc[1])
     assert rows["flagged"].tolist() == [1, 1]
     assert row_summary(trees.drop(columns="row")).empty
+
+
+@pytest.fixture(scope="module")
+def tiny_drone_run(sim_factory, tmp_path_factory):
+    """A 2-row x 3-tree pistachio session with a drone flight, run with its photos."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.pipeline import run
+
+    sim = sim_factory("pistachio", overrides={"orchard": {"rows": 2, "trees_per_row": 3},
+                                              "lidar": {"columns": 512}, "drone": {"enabled": True}})
+    return run(load_preset("adaptive"), sim.bag, tmp_path_factory.mktemp("drone_run"),
+               drone_images=sim.drone_dir)
+
+
+@pytest.mark.slow
+@pytest.mark.browser
+def test_drill_down_shows_the_drone_crop_around_the_tree(tiny_drone_run) -> None:
+    from playwright.sync_api import sync_playwright
+
+    from canopy_kit.report.browser import CHROMIUM_ARGS, find_chromium
+
+    run = tiny_drone_run
+    trees = pd.read_csv(run.out_dir / "trees.csv")
+    assert trees["aerial_sphere_volume_m3"].notna().any()
+    url = Path(run.files["report.html"]).resolve().as_uri()
+    errors: list[str] = []
+    outside: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.on("request", lambda r: outside.append(r.url) if not (r.url == url or r.url.startswith(ALLOWED)) else None)
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url, wait_until="load")
+        page.wait_for_function("window.canopyReport !== undefined")
+        for tree in trees.itertuples():
+            page.evaluate("id => window.canopyReport.showTree(id)", tree.tree_id)
+            image = page.evaluate("document.getElementById('drill-ortho').layout.images[0]")
+            assert image["source"].startswith("data:image/jpeg;base64,")
+            # The crop is centred on the tree (in the map's frame) and holds its crown.
+            half = max(tree.crown_diameter_m / 2, 1.0) + 1.5
+            assert image["x"] == pytest.approx(tree.x - half, abs=0.2)
+            assert image["x"] + image["sizex"] == pytest.approx(tree.x + half, abs=0.2)
+            assert image["y"] == pytest.approx(tree.y + half, abs=0.2)
+            shown = page.locator("#drill-values td[data-key='aerial_sphere_volume_m3']")
+            if not np.isnan(tree.aerial_sphere_volume_m3):
+                assert float(shown.get_attribute("data-v")) == pytest.approx(tree.aerial_sphere_volume_m3)
+        assert page.locator("#drill-ortho image").count() == 1  # drawn, not only configured
+        page.locator("#drill").screenshot(path=str(ARTIFACTS / "report_interactive_drilldown_drone.png"))
+        browser.close()
+    assert outside == [] and errors == []
