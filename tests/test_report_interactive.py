@@ -363,3 +363,49 @@ def test_drill_down_shows_the_drone_crop_around_the_tree(tiny_drone_run) -> None
         page.locator("#drill").screenshot(path=str(ARTIFACTS / "report_interactive_drilldown_drone.png"))
         browser.close()
     assert outside == [] and errors == []
+
+
+def _explorer(trees: pd.DataFrame) -> dict:
+    """Explorer data for ``trees`` without a run: square crowns, no points or surfaces."""
+    from canopy_kit.report.explorer import _flagged, column_specs, json_records
+
+    square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    return {"trees": json_records(trees), "columns": column_specs(trees),
+            "flagged": [bool(f) for f in _flagged(trees)],
+            "map": {"footprints": {t.tree_id: (square + [t.x, t.y]).tolist() for t in trees.itertuples()},
+                    "rows": [], "drive": []},
+            "details": {}, "downloads": [{"name": "trees.csv", "mime": "text/csv", "text": trees.to_csv()}]}
+
+
+@pytest.mark.browser
+@pytest.mark.parametrize("n_trees", [0, 2])
+def test_a_run_with_no_or_unmeasured_trees_still_renders_without_errors(tmp_path, n_trees) -> None:
+    """A failed run is the one that must still be read: no trees at all, or a tree whose
+    volumes are missing (NaN) and flagged."""
+    from playwright.sync_api import sync_playwright
+
+    from canopy_kit.report import render_report
+    from canopy_kit.report.browser import CHROMIUM_ARGS, find_chromium
+
+    trees = pd.DataFrame({"tree_id": ["r0-L0", "r0-L1"], "row": [0, 0], "x": [0.0, 5.0], "y": [0.0, 0.0],
+                          "crown_diameter_m": [2.0, np.nan], "volume_alpha_m3": [12.0, np.nan],
+                          "volume_flags": ["", "alpha_shape: qhull could not triangulate the points"],
+                          "segment_flags": ["", ""]}).head(n_trees)
+    path = tmp_path / "report.html"
+    path.write_text(render_report("t", {}, trees, [], [], "", explorer=_explorer(trees)))
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        page = browser.new_page()
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(path.as_uri(), wait_until="load")
+        page.wait_for_function("window.canopyReport !== undefined")
+        page.select_option("#map-colour", "flag")
+        crowns = page.evaluate("document.getElementById('map').data.filter(t => t.meta && t.meta.crown).length")
+        title = page.locator("#drill-title").inner_text()
+        browser.close()
+    assert errors == []
+    assert crowns == n_trees
+    # The drill-down opens on the flagged tree, even with nothing measured.
+    assert title == ("Tree r0-L1" if n_trees else "Tree drill-down")

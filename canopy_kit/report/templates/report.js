@@ -88,7 +88,7 @@
   }
   var VOL = "volume_alpha_m3";
   var vols = D.trees.map(function (t) { return t[VOL]; }).filter(function (v) { return v !== null; });
-  var vmin = Math.min.apply(null, vols), vmax = Math.max.apply(null, vols);
+  var vmin = vols.length ? Math.min.apply(null, vols) : 0, vmax = vols.length ? Math.max.apply(null, vols) : 1;
   function volumeColour(t) {
     var v = t[VOL];
     return v === null || v === undefined ? viridis(NaN) : viridis(vmax > vmin ? (v - vmin) / (vmax - vmin) : 0.5);
