@@ -242,7 +242,7 @@ def test_defaults_are_the_settings_of_the_committed_results():
 
 
 def test_committed_results_are_never_overwritten_by_default(tiny, tmp_path):
-    from datetime import datetime, timezone
+    from datetime import UTC, datetime
 
     results = tiny[0]
     committed = ex.default_results_dir() / "experiments.json"
@@ -259,7 +259,7 @@ def test_committed_results_are_never_overwritten_by_default(tiny, tmp_path):
     with pytest.raises(InputError, match="already holds experiment results"):
         ex.write_results(results, tmp_path)
     assert set(ex.write_results(results, tmp_path, overwrite=True)) == set(ex.RESULT_FILES)
-    when = datetime(2026, 12, 2, 7, 5, 9, tzinfo=timezone.utc)
+    when = datetime(2026, 12, 2, 7, 5, 9, tzinfo=UTC)
     assert ex.new_results_dir("out", when) == ex.Path("out/paper-20261202-070509")
 
 

@@ -25,7 +25,7 @@ import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -70,7 +70,7 @@ def default_results_dir() -> Path:
 
 def new_results_dir(root: str | Path = "out", now: datetime | None = None) -> Path:
     """A fresh folder name for new results, ``ROOT/paper-YYYYmmdd-HHMMSS`` (UTC)."""
-    stamp = (now or datetime.now(timezone.utc)).strftime("%Y%m%d-%H%M%S")
+    stamp = (now or datetime.now(UTC)).strftime("%Y%m%d-%H%M%S")
     return Path(root) / f"paper-{stamp}"
 
 
