@@ -49,7 +49,7 @@ def _(mo, plugins, table):
                            zip(table["row"], table["label"], table["segment"])},
                           value=f"{table['row'].iloc[0]}:{table['label'].iloc[0]}", label="tree")
     method = mo.ui.dropdown(plugins.names("volumes"), value="alpha_shape", label="method")
-    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=0.9, label="alpha (m)")
+    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=0.9, label="alpha (m)", show_value=True)
     mo.hstack([tree, method, alpha])
     return alpha, method, tree
 
