@@ -67,6 +67,28 @@ class SegmentationScore:
         """Among correctly segmented trees, the fraction with the true row and label."""
         return self.n_label_correct / self.n_correct if self.n_correct else 0.0
 
+    def failures(self) -> dict[str, int]:
+        """Trees not correctly segmented, lowest IoU first, as ``{description: truth id}``
+        (e.g. ``"tree 7 (r0-L3): merged, IoU 0.31"``), for a picker."""
+        bad = self.trees[self.trees["status"] != "correct"].sort_values(
+            ["iou", "truth_id"], kind="stable")
+        out = {}
+        for row in bad.to_dict("records"):
+            label = row.get("truth_label")
+            where = (f" (r{int(row['truth_row'])}-{label})"
+                     if isinstance(label, str) and pd.notna(row.get("truth_row")) else "")
+            out[f"tree {row['truth_id']}{where}: {row['status']}, IoU {row['iou']:.2f}"] = int(
+                row["truth_id"])
+        return out
+
+    def only(self, truth_ids: Any) -> SegmentationScore:
+        """This score with its per-tree table cut to ``truth_ids`` (counts unchanged): to
+        show a few trees, e.g. one failure at a time."""
+        from dataclasses import replace
+
+        keep = self.trees["truth_id"].isin(list(np.atleast_1d(truth_ids)))
+        return replace(self, trees=self.trees[keep].reset_index(drop=True))
+
     def to_dict(self) -> dict[str, Any]:
         """Plain numbers (for JSON), without the per-tree table."""
         return {

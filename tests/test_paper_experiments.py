@@ -226,3 +226,53 @@ def test_saved_only_collects_finished_sessions_and_runs_nothing(tiny, monkeypatc
     no_work = CliRunner().invoke(app, ["paper", "experiments", "--saved-only"])
     assert isinstance(no_work.exception, InputError)  # main() turns it into exit code 2
     assert "--saved-only needs --work" in str(no_work.exception)
+
+
+def test_defaults_are_the_settings_of_the_committed_results():
+    """`canopy-kit paper experiments` with no option redoes what data/paper holds."""
+    committed = json.loads((ex.default_results_dir() / "experiments.json").read_text())
+    cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in committed["config"].items()}
+    assert ex.ExperimentConfig(**cfg) == ex.ExperimentConfig()
+    params = inspect.signature(paper_cli.experiments).parameters
+    first, n = params["first_seed"].default.default, params["seeds"].default.default
+    assert tuple(range(first, first + n)) == ex.ExperimentConfig().seeds
+    assert params["rows"].default.default == ex.ExperimentConfig().rows
+    assert params["trees_per_row"].default.default == ex.ExperimentConfig().trees_per_row
+    assert tuple(params["orchard"].default.default) == ex.ExperimentConfig().orchards
+
+
+def test_committed_results_are_never_overwritten_by_default(tiny, tmp_path):
+    from datetime import UTC, datetime
+
+    results = tiny[0]
+    committed = ex.default_results_dir() / "experiments.json"
+    before = committed.read_bytes()
+    with pytest.raises(InputError, match="refusing to write into the committed data folder"):
+        ex.write_results(results, ex.default_results_dir())
+    with pytest.raises(InputError, match=str(ex.default_results_dir())):
+        ex.check_results_dir(ex.default_results_dir() / "sub")
+    assert committed.read_bytes() == before
+    assert ex.check_results_dir(ex.default_results_dir(), overwrite=True) \
+        == ex.default_results_dir()
+    # A folder holding results is refused too, unless asked.
+    ex.write_results(results, tmp_path)
+    with pytest.raises(InputError, match="already holds experiment results"):
+        ex.write_results(results, tmp_path)
+    assert set(ex.write_results(results, tmp_path, overwrite=True)) == set(ex.RESULT_FILES)
+    when = datetime(2026, 12, 2, 7, 5, 9, tzinfo=UTC)
+    assert ex.new_results_dir("out", when) == ex.Path("out/paper-20261202-070509")
+
+
+def test_cli_refuses_committed_data_before_running(monkeypatch):
+    from typer.testing import CliRunner
+
+    from canopy_kit.cli import app
+
+    def no_run(*_a, **_k):
+        raise AssertionError("ran experiments before checking --out")
+
+    monkeypatch.setattr(ex, "run_experiments", no_run)
+    got = CliRunner().invoke(app, ["paper", "experiments", "--out",
+                                   str(ex.default_results_dir())])
+    assert isinstance(got.exception, InputError)
+    assert str(ex.default_results_dir()) in str(got.exception)

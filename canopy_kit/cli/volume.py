@@ -6,7 +6,8 @@ import typer
 
 
 def volume(
-    cloud: str = typer.Argument(..., help="point-cloud file of one tree (LAS/LAZ/PLY/PCD)"),
+    cloud: str = typer.Argument(..., help="LAS/LAZ/PLY/PCD file holding one tree's points "
+                                          "only, in metres"),
     method: str = typer.Option("alpha_shape", "--method", "-m",
                                help="volume plugin: convex_hull, alpha_shape, alpha_hull, voxel, "
                                     "slices, mirror, ... (see 'canopy-kit plugins volumes')"),
@@ -14,7 +15,13 @@ def volume(
                                 help="alpha radius in metres for alpha-based methods (default 0.9)"),
     json: bool = typer.Option(False, "--json", help="print the result as JSON"),
 ) -> None:
-    """Estimate the canopy volume of the points in CLOUD with one volume method."""
+    """Estimate the canopy volume of the points in CLOUD with one volume method.
+
+    CLOUD must hold one tree and nothing else: every point counts, so ground, trunk-height
+    clutter or a neighbour's crown inflate the volume and the height. canopy-kit's own
+    outputs are whole orchards (`map.laz` of `run`, `segmented.laz` of `segment`); cut a tree out of them first
+    (e.g. with PDAL or CloudCompare), or use `canopy-kit run`, which measures every tree.
+    """
     from canopy_kit.cli.common import console, print_json
     from canopy_kit.io.clouds import read_cloud
     from canopy_kit.volume import estimator, tree_metrics
