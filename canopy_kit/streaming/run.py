@@ -32,7 +32,7 @@ def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
                settings: StreamSettings | None = None, progress: Progress | None = None,
                on_tree: Callable[[StreamedTree], None] | None = None) -> Any:
     """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.pipeline.Results`."""
-    from canopy_kit.pipeline import Results, trees_geojson
+    from canopy_kit.pipeline import Results, write_trees
 
     bag, out = Path(bag), Path(out)
     if not bag.exists():
@@ -54,11 +54,7 @@ def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
     metrics = stream_metrics(stream, trees)
     metrics["timing"] = {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
     files = {"trees.live.csv": live}
-    files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
-    with atomic_path(out / "trees.parquet") as tmp:
-        trees.to_parquet(tmp, index=False)
-    files["trees.parquet"] = out / "trees.parquet"
-    files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
+    files.update(write_trees(trees, out))
     files["config.toml"] = write_config(_config_used(config, stream.source.topics), out / "config.toml")
     files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
     return Results(out, trees, metrics, files, list(metrics["warnings"]))
