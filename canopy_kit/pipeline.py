@@ -198,6 +198,7 @@ def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -
 
     shift = ctx.mapping.map.origin[:2] - _frame_origin(ctx)[:2]
     seeds = pd.DataFrame({"segment": ctx.trees["segment"].to_numpy(),
+                          "tree_id": ctx.trees["tree_id"].astype(str).to_numpy(),
                           "x": ctx.trees["x"].to_numpy() + shift[0],
                           "y": ctx.trees["y"].to_numpy() + shift[1]})
     return process_flight(images, out, frame=ctx.mapping.frame, seeds=seeds, progress=progress)

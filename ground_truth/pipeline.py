@@ -21,7 +21,7 @@ from ground_truth.crowns import (CrownOptions, CrownSegmentation, delineate_crow
 from ground_truth.dsm import (SurfaceModel, SurfaceOptions, canopy_top, clean_surface, dense_surface,
                              ground_from_surface, ground_model, reliable_points)
 from ground_truth.exif import Flight, read_flight
-from ground_truth.match import match_crowns, read_trees, tree_positions
+from ground_truth.match import crown_tree_ids, match_crowns, read_trees, tree_positions
 from ground_truth.ortho import Orthomosaic, orthomosaic
 from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
 from ground_truth.sfm import SfmOptions, SparseModel, run_sfm
@@ -183,6 +183,8 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     crowns.insert(3, "lat", lat)
     crowns.insert(4, "lon", lon)
     matched = match_crowns(trees, crowns, opts.match_distance_m) if trees is not None else None
+    if matched is not None and "tree_id" in matched:  # the seeds' ids name their crowns
+        crowns["tree_id"] = crown_tree_ids(crowns, matched)
     timings["crowns"] = time.perf_counter() - t0
 
     summary = {
