@@ -290,7 +290,7 @@ def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
                  mode: str = "auto") -> SegmentationScore:
     """Score a ``canopy-kit segment`` or ``canopy-kit run`` folder against a simulated session's truth.
 
-    ``mode``: ``points`` (needs the truth field ``true_tree_id`` in the segmented map),
+    ``mode``: ``points`` (needs the truth field ``truth_tree_id`` in the segmented map),
     ``footprints``, or ``auto`` (points when possible).
     """
     from canopy_kit.segment.export import read_segmentation
@@ -308,7 +308,7 @@ def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
     if mode == "points" or (mode == "auto" and truth_field is not None):
         if truth_field is None:
             raise InputError(f"{run_dir}: the segmented map has no per-point truth field "
-                             "'true_tree_id'; use footprints mode")
+                             "'truth_tree_id'; use footprints mode")
         observed = set(np.unique(truth_field[truth_field >= 0]).tolist())
         labels = truth_labels.loc[sorted(observed & set(truth_labels.index))]
         return score_point_labels(run.cloud.fields["segment_id"], truth_field, min_iou,

@@ -162,7 +162,7 @@ def test_the_same_tree_has_the_same_id_in_every_output(gis_run) -> None:
         gdf = pyogrio.read_dataframe(out / "trees.gpkg", layer=layer)
         assert dict(zip(gdf["tree_id"], gdf[key])) == ids.to_dict(), layer
     cloud = read_cloud(out / "map.laz")
-    assert "tree_id" not in cloud.fields and "true_tree_id" in cloud.fields
+    assert "tree_id" not in cloud.fields and "truth_tree_id" in cloud.fields
     seg_ids = cloud.fields["segment_id"]
     counts = pd.Series(seg_ids[seg_ids >= 0]).value_counts()
     assert counts.to_dict() == csv.set_index("segment")["n_points"].to_dict()
@@ -184,7 +184,7 @@ def test_map_laz_las_classes_follow_the_segmentation_and_the_truth(gis_run) -> N
     cloud = read_cloud(out / "map.laz")
     cls = np.asarray(cloud.fields["classification"])
     seg_ids = cloud.fields["segment_id"]
-    truth = np.asarray(cloud.fields["true_tree_id"])
+    truth = np.asarray(cloud.fields["truth_tree_id"])
     assert np.array_equal(cls == 5, seg_ids >= 0)
     assert set(np.unique(cls)) <= {1, 2, 4, 5}
     ground = truth < 0

@@ -9,6 +9,7 @@ and every layer's metadata, one string item per key.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -31,9 +32,11 @@ def write_gpkg(path: str | Path, layers: dict[str, tuple[pd.DataFrame, list[Any]
         for i, (name, (table, geometry)) in enumerate(layers.items()):
             frame = gpd.GeoDataFrame(table.reset_index(drop=True),
                                      geometry=gpd.GeoSeries(geometry), crs=crs)
-            pyogrio.write_dataframe(frame, tmp, layer=name, driver="GPKG",
-                                    dataset_metadata=meta if i == 0 and meta else None,
-                                    layer_metadata=meta or None)
+            with warnings.catch_warnings():  # no CRS is what a map without GNSS has
+                warnings.filterwarnings("ignore", "'crs' was not provided", UserWarning)
+                pyogrio.write_dataframe(frame, tmp, layer=name, driver="GPKG",
+                                        dataset_metadata=meta if i == 0 and meta else None,
+                                        layer_metadata=meta or None)
     return path
 
 

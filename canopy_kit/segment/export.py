@@ -2,7 +2,7 @@
 
 ``segmented.laz`` (the map with ``segment_id``, LAS ``classification`` and
 ``height_above_ground`` per point, every input attribute kept, the simulator's truth id as
-``true_tree_id``: see ``segment.labelled``), ``trees.csv``, ``trees.geojson`` (tree
+``truth_tree_id``: see ``segment.labelled``), ``trees.csv``, ``trees.geojson`` (tree
 positions), ``crowns.geojson`` (crown footprints), ``rows.geojson`` (row lines),
 ``trees.gpkg`` (the same three as layers in the map's projected CRS) and
 ``segmentation.json`` (summary). GeoJSON is RFC 7946: WGS84 lon/lat, no ``crs`` member

@@ -2,8 +2,9 @@
 
 ``segment_id`` is the ``segment`` (``segment_id``) of the tree table, -1 off the trees;
 ``classification`` the LAS code the segmentation decided (``segment.classes``). The
-simulator's per-point truth id, ``tree_id`` in memory, is written as ``true_tree_id``: the
-tables' ``tree_id`` is the ``r0-L0`` label, and one name must not mean two things in a folder.
+simulator's per-point truth id, ``tree_id`` in memory, is written as ``truth_tree_id``, the
+name trees.csv gives the matched true tree: the tables' ``tree_id`` is the ``r0-L0`` label,
+and one name must not mean two things in a folder.
 """
 
 from __future__ import annotations
@@ -13,13 +14,13 @@ import numpy as np
 from canopy_kit.cloud import PointCloud
 from canopy_kit.segment.result import Segmentation
 
-TRUE_TREE_ID = "true_tree_id"  # the simulator's truth id, as written
+TRUE_TREE_ID = "truth_tree_id"  # the simulator's truth id, as written
 SIM_TREE_ID = "tree_id"  # ... and as the simulator and the mapping keep it in memory
 
 
 def labelled_map(cloud: PointCloud, seg: Segmentation, with_height: bool = False) -> PointCloud:
     """``cloud`` with ``segment_id``, ``classification`` (and ``height_above_ground``), the
-    truth id renamed ``true_tree_id``."""
+    truth id renamed ``truth_tree_id``."""
     fields = {(TRUE_TREE_ID if k == SIM_TREE_ID else k): v for k, v in cloud.fields.items()}
     fields["segment_id"] = np.asarray(seg.labels).astype(np.int32)
     if seg.classification is not None:
