@@ -111,10 +111,11 @@ def local_of(lon: np.ndarray, lat: np.ndarray, crs: str, origin: np.ndarray) -> 
 @lru_cache(maxsize=16)
 def _crs_transformer(crs: str, inverse: bool):  # noqa: ANN202
     from pyproj import CRS, Transformer
+    from pyproj.exceptions import CRSError
 
     try:
         projected = CRS.from_user_input(crs)
-    except Exception as exc:  # pyproj.exceptions.CRSError
+    except CRSError as exc:
         raise InputError(f"CRS {crs[:60]!r} is not understood by pyproj: {exc}") from None
     if inverse:
         return Transformer.from_crs(projected, "EPSG:4326", always_xy=True)

@@ -225,7 +225,7 @@ def test_provenance_in_metrics_tables_gpkg_and_geojson(gis_run) -> None:
     from canopy_kit import __version__
     from canopy_kit.io.gpkg import gpkg_metadata
 
-    sim, out, results = gis_run
+    sim, out, _ = gis_run
     prov = json.loads((out / "metrics.json").read_text())["provenance"]
     assert set(prov) == PROVENANCE_KEYS
     assert all(isinstance(v, str | int | float) for v in prov.values())
@@ -275,10 +275,9 @@ def test_plot_top_view_labels_trees_by_tree_id(gis_run) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
+    from canopy_kit.config import load_preset
     from canopy_kit.pipeline import compute
     from canopy_kit.segment.plots import plot_top_view
-
-    from canopy_kit.config import load_preset
 
     sim, out, results = gis_run
     ctx, _ = compute(load_preset("adaptive"), sim.bag, out)  # every stage from the cache

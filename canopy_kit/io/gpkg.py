@@ -43,11 +43,12 @@ def write_gpkg(path: str | Path, layers: dict[str, tuple[pd.DataFrame, list[Any]
 def read_gpkg_layer(path: str | Path, layer: str) -> Any:
     """One layer of a GeoPackage as a GeoDataFrame (InputError naming the file otherwise)."""
     import pyogrio
+    from pyogrio.errors import DataLayerError, DataSourceError
 
     path = Path(path)
     try:
         return pyogrio.read_dataframe(path, layer=layer)
-    except Exception as exc:  # pyogrio.errors.DataSourceError, DataLayerError
+    except (DataSourceError, DataLayerError) as exc:
         raise InputError(f"{path}: cannot read layer {layer!r} ({type(exc).__name__}: {exc})") from None
 
 

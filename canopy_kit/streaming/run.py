@@ -20,7 +20,7 @@ import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from canopy_kit.io.atomic import atomic_write_json
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
 
 Progress = Callable[[str, float, float], None]
