@@ -378,3 +378,36 @@ def test_ground_truth_tables_keep_lat_lon_to_1e_9_degrees() -> None:
     rows = [line.split(",") for line in text.splitlines()[1:]]
     assert [r[1] for r in rows] == ["37.281001235", "37.281045679"]
     assert [r[2] for r in rows] == ["-120.419999877", "-120.419900000"]
+
+
+def test_cli_run_and_segment_export_trees(gis_run, tmp_path) -> None:
+    """``run --export-trees --orchard`` (stages from a copied cache) and ``segment
+    --export-trees`` write one LAZ per trees.csv tree_id."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from canopy_kit.cli import app
+
+    sim, out, _ = gis_run
+    again = tmp_path / "again"
+    shutil.copytree(out / ".cache", again / ".cache")
+    runner = CliRunner()
+    res = runner.invoke(app, ["run", str(sim.bag), "--out", str(again), "--export-trees",
+                              "--orchard", "north block"])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((again / "metrics.json").read_text())
+    assert metrics["provenance"]["orchard"] == "north block"
+    assert set(metrics["cached_stages"]) >= {"map", "segment", "volumes"}
+    ids = pd.read_csv(again / "trees.csv", dtype={"tree_id": str})["tree_id"]
+    assert sorted(p.stem for p in (again / "trees").glob("*.laz")) == sorted(ids)
+    res = runner.invoke(app, ["segment", str(out / "map.laz"), "--out", str(tmp_path / "seg"),
+                              "--export-trees", "--no-cloud"])
+    assert res.exit_code == 0, res.output
+    seg_ids = pd.read_csv(tmp_path / "seg" / "trees.csv", dtype={"tree_id": str})["tree_id"]
+    assert sorted(p.stem for p in (tmp_path / "seg" / "trees").glob("*.laz")) == sorted(seg_ids)
+    for name in ("trees.geojson", "crowns.geojson", "rows.geojson"):
+        validate_rfc7946(tmp_path / "seg" / name)
+    res = runner.invoke(app, ["run", str(sim.bag), "--out", str(tmp_path / "s"), "--stream",
+                              "--export-trees"])
+    assert "--export-trees" in str(res.exception)  # an InputError: `canopy-kit` exits 2
