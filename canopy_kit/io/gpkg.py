@@ -56,4 +56,4 @@ def gpkg_metadata(path: str | Path) -> dict[str, str]:
     """The dataset metadata items of a GeoPackage."""
     import pyogrio
 
-    return dict(pyogrio.read_info(path).get("dataset_metadata") or {})
+    return dict(pyogrio.read_info(path, layer=0).get("dataset_metadata") or {})
