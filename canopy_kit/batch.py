@@ -315,7 +315,7 @@ def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | Non
     if spec.stream:
         from canopy_kit.streaming import run_stream
 
-        return run_stream(config, spec.bag, out, progress=progress)
+        return run_stream(config, spec.bag, out, progress=progress, orchard=spec.orchard)
     if spec.report:
         return pipeline.run(config, spec.bag, out, drone_images=spec.drone_images, truth=spec.truth,
                             progress=progress, orchard=spec.orchard)

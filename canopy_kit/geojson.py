@@ -14,11 +14,7 @@ from typing import Any
 
 import numpy as np
 
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+from canopy_kit.io.atomic import json_default
 
 
 def _finite(value: Any) -> Any:
@@ -63,4 +59,4 @@ def feature_collection(features: list[dict[str, Any]],
     data: dict[str, Any] = {"type": "FeatureCollection", "features": features}
     if provenance:
         data["provenance"] = dict(provenance)
-    return json.dumps(data, indent=1, default=_plain, allow_nan=False) + "\n"
+    return json.dumps(data, indent=1, default=json_default, allow_nan=False) + "\n"

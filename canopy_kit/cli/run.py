@@ -52,7 +52,7 @@ def run(
     if stream:
         from canopy_kit.cli.stream import run_streaming
 
-        run_streaming(config, bag, out, extra_inputs=drone_images or truth)
+        run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
         return
     with progress_bar(transient=True) as progress:
         results = run_pipeline(config, bag, out, drone_images=drone_images, truth=truth,
