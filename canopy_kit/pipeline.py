@@ -173,11 +173,13 @@ def segment_stage(ctx: RunContext, progress: Progress) -> Any:
 
 
 def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
-    """Metrics and every configured volume estimator per segmented tree."""
+    """Metrics and every configured volume estimator per segmented tree, on the map's points
+    as map.laz stores them (1 mm): a tree's points read back from it give the same numbers."""
+    from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.trees import measure_trees
 
     seg = ctx.segmentation
-    table = measure_trees(ctx.mapping.map, seg.labels, ctx.config.volume,
+    table = measure_trees(on_las_grid(ctx.mapping.map), seg.labels, ctx.config.volume,
                           ground_height=seg.ground.height, progress=progress)
     records = seg.table().set_index("segment_id")
     table = table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")
