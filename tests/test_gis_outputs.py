@@ -411,3 +411,27 @@ def test_cli_run_and_segment_export_trees(gis_run, tmp_path) -> None:
     res = runner.invoke(app, ["run", str(sim.bag), "--out", str(tmp_path / "s"), "--stream",
                               "--export-trees"])
     assert "--export-trees" in str(res.exception)  # an InputError: `canopy-kit` exits 2
+
+
+def test_a_table_without_positions_gets_no_trees_geojson(tmp_path) -> None:
+    """A run whose map has no CRS: trees.csv/parquet are written, no trees.geojson (and an
+    earlier run's is removed), full-precision positions where there are some."""
+    from canopy_kit.pipeline import trees_geojson, write_trees
+
+    local = pd.DataFrame({"tree_id": ["r0-L0"], "segment": [0], "x": [1.0], "y": [2.0],
+                          "lat": [np.nan], "lon": [np.nan]})
+    (tmp_path / "trees.geojson").write_text("{}")
+    files = write_trees(local, tmp_path, {"orchard": "o"})
+    assert set(files) == {"trees.csv", "trees.parquet"} and not (tmp_path / "trees.geojson").exists()
+    placed = local.assign(lat=[37.123456789012], lon=[-120.98765432101], volume=[np.nan])
+    data = json.loads(trees_geojson(placed, {"orchard": "o"}))
+    assert data["features"][0]["geometry"]["coordinates"] == [-120.98765432101, 37.123456789012]
+    assert data["features"][0]["properties"]["volume"] is None and data["provenance"] == {"orchard": "o"}
+
+
+def test_tree_file_names_are_safe() -> None:
+    from canopy_kit.segment.tree_export import tree_file_name
+
+    assert tree_file_name("r0-L3") == "r0-L3.laz"
+    assert tree_file_name("t2") == "t2.laz"
+    assert tree_file_name("a/b c") == "a_b_c.laz"
