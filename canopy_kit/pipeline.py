@@ -73,11 +73,12 @@ def run(config: PipelineConfig, bag: str | Path, out: str | Path,
     metrics["cached_stages"] = list(cache.hits)
     metrics["provenance"] = provenance(bag, config.name, started, time.perf_counter() - t0,
                                        orchard, drone_images)
-    files = write_outputs(ctx, ctx.table, metrics, out, report)
-    if export_trees:
+    exported = {}
+    if export_trees:  # before the outputs: metrics.json and report.html come last
         from canopy_kit.segment.tree_export import export_trees as write_tree_clouds
 
-        files.update(write_tree_clouds(out / "trees", ctx.mapping.map, ctx.segmentation))
+        exported = write_tree_clouds(out / "trees", ctx.mapping.map, ctx.segmentation)
+    files = write_outputs(ctx, ctx.table, metrics, out, report) | exported
     return Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])), cache.hits)
 
 

@@ -392,6 +392,8 @@ def test_cli_run_and_segment_export_trees(gis_run, tmp_path) -> None:
     sim, out, _ = gis_run
     again = tmp_path / "again"
     shutil.copytree(out / ".cache", again / ".cache")
+    (again / "trees").mkdir()
+    (again / "trees" / "r9-L9.laz").write_bytes(b"")  # a tree of an earlier run: removed
     runner = CliRunner()
     res = runner.invoke(app, ["run", str(sim.bag), "--out", str(again), "--export-trees",
                               "--orchard", "north block"])
@@ -435,3 +437,40 @@ def test_tree_file_names_are_safe() -> None:
     assert tree_file_name("r0-L3") == "r0-L3.laz"
     assert tree_file_name("t2") == "t2.laz"
     assert tree_file_name("a/b c") == "a_b_c.laz"
+
+
+@pytest.mark.slow
+def test_drone_crowns_carry_the_lidar_tree_id(sim_factory, tmp_path) -> None:
+    """With drone photos: each aerial crown matched to a LiDAR tree carries its tree_id in
+    crowns.csv (lat/lon to >= 7 decimals) and on the orthomosaic figure, and trees.csv's
+    aerial columns are that crown's."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from canopy_kit.config import load_preset
+    from canopy_kit.pipeline import compute, run
+    from ground_truth.plots import plot_crowns
+
+    sim = sim_factory("pistachio", seed=4, overrides={"orchard": {"rows": 2, "trees_per_row": 3},
+                                                      "lidar": {"columns": 512},
+                                                      "drone": {"enabled": True}})
+    drone = sim.root / "drone"
+    out = tmp_path / "run"
+    results = run(load_preset("adaptive"), sim.bag, out, drone_images=drone)
+    assert results.metrics["provenance"]["drone_images"] == str(drone)
+    trees = pd.read_csv(out / "trees.csv", dtype={"tree_id": str}).set_index("tree_id")
+    text = (out / "aerial" / "crowns.csv").read_text().splitlines()
+    crowns = pd.read_csv(out / "aerial" / "crowns.csv", dtype={"tree_id": str}).fillna({"tree_id": ""})
+    header = text[0].split(",")
+    for line in text[1:]:
+        for col in ("lat", "lon"):
+            assert len(line.split(",")[header.index(col)].split(".")[1]) >= 7
+    named = crowns[crowns["tree_id"] != ""].set_index("tree_id")
+    matched = trees[trees["aerial_diameter_m"].notna()]
+    assert len(matched) == len(trees) == 6 and set(named.index) == set(matched.index)
+    assert np.allclose(named.loc[matched.index, "diameter_max_m"], matched["aerial_diameter_m"])
+    ctx, _ = compute(load_preset("adaptive"), sim.bag, out, drone_images=drone)
+    ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation, ctx.aerial.crowns)
+    labels = [t.get_text() for t in ax.texts]
+    expected = [tid or f"aerial {cid}" for tid, cid in zip(crowns["tree_id"], crowns["crown_id"])]
+    assert labels == expected and set(trees.index) <= set(labels)

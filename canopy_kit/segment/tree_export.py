@@ -26,7 +26,7 @@ def tree_file_name(tree_id: str) -> str:
 
 def export_trees(folder: str | Path, cloud: PointCloud, seg: Segmentation) -> dict[str, Path]:
     """Write every tree's points of ``cloud`` (the segmented map) into ``folder``; returns
-    ``{"trees/<name>.laz": path}``."""
+    ``{"trees/<name>.laz": path}``. LAZ files of trees an earlier run had are removed."""
     from canopy_kit.io.las import las_ready, write_las
 
     folder = Path(folder)
@@ -43,4 +43,6 @@ def export_trees(folder: str | Path, cloud: PointCloud, seg: Segmentation) -> di
             continue
         path = folder / tree_file_name(tree.tree_id)
         paths[f"{folder.name}/{path.name}"] = write_las(path, labelled.select(members))
+    for stale in set(folder.glob("*.laz")) - set(paths.values()):
+        stale.unlink()
     return paths
