@@ -312,10 +312,11 @@ def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
                  mode: str = "auto") -> SegmentationScore:
     """Score a ``canopy-kit segment`` or ``canopy-kit run`` folder against a simulated session's truth.
 
-    ``mode``: ``points`` (needs the truth field ``tree_id`` in the segmented map),
+    ``mode``: ``points`` (needs the truth field ``truth_tree_id`` in the segmented map),
     ``footprints``, or ``auto`` (points when possible).
     """
     from canopy_kit.segment.export import read_segmentation
+    from canopy_kit.segment.labelled import truth_ids
     from canopy_kit.sim.truth import load_truth
 
     if mode not in ("auto", "points", "footprints"):
@@ -325,12 +326,11 @@ def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
     truth_labels = truth.trees.set_index("tree_id")[["row", "label"]]
     pred_labels = run.trees.set_index("segment_id")[["row", "label"]]
     shift = _frame_shift(run.summary, truth.frame.origin, truth.frame.crs)
-    has_field = run.cloud is not None and "tree_id" in run.cloud.fields
-    if mode == "points" or (mode == "auto" and has_field):
-        if not has_field:
+    truth_field = truth_ids(run.cloud) if run.cloud is not None else None
+    if mode == "points" or (mode == "auto" and truth_field is not None):
+        if truth_field is None:
             raise InputError(f"{run_dir}: the segmented map has no per-point truth field "
-                             "'tree_id'; use footprints mode")
-        truth_field = np.asarray(run.cloud.fields["tree_id"])
+                             "'truth_tree_id'; use footprints mode")
         observed = set(np.unique(truth_field[truth_field >= 0]).tolist())
         labels = truth_labels.loc[sorted(observed & set(truth_labels.index))]
         return score_point_labels(run.cloud.fields["segment_id"], truth_field, min_iou,

@@ -412,9 +412,9 @@ def test_write_and_read_a_run_folder(tmp_path) -> None:
     paths = write_segmentation(tmp_path / "run", seg, orch.cloud)
     assert {p.name for p in paths.values()} >= {"segmented.laz", "trees.csv", "trees.geojson"}
     pos = json.loads(paths["positions"].read_text())
-    assert pos["crs"]["properties"]["name"] == "urn:ogc:def:crs:EPSG::32610"
-    x0, y0, _ = pos["features"][0]["geometry"]["coordinates"]
-    assert x0 == pytest.approx(seg.trees[0].x + 700000.0) and y0 > 4_000_000
+    assert "crs" not in pos  # RFC 7946: WGS84 lon/lat (tests/test_gis_outputs.py checks them)
+    lon0, lat0, _ = pos["features"][0]["geometry"]["coordinates"]
+    assert -180 <= lon0 <= 180 and -90 <= lat0 <= 90
     run = read_segmentation(tmp_path / "run")
     assert run.trees["tree_id"].tolist() == [t.tree_id for t in seg.trees]
     assert np.allclose(run.cloud.xyz, orch.cloud.xyz, atol=0.002)
