@@ -21,11 +21,14 @@ setup: system-deps $(STAMP)
 demo: setup
 	$(VENV)/bin/canopy-kit demo --out $(OUT)
 
+# Test files run in parallel, one whole file per worker (its module fixtures are made once).
+PARALLEL = -n auto --maxprocesses=4 --dist loadfile
+
 test: setup
-	$(VENV)/bin/python -m pytest
+	$(VENV)/bin/python -m pytest $(PARALLEL)
 
 test-fast: setup
-	$(VENV)/bin/python -m pytest -m "not slow"
+	$(VENV)/bin/python -m pytest $(PARALLEL) -m "not slow"
 
 clean:
 	rm -rf out .pytest_cache

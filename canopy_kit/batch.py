@@ -315,23 +315,30 @@ def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | Non
     if spec.stream:
         from canopy_kit.streaming import run_stream
 
-        return run_stream(config, spec.bag, out, progress=progress)
+        return run_stream(config, spec.bag, out, progress=progress, orchard=spec.orchard)
     if spec.report:
         return pipeline.run(config, spec.bag, out, drone_images=spec.drone_images, truth=spec.truth,
-                            progress=progress)
+                            progress=progress, orchard=spec.orchard)
+    from canopy_kit.provenance import provenance
+
+    started, t0 = time.time(), time.perf_counter()
     ctx, cache = pipeline.compute(config, spec.bag, out, spec.drone_images, spec.truth, progress=progress)
-    return _write_tables(ctx, cache, out)
+    prov = provenance(spec.bag, config.name, started, time.perf_counter() - t0, spec.orchard,
+                      spec.drone_images)
+    return _write_tables(ctx, cache, out, prov)
 
 
-def _write_tables(ctx: Any, cache: Any, out: Path) -> Any:
+def _write_tables(ctx: Any, cache: Any, out: Path, prov: dict[str, Any] | None = None) -> Any:
     """The per-tree table, metrics and config only (a batch that needs no report)."""
     from canopy_kit import pipeline
     from canopy_kit.io.atomic import atomic_write_text
 
     metrics = pipeline.run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
+    if prov:
+        metrics["provenance"] = prov
     # segmentation.json and crowns among them: `canopy-kit evaluate` scores the session by footprints
-    files = pipeline.write_tree_tables(ctx, ctx.table, out)
+    files = pipeline.write_tree_tables(ctx, ctx.table, out, prov)
     files["metrics.json"] = atomic_write_text(
         out / "metrics.json", json.dumps(metrics, indent=2, default=str) + "\n")
     return pipeline.Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])))

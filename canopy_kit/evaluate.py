@@ -67,6 +67,28 @@ class SegmentationScore:
         """Among correctly segmented trees, the fraction with the true row and label."""
         return self.n_label_correct / self.n_correct if self.n_correct else 0.0
 
+    def failures(self) -> dict[str, int]:
+        """Trees not correctly segmented, lowest IoU first, as ``{description: truth id}``
+        (e.g. ``"tree 7 (r0-L3): merged, IoU 0.31"``), for a picker."""
+        bad = self.trees[self.trees["status"] != "correct"].sort_values(
+            ["iou", "truth_id"], kind="stable")
+        out = {}
+        for row in bad.to_dict("records"):
+            label = row.get("truth_label")
+            where = (f" (r{int(row['truth_row'])}-{label})"
+                     if isinstance(label, str) and pd.notna(row.get("truth_row")) else "")
+            out[f"tree {row['truth_id']}{where}: {row['status']}, IoU {row['iou']:.2f}"] = int(
+                row["truth_id"])
+        return out
+
+    def only(self, truth_ids: Any) -> SegmentationScore:
+        """This score with its per-tree table cut to ``truth_ids`` (counts unchanged): to
+        show a few trees, e.g. one failure at a time."""
+        from dataclasses import replace
+
+        keep = self.trees["truth_id"].isin(list(np.atleast_1d(truth_ids)))
+        return replace(self, trees=self.trees[keep].reset_index(drop=True))
+
     def to_dict(self) -> dict[str, Any]:
         """Plain numbers (for JSON), without the per-tree table."""
         return {
@@ -290,10 +312,11 @@ def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
                  mode: str = "auto") -> SegmentationScore:
     """Score a ``canopy-kit segment`` or ``canopy-kit run`` folder against a simulated session's truth.
 
-    ``mode``: ``points`` (needs the truth field ``tree_id`` in the segmented map),
+    ``mode``: ``points`` (needs the truth field ``truth_tree_id`` in the segmented map),
     ``footprints``, or ``auto`` (points when possible).
     """
     from canopy_kit.segment.export import read_segmentation
+    from canopy_kit.segment.labelled import truth_ids
     from canopy_kit.sim.truth import load_truth
 
     if mode not in ("auto", "points", "footprints"):
@@ -303,12 +326,11 @@ def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
     truth_labels = truth.trees.set_index("tree_id")[["row", "label"]]
     pred_labels = run.trees.set_index("segment_id")[["row", "label"]]
     shift = _frame_shift(run.summary, truth.frame.origin, truth.frame.crs)
-    has_field = run.cloud is not None and "tree_id" in run.cloud.fields
-    if mode == "points" or (mode == "auto" and has_field):
-        if not has_field:
+    truth_field = truth_ids(run.cloud) if run.cloud is not None else None
+    if mode == "points" or (mode == "auto" and truth_field is not None):
+        if truth_field is None:
             raise InputError(f"{run_dir}: the segmented map has no per-point truth field "
-                             "'tree_id'; use footprints mode")
-        truth_field = np.asarray(run.cloud.fields["tree_id"])
+                             "'truth_tree_id'; use footprints mode")
         observed = set(np.unique(truth_field[truth_field >= 0]).tolist())
         labels = truth_labels.loc[sorted(observed & set(truth_labels.index))]
         return score_point_labels(run.cloud.fields["segment_id"], truth_field, min_iou,

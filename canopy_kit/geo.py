@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -92,3 +92,31 @@ def _transformer(epsg: int, inverse: bool):  # noqa: ANN202
     if inverse:
         return Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
     return Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True)
+
+
+def lonlat_of(xy: np.ndarray, crs: str, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Longitude and latitude (WGS84 degrees) of local map points ``xy`` (N, 2+): the map's
+    projected ``crs`` coordinates are ``xy + origin``."""
+    xy = np.atleast_2d(np.asarray(xy, float))
+    lon, lat = _crs_transformer(crs, inverse=True).transform(xy[:, 0] + origin[0], xy[:, 1] + origin[1])
+    return np.asarray(lon, float), np.asarray(lat, float)
+
+
+def local_of(lon: np.ndarray, lat: np.ndarray, crs: str, origin: np.ndarray) -> np.ndarray:
+    """Local map (N, 2) coordinates of WGS84 ``lon``, ``lat``: the inverse of :func:`lonlat_of`."""
+    e, n = _crs_transformer(crs, inverse=False).transform(np.asarray(lon, float), np.asarray(lat, float))
+    return np.column_stack([np.ravel(e) - origin[0], np.ravel(n) - origin[1]])
+
+
+@lru_cache(maxsize=16)
+def _crs_transformer(crs: str, inverse: bool):  # noqa: ANN202
+    from pyproj import CRS, Transformer
+    from pyproj.exceptions import CRSError
+
+    try:
+        projected = CRS.from_user_input(crs)
+    except CRSError as exc:
+        raise InputError(f"CRS {crs[:60]!r} is not understood by pyproj: {exc}") from None
+    if inverse:
+        return Transformer.from_crs(projected, "EPSG:4326", always_xy=True)
+    return Transformer.from_crs("EPSG:4326", projected, always_xy=True)

@@ -8,6 +8,7 @@ a segmentation parameter re-runs segmentation and what follows, not the mapping.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,15 +55,30 @@ class RunContext:
 
 def run(config: PipelineConfig, bag: str | Path, out: str | Path,
         drone_images: str | Path | None = None, truth: str | Path | None = None,
-        use_cache: bool = True, progress: Progress | None = None) -> Results:
-    """Run every stage on ``bag`` and write the outputs (all atomically) into ``out``."""
+        use_cache: bool = True, progress: Progress | None = None,
+        orchard: str | None = None, export_trees: bool = False) -> Results:
+    """Run every stage on ``bag`` and write the outputs (all atomically) into ``out``.
+
+    ``orchard`` names the orchard or block in the provenance (default: the bag's stem);
+    ``export_trees`` also writes each tree's points as ``trees/<tree_id>.laz``.
+    """
+    from canopy_kit.provenance import provenance
+
     out = Path(out)
     report = progress or (lambda *_: None)
+    started, t0 = time.time(), time.perf_counter()
     ctx, cache = compute(config, bag, out, drone_images, truth, use_cache, report)
     metrics = run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
     metrics["cached_stages"] = list(cache.hits)
-    files = write_outputs(ctx, ctx.table, metrics, out, report)
+    metrics["provenance"] = provenance(bag, config.name, started, time.perf_counter() - t0,
+                                       orchard, drone_images)
+    exported = {}
+    if export_trees:  # before the outputs: metrics.json and report.html come last
+        from canopy_kit.segment.tree_export import export_trees as write_tree_clouds
+
+        exported = write_tree_clouds(out / "trees", ctx.mapping.map, ctx.segmentation)
+    files = write_outputs(ctx, ctx.table, metrics, out, report) | exported
     return Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])), cache.hits)
 
 
@@ -158,11 +174,13 @@ def segment_stage(ctx: RunContext, progress: Progress) -> Any:
 
 
 def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
-    """Metrics and every configured volume estimator per segmented tree."""
+    """Metrics and every configured volume estimator per segmented tree, on the map's points
+    as map.laz stores them (1 mm): a tree's points read back from it give the same numbers."""
+    from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.trees import measure_trees
 
     seg = ctx.segmentation
-    table = measure_trees(ctx.mapping.map, seg.labels, ctx.config.volume,
+    table = measure_trees(on_las_grid(ctx.mapping.map), seg.labels, ctx.config.volume,
                           ground_height=seg.ground.height, progress=progress)
     records = seg.table().set_index("segment_id")
     table = table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")
@@ -183,6 +201,7 @@ def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -
 
     shift = ctx.mapping.map.origin[:2] - _frame_origin(ctx)[:2]
     seeds = pd.DataFrame({"segment": ctx.trees["segment"].to_numpy(),
+                          "tree_id": ctx.trees["tree_id"].astype(str).to_numpy(),
                           "x": ctx.trees["x"].to_numpy() + shift[0],
                           "y": ctx.trees["y"].to_numpy() + shift[1]})
     return process_flight(images, out, frame=ctx.mapping.frame, seeds=seeds, progress=progress)
@@ -321,12 +340,13 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
     from canopy_kit.io.las import las_ready, write_las
     from canopy_kit.report.html import write_report
     from canopy_kit.report.session import session_report_page
+    from canopy_kit.segment.labelled import labelled_map
 
-    cloud = ctx.mapping.map.with_field("segment_id", ctx.segmentation.labels.astype(np.int32))
+    cloud = labelled_map(ctx.mapping.map, ctx.segmentation)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="map.laz") as pool:
         laz = pool.submit(lambda: write_las(out / "map.laz", las_ready(cloud)))
         try:
-            files = _write_tables(ctx, trees, out)
+            files = _write_tables(ctx, trees, out, metrics.get("provenance"))
             progress("report", 0, 1)
             page = session_report_page(ctx, trees, metrics)
         except BaseException as exc:
@@ -352,42 +372,65 @@ def config_used(ctx: RunContext) -> PipelineConfig:
     return replace(ctx.config, mapping=mapping) if isinstance(mapping, MappingConfig) else ctx.config
 
 
-def write_tree_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
-    """trees.csv, trees.parquet, config.toml and what ``canopy-kit evaluate`` needs besides
-    them (segmentation.json, crowns, rows): the outputs of every run, batch ones included."""
+def write_tree_tables(ctx: RunContext, trees: pd.DataFrame, out: Path,
+                      provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+    """trees.csv, trees.parquet, trees.geojson, config.toml and what ``canopy-kit evaluate``
+    needs besides them (segmentation.json, crowns, rows, trees.gpkg): the outputs of every
+    run, batch ones included."""
     from canopy_kit.segment.export import write_segmentation_summary
 
-    files: dict[str, Path] = {}
-    files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
-    with atomic_path(out / "trees.parquet") as tmp:
-        trees.to_parquet(tmp, index=False)
-    files["trees.parquet"] = out / "trees.parquet"
+    files = write_trees(trees, out, provenance)
     files["config.toml"] = write_config(config_used(ctx), out / "config.toml")
     rig = getattr(ctx.mapping, "rig", None)
     if rig is not None:
         from canopy_kit.mapping.outputs import RIG_TOML, write_rig
 
         files[RIG_TOML] = write_rig(rig, out / RIG_TOML)
-    files.update({p.name: p for p in write_segmentation_summary(out, ctx.segmentation).values()})
+    files.update({p.name: p for p in write_segmentation_summary(
+        out, ctx.segmentation, trees=trees, provenance=provenance).values()})
     return files
 
 
-def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path) -> dict[str, Path]:
-    files = write_tree_tables(ctx, trees, out)
-    files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
+def write_trees(trees: pd.DataFrame, out: Path,
+                provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+    """The per-tree table as trees.csv (full precision), trees.parquet (``provenance`` in its
+    schema metadata) and trees.geojson (none when no tree has a WGS84 position)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from canopy_kit.segment.export import write_geojson
+
+    files: dict[str, Path] = {}
+    files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
+    table = pa.Table.from_pandas(trees, preserve_index=False)
+    if provenance:
+        meta = dict(table.schema.metadata or {})
+        meta[b"provenance"] = json.dumps(provenance).encode()
+        table = table.replace_schema_metadata(meta)
+    with atomic_path(out / "trees.parquet") as tmp:
+        pq.write_table(table, tmp)
+    files["trees.parquet"] = out / "trees.parquet"
+    written = write_geojson(out, {"trees.geojson": trees_geojson(trees, provenance)})
+    files.update({p.name: p for p in written.values()})
+    return files
+
+
+def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path,
+                  provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+    files = write_tree_tables(ctx, trees, out, provenance)
     files["trajectory.csv"] = atomic_write_text(
         out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
     return files
 
 
-def trees_geojson(trees: pd.DataFrame) -> str:
-    """Tree positions as an RFC 7946 GeoJSON FeatureCollection (WGS84 lon/lat)."""
-    features = []
-    for rec in json.loads(trees.to_json(orient="records")):
-        if rec.get("lon") is None or rec.get("lat") is None:
-            continue
-        features.append({"type": "Feature",
-                         "geometry": {"type": "Point", "coordinates": [rec["lon"], rec["lat"]]},
-                         "properties": rec})
-    return json.dumps({"type": "FeatureCollection", "features": features}, indent=1)
+def trees_geojson(trees: pd.DataFrame, provenance: dict[str, Any] | None = None) -> str | None:
+    """Tree positions as an RFC 7946 FeatureCollection (WGS84 ``[lon, lat]``, the table's
+    columns as properties); None when no tree has a position (a map without a CRS)."""
+    from canopy_kit import geojson
 
+    if "lat" not in trees or "lon" not in trees or not trees["lat"].notna().any():
+        return None
+    features = [geojson.feature(geojson.point(rec["lon"], rec["lat"]), rec)
+                for rec in trees.to_dict(orient="records")
+                if pd.notna(rec["lon"]) and pd.notna(rec["lat"])]
+    return geojson.feature_collection(features, provenance)

@@ -87,3 +87,11 @@ def match_crowns(trees: pd.DataFrame, crowns: pd.DataFrame, max_distance_m: floa
                                            joined["aerial_y"] - joined["tree_y"])
     joined["matched"] = crown_of_tree >= 0
     return joined
+
+
+def crown_tree_ids(crowns: pd.DataFrame, matched: pd.DataFrame) -> pd.Series:
+    """Per crown, the ``tree_id`` of the tree it was matched to ("" for an unmatched crown)."""
+    hit = matched[matched["matched"].to_numpy(bool)]
+    by_crown = dict(zip(hit["aerial_crown_id"].astype(int), hit["tree_id"].astype(str)))
+    return pd.Series([by_crown.get(int(c), "") for c in crowns["crown_id"]], index=crowns.index,
+                     dtype=object)

@@ -21,7 +21,7 @@ from ground_truth.crowns import (CrownOptions, CrownSegmentation, delineate_crow
 from ground_truth.dsm import (SurfaceModel, SurfaceOptions, canopy_top, clean_surface, dense_surface,
                              ground_from_surface, ground_model, reliable_points)
 from ground_truth.exif import Flight, read_flight
-from ground_truth.match import match_crowns, read_trees, tree_positions
+from ground_truth.match import crown_tree_ids, match_crowns, read_trees, tree_positions
 from ground_truth.ortho import Orthomosaic, orthomosaic
 from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
 from ground_truth.sfm import SfmOptions, SparseModel, run_sfm
@@ -183,6 +183,8 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     crowns.insert(3, "lat", lat)
     crowns.insert(4, "lon", lon)
     matched = match_crowns(trees, crowns, opts.match_distance_m) if trees is not None else None
+    if matched is not None and "tree_id" in matched:  # the seeds' ids name their crowns
+        crowns["tree_id"] = crown_tree_ids(crowns, matched)
     timings["crowns"] = time.perf_counter() - t0
 
     summary = {
@@ -213,6 +215,11 @@ def cameras_table(model: SparseModel) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def table_csv(table: pd.DataFrame) -> str:
+    """A crowns or trees table as CSV, floats to 9 decimals (1e-9 deg: 0.1 mm of lat/lon)."""
+    return table.to_csv(index=False, float_format="%.9f")
+
+
 def _write_outputs(out: Path, frame: LocalFrame, model: SparseModel, surface: SurfaceModel,
                    mosaic: Orthomosaic,
                    seg: CrownSegmentation, crowns: pd.DataFrame, trees: pd.DataFrame | None,
@@ -232,12 +239,12 @@ def _write_outputs(out: Path, frame: LocalFrame, model: SparseModel, surface: Su
         "crown_labels_tif": write_geotiff(out / "crown_labels.tif", seg.labels.astype(np.int32),
                                           mosaic.grid, frame, nodata=0),
         "crowns_png": atomic_write_bytes(out / "crowns.png", png_bytes(overlay_crowns_rgb(mosaic, seg))),
-        "crowns_csv": atomic_write_text(out / "crowns.csv", crowns.to_csv(index=False, float_format="%.9f")),
+        "crowns_csv": atomic_write_text(out / "crowns.csv", table_csv(crowns)),
     }
     paths["cameras_csv"] = atomic_write_text(out / "cameras.csv", cameras_table(model).to_csv(
         index=False, float_format="%.6f"))
     if trees is not None:
-        paths["trees_csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False, float_format="%.9f"))
+        paths["trees_csv"] = atomic_write_text(out / "trees.csv", table_csv(trees))
     paths["report_json"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=2, default=str))
     paths["config_json"] = atomic_write_text(out / "ground_truth_config.json",
                                              json.dumps(asdict(opts), indent=2, default=str))

@@ -23,11 +23,19 @@ def overlay_crowns_rgb(mosaic: Orthomosaic, seg: CrownSegmentation,
     return out
 
 
+def crown_labels(crowns: pd.DataFrame) -> list[str]:
+    """Per crown: its matched LiDAR ``tree_id``, or ``aerial <crown_id>`` when unmatched."""
+    ids = crowns["tree_id"].fillna("").astype(str) if "tree_id" in crowns else [""] * len(crowns)
+    return [tid if tid else f"aerial {int(cid)}" for tid, cid in zip(ids, crowns["crown_id"])]
+
+
 def plot_crowns(mosaic: Orthomosaic, seg: CrownSegmentation, crowns: pd.DataFrame,
-                label_column: str = "crown_id", truth: pd.DataFrame | None = None,
+                label_column: str | None = None, truth: pd.DataFrame | None = None,
                 ax: Any = None, window: tuple[float, float, float, float] | None = None) -> Any:
     """Orthomosaic with crown outlines and labels; ``truth`` (x, y, diameter) adds circles.
 
+    Crowns are labelled by ``label_column``; by default a crown matched to a LiDAR tree by
+    that tree's ``tree_id`` (the id of trees.csv), any other ``aerial <crown_id>``.
     ``window`` is (xmin, xmax, ymin, ymax) in the local frame (default: around the crowns).
     Returns the axes.
     """
@@ -40,8 +48,9 @@ def plot_crowns(mosaic: Orthomosaic, seg: CrownSegmentation, crowns: pd.DataFram
     x, y = mosaic.grid.centers()
     ax.contour(x, y, seg.labels, levels=np.unique(seg.labels)[1:] - 0.5, colors="red",
                linewidths=0.8) if seg.labels.max() > 0 else None
-    for row in crowns.itertuples():
-        ax.annotate(str(getattr(row, label_column)), (row.x, row.y), color="white", fontsize=7,
+    labels = crown_labels(crowns) if label_column is None else crowns[label_column].astype(str)
+    for row, label in zip(crowns.itertuples(), labels):
+        ax.annotate(label, (row.x, row.y), color="white", fontsize=7,
                     ha="center", va="center", weight="bold")
     if truth is not None:
         for row in truth.itertuples():

@@ -43,7 +43,8 @@ def _(bag_input, describe_path, mo):
 @app.cell
 def _(info, mo):
     n_scans = max(t["count"] for t in info["topics"] if t["type"].endswith("PointCloud2"))
-    scan_index = mo.ui.slider(0, n_scans - 1, value=min(100, n_scans - 1), label="scan", full_width=True)
+    scan_index = mo.ui.slider(0, n_scans - 1, value=min(100, n_scans - 1), label="scan", full_width=True,
+                           show_value=True)
     scan_index
     return (scan_index,)
 

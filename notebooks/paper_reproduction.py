@@ -112,8 +112,9 @@ def _(mo):
         """
         ## The experiments, re-run on simulated orchards
 
-        Saved by `canopy-kit paper experiments` (in `data/paper/experiments*.{csv,json}`, or
-        the folder given as `-- --results DIR`); this notebook only reads them, it never
+        The committed results (`data/paper/experiments*.{csv,json}`), or those a run of
+        `canopy-kit paper experiments` saved in the folder given as `-- --results DIR`
+        (it writes a new `out/paper-YYYYmmdd-HHMMSS`); this notebook only reads them, it never
         re-runs a simulation. Segmentation success: a true tree counts when one segment
         matches it one to one with point IoU >= 0.5. Volume errors are taken on the correctly
         segmented trees, against the aerial sphere π d³/6 of the widest true crown diameter
@@ -140,8 +141,9 @@ def _(mo):
     except InputError as exc:
         experiments = None
         experiments_note = mo.callout(mo.md(
-            f"No saved experiment results ({exc}). Run `canopy-kit paper experiments "
-            "--seeds 3 --true-poses` to make them (hours: it simulates and maps every session)."),
+            f"No saved experiment results ({exc}). Run `canopy-kit paper experiments` to make them "
+            "(hours: it simulates and maps every session) and give its folder as "
+            "`-- --results DIR`."),
             kind="warn")
     experiments_note
     return (experiments,)

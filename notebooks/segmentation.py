@@ -34,16 +34,33 @@ def _(load_context, mo):
 
 @app.cell
 def _(mo, plugins):
-    method = mo.ui.dropdown(plugins.names("segmenters"), value="dbscan", label="segmenter")
-    eps = mo.ui.slider(0.3, 2.0, step=0.1, value=0.8, label="eps (m)")
-    min_samples = mo.ui.slider(100, 3000, step=100, value=1300, label="min points (paper density)")
-    max_cluster = mo.ui.slider(5000, 100000, step=5000, value=45000, label="spectral split above")
+    # Opens on canopy-kit's own segmenter, which works on both orchards; the paper's DBSCAN
+    # (and its failures on almond) are one choice away.
+    method = mo.ui.dropdown(plugins.names("segmenters"), value="adaptive", label="segmenter")
+    method
+    return (method,)
+
+
+@app.cell
+def _(method, mo):
+    eps = mo.ui.slider(0.3, 2.0, step=0.1, value=0.8, label="eps (m)", show_value=True)
+    min_samples = mo.ui.slider(100, 3000, step=100, value=1300,
+                               label="min points (paper density)", show_value=True)
+    max_cluster = mo.ui.slider(5000, 100000, step=5000, value=45000,
+                               label="spectral split above", show_value=True)
     # the paper's graph: every voxel point a node, k = 10; the almond-scaled preset: 0.3 m, 30
-    graph_cell = mo.ui.slider(0.0, 0.5, step=0.1, value=0.0, label="graph cell (m, 0 = points)")
-    neighbours = mo.ui.slider(5, 40, step=5, value=10, label="graph neighbours k")
-    mo.vstack([method, mo.hstack([eps, min_samples, max_cluster]),
-               mo.hstack([graph_cell, neighbours])])
-    return eps, graph_cell, max_cluster, method, min_samples, neighbours
+    graph_cell = mo.ui.slider(0.0, 0.5, step=0.1, value=0.0, label="graph cell (m, 0 = points)",
+                              show_value=True)
+    neighbours = mo.ui.slider(5, 40, step=5, value=10, label="graph neighbours k",
+                              show_value=True)
+    _controls = []
+    if method.value in ("dbscan", "dbscan_spectral"):
+        _controls.append(mo.hstack([eps, min_samples]))
+    if method.value == "dbscan_spectral":
+        _controls.append(mo.hstack([max_cluster, graph_cell, neighbours]))
+    mo.vstack(_controls) if _controls else mo.md(
+        f"`{method.value}` runs with its own settings (no sliders).")
+    return eps, graph_cell, max_cluster, min_samples, neighbours
 
 
 @app.cell
@@ -86,12 +103,22 @@ def _(ctx, mo, np, score_point_labels, seg):
 
 
 @app.cell
-def _(ctx, mo, np, plot_failure_gallery, score, seg):
-    gallery = None
-    if score is not None:
-        gallery = plot_failure_gallery(ctx.mapping.map, seg, score,
-                                       np.asarray(ctx.mapping.map.fields["tree_id"]))
-    gallery if gallery is not None else mo.md("No failures to show.")
+def _(mo, score):
+    # One failed tree at a time: a gallery of all of them outgrows marimo's output limit.
+    failures = score.failures() if score is not None else {}
+    failed_tree = mo.ui.dropdown(failures, value=next(iter(failures), None),
+                                 label="tree not segmented correctly (lowest IoU first)")
+    failed_tree if failures else mo.md("No failures to show." if score is not None else "")
+    return (failed_tree,)
+
+
+@app.cell
+def _(ctx, failed_tree, mo, np, plot_failure_gallery, score, seg):
+    mo.stop(score is None or failed_tree.value is None)
+    gallery = plot_failure_gallery(ctx.mapping.map, seg, score.only(failed_tree.value),
+                                   np.asarray(ctx.mapping.map.fields["tree_id"]),
+                                   max_panels=1, max_points=15_000)
+    gallery
     return
 
 

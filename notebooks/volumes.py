@@ -13,14 +13,14 @@ def _():
     import matplotlib.pyplot as plt
     import numpy as np
     import plotly.graph_objects as go
-    from scipy.spatial import ConvexHull
 
     from canopy_kit import plugins
     from canopy_kit.explore import load_context
     from canopy_kit.report.plots import plot_volumes
     from canopy_kit.volume import alpha_curve, auto_alpha, estimate_volume
+    from canopy_kit.volume.hull import hull_mesh
 
-    return (ConvexHull, alpha_curve, auto_alpha, estimate_volume, go, load_context, mo, np,
+    return (alpha_curve, auto_alpha, estimate_volume, go, hull_mesh, load_context, mo, np,
             plot_volumes, plt, plugins)
 
 
@@ -49,7 +49,7 @@ def _(mo, plugins, table):
                            zip(table["row"], table["label"], table["segment"])},
                           value=f"{table['row'].iloc[0]}:{table['label'].iloc[0]}", label="tree")
     method = mo.ui.dropdown(plugins.names("volumes"), value="alpha_shape", label="method")
-    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=0.9, label="alpha (m)")
+    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=0.9, label="alpha (m)", show_value=True)
     mo.hstack([tree, method, alpha])
     return alpha, method, tree
 
@@ -87,15 +87,18 @@ def _(alpha_curve, auto_alpha, np, plt, truth, xyz):
 
 
 @app.cell
-def _(ConvexHull, go, xyz):
-    hull = ConvexHull(xyz)
-    step = max(1, len(xyz) // 20000)
+def _(go, hull_mesh, xyz):
+    # At most 10,000 points, to the centimetre, and the hull by its corners only: the page
+    # stays small (the whole tree and a mesh over every point made a 3 MB output).
+    corners, faces = hull_mesh(xyz)
+    step = max(1, len(xyz) // 10000)
+    shown = xyz[::step].round(2)
     fig3d = go.Figure([
-        go.Scatter3d(x=xyz[::step, 0], y=xyz[::step, 1], z=xyz[::step, 2], mode="markers",
-                     marker={"size": 1.5, "color": xyz[::step, 2], "colorscale": "Greens"},
-                     name="points"),
-        go.Mesh3d(x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], i=hull.simplices[:, 0],
-                  j=hull.simplices[:, 1], k=hull.simplices[:, 2], opacity=0.25, color="orange",
+        go.Scatter3d(x=shown[:, 0], y=shown[:, 1], z=shown[:, 2], mode="markers",
+                     marker={"size": 1.5, "color": shown[:, 2], "colorscale": "Greens"},
+                     name=f"points (1 in {step})"),
+        go.Mesh3d(x=corners[:, 0], y=corners[:, 1], z=corners[:, 2], i=faces[:, 0],
+                  j=faces[:, 1], k=faces[:, 2], opacity=0.25, color="orange",
                   name="convex hull"),
     ])
     fig3d.update_layout(scene={"aspectmode": "data"}, height=600, title="tree and its convex hull")

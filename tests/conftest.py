@@ -17,6 +17,20 @@ TINY = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
 MICRO = {"orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {"columns": 256, "rings": 16}}
 
 
+# The files whose module fixtures take longest (simulated drives, flights, whole runs), as
+# measured with --durations: they go first, so that with one file per worker (make test)
+# no worker is left finishing a long file after the others are done.
+LONG_FILES = ["test_rigs_sim.py", "test_checks_runs.py", "test_ground_truth_flight.py",
+              "test_message_faults.py", "test_segment_sim.py", "test_reliability_catalogue.py",
+              "test_interrupted_run.py", "test_notebooks.py", "test_batch.py", "test_pipeline.py",
+              "test_mapping_sim.py", "test_stream.py", "test_paper_experiments.py"]
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order kept within
+
+
 @pytest.fixture(scope="session")
 def sim_factory(tmp_path_factory):
     """``make(orchard, fmt="ros2-mcap", seed=0, **overrides) -> SimulatedSession`` (cached)."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -244,3 +245,13 @@ def test_manifest_rigs_reach_each_sessions_mapping_config(tmp_path):
     (tmp_path / "rigs" / "ours.toml").write_text('[frames.lidar]\nrpy_deg = [0, 0]\n')
     with pytest.raises(ConfigError, match=r"ours.toml: frames.lidar.rpy_deg"):
         load_manifest(manifest)
+
+
+@pytest.mark.slow
+def test_a_batch_session_without_report_carries_the_manifests_orchard(orchard_batch):
+    """Provenance of a table-only batch session: the manifest's orchard, the session's bag."""
+    report, sims, _, _ = orchard_batch
+    out = Path(report.outcomes["spring"].out_dir)
+    prov = json.loads((out / "metrics.json").read_text())["provenance"]
+    assert prov["orchard"] == "block-a" and prov["bag"] == Path(sims["spring"].bag).name
+    assert json.loads((out / "crowns.geojson").read_text())["provenance"] == prov

@@ -28,6 +28,19 @@ def small_pistachio(sim_factory):
     return sim_factory("pistachio", overrides=SMALL, truth_field=False)
 
 
+@pytest.fixture(scope="module")
+def run_folder(tmp_path_factory):
+    """One run folder per orchard: every preset maps the drive the same way, so the runs after
+    the first reuse the cached map (each run still rewrites every output it is checked on)."""
+    folders = {}
+
+    def folder(orchard: str):
+        if orchard not in folders:
+            folders[orchard] = tmp_path_factory.mktemp(f"{orchard}_runs")
+        return folders[orchard]
+    return folder
+
+
 def _cli_run(session, out, preset: str, *extra: str):
     import subprocess
 
@@ -42,8 +55,8 @@ def _failed(out) -> list[dict]:
 
 
 @pytest.mark.slow
-def test_merged_almond_trees_fail_the_run(small_almond, tmp_path):
-    out = tmp_path / "merged"
+def test_merged_almond_trees_fail_the_run(small_almond, run_folder):
+    out = run_folder("almond")
     strict = _cli_run(small_almond, out, "pistachio", "--strict")
     assert strict.returncode == 4, strict.stdout + strict.stderr
     truth = pd.read_csv(small_almond.truth_dir / "trees.csv")
@@ -68,8 +81,8 @@ def test_merged_almond_trees_fail_the_run(small_almond, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize(("orchard", "preset"), [("almond", "almond"), ("almond", "adaptive"),
                                                  ("pistachio", "pistachio"), ("pistachio", "adaptive")])
-def test_the_demo_runs_fail_no_check(orchard, preset, small_almond, small_pistachio, tmp_path):
+def test_the_demo_runs_fail_no_check(orchard, preset, small_almond, small_pistachio, run_folder):
     session = small_almond if orchard == "almond" else small_pistachio
-    result = _cli_run(session, tmp_path / "run", preset, "--strict")
-    failed = _failed(tmp_path / "run")
+    result = _cli_run(session, run_folder(orchard), preset, "--strict")
+    failed = _failed(run_folder(orchard))
     assert result.returncode == 0 and failed == [], failed

@@ -111,3 +111,18 @@ def test_chunk_logs_restricted_to_their_own_scans_merge_into_the_whole() -> None
     mlog = MessageLog("bag")
     mlog.topics["/points"] = whole
     assert mlog.flags() == ["scans_malformed"] and mlog.summary({"pointcloud": "/points"})["pointcloud"]["dropped"] == 3
+
+
+def test_a_second_pass_counts_each_message_once() -> None:
+    """A calibrated run reads the bag twice through one log: 25 of 100 scans dropped is
+    25 %, an error, however many passes read them (counted twice it was 25 of 175)."""
+    log = TopicLog("/points", "scans", "drive.bag")
+    for _ in range(2):
+        for i in range(100):
+            if i % 4 == 0:
+                log.drop(i, "truncated", f"scan {i}: truncated")
+            else:
+                log.use(i, float(i))
+    assert (log.seen, log.used, len(log.dropped)) == (100, 75, 25)
+    with pytest.raises(InputError, match="25 of 100 scans unusable"):
+        log.check()

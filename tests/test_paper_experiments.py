@@ -226,3 +226,139 @@ def test_saved_only_collects_finished_sessions_and_runs_nothing(tiny, monkeypatc
     no_work = CliRunner().invoke(app, ["paper", "experiments", "--saved-only"])
     assert isinstance(no_work.exception, InputError)  # main() turns it into exit code 2
     assert "--saved-only needs --work" in str(no_work.exception)
+
+
+def test_defaults_are_the_settings_of_the_committed_results():
+    """`canopy-kit paper experiments` with no option redoes what data/paper holds."""
+    committed = json.loads((ex.default_results_dir() / "experiments.json").read_text())
+    cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in committed["config"].items()}
+    assert ex.ExperimentConfig(**cfg) == ex.ExperimentConfig()
+    params = inspect.signature(paper_cli.experiments).parameters
+    first, n = params["first_seed"].default.default, params["seeds"].default.default
+    assert tuple(range(first, first + n)) == ex.ExperimentConfig().seeds
+    assert params["rows"].default.default == ex.ExperimentConfig().rows
+    assert params["trees_per_row"].default.default == ex.ExperimentConfig().trees_per_row
+    assert tuple(params["orchard"].default.default) == ex.ExperimentConfig().orchards
+
+
+def test_committed_results_are_never_overwritten_by_default(tiny, tmp_path):
+    from datetime import UTC, datetime
+
+    results = tiny[0]
+    committed = ex.default_results_dir() / "experiments.json"
+    before = committed.read_bytes()
+    with pytest.raises(InputError, match="refusing to write into the committed data folder"):
+        ex.write_results(results, ex.default_results_dir())
+    with pytest.raises(InputError, match=str(ex.default_results_dir())):
+        ex.check_results_dir(ex.default_results_dir() / "sub")
+    assert committed.read_bytes() == before
+    assert ex.check_results_dir(ex.default_results_dir(), overwrite=True) \
+        == ex.default_results_dir()
+    # A folder holding results is refused too, unless asked.
+    ex.write_results(results, tmp_path)
+    with pytest.raises(InputError, match="already holds experiment results"):
+        ex.write_results(results, tmp_path)
+    assert set(ex.write_results(results, tmp_path, overwrite=True)) == set(ex.RESULT_FILES)
+    when = datetime(2026, 12, 2, 7, 5, 9, tzinfo=UTC)
+    assert ex.new_results_dir("out", when) == ex.Path("out/paper-20261202-070509")
+
+
+def test_cli_refuses_committed_data_before_running(monkeypatch):
+    from typer.testing import CliRunner
+
+    from canopy_kit.cli import app
+
+    def no_run(*_a, **_k):
+        raise AssertionError("ran experiments before checking --out")
+
+    monkeypatch.setattr(ex, "run_experiments", no_run)
+    got = CliRunner().invoke(app, ["paper", "experiments", "--out",
+                                   str(ex.default_results_dir())])
+    assert isinstance(got.exception, InputError)
+    assert str(ex.default_results_dir()) in str(got.exception)
+
+
+def test_committed_results_are_complete_and_their_tables_recompute():
+    """data/paper/experiments*: every run of the recorded settings, none failed, the same true
+    trees for every method of a session, and the comparison table recomputed by hand from the
+    runs and the per-segment volumes (the CSVs agree with experiments.json)."""
+    saved = ex.load_results()
+    runs, trees, comp = saved.runs, saved.trees, saved.comparison
+    out = ex.default_results_dir()
+    assert len(runs) == saved.config.n_runs() and (runs["error"].fillna("") == "").all()
+    assert set(zip(runs["orchard"], runs["seed"], runs["method"])) == {
+        (o, s, m) for o in saved.config.orchards for s in saved.config.seeds
+        for m in saved.config.methods}
+    assert (runs.groupby(["orchard", "seed"])["n_truth"].nunique() == 1).all()
+    comp_csv = pd.read_csv(out / ex.RESULT_FILES["comparison"])
+    for col in [c for c in comp if comp[c].map(lambda v: isinstance(v, str)).any()]:
+        # an empty text cell reads back as NaN
+        comp_csv[col] = comp_csv[col].fillna("")
+    pd.testing.assert_frame_equal(comp_csv, comp, check_dtype=False, atol=1e-4)
+    runs_csv = pd.read_csv(out / ex.RESULT_FILES["runs"], keep_default_na=False)
+    numeric = runs.select_dtypes("number").columns
+    pd.testing.assert_frame_equal(runs_csv[numeric].astype(float), runs[numeric].astype(float),
+                                  atol=1e-4)
+    matched = trees.dropna(subset=["truth_tree_id"])
+    # A true tree's crown and sphere are the same in every run of its session.
+    per_tree = matched.groupby(["orchard", "seed", "truth_tree_id"])
+    assert (per_tree[["true_crown_volume_m3", "true_sphere_volume_m3"]].nunique() == 1).all().all()
+    for r in runs.to_dict("records"):
+        got = matched[(matched["orchard"] == r["orchard"]) & (matched["seed"] == r["seed"])
+                      & (matched["method"] == r["method"])]
+        assert len(got) == r["n_correct"] and got["truth_tree_id"].is_unique
+    for c in comp.to_dict("records"):
+        r = runs[(runs["orchard"] == c["orchard"]) & (runs["method"] == c["method"])]
+        assert (c["n_truth"], c["n_correct"]) == (r["n_truth"].sum(), r["n_correct"].sum())
+        assert c["success_pct"] == pytest.approx(100 * c["n_correct"] / c["n_truth"])
+        assert c["success_min_pct"] == pytest.approx(100 * r["success_rate"].min(), abs=1e-3)
+        assert c["success_max_pct"] == pytest.approx(100 * r["success_rate"].max(), abs=1e-3)
+        for k in ("n_merged", "n_split", "n_missed", "n_other"):
+            assert c[k] == r[k].sum()
+        assert c["map_points_per_tree_median"] == r["map_points_per_tree_median"].median()
+        t = matched[(matched["orchard"] == c["orchard"]) & (matched["method"] == c["method"])]
+        errs = {}
+        for ref, ref_col in (("sphere", "true_sphere_volume_m3"), ("crown", "true_crown_volume_m3")):
+            for est, col in (("convex_hull", "volume_convex_hull_m3"),
+                             ("alpha_shape", "volume_alpha_m3")):
+                errs[est] = err = 100 * (t[col] - t[ref_col]) / t[ref_col]
+                assert c[f"{est}_mape_vs_{ref}_pct"] == pytest.approx(err.abs().mean(), abs=1e-3)
+                assert c[f"{est}_bias_vs_{ref}_pct"] == pytest.approx(err.mean(), abs=1e-3)
+                assert c[f"{est}_max_error_vs_{ref}_pct"] == pytest.approx(err.abs().max(),
+                                                                           abs=1e-3)
+            assert c[f"alpha_better_vs_{ref}"] == (
+                errs["alpha_shape"].abs() < errs["convex_hull"].abs()).sum()
+            assert c[f"n_trees_vs_{ref}"] == len(t)
+
+
+def test_reproduction_doc_quotes_the_committed_tables():
+    """docs/REPRODUCTION.md's result tables are those of data/paper/experiments_comparison.csv."""
+    doc = (ex.default_results_dir().parents[1] / "docs" / "REPRODUCTION.md").read_text()
+    results = doc[doc.index("### Results"):doc.index("**On an almond orchard like the paper's**")]
+    rows = {}
+    for line in results.splitlines():
+        cells = [x.strip() for x in line.strip().strip("|").split("|")]
+        if len(cells) > 2 and cells[0] in ex.ORCHARDS and not cells[1].startswith("**"):
+            rows.setdefault((cells[0], cells[1].split(" (")[0]), []).append(cells)
+    comp = pd.read_csv(ex.default_results_dir() / ex.RESULT_FILES["comparison"])
+    assert len(rows) == len(comp)
+    for c in comp.to_dict("records"):
+        seg, vol = rows[(c["orchard"], c["method"])]
+        paper = c["paper_success_pct"]
+        assert seg[2] == ("-" if math.isnan(paper) else f"{paper:.0f}")
+        assert seg[3] == f"{c['success_pct']:.1f}"
+        assert seg[4] == f"{c['success_min_pct']:.0f}-{c['success_max_pct']:.0f}"
+        assert seg[5:11] == [f"{c['n_correct']}/{c['n_truth']}", str(c["n_merged"]),
+                             str(c["n_split"]), str(c["n_missed"]), str(c["n_other"]),
+                             f"{c['map_points_per_tree_median']:.0f}"]
+
+        def mape_bias(est, ref, c=c):
+            return (f"{c[f'{est}_mape_vs_{ref}_pct']:.1f} "
+                    f"({c[f'{est}_bias_vs_{ref}_pct']:+.1f})")
+
+        assert vol[2:] == [
+            str(c["n_trees_vs_sphere"]), mape_bias("convex_hull", "sphere"),
+            mape_bias("alpha_shape", "sphere"), f"{c['alpha_shape_max_error_vs_sphere_pct']:.1f}",
+            f"{c['alpha_better_vs_sphere']}/{c['n_trees_vs_sphere']}",
+            mape_bias("convex_hull", "crown"), mape_bias("alpha_shape", "crown"),
+            f"{c['alpha_better_vs_crown']}/{c['n_trees_vs_crown']}"]

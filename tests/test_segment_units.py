@@ -344,6 +344,24 @@ def test_point_scores_classify_merges_splits_and_misses() -> None:
         score_point_labels(pred[:5], truth)
 
 
+def test_failures_to_pick_from_and_one_at_a_time() -> None:
+    truth = np.repeat([0, 1, 2, 3, 4], 100)
+    pred = truth.copy()
+    pred[100:300] = 7  # trees 1 and 2 merged
+    pred[400:500] = -1  # tree 4 missed
+    tl = pd.DataFrame({"row": [0] * 5, "label": [f"L{i}" for i in range(5)]}, index=range(5))
+    s = score_point_labels(pred, truth, truth_labels=tl)
+    picks = s.failures()
+    assert list(picks.values())[0] == 4  # the missed tree, IoU 0, first
+    assert sorted(picks.values()) == sorted(
+        s.trees.loc[s.trees["status"] != "correct", "truth_id"])
+    assert len(picks) == s.n_truth - s.n_correct
+    assert "tree 4 (r0-L4): missed, IoU 0.00" in picks
+    one = s.only(picks["tree 4 (r0-L4): missed, IoU 0.00"])
+    assert list(one.trees["truth_id"]) == [4] and one.n_correct == s.n_correct
+    assert score_point_labels(truth, truth).failures() == {}
+
+
 def test_label_correctness_and_footprint_scores() -> None:
     square = lambda x, y, r: np.array([[x - r, y - r], [x + r, y - r], [x + r, y + r], [x - r, y + r]])  # noqa: E731
     truth = {0: square(0, 0, 1), 1: square(5, 0, 1), 2: square(10, 0, 1)}
@@ -394,9 +412,9 @@ def test_write_and_read_a_run_folder(tmp_path) -> None:
     paths = write_segmentation(tmp_path / "run", seg, orch.cloud)
     assert {p.name for p in paths.values()} >= {"segmented.laz", "trees.csv", "trees.geojson"}
     pos = json.loads(paths["positions"].read_text())
-    assert pos["crs"]["properties"]["name"] == "urn:ogc:def:crs:EPSG::32610"
-    x0, y0, _ = pos["features"][0]["geometry"]["coordinates"]
-    assert x0 == pytest.approx(seg.trees[0].x + 700000.0) and y0 > 4_000_000
+    assert "crs" not in pos  # RFC 7946: WGS84 lon/lat (tests/test_gis_outputs.py checks them)
+    lon0, lat0, _ = pos["features"][0]["geometry"]["coordinates"]
+    assert -180 <= lon0 <= 180 and -90 <= lat0 <= 90
     run = read_segmentation(tmp_path / "run")
     assert run.trees["tree_id"].tolist() == [t.tree_id for t in seg.trees]
     assert np.allclose(run.cloud.xyz, orch.cloud.xyz, atol=0.002)

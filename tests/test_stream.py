@@ -91,3 +91,15 @@ def test_settings_are_checked():
 
     with pytest.raises(InputError, match="lag_m must be positive"):
         StreamSettings(lag_m=0).check()
+
+
+@pytest.mark.slow
+def test_stream_outputs_carry_provenance(streamed, tiny_pistachio):
+    import pyarrow.parquet as pq
+
+    _, _, metrics, out = streamed
+    prov = metrics["provenance"]
+    assert prov["orchard"] == Path(tiny_pistachio.bag).stem == prov["bag"]
+    assert prov["preset"] == "adaptive" and len(prov["bag_sha256"]) == 64
+    assert json.loads((out / "trees.geojson").read_text())["provenance"] == prov
+    assert json.loads(pq.read_schema(out / "trees.parquet").metadata[b"provenance"]) == prov

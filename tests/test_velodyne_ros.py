@@ -266,11 +266,12 @@ def test_bag_of_packets_only_shows_its_lidar_topic(tmp_path: Path) -> None:
     assert facts["topics"] == [{"name": TOPIC, "type": VELODYNE_SCAN, "count": 1, "role": "lidar"}]
     from rich.console import Console
 
-    from canopy_kit.cli.info import _renderables
+    from canopy_kit.cli.info import grids
+    from canopy_kit.cli.tables import print_grid
 
-    console = Console(width=120, record=True)
-    for renderable in _renderables(facts):
-        console.print(renderable)
+    console = Console(width=120, record=True, force_terminal=True, color_system=None)
+    for grid in grids(facts):
+        print_grid(grid, console)
     text = console.export_text()
     assert "lidar_topic" in text and "velodyne_msgs/msg/VelodyneScan" in text and "lidar" in text
 

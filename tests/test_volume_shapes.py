@@ -228,3 +228,20 @@ def test_fast_alpha_hull_depends_little_on_the_grid_step() -> None:
     volumes = [estimate_volume(pts, "alpha_hull", alpha=0.9, grid_step=h).volume_m3
                for h in (0.3, 0.225, 0.15, 0.1)]
     assert np.ptp(volumes) < 0.035 * np.mean(volumes), volumes
+
+
+def test_hull_mesh_is_the_hull_by_its_corners() -> None:
+    from canopy_kit.volume.hull import hull_mesh, hull_volume
+
+    rng = np.random.default_rng(3)
+    cube = np.array([[x, y, z] for x in (0, 2) for y in (0, 3) for z in (0, 1)], float)
+    xyz = np.vstack([cube + [400000.0, 4000000.0, 0.0],
+                     rng.uniform(0.1, 0.9, (5000, 3)) * [2, 3, 1] + [400000.0, 4000000.0, 0.0]])
+    corners, faces = hull_mesh(xyz)
+    assert len(corners) == 8 and faces.min() == 0 and faces.max() == 7
+    np.testing.assert_allclose(np.sort(corners - corners.min(axis=0), axis=0),
+                               np.sort(cube, axis=0))
+    # The triangles close the hull: the tetrahedra from its centre to them fill its volume.
+    tri = (corners - corners.mean(axis=0))[faces]
+    volume = np.abs(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))).sum() / 6
+    assert volume == pytest.approx(hull_volume(xyz)) and volume == pytest.approx(6.0)

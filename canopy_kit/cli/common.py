@@ -26,7 +26,15 @@ CALIBRATE_OPTION = typer.Option(False, "--calibrate-extrinsics",
                                 help="Estimate the IMU's mount from the drive and map with it (one more "
                                      "odometry pass)")
 
-console = Console(stderr=False, soft_wrap=True)  # lines stay whole in logs and pipes
+def make_console(**kwargs: Any) -> Console:
+    """A stdout console: on a terminal lines wrap at its width; piped or redirected they
+    stay whole, for logs and grep (tables: :mod:`canopy_kit.cli.tables`)."""
+    con = Console(**kwargs)
+    con.soft_wrap = not con.is_terminal
+    return con
+
+
+console = make_console()
 err_console = Console(stderr=True)
 
 ProgressCallback = Callable[[str, float, float], None]

@@ -16,7 +16,7 @@ def evaluate(
     json_output: bool = typer.Option(False, "--json", help="Print the scores as JSON"),
 ) -> None:
     """Per-tree segmentation success, over/under-segmentation, precision/recall, labels."""
-    from canopy_kit.cli.common import console, print_json
+    from canopy_kit.cli.common import print_json
     from canopy_kit.evaluate import evaluate_run
 
     score = evaluate_run(run_dir, truth, min_iou=min_iou, mode=mode)
@@ -25,13 +25,11 @@ def evaluate(
         data["trees"] = score.trees.to_dict(orient="records")
         print_json(data)
         return
-    from rich.table import Table
+    from canopy_kit.cli.tables import Grid, print_grid
 
     d = score.to_dict()
-    table = Table(show_header=False, box=None, title=f"segmentation vs truth ({d['mode']} IoU "
-                                                     f"≥ {d['min_iou']})")
-    table.add_column(style="bold")
-    table.add_column(justify="right")
+    table = Grid(["measure", "value"], header=False, right={1}, wrap={0},
+                 title=f"segmentation vs truth ({d['mode']} IoU ≥ {d['min_iou']})")
     table.add_row("true trees", str(d["n_truth"]))
     table.add_row("predicted segments", str(d["n_predicted"]))
     table.add_row("correct (success rate)", f"{d['n_correct']} ({d['success_rate']:.1%})")
@@ -42,4 +40,4 @@ def evaluate(
     table.add_row("segments that are no tree", str(d["n_false_segments"]))
     table.add_row("labels correct (of correct trees)",
                   f"{d['n_label_correct']} ({d['label_accuracy']:.1%})")
-    console.print(table)
+    print_grid(table)

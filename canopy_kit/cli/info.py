@@ -23,18 +23,22 @@ def info(
     if json_output:
         print_json(facts)
         return
-    for renderable in _renderables(facts):
-        console.print(renderable)
+    from canopy_kit.cli.tables import print_grid
+
+    for grid in grids(facts):
+        print_grid(grid)
     for w in facts.get("warnings", []):
         console.print(f"[yellow]warning[/]: {w}", markup=True, highlight=False)
 
 
-def _renderables(facts: dict[str, Any]) -> list[Any]:
-    from rich.table import Table
+def grids(facts: dict[str, Any]) -> list[Any]:
+    """The facts as tables (:class:`canopy_kit.cli.tables.Grid`): summary, bounds,
+    attributes, topics."""
+    from rich.markup import escape
 
-    summary = Table(show_header=False, box=None, pad_edge=False)
-    summary.add_column(style="bold")
-    summary.add_column()
+    from canopy_kit.cli.tables import Grid
+
+    summary = Grid(["fact", "value"], header=False, wrap={1})
     skip = {"topics", "attributes", "bounds", "header_bounds", "warnings"}
     for key, value in facts.items():
         if key in skip:
@@ -46,22 +50,22 @@ def _renderables(facts: dict[str, Any]) -> list[Any]:
         elif value is None:
             value = "-"
         text = str(value)
-        summary.add_row(key, text if len(text) < 200 else text[:197] + "...")
+        summary.add_row(f"[bold]{key}[/]", escape(text if len(text) < 200 else text[:197] + "..."))
     out: list[Any] = [summary]
     if "bounds" in facts:
-        bounds = Table("axis", "min", "max", "extent", title="bounds")
+        bounds = Grid(["axis", "min", "max", "extent"], title="bounds", right={1, 2, 3})
         for i, axis in enumerate("xyz"):
             lo, hi = facts["bounds"]["min"][i], facts["bounds"]["max"][i]
             bounds.add_row(axis, f"{lo:.3f}", f"{hi:.3f}", f"{hi - lo:.3f}")
         out.append(bounds)
     if "attributes" in facts:
-        attrs = Table("attribute", "dtype", "extra bytes", title="attributes")
+        attrs = Grid(["attribute", "dtype", "extra bytes"], title="attributes")
         for a in facts["attributes"]:
-            attrs.add_row(a["name"], a["dtype"], "yes" if a.get("extra") else "")
+            attrs.add_row(escape(a["name"]), a["dtype"], "yes" if a.get("extra") else "")
         out.append(attrs)
     if "topics" in facts:
-        topics = Table("topic", "type", "messages", "role", title="topics")
+        topics = Grid(["topic", "type", "messages", "role"], title="topics", right={2})
         for t in facts["topics"]:
-            topics.add_row(t["name"], t["type"], str(t["count"]), t.get("role", ""))
+            topics.add_row(escape(t["name"]), t["type"], str(t["count"]), t.get("role", ""))
         out.append(topics)
     return out

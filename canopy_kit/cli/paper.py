@@ -72,9 +72,8 @@ def table1(
 
 
 def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
-    from rich.table import Table
-
     from canopy_kit.cli.common import console
+    from canopy_kit.cli.tables import Grid, print_grid
     from canopy_kit.paper.consistency import order_groups
     from canopy_kit.paper.table1 import HEADER_OF, VALUE_COLUMNS
 
@@ -90,10 +89,9 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
 
     # The table, as read.
     title = "corrected (columns where the numbers put them)" if corrected else "as printed"
-    table = Table(title=f"Table I, {title}")
-    for col in ("tree", "GT m³", "hull m³", "hull err %", "recomp", "alpha m³",
-                "alpha err %", "recomp", "status"):
-        table.add_column(col, justify="right" if col != "status" else "left")
+    table = Grid(["tree", "GT m³", "hull m³", "hull err %", "recomp", "alpha m³",
+                  "alpha err %", "recomp", "status"], title=f"Table I, {title}",
+                 right=set(range(8)))
     frame = check.corrected if corrected else check.as_printed
     text = check.corrected_text if corrected else None
     for tree, row in frame.iterrows():
@@ -106,7 +104,7 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
                       f"{row['hull_err_recomputed']:.2f}", cell("alpha_m3"),
                       cell("alpha_err_pct"), f"{row['alpha_err_recomputed']:.2f}",
                       row["status"], style=style)
-    console.print(table)
+    print_grid(table)
 
     # What the numbers say about the column order.
     console.print("[bold]Column order found from the numbers[/]")
@@ -121,10 +119,9 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
                   f"{', '.join(map(str, n_fits))}; convex hull >= alpha shape (an alpha shape "
                   f"lies inside its hull) decided between them in trees {_ranges(by_geometry)}")
     if check.findings:
-        inc = Table(title=f"Inconsistencies ({len(check.findings)} rows)")
-        for col in ("tree", "status", "header says: numbers say (value)",
-                    "residual as printed (pp)", "residual corrected (pp)"):
-            inc.add_column(col)
+        inc = Grid(["tree", "status", "header says: numbers say (value)",
+                    "residual as printed (pp)", "residual corrected (pp)"],
+                   title=f"Inconsistencies ({len(check.findings)} rows)", wrap={2, 3, 4})
         for r in check.findings:
             moved = "; ".join(
                 f"{SHORT[h]}: {SHORT[a]} ({check.as_printed.loc[r.tree, h]:.2f})"
@@ -134,7 +131,7 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
             res_c = ", ".join(f"{m} {v:+.3f}" for m, v in r.chosen.residual.items())
             inc.add_row(str(r.tree), r.status, moved, res_p,
                         res_c if r.status != "unresolved" else "-")
-        console.print(inc)
+        print_grid(inc)
     else:
         console.print("  no inconsistencies")
     unresolved = [r.tree for r in check.rows if r.status in ("unresolved", "ambiguous")]
@@ -145,10 +142,8 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
                   f"{result['max_abs_residual_pp']:.3f} pp\n")
 
     # Agreement statistics.
-    stats = Table(title=f"Agreement with the sphere ground truth ({summary.reading} table)")
-    stats.add_column("statistic")
-    stats.add_column("convex hull", justify="right")
-    stats.add_column("alpha shape", justify="right")
+    stats = Grid(["statistic", "convex hull", "alpha shape"], right={1, 2}, wrap={0},
+                 title=f"Agreement with the sphere ground truth ({summary.reading} table)")
     a, means = summary.agreement, summary.printed_error_means
     ba = {m: x.bland_altman for m, x in a.items()}
     lines = [
@@ -167,7 +162,7 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
     ]
     for label, fmt in lines:
         stats.add_row(label, fmt("hull"), fmt("alpha"))
-    console.print(stats)
+    print_grid(stats)
 
     # The paper's claim.
     c = summary.claim
@@ -184,16 +179,15 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
     console.print(f"  two-sided sign test, alpha vs hull better: p = {c.sign_test_p:.3f}\n")
 
     # Implied crown diameters.
-    diam = Table(title="Crown diameters implied by the sphere volumes, d = (6V/π)^(1/3)")
-    for col in ("tree", "GT m³", "d (m)", "d range from rounding (m)", "d to 0.01 m",
-                "gives GT back"):
-        diam.add_column(col, justify="right")
+    diam = Grid(["tree", "GT m³", "d (m)", "d range from rounding (m)", "d to 0.01 m",
+                 "gives GT back"], right=set(range(6)),
+                title="Crown diameters implied by the sphere volumes, d = (6V/π)^(1/3)")
     for tree, row in summary.diameters.iterrows():
         diam.add_row(str(tree), f"{row['gt_m3']:.2f}", f"{row['diameter_m']:.4f}",
                      f"{row['diameter_min_m']:.4f} .. {row['diameter_max_m']:.4f}",
                      f"{row['diameter_rounded_m']:.2f}",
                      "yes" if row["rounded_reproduces_gt"] else "no")
-    console.print(diam)
+    print_grid(diam)
     n_back = int(summary.diameters["rounded_reproduces_gt"].sum())
     console.print(f"  {n_back} of {len(summary.diameters)} printed volumes are spheres of a "
                   f"diameter given to the centimetre")
@@ -201,10 +195,12 @@ def _print_report(check: Any, summary: Any, result: dict[str, Any]) -> None:
 
 @app.command("experiments")
 def experiments(
+    # Defaults = the committed results' settings (canopy_kit.paper.experiments.COMMITTED_*,
+    # not imported: it pulls in pandas; a test holds them equal).
     seeds: int = typer.Option(3, "--seeds", min=1, help="Simulated sessions per orchard."),
-    first_seed: int = typer.Option(1, "--first-seed", help="Seed of the first session."),
-    rows: int = typer.Option(3, "--rows", min=1, help="Rows per simulated orchard."),
-    trees_per_row: int = typer.Option(8, "--trees-per-row", min=2, help="Trees per row."),
+    first_seed: int = typer.Option(301, "--first-seed", help="Seed of the first session."),
+    rows: int = typer.Option(2, "--rows", min=1, help="Rows per simulated orchard."),
+    trees_per_row: int = typer.Option(6, "--trees-per-row", min=2, help="Trees per row."),
     orchard: list[str] = typer.Option(["pistachio", "almond"], "--orchard",
                                       help="Orchard (repeat for several): pistachio, almond, "
                                            "almond-paper (calibrated on the paper's DBSCAN)."),
@@ -226,8 +222,13 @@ def experiments(
                                                           "(default: a temporary folder)."),
     keep_sessions: bool = typer.Option(False, "--keep-sessions",
                                        help="Keep the simulated sessions and runs."),
-    out: Path | None = typer.Option(None, "--out", help="Where the results go "
-                                                        "(default: data/paper of the checkout)."),
+    out: Path | None = typer.Option(
+        None, "--out", help="Where the results go (default: a new folder "
+                            "out/paper-YYYYmmdd-HHMMSS, UTC); with --show-saved, where they are "
+                            "read from (default: the committed data/paper)."),
+    overwrite: bool = typer.Option(
+        False, "--overwrite", help="Allow --out to be the committed data/paper or a folder "
+                                   "holding results (they are replaced)."),
     show_saved: bool = typer.Option(False, "--show-saved",
                                     help="Print the results saved in --out; run nothing."),
     saved_only: bool = typer.Option(
@@ -240,7 +241,9 @@ def experiments(
 
     Segmentation success of DBSCAN, DBSCAN + spectral (and canopy-kit's adaptive segmenter),
     and convex hull vs alpha-shape errors against the aerial sphere ground truth and the true
-    crown volume, beside the paper's figures. Writes experiments_*.csv and experiments.json.
+    crown volume, beside the paper's figures. Writes experiments_*.csv and experiments.json
+    into a new folder; the defaults are the settings of the committed results (seeds
+    301-303, 2 rows x 6 trees: docs/REPRODUCTION.md).
     """
     import tempfile
 
@@ -248,7 +251,9 @@ def experiments(
     from canopy_kit.errors import InputError
     from canopy_kit.paper.experiments import (
         ExperimentConfig,
+        check_results_dir,
         load_results,
+        new_results_dir,
         run_experiments,
         write_results,
     )
@@ -256,6 +261,7 @@ def experiments(
     if show_saved:
         results = load_results(out)
     else:
+        out = check_results_dir(out or new_results_dir(), overwrite)  # before hours of runs
         config = ExperimentConfig(
             seeds=tuple(range(first_seed, first_seed + seeds)), rows=rows,
             trees_per_row=trees_per_row, orchards=tuple(orchard), methods=tuple(method),
@@ -268,7 +274,7 @@ def experiments(
                 progress_bar(transient=True) as progress:
             results = run_experiments(config, work or tmp, progress=progress,
                                       keep_sessions=keep_sessions, saved_only=saved_only)
-        files = write_results(results, out)
+        files = write_results(results, out, overwrite)
     if json_output:
         print_json(results.to_dict())
         return
@@ -288,9 +294,8 @@ def _pct(value: Any, digits: int = 1) -> str:
 def _print_experiments(results: Any) -> None:
     import math
 
-    from rich.table import Table
-
     from canopy_kit.cli.common import console
+    from canopy_kit.cli.tables import Grid, print_grid
 
     c, cfg = results.comparison, results.config
     seeds = ", ".join(map(str, cfg.seeds))
@@ -301,10 +306,10 @@ def _print_experiments(results: Any) -> None:
                   f"mapping: {', '.join(cfg.mappings)} (this command {results.seconds / 60:.1f} "
                   f"min; the runs, mapping included and simulation not, {runs_min:.0f} min "
                   f"in all, checkpointed ones included)")
-    seg = Table(title="Segmentation success (%): one-to-one point IoU >= 0.5 with a true tree")
-    for col in ("orchard", "method", "mapping", "paper", "ours", "seed range",
-                "correct / trees", "merged", "split", "missed", "other", "map pts/tree"):
-        seg.add_column(col, justify="left" if col in ("orchard", "method", "mapping") else "right")
+    seg = Grid(["orchard", "method", "mapping", "paper", "ours", "seed range",
+                "correct / trees", "merged", "split", "missed", "other", "map pts/tree"],
+               title="Segmentation success (%): one-to-one point IoU >= 0.5 with a true tree",
+               keys=3, right=set(range(3, 12)))
     for r in c.to_dict("records"):
         seg.add_row(r["orchard"], r["method"], r["mapping"], _pct(r["paper_success_pct"], 0),
                     _pct(r["success_pct"]),
@@ -312,14 +317,15 @@ def _print_experiments(results: Any) -> None:
                     f"{r['n_correct']}/{r['n_truth']}", str(r["n_merged"]), str(r["n_split"]),
                     str(r["n_missed"]), str(r["n_other"]),
                     _pct(r["map_points_per_tree_median"], 0))
-    console.print(seg)
-    vol = Table(title="Volume error (%) on correctly segmented trees: MAPE vs the aerial sphere "
-                      "π d³/6 (the paper's ground truth) and vs the true crown volume")
-    for col in ("orchard", "method", "mapping", "trees", "hull vs sphere paper", "ours",
-                "alpha vs sphere paper", "ours ", "max alpha err paper", "ours  ",
-                "alpha better paper", "ours   ", "hull vs crown", "alpha vs crown",
-                "hull bias crown", "alpha bias crown"):
-        vol.add_column(col, justify="left" if col in ("orchard", "method", "mapping") else "right")
+    print_grid(seg)
+    vol = Grid(["orchard", "method", "mapping", "trees", "hull vs sphere paper",
+                "hull vs sphere ours", "alpha vs sphere paper", "alpha vs sphere ours",
+                "max alpha err paper", "max alpha err ours", "alpha better paper",
+                "alpha better ours", "hull vs crown", "alpha vs crown", "hull bias crown",
+                "alpha bias crown"],
+               title="Volume error (%) on correctly segmented trees: MAPE vs the aerial sphere "
+                     "π d³/6 (the paper's ground truth) and vs the true crown volume",
+               keys=3, right=set(range(3, 16)))
     for r in c.to_dict("records"):
         n = r.get("n_trees_vs_sphere")
         better = (f"{int(r['alpha_better_vs_sphere'])}/{int(n)}"
@@ -336,7 +342,7 @@ def _print_experiments(results: Any) -> None:
                     _pct(r.get("alpha_shape_mape_vs_crown_pct")),
                     _pct(r.get("convex_hull_bias_vs_crown_pct")),
                     _pct(r.get("alpha_shape_bias_vs_crown_pct")))
-    console.print(vol)
+    print_grid(vol)
     if "aerial" in "".join(c.columns):
         console.print("vs the drone photogrammetry sphere volumes: " + "; ".join(
             f"{r['orchard']}/{r['method']}/{r['mapping']} hull "

@@ -9,13 +9,13 @@ def plugins(
     kind: str = typer.Argument(None, help="readers, segmenters, volumes or commands (default: all)"),
 ) -> None:
     """List registered plugins (entry points) by group, with load errors if any."""
-    from rich.table import Table
+    from rich.markup import escape
 
     from canopy_kit import plugins as registry
-    from canopy_kit.cli.common import console
+    from canopy_kit.cli.tables import Grid, print_grid
 
-    table = Table("group", "name", "target", "package", "status")
+    table = Grid(["group", "name", "target", "package", "status"], keys=2, wrap={2, 4})
     for info in registry.describe(kind):
-        status = "[green]ok" if info.error is None else f"[red]{info.error}"
-        table.add_row(info.group, info.name, info.value, info.distribution or "", status)
-    console.print(table)
+        status = "[green]ok[/]" if info.error is None else f"[red]{escape(str(info.error))}[/]"
+        table.add_row(info.group.removeprefix("canopy_kit."), info.name, info.value, info.distribution or "", status)
+    print_grid(table)

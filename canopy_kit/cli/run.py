@@ -24,6 +24,10 @@ def run(
     rig: Path = RIG_OPTION,
     assume_identity: bool = ASSUME_IDENTITY_OPTION,
     calibrate: bool = CALIBRATE_OPTION,
+    orchard: str = typer.Option(None, "--orchard", help="Orchard or block name for the "
+                                "provenance (metrics.json, tables, GeoJSON); default: the bag's name"),
+    export_trees: bool = typer.Option(False, "--export-trees", help="Also write each tree's "
+                                      "points as trees/<tree_id>.laz (for canopy-kit volume)"),
     strict: bool = typer.Option(False, "--strict", help="Exit with code 4 when any check fails "
                                 "(after writing every output: they should not be trusted)"),
 ) -> None:
@@ -41,16 +45,19 @@ def run(
     if stream and strict:  # a streamed run has no checks: --strict would pass it unchecked
         raise InputError("--strict: a --stream run has no checks to hold it to; run without "
                          "--stream for the checks and the report")
+    if stream and export_trees:  # a streamed run keeps no map to cut the trees from
+        raise InputError("--export-trees: a --stream run keeps no map; run without --stream")
     overrides = merge(parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate)))
     config = load_preset(preset, overrides)
     if stream:
         from canopy_kit.cli.stream import run_streaming
 
-        run_streaming(config, bag, out, extra_inputs=drone_images or truth)
+        run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
         return
     with progress_bar(transient=True) as progress:
         results = run_pipeline(config, bag, out, drone_images=drone_images, truth=truth,
-                               use_cache=not no_cache, progress=progress)
+                               use_cache=not no_cache, progress=progress, orchard=orchard,
+                               export_trees=export_trees)
     print_results(results)
     if strict and results.metrics.get("checks_summary", {}).get("fail", 0):
         raise typer.Exit(CHECKS_FAILED_EXIT)

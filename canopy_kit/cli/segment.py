@@ -18,6 +18,8 @@ def segment(
                                                "whose first pass orders and labels the trees"),
     set_: list[str] = typer.Option([], "--set", help="Override any setting: section.key=value"),
     no_cloud: bool = typer.Option(False, "--no-cloud", help="Do not write segmented.laz"),
+    export_trees: bool = typer.Option(False, "--export-trees", help="Also write each tree's "
+                                      "points as trees/<tree_id>.laz (for canopy-kit volume)"),
 ) -> None:
     """Remove ground and trunks, segment the trees, find rows and label the trees."""
     import numpy as np
@@ -56,6 +58,10 @@ def segment(
                           driving_direction=direction, direction_source=source,
                           seed=config.seed, progress=progress)
         write_segmentation(out, seg, cloud, with_cloud=not no_cloud)
+        if export_trees:
+            from canopy_kit.segment.tree_export import export_trees as write_tree_clouds
+
+            write_tree_clouds(out / "trees", cloud, seg)
     write_config(config, out / "config.toml")
     for w in seg.warnings:
         console.print(f"[yellow]warning:[/] {w}")

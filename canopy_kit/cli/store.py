@@ -13,14 +13,14 @@ app = typer.Typer(help="The orchard store (DuckDB): sessions, trees over time, g
 @app.command("sessions")
 def sessions(store: Path = typer.Argument(..., help="Store file (orchard.duckdb)")) -> None:
     """List the stored sessions with their matched, new and missing trees."""
-    from canopy_kit.cli.common import console
+    from canopy_kit.cli.tables import frame_grid, print_grid
     from canopy_kit.store import OrchardStore
 
     with OrchardStore(store, read_only=True) as db:
         table = db.query("SELECT session_id, orchard, date, n_trees, n_matched, n_new, n_missing, "
                          "n_replanted, round(align_rms_m, 3) AS align_rms_m FROM sessions "
                          "ORDER BY orchard, date")
-    console.print(table.to_string(index=False))
+    print_grid(frame_grid(table, keys=1))
 
 
 @app.command("changes")
@@ -28,12 +28,16 @@ def changes(store: Path = typer.Argument(..., help="Store file"),
             orchard: str = typer.Option(None, help="Only this orchard")) -> None:
     """New, missing and replanted trees, session by session."""
     from canopy_kit.cli.common import console
+    from canopy_kit.cli.tables import frame_grid, print_grid
     from canopy_kit.store import OrchardStore
     from canopy_kit.store import changes as changes_of
 
     with OrchardStore(store, read_only=True) as db:
         table = changes_of(db, orchard)
-    console.print(table.to_string(index=False) if len(table) else "no changes")
+    if len(table):
+        print_grid(frame_grid(table, keys=2))
+    else:
+        console.print("no changes")
 
 
 @app.command("growth")
@@ -44,6 +48,7 @@ def growth(store: Path = typer.Argument(..., help="Store file"),
            rows: bool = typer.Option(False, "--rows", help="Per row instead of per tree")) -> None:
     """Volume and growth per tree (or per row) over the sessions of a store."""
     from canopy_kit.cli.common import console
+    from canopy_kit.cli.tables import frame_grid, print_grid
     from canopy_kit.store import OrchardStore, row_growth
     from canopy_kit.store import growth as growth_of
 
@@ -57,8 +62,10 @@ def growth(store: Path = typer.Argument(..., help="Store file"),
             table = table[table["tree_id"] == tree]
         cols = ["orchard", "tree_id", "tree_label", "status", "date", "kind", "volume_m3",
                 "growth_since_first", "growth_since_previous"]
-    text = table[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}")
-    console.print(text if len(table) else "no observations", soft_wrap=True)
+    if len(table):
+        print_grid(frame_grid(table[cols], keys=2))
+    else:
+        console.print("no observations")
 
 
 @app.command("export")

@@ -7,8 +7,8 @@ from pathlib import Path
 from canopy_kit.config import PipelineConfig
 
 
-def run_streaming(config: PipelineConfig, bag: Path, out: Path, extra_inputs: Path | None = None
-                  ) -> None:
+def run_streaming(config: PipelineConfig, bag: Path, out: Path, extra_inputs: Path | None = None,
+                  orchard: str | None = None) -> None:
     """Stream one session, one line per emitted tree, then where the table is."""
     from canopy_kit.cli.common import console, progress_bar
     from canopy_kit.errors import InputError
@@ -33,7 +33,7 @@ def run_streaming(config: PipelineConfig, bag: Path, out: Path, extra_inputs: Pa
         console.print(f"streaming {bag}: one line per tree as the robot passes it (V: {method}); "
                       "labels are provisional (the rows seen so far), trees.csv has the final ones")
     with progress_bar(transient=True) as progress:
-        results = run_stream(config, bag, out, progress=progress, on_tree=show)
+        results = run_stream(config, bag, out, progress=progress, on_tree=show, orchard=orchard)
     m = results.metrics
     s = m["streaming"]
     console.print(f"[green]done[/]: {m['n_trees']} trees streamed ({m['segmenter']}); window peak "

@@ -6,15 +6,28 @@ import typer
 
 
 def volume(
-    cloud: str = typer.Argument(..., help="point-cloud file of one tree (LAS/LAZ/PLY/PCD)"),
+    cloud: str = typer.Argument(..., help="LAS/LAZ/PLY/PCD file holding one tree's points "
+                                          "only, in metres"),
     method: str = typer.Option("alpha_shape", "--method", "-m",
                                help="volume plugin: convex_hull, alpha_shape, alpha_hull, voxel, "
                                     "slices, mirror, ... (see 'canopy-kit plugins volumes')"),
     alpha: float = typer.Option(None, "--alpha", "-a",
                                 help="alpha radius in metres for alpha-based methods (default 0.9)"),
+    voxel_size: float = typer.Option(0.0, "--voxel-size", min=0.0,
+                                     help="thin the points to this voxel grid first, as a run "
+                                          "measures its trees (volume.voxel_size, 0.1 m); "
+                                          "0: every point"),
     json: bool = typer.Option(False, "--json", help="print the result as JSON"),
 ) -> None:
-    """Estimate the canopy volume of the points in CLOUD with one volume method."""
+    """Estimate the canopy volume of the points in CLOUD with one volume method.
+
+    CLOUD must hold one tree and nothing else: every point counts, so ground, trunk-height
+    clutter or a neighbour's crown inflate the volume and the height. canopy-kit's own
+    outputs are whole orchards (`map.laz` of `run`, `segmented.laz` of `segment`); cut a tree
+    out of them first (e.g. with PDAL or CloudCompare), or let `run --export-trees` write
+    each tree's points as such a file. Those files (``trees/<tree_id>.laz``) give that tree's trees.csv
+    volume with the run's settings: ``--voxel-size 0.1`` and its method's ``--alpha``.
+    """
     from canopy_kit.cli.common import console, print_json
     from canopy_kit.io.clouds import read_cloud
     from canopy_kit.volume import estimator, tree_metrics
@@ -22,7 +35,12 @@ def volume(
     params = {} if alpha is None else {"alpha": alpha}
     est = estimator(method, **params)  # ConfigError names a parameter the method lacks
     points = read_cloud(cloud)
-    result = est(points.xyz)
+    measured = points.xyz
+    if voxel_size > 0:
+        from canopy_kit.voxel import voxel_representatives
+
+        measured = measured[voxel_representatives(measured, voxel_size)[0]]
+    result = est(measured)
     metrics = tree_metrics(points.xyz, volume_m3=result.volume_m3 if result.valid else None)
     if json:
         print_json({"cloud": str(cloud), **result.as_dict(), "metrics": metrics.as_dict()})

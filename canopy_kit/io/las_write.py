@@ -92,8 +92,18 @@ def las_ready(cloud: PointCloud) -> PointCloud:
     return cloud
 
 
+LAS_SCALE = 0.001  # metres per stored integer: 1 mm
+
+
+def on_las_grid(cloud: PointCloud, scale: float = LAS_SCALE) -> PointCloud:
+    """``cloud`` with its local coordinates rounded as :func:`write_las` stores them (the
+    origin as offset), so what is measured on it is what a reader of the file measures."""
+    xyz = np.round(cloud.xyz / scale) * scale
+    return PointCloud(xyz, cloud.fields, cloud.crs, cloud.origin.copy())
+
+
 def write_las(
-    path: str | Path, cloud: PointCloud, point_format: int | None = None, scale: float = 0.001
+    path: str | Path, cloud: PointCloud, point_format: int | None = None, scale: float = LAS_SCALE
 ) -> Path:
     """Write a PointCloud as LAS or LAZ (by suffix), absolute = xyz + origin, atomically.
 

@@ -68,17 +68,24 @@ class TopicLog:
     _behind: tuple[int, float, int, float] | None = None  # first index, stamp, log ns; run length
     _clock_index: int = -1  # the last message index the clock was watched at
 
-    def _see(self, index: int) -> None:  # indices come in increasing order
+    def _see(self, index: int) -> bool:
+        """Count message ``index``; False when it was seen before (the bag read again, e.g. the
+        LiDAR-only pass of an extrinsic calibration and then the mapping pass). Within a pass
+        indices increase, and a pass reads a contiguous stretch, so the messages seen are
+        those of ``index_range``."""
         if not self.seen:
             self.index_range = (index, index + 1)
-        elif index >= self.index_range[1]:
-            self.index_range = (self.index_range[0], index + 1)
+        elif self.index_range[0] <= index < self.index_range[1]:
+            return False
+        else:
+            self.index_range = (min(self.index_range[0], index), max(self.index_range[1], index + 1))
         self.seen += 1
+        return True
 
     def use(self, index: int, stamp: float, frame_id: str = "") -> None:
         """Message ``index`` (header ``stamp``) was used."""
-        self._see(index)
-        self.used += 1
+        if self._see(index):
+            self.used += 1
         if stamp < self.first_stamp:
             self.first_stamp = stamp
         if stamp > self.last_stamp:

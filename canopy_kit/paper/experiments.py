@@ -25,6 +25,7 @@ import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -55,9 +56,43 @@ TREE_COLUMNS = ["tree_id", "label", "segment", "n_points", "crown_diameter_m",
                 "volume_flags"]
 
 
+#: The settings the committed results (``data/paper/experiments*``) were made with, which
+#: are :class:`ExperimentConfig`'s and the CLI's defaults (docs/REPRODUCTION.md).
+COMMITTED_SEEDS = (301, 302, 303)
+COMMITTED_ROWS = 2
+COMMITTED_TREES_PER_ROW = 6
+
+
 def default_results_dir() -> Path:
     """``data/paper`` of the source checkout this package was imported from."""
     return Path(__file__).resolve().parents[2] / "data" / "paper"
+
+
+def new_results_dir(root: str | Path = "out", now: datetime | None = None) -> Path:
+    """A fresh folder name for new results, ``ROOT/paper-YYYYmmdd-HHMMSS`` (UTC)."""
+    stamp = (now or datetime.now(UTC)).strftime("%Y%m%d-%H%M%S")
+    return Path(root) / f"paper-{stamp}"
+
+
+def check_results_dir(out_dir: str | Path, overwrite: bool = False) -> Path:
+    """``out_dir`` if results may be written there, else :class:`InputError` naming it.
+
+    Committed data (anything under the checkout's ``data/``) and a folder that already holds
+    results are refused unless ``overwrite``.
+    """
+    out = Path(out_dir)
+    if overwrite:
+        return out
+    data = default_results_dir().parent
+    if out.resolve().is_relative_to(data):
+        raise InputError(f"{out}: refusing to write into the committed data folder {data} "
+                         f"(give another --out, or --overwrite to replace the committed "
+                         f"results)")
+    held = [name for name in RESULT_FILES.values() if (out / name).exists()]
+    if held:
+        raise InputError(f"{out}: already holds experiment results ({', '.join(held)}); "
+                         f"give another --out, or --overwrite to replace them")
+    return out
 
 
 @dataclass(frozen=True)
@@ -69,9 +104,9 @@ class ExperimentConfig:
     volumes become a third reference (``aerial``).
     """
 
-    seeds: tuple[int, ...] = (1, 2, 3)
-    rows: int = 3
-    trees_per_row: int = 8
+    seeds: tuple[int, ...] = COMMITTED_SEEDS
+    rows: int = COMMITTED_ROWS
+    trees_per_row: int = COMMITTED_TREES_PER_ROW
     orchards: tuple[str, ...] = ORCHARDS
     methods: tuple[str, ...] = DEFAULT_METHODS
     mappings: tuple[str, ...] = ("pipeline",)
@@ -384,12 +419,16 @@ def load_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
 
 
 # -- files ---------------------------------------------------------------------------------
-def write_results(results: ExperimentResults, out_dir: str | Path | None = None
+def write_results(results: ExperimentResults, out_dir: str | Path, overwrite: bool = False
                   ) -> dict[str, Path]:
-    """Runs, trees and comparison as CSV, everything as JSON, each written atomically."""
+    """Runs, trees and comparison as CSV, everything as JSON, each written atomically.
+
+    Refuses (:func:`check_results_dir`) committed data and earlier results unless
+    ``overwrite``.
+    """
     from canopy_kit.io.atomic import atomic_write_text, json_default
 
-    out = Path(out_dir) if out_dir is not None else default_results_dir()
+    out = check_results_dir(out_dir, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     files = {}
     for key, frame in (("runs", results.runs), ("trees", results.trees),

@@ -1,10 +1,13 @@
 """Writing and reading a segmentation run folder.
 
-``segmented.laz`` (the map with ``segment_id`` and ``height_above_ground`` per point, every
-input attribute kept), ``trees.csv``, ``trees.geojson`` (tree positions), ``crowns.geojson``
-(crown footprints), ``rows.geojson`` (row lines), ``segmentation.json`` (summary). GeoJSON
-coordinates are in the map's CRS (local coordinates plus the map origin) and name the CRS
-in a ``crs`` member, as GDAL and QGIS read it. Every file is written atomically.
+``segmented.laz`` (the map with ``segment_id``, LAS ``classification`` and
+``height_above_ground`` per point, every input attribute kept, the simulator's truth id as
+``truth_tree_id``: see ``segment.labelled``), ``trees.csv``, ``trees.geojson`` (tree
+positions), ``crowns.geojson`` (crown footprints), ``rows.geojson`` (row lines),
+``trees.gpkg`` (the same three as layers in the map's projected CRS) and
+``segmentation.json`` (summary). GeoJSON is RFC 7946: WGS84 lon/lat, no ``crs`` member
+(``canopy_kit.geojson``); a map without a CRS gets none, and segmentation.json says why
+(``geojson``). Every file is written atomically.
 
 A ``canopy-kit run`` folder is a segmentation folder too: it holds the summary, crowns and
 rows beside its own ``trees.csv`` (segment ids in ``segment``) and ``map.laz`` (the map
@@ -21,13 +24,19 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from canopy_kit import geojson
 from canopy_kit.cloud import PointCloud
 from canopy_kit.errors import InputError
+from canopy_kit.geo import local_of, lonlat_of
 from canopy_kit.io.atomic import atomic_write_text
+from canopy_kit.io.gpkg import read_gpkg_layer, write_gpkg
 from canopy_kit.segment.result import Segmentation
 
 FILES = {"cloud": "segmented.laz", "trees": "trees.csv", "positions": "trees.geojson",
-         "crowns": "crowns.geojson", "rows": "rows.geojson", "summary": "segmentation.json"}
+         "crowns": "crowns.geojson", "rows": "rows.geojson", "gis": "trees.gpkg",
+         "summary": "segmentation.json"}
+NO_CRS_NOTE = ("no GeoJSON written: the map has no CRS (no GNSS fix georeferenced it), and "
+               "RFC 7946 GeoJSON is WGS84 only; trees.gpkg holds the layers in the local frame")
 RUN_CLOUD = "map.laz"  # the cloud of a ``canopy-kit run`` folder
 
 
@@ -42,92 +51,127 @@ class SegmentationRun:
     cloud: PointCloud | None = None
 
 
-def _crs_member(crs: str | None) -> dict[str, Any] | None:
-    if not crs:
+def positions_geojson(seg: Segmentation, provenance: dict[str, Any] | None = None) -> str | None:
+    """Tree positions (crown centroids) as RFC 7946 points ``[lon, lat, height]``; None when
+    the map has no CRS."""
+    if not seg.crs:
         return None
-    name = f"urn:ogc:def:crs:EPSG::{crs.split(':', 1)[1]}" if crs.upper().startswith("EPSG:") else crs
-    return {"type": "name", "properties": {"name": name}}
+    table = seg.table()
+    lon, lat = lonlat_of(table[["x", "y"]].to_numpy(), seg.crs, seg.origin)
+    feats = [geojson.feature(geojson.point(lo, la, rec["z"] + seg.origin[2]),
+                             {k: v for k, v in rec.items() if k not in ("x", "y", "z")})
+             for lo, la, rec in zip(lon, lat, table.to_dict(orient="records"))]
+    return geojson.feature_collection(feats, provenance)
 
 
-def _collection(features: list[dict[str, Any]], crs: str | None) -> str:
-    data: dict[str, Any] = {"type": "FeatureCollection", "features": features}
-    member = _crs_member(crs)
-    if member:
-        data["crs"] = member
-    return json.dumps(data, indent=1, default=_plain) + "\n"
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-
-def positions_geojson(seg: Segmentation) -> str:
-    """Tree positions (crown centroids) as GeoJSON points in the map's CRS."""
+def crowns_geojson(seg: Segmentation, provenance: dict[str, Any] | None = None) -> str | None:
+    """Crown footprints (convex hulls) as RFC 7946 polygons; None when the map has no CRS."""
+    if not seg.crs:
+        return None
     feats = []
-    for rec in seg.table().to_dict(orient="records"):
-        x, y, z = np.array([rec["x"], rec["y"], rec["z"]]) + seg.origin
-        props = {k: v for k, v in rec.items() if k not in ("x", "y", "z")}
-        feats.append({"type": "Feature", "geometry": {"type": "Point",
-                                                      "coordinates": [float(x), float(y), float(z)]},
-                      "properties": props})
-    return _collection(feats, seg.crs)
+    for t, hull in _crowns(seg):
+        lon, lat = lonlat_of(hull, seg.crs, seg.origin)
+        feats.append(geojson.feature(geojson.polygon(lon, lat), _crown_properties(t)))
+    return geojson.feature_collection(feats, provenance)
 
 
-def crowns_geojson(seg: Segmentation) -> str:
-    """Crown footprints (convex hulls) as GeoJSON polygons in the map's CRS."""
-    feats = []
-    for t in seg.trees:
-        hull = seg.footprints.get(t.segment_id, np.zeros((0, 2)))
-        if len(hull) < 3:
-            continue
-        ring = hull + seg.origin[:2]
-        ring = np.vstack([ring, ring[:1]])
-        feats.append({"type": "Feature",
-                      "geometry": {"type": "Polygon", "coordinates": [ring.tolist()]},
-                      "properties": {"segment_id": t.segment_id, "tree_id": t.tree_id,
-                                     "row": t.row, "label": t.label}})
-    return _collection(feats, seg.crs)
-
-
-def rows_geojson(seg: Segmentation) -> str:
-    """Row lines as GeoJSON line strings in the map's CRS, in the driving direction."""
+def rows_geojson(seg: Segmentation, provenance: dict[str, Any] | None = None) -> str | None:
+    """Row lines as RFC 7946 line strings in the driving direction; None without a CRS."""
+    if not seg.crs:
+        return None
     feats = []
     for line in seg.rows.lines:
-        pts = line.polyline() + seg.origin[:2]
-        feats.append({"type": "Feature",
-                      "geometry": {"type": "LineString", "coordinates": pts.tolist()},
-                      "properties": {"row": line.row, "n_trees": line.n_trees}})
-    return _collection(feats, seg.crs)
+        lon, lat = lonlat_of(line.polyline(), seg.crs, seg.origin)
+        feats.append(geojson.feature(geojson.line_string(lon, lat),
+                                     {"row": line.row, "n_trees": line.n_trees}))
+    return geojson.feature_collection(feats, provenance)
+
+
+def _crowns(seg: Segmentation) -> list[tuple[Any, np.ndarray]]:
+    """(tree record, footprint) of every tree with a footprint polygon."""
+    out = []
+    for t in seg.trees:
+        hull = seg.footprints.get(t.segment_id, np.zeros((0, 2)))
+        if len(hull) >= 3:
+            out.append((t, hull))
+    return out
+
+
+def _crown_properties(t: Any) -> dict[str, Any]:
+    return {"segment_id": t.segment_id, "tree_id": t.tree_id, "row": t.row, "label": t.label}
+
+
+def gis_layers(seg: Segmentation, trees: pd.DataFrame | None = None
+               ) -> dict[str, tuple[pd.DataFrame, list[Any]]]:
+    """The GeoPackage layers in the map's projected CRS (``local + origin``): ``trees``
+    (points of ``trees``, default the segmentation's table), ``crowns``, ``rows``."""
+    from shapely.geometry import LineString, Point, Polygon
+
+    ox, oy = seg.origin[:2]
+    table = seg.table() if trees is None else trees
+    points = [Point(x + ox, y + oy) for x, y in table[["x", "y"]].to_numpy()]
+    crowns = _crowns(seg)
+    crown_rows = pd.DataFrame([_crown_properties(t) for t, _ in crowns],
+                              columns=["segment_id", "tree_id", "row", "label"])
+    polygons = [Polygon(hull + seg.origin[:2]) for _, hull in crowns]
+    lines = seg.rows.lines
+    row_rows = pd.DataFrame({"row": [ln.row for ln in lines], "n_trees": [ln.n_trees for ln in lines]})
+    strings = [LineString(ln.polyline() + seg.origin[:2]) for ln in lines]
+    return {"trees": (table, points), "crowns": (crown_rows, polygons), "rows": (row_rows, strings)}
 
 
 def write_segmentation(out_dir: str | Path, seg: Segmentation, cloud: PointCloud,
-                       with_cloud: bool = True) -> dict[str, Path]:
+                       with_cloud: bool = True,
+                       provenance: dict[str, Any] | None = None) -> dict[str, Path]:
     """Write a run folder (see module docstring); returns the paths written."""
     from canopy_kit.io.clouds import write_cloud
+    from canopy_kit.segment.labelled import labelled_map
     from canopy_kit.sim.truth import write_csv
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
     if with_cloud:
-        labelled = _las_compatible(cloud).with_field("segment_id", seg.labels.astype(np.int32))
-        labelled = labelled.with_field("height_above_ground", seg.height.astype(np.float32))
+        labelled = labelled_map(_las_compatible(cloud), seg, with_height=True)
         paths["cloud"] = write_cloud(out / FILES["cloud"], labelled)
     paths["trees"] = write_csv(seg.table(), out / FILES["trees"])
-    paths["positions"] = atomic_write_text(out / FILES["positions"], positions_geojson(seg))
-    return paths | write_segmentation_summary(out, seg)
+    paths |= write_geojson(out, {"positions": positions_geojson(seg, provenance)})
+    return paths | write_segmentation_summary(out, seg, provenance=provenance)
 
 
-def write_segmentation_summary(out_dir: str | Path, seg: Segmentation) -> dict[str, Path]:
-    """``crowns.geojson``, ``rows.geojson`` and ``segmentation.json``: what scoring a run needs
-    besides its tree table and labelled cloud."""
+def write_geojson(out_dir: Path, texts: dict[str, str | None]) -> dict[str, Path]:
+    """Write each GeoJSON text under its ``FILES`` name; a None (no CRS) removes a stale file
+    of an earlier run instead, so no folder holds GeoJSON of another map."""
+    paths = {}
+    for key, text in texts.items():
+        path = Path(out_dir) / FILES.get(key, key)
+        if text is not None:
+            paths[key] = atomic_write_text(path, text)
+        elif path.exists():
+            path.unlink()
+    return paths
+
+
+def write_segmentation_summary(out_dir: str | Path, seg: Segmentation,
+                               trees: pd.DataFrame | None = None,
+                               provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+    """``crowns.geojson``, ``rows.geojson``, ``trees.gpkg`` and ``segmentation.json``: what
+    scoring a run needs besides its tree table and labelled cloud (``trees``: the table of
+    the GeoPackage's trees layer, default the segmentation's)."""
     out = Path(out_dir)
-    return {"crowns": atomic_write_text(out / FILES["crowns"], crowns_geojson(seg)),
-            "rows": atomic_write_text(out / FILES["rows"], rows_geojson(seg)),
-            "summary": atomic_write_text(out / FILES["summary"],
-                                         json.dumps(seg.summary(), indent=2, default=_plain) + "\n")}
+    paths = write_geojson(out, {"crowns": crowns_geojson(seg, provenance),
+                                "rows": rows_geojson(seg, provenance)})
+    paths["gis"] = write_gpkg(out / FILES["gis"], gis_layers(seg, trees), seg.crs, provenance)
+    summary = seg.summary() | ({} if seg.crs else {"geojson": NO_CRS_NOTE})
+    paths["summary"] = atomic_write_text(out / FILES["summary"],
+                                         json.dumps(summary, indent=2, default=_plain) + "\n")
+    return paths
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def _las_compatible(cloud: PointCloud) -> PointCloud:
@@ -143,6 +187,32 @@ def _las_compatible(cloud: PointCloud) -> PointCloud:
     else:
         fields["intensity_value"] = v.astype(np.float32)
     return PointCloud(cloud.xyz, fields, cloud.crs, cloud.origin.copy())
+
+
+def read_footprints(root: Path, summary: dict[str, Any]) -> dict[int, np.ndarray]:
+    """Crown footprints in the run's local frame: from the GeoPackage's projected ``crowns``
+    layer, else (folders written before it) from crowns.geojson, projected with a ``crs``
+    member or WGS84 lon/lat."""
+    origin = np.asarray(summary.get("origin", [0, 0, 0]), float)
+    if (root / FILES["gis"]).exists():
+        crowns = read_gpkg_layer(root / FILES["gis"], "crowns")
+        return {int(sid): np.asarray(poly.exterior.coords, float)[:-1] - origin[:2]
+                for sid, poly in zip(crowns["segment_id"], crowns.geometry)}
+    path = root / FILES["crowns"]
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+        features = [(int(f["properties"]["segment_id"]),
+                     np.asarray(f["geometry"]["coordinates"][0], float)[:-1, :2])
+                    for f in data["features"]]
+    except (ValueError, KeyError, TypeError, IndexError) as exc:
+        raise InputError(f"{path}: not a crowns GeoJSON ({type(exc).__name__}: {exc})") from None
+    if "crs" in data:  # projected, the deprecated member of older runs
+        return {sid: ring - origin[:2] for sid, ring in features}
+    if not summary.get("crs"):
+        raise InputError(f"{path}: WGS84 crowns but {FILES['summary']} names no CRS to project them")
+    return {sid: local_of(ring[:, 0], ring[:, 1], summary["crs"], origin) for sid, ring in features}
 
 
 def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> SegmentationRun:
@@ -162,11 +232,7 @@ def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> Segmentat
     if run_folder:
         trees = trees.rename(columns={"segment": "segment_id"})
     origin = np.asarray(summary.get("origin", [0, 0, 0]), float)
-    footprints: dict[int, np.ndarray] = {}
-    if (root / FILES["crowns"]).exists():
-        for f in json.loads((root / FILES["crowns"]).read_text())["features"]:
-            ring = np.asarray(f["geometry"]["coordinates"][0], float)[:-1] - origin[:2]
-            footprints[int(f["properties"]["segment_id"])] = ring
+    footprints = read_footprints(root, summary)
     cloud = None
     # A run's map.laz holds its segment ids; beside a `segment --no-cloud` table it is not ours.
     path = root / (RUN_CLOUD if run_folder else FILES["cloud"])

@@ -48,8 +48,8 @@ def top_view_image(xy: np.ndarray, labels: np.ndarray, height: np.ndarray, pixel
 
 def plot_top_view(cloud: PointCloud, seg: Segmentation, ax: Any = None,
                   pixel: float = 0.1, show_rows: bool = True) -> Any:
-    """Top view of the map (``pixel`` m): each tree in its colour, labelled ``row:label``;
-    returns the Figure."""
+    """Top view of the map (``pixel`` m): each tree in its colour, labelled by its
+    ``tree_id`` (the id of trees.csv, ``r0-L0``); returns the Figure."""
     import matplotlib.pyplot as plt
 
     if ax is None:
@@ -65,7 +65,7 @@ def plot_top_view(cloud: PointCloud, seg: Segmentation, ax: Any = None,
             p = line.polyline()
             ax.plot(p[:, 0], p[:, 1], "k--", lw=0.6, alpha=0.6)
     for t in seg.trees:
-        ax.annotate(f"{t.row}:{t.label}" if t.row >= 0 else t.label, (t.x, t.y), fontsize=7,
+        ax.annotate(t.tree_id, (t.x, t.y), fontsize=7,
                     ha="center", va="center", weight="bold")
     d = seg.rows.direction
     lo = cloud.xyz[keep, :2].min(axis=0) if len(keep) else np.zeros(2)

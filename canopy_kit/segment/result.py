@@ -49,6 +49,7 @@ class Segmentation:
     origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    classification: np.ndarray | None = None  # per map point: LAS class (segment.classes)
 
     @property
     def n_trees(self) -> int:

@@ -18,6 +18,7 @@ from canopy_kit import plugins
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import PreprocessConfig, RowsConfig
 from canopy_kit.errors import ConfigError, InputError, ProcessingError
+from canopy_kit.segment.classes import classify_points
 from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.segment.preprocess import prepare
 from canopy_kit.segment.result import Segmentation, TreeRecord
@@ -100,6 +101,8 @@ def segment(cloud: PointCloud, segmenter: Any, preprocess_config: PreprocessConf
                     direction_source)
     timings["rows"] = time.perf_counter() - t0
     seg.timings = timings
+    seg.classification = classify_points(seg.labels, seg.height, pre.ground_ransac_threshold,
+                                         pre.min_canopy_height)
     return seg
 
 

@@ -20,7 +20,7 @@ import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from canopy_kit.io.atomic import atomic_write_json
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
 
 Progress = Callable[[str, float, float], None]
@@ -30,16 +30,19 @@ LIVE_COLUMNS = ["index", "provisional_label", "provisional_row", "x", "y", "lat"
 
 def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
                settings: StreamSettings | None = None, progress: Progress | None = None,
-               on_tree: Callable[[StreamedTree], None] | None = None) -> Any:
-    """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.pipeline.Results`."""
-    from canopy_kit.pipeline import Results, trees_geojson
+               on_tree: Callable[[StreamedTree], None] | None = None,
+               orchard: str | None = None) -> Any:
+    """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.pipeline.Results`
+    (``orchard`` names the orchard in the provenance, default the bag's stem)."""
+    from canopy_kit.pipeline import Results, write_trees
+    from canopy_kit.provenance import provenance
 
     bag, out = Path(bag), Path(out)
     if not bag.exists():
         raise InputError(f"{bag}: bag does not exist")
     out.mkdir(parents=True, exist_ok=True)
     stream = TreeStream(config, bag, settings, progress)
-    wall, cpu = time.perf_counter(), time.process_time()
+    started, wall, cpu = time.time(), time.perf_counter(), time.process_time()
     live = out / "trees.live.csv"
     with live.open("w") as fh:
         fh.write(",".join(LIVE_COLUMNS) + "\n")
@@ -53,12 +56,9 @@ def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
     trees = final_table(stream)
     metrics = stream_metrics(stream, trees)
     metrics["timing"] = {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
+    metrics["provenance"] = provenance(bag, config.name, started, metrics["timing"]["wall_s"], orchard)
     files = {"trees.live.csv": live}
-    files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
-    with atomic_path(out / "trees.parquet") as tmp:
-        trees.to_parquet(tmp, index=False)
-    files["trees.parquet"] = out / "trees.parquet"
-    files["trees.geojson"] = atomic_write_text(out / "trees.geojson", trees_geojson(trees))
+    files.update(write_trees(trees, out, metrics["provenance"]))
     files["config.toml"] = write_config(_config_used(config, stream.source.topics), out / "config.toml")
     files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
     return Results(out, trees, metrics, files, list(metrics["warnings"]))

@@ -15,6 +15,19 @@ def hull_volume(xyz: np.ndarray) -> float:
     return float(ConvexHull(xyz - xyz.mean(axis=0)).volume)
 
 
+def hull_mesh(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The convex hull as a small triangle mesh: its corner points (V, 3) and triangles
+    (F, 3) indexing them, e.g. for a 3-D view that should not carry every input point."""
+    from scipy.spatial import ConvexHull
+
+    centre = xyz.mean(axis=0)
+    hull = ConvexHull(xyz - centre)
+    corners = hull.vertices
+    index = np.full(len(xyz), -1, dtype=np.int64)
+    index[corners] = np.arange(len(corners))
+    return xyz[corners], index[hull.simplices]
+
+
 class ConvexHullVolume(VolumeEstimator):
     """Volume of the smallest convex polyhedron around the points (an upper bound)."""
 

@@ -305,6 +305,16 @@ def _read(path: Path) -> tuple[list, list, list]:
     return lo.tolist(), hi.tolist(), []
 
 
+def _peak_rss_kib() -> int:
+    """This process's own peak resident set (VmHWM). Not ``ru_maxrss``: Linux carries the
+    parent's high-water mark across fork and exec, so a worker spawned by a large pytest
+    process would report the parent's size."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1])
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
 def _alarm(signum, frame):
     raise TimeoutError(f"over {CASE_SECONDS} s")
 
@@ -334,7 +344,7 @@ def main(folder: Path) -> None:
         finally:
             signal.alarm(0)
         result.update(id=entry["id"], seconds=time.perf_counter() - start,
-                      peak_kib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+                      peak_kib=_peak_rss_kib())
         print(json.dumps(result), flush=True)
 
 
