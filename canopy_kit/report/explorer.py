@@ -116,8 +116,11 @@ def tree_surfaces(xyz: np.ndarray, volume: Any) -> list[Surface]:
 
 
 def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) -> dict[str, Any]:
-    """Per tree_id: its points (at most ``max_points``), surfaces and orthomosaic crop."""
-    cloud, seg = ctx.mapping.map, ctx.segmentation
+    """Per tree_id: its points (at most ``max_points``), surfaces and orthomosaic crop; the
+    points as the volume stage measured them (on map.laz's coordinate grid)."""
+    from canopy_kit.io.las_write import on_las_grid
+
+    cloud, seg = on_las_grid(ctx.mapping.map), ctx.segmentation
     labels = np.asarray(seg.labels)
     order = np.argsort(labels, kind="stable")
     sorted_labels = labels[order]

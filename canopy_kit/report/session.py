@@ -43,7 +43,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     map_fig = plot_top_view(cloud, seg)
     map_fig.axes[0].plot(traj["x"], traj["y"], "-", color="0.4", lw=0.7)
     add_north_arrow_and_scale(map_fig.axes[0])
-    figs = [("Map from above, each segmented tree in its own colour, labelled row:label; "
+    figs = [("Map from above, each segmented tree in its own colour, labelled with its tree ID; "
              "dashed: fitted rows; grey: the estimated drive.", figure_to_data_uri(map_fig))]
     volume_columns = {"convex hull": "volume_convex_hull_m3", "alpha shape": "volume_alpha_m3"}
     if "aerial_sphere_volume_m3" in trees:
@@ -89,12 +89,11 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                              ("LiDAR alpha shape", "aerial sphere"), list(sub["tree_id"])))))
         from ground_truth.plots import plot_crowns
 
-        ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation,
-                         crowns_by_tree_id(ctx.aerial, trees), label_column="tree_id")
+        ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation, ctx.aerial.crowns)
         add_north_arrow_and_scale(ax)
         figs.append(("Orthomosaic from the drone photos with the delineated crowns (red), each "
-                     "labelled with the ID of the LiDAR tree it was matched to (c<n>: crown n, "
-                     "matched to none).", figure_to_data_uri(ax.figure)))
+                     "labelled with the ID of the LiDAR tree it was matched to ('aerial n': "
+                     "crown n, matched to none).", figure_to_data_uri(ax.figure)))
         sections.append(ReportSection("LiDAR against drone photogrammetry", figs))
     if "true_crown_volume_m3" in trees:
         ok = trees["true_crown_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
@@ -129,10 +128,11 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     from canopy_kit.report.explorer import explorer_data, row_summary
 
     title, subtitle = report_title(provenance, ctx.config.name)
+    downloads = report_downloads(ctx, trees, metrics.get("provenance"))
     return render_report(title, summary, table, sections,
                          report_checks(metrics, trees, ctx.config), config_toml(config_used(ctx)),
                          subtitle=subtitle, provenance=provenance,
-                         explorer=explorer_data(ctx, trees, report_downloads(ctx, trees)),
+                         explorer=explorer_data(ctx, trees, downloads),
                          row_table=row_table(row_summary(trees)))
 
 
@@ -146,28 +146,20 @@ def report_title(provenance: dict[str, Any], preset: str) -> tuple[str, str]:
     return f"canopy-kit report: {preset}", subtitle
 
 
-def crowns_by_tree_id(aerial: Any, trees: pd.DataFrame) -> pd.DataFrame:
-    """The drone crowns with a ``tree_id`` column: that of the LiDAR tree each was matched to,
-    ``c<crown_id>`` for a crown matched to none."""
-    matched = aerial.trees[aerial.trees["matched"].to_numpy(bool)]
-    ids = dict(zip(trees["segment"], trees["tree_id"], strict=True))
-    crown_tree = {int(c): ids.get(s) for c, s in zip(matched["aerial_crown_id"], matched["segment"],
-                                                     strict=True)}
-    crowns = aerial.crowns.copy()
-    crowns["tree_id"] = [crown_tree.get(int(c)) or f"c{int(c)}" for c in crowns["crown_id"]]
-    return crowns
-
-
-def report_downloads(ctx: Any, trees: pd.DataFrame) -> list[dict[str, str]]:
-    """The files the page offers for download, made as the run writes them."""
+def report_downloads(ctx: Any, trees: pd.DataFrame,
+                     provenance: dict[str, Any] | None = None) -> list[dict[str, str]]:
+    """The files the page offers for download, made by the functions that write them beside
+    it (with the run's ``provenance``); a GeoJSON the run does not write (no CRS) is left out."""
     from canopy_kit.pipeline import trees_geojson
     from canopy_kit.segment.export import crowns_geojson, rows_geojson
 
     geo = "application/geo+json"
-    return [{"name": "trees.csv", "mime": "text/csv", "text": trees.to_csv(index=False)},
-            {"name": "trees.geojson", "mime": geo, "text": trees_geojson(trees)},
-            {"name": "crowns.geojson", "mime": geo, "text": crowns_geojson(ctx.segmentation)},
-            {"name": "rows.geojson", "mime": geo, "text": rows_geojson(ctx.segmentation)}]
+    files = [("trees.csv", "text/csv", trees.to_csv(index=False)),
+             ("trees.geojson", geo, trees_geojson(trees, provenance)),
+             ("crowns.geojson", geo, crowns_geojson(ctx.segmentation, provenance)),
+             ("rows.geojson", geo, rows_geojson(ctx.segmentation, provenance))]
+    return [{"name": name, "mime": mime, "text": text} for name, mime, text in files
+            if text is not None]
 
 
 def row_table(rows: pd.DataFrame) -> pd.DataFrame | None:

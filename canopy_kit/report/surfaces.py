@@ -31,13 +31,16 @@ def _compact(name: str, xyz: np.ndarray, faces: np.ndarray, volume: float) -> Su
 
 def hull_surface(xyz: np.ndarray) -> Surface | None:
     """The convex hull of (N, 3) points; None when qhull cannot build one (flat or too few)."""
-    from scipy.spatial import ConvexHull, QhullError
+    from scipy.spatial import QhullError
+
+    from canopy_kit.volume.hull import hull_mesh, hull_volume
 
     try:
-        hull = ConvexHull(xyz - xyz.mean(axis=0))
+        corners, faces = hull_mesh(xyz)
+        volume = hull_volume(xyz)
     except (QhullError, ValueError):
         return None
-    return _compact("convex hull", xyz, hull.simplices, hull.volume)
+    return Surface("convex hull", corners, faces, volume)
 
 
 def alpha_surface(xyz: np.ndarray, alpha: float) -> Surface | None:
