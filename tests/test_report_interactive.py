@@ -7,6 +7,7 @@ against the run's trees.csv.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -149,7 +150,6 @@ def test_ortho_crop_is_around_the_tree() -> None:
 
 
 def test_script_json_cannot_close_its_script_element() -> None:
-    import json
 
     from canopy_kit.report.html import script_json
 
@@ -216,6 +216,14 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(page_url, wait_until="load")
         page.wait_for_function("window.canopyReport !== undefined")
+
+        # The header: named after the orchard, every provenance key of metrics.json shown.
+        provenance = json.loads((run.out_dir / "metrics.json").read_text())["provenance"]
+        assert page.title() == f"canopy-kit report: {provenance['orchard']}"
+        shown = dict(zip(page.locator("#provenance dt").all_inner_texts(),
+                         page.locator("#provenance dd").all_inner_texts(), strict=True))
+        assert shown["bag sha256"] == provenance["bag_sha256"]
+        assert len(shown) == len(provenance) and shown["drone images"] == "none"
 
         # The map: one crown polygon and one marker per tree, named by trees.csv's tree_id.
         crowns = page.evaluate("document.getElementById('map').data.filter(t => t.meta && t.meta.crown)"
