@@ -150,7 +150,6 @@ def test_ortho_crop_is_around_the_tree() -> None:
 
 
 def test_script_json_cannot_close_its_script_element() -> None:
-
     from canopy_kit.report.html import script_json
 
     text = script_json({"flag": "</script><script>alert(1)</script>", "a&b": 1})
