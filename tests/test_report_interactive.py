@@ -273,7 +273,7 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         smallest = trees.loc[trees["volume_alpha_m3"].idxmin(), "tree_id"]
         page.locator("#trees tbody tr").first.click()
         assert summary.get_attribute("data-tree") == smallest
-        page.locator("#per-tree").scroll_into_view_if_needed()
+        page.evaluate("document.getElementById('tree-search').scrollIntoView()")
         page.screenshot(path=str(ARTIFACTS / "report_interactive_table.png"))
 
         # Downloads are Blobs of the embedded files, each byte for byte the file the run wrote.
