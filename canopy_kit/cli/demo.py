@@ -42,7 +42,8 @@ def demo(
         drone_dir = sim_dir / "drone" if drone and (sim_dir / "drone").is_dir() else None
         with progress_bar(transient=True) as progress:
             results = run_pipeline(load_preset(preset), find_bag(sim_dir), run_dir,
-                                   drone_images=drone_dir, truth=sim_dir, progress=progress)
+                                   drone_images=drone_dir, truth=sim_dir, progress=progress,
+                                   orchard=f"simulated {orchard} orchard (seed {seed})")
         print_results(results)
         reports.append(results.files["report.html"])
     console.rule("reports")
