@@ -155,3 +155,37 @@ def test_leaf_penetration_limits_the_foliage_depth():
 def test_config_errors_name_the_key(overrides, parameter):
     with pytest.raises(ConfigError, match=parameter.replace(".", r"\.")):
         load_sim_config("pistachio", {"orchard": overrides})
+
+
+SESSION = {"orchard": {"rows": 1, "trees_per_row": 3}, "lidar": {"columns": 256, "rings": 16}}
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_session_of_each_form_scans_its_envelopes(sim_factory, form):
+    """A small session per form: labelled points on/inside their tree's envelope, leaves within
+    ``leaf_penetration_m`` of it, and the truth table holding the forms' exact volumes."""
+    from canopy_kit.config import merge
+    from canopy_kit.sim import load_truth
+    from canopy_kit.sim.scene import depth_below_envelope
+    from canopy_kit.sim.truth_map import truth_map
+
+    pen = 0.4
+    session = sim_factory("pistachio", seed=31, overrides=merge(SESSION, {"orchard": {
+        "crown_form": form, "leaf_penetration_m": pen}}))
+    truth = load_truth(session.root)
+    orchard = truth.orchard()
+    assert [t.crown_form for t in orchard.trees] == [form] * 3
+    assert np.allclose(truth.trees["crown_volume_m3"], [t.crown.volume for t in orchard.trees],
+                       atol=1e-6)
+    if form == "sparse":
+        assert (truth.trees["crown_diameter_m"] < 2.5).all()
+    cloud = truth_map(session.root, voxel_size=0.03)
+    tid = np.asarray(cloud.fields["tree_id"])
+    for tree in orchard.trees:
+        pts = cloud.xyz[tid == tree.tree_id]
+        assert len(pts) > (30 if form == "sparse" else 300), (form, tree.tree_id, len(pts))
+        c = np.asarray(tree.crown.center)
+        assert tree.crown.contains(c + (pts - c) * 0.98).mean() > 0.98  # range noise allowed
+        below = depth_below_envelope(tree.crown, pts)
+        # Leaves within the penetration depth (plus a cluster's size); the wood may go deeper.
+        assert (below <= pen + 0.25).mean() > 0.9, (form, np.quantile(below, [0.5, 0.9]))
