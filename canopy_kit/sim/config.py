@@ -37,7 +37,7 @@ class OrchardSpec:
     # Crown forms (canopy_kit.sim.crown_forms): ellipsoid (the superellipsoid above), lobed,
     # vase (open centre), hedged (flat pruned sides and top), sparse (young), or mix (per tree).
     crown_form: str = "ellipsoid"
-    lobe_hollow_range: list[float] = field(default_factory=lambda: [0.4, 0.55])  # radius between lobes
+    lobe_hollow_range: list[float] = field(default_factory=lambda: [0.45, 0.6])  # radius between lobes
     hedge_cut: float = 0.75  # pruning planes at this fraction of the across and upper semi-axes
     sparse_crown_scale: float = 0.45
     sparse_foliage_scale: float = 0.3

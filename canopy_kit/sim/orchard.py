@@ -177,11 +177,11 @@ def _shape_crown(spec: OrchardSpec, rng: np.random.Generator, crown: CrownEnvelo
     if form == "lobed":  # one lobe per scaffold limb, azimuths spread round the tree
         n = int(rng.integers(spec.branches_range[0], spec.branches_range[1] + 1))
         az = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n) / n + rng.normal(0, 0.25, n)
-        el = np.radians(rng.uniform(10.0, 50.0, n))
+        el = np.radians(rng.uniform(20.0, 55.0, n))
         dirs = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         return replace(crown, form=LobedForm(tuple(map(tuple, dirs.tolist())),
                                              float(rng.uniform(*spec.lobe_hollow_range)),
-                                             float(rng.uniform(5.0, 8.0))))
+                                             float(rng.uniform(4.0, 7.0))))
     if form == "vase":
         return replace(crown, form=VaseForm(float(rng.uniform(0.88, 0.95)), float(rng.uniform(0.55, 0.75))))
     if form == "hedged":
