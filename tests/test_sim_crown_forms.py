@@ -124,6 +124,23 @@ def test_default_form_is_bit_identical():
         assert got == digest
 
 
+def test_default_session_truth_is_unchanged(sim_factory):
+    """A default MICRO session: trees.csv, trajectory.csv and the point count as made by main
+    5eb15d7, before the crown forms."""
+    from pathlib import Path
+
+    from conftest import MICRO
+
+    session = sim_factory("pistachio", overrides=MICRO)
+
+    def digest(name: str) -> str:
+        return hashlib.sha256(Path(session.truth_dir / name).read_bytes()).hexdigest()[:16]
+
+    assert digest("trees.csv") == "d6fdafc99806759d"
+    assert digest("trajectory.csv") == "e5088e556f7a8281"
+    assert session.n_points == 731076
+
+
 def test_leaf_penetration_limits_the_foliage_depth():
     from canopy_kit.sim.scene import FOLIAGE, build_scene, depth_below_envelope
 
