@@ -55,14 +55,17 @@ class LobedForm:
     quadrature_nodes: tuple[int, int] = (128, 384)
 
     def shape(self, u: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """Lobed radius along ``u`` from the base radius."""
         bumps = np.exp(self.sharpness * (u @ np.asarray(self.directions).T - 1.0))
         peak = np.sum(bumps**6, axis=1) ** (1.0 / 6.0)
         return base * (self.hollow + (1.0 - self.hollow) * np.minimum(peak, 1.0))
 
     def scaled(self, factor: float) -> "LobedForm":
+        """Scale-free: the same form."""
         return self
 
     def with_axis_ratios(self, across: float, up: float) -> "LobedForm":
+        """Relative to the base: the same form."""
         return self
 
 
@@ -81,13 +84,16 @@ class VaseForm:
     quadrature_nodes: tuple[int, int] = (128, 384)
 
     def shape(self, u: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """Vase radius along ``u`` from the base radius."""
         t = np.clip((u[:, 2] - self.opening) / (1.0 - self.opening), 0.0, 1.0)
         return base * (1.0 - self.depth * t * t)
 
     def scaled(self, factor: float) -> "VaseForm":
+        """Scale-free: the same form."""
         return self
 
     def with_axis_ratios(self, across: float, up: float) -> "VaseForm":
+        """Relative to the base: the same form."""
         return self
 
 
@@ -106,6 +112,7 @@ class HedgedForm:
     quadrature_nodes: tuple[int, int] = (192, 768)
 
     def shape(self, u: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """The base radius cut at the pruning planes."""
         r = base
         for n, off in zip(self.normals, self.offsets):
             cos = u @ np.asarray(n)
@@ -116,9 +123,11 @@ class HedgedForm:
         return r
 
     def scaled(self, factor: float) -> "HedgedForm":
+        """The planes' offsets scaled with the crown."""
         return HedgedForm(self.normals, tuple(o * factor for o in self.offsets))
 
     def with_axis_ratios(self, across: float, up: float) -> "HedgedForm":
+        """Side planes follow the across semi-axis, the top plane the upper one."""
         offsets = tuple(o * (up if n[2] > 0.5 else across) for n, o in zip(self.normals, self.offsets))
         return HedgedForm(self.normals, offsets)
 
@@ -129,8 +138,11 @@ def hedge_planes(right: np.ndarray, center: tuple[float, float, float], row_line
 
     ``right`` is the horizontal unit vector across the rows, ``row_line`` the row's offset
     along it; the planes are placed relative to ``center`` (the crown may sit off the line).
+    A plane never comes closer to the centre than a quarter of ``half_width`` (a crown leaning
+    past its hedge line is cut there), so the crown stays star-shaped about its centre.
     """
     r = np.array([right[0], right[1], 0.0])
     off = float(np.dot(np.asarray(center[:2]), right[:2])) - row_line
+    floor = 0.25 * half_width
     return HedgedForm((tuple(r.tolist()), tuple((-r).tolist()), (0.0, 0.0, 1.0)),
-                      (half_width - off, half_width + off, top))
+                      (max(half_width - off, floor), max(half_width + off, floor), top))
