@@ -248,3 +248,20 @@ def test_drone_photos_show_every_form(tmp_path, form):
     # Sparse young trees (0.3 x the leaves, ~0.2 m pixels here) mostly show the ground
     # through: measured 4 % green hits against 85-95 % for the other forms.
     assert green > (0.02 if form == "sparse" else 0.6), green
+
+
+@pytest.mark.parametrize("form", ["lobed", "vase", "hedged"])
+def test_scaled_moved_and_resized_crowns_keep_their_form(form):
+    crown = _orchard(form, 6).trees[0].crown
+    k = 0.8
+    small = crown.scaled(k)
+    assert small.form_name == form and small.volume == pytest.approx(k**3 * crown.volume, rel=1e-6)
+    moved = crown.moved((10.0, -3.0, 2.0))
+    assert moved.volume == pytest.approx(crown.volume, rel=1e-12)
+    shifted = crown.surface_points(500) * 0.99 + 0.01 * np.asarray(crown.center)  # just inside
+    assert moved.contains(shifted - np.asarray(crown.center) + np.array([10.0, -3.0, 2.0])).all()
+    a, b, cu, cd = crown.semi_axes
+    narrow = crown.with_semi_axes((a, 0.7 * b, cu, cd))
+    assert narrow.form_name == form and narrow.volume < crown.volume
+    if form == "hedged":  # the side planes follow the across semi-axis
+        assert narrow.form.offsets[:2] == pytest.approx([0.7 * o for o in crown.form.offsets[:2]])
