@@ -34,6 +34,16 @@ class OrchardSpec:
     crown_squareness_range: list[float] = field(default_factory=lambda: [2.0, 2.5])
     crown_irregularity: float = 0.08
     crown_lobes: int = 6
+    # Crown forms (canopy_kit.sim.crown_forms): ellipsoid (the superellipsoid above), lobed,
+    # vase (open centre), hedged (flat pruned sides and top), sparse (young), or mix (per tree).
+    crown_form: str = "ellipsoid"
+    lobe_hollow_range: list[float] = field(default_factory=lambda: [0.45, 0.6])  # radius between lobes
+    hedge_cut: float = 0.75  # pruning planes at this fraction of the across and upper semi-axes
+    sparse_crown_scale: float = 0.45
+    sparse_foliage_scale: float = 0.3
+    # Leaves reach at most this far (m, along the ray from the centre) below the envelope;
+    # inf: through the whole crown (6 -> 60 clusters/m³ from centre to shell).
+    leaf_penetration_m: float = float("inf")
     lean_max: float = 0.0
     separate_crowns: bool = True
     min_crown_gap: float = 0.3
@@ -338,6 +348,18 @@ def validate(c: SimConfig) -> None:
         _check(getattr(o, name) > 0, f"orchard.{name}", f"must be positive, got {getattr(o, name)}")
     _check(0 <= o.crown_irregularity < 0.5, "orchard.crown_irregularity",
            f"must be in [0, 0.5), got {o.crown_irregularity}")
+    from canopy_kit.sim.crown_forms import CROWN_FORMS
+
+    _check(o.crown_form in CROWN_FORMS, "orchard.crown_form",
+           f"must be one of {', '.join(CROWN_FORMS)}, got {o.crown_form!r}")
+    _check_range(o.lobe_hollow_range, "orchard.lobe_hollow_range")
+    _check(o.lobe_hollow_range[1] < 1.0, "orchard.lobe_hollow_range",
+           f"the radius between lobes must be below the lobes' (1), got {o.lobe_hollow_range}")
+    _check(0.2 <= o.hedge_cut <= 1.0, "orchard.hedge_cut", f"must be in [0.2, 1], got {o.hedge_cut}")
+    for name in ("sparse_crown_scale", "sparse_foliage_scale"):
+        _check(0 < getattr(o, name) <= 1, f"orchard.{name}", f"must be in (0, 1], got {getattr(o, name)}")
+    _check(o.leaf_penetration_m > 0, "orchard.leaf_penetration_m",
+           f"must be positive (inf: leaves through the whole crown), got {o.leaf_penetration_m}")
     _check(o.foliage_density_shell > 0 and o.foliage_density_core >= 0, "orchard.foliage_density_*",
            "densities must be positive")
     _check(o.headland >= 0 and o.margin >= 0, "orchard.headland/margin", "must not be negative")

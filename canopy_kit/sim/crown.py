@@ -2,7 +2,8 @@
 
 A crown is the region ``|p - c| <= r(u)`` around a centre ``c``, where the radius in unit
 direction ``u`` is a superellipsoid (separate upper and lower vertical semi-axes) times a
-smooth lobe perturbation. Because the region is star-shaped, its volume is the sphere
+smooth lobe perturbation, optionally reshaped by a crown form (``canopy_kit.sim.crown_forms``:
+lobed, vase, hedged). Because the region is star-shaped, its volume is the sphere
 integral ``V = 1/3 ∮ r(u)³ dΩ``, evaluated by Gauss-Legendre quadrature per hemisphere to
 far better than 0.1 %.
 """
@@ -11,13 +12,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from canopy_kit.sim.crown_forms import CrownForm
 
 
 @dataclass(frozen=True)
 class CrownEnvelope:
-    """One crown: centre, semi-axes (along, across, up, down), yaw, exponent and lobes."""
+    """One crown: centre, semi-axes (along, across, up, down), yaw, exponent, lobes and form."""
 
     center: tuple[float, float, float]
     semi_axes: tuple[float, float, float, float]
@@ -26,23 +31,33 @@ class CrownEnvelope:
     lobe_directions: tuple[tuple[float, float, float], ...] = ()
     lobe_amplitudes: tuple[float, ...] = ()
     lobe_sharpness: float = 4.0
+    form: "CrownForm | None" = None
+
+    @property
+    def form_name(self) -> str:
+        """The crown form's name (``ellipsoid`` without a form)."""
+        return "ellipsoid" if self.form is None else self.form.name
 
     def scaled(self, factor: float) -> "CrownEnvelope":
         """The same shape scaled about its centre."""
         a, b, cu, cd = self.semi_axes
         return CrownEnvelope(self.center, (a * factor, b * factor, cu * factor, cd * factor),
                              self.yaw, self.exponent, self.lobe_directions, self.lobe_amplitudes,
-                             self.lobe_sharpness)
+                             self.lobe_sharpness,
+                             None if self.form is None else self.form.scaled(factor))
 
     def moved(self, center: tuple[float, float, float]) -> "CrownEnvelope":
         """The same shape around another centre."""
         return CrownEnvelope(tuple(map(float, center)), self.semi_axes, self.yaw, self.exponent,
-                             self.lobe_directions, self.lobe_amplitudes, self.lobe_sharpness)
+                             self.lobe_directions, self.lobe_amplitudes, self.lobe_sharpness, self.form)
 
     def with_semi_axes(self, semi_axes: tuple[float, float, float, float]) -> "CrownEnvelope":
-        """The same lobes and orientation with other semi-axes."""
+        """The same lobes, orientation and form with other semi-axes."""
+        form = self.form
+        if form is not None:
+            form = form.with_axis_ratios(semi_axes[1] / self.semi_axes[1], semi_axes[2] / self.semi_axes[2])
         return CrownEnvelope(self.center, tuple(map(float, semi_axes)), self.yaw, self.exponent,
-                             self.lobe_directions, self.lobe_amplitudes, self.lobe_sharpness)
+                             self.lobe_directions, self.lobe_amplitudes, self.lobe_sharpness, form)
 
     def radius(self, u: np.ndarray) -> np.ndarray:
         """Envelope radius along unit directions ``u`` (N, 3) given in the world frame."""
@@ -55,7 +70,8 @@ class CrownEnvelope:
         c = np.where(lz >= 0, cu, cd)
         p = self.exponent
         base = (np.abs(lx / a) ** p + np.abs(ly / b) ** p + np.abs(lz / c) ** p) ** (-1.0 / p)
-        return base * self._lobe_factor(u)
+        r = base * self._lobe_factor(u)
+        return r if self.form is None else self.form.shape(u, r)
 
     def _lobe_factor(self, u: np.ndarray) -> np.ndarray:
         if not self.lobe_amplitudes:
@@ -137,8 +153,15 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
-def volume_by_quadrature(envelope: CrownEnvelope, n_mu: int = 96, n_phi: int = 384) -> float:
-    """``1/3 ∮ r³ dΩ`` with Gauss-Legendre in cos θ per hemisphere and a uniform φ rule."""
+def volume_by_quadrature(envelope: CrownEnvelope, n_mu: int | None = None,
+                         n_phi: int | None = None) -> float:
+    """``1/3 ∮ r³ dΩ`` with Gauss-Legendre in cos θ per hemisphere and a uniform φ rule.
+
+    Node counts default to 96 × 384, or to the crown form's ``quadrature_nodes``.
+    """
+    default = (96, 384) if envelope.form is None else envelope.form.quadrature_nodes
+    n_mu = default[0] if n_mu is None else n_mu
+    n_phi = default[1] if n_phi is None else n_phi
     x, w = np.polynomial.legendre.leggauss(n_mu)
     phi = np.linspace(0.0, 2.0 * np.pi, n_phi, endpoint=False)
     total = 0.0

@@ -9,19 +9,23 @@ L1, ...``) and row 2k+1 on the right (``R0, R1, ...``); ``(row, label)`` is uniq
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from canopy_kit.geo import LocalFrame
 from canopy_kit.sim.config import OrchardSpec
 from canopy_kit.sim.crown import CrownEnvelope
+from canopy_kit.sim.crown_forms import FORM_NAMES, LobedForm, VaseForm, hedge_planes
 from canopy_kit.sim.terrain import Terrain
 
 
 @dataclass(frozen=True)
 class Tree:
-    """One tree: identity, trunk base, crown envelope and woody parts."""
+    """One tree: identity, trunk base, crown envelope, woody parts, crown form and leaf density.
+
+    ``foliage_scale`` multiplies the orchard's foliage densities (sparse young trees).
+    """
 
     tree_id: int
     row: int
@@ -33,6 +37,8 @@ class Tree:
     trunk_radius: float
     branch_tips: tuple[tuple[float, float, float], ...]
     doubled: bool = False
+    crown_form: str = "ellipsoid"
+    foliage_scale: float = 1.0
 
     @property
     def crown_base_height(self) -> float:
@@ -127,13 +133,20 @@ def _row_stations(spec: OrchardSpec, rng: np.random.Generator) -> list[tuple[flo
 
 def _grow_tree(spec: OrchardSpec, rng: np.random.Generator, tree_id: int, row: int, index: int,
                xy: np.ndarray, d: np.ndarray, terrain: Terrain, doubled: bool) -> Tree:
+    form = spec.crown_form
+    if form == "mix":  # drawn only for mixed orchards: the other forms keep their draws
+        form = FORM_NAMES[int(rng.integers(len(FORM_NAMES)))]
     diameter = rng.uniform(*spec.crown_diameter_range) * (rng.uniform(0.7, 0.9) if doubled else 1.0)
     # Growth scales the drawn crown (the draws stay the same, so the layout does too).
     diameter *= spec.replanted_crown_scale if tree_id in spec.replanted_trees else spec.crown_scale
+    if form == "sparse":
+        diameter *= spec.sparse_crown_scale
     a = diameter / 2.0
     b = a * rng.uniform(*spec.crown_across_ratio_range)
     crown_height = diameter * rng.uniform(*spec.crown_height_ratio_range)
     c_up, c_down = 0.55 * crown_height, 0.45 * crown_height
+    if form == "vase":  # star-shaped from the trunk top, low in the crown
+        c_up, c_down = 1.0 * crown_height, 0.2 * crown_height
     base_z = float(terrain.height(xy[0], xy[1]))
     crown_base = rng.uniform(*spec.crown_base_height_range)
     lean_dir = rng.uniform(0, 2 * np.pi)
@@ -149,9 +162,34 @@ def _grow_tree(spec: OrchardSpec, rng: np.random.Generator, tree_id: int, row: i
                           float(rng.uniform(*spec.crown_squareness_range)),
                           tuple(map(tuple, dirs.tolist())), tuple(amps.tolist()),
                           float(rng.uniform(2.5, 5.0)))
+    if form != "ellipsoid":
+        crown = _shape_crown(spec, rng, crown, form, xy, d)
+    foliage = spec.sparse_foliage_scale if form == "sparse" else 1.0
     return _attach_wood(spec, rng, Tree(tree_id, row, index, row_label(row, index),
                                         (float(xy[0]), float(xy[1]), base_z), crown, center, 0.1,
-                                        (), doubled))
+                                        (), doubled, form, foliage))
+
+
+def _shape_crown(spec: OrchardSpec, rng: np.random.Generator, crown: CrownEnvelope, form: str,
+                 xy: np.ndarray, d: np.ndarray) -> CrownEnvelope:
+    """Give a drawn crown its form (``crown_forms``); ``sparse`` keeps the ellipsoid."""
+    a, b, c_up, _ = crown.semi_axes
+    if form == "lobed":  # one lobe per scaffold limb, azimuths spread round the tree
+        n = int(rng.integers(spec.branches_range[0], spec.branches_range[1] + 1))
+        az = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n) / n + rng.normal(0, 0.25, n)
+        el = np.radians(rng.uniform(20.0, 55.0, n))
+        dirs = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        return replace(crown, form=LobedForm(tuple(map(tuple, dirs.tolist())),
+                                             float(rng.uniform(*spec.lobe_hollow_range)),
+                                             float(rng.uniform(4.0, 7.0))))
+    if form == "vase":
+        return replace(crown, form=VaseForm(float(rng.uniform(0.88, 0.95)), float(rng.uniform(0.55, 0.75))))
+    if form == "hedged":
+        right = np.array([d[1], -d[0]])
+        half_width = spec.hedge_cut * b
+        return replace(crown, form=hedge_planes(right, crown.center, float(xy @ right), half_width,
+                                                spec.hedge_cut * c_up))
+    return crown
 
 
 def _attach_wood(spec: OrchardSpec, rng: np.random.Generator, tree: Tree) -> Tree:
@@ -167,9 +205,12 @@ def _attach_wood(spec: OrchardSpec, rng: np.random.Generator, tree: Tree) -> Tre
         u /= np.linalg.norm(u)
         r = tree.crown.radius(u[None, :])[0] * rng.uniform(0.45, 0.75)
         tips.append(tuple((np.asarray(tree.crown.center) + u * r).tolist()))
-    return Tree(tree.tree_id, tree.row, tree.index_in_row, tree.label, tree.base, tree.crown,
-                tuple(map(float, top)), float(rng.uniform(*spec.trunk_radius_range)), tuple(tips),
-                tree.doubled)
+    if isinstance(tree.crown.form, LobedForm):  # the scaffold limbs carry the lobes
+        u = np.asarray(tree.crown.form.directions)
+        r = tree.crown.radius(u) * rng.uniform(0.55, 0.8, len(u))
+        tips = [tuple(p) for p in (np.asarray(tree.crown.center) + u * r[:, None]).tolist()]
+    return replace(tree, trunk_top=tuple(map(float, top)),
+                   trunk_radius=float(rng.uniform(*spec.trunk_radius_range)), branch_tips=tuple(tips))
 
 
 def _extent_along(crown: CrownEnvelope, direction: np.ndarray) -> float:
@@ -234,5 +275,4 @@ def _replace_crown(tree: Tree, crown: CrownEnvelope) -> Tree:
         r = np.linalg.norm(u)
         frac = r / tree.crown.radius((u / r)[None, :])[0]
         tips.append(tuple((np.asarray(crown.center) + u / r * crown.radius((u / r)[None, :])[0] * frac).tolist()))
-    return Tree(tree.tree_id, tree.row, tree.index_in_row, tree.label, tree.base, crown,
-                tuple(map(float, top)), tree.trunk_radius, tuple(tips), tree.doubled)
+    return replace(tree, crown=crown, trunk_top=tuple(map(float, top)), branch_tips=tuple(tips))

@@ -78,8 +78,10 @@ def build_scene(orchard: Orchard, rng: np.random.Generator,
     _add_grass(b, orchard, rng, lo, hi)
     for tree in orchard.trees:
         _add_wood(b, tree)
-        _add_foliage(b, tree, rng, spec.foliage_density_shell, spec.foliage_density_core,
-                     spec.leaf_cluster_size_range)
+        shell, core = spec.foliage_density_shell, spec.foliage_density_core
+        if tree.foliage_scale != 1.0:
+            shell, core = shell * tree.foliage_scale, core * tree.foliage_scale
+        _add_foliage(b, tree, rng, shell, core, spec.leaf_cluster_size_range, spec.leaf_penetration_m)
     top = max((t.crown.z_range[1] for t in orchard.trees), default=5.0)
     return b.build((np.array([lo[0], lo[1], -50.0]), np.array([hi[0], hi[1], top + 1.0])))
 
@@ -179,7 +181,10 @@ def _add_wood(b: _Builder, tree: Tree) -> None:
 
 
 def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float, core: float,
-                 size_range: list[float]) -> None:
+                 size_range: list[float], penetration: float = float("inf")) -> None:
+    """Leaf clusters inside the envelope, denser towards it by relative depth (from the
+    envelope's centre, which for a vase is the trunk top), and at most ``penetration`` metres
+    below the envelope along the ray from the centre."""
     lo, hi = tree.crown.bounds
     n_candidates = int(shell * np.prod(hi - lo))
     p = rng.uniform(lo, hi, (n_candidates, 3))
@@ -187,6 +192,8 @@ def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float
     depth = tree.crown.relative_depth(p)
     keep_prob = (core + (shell - core) * np.clip(depth, 0, 1) ** 3) / shell
     keep = (depth <= 1.0) & (rng.random(n_candidates) < keep_prob)
+    if np.isfinite(penetration):
+        keep &= depth_below_envelope(tree.crown, p, depth) <= penetration
     p, size = p[keep], size[keep]
     m = len(p)
     if m == 0:
@@ -203,6 +210,17 @@ def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float
     faces = (_OCTAHEDRON_F[None, :, :] + 6 * np.arange(m)[:, None, None]).reshape(-1, 3)
     shade = np.repeat(rng.uniform(0.6, 1.4, m), 8)
     b.add(verts, faces, FOLIAGE, tree.tree_id, shade)
+
+
+def depth_below_envelope(crown, points: np.ndarray,  # noqa: ANN001
+                         relative: np.ndarray | None = None) -> np.ndarray:
+    """``r(u) - |p - c|``: metres below the envelope along the ray from its centre (<0 outside)."""
+    rho = np.linalg.norm(np.asarray(points, float) - np.asarray(crown.center), axis=1)
+    rel = crown.relative_depth(points) if relative is None else relative
+    out = np.full(len(rho), np.inf)
+    nz = rel > 0
+    out[nz] = rho[nz] / rel[nz] - rho[nz]
+    return out
 
 
 def _clip_to_envelope(crown, verts: np.ndarray) -> np.ndarray:  # noqa: ANN001
