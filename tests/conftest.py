@@ -23,7 +23,8 @@ MICRO = {"orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {"columns": 256, "
 LONG_FILES = ["test_rigs_sim.py", "test_checks_runs.py", "test_ground_truth_flight.py",
               "test_message_faults.py", "test_segment_sim.py", "test_reliability_catalogue.py",
               "test_interrupted_run.py", "test_notebooks.py", "test_batch.py", "test_pipeline.py",
-              "test_mapping_sim.py", "test_stream.py", "test_paper_experiments.py"]
+              "test_mapping_sim.py", "test_stream.py", "test_paper_experiments.py",
+              "test_sim_crown_forms.py", "test_report_interactive.py", "test_gis_outputs.py"]
 
 
 def pytest_collection_modifyitems(config, items):
