@@ -39,8 +39,20 @@ class CrownForm(Protocol):
         """The form after the across-row and upper semi-axes changed by these ratios."""
 
 
+class RelativeForm:
+    """A form defined relative to the base radius: scaling or stretching the base keeps it."""
+
+    def scaled(self, factor: float) -> "RelativeForm":
+        """Scale-free: the same form."""
+        return self
+
+    def with_axis_ratios(self, across: float, up: float) -> "RelativeForm":
+        """Relative to the base: the same form."""
+        return self
+
+
 @dataclass(frozen=True)
-class LobedForm:
+class LobedForm(RelativeForm):
     """``r = base · (h + (1 - h) · smoothmax_i exp(k (u·d_i - 1)))``: lobes along ``d_i``.
 
     ``hollow`` (h) is the radius left between lobes as a fraction of the base radius;
@@ -60,17 +72,10 @@ class LobedForm:
         peak = np.sum(bumps**6, axis=1) ** (1.0 / 6.0)
         return base * (self.hollow + (1.0 - self.hollow) * np.minimum(peak, 1.0))
 
-    def scaled(self, factor: float) -> "LobedForm":
-        """Scale-free: the same form."""
-        return self
-
-    def with_axis_ratios(self, across: float, up: float) -> "LobedForm":
-        """Relative to the base: the same form."""
-        return self
 
 
 @dataclass(frozen=True)
-class VaseForm:
+class VaseForm(RelativeForm):
     """``r = base · (1 - depth · t²)``, ``t = clip((u_z - opening) / (1 - opening), 0, 1)``.
 
     An open centre above the trunk top, which is the envelope's centre, low in the crown:
@@ -88,13 +93,6 @@ class VaseForm:
         t = np.clip((u[:, 2] - self.opening) / (1.0 - self.opening), 0.0, 1.0)
         return base * (1.0 - self.depth * t * t)
 
-    def scaled(self, factor: float) -> "VaseForm":
-        """Scale-free: the same form."""
-        return self
-
-    def with_axis_ratios(self, across: float, up: float) -> "VaseForm":
-        """Relative to the base: the same form."""
-        return self
 
 
 @dataclass(frozen=True)
