@@ -24,7 +24,7 @@ def demo(
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run as run_pipeline
     from canopy_kit.sim import load_sim_config, simulate_session
-    from canopy_kit.sim.session import find_bag
+    from canopy_kit.session_layout import find_bag
 
     reports = []
     for orchard, overrides in DEMO_SESSIONS.items():
@@ -53,7 +53,7 @@ def demo(
 
 def _has_bag(sim_dir: Path) -> bool:
     from canopy_kit.errors import InputError
-    from canopy_kit.sim.session import find_bag
+    from canopy_kit.session_layout import find_bag
 
     try:
         find_bag(sim_dir)
