@@ -231,9 +231,23 @@ def test_no_new_cycle_through_imports_inside_functions(imports: list[Import]) ->
                      + "\n  ".join(new))
 
 
-def test_importing_segment_and_volume_does_not_load_the_simulator() -> None:
-    code = ("import sys, canopy_kit.segment.verb, canopy_kit.volume\n"
-            "print(sorted(m for m in sys.modules if m.startswith('canopy_kit.sim')))")
+def _loaded_after(imported: list[str], parts: tuple[str, ...]) -> list[str]:
+    """The modules of ``parts`` a fresh interpreter has loaded after importing ``imported``."""
+    code = (f"import sys\nfor m in {imported!r}: __import__(m)\n"
+            f"print(sorted(m for m in sys.modules if m.startswith({parts!r})))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
-    assert out.stdout.strip() == "[]"
+    return ast.literal_eval(out.stdout.strip())
+
+
+def test_segment_and_volume_load_no_simulator_report_paper_or_cli() -> None:
+    parts = tuple(f"canopy_kit.{p}" for p in ("sim", "report", "paper", "cli"))
+    assert _loaded_after(["canopy_kit.segment.verb", "canopy_kit.volume"], parts) == []
+
+
+def test_evaluation_and_truth_modules_load_no_simulator() -> None:
+    stages = ["canopy_kit.truth", "canopy_kit.truth_map", "canopy_kit.session_layout",
+              "canopy_kit.evaluate", "canopy_kit.validation", "canopy_kit.mapping.evaluate",
+              "canopy_kit.volume.evaluate", "canopy_kit.explore", "canopy_kit.segment.export",
+              "canopy_kit.segment.results"]
+    assert _loaded_after(stages, ("canopy_kit.sim",)) == []
