@@ -23,11 +23,11 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
+from canopy_kit.session_layout import SIM_CONFIG, drone_dir, truth_dir
 from canopy_kit.sim.config import DroneSpec
 from canopy_kit.sim.drone_render import DroneRenderer, PinholeView
 from canopy_kit.sim.orchard import Orchard
 from canopy_kit.sim.scene import Scene
-from canopy_kit.session_layout import SIM_CONFIG, drone_dir, truth_dir
 from canopy_kit.truth import write_csv
 
 Progress = Callable[[str, float, float], None]
