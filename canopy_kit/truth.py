@@ -43,7 +43,8 @@ TRUTH_FILES = ("trees.csv", "trajectory.csv", "frame.json")
 
 def write_csv(df: pd.DataFrame, path: Path, float_format: str = "%.6f") -> Path:
     """Write a table as CSV atomically with a fixed float format (byte-identical reruns)."""
-    return atomic_write_text(path, df.to_csv(index=False, float_format=float_format, lineterminator="\n"))
+    text = df.to_csv(index=False, float_format=float_format, lineterminator="\n")
+    return atomic_write_text(path, text)
 
 
 class WorldModel(Protocol):
@@ -102,8 +103,8 @@ def load_truth(session_dir: str | Path) -> SessionTruth:
     info = json.loads((truth / "frame.json").read_text())
     base = truth / "base_trajectory.csv"
     return SessionTruth(truth.parent, pd.read_csv(truth / "trees.csv"),
-                        pd.read_csv(truth / "trajectory.csv"), LocalFrame.from_dict(info["frame"]), info,
-                        pd.read_csv(base) if base.exists() else None)
+                        pd.read_csv(truth / "trajectory.csv"), LocalFrame.from_dict(info["frame"]),
+                        info, pd.read_csv(base) if base.exists() else None)
 
 
 def load_world(session_dir: str | Path) -> WorldModel:

@@ -22,7 +22,8 @@ def _truth_folder(root):
     write_csv(pd.DataFrame({"time": [0.0, 1.0], "x": [0.0, 1.0], "y": 0.0, "z": 0.0, "qx": 0.0,
                             "qy": 0.0, "qz": 0.0, "qw": 1.0}), truth / "trajectory.csv")
     frame = LocalFrame(32610, 500000.0, 4100000.0, 50.0)
-    (truth / "frame.json").write_text(json.dumps({"frame": frame.to_dict(), "sensor_frame": "lidar"}))
+    info = {"frame": frame.to_dict(), "sensor_frame": "lidar"}
+    (truth / "frame.json").write_text(json.dumps(info))
 
 
 def test_a_truth_folder_reads_without_the_simulator(tmp_path):

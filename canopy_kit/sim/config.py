@@ -10,7 +10,7 @@ import tomllib
 
 from canopy_kit.config import from_dict, merge, read_toml
 from canopy_kit.errors import ConfigError
-from canopy_kit.truth import orchard_kind  # noqa: F401 - moved to the truth format; kept for importers
+from canopy_kit.truth import orchard_kind  # noqa: F401 - moved to canopy_kit.truth; kept here
 
 
 @dataclass
