@@ -7,17 +7,16 @@ from typing import Any
 
 from canopy_kit.config import load_preset
 from canopy_kit.errors import InputError
+from canopy_kit.session_layout import drone_dir, find_bag, truth_dir
 
 
 def session_paths(session: str | Path) -> dict[str, Path | None]:
     """Bag, drone folder and truth folder of a session folder (simulated or laid out alike)."""
-    from canopy_kit.sim.session import find_bag
-
     root = Path(session)
     if not root.is_dir():
         raise InputError(f"{root}: session folder does not exist")
-    drone = root / "drone"
-    truth = root / "truth"
+    drone = drone_dir(root)
+    truth = truth_dir(root)
     return {"bag": find_bag(root), "drone": drone if drone.is_dir() else None,
             "truth": root if truth.is_dir() else None}
 

@@ -26,7 +26,7 @@ def truth_offset(run_origin: np.ndarray, run_crs: str | None, truth_origin: np.n
 def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
     """Segmentation score: per-point truth labels when the map carries them, else footprints."""
     from canopy_kit.evaluate import score_footprints, score_point_labels, truth_footprints
-    from canopy_kit.sim.truth import load_truth
+    from canopy_kit.truth import load_truth
 
     truth = load_truth(sim_dir)
     seg, cloud = ctx.segmentation, ctx.mapping.map
@@ -45,7 +45,7 @@ def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
 
 def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict[str, Any]:
     """Scores of a run against simulator truth, and the tree table with truth columns added."""
-    from canopy_kit.sim.truth import load_truth
+    from canopy_kit.truth import load_truth
     from canopy_kit.trees import volume_column
 
     truth = load_truth(sim_dir)

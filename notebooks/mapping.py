@@ -14,7 +14,7 @@ def _():
 
     from canopy_kit.explore import load_context
     from canopy_kit.mapping.plots import mapping_figures
-    from canopy_kit.sim.truth import load_truth
+    from canopy_kit.truth import load_truth
 
     return load_context, load_truth, mapping_figures, mo, pd
 

@@ -124,10 +124,14 @@ def test_preset_extends_another_and_lists_only_what_differs(tmp_path):
     cfg = load_sim_config(mine)
     assert (cfg.orchard.kind, cfg.orchard.rows, cfg.orchard.crown_diameter_range) == (
         "almond", 2, [3.5, 5.0])
-    from canopy_kit.sim.config import orchard_kind
+    from canopy_kit.sim.config import OrchardSpec, sim_preset_names
+    from canopy_kit.truth import DEFAULT_ORCHARD_KIND, orchard_kind
 
     assert [orchard_kind(o) for o in ("almond-paper", "pistachio", "walnut")] == [
         "almond", "pistachio", "walnut"]
+    # The truth module reads the presets as data: it must agree with the simulator's loader.
+    assert OrchardSpec().kind == DEFAULT_ORCHARD_KIND
+    assert all(orchard_kind(n) == load_sim_config(n).orchard.kind for n in sim_preset_names())
     mine.write_text('extends = "walnut"\n')
     with pytest.raises(ConfigError, match=r"mine\.toml: extends 'walnut'"):
         load_sim_config(mine)

@@ -83,7 +83,10 @@ def test_points_lie_on_the_true_scene(tiny_pistachio):
 
 def test_truth_labels_belong_to_their_crowns(tiny_pistachio):
     truth = load_truth(tiny_pistachio.root)
-    orchard = truth.orchard()
+    orchard = truth.orchard()  # rebuilt by the simulator's world model, named by truth/
+    from canopy_kit.sim.world import SimulatedWorld
+
+    assert isinstance(truth.world(), SimulatedWorld)
     pose = _truth_pose(truth)
     with open_bag(tiny_pistachio.bag) as bag:
         hits = {t.tree_id: 0 for t in orchard.trees}

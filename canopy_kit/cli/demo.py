@@ -24,14 +24,15 @@ def demo(
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run as run_pipeline
     from canopy_kit.sim import load_sim_config, simulate_session
-    from canopy_kit.sim.session import find_bag
+    from canopy_kit.session_layout import drone_dir as drone_folder
+    from canopy_kit.session_layout import find_bag, truth_dir
 
     reports = []
     for orchard, overrides in DEMO_SESSIONS.items():
         sim_dir = out / f"{orchard}_session"
         run_dir = out / f"{orchard}_run"
         console.rule(f"{orchard}")
-        if not (sim_dir / "truth" / "trees.csv").exists() or not _has_bag(sim_dir):
+        if not (truth_dir(sim_dir) / "trees.csv").exists() or not _has_bag(sim_dir):
             cfg = load_sim_config(orchard, {**overrides, "seed": seed,
                                             "drone": {"enabled": drone}})
             with progress_bar(transient=True) as progress:
@@ -39,7 +40,7 @@ def demo(
             console.print(f"simulated {sim_dir}")
         else:
             console.print(f"reusing simulated session {sim_dir}")
-        drone_dir = sim_dir / "drone" if drone and (sim_dir / "drone").is_dir() else None
+        drone_dir = drone_folder(sim_dir) if drone and drone_folder(sim_dir).is_dir() else None
         with progress_bar(transient=True) as progress:
             results = run_pipeline(load_preset(preset), find_bag(sim_dir), run_dir,
                                    drone_images=drone_dir, truth=sim_dir, progress=progress,
@@ -53,7 +54,7 @@ def demo(
 
 def _has_bag(sim_dir: Path) -> bool:
     from canopy_kit.errors import InputError
-    from canopy_kit.sim.session import find_bag
+    from canopy_kit.session_layout import find_bag
 
     try:
         find_bag(sim_dir)

@@ -50,12 +50,13 @@ def _evaluate(result, bag: Path, truth: Path | None, progress):  # noqa: ANN001,
         reference_from_bag,
         trajectory_errors,
     )
+    from canopy_kit.session_layout import truth_dir
 
     reference = reference_from_bag(bag)
     sim_dir = truth
     if sim_dir is None:  # a simulated session keeps truth/ next to its bag
         sim_dir = next((p for p in (bag.parent, bag.parent.parent)
-                        if (p / "truth" / "frame.json").exists()), None)
+                        if (truth_dir(p) / "frame.json").exists()), None)
     if sim_dir is not None:
         if progress:
             progress("evaluation: map vs true scene", 0, 1)

@@ -163,8 +163,7 @@ def estimate_in_frame(result: Any, frame: str | None) -> pd.DataFrame:
 def evaluate_against_simulation(result: Any, sim_dir: str | Path, reference: pd.DataFrame | None = None,
                                 truth_map_sample: bool = True) -> dict[str, Any]:
     """Trajectory and map errors of a :class:`MappingResult` on a simulated session."""
-    from canopy_kit.sim.session import build_world, load_sim_config_of
-    from canopy_kit.sim.truth import load_truth
+    from canopy_kit.truth import load_truth
 
     truth = load_truth(sim_dir)
     if reference is None:
@@ -177,8 +176,7 @@ def evaluate_against_simulation(result: Any, sim_dir: str | Path, reference: pd.
     report["trajectory_frame"] = getattr(result, "trajectory_frame", "")
     # The map is in the frame of the poses, whichever frame they describe.
     align = np.array(report["alignment"])
-    _, _, scene, _ = build_world(load_sim_config_of(sim_dir))
-    rc = scene.raycasting_scene()
+    rc = truth.world().scene().raycasting_scene()
     report["map_aligned"] = map_accuracy(result.map, rc, align)
     if result.frame is not None:
         offset = result.frame.origin - truth.frame.origin

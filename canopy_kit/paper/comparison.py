@@ -74,7 +74,7 @@ def compare(runs: pd.DataFrame, trees: pd.DataFrame, paper: dict[str, Any],
     """One row per orchard x method x mapping of ``config``: the paper's figure beside ours
     for segmentation success and volume errors."""
     from canopy_kit.segment.results import success_table
-    from canopy_kit.sim.config import orchard_kind
+    from canopy_kit.truth import orchard_kind
 
     rows = []
     ok_runs = runs[runs["error"] == ""] if "error" in runs else runs

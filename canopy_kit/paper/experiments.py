@@ -214,7 +214,8 @@ def simulate(orchard: str, seed: int, config: ExperimentConfig, root: Path,
     """
     from canopy_kit.config import to_dict
     from canopy_kit.sim import simulate_session
-    from canopy_kit.sim.session import find_bag, load_sim_config_of
+    from canopy_kit.session_layout import find_bag
+    from canopy_kit.sim.session import load_sim_config_of
 
     sim_cfg = session_config(orchard, seed, config)
     marker = root / ".complete"
@@ -277,11 +278,11 @@ def run_mapping(orchard: str, seed: int, mapping: str, config: ExperimentConfig,
 
     ``pipeline``: the first method runs :func:`canopy_kit.pipeline.compute` (mapping and its
     evaluation included); the others reuse that map. ``true_poses``: a map from the true
-    poses (:func:`canopy_kit.sim.truth_map.truth_mapping`).
+    poses (:func:`canopy_kit.truth_map.truth_mapping`).
     """
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import compute
-    from canopy_kit.sim.truth_map import truth_mapping
+    from canopy_kit.truth_map import truth_mapping
 
     drone = root / "drone" if config.drone else None
     shared = truth_mapping(root, progress=progress) if mapping == "true_poses" else None

@@ -59,7 +59,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     mapping_eval = metrics.get("evaluation", {}).get("mapping")
     if mapping_eval and ctx.truth_dir is not None:
         from canopy_kit.mapping.plots import mapping_figures
-        from canopy_kit.sim.truth import load_truth
+        from canopy_kit.truth import load_truth
 
         truth = load_truth(ctx.truth_dir)
         reference = truth.trajectory_of(getattr(ctx.mapping, "trajectory_frame", ""))

@@ -126,7 +126,7 @@ def write_segmentation(out_dir: str | Path, seg: Segmentation, cloud: PointCloud
     """Write a run folder (see module docstring); returns the paths written."""
     from canopy_kit.io.clouds import write_cloud
     from canopy_kit.segment.labelled import labelled_map
-    from canopy_kit.sim.truth import write_csv
+    from canopy_kit.truth import write_csv
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ import tomllib
 
 from canopy_kit.config import from_dict, merge, read_toml
 from canopy_kit.errors import ConfigError
+from canopy_kit.truth import orchard_kind  # noqa: F401 - moved to canopy_kit.truth; kept here
 
 
 @dataclass
@@ -259,12 +260,6 @@ def sim_preset_names() -> list[str]:
     """Orchard presets shipped for the simulator."""
     files = resources.files("canopy_kit") / "presets" / "sim"
     return sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".toml"))
-
-
-def orchard_kind(orchard: str) -> str:
-    """The kind of orchard a simulator preset makes (``almond-paper``: ``almond``); any other
-    name is returned as it is. The paper's figures and our targets are per kind."""
-    return load_sim_config(orchard).orchard.kind if orchard in sim_preset_names() else orchard
 
 
 def load_sim_config(orchard: str | Path = "pistachio", overrides: Mapping[str, Any] | None = None,

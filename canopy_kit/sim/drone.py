@@ -23,11 +23,12 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
+from canopy_kit.session_layout import SIM_CONFIG, drone_dir, truth_dir
 from canopy_kit.sim.config import DroneSpec
 from canopy_kit.sim.drone_render import DroneRenderer, PinholeView
 from canopy_kit.sim.orchard import Orchard
 from canopy_kit.sim.scene import Scene
-from canopy_kit.sim.truth import write_csv
+from canopy_kit.truth import write_csv
 
 Progress = Callable[[str, float, float], None]
 FLIGHT_START = datetime(2024, 6, 18, 11, 0, 0)
@@ -234,11 +235,11 @@ def simulate_drone_session(out: str | Path, config, progress: Progress | None = 
 
     root = Path(out)
     orchard, _, scene, rngs = build_world(config)
-    truth_dir = root / "truth"
-    truth_dir.mkdir(parents=True, exist_ok=True)
-    write_csv(tree_table(orchard), truth_dir / "trees.csv")
-    atomic_write_text(truth_dir / "frame.json",
+    truth = truth_dir(root)
+    truth.mkdir(parents=True, exist_ok=True)
+    write_csv(tree_table(orchard), truth / "trees.csv")
+    atomic_write_text(truth / "frame.json",
                       json.dumps({"frame": orchard.frame.to_dict()}, indent=2, sort_keys=True) + "\n")
-    write_config(config, truth_dir / "sim_config.toml")
-    return simulate_drone_flight(orchard, scene, config.drone, root / "drone", truth_dir, rngs["drone"],
+    write_config(config, truth / SIM_CONFIG)
+    return simulate_drone_flight(orchard, scene, config.drone, drone_dir(root), truth, rngs["drone"],
                                  progress=progress)

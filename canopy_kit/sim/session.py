@@ -15,6 +15,8 @@ from canopy_kit.config import from_dict, read_toml, write_config
 from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_write_text
 from canopy_kit.io.bag_writer import BagWriter, bag_path_for
+from canopy_kit.session_layout import BAG_NAME, SIM_CONFIG, find_bag, sim_config_path, truth_dir
+from canopy_kit.session_layout import drone_dir as drone_folder
 from canopy_kit.sim.config import SimConfig, validate
 from canopy_kit.sim.inertial import simulate_gnss, simulate_imu
 from canopy_kit.sim.lidar import SpinningLidar
@@ -22,10 +24,13 @@ from canopy_kit.sim.orchard import Orchard, generate_orchard
 from canopy_kit.sim.rig import SensorMounts, sensor_mounts
 from canopy_kit.sim.scene import Scene, build_scene
 from canopy_kit.sim.trajectory import Trajectory
-from canopy_kit.sim.truth import tree_table, write_csv
+from canopy_kit.sim.truth import tree_table
+from canopy_kit.truth import write_csv
+
+__all__ = ["BAG_NAME", "SimulatedSession", "build_world", "find_bag", "load_sim_config_of",
+           "regenerate_orchard", "simulate_session"]
 
 Progress = Callable[[str, float, float], None]
-BAG_NAME = "session"
 SESSION_EPOCH = 1_700_000_000.0
 
 
@@ -68,15 +73,6 @@ def build_world(config: SimConfig) -> tuple[Orchard, Trajectory, Scene, dict[str
     return orchard, trajectory, scene, rngs
 
 
-def find_bag(sim_dir: str | Path) -> Path:
-    """The bag inside a simulated session folder."""
-    root = Path(sim_dir)
-    for candidate in (root / f"{BAG_NAME}.bag", root / BAG_NAME):
-        if candidate.exists():
-            return candidate
-    raise InputError(f"{root}: no simulated bag ({BAG_NAME}.bag or {BAG_NAME}/) in this folder")
-
-
 def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
                      truth_field: bool = True, overwrite: bool = False,
                      progress: Progress | None = None) -> SimulatedSession:
@@ -96,14 +92,14 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     report = progress or (lambda *_: None)
     orchard, trajectory, scene, rngs = build_world(config)
     mounts = sensor_mounts(config)
-    truth_dir = root / "truth"
-    _write_truth(truth_dir, config, orchard, trajectory, fmt, truth_field, mounts)
+    truth_folder = truth_dir(root)
+    _write_truth(truth_folder, config, orchard, trajectory, fmt, truth_field, mounts)
     lidar = SpinningLidar(config.lidar, scene, trajectory, rngs["lidar"], truth_field)
     sweeps = lidar.sweep_times()
     imu = simulate_imu(trajectory, config.imu, rngs["imu"]) if config.imu.enabled else None
     gnss = simulate_gnss(trajectory, config.gnss, rngs["gnss"]) if config.gnss.enabled else None
     if gnss is not None:  # where the receiver lost its fix or jumped
-        atomic_write_text(truth_dir / "gnss_events.json", json.dumps(gnss.events, indent=2) + "\n")
+        atomic_write_text(truth_folder / "gnss_events.json", json.dumps(gnss.events, indent=2) + "\n")
     odo_t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
     n_points = 0
     with BagWriter(bag_path, fmt) as writer:
@@ -152,10 +148,10 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     if config.drone.enabled:
         from canopy_kit.sim.drone import simulate_drone_flight
 
-        drone_dir = root / "drone"
-        simulate_drone_flight(orchard, scene, config.drone, drone_dir, truth_dir, rngs["drone"],
+        drone_dir = drone_folder(root)
+        simulate_drone_flight(orchard, scene, config.drone, drone_dir, truth_folder, rngs["drone"],
                               progress=report)
-    return SimulatedSession(root, bag_path, truth_dir, orchard, trajectory, len(sweeps), n_points,
+    return SimulatedSession(root, bag_path, truth_folder, orchard, trajectory, len(sweeps), n_points,
                             drone_dir)
 
 
@@ -191,17 +187,17 @@ def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajector
     atomic_write_text(truth_dir / "frame.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
     recording = {"bag_format": fmt, "truth_field": truth_field}
     atomic_write_text(truth_dir / "recording.json", json.dumps(recording, indent=2) + "\n")
-    write_config(config, truth_dir / "sim_config.toml")
+    write_config(config, truth_dir / SIM_CONFIG)
 
 
 def regenerate_orchard(sim_dir: str | Path) -> Orchard:
     """Rebuild the orchard of a simulated session from its stored config and seed."""
-    cfg_path = Path(sim_dir) / "truth" / "sim_config.toml"
+    cfg_path = sim_config_path(sim_dir)
     config = from_dict(SimConfig, read_toml(cfg_path), str(cfg_path))
     return generate_orchard(config.orchard, _streams(config.seed)["orchard"])
 
 
 def load_sim_config_of(sim_dir: str | Path) -> SimConfig:
     """The config a simulated session was made with."""
-    cfg_path = Path(sim_dir) / "truth" / "sim_config.toml"
+    cfg_path = sim_config_path(sim_dir)
     return from_dict(SimConfig, read_toml(cfg_path), str(cfg_path))

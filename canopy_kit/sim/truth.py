@@ -1,25 +1,19 @@
-"""Per-tree truth of a simulated session: tables written by the simulator, read by evaluation."""
+"""The simulator's side of the truth tables: the per-tree table of a generated orchard.
+
+The format (columns, CSV writer, reader) lives in :mod:`canopy_kit.truth`; the simulator
+writes through it. ``write_csv``, ``load_truth``, ``SessionTruth`` and ``TREE_COLUMNS`` are
+re-exported here for code that imported them from the simulator.
+"""
 
 from __future__ import annotations
-
-import json
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame
-from canopy_kit.io.atomic import atomic_write_text
 from canopy_kit.sim.orchard import Orchard
+from canopy_kit.truth import TREE_COLUMNS, SessionTruth, load_truth, write_csv
 
-TREE_COLUMNS = [
-    "tree_id", "row", "index_in_row", "label", "x", "y", "z_ground", "lat", "lon",
-    "crown_x", "crown_y", "crown_z", "trunk_height_m", "crown_base_height_m", "crown_height_m",
-    "tree_height_m", "crown_diameter_m", "crown_diameter_mean_m", "crown_volume_m3",
-    "sphere_volume_m3", "doubled",
-]
+__all__ = ["TREE_COLUMNS", "SessionTruth", "load_truth", "tree_table", "write_csv"]
 
 
 def tree_table(orchard: Orchard) -> pd.DataFrame:
@@ -44,51 +38,3 @@ def tree_table(orchard: Orchard) -> pd.DataFrame:
             "doubled": bool(t.doubled),
         })
     return pd.DataFrame(rows, columns=TREE_COLUMNS)
-
-
-def write_csv(df: pd.DataFrame, path: Path, float_format: str = "%.6f") -> Path:
-    """Write a table as CSV atomically with a fixed float format (byte-identical reruns)."""
-    return atomic_write_text(path, df.to_csv(index=False, float_format=float_format, lineterminator="\n"))
-
-
-@dataclass
-class SessionTruth:
-    """What a simulated session's ``truth/`` folder holds."""
-
-    root: Path
-    trees: pd.DataFrame
-    trajectory: pd.DataFrame  # the LiDAR's poses (``info["sensor_frame"]``)
-    frame: LocalFrame
-    info: dict
-    base_trajectory: pd.DataFrame | None = None  # the vehicle frame's, when the rig has one
-
-    def trajectory_of(self, frame: str) -> pd.DataFrame | None:
-        """The true poses of ``frame`` (the LiDAR's or the vehicle's), None for another frame."""
-        if frame in ("", self.info.get("sensor_frame")):
-            out = self.trajectory
-        elif frame == self.info.get("base_frame"):
-            out = self.base_trajectory if self.base_trajectory is not None else self.trajectory
-        else:
-            return None
-        out.attrs["frame"] = frame
-        return out
-
-    def orchard(self) -> Orchard:
-        """Regenerate the exact orchard (crown envelopes included) from the stored config."""
-        from canopy_kit.sim.session import regenerate_orchard
-
-        return regenerate_orchard(self.root)
-
-
-def load_truth(sim_dir: str | Path) -> SessionTruth:
-    """Read a simulated session's truth (``SIM_DIR/truth``)."""
-    root = Path(sim_dir)
-    truth = root / "truth" if (root / "truth").is_dir() else root
-    for name in ("trees.csv", "trajectory.csv", "frame.json"):
-        if not (truth / name).exists():
-            raise InputError(f"{truth}: not a simulated session's truth folder (no {name})")
-    info = json.loads((truth / "frame.json").read_text())
-    base = truth / "base_trajectory.csv"
-    return SessionTruth(truth.parent, pd.read_csv(truth / "trees.csv"),
-                        pd.read_csv(truth / "trajectory.csv"), LocalFrame.from_dict(info["frame"]), info,
-                        pd.read_csv(base) if base.exists() else None)

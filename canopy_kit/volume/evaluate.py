@@ -59,8 +59,8 @@ def simulated_trees(sim_dir: str | Path, voxel_size: float = 0.1, map_voxel_size
     session with the true poses when not given.
     """
     from canopy_kit.cloud import PointCloud
-    from canopy_kit.sim.truth import load_truth
-    from canopy_kit.sim.truth_map import true_pose_interpolator, truth_map
+    from canopy_kit.truth import load_truth, true_pose_interpolator
+    from canopy_kit.truth_map import truth_map
     from canopy_kit.voxel import voxel_downsample
 
     truth = load_truth(sim_dir)

@@ -1,0 +1,32 @@
+"""The simulator's world model of a session it wrote (:class:`canopy_kit.truth.WorldModel`).
+
+Evaluation asks :meth:`canopy_kit.truth.SessionTruth.world` for exact geometry; the truth
+module names this class for folders holding ``truth/sim_config.toml``, so stages reach
+the simulator's geometry without importing it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from canopy_kit.sim.orchard import Orchard
+from canopy_kit.sim.scene import Scene
+
+
+class SimulatedWorld:
+    """The orchard and scene of a simulated session, rebuilt from its stored config and seed."""
+
+    def __init__(self, session_dir: str | Path) -> None:
+        self.root = Path(session_dir)
+
+    def orchard(self) -> Orchard:
+        """The exact orchard (crown envelopes, terrain)."""
+        from canopy_kit.sim.session import regenerate_orchard
+
+        return regenerate_orchard(self.root)
+
+    def scene(self) -> Scene:
+        """The scene the LiDAR saw (its surfaces give map-to-surface distances)."""
+        from canopy_kit.sim.session import build_world, load_sim_config_of
+
+        return build_world(load_sim_config_of(self.root))[2]
