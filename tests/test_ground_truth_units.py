@@ -281,8 +281,8 @@ def test_seed_offset_is_measured_and_the_seeds_registered():
     trees = tree_positions(pd.DataFrame({"tree_id": list("abcd"), "x": truth[:, 0] + gnss_error[0],
                                          "y": truth[:, 1] + gnss_error[1]}), None)
     for register in (False, True):
-        seg, table, matched, offset = crowns_stage(mosaic, surface, trees, frame,
-                                                   GroundTruthOptions(register_seeds=register))
+        seg, _, matched, offset = crowns_stage(mosaic, surface, trees, frame,
+                                               GroundTruthOptions(register_seeds=register))
         assert matched["matched"].all() and offset["pairs"] == 4
         assert [offset["east_m"], offset["north_m"]] == pytest.approx(-gnss_error, abs=0.05)
         assert offset["significant"] and offset["seeds_shifted"] == register
