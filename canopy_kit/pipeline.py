@@ -310,6 +310,9 @@ def run_metrics(ctx: RunContext, trees: pd.DataFrame) -> dict[str, Any]:
         m["aerial"] = {"matched_trees": int(matched.sum()), "compared_trees": int(ok.sum()),
                        "implausible_crowns": int((matched & ~ok).sum()),
                        **dict(getattr(ctx.aerial, "diagnostics", {}))}
+        offset = (getattr(ctx.aerial, "report", None) or {}).get("seed_offset")
+        if offset:  # the LiDAR map's georeferencing against the drone's (docs/GROUND_TRUTH.md)
+            m["aerial"]["seed_offset"] = offset  # crowns minus LiDAR trees
         for col in ("volume_convex_hull_m3", "volume_alpha_m3"):
             if col in trees and ok.any():
                 good = ok & trees[col].notna()

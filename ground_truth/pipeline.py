@@ -21,7 +21,7 @@ from ground_truth.crowns import (CrownOptions, CrownSegmentation, delineate_crow
 from ground_truth.dsm import (SurfaceModel, SurfaceOptions, canopy_top, clean_surface, dense_surface,
                              ground_from_surface, ground_model, reliable_points)
 from ground_truth.exif import Flight, read_flight
-from ground_truth.match import crown_tree_ids, match_crowns, read_trees, tree_positions
+from ground_truth.match import crown_tree_ids, match_crowns, read_trees, seed_offset, tree_positions
 from ground_truth.ortho import Orthomosaic, orthomosaic
 from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
 from ground_truth.sfm import SfmOptions, SparseModel, run_sfm
@@ -40,6 +40,7 @@ class GroundTruthOptions:
     ortho_resolution: float | None = None  # default: the ground sampling distance, >= 2 cm
     max_canopy_height: float = 8.0
     match_distance_m: float = 1.5
+    register_seeds: bool = True  # move the seeds by their measured offset from the crowns
 
 
 @dataclass
@@ -174,17 +175,7 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     if seeds is not None:
         trees = (read_trees(seeds, frame) if not isinstance(seeds, pd.DataFrame)
                  else tree_positions(seeds, frame))
-    ox, oy = mosaic.grid.centers()
-    chm = sample_bilinear(grid, surface.chm, ox, oy)
-    seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if trees is not None else None
-    seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy, opts.crowns)
-    crowns = measure_crowns(seg, chm)
-    lat, lon, _ = frame.to_wgs84(crowns[["x", "y"]].to_numpy()) if len(crowns) else ([], [], [])
-    crowns.insert(3, "lat", lat)
-    crowns.insert(4, "lon", lon)
-    matched = match_crowns(trees, crowns, opts.match_distance_m) if trees is not None else None
-    if matched is not None and "tree_id" in matched:  # the seeds' ids name their crowns
-        crowns["tree_id"] = crown_tree_ids(crowns, matched)
+    seg, crowns, matched, offset = crowns_stage(mosaic, surface, trees, frame, opts)
     timings["crowns"] = time.perf_counter() - t0
 
     summary = {
@@ -196,8 +187,48 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
         "trees": int(len(matched)) if matched is not None else None,
         "sphere_diameter": "diameter_max_m (widest extent)", "timings_s": timings,
     }
+    if offset is not None:
+        summary["seed_offset"] = offset
     paths = _write_outputs(out, frame, model, surface, mosaic, seg, crowns, matched, summary, opts)
     return GroundTruthResult(out, frame, model, surface, mosaic, seg, crowns, matched, summary, paths)
+
+
+def crowns_stage(mosaic: Orthomosaic, surface: SurfaceModel, trees: pd.DataFrame | None,
+                 frame: LocalFrame, opts: GroundTruthOptions
+                 ) -> tuple[CrownSegmentation, pd.DataFrame, pd.DataFrame | None, dict | None]:
+    """Crowns on the orthomosaic, measured and (with ``trees``) matched to the trees.
+
+    With seed trees, the offset of the crowns from their seeds is measured (``seed_offset``:
+    the seeds' georeferencing against the photos', e.g. a LiDAR map on standalone GNSS
+    against an RTK drone); when it is significant and ``register_seeds`` is set, the
+    crowns are delineated once more from seeds moved by that offset, so each seed starts
+    on its own crown. The trees' positions and ``aerial_distance_m`` stay as given.
+    """
+    ox, oy = mosaic.grid.centers()
+    chm = sample_bilinear(surface.grid, surface.chm, ox, oy)
+    seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if trees is not None else None
+    offset = None
+    for attempt in range(2):
+        seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy, opts.crowns)
+        crowns = measure_crowns(seg, chm)
+        lat, lon, _ = frame.to_wgs84(crowns[["x", "y"]].to_numpy()) if len(crowns) else ([], [], [])
+        crowns.insert(3, "lat", lat)
+        crowns.insert(4, "lon", lon)
+        matched = match_crowns(trees, crowns, opts.match_distance_m) if trees is not None else None
+        if matched is None:
+            break
+        if attempt == 0:
+            offset = {**seed_offset(matched), "seeds_shifted": False}
+            if not (opts.register_seeds and offset["significant"]):
+                break
+            seeds_xy = seeds_xy + np.array([offset["east_m"], offset["north_m"]])
+            offset["seeds_shifted"] = True
+        else:  # what remains after the shift (the crowns, not the seeds, set their centres)
+            after = seed_offset(matched)
+            offset.update({"east_after_m": after["east_m"], "north_after_m": after["north_m"]})
+    if matched is not None and "tree_id" in matched:  # the seeds' ids name their crowns
+        crowns["tree_id"] = crown_tree_ids(crowns, matched)
+    return seg, crowns, matched, offset
 
 
 def cameras_table(model: SparseModel) -> pd.DataFrame:

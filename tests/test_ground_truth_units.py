@@ -260,3 +260,39 @@ def test_seed_off_its_crown_top_still_gets_its_crown():
         widths[fraction] = measure_crowns(seg, chm).sort_values("seed_id")["diameter_max_m"].to_numpy()
     assert widths[0.0][0] > 9.0  # the failure the discs fix
     assert widths[CrownOptions().seed_disc_fraction] == pytest.approx([6.0, 5.0, 5.0], abs=0.45)
+
+
+def test_seed_offset_is_measured_and_the_seeds_registered():
+    """Seeds from a map georeferenced by standalone GNSS sit off the photos' crowns by one
+    translation (simulated: 0.3-0.9 m). The crowns stage measures it as the median crown-from-
+    seed offset, moves the seeds by it and delineates again; the crowns stay where they are."""
+    from ground_truth.dsm import SurfaceModel
+    from ground_truth.ortho import Orthomosaic
+    from ground_truth.pipeline import GroundTruthOptions, crowns_stage
+
+    grid, rgb, chm, crowns = _synthetic_orchard()
+    rgba = np.dstack([rgb, np.full(grid.shape, 255, np.uint8)])
+    mosaic = Orthomosaic(grid, rgba, np.zeros(grid.shape, np.int32), ["a"])
+    surface = SurfaceModel(grid, chm, np.zeros(grid.shape), np.ones(grid.shape), np.zeros(grid.shape + (0,), int),
+                           [])
+    frame = LocalFrame.at(37.281, -120.42, 50.0)
+    truth = np.array([(cx, cy) for cx, cy, _, _ in crowns])
+    gnss_error = np.array([0.45, -0.3])
+    trees = tree_positions(pd.DataFrame({"tree_id": list("abcd"), "x": truth[:, 0] + gnss_error[0],
+                                         "y": truth[:, 1] + gnss_error[1]}), None)
+    for register in (False, True):
+        seg, _, matched, offset = crowns_stage(mosaic, surface, trees, frame,
+                                               GroundTruthOptions(register_seeds=register))
+        assert matched["matched"].all() and offset["pairs"] == 4
+        assert [offset["east_m"], offset["north_m"]] == pytest.approx(-gnss_error, abs=0.05)
+        assert offset["significant"] and offset["seeds_shifted"] == register
+        # The crowns' centres come from the photos whatever the seeds: unbiased either way.
+        centres = matched[["aerial_x", "aerial_y"]].to_numpy()
+        assert np.abs((centres - truth).mean(axis=0)).max() < 0.05
+        assert matched["aerial_distance_m"].to_numpy() == pytest.approx(np.hypot(*gnss_error), abs=0.1)
+        if register:
+            assert seg.markers == pytest.approx(truth, abs=0.15)  # seeds moved onto the crowns
+            assert [offset["east_after_m"], offset["north_after_m"]] == pytest.approx(-gnss_error, abs=0.05)
+    exact = tree_positions(pd.DataFrame({"x": truth[:, 0], "y": truth[:, 1]}), None)
+    _, _, _, offset = crowns_stage(mosaic, surface, exact, frame, GroundTruthOptions())
+    assert not offset["significant"] and not offset["seeds_shifted"]

@@ -57,5 +57,11 @@ def ground_truth(
     if result.trees is not None:
         line += f", matched to {int(result.trees['matched'].sum())} of {len(result.trees)} trees"
     console.print(line)
+    offset = result.report.get("seed_offset") or {}
+    if offset.get("significant"):
+        console.print(f"[yellow]crowns sit {offset['east_m']:+.2f} m east, {offset['north_m']:+.2f} m north "
+                      f"of their seed trees[/] (± {offset['standard_error_m']:.2f} m, {offset['pairs']} "
+                      "trees): the seeds' georeferencing differs from the photos'"
+                      + ("; seeds moved by it" if offset.get("seeds_shifted") else ""))
     for name, path in result.paths.items():
         console.print(f"  {name:18s} {path}")
