@@ -90,8 +90,14 @@ def _node_centres(flat: np.ndarray, shape: tuple[int, ...], origin: np.ndarray, 
     return origin + (np.column_stack(np.unravel_index(flat, shape)) + 0.5) * h
 
 
-def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float) -> tuple[float, dict]:
-    """Volume of the α-hull (closing of the points by a ball of radius ``alpha``) on a grid."""
+def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
+                      offset: float = 0.0) -> tuple[float, dict]:
+    """Volume of the α-hull (closing of the points by a ball of radius ``alpha``) on a grid.
+
+    ``offset`` (0 <= offset < α) grows the hull outwards by that distance: the solid is
+    ``{x : dist(x, E) >= α - offset}``, the closing dilated by ``offset`` (used by
+    :mod:`canopy_kit.volume.adaptive` for the envelope that lies outside the outermost points).
+    """
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
@@ -123,13 +129,14 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float) -> tuple[float
     if len(boundary) == 0:
         return 0.0, info
 
-    # 2. distance to E; exact (to the sub-voxel boundary points) near the level α
+    # 2. distance to E; exact (to the sub-voxel boundary points) near the level α - offset
+    level = alpha - offset
     dist_e = ndimage.distance_transform_edt(~empty, sampling=h)
-    top = alpha + h + 2.0 * snap
-    band = np.flatnonzero((dist_e >= alpha - h) & (dist_e < top))
+    top = level + h + 2.0 * snap
+    band = np.flatnonzero((dist_e >= level - h) & (dist_e < top))
     # depths beyond h count whole under any ±h/2 shift: no need to find them exactly (inf)
     depth = cKDTree(boundary, leafsize=32).query(_node_centres(band, shape, origin, h),
-                                                 distance_upper_bound=alpha + h)[0] - alpha
+                                                 distance_upper_bound=level + h)[0] - level
 
     # 3. whole voxels inside, partial voxels along the boundary; the ramp is exact for a
     # plane and over-counts a curved boundary by M h²/12 (M: integrated mean curvature),
