@@ -34,13 +34,16 @@ ALPHA_FACTOR = 4.0
 OFFSET_FACTOR = 0.5
 
 
-def point_spacing(xyz: np.ndarray, k: int = SPACING_K) -> float:
-    """Median distance from a point to its ``k``-th nearest neighbour (metres)."""
+def point_spacing(xyz: np.ndarray, k: int = SPACING_K, tree: object = None) -> float:
+    """Median distance from a point to its ``k``-th nearest neighbour (metres); ``tree``: a
+    ``cKDTree`` of ``xyz`` if the caller has one."""
     from scipy.spatial import cKDTree
 
     k = min(k, len(xyz) - 1)
     sample = xyz[:: max(1, len(xyz) // SPACING_SAMPLE)]
-    dist = cKDTree(xyz).query(sample, k=k + 1)[0][:, k]
+    if tree is None:
+        tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
+    dist = tree.query(sample, k=k + 1)[0][:, k]
     return float(np.median(dist))
 
 
@@ -75,17 +78,20 @@ class AdaptiveAlphaVolume(VolumeEstimator):
             raise ConfigError(f"{self.name}: alpha_min ({self.alpha_min}) must not exceed "
                               f"alpha_max ({self.alpha_max})")
 
-    def choose(self, xyz: np.ndarray) -> tuple[float, float, float]:
+    def choose(self, xyz: np.ndarray, tree: object = None) -> tuple[float, float, float]:
         """(α, offset, spacing) for these points."""
-        s = point_spacing(xyz)
+        s = point_spacing(xyz, tree=tree)
         alpha = float(np.clip(self.alpha_factor * s, self.alpha_min, self.alpha_max))
         offset = float(min(self.offset_factor * s, 0.5 * alpha))
         return alpha, offset, s
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
-        alpha, offset, s = self.choose(xyz)
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
+        alpha, offset, s = self.choose(xyz, tree)
         h = grid_step(xyz, alpha, self.grid_step)
-        volume, extra = alpha_hull_volume(xyz, alpha, h, offset=offset)
+        volume, extra = alpha_hull_volume(xyz, alpha, h, offset=offset, tree=tree)
         extra.update({"alpha": alpha, "offset": offset, "spacing": s})
         if volume <= 0.0:
             extra["reason"] = f"the adaptive alpha hull is empty (alpha = {alpha:.2f} m)"

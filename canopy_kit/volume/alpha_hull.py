@@ -91,12 +91,13 @@ def _node_centres(flat: np.ndarray, shape: tuple[int, ...], origin: np.ndarray, 
 
 
 def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
-                      offset: float = 0.0) -> tuple[float, dict]:
+                      offset: float = 0.0, tree: object = None) -> tuple[float, dict]:
     """Volume of the α-hull (closing of the points by a ball of radius ``alpha``) on a grid.
 
     ``offset`` (0 <= offset < α) grows the hull outwards by that distance: the solid is
     ``{x : dist(x, E) >= α - offset}``, the closing dilated by ``offset`` (used by
     :mod:`canopy_kit.volume.adaptive` for the envelope that lies outside the outermost points).
+    ``tree``: a ``cKDTree`` of ``xyz`` already built by the caller.
     """
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -112,7 +113,8 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
     # 1. distance to the points; exact (k-d tree) wherever the side of α is uncertain
     dist_p = ndimage.distance_transform_edt(~occupied, sampling=h)
     snap = np.sqrt(3.0) / 2.0 * h
-    tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
+    if tree is None:
+        tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
     sample = xyz[:: max(1, len(xyz) // 2000)]
     spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
     info = {"grid_step": h, "grid_cells": int(np.prod(shape)), "spacing_ratio": spacing / alpha}
