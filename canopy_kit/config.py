@@ -142,12 +142,18 @@ class VolumeConfig:
     ``voxel_size``: volumes are measured on each tree's points thinned to this voxel grid
     (the paper measures its 0.1 m voxel grid; docs/VOLUMES.md's accuracy figures are on it
     too); 0 measures every map point. Height and crown metrics always use every point.
+
+    ``recommended``: the estimator whose volume the table's interval columns
+    (``volume_low_m3``, ``volume_high_m3``, ``canopy_kit.volume.uncertainty``) bound; it is
+    run even when not in ``methods``. Default the paper's ``alpha_shape``; the ``adaptive``
+    preset recommends ``adaptive_alpha`` (docs/VOLUMES.md, "Adaptive alpha").
     """
 
     methods: list[str] = field(default_factory=lambda: ["convex_hull", "alpha_shape"])
     params: dict[str, dict[str, Any]] = field(default_factory=dict)
     voxel_size: float = 0.1
     workers: int = 0  # processes measuring trees (0: one per core; 1: this process only)
+    recommended: str = "alpha_shape"
 
     def __post_init__(self) -> None:
         if not (isinstance(self.workers, int) and self.workers >= 0):
@@ -155,6 +161,9 @@ class VolumeConfig:
         if not (isinstance(self.voxel_size, (int, float)) and self.voxel_size >= 0):
             raise ConfigError(f"volume.voxel_size: must be a number >= 0 (0: every map point), "
                               f"got {self.voxel_size!r}")
+        if not (isinstance(self.recommended, str) and self.recommended):
+            raise ConfigError(f"volume.recommended: must be the name of a volume method, "
+                              f"got {self.recommended!r}")
 
 
 @dataclass

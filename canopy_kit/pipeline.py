@@ -138,7 +138,7 @@ def check_settings(config: PipelineConfig) -> None:
 
     check_preprocess_config(config.preprocess)
     make_segmenter(config.segment.method, config.segment.params)
-    for method in config.volume.methods:
+    for method in dict.fromkeys([*config.volume.methods, config.volume.recommended]):
         volume = estimator(method, **config.volume.params.get(method, {}))
         getattr(volume, "_check_params", lambda: None)()
 

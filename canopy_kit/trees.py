@@ -24,6 +24,29 @@ def volume_column(method: str) -> str:
     return VOLUME_COLUMN.get(method, f"volume_{method}_m3")
 
 
+def interval_columns(xyz: np.ndarray, volume_m3: float, method: str,
+                     centre: np.ndarray | None = None) -> dict:
+    """The table's interval columns (``INTERVAL_COLUMNS``) for ``method``'s volume of ``xyz``;
+    NaN bounds when the method has no calibration or no valid volume."""
+    from scipy.spatial import QhullError
+
+    from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, volume_interval
+
+    col = INTERVAL_COLUMNS
+    interval = None
+    if len(xyz) >= 4 and np.isfinite(volume_m3):
+        try:
+            interval = volume_interval(xyz, volume_m3, method, centre)
+        except QhullError as exc:  # qhull on points that are nearly flat: no interval
+            return {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan,
+                    col["coverage"]: np.nan, col["flags"]: f"no interval: {type(exc).__name__}"}
+    if interval is None:
+        return {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan,
+                col["coverage"]: np.nan, col["flags"]: ""}
+    return {col["method"]: method, col["low"]: interval.low_m3, col["high"]: interval.high_m3,
+            col["coverage"]: interval.coverage, col["flags"]: "; ".join(interval.flags)}
+
+
 def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
                   ground_height: Callable[[np.ndarray], np.ndarray] | None = None,
                   progress: Progress | None = None) -> pd.DataFrame:
@@ -34,7 +57,8 @@ def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
     processes when there are enough of them (never inside a daemonic process such as a
     Dask worker); the table does not depend on the number of workers.
     """
-    estimators = {m: estimator(m, **volume.params.get(m, {})) for m in volume.methods}
+    methods = list(dict.fromkeys([*volume.methods, volume.recommended]))
+    estimators = {m: estimator(m, **volume.params.get(m, {})) for m in methods}
     ids = np.unique(labels[labels >= 0])
     order = np.argsort(labels, kind="stable")
     sorted_labels = labels[order]
@@ -60,6 +84,8 @@ def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
             if not result.valid:
                 flags.append(f"{method}: {result.reason}")
         row["volume_flags"] = "; ".join(flags)
+        row.update(interval_columns(measured, row[volume_column(volume.recommended)],
+                                    volume.recommended))
         return row
 
     def measure_all(segments: np.ndarray, tick: Callable[[], None]) -> list[dict]:

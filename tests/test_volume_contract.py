@@ -16,7 +16,8 @@ from canopy_kit.errors import ConfigError, InputError, PluginError
 from canopy_kit.volume import VolumeResult, estimate_volume, estimator, sphere_volume, tree_metrics
 from canopy_kit.volume.base import VolumeEstimator
 
-BUILT_IN = {"convex_hull", "alpha_shape", "alpha_hull", "alpha_auto", "voxel", "slices", "mirror"}
+BUILT_IN = {"convex_hull", "alpha_shape", "alpha_hull", "alpha_auto", "adaptive_alpha", "voxel", "slices",
+            "mirror"}
 
 
 def blob(n: int = 3000, seed: int = 0) -> np.ndarray:
@@ -107,6 +108,10 @@ def test_init_does_no_work_and_bad_parameters_name_themselves() -> None:
         estimate_volume(blob(), "mirror", plane_point=(1.0, np.nan))
     with pytest.raises(ConfigError, match=r"^voxel: voxel_size must be a positive number, got True"):
         estimate_volume(blob(), "voxel", voxel_size=True)
+    with pytest.raises(ConfigError, match=r"^adaptive_alpha: offset_factor must be a number >= 0"):
+        estimate_volume(blob(), "adaptive_alpha", offset_factor=-0.1)
+    with pytest.raises(ConfigError, match=r"^adaptive_alpha: alpha_min \(2.0\) must not exceed"):
+        estimate_volume(blob(), "adaptive_alpha", alpha_min=2.0, alpha_max=1.0)
 
 
 def test_the_verb_loads_plugins_by_name() -> None:

@@ -90,8 +90,15 @@ def _node_centres(flat: np.ndarray, shape: tuple[int, ...], origin: np.ndarray, 
     return origin + (np.column_stack(np.unravel_index(flat, shape)) + 0.5) * h
 
 
-def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float) -> tuple[float, dict]:
-    """Volume of the α-hull (closing of the points by a ball of radius ``alpha``) on a grid."""
+def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
+                      offset: float = 0.0, tree: object = None) -> tuple[float, dict]:
+    """Volume of the α-hull (closing of the points by a ball of radius ``alpha``) on a grid.
+
+    ``offset`` (0 <= offset < α) grows the hull outwards by that distance: the solid is
+    ``{x : dist(x, E) >= α - offset}``, the closing dilated by ``offset`` (used by
+    :mod:`canopy_kit.volume.adaptive` for the envelope that lies outside the outermost points).
+    ``tree``: a ``cKDTree`` of ``xyz`` already built by the caller.
+    """
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
@@ -106,7 +113,8 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float) -> tuple[float
     # 1. distance to the points; exact (k-d tree) wherever the side of α is uncertain
     dist_p = ndimage.distance_transform_edt(~occupied, sampling=h)
     snap = np.sqrt(3.0) / 2.0 * h
-    tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
+    if tree is None:
+        tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
     sample = xyz[:: max(1, len(xyz) // 2000)]
     spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
     info = {"grid_step": h, "grid_cells": int(np.prod(shape)), "spacing_ratio": spacing / alpha}
@@ -123,13 +131,14 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float) -> tuple[float
     if len(boundary) == 0:
         return 0.0, info
 
-    # 2. distance to E; exact (to the sub-voxel boundary points) near the level α
+    # 2. distance to E; exact (to the sub-voxel boundary points) near the level α - offset
+    level = alpha - offset
     dist_e = ndimage.distance_transform_edt(~empty, sampling=h)
-    top = alpha + h + 2.0 * snap
-    band = np.flatnonzero((dist_e >= alpha - h) & (dist_e < top))
+    top = level + h + 2.0 * snap
+    band = np.flatnonzero((dist_e >= level - h) & (dist_e < top))
     # depths beyond h count whole under any ±h/2 shift: no need to find them exactly (inf)
     depth = cKDTree(boundary, leafsize=32).query(_node_centres(band, shape, origin, h),
-                                                 distance_upper_bound=alpha + h)[0] - alpha
+                                                 distance_upper_bound=level + h)[0] - level
 
     # 3. whole voxels inside, partial voxels along the boundary; the ramp is exact for a
     # plane and over-counts a curved boundary by M h²/12 (M: integrated mean curvature),

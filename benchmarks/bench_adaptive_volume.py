@@ -1,0 +1,156 @@
+"""The adaptive-α estimator and its per-tree interval on each crown form: calibration and check.
+
+Per crown form and seed, simulates a 1-row × 3-tree pistachio session (16 rings, 512
+columns; cached under ``--cache``), builds the reference map with the true poses, cuts each
+tree by the simulator's ``tree_id`` (truth-labelled points: no segmentation or odometry
+error), thins it to 0.1 m voxels as the pipeline does, and measures every tree, complete and
+one-sided, with the paper's alpha shape, the convex hull and ``adaptive_alpha`` with its
+interval. Tuning seeds (401, 402) and held-out seeds (411-413) are reported apart.
+
+    .venv/bin/python benchmarks/bench_adaptive_volume.py [--forms lobed vase] [--speed]
+
+The calibration printed for the tuning seeds is what canopy_kit/volume/uncertainty.py
+CALIBRATIONS holds; the held-out table is what docs/VOLUMES.md quotes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+FORMS = ["ellipsoid", "lobed", "vase", "hedged", "sparse"]
+TUNE_SEEDS = [401, 402]
+CHECK_SEEDS = [411, 412, 413]
+
+
+def trees_of(cache: Path, form: str, seed: int) -> list:
+    """The session's SimulatedTree list (complete and one-sided clouds, 0.1 m voxels), cached."""
+    from canopy_kit.sim import load_sim_config, simulate_session
+    from canopy_kit.sim.truth_map import truth_map
+    from canopy_kit.volume.evaluate import simulated_trees
+
+    root = cache / f"{form}_s{seed}"
+    done = root / "trees.pkl"
+    if not done.exists():
+        overrides = {"seed": seed, "orchard": {"rows": 1, "trees_per_row": 3, "crown_form": form},
+                     "lidar": {"columns": 512, "rings": 16},
+                     "imu": {"enabled": False}, "gnss": {"enabled": False}}
+        print(f"simulating {root} ...", file=sys.stderr, flush=True)
+        simulate_session(root, load_sim_config("pistachio", overrides), fmt="ros1", overwrite=True)
+        cloud = truth_map(root, voxel_size=0.05)
+        trees = simulated_trees(root, reference_map=cloud)
+        done.write_bytes(pickle.dumps(trees))
+    return pickle.loads(done.read_bytes())
+
+
+
+METHODS = {"convex_hull": {}, "alpha_shape": {"alpha": 0.9}, "adaptive_alpha": {}}
+
+
+def measure(cache: Path, forms: list[str], seeds: list[int]) -> pd.DataFrame:
+    """One row per tree and scan: the methods' volumes, the truth, fill and coverage."""
+    from canopy_kit.volume import estimate_volume
+    from canopy_kit.volume.uncertainty import scan_coverage, surface_fill
+
+    rows = []
+    for seed in seeds:
+        for form in forms:
+            for t in trees_of(cache, form, seed):
+                for scan, xyz in {"complete": t.complete, **t.sides}.items():
+                    row = {"form": form, "seed": seed, "tree": t.tree_id, "scan": scan,
+                           "n_points": len(xyz), "true": t.true_volume_m3,
+                           "coverage": scan_coverage(xyz), "fill": surface_fill(xyz)}
+                    for method, params in METHODS.items():
+                        row[method] = estimate_volume(xyz, method, **params).volume_m3
+                    rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def calibrate(df: pd.DataFrame, method: str) -> dict[str, tuple[float, float]]:
+    """2 % and 98 % quantiles of true/estimate ∓ MARGIN, dense and sparse crowns apart."""
+    from canopy_kit.volume.uncertainty import MARGIN, MIN_FILL
+
+    ratio = df["true"] / df[method]
+    out = {}
+    for kind, mask in (("dense", df["fill"] >= MIN_FILL), ("sparse", df["fill"] < MIN_FILL)):
+        q = ratio[mask].quantile([0.02, 0.98]).to_numpy()
+        out[kind] = (round(float(q[0]) - MARGIN, 3), round(float(q[1]) + MARGIN, 3))
+    return out
+
+
+def check(df: pd.DataFrame) -> pd.DataFrame:
+    """Per form and scan kind: bias, MAPE, p90 |error| of each method; the interval's coverage."""
+    from canopy_kit.volume.uncertainty import volume_interval  # noqa: F401  (the same rule)
+    from canopy_kit.volume.uncertainty import CALIBRATIONS, MIN_COVERAGE, MIN_FILL, SECTORS
+
+    cal = CALIBRATIONS["adaptive_alpha"]
+    lo = np.where(df["fill"] < MIN_FILL, cal.sparse[0], cal.dense[0])
+    hi = np.where(df["fill"] < MIN_FILL, cal.sparse[1], cal.dense[1])
+    hi = np.where(df["coverage"] < MIN_COVERAGE, hi / np.maximum(df["coverage"], 1 / SECTORS), hi)
+    v = df["adaptive_alpha"]
+    df = df.assign(inside=(v * lo <= df["true"]) & (df["true"] <= v * hi),
+                   width=(hi - lo), one_sided=np.where(df["scan"] == "complete", "complete", "one-sided"))
+    rows = []
+    for (form, kind), g in df.groupby(["form", "one_sided"], sort=False):
+        row = {"form": form, "scans": kind, "n": len(g)}
+        for method in METHODS:
+            e = g[method] / g["true"] - 1
+            row[f"{method} bias %"] = round(100 * e.mean(), 1)
+            row[f"{method} MAPE %"] = round(100 * e.abs().mean(), 1)
+            row[f"{method} p90 %"] = round(100 * e.abs().quantile(0.9), 1)
+        row["interval coverage %"] = round(100 * g["inside"].mean(), 0)
+        row["interval width %"] = round(100 * g["width"].mean(), 0)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def speed(n: int = 50_000, repeats: int = 3) -> pd.DataFrame:
+    """Seconds per tree of n points: adaptive_alpha, alpha_shape 0.9, Open3D's alpha shape."""
+    from bench_volume import open3d_alpha_volume, timed  # the sibling script
+
+    from canopy_kit.volume import estimate_volume
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    xyz = d * np.sqrt(rng.uniform(0.5, 1.0, (n, 1))) * [2.2, 2.0, 1.7] + [0, 0, 2.5]  # porous shell
+    rows = []
+    for label, fn in [("adaptive_alpha", lambda: estimate_volume(xyz, "adaptive_alpha").volume_m3),
+                      ("alpha_shape α=0.9", lambda: estimate_volume(xyz, "alpha_shape").volume_m3),
+                      ("Open3D alpha shape α=0.9", lambda: open3d_alpha_volume(xyz, 0.9))]:
+        sec, value, error = timed(fn, repeats)
+        rows.append({"method": label, "points": n, "seconds": round(sec, 3),
+                     "volume m³": None if value is None else round(value, 2), "error": error})
+    return pd.DataFrame(rows)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--forms", nargs="+", default=FORMS)
+    parser.add_argument("--cache", type=Path, default=Path("/tmp/canopy_kit_bench_adaptive"))
+    parser.add_argument("--speed", action="store_true", help="also time a 50k-point tree")
+    args = parser.parse_args()
+    pd.set_option("display.width", 250)
+    pd.set_option("display.max_columns", 40)
+    df = measure(args.cache, args.forms, TUNE_SEEDS + CHECK_SEEDS)
+    tune, held = df[df["seed"].isin(TUNE_SEEDS)], df[df["seed"].isin(CHECK_SEEDS)]
+    print(f"calibration on seeds {TUNE_SEEDS} ({len(tune)} scans):")
+    for method in METHODS:
+        print(f"  {method}: {calibrate(tune, method)}")
+    print(f"\ntuning seeds {TUNE_SEEDS}:")
+    print(check(tune).to_string(index=False))
+    print(f"\nheld-out seeds {CHECK_SEEDS} (truth-labelled points, 0.1 m voxels):")
+    print(check(held).to_string(index=False))
+    if args.speed:
+        print("\nspeed, one porous 50k-point crown (median of 3):")
+        print(speed().to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()

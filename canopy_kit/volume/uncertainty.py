@@ -1,0 +1,117 @@
+"""A per-tree interval for a volume: calibrated ratios, widened for sparse or part-seen crowns.
+
+The interval is ``[low, high] = volume × [r_lo, r_hi]`` with ``r`` the true / estimated
+volume ratios measured on simulated crowns of every form (calibration seeds only;
+benchmarks/bench_adaptive_volume.py, docs/VOLUMES.md "The interval"). Two measured
+properties of the tree's points pick the ratios and widen them:
+
+- ``surface_fill = n · s² / A`` (n points, s their median 8-NN spacing, A the area of their
+  convex hull): 2.2-4.4 on simulated crowns whose foliage outlines the envelope, 0.9-1.5 on sparse
+  young trees whose few leaves do not (every estimator is then 40-60 % low). Below
+  ``MIN_FILL`` = 1.8 (between the two, on the calibration seeds) the sparse ratios apply.
+- ``scan_coverage``: the share of 16 azimuth sectors around the trunk (the median x, y of the
+  lowest 10 % of the tree) that hold points (outer 70 % of its radius). Below ``min_coverage`` the crown was seen from one side:
+  the upper bound is divided by the coverage (the unseen sectors may hold as much crown as
+  the seen ones). This rule is not calibrated: the simulated one-sided scans see the crown all
+  round (coverage ≥ 0.9).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# The per-tree table's interval columns (trees.csv), for the recommended estimator.
+INTERVAL_COLUMNS = {"method": "volume_method", "low": "volume_low_m3", "high": "volume_high_m3",
+                    "coverage": "scan_coverage", "flags": "volume_interval_flags"}
+SECTORS = 16
+MIN_COVERAGE = 0.75
+MIN_FILL = 1.8
+TRUNK_SHARE = 0.1
+INNER_RADIUS = 0.3  # points nearer the centre than this share of the crown radius are skipped
+MARGIN = 0.02  # added on either side of the calibrated ratio quantiles (2 % and 98 %)
+TUNED_ON = (401, 402)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """True / estimated volume ratios (low, high) for dense and for sparse crowns."""
+
+    dense: tuple[float, float]
+    sparse: tuple[float, float]
+
+
+# benchmarks/bench_adaptive_volume.py --calibrate on seeds 401-402, every crown form,
+# complete and one-sided scans: 2 % and 98 % quantiles of true/estimate, ∓ MARGIN.
+CALIBRATIONS: dict[str, Calibration] = {
+    "adaptive_alpha": Calibration(dense=(0.957, 1.044), sparse=(1.298, 2.589)),
+    "alpha_shape": Calibration(dense=(1.035, 1.182), sparse=(1.461, 3.115)),  # α = 0.9 m
+    "convex_hull": Calibration(dense=(0.961, 1.131), sparse=(1.41, 2.928)),
+}
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A volume's interval and the measurements that set it."""
+
+    low_m3: float
+    high_m3: float
+    coverage: float
+    fill: float
+    flags: tuple[str, ...] = ()
+
+
+def trunk_centre(xyz: np.ndarray) -> np.ndarray:
+    """Median x, y of the lowest 10 % of the tree's height (the trunk and the crown's base):
+    unlike the median of all points it stays at the stem when one side of the crown is unseen."""
+    z = xyz[:, 2]
+    low = z <= z.min() + TRUNK_SHARE * (z.max() - z.min())
+    return np.median(xyz[low, :2], axis=0)
+
+
+def scan_coverage(xyz: np.ndarray, centre: np.ndarray | None = None, sectors: int = SECTORS) -> float:
+    """Share of ``sectors`` azimuth sectors around ``centre`` (default :func:`trunk_centre`)
+    that hold points of the crown's outer part (at least 2, and 10 % of an even share)."""
+    c = trunk_centre(xyz) if centre is None else np.asarray(centre, float)
+    d = xyz[:, :2] - c
+    r = np.hypot(d[:, 0], d[:, 1])
+    if len(r) == 0 or float(np.quantile(r, 0.95)) <= 0:
+        return 0.0
+    keep = r > INNER_RADIUS * float(np.quantile(r, 0.95))
+    az = np.arctan2(d[keep, 1], d[keep, 0])
+    sector = np.floor((az + np.pi) / (2 * np.pi) * sectors).astype(int) % sectors
+    counts = np.bincount(sector, minlength=sectors)
+    return float((counts >= max(2.0, 0.1 * keep.sum() / sectors)).mean())
+
+
+def surface_fill(xyz: np.ndarray, spacing: float | None = None) -> float:
+    """``n · s² / A``: how well the points cover their convex hull's surface (2.2-4.4 on dense simulated crowns)."""
+    from scipy.spatial import ConvexHull
+
+    from canopy_kit.volume.adaptive import point_spacing
+
+    s = point_spacing(xyz) if spacing is None else spacing
+    return float(len(xyz) * s**2 / ConvexHull(xyz).area)
+
+
+def volume_interval(xyz: np.ndarray, volume_m3: float, method: str,
+                    centre: np.ndarray | None = None) -> Interval | None:
+    """The interval for ``method``'s ``volume_m3`` of the points ``xyz``; None when ``method``
+    has no calibration (or the volume is not a positive number)."""
+    cal = CALIBRATIONS.get(method)
+    if cal is None or not np.isfinite(volume_m3) or volume_m3 <= 0:
+        return None
+    coverage = scan_coverage(xyz, centre)
+    fill = surface_fill(xyz)
+    flags = []
+    lo, hi = cal.dense
+    if fill < MIN_FILL:
+        lo, hi = cal.sparse
+        flags.append(f"sparse crown (surface fill {fill:.2f} < {MIN_FILL}): the points do not "
+                     f"outline the envelope, volume likely {100 * (1 - 1 / lo):.0f}-"
+                     f"{100 * (1 - 1 / hi):.0f} % low")
+    if coverage < MIN_COVERAGE:
+        hi = hi / max(coverage, 1.0 / SECTORS)
+        flags.append(f"one-sided scan: points in {coverage:.0%} of the azimuth sectors")
+    return Interval(volume_m3 * lo, volume_m3 * hi, coverage, fill, tuple(flags))
