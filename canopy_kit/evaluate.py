@@ -14,7 +14,6 @@ holds ``min_fraction`` of it), ``other`` (poorly delineated).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -349,8 +348,3 @@ def _frame_shift(summary: dict[str, Any], truth_origin: np.ndarray, truth_crs: s
     return (origin - np.asarray(truth_origin, float))[:2]
 
 
-def score_to_json(score: SegmentationScore) -> str:
-    """The score and its per-tree table as JSON text."""
-    data = score.to_dict()
-    data["trees"] = json.loads(score.trees.to_json(orient="records"))
-    return json.dumps(data, indent=2)

@@ -53,13 +53,6 @@ class PlyElement:
     rows: int
     properties: tuple[PlyProperty, ...]
 
-    @property
-    def row_bytes(self) -> int | None:
-        """Bytes per binary row, None when a list property makes rows vary."""
-        if any(p.count for p in self.properties):
-            return None
-        return sum(np.dtype(p.dtype).itemsize for p in self.properties)
-
 
 @dataclass(frozen=True)
 class PlyHeader:

@@ -238,7 +238,3 @@ def _resolve_gnss(out: SensorRig, graph: FrameGraph, config: MappingConfig, bag:
                         f"= {[float(v) for v in config.gnss_lever_arm]} m (give the antenna in a rig file)")
 
 
-def identity_rig(lidar_frame: str = "lidar") -> SensorRig:
-    """A rig with every sensor in the LiDAR's frame (callers that know no better)."""
-    return SensorRig(lidar_frame, lidar_frame, lidar_frame, lidar_frame,
-                     sources={"imu": SAME_FRAME, "gnss": SAME_FRAME, "base": SAME_FRAME})

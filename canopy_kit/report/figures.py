@@ -17,10 +17,3 @@ def figure_to_data_uri(fig: Any, dpi: int = 110) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def image_file_to_data_uri(path: str) -> str:
-    """Data URI of a PNG or JPEG file."""
-    from pathlib import Path
-
-    p = Path(path)
-    mime = "image/jpeg" if p.suffix.lower() in (".jpg", ".jpeg") else "image/png"
-    return f"data:{mime};base64," + base64.b64encode(p.read_bytes()).decode("ascii")

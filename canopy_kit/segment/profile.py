@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 
 
 def principal_axis(xy: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -26,45 +25,6 @@ def along_axis(xy: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray,
     d = np.asarray(xy, dtype=np.float64) - c
     return d @ v, d @ np.array([-v[1], v[0]])
 
-
-def profile_peaks(along: np.ndarray, w: np.ndarray, min_distance: float,
-                  bin_size: float | None = None, prominence: float = 0.1) -> np.ndarray:
-    """Positions of the bumps of the weighted along-axis mass profile.
-
-    The profile is smoothed over a quarter of ``min_distance``; peaks closer than
-    ``min_distance`` keep the higher one, and a peak must rise ``prominence`` of the
-    highest peak above the valleys on both sides.
-    """
-    from scipy.signal import find_peaks
-
-    along = np.asarray(along, dtype=np.float64)
-    if len(along) == 0 or not min_distance > 0:
-        return np.zeros(0)
-    h = bin_size or max(min_distance / 20.0, 0.05)
-    lo = along.min() - 3 * min_distance / 4
-    edges = np.arange(lo, along.max() + 3 * min_distance / 4 + h, h)
-    prof, _ = np.histogram(along, bins=edges, weights=w)
-    smooth = gaussian_filter1d(prof.astype(float), sigma=max(min_distance / 4.0 / h, 1.0))
-    if smooth.max() <= 0:
-        return np.zeros(0)
-    idx, _ = find_peaks(smooth, distance=max(int(min_distance / h), 1),
-                        prominence=prominence * smooth.max())
-    return edges[idx] + 0.5 * h
-
-
-def section_profile(xyz: np.ndarray, along: np.ndarray, across: np.ndarray, bin_size: float,
-                    cell: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
-    """Cross-section area (m², occupied ``cell`` squares in the across x height plane) per
-    along-axis bin: bin starts and areas. Occupancy, not point counts, so a denser scan
-    of the near side does not make a bump."""
-    lo = along.min()
-    b = np.floor((along - lo) / bin_size).astype(np.int64)
-    c = np.floor((across - across.min()) / cell).astype(np.int64)
-    z = np.floor((xyz[:, 2] - xyz[:, 2].min()) / cell).astype(np.int64)
-    key = (b * (c.max() + 1) + c) * (z.max() + 1) + z
-    uniq = np.unique(key)
-    per_bin = np.bincount(uniq // ((c.max() + 1) * (z.max() + 1)), minlength=b.max() + 1)
-    return lo + bin_size * np.arange(len(per_bin)), per_bin * cell * cell
 
 
 def canopy_height_model(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:

@@ -8,8 +8,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.cloud import PointCloud
-from canopy_kit.errors import InputError
 from canopy_kit.segment.ground import GroundModel
 from canopy_kit.segment.rows import RowAssignment
 
@@ -59,12 +57,6 @@ class Segmentation:
         """One row per tree, in row and label order."""
         columns = list(TreeRecord.__dataclass_fields__)
         return pd.DataFrame([asdict(t) for t in self.trees], columns=columns)
-
-    def tree_points(self, cloud: PointCloud, segment_id: int) -> PointCloud:
-        """The map points of one tree, attributes included."""
-        if len(cloud) != len(self.labels):
-            raise InputError(f"cloud has {len(cloud)} points, the segmentation {len(self.labels)}")
-        return cloud.select(self.labels == segment_id)
 
     def summary(self) -> dict[str, Any]:
         """Counts, settings, warnings and timings as plain data (for JSON)."""
