@@ -13,7 +13,7 @@ system-deps:
 $(STAMP): pyproject.toml
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install -q --upgrade pip
-	$(VENV)/bin/python -m pip install -q -e '.[test,dev]'
+	$(VENV)/bin/python -m pip install -q -e '.[all,test,dev]'
 	@touch $(STAMP)
 
 setup: system-deps $(STAMP)

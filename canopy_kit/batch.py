@@ -24,6 +24,7 @@ from typing import Any
 import pandas as pd
 
 from canopy_kit.errors import CanopyKitError, ConfigError, InputError
+from canopy_kit.extras import needs_extra
 
 Progress = Callable[[str, float, float], None]
 SESSION_KEYS = {"id", "bag", "orchard", "date", "preset", "drone_images", "truth", "report",
@@ -399,7 +400,8 @@ def run_batch(sessions: list[SessionSpec], out: str | Path, scheduler: str | Non
 def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
     import logging
 
-    from distributed import Client, LocalCluster
+    with needs_extra("batch"):
+        from distributed import Client, LocalCluster
 
     if scheduler:
         try:
@@ -414,7 +416,8 @@ def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
 def _collect(client: Any, todo: list[SessionSpec], out: Path, retries: int, mapping_threads: int,
              outcomes: dict[str, SessionOutcome], failures: dict[str, str], report: Progress,
              on_session: Callable[[SessionOutcome], None] | None, ingest: Callable[[], None]) -> None:
-    from distributed import as_completed
+    with needs_extra("batch"):
+        from distributed import as_completed
 
     from canopy_kit.session_log import crash_message, read_trail
 

@@ -61,3 +61,7 @@ def foreign_message(text: str) -> str:
     ``[Open3D Error] (function) file.cpp:123:`` prefix, lines joined by ``; ``."""
     text = _SOURCE_PATH.sub("", _OPEN3D_TAG.sub("", strip_ansi(str(text))))
     return "; ".join(part.strip() for part in text.splitlines() if part.strip())
+
+
+class MissingExtraError(CanopyKitError, ImportError):
+    """A stage needs a package of an optional extra (``pip install 'canopy-kit[extra]'``)."""

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from canopy_kit.errors import InputError
+from canopy_kit.extras import needs_extra
 from canopy_kit.geo import LocalFrame
 
 JPEG_SUFFIXES = (".jpg", ".jpeg")
@@ -105,7 +106,8 @@ def _text(value: object) -> str:
 
 def focal_length_px(exif: dict, width: int) -> tuple[float | None, str]:
     """Focal length in pixels from EXIF tags, and which tags gave it."""
-    import piexif
+    with needs_extra("aerial"):
+        import piexif
 
     e = exif.get("Exif", {})
     try:
@@ -127,8 +129,9 @@ def focal_length_px(exif: dict, width: int) -> tuple[float | None, str]:
 
 def read_image(path: str | Path) -> FlightImage:
     """Check one photo (decodable JPEG with GPS EXIF) and read its metadata."""
-    import piexif
-    from PIL import Image, UnidentifiedImageError
+    with needs_extra("aerial"):
+        import piexif
+        from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
     try:

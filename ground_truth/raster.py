@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from canopy_kit.errors import InputError
+from canopy_kit.extras import needs_extra
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.atomic import atomic_write_bytes
 
@@ -77,7 +78,8 @@ def sample_bilinear(grid: Grid, values: np.ndarray, x: np.ndarray, y: np.ndarray
 
 def geotiff_bytes(array: np.ndarray, grid: Grid, frame: LocalFrame, nodata: float | None = None) -> bytes:
     """A GeoTIFF of ``array`` (rows, cols[, bands]) georeferenced in the frame's UTM CRS."""
-    import tifffile
+    with needs_extra("aerial"):
+        import tifffile
 
     easting, northing = grid.x0 + frame.origin_easting, grid.y0 + frame.origin_northing
     # GeoKeyDirectory: version 1.1.0; model type projected (1024=1), raster pixel-is-area
@@ -106,7 +108,8 @@ def write_geotiff(path, array: np.ndarray, grid: Grid, frame: LocalFrame,  # noq
 
 def read_geotiff(path) -> tuple[np.ndarray, dict]:  # noqa: ANN001
     """Array and georeferencing tags (pixel scale, tie point, EPSG) of a GeoTIFF written here."""
-    import tifffile
+    with needs_extra("aerial"):
+        import tifffile
 
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]

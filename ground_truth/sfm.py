@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.errors import ProcessingError
+from canopy_kit.extras import needs_extra
 from canopy_kit.geo import LocalFrame
 from ground_truth.camera import PosedCamera
 from ground_truth.exif import Flight
@@ -116,7 +117,8 @@ def _neighbour_distance(positions: np.ndarray) -> float:
 def _quiet_colmap():  # noqa: ANN202
     import zlib  # noqa: F401  (before pycolmap: see module docstring)
 
-    import pycolmap
+    with needs_extra("aerial"):
+        import pycolmap
 
     previous = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2  # errors only: the library does not print

@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.errors import InputError
+from canopy_kit.extras import needs_extra
 
 SEGMENT_LENGTHS = (25.0, 50.0, 100.0, 200.0)
 
@@ -46,7 +47,8 @@ def interpolate_reference(reference: pd.DataFrame, times: np.ndarray) -> tuple[n
 
 def se3_alignment(estimated: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """The rigid transform (4x4) that best maps estimated positions onto the reference (evo)."""
-    from evo.core.trajectory import PoseTrajectory3D
+    with needs_extra("mapping"):
+        from evo.core.trajectory import PoseTrajectory3D
 
     stamps = np.arange(len(estimated), dtype=float)
     est = PoseTrajectory3D(poses_se3=list(estimated), timestamps=stamps)

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from canopy_kit.errors import ProcessingError
+from canopy_kit.extras import needs_extra
 from canopy_kit.io.bag import ImuSeries
 from canopy_kit.mapping.gnss import GnssEpochs, quality_changed
 from canopy_kit.mapping.imu import GRAVITY, Standstill
@@ -114,8 +115,9 @@ def _add_gnss_factors(graph, values, gnss: GnssEpochs, kt: np.ndarray, init: np.
                       vel_init: np.ndarray, settings: FusionSettings) -> dict:
     """One position factor per GNSS epoch on its nearest keyframe, with a Gauss-Markov bias
     state per epoch; a change of receiver mode starts the bias afresh. Returns diagnostics."""
-    import gtsam
-    from gtsam.symbol_shorthand import G, X
+    with needs_extra("mapping"):
+        import gtsam
+        from gtsam.symbol_shorthand import G, X
 
     n = len(kt)
     lever = np.asarray(settings.gnss_lever_arm, float)
@@ -197,7 +199,8 @@ def preintegrate(imu: ImuSeries, t0: float, t1: float, pim) -> int:  # noqa: ANN
 
 def imu_params(settings: FusionSettings):  # noqa: ANN202
     """gtsam preintegration parameters (z up, standard gravity) from the settings."""
-    import gtsam
+    with needs_extra("mapping"):
+        import gtsam
 
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
     p.setGyroscopeCovariance(np.eye(3) * settings.gyro_noise_density**2)
@@ -212,7 +215,8 @@ def odometry_noise(settings: FusionSettings, distance: float, scale: float = 1.0
     """Robust noise of an odometry factor spanning ``distance`` metres (jitter plus drift).
 
     ``scale`` inflates it for spans containing weak registrations."""
-    import gtsam
+    with needs_extra("mapping"):
+        import gtsam
 
     s_rot = np.hypot(np.sqrt(2) * settings.odometry_jitter_rotation,
                      settings.odometry_drift_rotation * distance)
@@ -258,7 +262,8 @@ def optimize(graph, values, max_iterations: int = 50, tolerance: float = 1e-4): 
     times more per step on these graphs (measured: 0.8 s vs 1.8 s CPU on a 476-keyframe graph).
     Returns (values, iterations, method).
     """
-    import gtsam
+    with needs_extra("mapping"):
+        import gtsam
 
     current = values
     error = graph.error(current)
@@ -295,8 +300,9 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
     gravity-aligned odometry frame whose origin is the first sweep; ``uncertainty`` (K,)
     scales the odometry noise of the spans containing each sweep (1: a normal sweep).
     """
-    import gtsam
-    from gtsam.symbol_shorthand import B, G, V, X
+    with needs_extra("mapping"):
+        import gtsam
+        from gtsam.symbol_shorthand import B, G, V, X
 
     if len(times) < 2:
         raise ProcessingError(f"pose graph needs at least 2 sweeps, got {len(times)}")

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from canopy_kit.errors import ProcessingError
+from canopy_kit.extras import needs_extra
 
 
 @dataclass
@@ -31,8 +32,9 @@ class LidarOdometry:
     """Scan-to-local-map registration (KISS-ICP core) with an external initial guess."""
 
     def __init__(self, settings: OdometrySettings, initial_pose: np.ndarray | None = None) -> None:
-        from kiss_icp.config import KISSConfig
-        from kiss_icp.kiss_icp import KissICP
+        with needs_extra("mapping"):
+            from kiss_icp.config import KISSConfig
+            from kiss_icp.kiss_icp import KissICP
 
         config = KISSConfig()
         config.data.max_range = settings.max_range

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from canopy_kit.extras import needs_extra
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
 from canopy_kit.session_layout import SIM_CONFIG, drone_dir, truth_dir
 from canopy_kit.sim.config import DroneSpec
@@ -132,7 +133,8 @@ def _dms(value: float) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int
 
 def exif_bytes(spec: DroneSpec, lat: float, lon: float, altitude: float, when: datetime) -> bytes:
     """EXIF block with GPS position, time and the focal length / focal-plane resolution."""
-    import piexif
+    with needs_extra("aerial"):
+        import piexif
 
     stamp = when.strftime("%Y:%m:%d %H:%M:%S").encode()
     px_per_cm = spec.image_width / (spec.sensor_width_mm / 10.0)

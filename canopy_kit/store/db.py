@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.errors import InputError
+from canopy_kit.extras import needs_extra
 from canopy_kit.store.identity import MatchSettings, TreeMatch, match_trees
 from canopy_kit.store.schema import AERIAL_COLUMNS, SCHEMA_VERSION, TABLES
 
@@ -73,7 +74,8 @@ class OrchardStore:
 
     def __init__(self, path: str | Path = "orchard.duckdb", read_only: bool = False,
                  volume_method: str = "alpha_shape") -> None:
-        import duckdb
+        with needs_extra("batch"):
+            import duckdb
 
         self.path = Path(path)
         if read_only and not self.path.exists():
@@ -336,7 +338,8 @@ def damaged_store_error(path: Path, exc: BaseException) -> InputError | None:
 
     A store cut short (a copy interrupted, a full disk) opens, and fails at the first read
     of a block past its end; that is bad input, not a fault of canopy-kit."""
-    import duckdb
+    with needs_extra("batch"):
+        import duckdb
 
     text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
     if isinstance(exc, (duckdb.IOException, duckdb.SerializationException)) or "corrupt" in text.lower():
