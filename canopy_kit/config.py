@@ -411,12 +411,11 @@ def apply_overrides(data: Mapping[str, Any], overrides: Mapping[str, Any]) -> di
     """A preset's tables with ``overrides`` merged in (:func:`merge`), as a run uses them.
 
     The preset's ``segment.params`` belong to its own ``segment.method``: an override naming
-    another method starts from that method's defaults unless it gives ``segment.params`` too.
+    another method starts from that method's defaults (plus any ``segment.params`` it gives).
     """
     base = dict(data)
     seg_over, seg_base = overrides.get("segment"), base.get("segment")
     if (isinstance(seg_over, Mapping) and isinstance(seg_base, Mapping) and "method" in seg_over
-            and "params" not in seg_over
             and seg_over["method"] != seg_base.get("method", SegmentConfig.method)):
         base["segment"] = {k: v for k, v in seg_base.items() if k != "params"}
     return merge(base, overrides)
