@@ -266,3 +266,21 @@ def test_reuse_refuses_other_reconstruction_settings(flight_dir: Path, tmp_path:
     with pytest.raises(ProcessingError, match="ground_truth.work_image_size"):
         process_flight(flight_dir, tmp_path / "out", config=GroundTruthConfig(work_image_size=500),
                        reuse=reuse)
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--set", "ground_truth.match_distanse_m=1.0"], "'match_distanse_m'"),
+    (["--set", "volume.voxel_size=0.2"], "ground_truth.key=value"),
+    (["--work-size", "10"], "ground_truth.work_image_size"),
+])
+def test_ground_truth_cli_settings_are_checked_before_any_work(args: list[str], fragment: str,
+                                                               tmp_path: Path) -> None:
+    """``canopy-kit ground-truth`` builds its [ground_truth] config with the preset loader."""
+    from typer.testing import CliRunner
+
+    from canopy_kit.cli import app
+
+    res = CliRunner().invoke(app, ["ground-truth", str(tmp_path / "photos"), "--out",
+                                   str(tmp_path / "out"), *args])
+    assert isinstance(res.exception, ConfigError) and fragment in str(res.exception), res.output
+    assert not (tmp_path / "out").exists()
