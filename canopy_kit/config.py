@@ -168,16 +168,46 @@ class VolumeConfig:
 
 @dataclass
 class GroundTruthConfig:
-    """Drone photogrammetry ground truth (``ground_truth``)."""
+    """Drone photogrammetry ground truth (``ground_truth.process_flight``, docs/GROUND_TRUTH.md).
 
+    The one set of settings of the drone pipeline: a preset's ``[ground_truth]`` table fills
+    it, ``canopy-kit run`` and ``canopy-kit ground-truth`` pass it to ``process_flight``, and it
+    is written next to the results. Every key changes the result
+    (tests/test_ground_truth_config.py).
+    """
+
+    # Longest side (px) of the photos pycolmap extracts SIFT features from.
     max_image_size: int = 1600
+    # Longest side (px) of the photos the surface models and the orthomosaic are made from.
+    work_image_size: int = 2000
+    # Orthomosaic cell size (m); unset: the ground sampling distance, at least 2 cm.
+    ortho_resolution: float | None = None
+    # Highest canopy (m above ground) the surface matching searches.
+    max_canopy_height: float = 8.0
+    # A crown farther than this from a tree is not that tree's crown (seeded or not).
     match_distance_m: float = 1.5
+    # Move the seed trees by their measured offset from the crowns and delineate again.
+    register_seeds: bool = True
     # An aerial crown whose diameter is outside this ratio of the LiDAR crown diameter is a
     # fragment or a merge of neighbours: kept in the table, flagged, left out of the statistics.
     min_diameter_ratio: float = 0.6
     max_diameter_ratio: float = 1.6
 
     def __post_init__(self) -> None:
+        for name in ("max_image_size", "work_image_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 64:
+                raise ConfigError(f"ground_truth.{name}: expected an integer >= 64 (px), "
+                                  f"got {value!r}")
+        for name in ("max_canopy_height", "match_distance_m"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+                raise ConfigError(f"ground_truth.{name}: expected a number > 0, got {value!r}")
+        res = self.ortho_resolution
+        if res is not None and (isinstance(res, bool) or not isinstance(res, int | float)
+                                or res <= 0):
+            raise ConfigError(f"ground_truth.ortho_resolution: expected a number > 0 (m) or no "
+                              f"value (the ground sampling distance), got {res!r}")
         if not 0 <= self.min_diameter_ratio < self.max_diameter_ratio:
             raise ConfigError(
                 "ground_truth.min_diameter_ratio/max_diameter_ratio: expected "
@@ -373,8 +403,22 @@ def load_preset(name_or_path: str | Path, overrides: Mapping[str, Any] | None = 
         data = read_toml(path)
         where = str(path)
     if overrides:
-        data = merge(data, overrides)
+        data = apply_overrides(data, overrides)
     return from_dict(PipelineConfig, data, where)
+
+
+def apply_overrides(data: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """A preset's tables with ``overrides`` merged in (:func:`merge`), as a run uses them.
+
+    The preset's ``segment.params`` belong to its own ``segment.method``: an override naming
+    another method starts from that method's defaults (plus any ``segment.params`` it gives).
+    """
+    base = dict(data)
+    seg_over, seg_base = overrides.get("segment"), base.get("segment")
+    if (isinstance(seg_over, Mapping) and isinstance(seg_base, Mapping) and "method" in seg_over
+            and seg_over["method"] != seg_base.get("method", SegmentConfig.method)):
+        base["segment"] = {k: v for k, v in seg_base.items() if k != "params"}
+    return merge(base, overrides)
 
 
 def config_toml(config: Any) -> str:

@@ -204,7 +204,8 @@ def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -
                           "tree_id": ctx.trees["tree_id"].astype(str).to_numpy(),
                           "x": ctx.trees["x"].to_numpy() + shift[0],
                           "y": ctx.trees["y"].to_numpy() + shift[1]})
-    return process_flight(images, out, frame=ctx.mapping.frame, seeds=seeds, progress=progress)
+    return process_flight(images, out, frame=ctx.mapping.frame, seeds=seeds, progress=progress,
+                          config=ctx.config.ground_truth)
 
 
 def _frame_origin(ctx: RunContext) -> np.ndarray:

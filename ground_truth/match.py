@@ -2,8 +2,9 @@
 
 Trees come from a CSV (e.g. the LiDAR stage's ``trees.csv``) with ``lat``/``lon``
 columns (preferred: they survive a change of local frame) or ``x``/``y`` in the
-processing frame. The assignment is Hungarian (minimum total distance) with a distance
-gate: a crown farther than ``max_distance_m`` from every tree stays unmatched.
+processing frame. A crown seeded by a tree goes to that tree; the others are assigned
+Hungarian (minimum total distance). Both are gated: a crown farther than ``max_distance_m``
+(``[ground_truth] match_distance_m``) from a tree is never that tree's crown.
 """
 
 from __future__ import annotations
@@ -62,19 +63,22 @@ def assign(a_xy: np.ndarray, b_xy: np.ndarray, max_distance: float) -> tuple[np.
     return ia[keep], ib[keep], d[ia, ib][keep]
 
 
-def match_crowns(trees: pd.DataFrame, crowns: pd.DataFrame, max_distance_m: float = 1.5) -> pd.DataFrame:
+def match_crowns(trees: pd.DataFrame, crowns: pd.DataFrame, max_distance_m: float) -> pd.DataFrame:
     """One row per tree: the tree's columns plus its crown's columns prefixed ``aerial_``.
 
-    Crowns seeded by a tree (``seed_id`` = the tree's row index) go to that tree; the
-    others are assigned by position. Trees without a crown get NaN aerial columns.
+    Crowns seeded by a tree (``seed_id`` = the tree's row index) go to that tree when within
+    ``max_distance_m`` of it; the others are assigned by position within the same distance.
+    Trees without a crown get NaN aerial columns.
     """
     out = trees.reset_index(drop=True).copy()
     aerial = crowns.add_prefix("aerial_")
     crown_of_tree = np.full(len(out), -1)
     seeded = crowns["seed_id"].to_numpy() if "seed_id" in crowns else np.full(len(crowns), -1)
+    tree_xy = out[["tree_x", "tree_y"]].to_numpy(float)
+    crown_xy = crowns[["x", "y"]].to_numpy(float) if len(crowns) else np.zeros((0, 2))
     for ci, si in enumerate(seeded):
-        if 0 <= si < len(out):
-            crown_of_tree[si] = ci
+        if 0 <= si < len(out) and np.hypot(*(crown_xy[ci] - tree_xy[int(si)])) <= max_distance_m:
+            crown_of_tree[int(si)] = ci
     free_trees = np.flatnonzero(crown_of_tree < 0)
     free_crowns = np.setdiff1d(np.arange(len(crowns)), crown_of_tree[crown_of_tree >= 0])
     ia, ib, _ = assign(out.loc[free_trees, ["tree_x", "tree_y"]].to_numpy(),

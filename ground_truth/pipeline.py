@@ -6,17 +6,18 @@ import json
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from canopy_kit.config import GroundTruthConfig
 from canopy_kit.errors import ProcessingError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
 from ground_truth.camera import PosedCamera
-from ground_truth.crowns import (CrownOptions, CrownSegmentation, delineate_crowns, measure_crowns,
+from ground_truth.crowns import (CrownSegmentation, delineate_crowns, measure_crowns,
                                  vegetation_images)
 from ground_truth.dsm import (SurfaceModel, SurfaceOptions, canopy_top, clean_surface, dense_surface,
                              ground_from_surface, ground_model, reliable_points)
@@ -27,20 +28,6 @@ from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, writ
 from ground_truth.sfm import SfmOptions, SparseModel, run_sfm
 
 Progress = Callable[[str, float, float], None]
-
-
-@dataclass
-class GroundTruthOptions:
-    """Settings of every stage; saved next to the results as ``ground_truth_config.json``."""
-
-    sfm: SfmOptions = field(default_factory=SfmOptions)
-    surface: SurfaceOptions = field(default_factory=SurfaceOptions)
-    crowns: CrownOptions = field(default_factory=CrownOptions)
-    work_image_size: int = 2000  # longest side of the photos used for the surface and mosaic
-    ortho_resolution: float | None = None  # default: the ground sampling distance, >= 2 cm
-    max_canopy_height: float = 8.0
-    match_distance_m: float = 1.5
-    register_seeds: bool = True  # move the seeds by their measured offset from the crowns
 
 
 @dataclass
@@ -57,10 +44,27 @@ class GroundTruthResult:
     trees: pd.DataFrame | None
     report: dict
     paths: dict[str, Path]
+    config: GroundTruthConfig | None = None  # None when loaded back from disk
 
 
-def _load_work_images(flight: Flight, cameras: list[PosedCamera], max_size: int
-                      ) -> tuple[list[PosedCamera], list[np.ndarray]]:
+# The settings of SfM, surface and orthomosaic: a result reused (``process_flight(reuse=)``)
+# must have been made with the same, or the new values would do nothing.
+RECONSTRUCTION_KEYS = ("max_image_size", "work_image_size", "ortho_resolution", "max_canopy_height")
+
+
+def sfm_options(config: GroundTruthConfig) -> SfmOptions:
+    """The structure-from-motion settings of ``config`` (the rest at their defaults)."""
+    return SfmOptions(max_image_size=config.max_image_size)
+
+
+def ortho_resolution(gsd: float, config: GroundTruthConfig) -> float:
+    """Orthomosaic cell size (m): ``config.ortho_resolution``, else the GSD, at least 2 cm."""
+    return config.ortho_resolution or max(round(gsd, 2), 0.02)
+
+
+def load_work_images(flight: Flight, cameras: list[PosedCamera], max_size: int
+                     ) -> tuple[list[PosedCamera], list[np.ndarray]]:
+    """The photos downscaled to ``max_size`` px on their longest side, with their cameras."""
     from PIL import Image
 
     width, height = flight.size
@@ -93,21 +97,22 @@ def _survey_grid(model: SparseModel, resolution: float) -> Grid:
     return Grid.covering(lo - pad, hi + pad, resolution)
 
 
-def _reconstruct(flight: Flight, out: Path, frame: LocalFrame, opts: GroundTruthOptions,
+def _reconstruct(flight: Flight, out: Path, frame: LocalFrame, opts: GroundTruthConfig,
                  report: Progress, timings: dict[str, float]
                  ) -> tuple[SparseModel, SurfaceModel, Orthomosaic, float, float, float]:
     """SfM, surface models and orthomosaic of a flight."""
     t0 = time.perf_counter()
-    model = run_sfm(flight, out / "sfm", frame, opts.sfm, report)
+    model = run_sfm(flight, out / "sfm", frame, sfm_options(opts), report)
     timings["sfm"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     names = sorted(model.cameras)
-    cameras, rgbs = _load_work_images(flight, [model.cameras[n] for n in names], opts.work_image_size)
+    cameras, rgbs = load_work_images(flight, [model.cameras[n] for n in names],
+                                     opts.work_image_size)
     heights = np.array([c.center[2] for c in cameras]) - np.median(model.points[:, 2])
     gsd = float(np.median(heights) / np.median([c.focal for c in cameras]))
-    ortho_res = opts.ortho_resolution or max(round(gsd, 2), 0.02)
-    surface_opts = opts.surface
+    ortho_res = ortho_resolution(gsd, opts)
+    surface_opts = SurfaceOptions()
     grid = _survey_grid(model, max(surface_opts.resolution, 2 * ortho_res))
     points = reliable_points(model.points, model.track_lengths, model.point_errors)
     ground = ground_model(points, grid, surface_opts.ground_window_m, surface_opts.ground_resolution)
@@ -129,17 +134,18 @@ def _reconstruct(flight: Flight, out: Path, frame: LocalFrame, opts: GroundTruth
 
 def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFrame | None = None,
                    seeds: str | Path | pd.DataFrame | None = None, progress: Progress | None = None,
-                   options: GroundTruthOptions | None = None,
+                   config: GroundTruthConfig | None = None,
                    reuse: GroundTruthResult | None = None) -> GroundTruthResult:
     """Drone photos → georeferenced orthomosaic, DSM/DTM/CHM, crowns and (with seeds) per-tree table.
 
     ``frame`` is the local metric frame of the LiDAR map (default: UTM at the flight);
     ``seeds`` are tree positions (CSV path or table with lat/lon or x/y) that seed the
     crown watershed and receive one matched crown each. ``reuse``, an earlier result for
-    the same photos and frame, skips SfM, surface and orthomosaic (other seeds or crown
-    options only).
+    the same photos and frame, skips SfM, surface and orthomosaic (other seeds or crown and
+    matching settings only). ``config`` is the ``[ground_truth]`` table of a preset
+    (default: its defaults); it is written next to the results as ``ground_truth_config.json``.
     """
-    opts = options or GroundTruthOptions()
+    opts = config or GroundTruthConfig()
     report = progress or (lambda *_: None)
     out = Path(out_dir)
     timings: dict[str, float] = {}
@@ -155,6 +161,13 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
                 n for n in flight.names if n not in reuse.model.unregistered):
             raise ProcessingError(f"{images_dir}: the result to reuse comes from other photos or "
                                   "another frame")
+        made_with = reuse.config or GroundTruthConfig()
+        changed = [k for k in RECONSTRUCTION_KEYS if getattr(made_with, k) != getattr(opts, k)]
+        if changed:
+            key = changed[0]
+            raise ProcessingError(f"ground_truth.{key}: the result to reuse was made with "
+                                  f"{getattr(made_with, key)!r}, not {getattr(opts, key)!r}; "
+                                  "process the photos again")
         model, surface, mosaic = reuse.model, reuse.surface, reuse.ortho
         timings.update({k: v for k, v in reuse.report["timings_s"].items()
                         if k in ("sfm", "surface", "orthomosaic")})
@@ -190,11 +203,12 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     if offset is not None:
         summary["seed_offset"] = offset
     paths = _write_outputs(out, frame, model, surface, mosaic, seg, crowns, matched, summary, opts)
-    return GroundTruthResult(out, frame, model, surface, mosaic, seg, crowns, matched, summary, paths)
+    return GroundTruthResult(out, frame, model, surface, mosaic, seg, crowns, matched, summary,
+                             paths, opts)
 
 
 def crowns_stage(mosaic: Orthomosaic, surface: SurfaceModel, trees: pd.DataFrame | None,
-                 frame: LocalFrame, opts: GroundTruthOptions
+                 frame: LocalFrame, opts: GroundTruthConfig
                  ) -> tuple[CrownSegmentation, pd.DataFrame, pd.DataFrame | None, dict | None]:
     """Crowns on the orthomosaic, measured and (with ``trees``) matched to the trees.
 
@@ -209,7 +223,7 @@ def crowns_stage(mosaic: Orthomosaic, surface: SurfaceModel, trees: pd.DataFrame
     seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if trees is not None else None
     offset = None
     for attempt in range(2):
-        seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy, opts.crowns)
+        seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy)
         crowns = measure_crowns(seg, chm)
         lat, lon, _ = frame.to_wgs84(crowns[["x", "y"]].to_numpy()) if len(crowns) else ([], [], [])
         crowns.insert(3, "lat", lat)
@@ -254,7 +268,7 @@ def table_csv(table: pd.DataFrame) -> str:
 def _write_outputs(out: Path, frame: LocalFrame, model: SparseModel, surface: SurfaceModel,
                    mosaic: Orthomosaic,
                    seg: CrownSegmentation, crowns: pd.DataFrame, trees: pd.DataFrame | None,
-                   summary: dict, opts: GroundTruthOptions) -> dict[str, Path]:
+                   summary: dict, opts: GroundTruthConfig) -> dict[str, Path]:
     from ground_truth.plots import overlay_crowns_rgb
 
     paths = {

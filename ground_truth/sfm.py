@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from canopy_kit.config import GroundTruthConfig
 from canopy_kit.errors import ProcessingError
 from canopy_kit.extras import needs_extra
 from canopy_kit.geo import LocalFrame
@@ -35,7 +36,7 @@ Progress = Callable[[str, float, float], None]
 class SfmOptions:
     """Structure-from-motion settings (pycolmap names where they map one to one)."""
 
-    max_image_size: int = 1600
+    max_image_size: int = GroundTruthConfig.max_image_size  # the default is the config's
     max_num_features: int = 8192
     first_octave: int = 0
     matching: str = "auto"  # auto | exhaustive | spatial | sequential

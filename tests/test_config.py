@@ -106,6 +106,28 @@ def test_overrides_merge_into_a_preset() -> None:
         load_preset("almond", overrides={"colour": "red"})
 
 
+def test_another_method_starts_from_its_own_defaults() -> None:
+    """The preset's segment.params belong to its method: overriding the method (``segment
+    --method``) drops them in the loader; params given with it are that method's."""
+    other = load_preset("almond", overrides={"segment": {"method": "adaptive"}})
+    assert other.segment.method == "adaptive" and other.segment.params == {}
+    same = load_preset("almond", overrides={"segment": {"method": "dbscan_spectral"}})
+    assert same.segment.params == load_preset("almond").segment.params
+    given = load_preset("almond", overrides={"segment": {"method": "dbscan",
+                                                         "params": {"eps": 0.5}}})
+    assert given.segment.params == {"eps": 0.5}
+
+
+def test_segment_cli_builds_its_config_through_the_loader() -> None:
+    """``canopy-kit segment`` edits no config after loading it."""
+    import inspect
+    import re
+
+    from canopy_kit.cli import segment
+
+    assert not re.search(r"\bconfig(\.\w+)+\s*=[^=]", inspect.getsource(segment))
+
+
 @pytest.mark.parametrize("name", ["pistachio", "almond"])
 def test_write_config_round_trip(tmp_path: Path, name: str) -> None:
     config = load_preset(name, overrides={"mapping": {"pointcloud_topic": "/ouster/points"}})

@@ -268,7 +268,8 @@ def test_seed_offset_is_measured_and_the_seeds_registered():
     seed offset, moves the seeds by it and delineates again; the crowns stay where they are."""
     from ground_truth.dsm import SurfaceModel
     from ground_truth.ortho import Orthomosaic
-    from ground_truth.pipeline import GroundTruthOptions, crowns_stage
+    from canopy_kit.config import GroundTruthConfig
+    from ground_truth.pipeline import crowns_stage
 
     grid, rgb, chm, crowns = _synthetic_orchard()
     rgba = np.dstack([rgb, np.full(grid.shape, 255, np.uint8)])
@@ -282,7 +283,7 @@ def test_seed_offset_is_measured_and_the_seeds_registered():
                                          "y": truth[:, 1] + gnss_error[1]}), None)
     for register in (False, True):
         seg, _, matched, offset = crowns_stage(mosaic, surface, trees, frame,
-                                               GroundTruthOptions(register_seeds=register))
+                                               GroundTruthConfig(register_seeds=register))
         assert matched["matched"].all() and offset["pairs"] == 4
         assert [offset["east_m"], offset["north_m"]] == pytest.approx(-gnss_error, abs=0.05)
         assert offset["significant"] and offset["seeds_shifted"] == register
@@ -294,5 +295,5 @@ def test_seed_offset_is_measured_and_the_seeds_registered():
             assert seg.markers == pytest.approx(truth, abs=0.15)  # seeds moved onto the crowns
             assert [offset["east_after_m"], offset["north_after_m"]] == pytest.approx(-gnss_error, abs=0.05)
     exact = tree_positions(pd.DataFrame({"x": truth[:, 0], "y": truth[:, 1]}), None)
-    _, _, _, offset = crowns_stage(mosaic, surface, exact, frame, GroundTruthOptions())
+    _, _, _, offset = crowns_stage(mosaic, surface, exact, frame, GroundTruthConfig())
     assert not offset["significant"] and not offset["seeds_shifted"]

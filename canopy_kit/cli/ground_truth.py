@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from canopy_kit.cli.common import preset_help
+
 
 def ground_truth(
     images_dir: Path = typer.Argument(..., help="Folder of geotagged drone JPEGs"),
@@ -15,17 +17,21 @@ def ground_truth(
     frame: Path = typer.Option(None, "--frame",
                                help="frame.json of the LiDAR map or simulated session (local frame "
                                     "and CRS); default: UTM at the flight"),
-    work_size: int = typer.Option(2000, "--work-size",
-                                  help="Longest image side (px) for the surface and mosaic"),
+    preset: str = typer.Option("adaptive", help=preset_help(": its [ground_truth] table is used")),
+    set_: list[str] = typer.Option([], "--set", help="Override a setting: ground_truth.key=value"),
+    work_size: int = typer.Option(None, "--work-size",
+                                  help="Longest image side (px) for the surface and mosaic "
+                                       "(ground_truth.work_image_size)"),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON"),
 ) -> None:
     """Structure from motion, orthomosaic, DSM/CHM and crown diameters from drone photos."""
     import json
 
-    from canopy_kit.cli.common import console, print_json, progress_bar
-    from canopy_kit.errors import InputError
+    from canopy_kit.cli.common import console, parse_overrides, print_json, progress_bar
+    from canopy_kit.config import load_preset
+    from canopy_kit.errors import ConfigError, InputError
     from canopy_kit.geo import LocalFrame
-    from ground_truth.pipeline import GroundTruthOptions, process_flight
+    from ground_truth.pipeline import process_flight
 
     local = None
     if frame is not None:
@@ -34,10 +40,16 @@ def ground_truth(
         except (OSError, ValueError) as exc:
             raise InputError(f"{frame}: not a readable frame JSON ({exc})") from None
         local = LocalFrame.from_dict(data.get("frame", data) if isinstance(data, dict) else {})
-    options = GroundTruthOptions(work_image_size=work_size)
+    overrides = parse_overrides(set_)
+    other = sorted(set(overrides) - {"ground_truth"})
+    if other:  # the other sections do nothing here
+        raise ConfigError(f"--set {other[0]}...: ground-truth takes only ground_truth.key=value")
+    if work_size is not None:
+        overrides.setdefault("ground_truth", {})["work_image_size"] = work_size
+    config = load_preset(preset, overrides).ground_truth
     with progress_bar(transient=True) as progress:
         result = process_flight(images_dir, out, frame=local, seeds=seeds, progress=progress,
-                                options=options)
+                                config=config)
     if json_out:
         print_json(result.report)
         return

@@ -35,13 +35,9 @@ def segment(
     from canopy_kit.segment.verb import segment as run_segment
 
     overrides = parse_overrides(set_)
-    if method:
+    if method:  # another method than the preset's starts from its own defaults (apply_overrides)
         overrides.setdefault("segment", {})["method"] = method
-        if "params" not in overrides["segment"]:
-            overrides["segment"]["params"] = {}
     config = load_preset(preset, overrides)
-    if method and not overrides["segment"]["params"]:
-        config.segment.params = {}  # the preset's parameters belong to its own method
     cloud = read_cloud(map_path)
     direction, source = None, None
     if trajectory is not None:

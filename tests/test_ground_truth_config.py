@@ -1,0 +1,286 @@
+"""Every ``[ground_truth]`` key acts: changed, it changes what the drone pipeline produces.
+
+The keys come from the dataclass (:class:`canopy_kit.config.GroundTruthConfig`): a new key
+without a case in ``CASES`` fails ``test_every_key_has_a_case``. Each case runs the cheap part
+of the pipeline the key steers (feature extraction on a tiny simulated flight, the crowns
+stage and the matching on a synthetic orchard, the surface search on two synthetic photos)
+with the default and with a changed value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.config import GroundTruthConfig, PipelineConfig, load_preset
+from canopy_kit.errors import ConfigError, ProcessingError
+from canopy_kit.geo import LocalFrame
+
+NADIR = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # camera x east, y south, z down
+FIELDS = [f.name for f in dataclasses.fields(GroundTruthConfig)]
+
+
+@pytest.fixture(scope="module")
+def flight_dir(tmp_path_factory) -> Path:
+    """A 1 x 2 pistachio flight of 400 x 300 px photos (about 4 s to simulate)."""
+    from canopy_kit.sim import load_sim_config
+    from canopy_kit.sim.drone import simulate_drone_session
+
+    root = tmp_path_factory.mktemp("gt_config")
+    cfg = load_sim_config("pistachio", {"seed": 4, "orchard": {"rows": 1, "trees_per_row": 2},
+                                        "drone": {"enabled": True, "image_width": 400,
+                                                  "image_height": 300}})
+    simulate_drone_session(root / "sim", cfg)
+    return root / "sim" / "drone"
+
+
+# -- what each key steers, measured --------------------------------------------------------
+def _keypoints(config: GroundTruthConfig, flight_dir: Path, tmp_path: Path) -> float:
+    """SIFT keypoints pycolmap extracts from the flight (the pipeline's SfM settings)."""
+    from ground_truth.exif import read_flight
+    from ground_truth.pipeline import sfm_options
+    from ground_truth.sfm import _extract, _quiet_colmap
+
+    flight = read_flight(flight_dir)
+    database = tmp_path / f"db_{config.max_image_size}.db"
+    pycolmap, previous = _quiet_colmap()
+    try:
+        opts = dataclasses.replace(sfm_options(config), num_threads=1)
+        _extract(pycolmap, flight, database, opts)
+        db = pycolmap.Database.open(str(database))
+        try:
+            return float(db.num_keypoints())
+        finally:
+            db.close()
+    finally:
+        pycolmap.logging.minloglevel = previous
+
+
+def _work_pixels(config: GroundTruthConfig, flight_dir: Path, tmp_path: Path) -> float:
+    """Pixels of the photos the surface and the mosaic are made from."""
+    from ground_truth.camera import camera_from_pose
+    from ground_truth.exif import read_flight
+    from ground_truth.pipeline import load_work_images
+
+    flight = read_flight(flight_dir)
+    w, h = flight.size
+    cams = [camera_from_pose(n, "SIMPLE_PINHOLE", (300.0, w / 2, h / 2), w, h,
+                             np.array([0.0, 0.0, 30.0]), NADIR) for n in flight.names[:2]]
+    scaled, rgbs = load_work_images(flight, cams, config.work_image_size)
+    assert [c.width for c in scaled] == [rgb.shape[1] for rgb in rgbs]
+    return float(sum(rgb.shape[0] * rgb.shape[1] for rgb in rgbs))
+
+
+def _two_photos_of_a_block():
+    """Two nadir photos (30 m up) of textured ground with a 3 m block, as in test_ground_truth_units."""
+    from canopy_kit.sim.drone_render import PinholeView, fbm2
+    from ground_truth.camera import camera_from_pose
+
+    cams, images = [], []
+    for k, cx in enumerate((-4.0, 4.0)):
+        view = PinholeView(np.array([cx, 0.0, 30.0]), NADIR, 400.0, 300, 300)
+        d = view.ray_directions().reshape(-1, 3)
+        t_top = (3.0 - 30.0) / d[:, 2]
+        p = view.position + d * t_top[:, None]
+        on_block = (np.abs(p[:, 0]) < 3) & (np.abs(p[:, 1]) < 3)
+        t = np.where(on_block, t_top, (0.0 - 30.0) / d[:, 2])
+        p = view.position + d * t[:, None]
+        images.append(fbm2(p[:, 0], p[:, 1], 0.6, 3, 5).reshape(300, 300).astype(np.float32))
+        cams.append(camera_from_pose(f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300,
+                                     view.position, NADIR))
+    return cams, images
+
+
+def _canopy_search_height(config: GroundTruthConfig, *_) -> float:
+    """The height above ground the fine surface matching searches up to."""
+    from ground_truth.dsm import SurfaceOptions, canopy_top
+    from ground_truth.raster import Grid
+
+    cams, images = _two_photos_of_a_block()
+    grid = Grid(-6.0, 6.0, 0.1, 120, 120)
+    return canopy_top(cams, images, grid, np.zeros(grid.shape), config.max_canopy_height,
+                      SurfaceOptions())
+
+
+def _mosaic_pixels(config: GroundTruthConfig, *_) -> float:
+    """Cells of the orthomosaic of the two synthetic photos (resolution from the config)."""
+    from ground_truth.ortho import orthomosaic
+    from ground_truth.pipeline import ortho_resolution
+    from ground_truth.raster import Grid
+
+    cams, images = _two_photos_of_a_block()
+    rgbs = [np.repeat((255 * np.clip(g, 0, 1)).astype(np.uint8)[..., None], 3, axis=2)
+            for g in images]
+    grid = Grid(-6.0, 6.0, 0.1, 120, 120)
+    gsd = 30.0 / cams[0].focal
+    mosaic = orthomosaic(cams, rgbs, grid, np.zeros(grid.shape), ortho_resolution(gsd, config))
+    return float(mosaic.grid.rows * mosaic.grid.cols)
+
+
+def _orchard_with_offset_seeds():
+    """The synthetic orchard of test_ground_truth_units, seeds 0.54 m off their crowns."""
+    from ground_truth.dsm import SurfaceModel
+    from ground_truth.match import tree_positions
+    from ground_truth.ortho import Orthomosaic
+    from tests.test_ground_truth_units import _synthetic_orchard
+
+    grid, rgb, chm, crowns = _synthetic_orchard()
+    rgba = np.dstack([rgb, np.full(grid.shape, 255, np.uint8)])
+    mosaic = Orthomosaic(grid, rgba, np.zeros(grid.shape, np.int32), ["a"])
+    surface = SurfaceModel(grid, chm, np.zeros(grid.shape), np.ones(grid.shape),
+                           np.zeros(grid.shape + (0,), int), [])
+    truth = np.array([(cx, cy) for cx, cy, _, _ in crowns])
+    trees = tree_positions(pd.DataFrame({"tree_id": list("abcd"), "x": truth[:, 0] + 0.45,
+                                         "y": truth[:, 1] - 0.3}), None)
+    return mosaic, surface, trees, truth
+
+
+def _crowns_stage(config: GroundTruthConfig):
+    from ground_truth.pipeline import crowns_stage
+
+    mosaic, surface, trees, truth = _orchard_with_offset_seeds()
+    seg, _, matched, _ = crowns_stage(mosaic, surface, trees, LocalFrame.at(37.281, -120.42, 50.0),
+                                      config)
+    return seg, matched, truth
+
+
+def _matched_trees(config: GroundTruthConfig, *_) -> float:
+    """Trees given a crown by the crowns stage."""
+    _, matched, _ = _crowns_stage(config)
+    return float(matched["matched"].sum())
+
+
+def _seed_error(config: GroundTruthConfig, *_) -> float:
+    """Mean distance of the watershed's seed markers from the true crown centres."""
+    seg, _, truth = _crowns_stage(config)
+    return float(np.linalg.norm(seg.markers - truth, axis=1).mean())
+
+
+def _flagged_crowns(config: GroundTruthConfig, *_) -> float:
+    """Aerial crowns flagged as fragments or merges in the per-tree table."""
+    from canopy_kit.pipeline import join_aerial
+
+    d = np.array([2.0, 2.6, 3.2, 4.0, 4.8, 5.6, 6.4, 8.0])
+    aerial = SimpleNamespace(trees=pd.DataFrame({
+        "segment": np.arange(len(d)), "matched": True, "aerial_diameter_max_m": d,
+        "aerial_diameter_mean_m": d, "aerial_sphere_volume_m3": np.pi * d**3 / 6,
+        "aerial_ellipsoid_volume_m3": np.nan, "aerial_chm_volume_m3": np.nan,
+        "aerial_height_m": 4.0, "aerial_distance_m": 0.2}))
+    lidar = pd.DataFrame({"segment": np.arange(len(d)), "crown_diameter_m": 4.0,
+                          "volume_alpha_m3": 20.0})
+    return float((join_aerial(lidar, aerial, config)["aerial_flag"] != "").sum())
+
+
+Measure = Callable[[GroundTruthConfig, Path, Path], float]
+# key -> (changed value, what it changes, expected sign of changed minus default: -1, +1, 0 any)
+CASES: dict[str, tuple[object, Measure, int]] = {
+    "max_image_size": (128, _keypoints, -1),
+    "work_image_size": (200, _work_pixels, -1),
+    "ortho_resolution": (0.2, _mosaic_pixels, -1),
+    "max_canopy_height": (2.5, _canopy_search_height, -1),
+    "match_distance_m": (0.3, _matched_trees, -1),
+    "register_seeds": (False, _seed_error, +1),
+    "min_diameter_ratio": (0.9, _flagged_crowns, +1),
+    "max_diameter_ratio": (1.1, _flagged_crowns, +1),
+}
+
+
+def test_every_key_has_a_case() -> None:
+    assert sorted(CASES) == sorted(FIELDS), "a [ground_truth] key needs a case in CASES"
+
+
+@pytest.mark.parametrize("key", FIELDS)
+def test_changing_the_key_changes_the_result(key: str, flight_dir: Path, tmp_path: Path) -> None:
+    value, measure, sign = CASES[key]
+    default = GroundTruthConfig()
+    changed = dataclasses.replace(default, **{key: value})
+    before, after = measure(default, flight_dir, tmp_path), measure(changed, flight_dir, tmp_path)
+    assert after != before, f"ground_truth.{key} = {value!r} changed nothing ({before})"
+    if sign:
+        assert np.sign(after - before) == sign, (key, before, after)
+
+
+@pytest.mark.parametrize("key", FIELDS)
+def test_a_preset_sets_the_key(key: str, tmp_path: Path) -> None:
+    """Each key can be set from a preset file's [ground_truth] table."""
+    import tomlkit
+
+    value = CASES[key][0]
+    path = tmp_path / "p.toml"
+    path.write_text(tomlkit.dumps({"name": "p", "ground_truth": {key: value}}))
+    config = load_preset(path)
+    assert getattr(config.ground_truth, key) == value
+    assert getattr(load_preset(path.as_posix(), {"ground_truth": {key: value}}).ground_truth,
+                   key) == value
+
+
+def test_an_unknown_key_fails_naming_it(tmp_path: Path) -> None:
+    path = tmp_path / "old.toml"
+    path.write_text('name = "old"\n[ground_truth]\nmatch_distance_m = 1.0\nmax_image_sise = 800\n')
+    with pytest.raises(ConfigError, match=r"ground_truth.*'max_image_sise'"):
+        load_preset(path)
+
+
+@pytest.mark.parametrize("table", [{"max_image_size": 10}, {"work_image_size": 0},
+                                   {"match_distance_m": 0.0}, {"max_canopy_height": -1.0},
+                                   {"ortho_resolution": 0.0}])
+def test_impossible_values_are_named(table: dict) -> None:
+    from canopy_kit.config import from_dict
+
+    with pytest.raises(ConfigError, match=f"ground_truth.{next(iter(table))}"):
+        from_dict(PipelineConfig, {"ground_truth": table})
+
+
+def test_process_flight_hands_the_config_to_sfm(flight_dir: Path, tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The config given to ``process_flight`` reaches pycolmap's feature extraction."""
+    import ground_truth.pipeline as gp
+
+    seen = {}
+
+    def fake_sfm(flight, work, frame, options, report):  # noqa: ANN001, ANN202
+        seen["max_image_size"] = options.max_image_size
+        raise ProcessingError("stop after SfM")
+
+    monkeypatch.setattr(gp, "run_sfm", fake_sfm)
+    with pytest.raises(ProcessingError, match="stop after SfM"):
+        gp.process_flight(flight_dir, tmp_path / "out", config=GroundTruthConfig(max_image_size=640))
+    assert seen == {"max_image_size": 640}
+
+
+def test_reuse_refuses_other_reconstruction_settings(flight_dir: Path, tmp_path: Path) -> None:
+    """A reused reconstruction cannot honour new SfM, surface or mosaic settings: an error."""
+    from ground_truth.exif import read_flight
+    from ground_truth.pipeline import process_flight
+
+    flight = read_flight(flight_dir)
+    frame = flight.default_frame()
+    model = SimpleNamespace(cameras={n: None for n in flight.names}, unregistered=[])
+    reuse = SimpleNamespace(model=model, frame=frame, config=GroundTruthConfig())
+    with pytest.raises(ProcessingError, match="ground_truth.work_image_size"):
+        process_flight(flight_dir, tmp_path / "out", config=GroundTruthConfig(work_image_size=500),
+                       reuse=reuse)
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--set", "ground_truth.match_distanse_m=1.0"], "'match_distanse_m'"),
+    (["--set", "volume.voxel_size=0.2"], "ground_truth.key=value"),
+    (["--work-size", "10"], "ground_truth.work_image_size"),
+])
+def test_ground_truth_cli_settings_are_checked_before_any_work(args: list[str], fragment: str,
+                                                               tmp_path: Path) -> None:
+    """``canopy-kit ground-truth`` builds its [ground_truth] config with the preset loader."""
+    from typer.testing import CliRunner
+
+    from canopy_kit.cli import app
+
+    res = CliRunner().invoke(app, ["ground-truth", str(tmp_path / "photos"), "--out",
+                                   str(tmp_path / "out"), *args])
+    assert isinstance(res.exception, ConfigError) and fragment in str(res.exception), res.output
+    assert not (tmp_path / "out").exists()
