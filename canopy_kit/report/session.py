@@ -56,6 +56,11 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     figs.append(("Canopy volume per tree by method (aerial spheres of flagged crowns left out).",
                  figure_to_data_uri(plots.plot_volumes(shown, volume_columns))))
     sections.append(ReportSection("Map and trees", figs))
+    from canopy_kit.report.volumes import accuracy_section
+
+    volume_cfg = ctx.config.volume
+    sections.append(accuracy_section(volume_cfg.recommended,
+                                     volume_cfg.params.get(volume_cfg.recommended, {})))
     mapping_eval = metrics.get("evaluation", {}).get("mapping")
     if mapping_eval and ctx.truth_dir is not None:
         from canopy_kit.mapping.plots import mapping_figures
@@ -123,7 +128,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         "median alpha volume": format_value(float(trees["volume_alpha_m3"].median()) if len(trees) and "volume_alpha_m3" in trees else None, " m³", 1),
         "CRS": cloud.crs or "none",
     }
-    table = trees[[c for c in TABLE_COLUMNS if c in trees]]
+    table = trees[[c for c in table_columns(volume_cfg.recommended) if c in trees]]
     provenance = dict(metrics.get("provenance") or {})
     from canopy_kit.report.explorer import explorer_data, row_summary
 
@@ -134,6 +139,17 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                          subtitle=subtitle, provenance=provenance,
                          explorer=explorer_data(ctx, trees, downloads),
                          row_table=row_table(row_summary(trees)))
+
+
+def table_columns(recommended: str) -> list[str]:
+    """The per-tree table's columns: ``TABLE_COLUMNS`` with the recommended estimator's volume
+    and interval after the paper's alpha-shape volume."""
+    from canopy_kit.trees import volume_column
+
+    extra = [volume_column(recommended), "volume_low_m3", "volume_high_m3"]
+    cols = [c for c in TABLE_COLUMNS if c not in extra]
+    at = cols.index("volume_alpha_m3") + 1
+    return cols[:at] + list(dict.fromkeys(extra)) + cols[at:]
 
 
 def report_title(provenance: dict[str, Any], preset: str) -> tuple[str, str]:

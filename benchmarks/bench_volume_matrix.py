@@ -1,0 +1,146 @@
+"""Volume accuracy matrix: estimator × crown form × sensor × scan side, on trees the pipeline
+segmented (issue 25).
+
+Per sensor model and crown form, simulates a 2-row × 4-tree pistachio session on held-out
+seeds (never used to tune anything; cached under ``--cache``), builds the map with the true
+poses (odometry error left out: docs/MAPPING.md measures it), segments it with the
+``adaptive`` preset's segmenter exactly as ``canopy-kit run`` does, matches segments to the
+simulator's trees (IoU ≥ 0.5 of the points) and measures every matched tree with the
+volume stage of the pipeline (the same code and settings as trees.csv):
+
+- ``both``: the tree's segment as the pipeline cut it (the crown seen from both alleys);
+- ``one-sided``: the same segment keeping only the points seen while the sensor was in the
+  alley on one side of the row (each side counted once).
+
+Signed bias, MAPE and p90 of |error| against the simulator's exact envelope volume, and
+how often the recommended estimator's interval holds the truth, per cell and overall.
+
+    .venv/bin/python benchmarks/bench_volume_matrix.py [--sensors vlp16 os1-128] [--forms lobed]
+        [--seeds 431] [--csv out/volume_matrix.csv]
+
+The summary is what docs/VOLUMES.md "Accuracy matrix" quotes and what the report states as
+the recommended estimator's measured bias (canopy_kit/volume/data/accuracy.csv).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+SENSORS = ["vlp16", "hdl32", "os1-64", "os1-128"]
+FORMS = ["ellipsoid", "lobed", "vase", "hedged", "sparse"]
+HELD_OUT_SEEDS = [431]
+ESTIMATORS = ["convex_hull", "alpha_shape", "adaptive_alpha"]
+RECOMMENDED = "adaptive_alpha"  # the adaptive preset's [volume] recommended
+
+
+def session(cache: Path, sensor: str, form: str, seed: int) -> Path:
+    """A simulated session (cached): 2 rows × 4 trees, no IMU/GNSS (true poses map it)."""
+    from canopy_kit.sim import load_sim_config, simulate_session
+
+    root = cache / f"{sensor}_{form}_s{seed}"
+    if not (root / "truth").exists():
+        overrides = {"seed": seed, "orchard": {"rows": 2, "trees_per_row": 4, "crown_form": form},
+                     "imu": {"enabled": False}, "gnss": {"enabled": False}}
+        print(f"simulating {root.name} ...", file=sys.stderr, flush=True)
+        simulate_session(root, load_sim_config("pistachio", overrides, sensor=sensor), fmt="ros1",
+                         overwrite=True)
+    return root
+
+
+def evaluate_session(root: Path, sensor: str, form: str, seed: int) -> pd.DataFrame:
+    """One row per matched tree, scan (both, left, right) and method, plus interval rows."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.volume.evaluate import segmented_volume_errors
+
+    t0 = time.perf_counter()
+    errors, score = segmented_volume_errors(root, load_preset("adaptive"), ESTIMATORS)
+    print(f"  {root.name}: {score.n_correct}/{score.n_truth} trees segmented one-to-one, "
+          f"{time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    errors = errors.assign(sensor=sensor, form=form, seed=seed)
+    errors.attrs["segmented"] = (score.n_correct, score.n_truth)
+    return errors
+
+
+def summarise(errors: pd.DataFrame, by: list[str]) -> pd.DataFrame:
+    """Signed bias, MAPE, p90 |error| per group and method; interval coverage per group."""
+    scan = np.where(errors["scan"] == "both", "both", "one-sided")
+    df = errors.assign(scan=scan)
+    est = df[df["method"] != "interval"].assign(abs_error=lambda d: d["error"].abs())
+    table = est.groupby([*by, "method"], sort=False).agg(
+        n=("error", "size"), bias=("error", "mean"), mape=("abs_error", "mean"),
+        p90=("abs_error", lambda a: float(np.quantile(a, 0.9)))).reset_index()
+    cover = df[df["method"] == "interval"].groupby(by, sort=False)["covered"].mean()
+    table = table.join(cover.rename("interval_covers"), on=by)
+    # the interval columns bound the preset's recommended estimator only
+    table.loc[table["method"] != RECOMMENDED, "interval_covers"] = np.nan
+    return table
+
+
+def write_summary(errors: pd.DataFrame, path: Path) -> None:
+    """The accuracy table the report quotes: per scan over every form (``all``), over the
+    forms whose foliage outlines the envelope (``dense``: all but ``sparse``), and per form."""
+    overall = summarise(errors, ["scan"]).assign(form="all")
+    dense = summarise(errors[errors["form"] != "sparse"], ["scan"]).assign(form="dense")
+    table = pd.concat([overall, dense, summarise(errors, ["scan", "form"])], ignore_index=True)
+    table["sensors"] = " ".join(sorted(errors["sensor"].unique()))
+    table["seeds"] = " ".join(str(s) for s in sorted(errors["seed"].unique()))
+    columns = ["scan", "form", "method", "n", "bias", "mape", "p90", "interval_covers",
+               "sensors", "seeds"]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    table[columns].to_csv(path, index=False, float_format="%.4f")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sensors", nargs="+", default=SENSORS)
+    parser.add_argument("--forms", nargs="+", default=FORMS)
+    parser.add_argument("--seeds", nargs="+", type=int, default=HELD_OUT_SEEDS)
+    parser.add_argument("--cache", type=Path, default=Path("out/bench_volume_matrix"))
+    parser.add_argument("--csv", type=Path, default=None, help="write every tree's row here")
+    parser.add_argument("--summary", type=Path, default=None,
+                        help="write the per-scan and per-form summary the report quotes here "
+                             "(canopy_kit/volume/data/accuracy.csv)")
+    parser.add_argument("--from-csv", type=Path, default=None,
+                        help="summarise the rows a previous run wrote with --csv (no simulation)")
+    args = parser.parse_args()
+    if args.from_csv:
+        errors = pd.read_csv(args.from_csv)
+        print(f"rows of {args.from_csv}")
+        _report(errors, args)
+        return
+    parts = []
+    segmented = [0, 0]
+    for sensor in args.sensors:
+        for form in args.forms:
+            for seed in args.seeds:
+                part = evaluate_session(session(args.cache, sensor, form, seed), sensor, form,
+                                        seed)
+                segmented = [a + b for a, b in zip(segmented, part.attrs["segmented"], strict=True)]
+                parts.append(part)
+    errors = pd.concat(parts, ignore_index=True)
+    if args.csv:
+        args.csv.parent.mkdir(parents=True, exist_ok=True)
+        errors.to_csv(args.csv, index=False)
+    print(f"trees segmented correctly: {segmented[0]}/{segmented[1]} (adaptive preset, IoU ≥ 0.5)")
+    _report(errors, args)
+
+
+def _report(errors: pd.DataFrame, args: argparse.Namespace) -> None:
+    if args.summary:
+        write_summary(errors, args.summary)
+    pd.set_option("display.width", 200)
+    pct = {"bias": "{:+.1%}".format, "mape": "{:.1%}".format, "p90": "{:.1%}".format,
+           "interval_covers": "{:.0%}".format}
+    for by in (["scan"], ["scan", "form"], ["scan", "sensor"]):
+        print(f"\nby {' × '.join(by)}:")
+        print(summarise(errors, by).to_string(index=False, formatters=pct))
+
+
+if __name__ == "__main__":
+    main()

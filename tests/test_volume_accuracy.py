@@ -1,0 +1,98 @@
+"""The volume accuracy matrix: the shipped table the report quotes, the report's statement,
+and the recommended estimator on trees the pipeline segments, per crown form (issue 25)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.volume.accuracy import accuracy_table, measured_accuracy
+
+MATRIX_METHODS = ["convex_hull", "alpha_shape", "adaptive_alpha"]
+
+
+def test_the_shipped_table_covers_every_form_scan_and_estimator() -> None:
+    from canopy_kit.sim.crown_forms import FORM_NAMES
+
+    table = accuracy_table()
+    for form in ("all", "dense", *FORM_NAMES):
+        for scan in ("both", "one-sided"):
+            for method in MATRIX_METHODS:
+                hit = table[(table.form == form) & (table.scan == scan) & (table.method == method)]
+                assert len(hit) == 1, (form, scan, method)
+                r = hit.iloc[0]
+                assert r.n > 0 and 0 <= r.mape <= r.p90 + 1e-9 and abs(r.bias) <= r.mape + 1e-9
+    # per form rows add up to the overall row: the same trees, split by form
+    both = table[(table.scan == "both") & (table.method == "adaptive_alpha")].set_index("form")
+    assert both.loc[list(FORM_NAMES), "n"].sum() == both.loc["all", "n"]
+    weighted = (both.loc[list(FORM_NAMES), "bias"] * both.loc[list(FORM_NAMES), "n"]).sum()
+    assert weighted / both.loc["all", "n"] == pytest.approx(both.loc["all", "bias"], abs=1e-3)
+
+
+def test_the_statement_quotes_the_table() -> None:
+    from canopy_kit.report.volumes import accuracy_section, estimator_text
+
+    text = estimator_text("adaptive_alpha", {})
+    for scan in ("both", "one-sided"):
+        acc = measured_accuracy("adaptive_alpha", scan, form="dense")
+        assert f"{acc.bias:+.1%}" in text and f"{acc.mape:.1%}" in text
+    assert "held-out seeds" in text
+    assert "not measured" in estimator_text("voxel", {})  # never claims a figure it lacks
+    section = accuracy_section("alpha_shape", {"alpha": 0.9})
+    assert "alpha_shape (alpha = 0.9)" in section.text
+    assert list(section.table["estimator"])[:2] == ["alpha_shape (recommended)", "convex_hull"]
+    assert set(section.table["crowns"]) == {"dense (4 forms)", "sparse"}
+
+
+def test_the_report_names_the_estimator_and_shows_its_interval(tiny_pistachio_run) -> None:
+    page = (tiny_pistachio_run.out_dir / "report.html").read_text()
+    plain = re.sub(r"<[^>]+>", " ", page)
+    assert "the recommended estimator of this preset is adaptive_alpha" in plain
+    acc = measured_accuracy("adaptive_alpha", "both", form="dense")
+    assert f"mean signed error {acc.bias:+.1%}" in plain
+    for column in ("volume_adaptive_alpha_m3", "volume_low_m3", "volume_high_m3"):
+        assert f'data-key="{column}"' in page
+    trees = pd.read_csv(tiny_pistachio_run.out_dir / "trees.csv")
+    assert (trees["volume_method"] == "adaptive_alpha").all()
+    assert np.all(trees["volume_low_m3"] <= trees["volume_adaptive_alpha_m3"])
+
+
+MATRIX_SESSION = {"orchard": {"rows": 2, "trees_per_row": 2},
+                  "lidar": {"columns": 512, "rings": 16},
+                  "imu": {"enabled": False}, "gnss": {"enabled": False}}
+
+
+@pytest.mark.slow
+def test_recommended_estimator_on_trees_the_pipeline_segments(sim_factory) -> None:
+    """A 2 × 2 session per crown form on seed 451 (used by no benchmark or tuning), segmented
+    by the adaptive preset and measured by the volume stage: on every dense form the
+    recommended estimator is within |bias| ≤ 5 % and MAPE ≤ 8 % from both sides, and its
+    interval holds the exact envelope volume for ≥ 90 % of all dense-crown scans (both and
+    one-sided); on sparse trees it is far low (the documented failure), and says so."""
+    from canopy_kit.config import load_preset, merge
+    from canopy_kit.sim.crown_forms import FORM_NAMES
+    from canopy_kit.volume.evaluate import segmented_volume_errors
+
+    config = load_preset("adaptive")
+    recommended = config.volume.recommended
+    covered = []
+    for form in FORM_NAMES:
+        session = sim_factory("pistachio", fmt="ros1", seed=451,
+                              overrides=merge(MATRIX_SESSION, {"orchard": {"crown_form": form}}))
+        errors, score = segmented_volume_errors(session.root, config, [recommended])
+        # sparse young trees are the hard case for segmentation too (measured 3 of 4)
+        assert score.n_truth == 4 and score.n_correct >= (3 if form == "sparse" else 4), form
+        mine = errors[errors["method"] == recommended]
+        both = mine[mine["scan"] == "both"]["error"]
+        print(f"{form}: bias {both.mean():+.3f}, MAPE {both.abs().mean():.3f}")
+        intervals = errors[errors["method"] == "interval"]
+        if form == "sparse":
+            assert both.mean() < -0.2  # the documented failure: few leaves, no envelope
+            assert intervals["flags"].str.contains("sparse crown").mean() >= 0.9
+            continue
+        assert abs(both.mean()) <= 0.05 and both.abs().mean() <= 0.08, form
+        covered.extend(intervals["covered"])
+    assert len(covered) == 4 * 4 * 3 and np.mean(covered) >= 0.9
