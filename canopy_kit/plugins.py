@@ -14,7 +14,8 @@ from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
 from canopy_kit.errors import ConfigError, PluginError
-from canopy_kit.params import ParamInfo, check_types, init_parameters, parameters_of, takes_any_keyword
+from canopy_kit.params import (ParamInfo, check_types, init_parameters, parameters_of,
+                               takes_any_keyword)
 
 GROUPS: dict[str, str] = {
     "readers": "canopy_kit.readers",

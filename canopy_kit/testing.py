@@ -50,7 +50,8 @@ class Check:
         try:
             self.func(_instance(estimator))
         except AssertionError as exc:
-            raise AssertionError(f"rule {self.name!r} broken by {_label(estimator)}: {exc}") from exc
+            message = f"rule {self.name!r} broken by {_label(estimator)}: {exc}"
+            raise AssertionError(message) from exc
         except Exception as exc:  # a crash breaks the rule too
             raise AssertionError(f"rule {self.name!r} broken by {_label(estimator)}: raised "
                                  f"{type(exc).__name__}: {exc}") from exc
@@ -132,7 +133,12 @@ def check_init_stores_params(est: Any) -> None:
     """``__init__`` stores each keyword argument unchanged, as is, and nothing else."""
     params = {p: getattr(est, p, None) for p in _param_names(est)}
     sentinels = {p: object() for p in params}
-    built = type(est)(**sentinels)
+    try:
+        built = type(est)(**sentinels)
+    except Exception as exc:
+        raise AssertionError(f"__init__ works on its parameters (placeholder values raised "
+                             f"{type(exc).__name__}: {exc}); store them unchanged and check "
+                             f"them in validate_params") from exc
     for p, sentinel in sentinels.items():
         assert getattr(built, p, None) is sentinel, (
             f"__init__ must store parameter {p!r} unchanged as self.{p} (no conversion)")
@@ -179,7 +185,8 @@ def _rejects(est: Any, run: Callable[[Any], Any], where: str) -> None:
             try:
                 call(bad)
             except ConfigError as exc:
-                assert p in str(exc), f"{action} with {p}={WRONG_TYPE!r}: message {exc} misses {p!r}"
+                assert p in str(exc), (
+                    f"{action} with {p}={WRONG_TYPE!r}: message {exc} misses {p!r}")
             else:
                 raise AssertionError(f"{action} accepted {p}={WRONG_TYPE!r} (expected ConfigError)")
 
@@ -274,8 +281,8 @@ def check_result(est: Any) -> None:
     xyz = crown()
     result = est(xyz)
     assert isinstance(result, VolumeResult), f"returned {type(result).__name__}, not VolumeResult"
-    assert result.method == getattr(est, "name", None), (
-        f"result.method {result.method!r} is not the estimator's name {getattr(est, 'name', None)!r}")
+    name = getattr(est, "name", None)
+    assert result.method == name, f"result.method {result.method!r} is not the name {name!r}"
     assert result.params == est.get_params(), "result.params differ from get_params()"
     assert result.n_points == len(xyz), f"n_points {result.n_points} for {len(xyz)} points"
     assert isinstance(result.valid, bool) and isinstance(result.volume_m3, float)

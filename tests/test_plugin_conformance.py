@@ -121,7 +121,8 @@ def toy_plugins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     folder with entry_points.txt on sys.path."""
     dist = tmp_path / "canopy_toy_plugins-0.1.dist-info"
     dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: canopy-toy-plugins\nVersion: 0.1\n")
+    (dist / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: canopy-toy-plugins\nVersion: 0.1\n")
     (dist / "entry_points.txt").write_text(
         f"[canopy_kit.segmenters]\ntoy_gap = {__name__}:GapSegmenter\n\n"
         f"[canopy_kit.volumes]\ntoy_box = {__name__}:BoxVolume\n")

@@ -7,7 +7,8 @@ import typer
 
 
 def plugins(
-    kind: str = typer.Argument(None, help="readers, segmenters, volumes or commands (default: all)"),
+    kind: str = typer.Argument(None,
+                               help="readers, segmenters, volumes or commands (default: all)"),
     params: str = typer.Option(None, "--params", metavar="NAME",
                                help="Print the parameters of plugin NAME: type, default, meaning"),
 ) -> None:
