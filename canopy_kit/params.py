@@ -8,6 +8,7 @@ value against such an annotation (a preset value, or a parameter before a run) a
 
 from __future__ import annotations
 
+import collections.abc
 import functools
 import inspect
 import math
@@ -144,7 +145,7 @@ def matches(value: Any, tp: Any) -> bool:
         return isinstance(value, bool) or type(value).__name__ == "bool_"
     if tp is str:
         return isinstance(value, str)
-    if origin in (tuple, list, typing.Sequence) or tp in (tuple, list):
+    if origin in (tuple, list, collections.abc.Sequence) or tp in (tuple, list):
         if isinstance(value, str | bytes) or not hasattr(value, "__len__"):
             return False
         items = list(value)

@@ -266,3 +266,34 @@ def test_cli_prints_each_parameter() -> None:
     assert meaning.startswith("Radius (m): the solid is the union of the Delaunay tetrahedra")
     hull = CliRunner().invoke(app, ["plugins", "--params", "convex_hull"])
     assert hull.exit_code == 0 and "0 parameter(s)" in hull.output
+
+
+def test_annotation_checks_and_docstring_sections() -> None:
+    from collections.abc import Sequence
+    from typing import Literal
+
+    from canopy_kit.params import docstring_parameters, matches
+
+    assert matches(3, float) and matches(np.float32(1.5), float) and matches(np.int64(3), int)
+    assert not matches(True, float) and not matches(3.0, int) and not matches("0.9", float)
+    assert matches(None, float | None) and not matches("x", float | None)
+    assert matches([1, 2.5], tuple[float, float]) and not matches([1.0], tuple[float, float])
+    assert matches(np.array([1.0, 2.0]), tuple[float, float]) and not matches("ab", Sequence[str])
+    assert matches("grid", Literal["grid", "exact"]) and not matches("kd", Literal["grid"])
+    doc = """Summary.
+
+    Parameters
+    ----------
+    a, b : float
+        First line
+        second line.
+    c : int
+
+    Returns
+    -------
+    x : float
+        Not a parameter.
+    """
+    assert docstring_parameters(doc) == {"a": "First line second line.",
+                                         "b": "First line second line.", "c": ""}
+    assert docstring_parameters("No sections.") == {}
