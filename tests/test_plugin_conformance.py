@@ -297,3 +297,11 @@ def test_annotation_checks_and_docstring_sections() -> None:
     assert docstring_parameters(doc) == {"a": "First line second line.",
                                          "b": "First line second line.", "c": ""}
     assert docstring_parameters("No sections.") == {}
+
+
+def test_every_shipped_preset_passes_the_checks() -> None:
+    from canopy_kit.config import load_preset, preset_names
+    from canopy_kit.pipeline import check_settings
+
+    for name in preset_names():
+        check_settings(load_preset(name))

@@ -1,8 +1,9 @@
 """What every segmenter shares: the scikit-learn contract and input checks.
 
 A segmenter takes its parameters as keyword arguments in ``__init__`` (no work there),
-``validate_params()`` raises ConfigError naming a bad one, ``fit(xyz)`` does the work and stores ``labels_`` (one per point, -1 for noise) and
-``n_clusters_``, ``fit_predict(xyz)`` returns ``labels_``. Optional fit parameters that
+``validate_params()`` raises ConfigError naming a bad one, ``fit(xyz)`` does the work and
+stores ``labels_`` (one per point, -1 for noise) and ``n_clusters_``, ``fit_predict(xyz)``
+returns ``labels_``. Optional fit parameters that
 the ``segment`` verb passes when a segmenter's ``fit`` accepts them:
 
 - ``sample_weight``: map points each input point stands for (voxel grid, see

@@ -31,9 +31,7 @@ def hull_mesh(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class ConvexHullVolume(VolumeEstimator):
     """Volume of the smallest convex polyhedron around the points (an upper bound).
 
-    Parameters
-    ----------
-    None: the hull is defined by the points alone.
+    Takes no parameters: the hull is defined by the points alone.
     """
 
     name = "convex_hull"
