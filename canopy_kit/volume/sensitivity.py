@@ -115,6 +115,7 @@ class AutoAlphaVolume(VolumeEstimator):
     """
 
     name = "alpha_auto"
+    convex_rtol = 1e-3  # a filled convex solid is a plateau from the first α that fills it
 
     def __init__(self, tolerance: float = 0.02) -> None:
         self.tolerance = tolerance
