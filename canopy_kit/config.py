@@ -404,7 +404,30 @@ def load_preset(name_or_path: str | Path, overrides: Mapping[str, Any] | None = 
         where = str(path)
     if overrides:
         data = apply_overrides(data, overrides)
-    return from_dict(PipelineConfig, data, where)
+    config = from_dict(PipelineConfig, data, where)
+    check_plugin_param_types(config, where)
+    return config
+
+
+def check_plugin_param_types(config: PipelineConfig, where: str = "config") -> None:
+    """ConfigError naming the key when a plugin parameter of ``config`` misfits the type the
+    plugin's ``__init__`` annotates (a string for a float...). Plugins that are not
+    registered are left to ``pipeline.check_settings``, which names them."""
+    from canopy_kit import plugins
+    from canopy_kit.errors import PluginError
+    from canopy_kit.params import check_types
+
+    tables = [("segmenters", config.segment.method, config.segment.params,
+               f"{where}.segment.params")]
+    tables += [("volumes", method, params, f"{where}.volume.params.{method}")
+               for method, params in config.volume.params.items()]
+    for kind, name, params, at in tables:
+        try:
+            target = plugins.load(kind, name)
+        except PluginError:
+            continue
+        if isinstance(target, type):
+            check_types(params, target, at)
 
 
 def apply_overrides(data: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:

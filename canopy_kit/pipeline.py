@@ -132,15 +132,15 @@ def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
 def check_settings(config: PipelineConfig) -> None:
     """Plugins, their parameters and the preprocessing ranges, checked before any stage runs
     (a typo in a preset must not cost a mapping run first)."""
+    from canopy_kit import plugins
     from canopy_kit.segment.preprocess import check_preprocess_config
-    from canopy_kit.segment.verb import make_segmenter
-    from canopy_kit.volume import estimator
 
     check_preprocess_config(config.preprocess)
-    make_segmenter(config.segment.method, config.segment.params)
+    plugins.create("segmenters", config.segment.method, config.segment.params,
+                   where="segment.params")
     for method in dict.fromkeys([*config.volume.methods, config.volume.recommended]):
-        volume = estimator(method, **config.volume.params.get(method, {}))
-        getattr(volume, "_check_params", lambda: None)()
+        plugins.create("volumes", method, config.volume.params.get(method, {}),
+                       where=f"volume.params.{method}")
 
 
 # -- stages ---------------------------------------------------------------------------------

@@ -2,6 +2,9 @@
 
 Built-in plugins are registered through the same entry points (in pyproject.toml) that a
 third-party package uses, so installing a package is all it takes to add a segmenter.
+:func:`create` is the one factory for every registry: load, check the keyword parameters
+against the class signature, instantiate, ``validate_params()``; :func:`parameters`
+describes a plugin's parameters (``canopy_kit.params``).
 """
 
 from __future__ import annotations
@@ -10,7 +13,9 @@ from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
-from canopy_kit.errors import PluginError
+from canopy_kit.errors import ConfigError, PluginError
+from canopy_kit.params import (ParamInfo, check_types, init_parameters, parameters_of,
+                               takes_any_keyword)
 
 GROUPS: dict[str, str] = {
     "readers": "canopy_kit.readers",
@@ -18,6 +23,14 @@ GROUPS: dict[str, str] = {
     "volumes": "canopy_kit.volumes",
     "commands": "canopy_kit.commands",
 }
+
+
+#: How an error message calls a plugin of each kind.
+LABELS: dict[str, str] = {"readers": "reader", "segmenters": "segmenter",
+                          "volumes": "volume method", "commands": "command"}
+
+__all__ = ["GROUPS", "ParamInfo", "PluginInfo", "create", "describe", "kinds_of", "load",
+           "names", "parameters"]
 
 
 @dataclass(frozen=True)
@@ -86,3 +99,49 @@ def describe(kind: str | None = None, *, check: bool = True) -> list[PluginInfo]
             dist = ep.dist.name if ep.dist is not None else None
             rows.append(PluginInfo(_group_name(k), name, ep.value, dist, error))
     return rows
+
+
+def _label(kind: str) -> str:
+    short = {v: k for k, v in GROUPS.items()}.get(kind, kind)
+    return LABELS.get(short, short)
+
+
+def create(kind: str, name: str, params: dict[str, Any] | None = None, *, where: str = "",
+           validate: bool = True) -> Any:
+    """An instance of plugin ``name`` of ``kind`` configured with keyword ``params``.
+
+    An unknown key is a ConfigError naming it and listing the accepted parameters; with
+    ``validate`` the values are checked against the ``__init__`` annotations and the
+    instance's ``validate_params()`` runs. ``where`` (``segment.params``) prefixes messages.
+    """
+    target = load(kind, name)
+    params = dict(params or {})
+    prefix = f"{where}: " if where else ""
+    label = _label(kind)
+    if not isinstance(target, type):
+        if params:
+            raise ConfigError(f"{prefix}{label} {name!r} is not a class and takes no "
+                              f"parameters, got {sorted(params)}")
+        return target
+    accepted = [p.name for p in init_parameters(target)]
+    unknown = sorted(set(params) - set(accepted))
+    if unknown and not takes_any_keyword(target):
+        raise ConfigError(f"{prefix}{label} {name!r} has no parameter {unknown[0]!r} "
+                          f"(parameters: {', '.join(accepted) or 'none'})")
+    if validate:
+        check_types(params, target, where or name)
+    instance = target(**params)
+    if validate and callable(getattr(instance, "validate_params", None)):
+        instance.validate_params()
+    return instance
+
+
+def parameters(kind: str, name: str) -> list[ParamInfo]:
+    """The parameters of plugin ``name``: type, default and meaning of each."""
+    target = load(kind, name)
+    return parameters_of(target) if isinstance(target, type) else []
+
+
+def kinds_of(name: str) -> list[str]:
+    """The plugin kinds (other than commands) that have a plugin called ``name``."""
+    return [k for k in GROUPS if k != "commands" and name in _entry_points(k)]

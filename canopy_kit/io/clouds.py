@@ -55,12 +55,10 @@ def reader_objects(broken: list[str] | None = None) -> list[Any]:
     out = []
     for name in plugins.names("readers"):
         try:
-            target = plugins.load("readers", name)
+            out.append(plugins.create("readers", name))
         except PluginError as exc:
             if broken is not None:
                 broken.append(str(exc))
-            continue
-        out.append(target() if isinstance(target, type) else target)
     return out
 
 

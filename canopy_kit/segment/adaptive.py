@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from canopy_kit.segment.base import Segmenter, check_points, check_weight
+from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
 from canopy_kit.segment.crowns import crown_split
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
 from canopy_kit.segment.profile import along_axis, chm_peaks, chm_spacing, principal_axis
@@ -74,13 +74,23 @@ def _extent(a: np.ndarray) -> float:
 class AdaptiveSegmenter(Segmenter):
     """Trees from canopy parts, trunks and the measured tree scale (module docstring).
 
-    ``link_factor``: canopy points closer than this many point spacings are connected.
-    ``crumb_fraction``: parts lighter than this fraction of a tree (and without a trunk)
-    are crumbs; they join the nearest part within ``crumb_reach`` tree spacings, else
-    they are noise. ``use_stems``: use trunk detections when stem points are given.
-    ``stem_search_radius`` (m): a trunk belongs to the canopy part above it within this
-    horizontal distance. ``crown_split``: split a part between its trees by fitted crowns
-    (``segment.crowns``); else by the nearest tree position in the horizontal plane.
+    Parameters
+    ----------
+    link_factor : float, default 2.0
+        Canopy points closer than this many point spacings are connected.
+    crumb_fraction : float, default 0.1
+        Parts lighter than this fraction of a tree (and without a trunk) are crumbs.
+    crumb_reach : float, default 0.25
+        A crumb joins the nearest part within this many tree spacings, else it is noise.
+    use_stems : bool, default True
+        Use trunk detections when stem points are given.
+    stem_search_radius : float, default 1.0
+        A trunk belongs to the canopy part above it within this horizontal distance (m).
+    crown_split : bool, default True
+        Split a part between its trees by fitted crowns (``segment.crowns``); else by the
+        nearest tree position in the horizontal plane.
+    random_state : int, default 0
+        Seed of the point-spacing sample.
     """
 
     def __init__(self, link_factor: float = 2.0, crumb_fraction: float = 0.1,
@@ -95,6 +105,13 @@ class AdaptiveSegmenter(Segmenter):
         self.stem_search_radius = stem_search_radius
         self.random_state = random_state
 
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
+        owner = type(self).__name__
+        for name in ("link_factor", "crumb_fraction", "crumb_reach", "stem_search_radius"):
+            check_positive(getattr(self, name), name, owner)
+        super().validate_params()
+
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None,  # noqa: N803
             stem_xyz: np.ndarray | None = None) -> "AdaptiveSegmenter":
         """Segment canopy points ``X`` (x, y, height above ground); sets ``labels_`` etc.
@@ -102,6 +119,7 @@ class AdaptiveSegmenter(Segmenter):
         Fitted: ``labels_``, ``n_clusters_``, ``stems_`` (trunks used), ``markers_``
         (tree positions), ``scale_`` (:class:`TreeScale`), ``point_spacing_``.
         """
+        self.validate_params()
         xyz = check_points(X)
         w = check_weight(sample_weight, len(xyz))
         n = len(xyz)

@@ -1,13 +1,16 @@
 """What every segmenter shares: the scikit-learn contract and input checks.
 
 A segmenter takes its parameters as keyword arguments in ``__init__`` (no work there),
-``fit(xyz)`` does the work and stores ``labels_`` (one per point, -1 for noise) and
-``n_clusters_``, ``fit_predict(xyz)`` returns ``labels_``. Optional fit parameters that
+``validate_params()`` raises ConfigError naming a bad one, ``fit(xyz)`` does the work and
+stores ``labels_`` (one per point, -1 for noise) and ``n_clusters_``, ``fit_predict(xyz)``
+returns ``labels_``. Optional fit parameters that
 the ``segment`` verb passes when a segmenter's ``fit`` accepts them:
 
 - ``sample_weight``: map points each input point stands for (voxel grid, see
   ``segment.preprocess``),
 - ``stem_xyz``: height-normalised points of the stem band under the canopy (trunks).
+
+``canopy_kit.testing.check_segmenter`` checks a segmenter against this contract.
 """
 
 from __future__ import annotations
@@ -16,10 +19,20 @@ import numpy as np
 from sklearn.base import BaseEstimator, ClusterMixin
 
 from canopy_kit.errors import InputError
+from canopy_kit.params import check_positive, validate_types
+
+__all__ = ["Segmenter", "check_points", "check_positive", "check_weight"]
 
 
 class Segmenter(ClusterMixin, BaseEstimator):
     """Base class: ``fit_predict`` forwards the optional fit parameters to ``fit``."""
+
+    def validate_params(self) -> None:
+        """ConfigError naming the first parameter whose value misfits its annotation.
+
+        Subclasses add their range checks and call ``super().validate_params()``.
+        """
+        validate_types(self, type(self).__name__)
 
     def fit_predict(self, X: np.ndarray, y: None = None, **fit_params: object) -> np.ndarray:  # noqa: N803
         """Fit and return one label per point (-1 for noise)."""
@@ -46,9 +59,3 @@ def check_weight(sample_weight: np.ndarray | None, n: int) -> np.ndarray:
     if np.any(w < 0):
         raise InputError("sample_weight has negative values")
     return w
-
-
-def check_positive(value: float, name: str) -> None:
-    """InputError naming parameter ``name`` unless ``value`` is positive."""
-    if not (isinstance(value, int | float) and value > 0):
-        raise InputError(f"{name} must be positive, got {value!r}")

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
 from canopy_kit.errors import InputError
+from canopy_kit.params import check_choice
+from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
 from canopy_kit.segment.density import grid_dbscan, weighted_dbscan
 
 
@@ -34,14 +35,26 @@ def run_dbscan(xyz: np.ndarray, eps: float, min_samples: float, weight: np.ndarr
     raise InputError(f"algorithm must be 'auto', 'grid' or 'exact', got {algorithm!r}")
 
 
+ALGORITHMS = ("auto", "grid", "exact")
+
+
 class DBSCANSegmenter(Segmenter):
     """DBSCAN with ``eps`` (m) and ``min_samples`` (map points within ``eps``).
 
     The paper used eps = 0.8 m and N_min = 1300. ``min_samples`` counts map points: on a
     voxel grid each voxel weighs the map points it holds (``sample_weight``), so the
-    paper's number keeps its meaning at any voxel size. ``algorithm``: ``grid`` (DBSCAN on
-    an ``eps / 8`` lattice, tile by tile: fast on dense canopy, memory linear in the map),
-    ``exact`` (point neighbourhoods, tile by tile; scikit-learn's result) or ``auto``.
+    paper's number keeps its meaning at any voxel size.
+
+    Parameters
+    ----------
+    eps : float, default 0.8
+        Neighbourhood radius in metres.
+    min_samples : float, default 1300
+        Map points (sum of ``sample_weight``) within ``eps`` that make a core point.
+    algorithm : str, default "auto"
+        ``grid`` (DBSCAN on an ``eps / 8`` lattice, tile by tile: fast on dense canopy,
+        memory linear in the map), ``exact`` (point neighbourhoods, tile by tile;
+        scikit-learn's result) or ``auto`` (the cheaper one for the data).
     """
 
     def __init__(self, eps: float = 0.8, min_samples: float = 1300,
@@ -50,11 +63,18 @@ class DBSCANSegmenter(Segmenter):
         self.min_samples = min_samples
         self.algorithm = algorithm
 
+    def validate_params(self) -> None:
+        """ConfigError naming ``eps``, ``min_samples`` or ``algorithm`` when unusable."""
+        owner = type(self).__name__
+        check_positive(self.eps, "eps", owner)
+        check_positive(self.min_samples, "min_samples", owner)
+        check_choice(self.algorithm, "algorithm", owner, ALGORITHMS)
+        super().validate_params()
+
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None  # noqa: N803
             ) -> "DBSCANSegmenter":
         """Cluster points ``X`` (N, 3); sets ``labels_``, ``core_sample_mask_``, ``n_clusters_``."""
-        check_positive(self.eps, "eps")
-        check_positive(self.min_samples, "min_samples")
+        self.validate_params()
         xyz = check_points(X)
         w = check_weight(sample_weight, len(xyz))
         self.labels_, self.core_sample_mask_ = run_dbscan(xyz, self.eps, self.min_samples, w,

@@ -19,7 +19,8 @@ import numpy as np
 
 from canopy_kit.errors import ConfigError
 from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
-from canopy_kit.segment.dbscan import run_dbscan
+from canopy_kit.params import check_choice
+from canopy_kit.segment.dbscan import ALGORITHMS, run_dbscan
 from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.voxel import voxel_centroids
 
@@ -82,8 +83,28 @@ def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
 class DBSCANSpectralSegmenter(Segmenter):
     """DBSCAN (``eps``, ``min_samples``) plus spectral splits above ``max_cluster_size``.
 
-    Sizes count map points (``sample_weight``), like ``min_samples``. ``graph_cell`` (m):
-    0 = every point a node of the kNN graph (the paper), else nodes on cells of that size.
+    Sizes count map points (``sample_weight``), like ``min_samples``.
+
+    Parameters
+    ----------
+    eps : float, default 0.8
+        DBSCAN neighbourhood radius in metres.
+    min_samples : float, default 1300
+        Map points within ``eps`` that make a DBSCAN core point.
+    max_cluster_size : float, default 45000
+        Map points of one tree: a cluster is split into ``round(size / max_cluster_size)``
+        parts.
+    n_neighbors : int, default 10
+        Neighbours per node of the k-nearest-neighbour graph of the spectral split.
+    eigen_solver : str, default "amg"
+        Solver of the spectral embedding (``amg``, ``arpack`` or ``lobpcg``).
+    random_state : int, default 0
+        Seed of the embedding and of k-means.
+    algorithm : str, default "auto"
+        DBSCAN algorithm: ``grid``, ``exact`` or ``auto`` (see ``dbscan``).
+    graph_cell : float, default 0.0
+        Size (m) of the cells whose centroids are the graph's nodes; 0 = every point a
+        node (the paper's literal reading).
     """
 
     def __init__(self, eps: float = 0.8, min_samples: float = 1300,
@@ -99,12 +120,19 @@ class DBSCANSpectralSegmenter(Segmenter):
         self.algorithm = algorithm
         self.graph_cell = graph_cell
 
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
+        owner = type(self).__name__
+        for name in ("eps", "min_samples", "max_cluster_size", "n_neighbors"):
+            check_positive(getattr(self, name), name, owner)
+        check_graph_cell(self.graph_cell)
+        check_choice(self.algorithm, "algorithm", owner, ALGORITHMS)
+        super().validate_params()
+
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None  # noqa: N803
             ) -> "DBSCANSpectralSegmenter":
         """Cluster ``X`` (N, 3); sets ``labels_``, ``n_clusters_`` and ``splits_``."""
-        for name in ("eps", "min_samples", "max_cluster_size", "n_neighbors"):
-            check_positive(getattr(self, name), name)
-        check_graph_cell(self.graph_cell)
+        self.validate_params()
         xyz = check_points(X)
         w = check_weight(sample_weight, len(xyz))
         labels, _ = run_dbscan(xyz, self.eps, self.min_samples, w, self.algorithm)

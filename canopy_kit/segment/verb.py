@@ -17,7 +17,7 @@ import numpy as np
 from canopy_kit import plugins
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import PreprocessConfig, RowsConfig
-from canopy_kit.errors import ConfigError, InputError, ProcessingError
+from canopy_kit.errors import InputError, ProcessingError
 from canopy_kit.segment.classes import classify_points
 from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.segment.preprocess import prepare
@@ -29,20 +29,8 @@ Progress = Callable[[str, float, float], None]
 
 
 def make_segmenter(method: str, params: dict[str, Any] | None = None) -> Any:
-    """Instantiate the segmenter plugin ``method`` with keyword ``params``."""
-    target = plugins.load("segmenters", method)
-    params = dict(params or {})
-    if isinstance(target, type):
-        accepted = inspect.signature(target.__init__).parameters
-        unknown = sorted(set(params) - set(accepted) - {"self"})
-        if unknown:
-            known = ", ".join(k for k in accepted if k != "self")
-            raise ConfigError(f"segment.params: segmenter {method!r} has no parameter "
-                              f"{unknown[0]!r} (parameters: {known})")
-        return target(**params)
-    if params:
-        raise ConfigError(f"segment.params: segmenter {method!r} is not a class and takes none")
-    return target
+    """Instantiate the segmenter plugin ``method`` with keyword ``params`` (checked)."""
+    return plugins.create("segmenters", method, params, where="segment.params")
 
 
 def _fit_params(segmenter: Any) -> set[str]:

@@ -9,10 +9,8 @@ one-sided scans). See docs/VOLUMES.md.
 
 from __future__ import annotations
 
-import inspect
 from typing import Any
 
-from canopy_kit.errors import ConfigError
 from canopy_kit.volume.base import VolumeEstimator, VolumeResult
 from canopy_kit.volume.metrics import TreeMetrics, sphere_volume, tree_metrics
 from canopy_kit.volume.sensitivity import AlphaCurve, AutoAlpha, alpha_curve, auto_alpha
@@ -22,20 +20,14 @@ __all__ = ["AlphaCurve", "AutoAlpha", "TreeMetrics", "VolumeEstimator", "VolumeR
 
 
 def estimator(method: str = "alpha_shape", **params: Any) -> Any:
-    """An instance of the volume plugin ``method`` configured with ``params``."""
+    """An instance of the volume plugin ``method`` configured with ``params``.
+
+    Parameter values are checked when it is called (``validate_params``), so building one
+    never fails on a value; :func:`canopy_kit.plugins.create` checks them at once.
+    """
     from canopy_kit import plugins
 
-    target = plugins.load("volumes", method)
-    if not isinstance(target, type):
-        if params:
-            raise ConfigError(f"volume method {method!r} takes no parameters, got {sorted(params)}")
-        return target
-    accepted = [p for p in inspect.signature(target.__init__).parameters if p != "self"]
-    unknown = sorted(set(params) - set(accepted))
-    if unknown:
-        raise ConfigError(f"volume method {method!r} has no parameter {unknown[0]!r} "
-                          f"(parameters: {', '.join(accepted) or 'none'})")
-    return target(**params)
+    return plugins.create("volumes", method, params, validate=False)
 
 
 def estimate_volume(xyz: Any, method: str = "alpha_shape", **params: Any) -> VolumeResult:

@@ -53,6 +53,19 @@ class AdaptiveAlphaVolume(VolumeEstimator):
     ``alpha = clip(alpha_factor · s, alpha_min, alpha_max)``, ``offset = offset_factor · s``
     (capped at α/2), with ``s`` the median 8th-neighbour distance; both, and ``s``, are
     reported in ``result.extra``.
+
+    Parameters
+    ----------
+    alpha_factor : float, default 4.0
+        α as a multiple of the point spacing, before clipping.
+    offset_factor : float, default 0.5
+        Outward offset of the hull as a multiple of the point spacing (0: none).
+    alpha_min : float, default 0.3
+        Smallest α (m).
+    alpha_max : float, default 1.5
+        Largest α (m).
+    grid_step : float or None, default None
+        Edge (m) of the closing grid; None picks one from α and the extent.
     """
 
     name = "adaptive_alpha"
@@ -66,7 +79,8 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         self.alpha_max = alpha_max
         self.grid_step = grid_step
 
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
         for name in ("alpha_factor", "alpha_min", "alpha_max"):
             check_positive(getattr(self, name), name, self.name)
         check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
@@ -77,6 +91,7 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         if self.alpha_min > self.alpha_max:
             raise ConfigError(f"{self.name}: alpha_min ({self.alpha_min}) must not exceed "
                               f"alpha_max ({self.alpha_max})")
+        super().validate_params()
 
     def choose(self, xyz: np.ndarray, tree: object = None) -> tuple[float, float, float]:
         """(α, offset, spacing) for these points."""

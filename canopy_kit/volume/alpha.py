@@ -167,15 +167,25 @@ def alpha_volume(tetra: Tetrahedra, alpha: float) -> float:
 
 
 class AlphaShapeVolume(VolumeEstimator):
-    """Exact alpha-complex volume (the paper's alpha shape, α in metres; default 0.9 m)."""
+    """Exact alpha-complex volume (the paper's alpha shape, α in metres; default 0.9 m).
+
+    Parameters
+    ----------
+    alpha : float, default 0.9
+        Radius (m): the solid is the union of the Delaunay tetrahedra whose circumradius
+        is below it; larger values bridge more concavities, up to the convex hull.
+    """
 
     name = "alpha_shape"
+    convex_rtol = 1e-6
 
     def __init__(self, alpha: float = 0.9) -> None:
         self.alpha = alpha
 
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
         check_positive(self.alpha, "alpha", self.name)
+        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
         from scipy.spatial import QhullError

@@ -160,17 +160,27 @@ class AlphaHullVolume(VolumeEstimator):
     8 M cells; the step used is reported in ``result.extra["grid_step"]``. Clouds whose
     median point spacing exceeds α/5 are flagged (the hull then falls well below the
     exact alpha shape); the volume is still returned.
+
+    Parameters
+    ----------
+    alpha : float, default 0.9
+        Radius (m) of the closing ball: concavities narrower than it are filled.
+    grid_step : float or None, default None
+        Edge (m) of the grid the closing runs on; None picks one from α and the extent.
     """
 
     name = "alpha_hull"
+    convex_rtol = 0.03  # the grid's rounding of edges and corners (1.1 % on the unit cube)
 
     def __init__(self, alpha: float = 0.9, grid_step: float | None = None) -> None:
         self.alpha = alpha
         self.grid_step = grid_step
 
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
         check_positive(self.alpha, "alpha", self.name)
         check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
+        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
         h = grid_step(xyz, float(self.alpha), self.grid_step)

@@ -1,7 +1,10 @@
 """The volume-estimator contract: a result type, the shared input check and a base class.
 
-Every estimator is a class whose ``__init__`` only stores keyword parameters and whose
-``__call__(xyz)`` returns a :class:`VolumeResult` (scikit-learn style).
+Every estimator is a scikit-learn ``BaseEstimator`` (``get_params``, ``set_params``,
+``repr`` and ``clone`` come with it) whose ``__init__`` only stores keyword parameters,
+whose ``validate_params()`` raises ConfigError naming a bad one and whose ``__call__(xyz)``
+returns a :class:`VolumeResult`. ``canopy_kit.testing.check_volume_estimator`` checks an
+estimator against this contract.
 
 Input policy (the same for every estimator):
 
@@ -17,13 +20,17 @@ Input policy (the same for every estimator):
 
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
+from sklearn.base import BaseEstimator
 
-from canopy_kit.errors import ConfigError, InputError
+from canopy_kit.errors import InputError
+from canopy_kit.params import check_choice, check_positive, validate_types
+
+__all__ = ["MIN_POINTS", "VolumeEstimator", "VolumeResult", "as_points", "check_choice",
+           "check_positive", "degeneracy"]
 
 MIN_POINTS = 4
 # Relative singular-value threshold below which the cloud is treated as flat or a line.
@@ -87,49 +94,31 @@ def degeneracy(xyz: np.ndarray) -> str | None:
     return None
 
 
-def check_positive(value: Any, name: str, method: str, *, allow_none: bool = False) -> None:
-    """ConfigError naming ``method.name`` unless ``value`` is a positive finite number."""
-    if value is None and allow_none:
-        return
-    ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
-    if not ok or not np.isfinite(value) or value <= 0:
-        raise ConfigError(f"{method}: {name} must be a positive number, got {value!r}")
-
-
-def check_choice(value: Any, name: str, method: str, choices: tuple[str, ...]) -> None:
-    """ConfigError naming ``method.name`` unless ``value`` is one of ``choices``."""
-    if value not in choices:
-        raise ConfigError(f"{method}: {name} must be one of {list(choices)}, got {value!r}")
-
-
-class VolumeEstimator:
+class VolumeEstimator(BaseEstimator):
     """Base class: validates input and parameters, then calls :meth:`_volume`.
 
-    Subclasses set ``name``, store their keyword arguments in ``__init__`` unchanged and
-    implement ``_volume(xyz) -> float`` (or ``-> (float, extra_dict)``) on checked,
-    non-degenerate points; ``_check_params`` raises ConfigError for bad values.
+    Subclasses set ``name``, store their keyword arguments in ``__init__`` unchanged,
+    document them in a numpydoc ``Parameters`` section and implement
+    ``_volume(xyz) -> float`` (or ``-> (float, extra_dict)``) on checked, non-degenerate
+    points; ``validate_params`` adds their range checks (ConfigError naming the parameter)
+    and calls ``super().validate_params()``, which checks values against the annotations.
+    ``convex_rtol``: the relative error promised on a densely sampled convex solid (the
+    conformance suite measures a unit cube); None promises only a positive volume.
     """
 
-    name: str = "volume"
+    name: ClassVar[str] = "volume"
+    convex_rtol: ClassVar[float | None] = None
 
-    def get_params(self) -> dict[str, Any]:
-        """The constructor's keyword arguments and their current values."""
-        sig = inspect.signature(type(self).__init__)
-        return {p: getattr(self, p) for p in sig.parameters if p != "self"}
-
-    def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
-        return f"{type(self).__name__}({args})"
-
-    def _check_params(self) -> None:
-        """Raise ConfigError for an unusable parameter value (override)."""
+    def validate_params(self) -> None:
+        """ConfigError naming the first parameter whose value misfits its annotation."""
+        validate_types(self, self.name)
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict[str, Any]]:
         raise NotImplementedError
 
     def __call__(self, xyz: Any) -> VolumeResult:
         """Estimate the volume enclosed by the points ``xyz`` (N, 3) in metres."""
-        self._check_params()
+        self.validate_params()
         pts = as_points(xyz)
         params = self.get_params()
         reason = degeneracy(pts)

@@ -29,9 +29,13 @@ def hull_mesh(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class ConvexHullVolume(VolumeEstimator):
-    """Volume of the smallest convex polyhedron around the points (an upper bound)."""
+    """Volume of the smallest convex polyhedron around the points (an upper bound).
+
+    Takes no parameters: the hull is defined by the points alone.
+    """
 
     name = "convex_hull"
+    convex_rtol = 1e-6
 
     def __init__(self) -> None:
         pass

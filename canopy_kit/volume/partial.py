@@ -97,6 +97,20 @@ class MirrorVolume(VolumeEstimator):
     ``plane_point`` (x, y) and ``plane_normal`` (across-row direction) place the plane, e.g.
     through the trunk along the row; either may be omitted and is then estimated (module
     docstring). ``base`` is the estimator applied to the completed cloud.
+
+    Parameters
+    ----------
+    plane_point : tuple of two floats or None, default None
+        A point (x, y) of the vertical mirror plane; None estimates it from the points.
+    plane_normal : tuple of two floats or None, default None
+        Horizontal normal (x, y) of the plane (the across-row direction); None estimates it.
+    base : str, default "convex_hull"
+        Estimator applied to the points and their mirror image.
+    alpha : float, default 0.9
+        α (m) of the base estimator when it is an alpha method.
+    across_ratio : float, default 1.0
+        The crown is assumed this many times as wide across the row as along it; places an
+        estimated plane half that width behind the face nearest the sensor.
     """
 
     name = "mirror"
@@ -110,7 +124,8 @@ class MirrorVolume(VolumeEstimator):
         self.alpha = alpha
         self.across_ratio = across_ratio
 
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
         check_choice(self.base, "base", self.name, MIRROR_BASES)
         check_positive(self.alpha, "alpha", self.name)
         check_positive(self.across_ratio, "across_ratio", self.name)
@@ -118,6 +133,7 @@ class MirrorVolume(VolumeEstimator):
         normal = _as_pair(self.plane_normal, "plane_normal", self.name)
         if normal is not None and np.linalg.norm(normal) == 0:
             raise ConfigError(f"{self.name}: plane_normal must not be (0, 0)")
+        super().validate_params()
 
     def plane(self, xyz: np.ndarray) -> MirrorPlane:
         """The plane used for ``xyz``: as given, or estimated."""

@@ -105,17 +105,27 @@ def auto_alpha(xyz: Any, tolerance: float = 0.02, n: int = 64) -> AutoAlpha:
 
 class AutoAlphaVolume(VolumeEstimator):
     """Alpha-shape volume at the α the plateau rule picks per tree (:func:`auto_alpha`);
-    the α used is reported in ``result.extra["alpha"]``."""
+    the α used is reported in ``result.extra["alpha"]``.
+
+    Parameters
+    ----------
+    tolerance : float, default 0.02
+        Plateau rule: the smallest α whose doubling grows the volume by at most this
+        fraction, in (0, 1).
+    """
 
     name = "alpha_auto"
+    convex_rtol = 1e-3  # a filled convex solid is a plateau from the first α that fills it
 
     def __init__(self, tolerance: float = 0.02) -> None:
         self.tolerance = tolerance
 
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
         ok = isinstance(self.tolerance, int | float) and not isinstance(self.tolerance, bool)
         if not ok or not 0 < self.tolerance < 1:
             raise ConfigError(f"{self.name}: tolerance must be in (0, 1), got {self.tolerance!r}")
+        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
         from scipy.spatial import QhullError

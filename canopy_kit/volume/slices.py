@@ -66,7 +66,17 @@ def slice_areas(xyz: np.ndarray, thickness: float, area: str = "hull",
 
 
 class SliceVolume(VolumeEstimator):
-    """Σ (slice area × thickness) over horizontal slices; area by 2-D hull or 2-D alpha shape."""
+    """Σ (slice area × thickness) over horizontal slices; area by 2-D hull or 2-D alpha shape.
+
+    Parameters
+    ----------
+    thickness : float, default 0.2
+        Slice thickness in metres.
+    area : str, default "hull"
+        Area of a slice: ``hull`` (2-D convex hull) or ``alpha`` (2-D alpha shape).
+    alpha : float, default 0.9
+        α (m) of the 2-D alpha shape when ``area = "alpha"``.
+    """
 
     name = "slices"
 
@@ -75,10 +85,12 @@ class SliceVolume(VolumeEstimator):
         self.area = area
         self.alpha = alpha
 
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
         check_positive(self.thickness, "thickness", self.name)
         check_choice(self.area, "area", self.name, AREA_METHODS)
         check_positive(self.alpha, "alpha", self.name)
+        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
         t = float(self.thickness)

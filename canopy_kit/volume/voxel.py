@@ -34,7 +34,16 @@ def fill_slice_holes(grid: np.ndarray) -> np.ndarray:
 
 
 class VoxelVolume(VolumeEstimator):
-    """Number of occupied voxels × voxel volume; ``fill_holes`` fills each horizontal layer."""
+    """Number of occupied voxels × voxel volume; ``fill_holes`` fills each horizontal layer.
+
+    Parameters
+    ----------
+    voxel_size : float, default 0.1
+        Voxel edge in metres.
+    fill_holes : bool, default True
+        Fill the enclosed holes of every horizontal layer of voxels (closed rings become
+        discs).
+    """
 
     name = "voxel"
 
@@ -42,8 +51,10 @@ class VoxelVolume(VolumeEstimator):
         self.voxel_size = voxel_size
         self.fill_holes = fill_holes
 
-    def _check_params(self) -> None:
+    def validate_params(self) -> None:
+        """ConfigError naming the first unusable parameter."""
         check_positive(self.voxel_size, "voxel_size", self.name)
+        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
         size = float(self.voxel_size)
