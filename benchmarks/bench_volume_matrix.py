@@ -56,7 +56,7 @@ def session(cache: Path, sensor: str, form: str, seed: int) -> Path:
 def evaluate_session(root: Path, sensor: str, form: str, seed: int) -> pd.DataFrame:
     """One row per matched tree, scan (both, left, right) and method, plus interval rows."""
     from canopy_kit.config import load_preset
-    from canopy_kit.volume.evaluate import segmented_volume_errors
+    from canopy_kit.volume_accuracy import segmented_volume_errors
 
     t0 = time.perf_counter()
     errors, score = segmented_volume_errors(root, load_preset("adaptive"), ESTIMATORS)

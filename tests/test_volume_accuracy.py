@@ -74,7 +74,7 @@ def test_recommended_estimator_on_trees_the_pipeline_segments(sim_factory) -> No
     one-sided); on sparse trees it is far low (the documented failure), and says so."""
     from canopy_kit.config import load_preset, merge
     from canopy_kit.sim.crown_forms import FORM_NAMES
-    from canopy_kit.volume.evaluate import segmented_volume_errors
+    from canopy_kit.volume_accuracy import segmented_volume_errors
 
     config = load_preset("adaptive")
     recommended = config.volume.recommended

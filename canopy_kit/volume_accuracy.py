@@ -1,0 +1,85 @@
+"""Volume accuracy on trees the pipeline segments: a simulated session's map segmented with a
+preset, each matched tree measured by the volume stage, whole and from each alley, against the
+simulator's exact crown volume (benchmarks/bench_volume_matrix.py, tests/test_volume_accuracy.py).
+
+A module of its own: it spans segmentation, the volume stage and scoring, which the volume
+package itself must not import (tests/test_architecture.py).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.volume.evaluate import row_directions
+
+
+def alley_sides(sim_dir: str | Path, cloud: Any, trees: Any) -> np.ndarray:
+    """Per map point: +1 / -1 for the side of its tree's row the sensor was on when the point
+    was measured (true poses, row line fitted through the trunks), 0 for points of no tree."""
+    from canopy_kit.truth import true_pose_interpolator
+
+    pose_at = true_pose_interpolator(sim_dir)
+    tree_id = np.asarray(cloud.fields["tree_id"])
+    side = np.zeros(len(cloud), dtype=np.int8)
+    directions = row_directions(trees)
+    for row, group in trees.groupby("row"):
+        along = directions[int(row)]
+        across = np.array([-along[1], along[0]])
+        on_row = np.isin(tree_id, group["tree_id"].to_numpy())
+        sensor_xy = pose_at(np.asarray(cloud.fields["time"])[on_row])[0][:, :2]
+        centre = group[["x", "y"]].to_numpy().mean(axis=0)
+        side[on_row] = np.sign((sensor_xy - centre) @ across).astype(np.int8)
+    return side
+
+
+def segmented_volume_errors(sim_dir: str | Path, config: Any, methods: list[str],
+                            reference_map: Any = None) -> tuple[Any, Any]:
+    """Volume errors on the trees the pipeline segments, as trees.csv measures them.
+
+    The map (true poses unless ``reference_map`` is given) is segmented with ``config``'s
+    segmenter; each segment matched one-to-one to a simulated tree (IoU ≥ 0.5) is measured
+    by the volume stage with ``config.volume`` whole (scan ``both``) and keeping only the
+    points seen from each alley (``left``, ``right``). Returns one row per tree, scan and
+    method (``interval`` rows say whether the recommended estimator's interval held the
+    truth) and the segmentation score.
+    """
+    import pandas as pd
+
+    from canopy_kit.evaluate import score_point_labels
+    from canopy_kit.io.las_write import on_las_grid
+    from canopy_kit.segment.verb import make_segmenter, segment
+    from canopy_kit.trees import measure_trees, volume_column
+    from canopy_kit.truth import load_truth
+    from canopy_kit.truth_map import truth_map
+
+    truth = load_truth(sim_dir)
+    cloud = on_las_grid(reference_map if reference_map is not None
+                        else truth_map(sim_dir, voxel_size=0.05))
+    seg = segment(cloud, make_segmenter(config.segment.method, config.segment.params),
+                  config.preprocess, config.rows, seed=config.seed)
+    score = score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
+    correct = score.trees[score.trees["status"] == "correct"]
+    true_id_of = dict(zip(correct["segment_id"], correct["truth_id"], strict=True))
+    true_volume = truth.trees.set_index("tree_id")["crown_volume_m3"]
+    side = alley_sides(sim_dir, cloud, truth.trees)
+    rows = []
+    for scan, keep in [("both", None), ("left", side > 0), ("right", side < 0)]:
+        labels = seg.labels if keep is None else np.where(keep, seg.labels, -1)
+        table = measure_trees(cloud, labels, config.volume, ground_height=seg.ground.height)
+        for tree in table.itertuples(index=False):
+            true_id = true_id_of.get(int(tree.segment))
+            if true_id is None:
+                continue
+            truth_v = float(true_volume[true_id])
+            base = {"scan": scan, "tree": int(true_id), "true_volume_m3": truth_v}
+            for method in methods:
+                v = float(getattr(tree, volume_column(method)))
+                rows.append({**base, "method": method, "volume_m3": v, "error": v / truth_v - 1})
+            rows.append({**base, "method": "interval", "volume_m3": np.nan, "error": np.nan,
+                         "covered": bool(tree.volume_low_m3 <= truth_v <= tree.volume_high_m3),
+                         "coverage": float(tree.scan_coverage),
+                         "flags": str(tree.volume_interval_flags)})
+    return pd.DataFrame(rows), score
