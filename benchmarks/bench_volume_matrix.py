@@ -39,13 +39,17 @@ ESTIMATORS = ["convex_hull", "alpha_shape", "adaptive_alpha"]
 RECOMMENDED = "adaptive_alpha"  # the adaptive preset's [volume] recommended
 
 
-def session(cache: Path, sensor: str, form: str, seed: int) -> Path:
-    """A simulated session (cached): 2 rows × 4 trees, no IMU/GNSS (true poses map it)."""
+def session(cache: Path, sensor: str, form: str, seed: int,
+            orchard: dict | None = None) -> Path:
+    """A simulated session (cached): 2 rows × 4 trees, no IMU/GNSS (true poses map it);
+    ``orchard`` adds ``[orchard]`` settings (e.g. deeper lobes, a leaf depth)."""
     from canopy_kit.sim import load_sim_config, simulate_session
 
-    root = cache / f"{sensor}_{form}_s{seed}"
+    variant = "".join(f"_{k}={v}" for k, v in sorted((orchard or {}).items())).replace(" ", "")
+    root = cache / f"{sensor}_{form}_s{seed}{variant}"
     if not (root / "truth").exists():
-        overrides = {"seed": seed, "orchard": {"rows": 2, "trees_per_row": 4, "crown_form": form},
+        overrides = {"seed": seed, "orchard": {"rows": 2, "trees_per_row": 4, "crown_form": form,
+                                               **(orchard or {})},
                      "imu": {"enabled": False}, "gnss": {"enabled": False}}
         print(f"simulating {root.name} ...", file=sys.stderr, flush=True)
         simulate_session(root, load_sim_config("pistachio", overrides, sensor=sensor), fmt="ros1",
@@ -106,6 +110,9 @@ def main() -> None:
     parser.add_argument("--summary", type=Path, default=None,
                         help="write the per-scan and per-form summary the report quotes here "
                              "(canopy_kit/volume/data/accuracy.csv)")
+    parser.add_argument("--orchard-set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="[orchard] settings for harsher crowns, values as TOML, e.g. "
+                             "'lobe_hollow_range=[0.25, 0.35]' leaf_penetration_m=0.3")
     parser.add_argument("--from-csv", type=Path, default=None,
                         help="summarise the rows a previous run wrote with --csv (no simulation)")
     args = parser.parse_args()
@@ -114,13 +121,16 @@ def main() -> None:
         print(f"rows of {args.from_csv}")
         _report(errors, args)
         return
+    import tomllib
+
+    orchard = tomllib.loads("\n".join(args.orchard_set)) if args.orchard_set else None
     parts = []
     segmented = [0, 0]
     for sensor in args.sensors:
         for form in args.forms:
             for seed in args.seeds:
-                part = evaluate_session(session(args.cache, sensor, form, seed), sensor, form,
-                                        seed)
+                part = evaluate_session(session(args.cache, sensor, form, seed, orchard),
+                                        sensor, form, seed)
                 segmented = [a + b for a, b in zip(segmented, part.attrs["segmented"], strict=True)]
                 parts.append(part)
     errors = pd.concat(parts, ignore_index=True)

@@ -66,18 +66,23 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         Largest α (m).
     grid_step : float or None, default None
         Edge (m) of the closing grid; None picks one from α and the extent.
+    fill_voids : bool, default True
+        Count closed cavities inside the crown (no leaves there, but enclosed by the crown's
+        outer surface) as crown: the volume of the outer envelope, as the crown volume is
+        defined. An open hollow (a vase's centre) is never filled.
     """
 
     name = "adaptive_alpha"
 
     def __init__(self, alpha_factor: float = ALPHA_FACTOR, offset_factor: float = OFFSET_FACTOR,
                  alpha_min: float = 0.3, alpha_max: float = 1.5,
-                 grid_step: float | None = None) -> None:
+                 grid_step: float | None = None, fill_voids: bool = True) -> None:
         self.alpha_factor = alpha_factor
         self.offset_factor = offset_factor
         self.alpha_min = alpha_min
         self.alpha_max = alpha_max
         self.grid_step = grid_step
+        self.fill_voids = fill_voids
 
     def validate_params(self) -> None:
         """ConfigError naming the first unusable parameter."""
@@ -106,7 +111,8 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
         alpha, offset, s = self.choose(xyz, tree)
         h = grid_step(xyz, alpha, self.grid_step)
-        volume, extra = alpha_hull_volume(xyz, alpha, h, offset=offset, tree=tree)
+        volume, extra = alpha_hull_volume(xyz, alpha, h, offset=offset, tree=tree,
+                                          fill_voids=self.fill_voids)
         extra.update({"alpha": alpha, "offset": offset, "spacing": s})
         if volume <= 0.0:
             extra["reason"] = f"the adaptive alpha hull is empty (alpha = {alpha:.2f} m)"

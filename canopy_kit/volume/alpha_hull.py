@@ -91,13 +91,17 @@ def _node_centres(flat: np.ndarray, shape: tuple[int, ...], origin: np.ndarray, 
 
 
 def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
-                      offset: float = 0.0, tree: object = None) -> tuple[float, dict]:
+                      offset: float = 0.0, tree: object = None,
+                      fill_voids: bool = False) -> tuple[float, dict]:
     """Volume of the α-hull (closing of the points by a ball of radius ``alpha``) on a grid.
 
     ``offset`` (0 <= offset < α) grows the hull outwards by that distance: the solid is
     ``{x : dist(x, E) >= α - offset}``, the closing dilated by ``offset`` (used by
     :mod:`canopy_kit.volume.adaptive` for the envelope that lies outside the outermost points).
-    ``tree``: a ``cKDTree`` of ``xyz`` already built by the caller.
+    ``tree``: a ``cKDTree`` of ``xyz`` already built by the caller. ``fill_voids`` counts
+    closed cavities (empty space no α-ball from outside can reach, e.g. the leafless inside of
+    a crown whose leaves form a shell) as solid: the hull of the outer envelope only. A hollow
+    open to the outside (a vase's open centre) is not a void and stays empty.
     """
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -125,6 +129,12 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
     exact = np.zeros(shape, bool)
     exact.flat[near] = True
     empty = dist_p >= alpha  # E: centres of empty α-balls
+    if fill_voids:  # only the empty balls reachable from outside (26-connected) carve
+        voids = empty & ndimage.binary_fill_holes(~empty, structure=np.ones((3, 3, 3), bool))
+        info["void_m3"] = float(np.count_nonzero(voids) * h**3)
+        if info["void_m3"] > 0:
+            empty &= ~voids
+            dist_p[voids] = 0.0  # no α-level crossing on a void's wall
     ends = np.flatnonzero(_crossing_ends(empty) & ~exact)
     dist_p.flat[ends] = tree.query(_node_centres(ends, shape, origin, h), distance_upper_bound=bound)[0]
     boundary = _crossing_points(dist_p, alpha, origin, h)
