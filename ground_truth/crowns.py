@@ -30,7 +30,7 @@ from ground_truth.rows import RowDirection, directional_extents, estimate_row_di
 CROWN_COLUMNS = [
     "crown_id", "x", "y", "area_m2", "diameter_max_m", "diameter_perp_m", "diameter_mean_m",
     "diameter_along_row_m", "diameter_across_row_m", "diameter_equivalent_m", "height_m",
-    "edge_height_m", "sphere_volume_m3", "sphere_volume_mean_m3", "ellipsoid_volume_m3",
+    "edge_height_m", "outline_height_m", "sphere_volume_m3", "sphere_volume_mean_m3", "ellipsoid_volume_m3",
     "chm_volume_m3", "envelope_volume_m3", "seed_id", "touches_border", "shared_outline_fraction",
 ]
 
@@ -336,6 +336,10 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
         edge = float(np.median(np.nan_to_num(chm[sl][ring], nan=0.0))) if ring.any() else 0.0
         edge = min(max(edge, 0.0), top)
         depth = 2.0 * (top - edge)
+        # The envelope's widest level: the CHM right at the outline (cells within 0.15 m).
+        rim = region & ~binary_erosion(region, structure=_disk(max(0.15 / res, 1.0)), border_value=0)
+        outline = float(np.median(np.nan_to_num(chm[sl][rim], nan=0.0))) if rim.any() else 0.0
+        outline = min(max(outline, 0.0), top)
         d_mean = 0.5 * (d_max + d_perp)
         seed = int(seg.marker_seed_ids[lab - 1]) if lab - 1 < len(seg.marker_seed_ids) else -1
         touches = bool(sl[0].start == 0 or sl[1].start == 0 or sl[0].stop == grid.rows
@@ -349,12 +353,12 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
             "crown_id": lab, "x": float(cx.mean()), "y": float(cy.mean()),
             "area_m2": float(area), "diameter_max_m": d_max, "diameter_perp_m": d_perp,
             "diameter_mean_m": d_mean, "diameter_equivalent_m": float(2 * np.sqrt(area / np.pi)),
-            "height_m": top, "edge_height_m": edge,
+            "height_m": top, "edge_height_m": edge, "outline_height_m": outline,
             "sphere_volume_m3": np.pi * d_max**3 / 6.0,
             "sphere_volume_mean_m3": np.pi * d_mean**3 / 6.0,
             "ellipsoid_volume_m3": np.pi / 6.0 * d_max * d_perp * depth,
             "chm_volume_m3": float(2.0 * np.sum(np.clip(surface[sl][region] - edge, 0.0, None)) * res**2),
-            "envelope_volume_m3": envelope_volume(h, cx, cy, edge, res),
+            "envelope_volume_m3": envelope_volume(h, cx, cy, outline, res),
             "seed_id": seed, "touches_border": touches,
             "shared_outline_fraction": shared,
         })

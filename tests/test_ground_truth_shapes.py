@@ -89,17 +89,17 @@ def test_envelope_volume_of_an_exact_ellipsoid():
     region = labels == 1
     direct = envelope_volume(chm[region], x[region], y[region], 2.0, res)
     assert direct == pytest.approx(volume, rel=0.05)
-    # measure_crowns takes the base from the CHM of a ring 0.3 m wide inside the outline: on a
-    # surface exact to the outline that ring stands well above the widest level (here 0.6 m),
-    # and the volume comes out short. (On photogrammetric CHMs, which sag at the outline, it
-    # was 0.07-0.6 m above the true widest level: docs/GROUND_TRUTH.md.)
-    edge = table["edge_height_m"].to_numpy()
+    # measure_crowns takes the base from the CHM of the cells within 0.15 m of the outline: on a
+    # surface exact to the outline they stand above the widest level, and the
+    # volume comes out short. (On photogrammetric CHMs, which sag at the outline, it was
+    # −0.10 … +0.42 m off the true widest level: docs/GROUND_TRUTH.md.)
+    edge = table["outline_height_m"].to_numpy()
     assert np.all(edge > 2.3)
     lab = table["crown_id"].to_numpy()[0]
     region = labels == lab
     assert table["envelope_volume_m3"].iloc[0] == pytest.approx(
         envelope_volume(chm[region], x[region], y[region], edge[0], res))
-    assert np.all(table["envelope_volume_m3"].to_numpy() < 0.6 * volume)  # 0.45 of it
+    assert np.all(table["envelope_volume_m3"].to_numpy() < 0.7 * volume)  # 0.60 of it
 
 
 def test_envelope_of_a_porous_surface_is_its_top():
