@@ -75,8 +75,9 @@ def test_extents_follow_a_given_direction():
     res = 0.02
     yy, xx = np.mgrid[-150:151, -150:151] * res
     rows, cols = np.nonzero((np.abs(xx) <= 2.0) & (np.abs(yy) <= 1.0))  # 4 m east, 2 m north
-    assert directional_extents(rows, cols, res, (1.0, 0.0)) == pytest.approx((4.0, 2.0), abs=2 * res)
-    assert directional_extents(rows, cols, res, (0.0, 1.0)) == pytest.approx((2.0, 4.0), abs=2 * res)
+    east, north = (1.0, 0.0), (0.0, 1.0)
+    assert directional_extents(rows, cols, res, east) == pytest.approx((4.0, 2.0), abs=2 * res)
+    assert directional_extents(rows, cols, res, north) == pytest.approx((2.0, 4.0), abs=2 * res)
 
 
 def test_envelope_volume_of_an_exact_ellipsoid():
@@ -135,3 +136,24 @@ def test_envelope_column_stops_at_the_ground():
     heights = np.full(xx.size, 3.0)
     assert envelope_volume(heights, xx.ravel(), yy.ravel(), 1.0, res) == pytest.approx(
         3.0 * xx.size * res**2)
+
+
+def test_crown_agreement_scores_the_envelope_when_measured():
+    import pandas as pd
+
+    from ground_truth.evaluate import crown_agreement
+
+    truth = pd.DataFrame({"tree_id": [1, 2, 3], "label": list("abc"), "row": 0,
+                          "crown_x": [0.0, 5, 10], "crown_y": 0.0, "crown_diameter_m": 3.0,
+                          "crown_diameter_mean_m": 3.0, "tree_height_m": 4.0,
+                          "crown_volume_m3": [10.0, 12, 14], "sphere_volume_m3": [14.0, 15, 18]})
+    crowns = pd.DataFrame({"x": [0.1, 5, 10], "y": 0.0, "touches_border": False,
+                           "diameter_max_m": 3.0, "diameter_mean_m": 3.0, "height_m": 4.0,
+                           "sphere_volume_m3": [14.0, 15, 17],
+                           "sphere_volume_mean_m3": [13.0, 12, 16],
+                           "ellipsoid_volume_m3": [11.0, 12, 15], "chm_volume_m3": [8.0, 9, 7]})
+    _, metrics = crown_agreement(crowns, truth)  # crowns measured before the envelope existed
+    assert "volume_envelope_aerial_bias_pct" not in metrics
+    crowns["envelope_volume_m3"] = [11.0, 13.2, 15.4]  # 10 % high
+    _, metrics = crown_agreement(crowns, truth)
+    assert metrics["volume_envelope_aerial_bias_pct"] == pytest.approx(10.0)
