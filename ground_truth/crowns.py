@@ -25,7 +25,8 @@ import pandas as pd
 from canopy_kit.errors import ProcessingError
 from ground_truth.envelope import envelope_volume
 from ground_truth.raster import Grid
-from ground_truth.rows import RowDirection, directional_extents, estimate_row_direction
+from ground_truth.rows import (RowDirection, directional_extents, estimate_row_direction,
+                               principal_axis)
 
 CROWN_COLUMNS = [
     "crown_id", "x", "y", "area_m2", "diameter_max_m", "diameter_perp_m", "diameter_mean_m",
@@ -329,7 +330,7 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
         rr, cc = np.nonzero(region)
         rr_abs, cc_abs = rr + sl[0].start, cc + sl[1].start
         area = region.sum() * res**2
-        d_max, d_perp, axis_angle = feret_extents(rr_abs, cc_abs, res)
+        d_max, d_perp, _ = feret_extents(rr_abs, cc_abs, res)
         h = np.nan_to_num(chm[sl][region], nan=0.0)
         top = float(np.percentile(h, 95)) if h.size else 0.0
         ring = region & ~binary_erosion(region, structure=_disk(max(0.3 / res, 1.0)), border_value=0)
@@ -348,7 +349,7 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
         around = labels[wide]
         shared = shared_outline_fraction(around == lab, (around > 0) & (around != lab))
         cx, cy = x[rr_abs, cc_abs], y[rr_abs, cc_abs]
-        cells.append((rr_abs, cc_abs, axis_angle, d_max - d_perp))
+        cells.append((rr_abs, cc_abs, *principal_axis(rr_abs, cc_abs)))
         rows.append({
             "crown_id": lab, "x": float(cx.mean()), "y": float(cy.mean()),
             "area_m2": float(area), "diameter_max_m": d_max, "diameter_perp_m": d_perp,

@@ -157,3 +157,18 @@ def test_crown_agreement_scores_the_envelope_when_measured():
     crowns["envelope_volume_m3"] = [11.0, 13.2, 15.4]  # 10 % high
     _, metrics = crown_agreement(crowns, truth)
     assert metrics["volume_envelope_aerial_bias_pct"] == pytest.approx(10.0)
+
+
+def test_principal_axis_of_a_rotated_rectangle():
+    """The major axis of a 3 m x 1 m block at 63° bearing (its Feret diameter is the diagonal)."""
+    from ground_truth.rows import principal_axis
+
+    res = 0.02
+    yy, xx = np.mgrid[-100:101, -100:101] * res
+    north = -yy  # raster rows run south
+    u, v = xx * ALONG[0] + north * ALONG[1], xx * ACROSS[0] + north * ACROSS[1]
+    rows, cols = np.nonzero((np.abs(u) <= 1.5) & (np.abs(v) <= 0.5))
+    angle, elongation = principal_axis(rows, cols)
+    bearing = np.degrees(np.arctan2(np.cos(angle), np.sin(angle))) % 180.0
+    assert bearing == pytest.approx(BEARING, abs=0.5)
+    assert elongation == pytest.approx(1 - 1 / 9, abs=0.02)  # variances ∝ length²
