@@ -31,8 +31,9 @@ from ground_truth.rows import (RowDirection, directional_extents, estimate_row_d
 CROWN_COLUMNS = [
     "crown_id", "x", "y", "area_m2", "diameter_max_m", "diameter_perp_m", "diameter_mean_m",
     "diameter_along_row_m", "diameter_across_row_m", "diameter_equivalent_m", "height_m",
-    "edge_height_m", "outline_height_m", "sphere_volume_m3", "sphere_volume_mean_m3", "ellipsoid_volume_m3",
-    "chm_volume_m3", "envelope_volume_m3", "seed_id", "touches_border", "shared_outline_fraction",
+    "edge_height_m", "outline_height_m", "sphere_volume_m3", "sphere_volume_mean_m3",
+    "ellipsoid_volume_m3", "chm_volume_m3", "envelope_volume_m3", "seed_id", "touches_border",
+    "shared_outline_fraction",
 ]
 
 
@@ -338,7 +339,8 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
         edge = min(max(edge, 0.0), top)
         depth = 2.0 * (top - edge)
         # The envelope's widest level: the CHM right at the outline (cells within 0.15 m).
-        rim = region & ~binary_erosion(region, structure=_disk(max(0.15 / res, 1.0)), border_value=0)
+        rim = region & ~binary_erosion(region, structure=_disk(max(0.15 / res, 1.0)),
+                                       border_value=0)
         outline = float(np.median(np.nan_to_num(chm[sl][rim], nan=0.0))) if rim.any() else 0.0
         outline = min(max(outline, 0.0), top)
         d_mean = 0.5 * (d_max + d_perp)
