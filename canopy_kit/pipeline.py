@@ -244,9 +244,12 @@ def tree_table(ctx: RunContext) -> pd.DataFrame:
 AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tree table
     "aerial_diameter_max_m": "aerial_diameter_m",
     "aerial_diameter_mean_m": "aerial_diameter_mean_m",
+    "aerial_diameter_across_row_m": "aerial_diameter_across_row_m",
+    "aerial_diameter_along_row_m": "aerial_diameter_along_row_m",
     "aerial_sphere_volume_m3": "aerial_sphere_volume_m3",
     "aerial_ellipsoid_volume_m3": "aerial_ellipsoid_volume_m3",
     "aerial_chm_volume_m3": "aerial_chm_volume_m3",
+    "aerial_envelope_volume_m3": "aerial_envelope_volume_m3",
     "aerial_height_m": "aerial_height_m",
     "aerial_distance_m": "aerial_match_distance_m",
 }
@@ -261,7 +264,9 @@ def join_aerial(trees: pd.DataFrame, aerial: Any,
     aerial columns but get no error and stay out of the agreement statistics.
     """
     st = settings or GroundTruthConfig()
-    matched = aerial.trees[["segment", *AERIAL_COLUMNS]].rename(columns=AERIAL_COLUMNS)
+    # A result made before a column existed (reused, read back from disk) lacks it.
+    present = [c for c in AERIAL_COLUMNS if c in aerial.trees]
+    matched = aerial.trees[["segment", *present]].rename(columns=AERIAL_COLUMNS)
     matched = matched[aerial.trees["matched"].to_numpy(bool)]
     out = trees.merge(matched, on="segment", how="left")
     ratio = out["aerial_diameter_m"] / out["crown_diameter_m"]

@@ -4,7 +4,8 @@
 ``exif`` (read and check geotagged JPEGs) → ``sfm`` (pycolmap structure from motion,
 georeferenced to the camera GPS positions) → ``dsm`` (surface and ground models from
 multi-view height matching) → ``ortho`` (orthomosaic, GeoTIFF) → ``crowns`` (crown
-masks, watershed, diameters and volumes) → ``match`` (one row per LiDAR tree).
+masks, watershed, diameters and volumes; ``rows``: the row direction and the extents along
+and across it; ``envelope``: the 2.5-D envelope volume) → ``match`` (one row per LiDAR tree).
 """
 
 from __future__ import annotations

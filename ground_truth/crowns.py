@@ -10,6 +10,9 @@ Diameters: ``diameter_max_m`` is the widest extent (maximum Feret diameter) and
 ``diameter_perp_m`` the extent perpendicular to it. The paper-style sphere
 (``sphere_volume_m3 = π d³/6``) uses the widest extent, as the simulator's truth does;
 ``sphere_volume_mean_m3`` uses the mean of the two perpendicular extents.
+``diameter_along_row_m`` and ``diameter_across_row_m`` are the extents along and across the
+row direction, which comes from the crowns themselves (``ground_truth.rows``).
+``envelope_volume_m3`` is the 2.5-D envelope of ``ground_truth.envelope``.
 """
 
 from __future__ import annotations
@@ -20,12 +23,16 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.errors import ProcessingError
+from ground_truth.envelope import envelope_volume
 from ground_truth.raster import Grid
+from ground_truth.rows import (RowDirection, directional_extents, estimate_row_direction,
+                               principal_axis)
 
 CROWN_COLUMNS = [
     "crown_id", "x", "y", "area_m2", "diameter_max_m", "diameter_perp_m", "diameter_mean_m",
-    "diameter_equivalent_m", "height_m", "edge_height_m", "sphere_volume_m3",
-    "sphere_volume_mean_m3", "ellipsoid_volume_m3", "chm_volume_m3", "seed_id", "touches_border",
+    "diameter_along_row_m", "diameter_across_row_m", "diameter_equivalent_m", "height_m",
+    "edge_height_m", "outline_height_m", "sphere_volume_m3", "sphere_volume_mean_m3",
+    "ellipsoid_volume_m3", "chm_volume_m3", "envelope_volume_m3", "seed_id", "touches_border",
     "shared_outline_fraction",
 ]
 
@@ -302,15 +309,20 @@ def _closed_chm(chm: np.ndarray, resolution: float, radius_m: float = 0.3) -> np
     return closed[np.ix_(rows, cols)]
 
 
-def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
-    """One row per crown: centre, area, diameters, heights and volume models."""
+def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
+                   row_direction: RowDirection | None = None) -> pd.DataFrame:
+    """One row per crown: centre, area, diameters, heights and volume models.
+
+    ``row_direction`` (default: estimated from the crowns, ``rows.estimate_row_direction``)
+    sets the along- and across-row extents; the one used is ``table.attrs["row_direction"]``.
+    """
     from scipy.ndimage import binary_erosion, find_objects
 
     grid, labels = seg.grid, seg.labels
     res = grid.resolution
     x, y = grid.centers()
     surface = _closed_chm(chm, res)  # the crown's top surface without the gaps between leaves
-    rows = []
+    rows, cells = [], []
     for k, sl in enumerate(find_objects(labels)):
         if sl is None:
             continue
@@ -326,6 +338,11 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
         edge = float(np.median(np.nan_to_num(chm[sl][ring], nan=0.0))) if ring.any() else 0.0
         edge = min(max(edge, 0.0), top)
         depth = 2.0 * (top - edge)
+        # The envelope's widest level: the CHM right at the outline (cells within 0.15 m).
+        rim = region & ~binary_erosion(region, structure=_disk(max(0.15 / res, 1.0)),
+                                       border_value=0)
+        outline = float(np.median(np.nan_to_num(chm[sl][rim], nan=0.0))) if rim.any() else 0.0
+        outline = min(max(outline, 0.0), top)
         d_mean = 0.5 * (d_max + d_perp)
         seed = int(seg.marker_seed_ids[lab - 1]) if lab - 1 < len(seg.marker_seed_ids) else -1
         touches = bool(sl[0].start == 0 or sl[1].start == 0 or sl[0].stop == grid.rows
@@ -333,16 +350,28 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray) -> pd.DataFrame:
         wide = tuple(slice(max(a.start - 1, 0), a.stop + 1) for a in sl)
         around = labels[wide]
         shared = shared_outline_fraction(around == lab, (around > 0) & (around != lab))
+        cx, cy = x[rr_abs, cc_abs], y[rr_abs, cc_abs]
+        cells.append((rr_abs, cc_abs, *principal_axis(rr_abs, cc_abs)))
         rows.append({
-            "crown_id": lab, "x": float(x[rr_abs, cc_abs].mean()), "y": float(y[rr_abs, cc_abs].mean()),
+            "crown_id": lab, "x": float(cx.mean()), "y": float(cy.mean()),
             "area_m2": float(area), "diameter_max_m": d_max, "diameter_perp_m": d_perp,
             "diameter_mean_m": d_mean, "diameter_equivalent_m": float(2 * np.sqrt(area / np.pi)),
-            "height_m": top, "edge_height_m": edge,
+            "height_m": top, "edge_height_m": edge, "outline_height_m": outline,
             "sphere_volume_m3": np.pi * d_max**3 / 6.0,
             "sphere_volume_mean_m3": np.pi * d_mean**3 / 6.0,
             "ellipsoid_volume_m3": np.pi / 6.0 * d_max * d_perp * depth,
             "chm_volume_m3": float(2.0 * np.sum(np.clip(surface[sl][region] - edge, 0.0, None)) * res**2),
+            "envelope_volume_m3": envelope_volume(h, cx, cy, outline, res),
             "seed_id": seed, "touches_border": touches,
             "shared_outline_fraction": shared,
         })
-    return pd.DataFrame(rows, columns=CROWN_COLUMNS)
+    table = pd.DataFrame(rows, columns=CROWN_COLUMNS)
+    if row_direction is None:
+        row_direction = estimate_row_direction(table[["x", "y"]].to_numpy(),
+                                               np.array([c[2] for c in cells]),
+                                               np.array([c[3] for c in cells]))
+    extents = [directional_extents(r, c, res, row_direction.vector) for r, c, _, _ in cells]
+    table["diameter_along_row_m"] = [e[0] for e in extents]
+    table["diameter_across_row_m"] = [e[1] for e in extents]
+    table.attrs["row_direction"] = row_direction
+    return table

@@ -200,6 +200,9 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
         "trees": int(len(matched)) if matched is not None else None,
         "sphere_diameter": "diameter_max_m (widest extent)", "timings_s": timings,
     }
+    row_dir = crowns.attrs.get("row_direction")
+    if row_dir is not None:
+        summary["row_direction"] = row_dir.to_dict()
     if offset is not None:
         summary["seed_offset"] = offset
     paths = _write_outputs(out, frame, model, surface, mosaic, seg, crowns, matched, summary, opts)

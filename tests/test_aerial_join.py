@@ -52,3 +52,27 @@ def test_inverted_ratio_bounds_are_a_config_error() -> None:
 
     with pytest.raises(ConfigError, match="min_diameter_ratio"):
         GroundTruthConfig(min_diameter_ratio=2.0, max_diameter_ratio=1.0)
+
+
+def test_row_extents_and_envelope_reach_the_per_tree_table() -> None:
+    """The aerial crowns' along/across-row extents and envelope volume reach trees.csv; an
+    aerial result made before those columns existed still joins (without them)."""
+    lidar = pd.DataFrame({"segment": [0], "crown_diameter_m": [4.0],
+                          "volume_convex_hull_m3": [30.0], "volume_alpha_m3": [20.0]})
+    aerial = _aerial([4.0])
+    aerial.trees["aerial_diameter_across_row_m"] = 3.1
+    aerial.trees["aerial_diameter_along_row_m"] = 4.0
+    aerial.trees["aerial_envelope_volume_m3"] = 21.0
+    out = join_aerial(lidar, aerial)
+    assert out.loc[0, ["aerial_diameter_across_row_m", "aerial_diameter_along_row_m",
+                       "aerial_envelope_volume_m3"]].tolist() == [3.1, 4.0, 21.0]
+    old = join_aerial(lidar, _aerial([4.0]))
+    assert "aerial_diameter_across_row_m" not in old and old.loc[0, "aerial_flag"] == ""
+
+
+def test_new_aerial_columns_have_labels() -> None:
+    from canopy_kit.report.columns import COLUMN_LABELS
+
+    assert COLUMN_LABELS["aerial_diameter_across_row_m"] == "Drone crown extent across the row [m]"
+    assert COLUMN_LABELS["aerial_diameter_along_row_m"] == "Drone crown extent along the row [m]"
+    assert "envelope" in COLUMN_LABELS["aerial_envelope_volume_m3"]

@@ -182,3 +182,38 @@ def test_crown_positions_keep_full_precision(processed):
         xyz = frame.to_local(table[f"{prefix}lat"].to_numpy(), table[f"{prefix}lon"].to_numpy(), 0.0)
         err = np.hypot(xyz[:, 0] - table[f"{prefix}x"], xyz[:, 1] - table[f"{prefix}y"])
         assert len(table) and err.max() < 0.01, (name, err.max())
+
+
+def test_row_extents_and_envelope_against_the_crown_model(processed):
+    """Along- and across-row extents against the simulator's crown envelopes (projected on its
+    row direction), the row direction found from the crowns against the orchard's, and the
+    2.5-D envelope volume against the exact crown volumes (measured on this flight: see
+    docs/GROUND_TRUTH.md, "Aerial volume models")."""
+    from canopy_kit.sim.session import regenerate_orchard
+    from ground_truth.match import assign
+
+    sim, out, _ = processed
+    orchard = regenerate_orchard(sim)
+    report = json.loads((out / "report.json").read_text())
+    bearing = np.degrees(np.arctan2(*orchard.row_direction)) % 180.0
+    found = report["row_direction"]
+    assert found["source"] == "crown_neighbours"
+    assert abs((found["bearing_deg"] - bearing + 90.0) % 180.0 - 90.0) < 3.0, (found, bearing)
+    crowns = pd.read_csv(out / "crowns.csv")
+    truth = pd.read_csv(sim / "truth" / "trees.csv")
+    ia, ib, _ = assign(truth[["crown_x", "crown_y"]].to_numpy(), crowns[["x", "y"]].to_numpy(), 1.5)
+    assert len(ia) == 6
+    points = [orchard.trees[i].crown.surface_points(20000)[:, :2] for i in ia]
+    along = np.array([np.ptp(p @ orchard.row_direction) for p in points])
+    across = np.array([np.ptp(p @ orchard.right_direction) for p in points])
+    assert np.abs(crowns["diameter_along_row_m"].to_numpy()[ib] - along).mean() < 0.15
+    assert np.abs(crowns["diameter_across_row_m"].to_numpy()[ib] - across).mean() < 0.25
+    trees = pd.read_csv(out / "trees.csv")
+    assert trees["aerial_diameter_across_row_m"].notna().all()
+    assert trees["aerial_diameter_along_row_m"].notna().all()
+    volume = truth["crown_volume_m3"].to_numpy()[ia]
+    envelope = crowns["envelope_volume_m3"].to_numpy()[ib]
+    chm = crowns["chm_volume_m3"].to_numpy()[ib]
+    bias = np.mean(envelope / volume - 1)
+    assert np.abs(envelope - volume).mean() < np.abs(chm - volume).mean()
+    assert -0.40 < bias < 0.10, bias
