@@ -129,7 +129,7 @@ def trunk_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) 
 
 def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     """Trees found, volumes flagged unreliable, crowns unlike the others of their row."""
-    from canopy_kit.pipeline import flagged
+    from canopy_kit.tree_table import flagged
 
     n = len(trees)
     out = [Check("trees segmented", n > 0, str(n), "fail < 1")]
@@ -205,7 +205,7 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
     beside the ellipsoid and warns at most without it.
     """
     from canopy_kit import stats
-    from canopy_kit.pipeline import comparable_aerial_sphere
+    from canopy_kit.tree_table import comparable_aerial_sphere
 
     aerial = metrics.get("aerial")
     if not aerial:

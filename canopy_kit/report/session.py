@@ -32,7 +32,8 @@ def report_checks(metrics: dict[str, Any], trees: pd.DataFrame, config: Any) -> 
 def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
     """The report of a run as one self-contained HTML page."""
     from canopy_kit.config import config_toml
-    from canopy_kit.pipeline import comparable_aerial_sphere, config_used
+    from canopy_kit.outputs import config_used
+    from canopy_kit.tree_table import comparable_aerial_sphere
     from canopy_kit.report import plots
 
     cloud, seg = ctx.mapping.map, ctx.segmentation
@@ -150,7 +151,7 @@ def report_downloads(ctx: Any, trees: pd.DataFrame,
                      provenance: dict[str, Any] | None = None) -> list[dict[str, str]]:
     """The files the page offers for download, made by the functions that write them beside
     it (with the run's ``provenance``); a GeoJSON the run does not write (no CRS) is left out."""
-    from canopy_kit.pipeline import trees_geojson
+    from canopy_kit.outputs import trees_geojson
     from canopy_kit.segment.export import crowns_geojson, rows_geojson
 
     geo = "application/geo+json"
