@@ -55,8 +55,9 @@ def run_metrics(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
         for col in PAPER_VOLUME_COLUMNS:
             if col in trees and ok.any():
                 good = ok & trees[col].notna()
+                sphere = trees.loc[good, "aerial_sphere_volume_m3"].to_numpy()
                 m["aerial"][col] = stats.agreement(trees.loc[good, col].to_numpy(),
-                                                   trees.loc[good, "aerial_sphere_volume_m3"].to_numpy()).as_dict()
+                                                   sphere).as_dict()
     if ctx.layout is not None:
         m["layout"] = ctx.layout.as_dict()
     if ctx.evaluation:
@@ -75,7 +76,9 @@ def config_used(ctx: Any) -> PipelineConfig:
     from canopy_kit.config import MappingConfig
 
     mapping = getattr(ctx.mapping, "config", None)
-    return replace(ctx.config, mapping=mapping) if isinstance(mapping, MappingConfig) else ctx.config
+    if isinstance(mapping, MappingConfig):
+        return replace(ctx.config, mapping=mapping)
+    return ctx.config
 
 
 def write_tree_tables(ctx: Any, trees: pd.DataFrame, out: Path,

@@ -102,7 +102,8 @@ def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
     ctx = RunContext(config, estimators=estimators)
     map_key = stage_key("map", fingerprint(bag), config.mapping)
     ctx.mapping = cache.get_or_compute("map", map_key, lambda: map_stage(bag, config, report))
-    seg_key = stage_key("segment", map_key, config.preprocess, config.segment, config.rows, config.seed)
+    seg_key = stage_key("segment", map_key, config.preprocess, config.segment, config.rows,
+                        config.seed)
     ctx.segmentation = cache.get_or_compute("segment", seg_key,
                                             lambda: segment_stage(ctx, report))
     vol_key = stage_key("volumes", seg_key, config.volume)
@@ -186,7 +187,8 @@ def layout_stage(ctx: RunContext) -> Any:
     from canopy_kit.segment.layout import measure_layout
 
     seg = ctx.segmentation
-    return measure_layout(ctx.mapping.map.xyz, seg.height, seg, tuple(ctx.config.preprocess.stem_band))
+    return measure_layout(ctx.mapping.map.xyz, seg.height, seg,
+                          tuple(ctx.config.preprocess.stem_band))
 
 
 def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -> Any:

@@ -17,8 +17,8 @@ FIRST_COLUMNS = ["tree_id", "label", "row", "x", "y", "lat", "lon", "n_points", 
 
 
 def tree_table(ctx: Any) -> pd.DataFrame:
-    """The final per-tree table of ``ctx`` (a ``pipeline.RunContext``): LiDAR results, positions in WGS84, crowns unlike the others
-    (``segment_flags``) and aerial truth if any."""
+    """The final per-tree table of ``ctx`` (a ``pipeline.RunContext``): LiDAR results,
+    positions in WGS84, crowns unlike the others (``segment_flags``) and aerial truth if any."""
     from canopy_kit.segment.qa import crown_outliers
 
     trees = ctx.trees.copy()

@@ -53,7 +53,8 @@ def _(PAPER_ALPHA_M, mo, plugins, table):
                            zip(table["row"], table["label"], table["segment"])},
                           value=f"{table['row'].iloc[0]}:{table['label'].iloc[0]}", label="tree")
     method = mo.ui.dropdown(plugins.names("volumes"), value="alpha_shape", label="method")
-    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=PAPER_ALPHA_M, label="alpha (m)", show_value=True)
+    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=PAPER_ALPHA_M, label="alpha (m)",
+                         show_value=True)
     mo.hstack([tree, method, alpha])
     return alpha, method, tree
 

@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import REPO
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
@@ -21,8 +22,6 @@ from canopy_kit.volume.verb import (
     volume_column,
     volume_methods,
 )
-
-from conftest import REPO
 
 MEASURED = ["x", "y", "n_points", "height_m", "crown_diameter_m", "projected_area_m2",
             "sphere_volume_m3", "volume_low_m3", "volume_high_m3"]

@@ -20,6 +20,7 @@ import pandas as pd
 
 from canopy_kit.report.columns import column_label
 from canopy_kit.report.surfaces import Surface, alpha_surface, hull_surface
+from canopy_kit.volume.verb import ALPHA_COLUMN
 
 MAX_POINTS = 2000  # points per tree in the 3-D view
 ORTHO_PIXELS = 240  # longest side of a tree's orthomosaic crop
@@ -169,7 +170,7 @@ def map_layers(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
     return {"footprints": footprints, "rows": rows, "drive": drive}
 
 
-def row_summary(trees: pd.DataFrame, volume: str = "volume_alpha_m3") -> pd.DataFrame:
+def row_summary(trees: pd.DataFrame, volume: str = ALPHA_COLUMN) -> pd.DataFrame:
     """Per row: trees, median and total of ``volume`` (m³; NaN for a row without one) and
     flagged trees. Empty without a row or ``volume`` column."""
     columns = ["row", "trees", "median_m3", "total_m3", "flagged"]

@@ -11,9 +11,10 @@ from canopy_kit.checks import Check, format_value
 from canopy_kit.report.figures import figure_to_data_uri
 from canopy_kit.report.html import ReportSection, render_report
 from canopy_kit.report.mapdecor import add_north_arrow_and_scale
+from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN
 
 TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
-                 "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
+                 "crown_diameter_m", CONVEX_HULL_COLUMN, ALPHA_COLUMN,
                  "aerial_diameter_m", "aerial_sphere_volume_m3", "error_alpha_vs_aerial_pct",
                  "aerial_flag", "n_trunks",
                  "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags",
@@ -46,7 +47,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     add_north_arrow_and_scale(map_fig.axes[0])
     figs = [("Map from above, each segmented tree in its own colour, labelled with its tree ID; "
              "dashed: fitted rows; grey: the estimated drive.", figure_to_data_uri(map_fig))]
-    volume_columns = {"convex hull": "volume_convex_hull_m3", "alpha shape": "volume_alpha_m3"}
+    volume_columns = {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN}
     if "aerial_sphere_volume_m3" in trees:
         volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
     if "true_crown_volume_m3" in trees:
@@ -79,14 +80,14 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     if rig is not None:
         sections.append(rig)
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
-        ok = comparable_aerial_sphere(trees).notna() & trees["volume_alpha_m3"].notna()
+        ok = comparable_aerial_sphere(trees).notna() & trees[ALPHA_COLUMN].notna()
         figs = []
         if ok.sum() >= 2:
             sub = trees[ok]
             figs.append(("Alpha-shape volume against the aerial sphere volume (paper §III.A); "
                          "trees with a flagged aerial crown left out.",
                          figure_to_data_uri(plots.plot_agreement(
-                             sub["volume_alpha_m3"].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
+                             sub[ALPHA_COLUMN].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
                              ("LiDAR alpha shape", "aerial sphere"), list(sub["tree_id"])))))
         from ground_truth.plots import plot_crowns
 
@@ -97,13 +98,13 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                      "crown n, matched to none).", figure_to_data_uri(ax.figure)))
         sections.append(ReportSection("LiDAR against drone photogrammetry", figs))
     if "true_crown_volume_m3" in trees:
-        ok = trees["true_crown_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
+        ok = trees["true_crown_volume_m3"].notna() & trees[ALPHA_COLUMN].notna()
         if ok.sum() >= 2:
             sub = trees[ok]
             sections.append(ReportSection("Against the simulator's truth", [
                 ("Alpha-shape volume against the exact crown volume.",
                  figure_to_data_uri(plots.plot_agreement(
-                     sub["volume_alpha_m3"].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
+                     sub[ALPHA_COLUMN].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
                      ("LiDAR alpha shape", "true crown"), list(sub["tree_id"]))))]))
     if ctx.truth_matches is not None and "tree_id" in cloud.fields:
         from canopy_kit.evaluate import score_point_labels
@@ -121,7 +122,9 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         "segmenter": metrics.get("segmenter", ""),
         "map points": f"{len(cloud):,}",
         "drive": format_value(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
-        "median alpha volume": format_value(float(trees["volume_alpha_m3"].median()) if len(trees) and "volume_alpha_m3" in trees else None, " m³", 1),
+        "median alpha volume": format_value(
+            float(trees[ALPHA_COLUMN].median()) if len(trees) and ALPHA_COLUMN in trees else None,
+            " m³", 1),
         "CRS": cloud.crs or "none",
     }
     table = trees[[c for c in TABLE_COLUMNS if c in trees]]
