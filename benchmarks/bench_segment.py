@@ -148,7 +148,7 @@ def accuracy(args: argparse.Namespace) -> None:
             old = old[~old.set_index(["session", "method"]).index.isin(
                 df.set_index(["session", "method"]).index)]
         pd.concat([old, df], ignore_index=True).to_csv(path, index=False, float_format="%.4f")
-    from canopy_kit.segment.results import success_table
+    from canopy_kit.paper.segmentation_results import success_table
 
     print(success_table(df).to_string(float_format=lambda v: f"{v:.3f}"))
 
@@ -334,7 +334,7 @@ def real(args: argparse.Namespace) -> None:
 
 def table(args: argparse.Namespace) -> None:
     """The reproduction table (markdown) from the saved per-session results."""
-    from canopy_kit.segment.results import reproduction_results
+    from canopy_kit.paper.segmentation_results import reproduction_results
 
     t = reproduction_results(args.csv, seeds=args.seeds, variant=args.variant, metric=args.metric)
     if t.empty:
@@ -390,7 +390,7 @@ def main() -> None:
     rl.add_argument("--methods", nargs="+", default=DEFAULT_METHODS)
     rl.set_defaults(func=real)
     tb = sub.add_parser("table")
-    tb.add_argument("--csv", default="docs/segmentation_results.csv")
+    tb.add_argument("--csv", default="canopy_kit/paper/data/segmentation_results.csv")
     tb.add_argument("--seeds", nargs="*", type=int, default=None)
     tb.add_argument("--variant", default="default")
     tb.add_argument("--metric", default="success_points",

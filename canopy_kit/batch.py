@@ -331,18 +331,18 @@ def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | Non
 
 def _write_tables(ctx: Any, cache: Any, out: Path, prov: dict[str, Any] | None = None) -> Any:
     """The per-tree table, metrics and config only (a batch that needs no report)."""
-    from canopy_kit import pipeline
     from canopy_kit.io.atomic import atomic_write_text
+    from canopy_kit.outputs import Results, run_metrics, write_tree_tables
 
-    metrics = pipeline.run_metrics(ctx, ctx.table)
+    metrics = run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
     if prov:
         metrics["provenance"] = prov
     # segmentation.json and crowns among them: `canopy-kit evaluate` scores the session by footprints
-    files = pipeline.write_tree_tables(ctx, ctx.table, out, prov)
+    files = write_tree_tables(ctx, ctx.table, out, prov)
     files["metrics.json"] = atomic_write_text(
         out / "metrics.json", json.dumps(metrics, indent=2, default=str) + "\n")
-    return pipeline.Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])))
+    return Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])))
 
 
 # -- the batch ------------------------------------------------------------------------------

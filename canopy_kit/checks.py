@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import ChecksConfig
+from canopy_kit.volume.verb import ALPHA_COLUMN
 
 Status = Literal["pass", "warn", "fail", "info"]
 STATUSES = ("pass", "warn", "fail", "info")
@@ -129,7 +130,7 @@ def trunk_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) 
 
 def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     """Trees found, volumes flagged unreliable, crowns unlike the others of their row."""
-    from canopy_kit.pipeline import flagged
+    from canopy_kit.tree_table import flagged
 
     n = len(trees)
     out = [Check("trees segmented", n > 0, str(n), "fail < 1")]
@@ -205,7 +206,7 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
     beside the ellipsoid and warns at most without it.
     """
     from canopy_kit import stats
-    from canopy_kit.pipeline import comparable_aerial_sphere
+    from canopy_kit.tree_table import comparable_aerial_sphere
 
     aerial = metrics.get("aerial")
     if not aerial:
@@ -226,9 +227,9 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
                              " %", 0, below=True),
                  "others are fragments or merged neighbours: flagged in the table, left out of the "
                  "comparison" if compared < matched else "")]
-    if "volume_alpha_m3" not in trees or "aerial_sphere_volume_m3" not in trees:
+    if ALPHA_COLUMN not in trees or "aerial_sphere_volume_m3" not in trees:
         return out
-    usable = comparable_aerial_sphere(trees).notna() & trees["volume_alpha_m3"].notna()
+    usable = comparable_aerial_sphere(trees).notna() & trees[ALPHA_COLUMN].notna()
     for column, model in (("aerial_ellipsoid_volume_m3", "height-aware ellipsoid"),
                           ("aerial_sphere_volume_m3", "paper's sphere")):
         if column not in trees:
@@ -238,7 +239,7 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
             out.append(Check(f"alpha shape vs aerial {model} volume (MAPE)", "info", "n/a",
                              "", f"{int(ok.sum())} trees comparable"))
             continue
-        lidar, drone = trees.loc[ok, "volume_alpha_m3"].to_numpy(), trees.loc[ok, column].to_numpy()
+        lidar, drone = trees.loc[ok, ALPHA_COLUMN].to_numpy(), trees.loc[ok, column].to_numpy()
         mape = stats.mape(lidar, drone)
         status = grade(mape, st.aerial_mape_warn_pct, st.aerial_mape_fail_pct)
         note = f"{int(ok.sum())} trees, bias {stats.mean_percent_bias(lidar, drone):+.1f} %"

@@ -46,7 +46,7 @@ def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
 def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict[str, Any]:
     """Scores of a run against simulator truth, and the tree table with truth columns added."""
     from canopy_kit.truth import load_truth
-    from canopy_kit.trees import volume_column
+    from canopy_kit.volume.verb import volume_column
 
     truth = load_truth(sim_dir)
     score = score_segmentation(ctx, sim_dir)

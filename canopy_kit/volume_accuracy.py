@@ -51,7 +51,7 @@ def segmented_volume_errors(sim_dir: str | Path, config: Any, methods: list[str]
     from canopy_kit.evaluate import score_point_labels
     from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.segment.verb import make_segmenter, segment
-    from canopy_kit.trees import measure_trees, volume_column
+    from canopy_kit.volume.verb import measure_trees, volume_column
     from canopy_kit.truth import load_truth
     from canopy_kit.truth_map import truth_map
 

@@ -13,9 +13,11 @@ def _():
 
     from canopy_kit.explore import load_context
     from canopy_kit.report.plots import plot_agreement
+    from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN
     from ground_truth.plots import plot_crowns, plot_surface
 
-    return load_context, mo, plot_agreement, plot_crowns, plot_surface
+    return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, load_context, mo, plot_agreement, plot_crowns,
+            plot_surface)
 
 
 @app.cell
@@ -45,8 +47,8 @@ def _(aerial, mo, plot_surface):
 
 
 @app.cell
-def _(ctx, mo):
-    source = mo.ui.dropdown({"alpha shape": "volume_alpha_m3", "convex hull": "volume_convex_hull_m3"},
+def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, ctx, mo):
+    source = mo.ui.dropdown({"alpha shape": ALPHA_COLUMN, "convex hull": CONVEX_HULL_COLUMN},
                             value="alpha shape", label="LiDAR volume")
     reference = mo.ui.dropdown({"aerial sphere (paper)": "aerial_sphere_volume_m3",
                                 "aerial ellipsoid": "aerial_ellipsoid_volume_m3",

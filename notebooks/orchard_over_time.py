@@ -46,6 +46,7 @@ def _(OrchardStore, mo, np):
         """Three visits of a synthetic planting through OrchardStore.ingest."""
         from canopy_kit.geo import LocalFrame
         from canopy_kit.store import SessionRecord
+        from canopy_kit.volume.verb import ALPHA_COLUMN
 
         rng = np.random.default_rng(0)
         layout = np.array([[r * 6.0, i * 5.0] for r in range(4) for i in range(8)])
@@ -63,7 +64,7 @@ def _(OrchardStore, mo, np):
                 keep = np.setdiff1d(np.arange(len(layout)), absent)
                 t = pd.DataFrame({"segment": np.arange(len(xy)), "label": "", "row": layout[:, 0] // 6,
                                   "lat": lat, "lon": lon, "n_points": 5000, "height_m": 4.0,
-                                  "crown_diameter_m": 4.0, "volume_alpha_m3": vol}).iloc[keep]
+                                  "crown_diameter_m": 4.0, ALPHA_COLUMN: vol}).iloc[keep]
                 db.ingest(SessionRecord(sid, "demo", dt.date(2025, month, 1)), t)
         return path
 

@@ -18,10 +18,14 @@ def _():
     from canopy_kit.explore import load_context
     from canopy_kit.report.plots import plot_volumes
     from canopy_kit.volume import alpha_curve, auto_alpha, estimate_volume
+    from canopy_kit.volume.alpha import PAPER_ALPHA_M
     from canopy_kit.volume.hull import hull_mesh
+    from canopy_kit.volume.verb import (ALPHA_COLUMN, CONVEX_HULL_COLUMN, measure_tree,
+                                        measured_points, tree_points, volume_column)
 
-    return (alpha_curve, auto_alpha, estimate_volume, go, hull_mesh, load_context, mo, np,
-            plot_volumes, plt, plugins)
+    return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, PAPER_ALPHA_M, alpha_curve, auto_alpha,
+            estimate_volume, go, hull_mesh, load_context, measure_tree, measured_points, mo, np,
+            plot_volumes, plt, plugins, tree_points, volume_column)
 
 
 @app.cell
@@ -35,49 +39,66 @@ def _(load_context, mo):
 
 
 @app.cell
-def _(plot_volumes, table):
-    cols = {"convex hull": "volume_convex_hull_m3", "alpha shape": "volume_alpha_m3",
-            "slices": "volume_slices_m3", "true crown": "true_crown_volume_m3"}
+def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, plot_volumes, table, volume_column):
+    cols = {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN,
+            "slices": volume_column("slices"), "true crown": "true_crown_volume_m3"}
     fig_all = plot_volumes(table, cols)
     fig_all
     return
 
 
 @app.cell
-def _(mo, plugins, table):
+def _(PAPER_ALPHA_M, mo, plugins, table):
     tree = mo.ui.dropdown({f"{r}:{lab}": int(s) for r, lab, s in
                            zip(table["row"], table["label"], table["segment"])},
                           value=f"{table['row'].iloc[0]}:{table['label'].iloc[0]}", label="tree")
     method = mo.ui.dropdown(plugins.names("volumes"), value="alpha_shape", label="method")
-    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=0.9, label="alpha (m)", show_value=True)
+    alpha = mo.ui.slider(0.2, 3.0, step=0.1, value=PAPER_ALPHA_M, label="alpha (m)",
+                         show_value=True)
     mo.hstack([tree, method, alpha])
     return alpha, method, tree
 
 
 @app.cell
-def _(alpha, ctx, estimate_volume, method, mo, np, table, tree):
-    xyz = ctx.mapping.map.xyz[ctx.segmentation.labels == tree.value]
+def _(ctx, measure_tree, mo, tree, tree_points, volume_column):
+    # The tree's points and volumes exactly as trees.csv measures them (map.laz grid, the
+    # run's voxel thinning and estimators): this cell shows the same numbers as the table.
+    xyz = tree_points(ctx.mapping.map, ctx.segmentation.labels, tree.value)
+    measured = measure_tree(xyz, ctx.config.volume, ctx.segmentation.ground.height,
+                            ctx.estimators)
+    as_table = ", ".join(f"{m} {measured[volume_column(m)]:.2f} m³"
+                         for m in dict.fromkeys([*ctx.config.volume.methods,
+                                                 ctx.config.volume.recommended]))
+    mo.md(f"As in trees.csv: {as_table}")
+    return measured, xyz
+
+
+@app.cell
+def _(alpha, ctx, estimate_volume, measured_points, method, mo, np, table, tree, xyz):
     params = {"alpha": alpha.value} if method.value in ("alpha_shape", "alpha_hull") else {}
-    result = estimate_volume(xyz, method.value, **params)
+    thinned = measured_points(xyz, ctx.config.volume)  # the points trees.csv measures
+    result = estimate_volume(thinned, method.value, **params)
     row = table[table["segment"] == tree.value].iloc[0]
     truth = row.get("true_crown_volume_m3", np.nan)
     mo.md(f"**{method.value}**: {result.volume_m3:.2f} m³ "
           f"({'valid' if result.valid else 'flagged: ' + str(result.reason)}), "
-          f"{len(xyz):,} points" + (f"; true crown {truth:.2f} m³" if np.isfinite(truth) else ""))
-    return truth, xyz
+          f"{len(thinned):,} of {len(xyz):,} points (one per "
+          f"{ctx.config.volume.voxel_size:g} m voxel)"
+          + (f"; true crown {truth:.2f} m³" if np.isfinite(truth) else ""))
+    return thinned, truth
 
 
 @app.cell
-def _(alpha_curve, auto_alpha, np, plt, truth, xyz):
+def _(PAPER_ALPHA_M, alpha_curve, auto_alpha, np, plt, thinned, truth):
     alphas = np.linspace(0.2, 4.0, 39)
-    curve = alpha_curve(xyz, alphas)
-    chosen = auto_alpha(xyz)
+    curve = alpha_curve(thinned, alphas)
+    chosen = auto_alpha(thinned)
     fig_curve, ax = plt.subplots(figsize=(7, 4))
     ax.plot(curve.alphas, curve.volumes, "o-", ms=3, label="alpha shape")
     ax.axhline(curve.hull_volume, color="k", ls=":", label="convex hull")
     if np.isfinite(truth):
         ax.axhline(truth, color="tab:green", ls="--", label="true crown")
-    ax.axvline(0.9, color="tab:red", lw=0.8, label="paper α = 0.9 m")
+    ax.axvline(PAPER_ALPHA_M, color="tab:red", lw=0.8, label=f"paper α = {PAPER_ALPHA_M:g} m")
     ax.axvline(chosen.alpha, color="tab:purple", lw=0.8, label=f"automatic α = {chosen.alpha:.2f} m")
     ax.set_xlabel("α (m)")
     ax.set_ylabel("volume (m³)")

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
-from canopy_kit.pipeline import join_aerial
+from canopy_kit.tree_table import join_aerial
 
 
 def _aerial(diameters: list[float]) -> SimpleNamespace:

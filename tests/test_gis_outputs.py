@@ -418,7 +418,7 @@ def test_cli_run_and_segment_export_trees(gis_run, tmp_path) -> None:
 def test_a_table_without_positions_gets_no_trees_geojson(tmp_path) -> None:
     """A run whose map has no CRS: trees.csv/parquet are written, no trees.geojson (and an
     earlier run's is removed), full-precision positions where there are some."""
-    from canopy_kit.pipeline import trees_geojson, write_trees
+    from canopy_kit.outputs import trees_geojson, write_trees
 
     local = pd.DataFrame({"tree_id": ["r0-L0"], "segment": [0], "x": [1.0], "y": [2.0],
                           "lat": [np.nan], "lon": [np.nan]})

@@ -425,7 +425,7 @@ def test_write_and_read_a_run_folder(tmp_path) -> None:
 
 
 def test_results_table_pivots_long_form_runs(tmp_path) -> None:
-    from canopy_kit.segment.results import results_table, success_table
+    from canopy_kit.paper.segmentation_results import results_table, success_table
 
     runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "adaptive"],
                          "orchard": ["almond", "pistachio", "almond", "pistachio"],
@@ -515,7 +515,7 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
 
 
 def test_reproduction_table_pools_trees_and_sets_the_paper_beside(tmp_path) -> None:
-    from canopy_kit.segment.results import reproduction_results, reproduction_table
+    from canopy_kit.paper.segmentation_results import reproduction_results, reproduction_table
 
     runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "dbscan", "dbscan"],
                          "orchard": ["almond", "almond", "almond", "pistachio", "almond-paper"],

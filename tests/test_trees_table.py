@@ -1,4 +1,4 @@
-"""The per-tree table (``canopy_kit.trees.measure_trees``) on clouds of known shape."""
+"""The per-tree table (``canopy_kit.volume.verb.measure_trees``) on clouds of known shape."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
 from canopy_kit.errors import ConfigError
-from canopy_kit.trees import measure_trees
+from canopy_kit.volume.verb import measure_trees
 
 
 def _ball_orchard(n_trees: int, seed: int = 0) -> tuple[PointCloud, np.ndarray, np.ndarray]:
@@ -56,7 +56,7 @@ def test_volume_voxel_size_zero_measures_every_point_and_bad_settings_are_named(
 
 
 def test_flagged_counts_trees_with_a_note_and_not_missing_values() -> None:
-    from canopy_kit.pipeline import flagged
+    from canopy_kit.tree_table import flagged
 
     trees = pd.DataFrame({"volume_flags": ["", "hull of fewer than 4 points", None, np.nan],
                           "tree_id": ["a", "b", "c", "d"]})

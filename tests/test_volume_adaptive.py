@@ -183,7 +183,7 @@ def test_the_table_bounds_the_recommended_estimator() -> None:
     from canopy_kit.cloud import PointCloud
     from canopy_kit.config import VolumeConfig, load_preset
     from canopy_kit.errors import ConfigError
-    from canopy_kit.trees import measure_trees
+    from canopy_kit.volume.verb import measure_trees
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS
 
     pts, true = ball()

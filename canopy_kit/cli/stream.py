@@ -17,7 +17,7 @@ def run_streaming(config: PipelineConfig, bag: Path, out: Path, extra_inputs: Pa
         raise InputError(f"{extra_inputs}: --stream takes neither --drone-images nor --truth "
                          "(run without --stream to check the trees against them)")
     from canopy_kit.streaming import run_stream
-    from canopy_kit.trees import volume_column
+    from canopy_kit.volume.verb import volume_column
 
     method = config.volume.methods[0] if config.volume.methods else None
 

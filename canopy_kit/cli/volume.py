@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import typer
 
+from canopy_kit.volume.alpha import PAPER_ALPHA_M
+
 
 def volume(
     cloud: str = typer.Argument(..., help="LAS/LAZ/PLY/PCD file holding one tree's points "
@@ -12,7 +14,8 @@ def volume(
                                help="volume plugin: convex_hull, alpha_shape, alpha_hull, voxel, "
                                     "slices, mirror, ... (see 'canopy-kit plugins volumes')"),
     alpha: float = typer.Option(None, "--alpha", "-a",
-                                help="alpha radius in metres for alpha-based methods (default 0.9)"),
+                                help="alpha radius in metres for alpha-based methods "
+                                     f"(default {PAPER_ALPHA_M:g})"),
     voxel_size: float = typer.Option(0.0, "--voxel-size", min=0.0,
                                      help="thin the points to this voxel grid first, as a run "
                                           "measures its trees (volume.voxel_size, 0.1 m); "

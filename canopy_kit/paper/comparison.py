@@ -1,8 +1,8 @@
 """The experiments table: per orchard, segmenter and mapping, our figures beside the paper's.
 
 Segmentation success is pooled over seeds (trees correct / true trees) with the range of
-the per-seed rates (:func:`canopy_kit.segment.results.success_table`); volume statistics
-pool the correctly segmented trees of all seeds. The paper has volume figures only for its
+the per-seed rates (:func:`canopy_kit.paper.segmentation_results.success_table`); volume
+statistics pool the correctly segmented trees of all seeds. The paper has volume figures only for its
 pistachio DBSCAN run (Table I).
 """
 
@@ -28,7 +28,7 @@ PAPER_SEGMENTATION = {("pistachio", "dbscan"): 0.93, ("almond", "dbscan"): 0.46,
 
 def volume_errors(trees: pd.DataFrame, estimator: str, reference: str) -> pd.Series:
     """Signed % error of ``estimator`` against ``reference`` on the correctly segmented trees."""
-    from canopy_kit.trees import volume_column
+    from canopy_kit.volume.verb import volume_column
 
     col, ref = volume_column(estimator), REFERENCES[reference]
     if col not in trees or ref not in trees:
@@ -39,7 +39,7 @@ def volume_errors(trees: pd.DataFrame, estimator: str, reference: str) -> pd.Ser
 
 def estimators_in(trees: pd.DataFrame) -> list[str]:
     """Volume estimators with a column in a per-tree table: the paper's two first."""
-    from canopy_kit.trees import VOLUME_COLUMN
+    from canopy_kit.volume.verb import VOLUME_COLUMN
 
     named = {v: k for k, v in VOLUME_COLUMN.items()}
     found = [named.get(c, c[len("volume_"):-len("_m3")]) for c in trees.columns
@@ -73,7 +73,7 @@ def compare(runs: pd.DataFrame, trees: pd.DataFrame, paper: dict[str, Any],
             config: ExperimentConfig) -> pd.DataFrame:
     """One row per orchard x method x mapping of ``config``: the paper's figure beside ours
     for segmentation success and volume errors."""
-    from canopy_kit.segment.results import success_table
+    from canopy_kit.paper.segmentation_results import success_table
     from canopy_kit.truth import orchard_kind
 
     rows = []

@@ -233,13 +233,8 @@ def simulate(orchard: str, seed: int, config: ExperimentConfig, root: Path,
 def compute_on_map(pipeline_config: Any, mapping: Any, sim_dir: Path,
                    drone_images: Path | None, out: Path, progress: Progress) -> Any:
     """The pipeline's stages after mapping, on a given map, scored against the truth."""
-    from canopy_kit.pipeline import (
-        RunContext,
-        aerial_stage,
-        segment_stage,
-        tree_table,
-        volume_stage,
-    )
+    from canopy_kit.pipeline import RunContext, aerial_stage, segment_stage, volume_stage
+    from canopy_kit.tree_table import tree_table
     from canopy_kit.validation import evaluate_against_truth
 
     ctx = RunContext(pipeline_config, mapping=mapping)

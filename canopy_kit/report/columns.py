@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN, volume_column
+
 # snake_case column of trees.csv -> what the report's table header says
 COLUMN_LABELS: dict[str, str] = {
     "tree_id": "Tree ID",
@@ -22,12 +24,12 @@ COLUMN_LABELS: dict[str, str] = {
     "crown_diameter_mean_m": "Crown diameter (mean) [m]",
     "projected_area_m2": "Crown projected area [m²]",
     "sphere_volume_m3": "Sphere volume from the crown diameter [m³]",
-    "volume_convex_hull_m3": "Convex-hull volume [m³]",
-    "volume_alpha_m3": "Alpha-shape volume [m³]",
-    "volume_alpha_hull_m3": "Alpha-hull volume [m³]",
-    "volume_voxel_m3": "Voxel volume [m³]",
-    "volume_slices_m3": "Slice volume [m³]",
-    "volume_mirror_m3": "Mirrored-crown volume [m³]",
+    CONVEX_HULL_COLUMN: "Convex-hull volume [m³]",
+    ALPHA_COLUMN: "Alpha-shape volume [m³]",
+    volume_column("alpha_hull"): "Alpha-hull volume [m³]",
+    volume_column("voxel"): "Voxel volume [m³]",
+    volume_column("slices"): "Slice volume [m³]",
+    volume_column("mirror"): "Mirrored-crown volume [m³]",
     "volume_alpha_auto_m3": "Alpha-shape volume, automatic α [m³]",
     "volume_adaptive_alpha_m3": "Adaptive-α volume [m³]",
     "volume_method": "Estimator the interval bounds",

@@ -20,6 +20,7 @@ import pandas as pd
 
 from canopy_kit.report.columns import column_label
 from canopy_kit.report.surfaces import Surface, alpha_surface, hull_surface
+from canopy_kit.volume.verb import ALPHA_COLUMN
 
 MAX_POINTS = 2000  # points per tree in the 3-D view
 ORTHO_PIXELS = 240  # longest side of a tree's orthomosaic crop
@@ -100,14 +101,15 @@ def ortho_crop(mosaic: Any, x: float, y: float, half: float) -> dict[str, Any] |
 def tree_surfaces(xyz: np.ndarray, volume: Any) -> list[Surface]:
     """The convex hull and alpha shape of a tree as the volume stage measured them (on the
     points thinned to ``volume.voxel_size``, the alpha shape with its configured α)."""
-    from canopy_kit.voxel import voxel_representatives
+    from canopy_kit.volume.alpha import PAPER_ALPHA_M
+    from canopy_kit.volume.verb import measured_points
 
-    measured = xyz[voxel_representatives(xyz, volume.voxel_size)[0]] if volume.voxel_size else xyz
+    measured = measured_points(xyz, volume)
     out = []
     if "convex_hull" in volume.methods:
         out.append(hull_surface(measured))
     if "alpha_shape" in volume.methods:
-        alpha = float(volume.params.get("alpha_shape", {}).get("alpha", 0.9))
+        alpha = float(volume.params.get("alpha_shape", {}).get("alpha", PAPER_ALPHA_M))
         surface = alpha_surface(measured, alpha)
         out.append(None if surface is None else
                    Surface(f"alpha shape (α = {alpha:g} m)", surface.vertices, surface.faces,
@@ -168,7 +170,7 @@ def map_layers(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
     return {"footprints": footprints, "rows": rows, "drive": drive}
 
 
-def row_summary(trees: pd.DataFrame, volume: str = "volume_alpha_m3") -> pd.DataFrame:
+def row_summary(trees: pd.DataFrame, volume: str = ALPHA_COLUMN) -> pd.DataFrame:
     """Per row: trees, median and total of ``volume`` (m³; NaN for a row without one) and
     flagged trees. Empty without a row or ``volume`` column."""
     columns = ["row", "trees", "median_m3", "total_m3", "flagged"]
@@ -183,7 +185,7 @@ def row_summary(trees: pd.DataFrame, volume: str = "volume_alpha_m3") -> pd.Data
 
 def _flagged(trees: pd.DataFrame) -> pd.Series:
     """Trees with a volume, segment or drone-crown flag."""
-    from canopy_kit.pipeline import flagged
+    from canopy_kit.tree_table import flagged
 
     return (flagged(trees, "volume_flags") | flagged(trees, "segment_flags")
             | flagged(trees, "aerial_flag"))

@@ -11,9 +11,10 @@ from canopy_kit.checks import Check, format_value
 from canopy_kit.report.figures import figure_to_data_uri
 from canopy_kit.report.html import ReportSection, render_report
 from canopy_kit.report.mapdecor import add_north_arrow_and_scale
+from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN
 
 TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
-                 "crown_diameter_m", "volume_convex_hull_m3", "volume_alpha_m3",
+                 "crown_diameter_m", CONVEX_HULL_COLUMN, ALPHA_COLUMN,
                  "aerial_diameter_m", "aerial_sphere_volume_m3", "error_alpha_vs_aerial_pct",
                  "aerial_flag", "n_trunks",
                  "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags",
@@ -32,7 +33,8 @@ def report_checks(metrics: dict[str, Any], trees: pd.DataFrame, config: Any) -> 
 def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
     """The report of a run as one self-contained HTML page."""
     from canopy_kit.config import config_toml
-    from canopy_kit.pipeline import comparable_aerial_sphere, config_used
+    from canopy_kit.outputs import config_used
+    from canopy_kit.tree_table import comparable_aerial_sphere
     from canopy_kit.report import plots
 
     cloud, seg = ctx.mapping.map, ctx.segmentation
@@ -45,7 +47,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     add_north_arrow_and_scale(map_fig.axes[0])
     figs = [("Map from above, each segmented tree in its own colour, labelled with its tree ID; "
              "dashed: fitted rows; grey: the estimated drive.", figure_to_data_uri(map_fig))]
-    volume_columns = {"convex hull": "volume_convex_hull_m3", "alpha shape": "volume_alpha_m3"}
+    volume_columns = {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN}
     if "aerial_sphere_volume_m3" in trees:
         volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
     if "true_crown_volume_m3" in trees:
@@ -83,14 +85,14 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     if rig is not None:
         sections.append(rig)
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
-        ok = comparable_aerial_sphere(trees).notna() & trees["volume_alpha_m3"].notna()
+        ok = comparable_aerial_sphere(trees).notna() & trees[ALPHA_COLUMN].notna()
         figs = []
         if ok.sum() >= 2:
             sub = trees[ok]
             figs.append(("Alpha-shape volume against the aerial sphere volume (paper §III.A); "
                          "trees with a flagged aerial crown left out.",
                          figure_to_data_uri(plots.plot_agreement(
-                             sub["volume_alpha_m3"].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
+                             sub[ALPHA_COLUMN].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
                              ("LiDAR alpha shape", "aerial sphere"), list(sub["tree_id"])))))
         from ground_truth.plots import plot_crowns
 
@@ -101,13 +103,13 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                      "crown n, matched to none).", figure_to_data_uri(ax.figure)))
         sections.append(ReportSection("LiDAR against drone photogrammetry", figs))
     if "true_crown_volume_m3" in trees:
-        ok = trees["true_crown_volume_m3"].notna() & trees["volume_alpha_m3"].notna()
+        ok = trees["true_crown_volume_m3"].notna() & trees[ALPHA_COLUMN].notna()
         if ok.sum() >= 2:
             sub = trees[ok]
             sections.append(ReportSection("Against the simulator's truth", [
                 ("Alpha-shape volume against the exact crown volume.",
                  figure_to_data_uri(plots.plot_agreement(
-                     sub["volume_alpha_m3"].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
+                     sub[ALPHA_COLUMN].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
                      ("LiDAR alpha shape", "true crown"), list(sub["tree_id"]))))]))
     if ctx.truth_matches is not None and "tree_id" in cloud.fields:
         from canopy_kit.evaluate import score_point_labels
@@ -125,7 +127,9 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         "segmenter": metrics.get("segmenter", ""),
         "map points": f"{len(cloud):,}",
         "drive": format_value(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
-        "median alpha volume": format_value(float(trees["volume_alpha_m3"].median()) if len(trees) and "volume_alpha_m3" in trees else None, " m³", 1),
+        "median alpha volume": format_value(
+            float(trees[ALPHA_COLUMN].median()) if len(trees) and ALPHA_COLUMN in trees else None,
+            " m³", 1),
         "CRS": cloud.crs or "none",
     }
     table = trees[[c for c in table_columns(volume_cfg.recommended) if c in trees]]
@@ -144,11 +148,11 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
 def table_columns(recommended: str) -> list[str]:
     """The per-tree table's columns: ``TABLE_COLUMNS`` with the recommended estimator's volume
     and interval after the paper's alpha-shape volume."""
-    from canopy_kit.trees import volume_column
+    from canopy_kit.volume.verb import volume_column
 
     extra = [volume_column(recommended), "volume_low_m3", "volume_high_m3"]
     cols = [c for c in TABLE_COLUMNS if c not in extra]
-    at = cols.index("volume_alpha_m3") + 1
+    at = cols.index(ALPHA_COLUMN) + 1
     return cols[:at] + list(dict.fromkeys(extra)) + cols[at:]
 
 
@@ -166,7 +170,7 @@ def report_downloads(ctx: Any, trees: pd.DataFrame,
                      provenance: dict[str, Any] | None = None) -> list[dict[str, str]]:
     """The files the page offers for download, made by the functions that write them beside
     it (with the run's ``provenance``); a GeoJSON the run does not write (no CRS) is left out."""
-    from canopy_kit.pipeline import trees_geojson
+    from canopy_kit.outputs import trees_geojson
     from canopy_kit.segment.export import crowns_geojson, rows_geojson
 
     geo = "application/geo+json"

@@ -62,7 +62,7 @@ class IngestReport:
 
 def volume_methods(trees: pd.DataFrame) -> dict[str, str]:
     """Volume column -> method name of a per-tree table (``volume_alpha_m3`` is alpha_shape)."""
-    from canopy_kit.trees import VOLUME_COLUMN
+    from canopy_kit.volume.verb import VOLUME_COLUMN
 
     reverse = {v: k for k, v in VOLUME_COLUMN.items()}
     return {c: reverse.get(c, c[len("volume_"):-len("_m3")]) for c in trees.columns

@@ -3,7 +3,7 @@
 Sweeps go into a sliding window of the map (odometry frame, voxel-thinned as the batch
 map). Whenever the drive finishes a stretch of a row (see ``streaming.layout``), that
 stretch is segmented and measured with the batch stages' own functions
-(``segment.segment``, ``trees.measure_trees``); trees clear of the unfinished part are
+(``segment.segment``, ``volume.verb.measure_trees``); trees clear of the unfinished part are
 emitted and leave the window with the finished ground around them.
 """
 
@@ -87,6 +87,7 @@ class TreeStream:
         self._hulls: dict[tuple, list[np.ndarray]] = {}
         self._finished: set[tuple] = set()
         self.now = np.nan
+        self._estimators: dict[str, Any] | None = None  # the volume estimators, built once
 
     def __iter__(self) -> Iterator[StreamedTree]:
         s = self.settings
@@ -186,7 +187,7 @@ class TreeStream:
                   ) -> tuple[list[tuple[StreamedTree, np.ndarray]], float]:
         """Segment a finished stretch; the trees to emit and where the waiting ones begin."""
         from canopy_kit.segment.verb import make_segmenter, segment
-        from canopy_kit.trees import measure_trees
+        from canopy_kit.volume.verb import build_estimators, measure_trees
 
         cfg = self.config
         direction = self._driving_direction()
@@ -216,7 +217,10 @@ class TreeStream:
         if not chosen:
             return [], keep_from
         only = np.where(np.isin(labels, chosen), labels, -1)
-        table = measure_trees(sub, only, cfg.volume, ground_height=seg.ground.height)
+        if self._estimators is None:
+            self._estimators = build_estimators(cfg.volume)
+        table = measure_trees(sub, only, cfg.volume, ground_height=seg.ground.height,
+                              estimators=self._estimators)
         out = []
         for rec in table.to_dict("records"):
             sid = int(rec["segment"])

@@ -34,7 +34,7 @@ def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
                orchard: str | None = None) -> Any:
     """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.pipeline.Results`
     (``orchard`` names the orchard in the provenance, default the bag's stem)."""
-    from canopy_kit.pipeline import Results, write_trees
+    from canopy_kit.outputs import Results, write_trees
     from canopy_kit.provenance import provenance
 
     bag, out = Path(bag), Path(out)
@@ -84,7 +84,7 @@ def _live_cells(tree: StreamedTree, t0: float) -> list[str]:
 
 def final_table(stream: TreeStream) -> pd.DataFrame:
     """Every emitted tree placed with the whole drive's GNSS fit and labelled as in batch."""
-    from canopy_kit.pipeline import FIRST_COLUMNS
+    from canopy_kit.tree_table import FIRST_COLUMNS
     from canopy_kit.segment.rows import assign_rows, driving_direction_from_trajectory
 
     if not stream.trees:

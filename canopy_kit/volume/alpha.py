@@ -18,6 +18,9 @@ import numpy as np
 
 from canopy_kit.volume.base import VolumeEstimator, check_positive
 
+#: The paper's alpha radius (m): the default of every alpha-based estimator.
+PAPER_ALPHA_M = 0.9
+
 # Tetrahedra are processed in chunks to bound temporary memory (~100 MB per chunk).
 _CHUNK = 1_000_000
 # vtkDelaunay3D inserts the points into an octahedron whose corners lie ``Offset`` bounding-box
@@ -179,7 +182,7 @@ class AlphaShapeVolume(VolumeEstimator):
     name = "alpha_shape"
     convex_rtol = 1e-6
 
-    def __init__(self, alpha: float = 0.9) -> None:
+    def __init__(self, alpha: float = PAPER_ALPHA_M) -> None:
         self.alpha = alpha
 
     def validate_params(self) -> None:

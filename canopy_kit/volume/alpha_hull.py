@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from canopy_kit.volume.alpha import PAPER_ALPHA_M
 from canopy_kit.volume.base import VolumeEstimator, check_positive
 
 DEFAULT_CELLS_PER_ALPHA = 4.0
@@ -182,7 +183,7 @@ class AlphaHullVolume(VolumeEstimator):
     name = "alpha_hull"
     convex_rtol = 0.03  # the grid's rounding of edges and corners (1.1 % on the unit cube)
 
-    def __init__(self, alpha: float = 0.9, grid_step: float | None = None) -> None:
+    def __init__(self, alpha: float = PAPER_ALPHA_M, grid_step: float | None = None) -> None:
         self.alpha = alpha
         self.grid_step = grid_step
 

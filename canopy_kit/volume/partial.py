@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from canopy_kit.errors import ConfigError
+from canopy_kit.volume.alpha import PAPER_ALPHA_M
 from canopy_kit.volume.base import VolumeEstimator, check_choice, check_positive
 from canopy_kit.volume.hull import hull_volume
 
@@ -117,7 +118,7 @@ class MirrorVolume(VolumeEstimator):
 
     def __init__(self, plane_point: tuple[float, float] | None = None,
                  plane_normal: tuple[float, float] | None = None, base: str = "convex_hull",
-                 alpha: float = 0.9, across_ratio: float = 1.0) -> None:
+                 alpha: float = PAPER_ALPHA_M, across_ratio: float = 1.0) -> None:
         self.plane_point = plane_point
         self.plane_normal = plane_normal
         self.base = base

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from canopy_kit.volume.alpha import PAPER_ALPHA_M
 from canopy_kit.volume.base import VolumeEstimator, check_choice, check_positive
 
 AREA_METHODS = ("hull", "alpha")
@@ -50,7 +51,7 @@ def alpha_area(xy: np.ndarray, alpha: float) -> float:
 
 
 def slice_areas(xyz: np.ndarray, thickness: float, area: str = "hull",
-                alpha: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+                alpha: float = PAPER_ALPHA_M) -> tuple[np.ndarray, np.ndarray]:
     """Bottom height and area of each horizontal slice of ``thickness`` metres, from min z."""
     z0 = xyz[:, 2].min()
     k = np.floor((xyz[:, 2] - z0) / thickness).astype(np.intp)
@@ -80,7 +81,7 @@ class SliceVolume(VolumeEstimator):
 
     name = "slices"
 
-    def __init__(self, thickness: float = 0.2, area: str = "hull", alpha: float = 0.9) -> None:
+    def __init__(self, thickness: float = 0.2, area: str = "hull", alpha: float = PAPER_ALPHA_M) -> None:
         self.thickness = thickness
         self.area = area
         self.alpha = alpha

@@ -1,19 +1,24 @@
-"""The results table: segmentation success per method and orchard over simulated seeds.
+"""The segmentation accuracy results: success per method and orchard over simulated seeds.
 
 ``benchmarks/bench_segment.py accuracy`` writes one line per (session, method) to
-``docs/segmentation_results.csv``; :func:`results_table` reads it back as the table in
+``canopy_kit/paper/data/segmentation_results.csv`` (package data, so an installed
+canopy-kit reads it too); :func:`results_table` reads it back as the table in
 docs/SEGMENTATION.md, for notebooks.
 """
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 import pandas as pd
 
 from canopy_kit.errors import InputError
 
-RESULTS_CSV = Path(__file__).resolve().parents[2] / "docs" / "segmentation_results.csv"
+#: Where the saved results are, inside the package (``canopy_kit.paper`` data).
+RESULTS_CSV = "data/segmentation_results.csv"
+#: The file in a source checkout, for the benchmark that writes it.
+RESULTS_CSV_SOURCE = "canopy_kit/paper/data/segmentation_results.csv"
 #: ``dbscan_spectral_scaled``: the paper's almond method with the ``almond-scaled`` preset;
 #: ``dbscan_spectral_cells``: only its graph on 0.3 m cells, the paper's threshold
 METHOD_ORDER = ["dbscan", "dbscan_spectral", "dbscan_spectral_cells", "dbscan_spectral_scaled",
@@ -37,10 +42,17 @@ def success_table(runs: pd.DataFrame, metric: str = "success_points") -> pd.Data
 
 def load_results(path: str | Path | None = None) -> pd.DataFrame:
     """The per-session results (long form) written by the accuracy benchmark."""
-    p = Path(path) if path is not None else RESULTS_CSV
+    if path is None:
+        packaged = resources.files("canopy_kit.paper").joinpath(RESULTS_CSV)
+        if not packaged.is_file():
+            raise InputError(f"{RESULTS_CSV_SOURCE}: no segmentation results (run benchmarks/"
+                             f"bench_segment.py accuracy --csv {RESULTS_CSV_SOURCE})")
+        with resources.as_file(packaged) as p:
+            return pd.read_csv(p)
+    p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no segmentation results (run benchmarks/bench_segment.py accuracy "
-                         "--csv docs/segmentation_results.csv)")
+                         f"--csv {RESULTS_CSV_SOURCE})")
     return pd.read_csv(p)
 
 

@@ -1,0 +1,94 @@
+"""The per-tree table of a run: the volume stage's rows with positions in WGS84, crowns
+unlike the others, trunks and aerial truth joined (:func:`tree_table`), and the helpers that
+read it (:func:`flagged`, :func:`comparable_aerial_sphere`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.config import GroundTruthConfig
+from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS
+
+FIRST_COLUMNS = ["tree_id", "label", "row", "x", "y", "lat", "lon", "n_points", "height_m",
+                 "crown_diameter_m", *PAPER_VOLUME_COLUMNS]
+
+
+def tree_table(ctx: Any) -> pd.DataFrame:
+    """The final per-tree table of ``ctx`` (a ``pipeline.RunContext``): LiDAR results,
+    positions in WGS84, crowns unlike the others (``segment_flags``) and aerial truth if any."""
+    from canopy_kit.segment.qa import crown_outliers
+
+    trees = ctx.trees.copy()
+    trees["segment_flags"] = crown_outliers(trees)
+    if ctx.layout is not None:
+        trees["n_trunks"] = ctx.layout.trunks_per_segment(trees["segment"].to_numpy())
+    frame = getattr(ctx.mapping, "frame", None)
+    if frame is not None and len(trees):
+        xyz = np.column_stack([trees["x"], trees["y"], np.zeros(len(trees))])
+        xyz = xyz + ctx.mapping.map.origin - frame.origin
+        lat, lon, _ = frame.to_wgs84(xyz)
+        trees["lat"], trees["lon"] = lat, lon
+    else:
+        trees["lat"], trees["lon"] = np.nan, np.nan
+    if ctx.aerial is not None:
+        trees = join_aerial(trees, ctx.aerial, ctx.config.ground_truth)
+    rest = [c for c in trees.columns if c not in FIRST_COLUMNS]
+    return trees[[c for c in FIRST_COLUMNS if c in trees.columns] + rest].reset_index(drop=True)
+
+
+AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tree table
+    "aerial_diameter_max_m": "aerial_diameter_m",
+    "aerial_diameter_mean_m": "aerial_diameter_mean_m",
+    "aerial_diameter_across_row_m": "aerial_diameter_across_row_m",
+    "aerial_diameter_along_row_m": "aerial_diameter_along_row_m",
+    "aerial_sphere_volume_m3": "aerial_sphere_volume_m3",
+    "aerial_ellipsoid_volume_m3": "aerial_ellipsoid_volume_m3",
+    "aerial_chm_volume_m3": "aerial_chm_volume_m3",
+    "aerial_envelope_volume_m3": "aerial_envelope_volume_m3",
+    "aerial_height_m": "aerial_height_m",
+    "aerial_distance_m": "aerial_match_distance_m",
+}
+
+
+def join_aerial(trees: pd.DataFrame, aerial: Any,
+                settings: GroundTruthConfig | None = None) -> pd.DataFrame:
+    """Add the matched aerial crown diameter and sphere volume, and the LiDAR-vs-aerial errors.
+
+    ``aerial_flag`` names an aerial crown that cannot be the same tree's crown (its diameter
+    far from the LiDAR crown's: a fragment, or neighbours merged); such trees keep their
+    aerial columns but get no error and stay out of the agreement statistics.
+    """
+    st = settings or GroundTruthConfig()
+    # A result made before a column existed (reused, read back from disk) lacks it.
+    present = [c for c in AERIAL_COLUMNS if c in aerial.trees]
+    matched = aerial.trees[["segment", *present]].rename(columns=AERIAL_COLUMNS)
+    matched = matched[aerial.trees["matched"].to_numpy(bool)]
+    out = trees.merge(matched, on="segment", how="left")
+    ratio = out["aerial_diameter_m"] / out["crown_diameter_m"]
+    out["aerial_flag"] = np.select(
+        [ratio < st.min_diameter_ratio, ratio > st.max_diameter_ratio],
+        [f"aerial crown a fragment (diameter below {st.min_diameter_ratio:g}x the LiDAR crown's)",
+         f"aerial crown merged with neighbours (diameter above {st.max_diameter_ratio:g}x "
+         "the LiDAR crown's)"], default="")
+    usable = comparable_aerial_sphere(out)
+    for col in PAPER_VOLUME_COLUMNS:
+        if col in out:
+            name = col.replace("volume_", "").replace("_m3", "")
+            out[f"error_{name}_vs_aerial_pct"] = 100.0 * (out[col] - usable) / usable
+    return out
+
+
+def comparable_aerial_sphere(trees: pd.DataFrame) -> pd.Series:
+    """The aerial sphere volume of each tree whose aerial crown is not flagged (NaN otherwise)."""
+    flag = trees["aerial_flag"].fillna("") if "aerial_flag" in trees else ""
+    return trees["aerial_sphere_volume_m3"].where(flag == "")
+
+
+def flagged(trees: pd.DataFrame, column: str) -> pd.Series:
+    """Trees with a note in ``column`` (``volume_flags``, ``segment_flags``); none without it."""
+    if column not in trees:
+        return pd.Series(False, index=trees.index)
+    return trees[column].fillna("").astype(str).str.len() > 0  # a missing note (NaN) is no note

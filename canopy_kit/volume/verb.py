@@ -1,0 +1,160 @@
+"""The volume stage: metrics and every configured volume estimator per tree, as one table.
+
+:func:`measure_trees` makes the per-tree table's measurement columns (trees.csv) for a
+segmented cloud; :func:`measure_tree` measures one tree's points exactly as that table does
+(the same voxel thinning, the same estimators), for notebooks that show one tree.
+:func:`build_estimators` makes a run's estimators once; pass them on to avoid building them
+again. Column names come from :func:`volume_column` only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.config import VolumeConfig
+from canopy_kit.parallel import run_jobs, worker_count
+from canopy_kit.volume import tree_metrics
+from canopy_kit.voxel import voxel_representatives
+
+Progress = Callable[[str, float, float], None]
+GroundHeight = Callable[[np.ndarray], np.ndarray]
+Estimators = dict[str, Any]  # method name -> configured estimator plugin
+MIN_TREES_PER_WORKER = 4  # fewer trees than this per worker are measured in this process
+#: Column names of the paper's two estimators, as the per-tree table promises them.
+VOLUME_COLUMN = {"convex_hull": "volume_convex_hull_m3", "alpha_shape": "volume_alpha_m3"}
+#: The per-tree table's column of the paper's convex hull and alpha shape volumes.
+CONVEX_HULL_COLUMN = VOLUME_COLUMN["convex_hull"]
+ALPHA_COLUMN = VOLUME_COLUMN["alpha_shape"]
+#: The paper's two volume columns, in the table's order.
+PAPER_VOLUME_COLUMNS = (CONVEX_HULL_COLUMN, ALPHA_COLUMN)
+
+
+def volume_column(method: str) -> str:
+    """The per-tree table column holding ``method``'s volume."""
+    return VOLUME_COLUMN.get(method, f"volume_{method}_m3")
+
+
+def volume_methods(volume: VolumeConfig) -> list[str]:
+    """The estimators a run measures: ``volume.methods`` and the recommended one, in order."""
+    return list(dict.fromkeys([*volume.methods, volume.recommended]))
+
+
+def build_estimators(volume: VolumeConfig) -> Estimators:
+    """Every estimator of ``volume`` (:func:`volume_methods`), configured and its parameters
+    checked: a bad parameter raises ``ConfigError`` here, before any stage runs."""
+    from canopy_kit import plugins
+
+    return {method: plugins.create("volumes", method, volume.params.get(method, {}),
+                                   where=f"volume.params.{method}")
+            for method in volume_methods(volume)}
+
+
+def measured_points(xyz: np.ndarray, volume: VolumeConfig) -> np.ndarray:
+    """The points of one tree its volumes are measured on: one per ``volume.voxel_size``
+    voxel (all of them when 0). Height and crown metrics use every point."""
+    return xyz[voxel_representatives(xyz, volume.voxel_size)[0]] if volume.voxel_size else xyz
+
+
+def tree_points(cloud: PointCloud, labels: np.ndarray, segment: int) -> np.ndarray:
+    """The points (N, 3) of segment ``segment`` as the pipeline's volume stage measures them:
+    on the map.laz grid (``canopy_kit.io.las_write.on_las_grid``)."""
+    from canopy_kit.io.las_write import LAS_SCALE
+
+    return np.round(cloud.xyz[labels == segment] / LAS_SCALE) * LAS_SCALE
+
+
+def interval_columns(xyz: np.ndarray, volume_m3: float, method: str,
+                     centre: np.ndarray | None = None) -> dict:
+    """The table's interval columns (``INTERVAL_COLUMNS``) for ``method``'s volume of ``xyz``;
+    NaN bounds when the method has no calibration or no valid volume."""
+    from scipy.spatial import QhullError
+
+    from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, volume_interval
+
+    col = INTERVAL_COLUMNS
+    interval = None
+    if len(xyz) >= 4 and np.isfinite(volume_m3):
+        try:
+            interval = volume_interval(xyz, volume_m3, method, centre)
+        except QhullError as exc:  # qhull on points that are nearly flat: no interval
+            return {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan,
+                    col["coverage"]: np.nan, col["flags"]: f"no interval: {type(exc).__name__}"}
+    if interval is None:
+        return {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan,
+                col["coverage"]: np.nan, col["flags"]: ""}
+    return {col["method"]: method, col["low"]: interval.low_m3, col["high"]: interval.high_m3,
+            col["coverage"]: interval.coverage, col["flags"]: "; ".join(interval.flags)}
+
+
+def measure_tree(xyz: np.ndarray, volume: VolumeConfig,
+                 ground_height: GroundHeight | None = None,
+                 estimators: Estimators | None = None) -> dict[str, Any]:
+    """One tree's row of the per-tree table (all but ``segment``): position, metrics, each
+    estimator's volume (:func:`volume_column`, NaN when invalid), ``volume_flags`` and the
+    recommended estimator's interval.
+
+    ``xyz`` are the tree's points (:func:`tree_points` gives them as the pipeline does);
+    ``ground_height(xy) -> z`` the ground under the tree (default: its lowest point).
+    """
+    estimators = estimators if estimators is not None else build_estimators(volume)
+    centre = np.median(xyz[:, :2], axis=0)
+    ground = float(ground_height(centre[None, :])[0]) if ground_height is not None else None
+    row: dict[str, Any] = {"x": float(centre[0]), "y": float(centre[1])}
+    metrics = tree_metrics(xyz, ground_z=ground)
+    row.update({"n_points": metrics.n_points, "height_m": metrics.height_m,
+                "crown_base_height_m": metrics.crown_base_height_m,
+                "crown_diameter_m": metrics.crown_diameter_max_m,
+                "crown_diameter_mean_m": metrics.crown_diameter_mean_m,
+                "projected_area_m2": metrics.projected_area_m2,
+                "sphere_volume_m3": metrics.sphere_volume_m3})
+    flags = []
+    measured = measured_points(xyz, volume)
+    for method, est in estimators.items():
+        result = est(measured)
+        row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
+        if not result.valid:
+            flags.append(f"{method}: {result.reason}")
+    row["volume_flags"] = "; ".join(flags)
+    row.update(interval_columns(measured, row[volume_column(volume.recommended)],
+                                volume.recommended))
+    return row
+
+
+def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
+                  ground_height: GroundHeight | None = None,
+                  progress: Progress | None = None,
+                  estimators: Estimators | None = None) -> pd.DataFrame:
+    """One row per segment label ≥ 0: ``segment`` and :func:`measure_tree`'s columns.
+
+    ``estimators`` (from :func:`build_estimators`) are built from ``volume`` when not given.
+    Trees are measured on ``volume.workers`` forked processes when there are enough of them
+    (never inside a daemonic process such as a Dask worker); the table does not depend on
+    the number of workers.
+    """
+    estimators = estimators if estimators is not None else build_estimators(volume)
+    ids = np.unique(labels[labels >= 0])
+    order = np.argsort(labels, kind="stable")
+    sorted_labels = labels[order]
+
+    def measure(seg: int) -> dict:
+        lo, hi = np.searchsorted(sorted_labels, [seg, seg + 1])
+        row = measure_tree(cloud.xyz[order[lo:hi]], volume, ground_height, estimators)
+        return {"segment": int(seg), **row}
+
+    def measure_all(segments: np.ndarray, tick: Callable[[], None]) -> list[dict]:
+        rows = []
+        for seg in segments:
+            rows.append(measure(int(seg)))
+            tick()
+        return rows
+
+    n_workers = worker_count(volume.workers, len(ids) // MIN_TREES_PER_WORKER)
+    parts = run_jobs(measure_all, [ids[k::n_workers] for k in range(n_workers)], "tree volumes",
+                     len(ids), progress)
+    rows = [row for part in parts for row in part]
+    return pd.DataFrame(sorted(rows, key=lambda r: r["segment"]))

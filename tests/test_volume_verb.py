@@ -1,0 +1,136 @@
+"""The volume stage (``canopy_kit.volume.verb``): one tree measured as trees.csv measures it,
+estimators built once per run, and the volumes notebook showing trees.csv's numbers."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+from conftest import REPO
+
+from canopy_kit.cloud import PointCloud
+from canopy_kit.config import VolumeConfig
+from canopy_kit.errors import ConfigError
+from canopy_kit.volume import verb
+from canopy_kit.volume.verb import (
+    build_estimators,
+    measure_tree,
+    measure_trees,
+    tree_points,
+    volume_column,
+    volume_methods,
+)
+
+MEASURED = ["x", "y", "n_points", "height_m", "crown_diameter_m", "projected_area_m2",
+            "sphere_volume_m3", "volume_low_m3", "volume_high_m3"]
+
+
+def _blobs(n_trees: int, seed: int = 0) -> tuple[PointCloud, np.ndarray]:
+    """Noisy ellipsoidal crowns 5 m apart, one label each (points off the 1 mm grid)."""
+    rng = np.random.default_rng(seed)
+    parts, labels = [], []
+    for k in range(n_trees):
+        pts = rng.normal(0.0, 1.0, (3000, 3)) * np.array([1.2, 1.0, 0.8])
+        parts.append(pts + np.array([5.0 * k, 0.0, 2.5]))
+        labels.append(np.full(len(pts), k))
+    return PointCloud(np.vstack(parts)), np.concatenate(labels)
+
+
+def _assert_same(row: dict, expected: pd.Series, columns: list[str]) -> None:
+    for col in columns:
+        got, want = float(row[col]), float(expected[col])
+        assert (np.isnan(got) and np.isnan(want)) or got == pytest.approx(want, rel=1e-9,
+                                                                         abs=1e-12), col
+
+
+def test_volume_column_names_the_paper_estimators_and_any_plugin() -> None:
+    assert volume_column("alpha_shape") == verb.ALPHA_COLUMN == "volume_alpha_m3"
+    assert volume_column("convex_hull") == verb.CONVEX_HULL_COLUMN == "volume_convex_hull_m3"
+    assert volume_column("slices") == "volume_slices_m3"
+    assert volume_methods(VolumeConfig(recommended="adaptive_alpha")) == [
+        "convex_hull", "alpha_shape", "adaptive_alpha"]
+
+
+def test_measure_tree_gives_the_table_row_of_that_tree() -> None:
+    cloud, labels = _blobs(3)
+    config = VolumeConfig(voxel_size=0.1, workers=1)
+    table = measure_trees(cloud, labels, config)
+    columns = MEASURED + [volume_column(m) for m in volume_methods(config)]
+    for seg in range(3):
+        row = measure_tree(cloud.xyz[labels == seg], config)
+        _assert_same(row, table.set_index("segment").loc[seg], columns)
+        assert row["volume_flags"] == table.loc[seg, "volume_flags"]
+
+
+def test_tree_points_are_on_the_map_laz_grid() -> None:
+    from canopy_kit.io.las_write import on_las_grid
+
+    cloud, labels = _blobs(2)
+    np.testing.assert_array_equal(tree_points(cloud, labels, 1),
+                                  on_las_grid(cloud).xyz[labels == 1])
+
+
+def test_estimators_are_built_once_per_table(monkeypatch: pytest.MonkeyPatch) -> None:
+    built: list[str] = []
+    real = verb.estimator
+
+    def counting(method: str, **params):
+        built.append(method)
+        return real(method, **params)
+
+    monkeypatch.setattr(verb, "estimator", counting)
+    cloud, labels = _blobs(3)
+    config = VolumeConfig(workers=1)
+    estimators = build_estimators(config)
+    assert built == volume_methods(config)
+    measure_trees(cloud, labels, config, estimators=estimators)
+    assert built == volume_methods(config)  # none built again for the trees
+
+
+def test_build_estimators_names_a_bad_parameter() -> None:
+    with pytest.raises(ConfigError, match="alpha"):
+        build_estimators(VolumeConfig(params={"alpha_shape": {"alpha": -1.0}}))
+
+
+@pytest.fixture(scope="module")
+def run_context(tiny_pistachio, tiny_pistachio_run):
+    """The stages of ``tiny_pistachio_run`` as a notebook loads them (from the run's cache)."""
+    from canopy_kit.explore import load_context
+
+    return load_context(tiny_pistachio.root, run_dir=tiny_pistachio_run.out_dir, use_drone=False)
+
+
+@pytest.mark.slow
+def test_the_notebook_code_path_gives_trees_csv_numbers(run_context, tiny_pistachio_run) -> None:
+    ctx = run_context
+    csv = pd.read_csv(tiny_pistachio_run.out_dir / "trees.csv").set_index("segment")
+    assert len(csv) > 0
+    columns = MEASURED + [volume_column(m) for m in volume_methods(ctx.config.volume)]
+    for seg in csv.index:
+        xyz = tree_points(ctx.mapping.map, ctx.segmentation.labels, int(seg))
+        row = measure_tree(xyz, ctx.config.volume, ctx.segmentation.ground.height, ctx.estimators)
+        _assert_same(row, csv.loc[seg], columns)
+
+
+@pytest.mark.slow
+def test_the_volumes_notebook_shows_trees_csv_numbers(monkeypatch, tiny_pistachio,
+                                                      tiny_pistachio_run) -> None:
+    """The notebook run in this process (marimo's ``app.run``): its first tree's volumes."""
+    import importlib.util
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    monkeypatch.setattr(sys, "argv", ["volumes.py", "--session", str(tiny_pistachio.root),
+                                      "--run", str(tiny_pistachio_run.out_dir)])
+    spec = importlib.util.spec_from_file_location("volumes_notebook",
+                                                  REPO / "notebooks" / "volumes.py")
+    notebook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(notebook)
+    _, defs = notebook.app.run()
+    ctx = defs["ctx"]
+    csv = pd.read_csv(tiny_pistachio_run.out_dir / "trees.csv").set_index("segment")
+    columns = [volume_column(m) for m in volume_methods(ctx.config.volume)]
+    _assert_same(defs["measured"], csv.loc[defs["tree"].value], MEASURED + columns)
