@@ -73,14 +73,17 @@ def test_tree_points_are_on_the_map_laz_grid() -> None:
 
 
 def test_estimators_are_built_once_per_table(monkeypatch: pytest.MonkeyPatch) -> None:
+    from canopy_kit import plugins
+
     built: list[str] = []
-    real = verb.estimator
+    real = plugins.create
 
-    def counting(method: str, **params):
-        built.append(method)
-        return real(method, **params)
+    def counting(kind: str, name: str, *args, **kwargs):
+        if kind == "volumes":
+            built.append(name)
+        return real(kind, name, *args, **kwargs)
 
-    monkeypatch.setattr(verb, "estimator", counting)
+    monkeypatch.setattr(plugins, "create", counting)
     cloud, labels = _blobs(3)
     config = VolumeConfig(workers=1)
     estimators = build_estimators(config)
