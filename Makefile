@@ -5,7 +5,7 @@ VENV ?= .venv
 STAMP := $(VENV)/.installed
 OUT ?= out/demo
 
-.PHONY: setup demo test test-fast system-deps clean
+.PHONY: setup demo test test-fast lint system-deps clean
 
 system-deps:
 	@scripts/system-deps.sh
@@ -26,6 +26,11 @@ PARALLEL = -n auto --maxprocesses=4 --dist loadfile
 
 test: setup
 	$(VENV)/bin/python -m pytest $(PARALLEL)
+
+# The linter and formatter (ruff, configured in pyproject.toml); .ci/run runs it before the tests.
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 
 test-fast: setup
 	$(VENV)/bin/python -m pytest $(PARALLEL) -m "not slow"

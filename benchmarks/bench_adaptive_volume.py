@@ -37,16 +37,19 @@ def trees_of(cache: Path, form: str, seed: int) -> list:
     root = cache / f"{form}_s{seed}"
     done = root / "trees.pkl"
     if not done.exists():
-        overrides = {"seed": seed, "orchard": {"rows": 1, "trees_per_row": 3, "crown_form": form},
-                     "lidar": {"columns": 512, "rings": 16},
-                     "imu": {"enabled": False}, "gnss": {"enabled": False}}
+        overrides = {
+            "seed": seed,
+            "orchard": {"rows": 1, "trees_per_row": 3, "crown_form": form},
+            "lidar": {"columns": 512, "rings": 16},
+            "imu": {"enabled": False},
+            "gnss": {"enabled": False},
+        }
         print(f"simulating {root} ...", file=sys.stderr, flush=True)
         simulate_session(root, load_sim_config("pistachio", overrides), fmt="ros1", overwrite=True)
         cloud = truth_map(root, voxel_size=0.05)
         trees = simulated_trees(root, reference_map=cloud)
         done.write_bytes(pickle.dumps(trees))
     return pickle.loads(done.read_bytes())
-
 
 
 METHODS = {"convex_hull": {}, "alpha_shape": {"alpha": 0.9}, "adaptive_alpha": {}}
@@ -62,9 +65,16 @@ def measure(cache: Path, forms: list[str], seeds: list[int]) -> pd.DataFrame:
         for form in forms:
             for t in trees_of(cache, form, seed):
                 for scan, xyz in {"complete": t.complete, **t.sides}.items():
-                    row = {"form": form, "seed": seed, "tree": t.tree_id, "scan": scan,
-                           "n_points": len(xyz), "true": t.true_volume_m3,
-                           "coverage": scan_coverage(xyz), "fill": surface_fill(xyz)}
+                    row = {
+                        "form": form,
+                        "seed": seed,
+                        "tree": t.tree_id,
+                        "scan": scan,
+                        "n_points": len(xyz),
+                        "true": t.true_volume_m3,
+                        "coverage": scan_coverage(xyz),
+                        "fill": surface_fill(xyz),
+                    }
                     for method, params in METHODS.items():
                         row[method] = estimate_volume(xyz, method, **params).volume_m3
                     rows.append(row)
@@ -85,16 +95,24 @@ def calibrate(df: pd.DataFrame, method: str) -> dict[str, tuple[float, float]]:
 
 def check(df: pd.DataFrame) -> pd.DataFrame:
     """Per form and scan kind: bias, MAPE, p90 |error| of each method; the interval's coverage."""
-    from canopy_kit.volume.uncertainty import volume_interval  # noqa: F401  (the same rule)
-    from canopy_kit.volume.uncertainty import CALIBRATIONS, MIN_COVERAGE, MIN_FILL, SECTORS
+    from canopy_kit.volume.uncertainty import (
+        CALIBRATIONS,
+        MIN_COVERAGE,
+        MIN_FILL,
+        SECTORS,
+        volume_interval,  # noqa: F401  (the same rule)
+    )
 
     cal = CALIBRATIONS["adaptive_alpha"]
     lo = np.where(df["fill"] < MIN_FILL, cal.sparse[0], cal.dense[0])
     hi = np.where(df["fill"] < MIN_FILL, cal.sparse[1], cal.dense[1])
     hi = np.where(df["coverage"] < MIN_COVERAGE, hi / np.maximum(df["coverage"], 1 / SECTORS), hi)
     v = df["adaptive_alpha"]
-    df = df.assign(inside=(v * lo <= df["true"]) & (df["true"] <= v * hi),
-                   width=(hi - lo), one_sided=np.where(df["scan"] == "complete", "complete", "one-sided"))
+    df = df.assign(
+        inside=(v * lo <= df["true"]) & (df["true"] <= v * hi),
+        width=(hi - lo),
+        one_sided=np.where(df["scan"] == "complete", "complete", "one-sided"),
+    )
     rows = []
     for (form, kind), g in df.groupby(["form", "one_sided"], sort=False):
         row = {"form": form, "scans": kind, "n": len(g)}
@@ -120,12 +138,21 @@ def speed(n: int = 50_000, repeats: int = 3) -> pd.DataFrame:
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     xyz = d * np.sqrt(rng.uniform(0.5, 1.0, (n, 1))) * [2.2, 2.0, 1.7] + [0, 0, 2.5]  # porous shell
     rows = []
-    for label, fn in [("adaptive_alpha", lambda: estimate_volume(xyz, "adaptive_alpha").volume_m3),
-                      ("alpha_shape α=0.9", lambda: estimate_volume(xyz, "alpha_shape").volume_m3),
-                      ("Open3D alpha shape α=0.9", lambda: open3d_alpha_volume(xyz, 0.9))]:
+    for label, fn in [
+        ("adaptive_alpha", lambda: estimate_volume(xyz, "adaptive_alpha").volume_m3),
+        ("alpha_shape α=0.9", lambda: estimate_volume(xyz, "alpha_shape").volume_m3),
+        ("Open3D alpha shape α=0.9", lambda: open3d_alpha_volume(xyz, 0.9)),
+    ]:
         sec, value, error = timed(fn, repeats)
-        rows.append({"method": label, "points": n, "seconds": round(sec, 3),
-                     "volume m³": None if value is None else round(value, 2), "error": error})
+        rows.append(
+            {
+                "method": label,
+                "points": n,
+                "seconds": round(sec, 3),
+                "volume m³": None if value is None else round(value, 2),
+                "error": error,
+            }
+        )
     return pd.DataFrame(rows)
 
 

@@ -54,13 +54,20 @@ def render(work: Path, kind: str, form: str) -> Path:
 
     root = flight_root(work, kind, form)
     if not (root / "truth" / "drone_cameras.csv").exists():
-        cfg = load_sim_config(kind, {"seed": SEEDS[form], "drone": {"enabled": True},
-                                     "orchard": {"rows": ROWS, "trees_per_row": TREES,
-                                                 "crown_form": form}})
+        cfg = load_sim_config(
+            kind,
+            {
+                "seed": SEEDS[form],
+                "drone": {"enabled": True},
+                "orchard": {"rows": ROWS, "trees_per_row": TREES, "crown_form": form},
+            },
+        )
         t0 = time.perf_counter()
         simulate_drone_session(root, cfg)
-        print(json.dumps({"rendered": root.name, "wall_s": round(time.perf_counter() - t0, 1)}),
-              flush=True)
+        print(
+            json.dumps({"rendered": root.name, "wall_s": round(time.perf_counter() - t0, 1)}),
+            flush=True,
+        )
     return root
 
 
@@ -76,8 +83,16 @@ def process(work: Path, kind: str, form: str) -> Path:
         frame = LocalFrame.from_dict(frame_json["frame"])
         t0, c0 = time.perf_counter(), time.process_time()
         process_flight(root / "drone", out, frame=frame, seeds=root / "truth" / "trees.csv")
-        print(json.dumps({"processed": root.name, "wall_s": round(time.perf_counter() - t0, 1),
-                          "cpu_s": round(time.process_time() - c0, 1)}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "processed": root.name,
+                    "wall_s": round(time.perf_counter() - t0, 1),
+                    "cpu_s": round(time.process_time() - c0, 1),
+                }
+            ),
+            flush=True,
+        )
     return out
 
 
@@ -94,8 +109,15 @@ def measure(work: Path, kind: str, form: str) -> list[dict]:
     true_v = truth["crown_volume_m3"].to_numpy(float)[ia]
     lines = []
     for model, col in MODELS.items():
-        line = {"orchard": kind, "form": form, "model": model, "crowns": len(ia),
-                "trees": len(truth), "bias_pct": np.nan, "mape_pct": np.nan}
+        line = {
+            "orchard": kind,
+            "form": form,
+            "model": model,
+            "crowns": len(ia),
+            "trees": len(truth),
+            "bias_pct": np.nan,
+            "mape_pct": np.nan,
+        }
         if len(ia) >= 2:  # else no crowns found (sparse crowns): a row that says so
             a = agreement(c[col].to_numpy(float)[ib], true_v)
             line.update(bias_pct=round(a.bias_pct, 1), mape_pct=round(a.mape_pct, 1))
@@ -118,8 +140,9 @@ def recrown(gt_dir: Path, seeds: Path | None) -> tuple[object, object, pd.DataFr
     return result, seg, measure_crowns(seg, chm)
 
 
-def mirror_limit(kind: str, form: str, rows: int = 4, trees: int = 5, seed: int = 466,
-                 cell_m: float = 0.05) -> dict:
+def mirror_limit(
+    kind: str, form: str, rows: int = 4, trees: int = 5, seed: int = 466, cell_m: float = 0.05
+) -> dict:
     """The mirrored 2.5-D envelope with perfect imagery: the exact top surface of each crown
     above its exact widest level, mirrored below (no photogrammetry), against the exact volume.
 
@@ -128,8 +151,9 @@ def mirror_limit(kind: str, form: str, rows: int = 4, trees: int = 5, seed: int 
     from canopy_kit.sim import load_sim_config
     from canopy_kit.sim.orchard import generate_orchard
 
-    cfg = load_sim_config(kind, {"orchard": {"rows": rows, "trees_per_row": trees,
-                                             "crown_form": form}})
+    cfg = load_sim_config(
+        kind, {"orchard": {"rows": rows, "trees_per_row": trees, "crown_form": form}}
+    )
     orchard = generate_orchard(cfg.orchard, np.random.default_rng(seed))
     ratios, upper = [], []
     for tree in orchard.trees:
@@ -139,8 +163,9 @@ def mirror_limit(kind: str, form: str, rows: int = 4, trees: int = 5, seed: int 
         ys = np.arange(lo[1], hi[1], cell_m) + cell_m / 2
         zs = np.linspace(*env.z_range, 81)
         gx, gy = (a.ravel() for a in np.meshgrid(xs, ys))
-        pts = np.column_stack([np.repeat(gx, len(zs)), np.repeat(gy, len(zs)),
-                               np.tile(zs, len(gx))])
+        pts = np.column_stack(
+            [np.repeat(gx, len(zs)), np.repeat(gy, len(zs)), np.tile(zs, len(gx))]
+        )
         inside = env.contains(pts).reshape(len(gx), len(zs))
         has = inside.any(axis=1)
         top = zs[len(zs) - 1 - np.argmax(inside[:, ::-1], axis=1)][has]
@@ -149,10 +174,14 @@ def mirror_limit(kind: str, form: str, rows: int = 4, trees: int = 5, seed: int 
         ratios.append(column.sum() * cell_m**2 / env.volume)
         upper.append(np.clip(top - widest, 0.0, None).sum() * cell_m**2 / env.volume)
     r = np.array(ratios)
-    return {"orchard": kind, "form": form, "trees": len(r),
-            "mirror_bias_pct": round(100 * (r.mean() - 1), 1),
-            "mirror_p5_p95": [round(float(q), 3) for q in np.percentile(r, [5, 95])],
-            "upper_share_of_volume": round(float(np.mean(upper)), 3)}
+    return {
+        "orchard": kind,
+        "form": form,
+        "trees": len(r),
+        "mirror_bias_pct": round(100 * (r.mean() - 1), 1),
+        "mirror_p5_p95": [round(float(q), 3) for q in np.percentile(r, [5, 95])],
+        "upper_share_of_volume": round(float(np.mean(upper)), 3),
+    }
 
 
 def table(lines: list[dict]) -> str:
@@ -162,10 +191,17 @@ def table(lines: list[dict]) -> str:
     out = [head, "|" + "---|" * (3 + len(MODELS))]
     for (kind, form), g in df.groupby(["orchard", "form"], sort=False):
         by = g.set_index("model")
-        cells = [f"{by.loc[m, 'bias_pct']:+.1f} % ({by.loc[m, 'mape_pct']:.1f})"
-                 if m in by.index and np.isfinite(by.loc[m, "bias_pct"]) else "-" for m in MODELS]
-        out.append(f"| {kind} | {form} | {int(g['crowns'].iloc[0])} / {int(g['trees'].iloc[0])} | "
-                   + " | ".join(cells) + " |")
+        cells = [
+            f"{by.loc[m, 'bias_pct']:+.1f} % ({by.loc[m, 'mape_pct']:.1f})"
+            if m in by.index and np.isfinite(by.loc[m, "bias_pct"])
+            else "-"
+            for m in MODELS
+        ]
+        out.append(
+            f"| {kind} | {form} | {int(g['crowns'].iloc[0])} / {int(g['trees'].iloc[0])} | "
+            + " | ".join(cells)
+            + " |"
+        )
     for kind, g in df.groupby("orchard", sort=False):
         cells = []
         for m in MODELS:
@@ -173,8 +209,11 @@ def table(lines: list[dict]) -> str:
             bias = np.average(s["bias_pct"], weights=s["crowns"]) if len(s) else np.nan
             mape = np.average(s["mape_pct"], weights=s["crowns"]) if len(s) else np.nan
             cells.append(f"{bias:+.1f} % ({mape:.1f})" if len(s) else "-")
-        out.append(f"| {kind} | all forms | {int(g.groupby('form')['crowns'].first().sum())} | "
-                   + " | ".join(cells) + " |")
+        out.append(
+            f"| {kind} | all forms | {int(g.groupby('form')['crowns'].first().sum())} | "
+            + " | ".join(cells)
+            + " |"
+        )
     return "\n".join(out)
 
 

@@ -39,8 +39,15 @@ def simulate(name: str, rows: int, trees_per_row: int, session_seed: int = 0) ->
     root = OUT / "sim" / name
     if (root / "truth" / "trees.csv").exists():
         return root
-    cfg = load_sim_config("pistachio", {"seed": 11, "session_seed": session_seed, "lidar": LIDAR,
-                                        "orchard": {"rows": rows, "trees_per_row": trees_per_row}})
+    cfg = load_sim_config(
+        "pistachio",
+        {
+            "seed": 11,
+            "session_seed": session_seed,
+            "lidar": LIDAR,
+            "orchard": {"rows": rows, "trees_per_row": trees_per_row},
+        },
+    )
     simulate_session(root, cfg, overwrite=True)
     return root
 
@@ -49,10 +56,16 @@ def simulate(name: str, rows: int, trees_per_row: int, session_seed: int = 0) ->
 def throughput(args: argparse.Namespace) -> None:
     from canopy_kit.batch import SessionSpec, run_batch
 
-    sims = [simulate(f"tp_{args.rows}x{args.trees_per_row}_{k}", args.rows, args.trees_per_row, k)
-            for k in range(args.sessions)]
-    specs = [SessionSpec(f"s{k}", sim / "session", "bench", dt.date(2025, 1, 1 + k), "adaptive",
-                         report=False) for k, sim in enumerate(sims)]
+    sims = [
+        simulate(f"tp_{args.rows}x{args.trees_per_row}_{k}", args.rows, args.trees_per_row, k)
+        for k in range(args.sessions)
+    ]
+    specs = [
+        SessionSpec(
+            f"s{k}", sim / "session", "bench", dt.date(2025, 1, 1 + k), "adaptive", report=False
+        )
+        for k, sim in enumerate(sims)
+    ]
     rows = []
     for workers in args.workers:
         out = Path(tempfile.mkdtemp(prefix="bench_batch_"))
@@ -61,19 +74,29 @@ def throughput(args: argparse.Namespace) -> None:
         cpu1 = os.times()
         assert rep.ok, rep.failures
         task_wall = [o.wall_s for o in rep.outcomes.values()]
-        rows.append({"workers": workers, "sessions": len(specs), "wall_s": rep.wall_s,
-                     "sessions_per_hour": 3600 * len(specs) / rep.wall_s,
-                     "mean_task_s": sum(task_wall) / len(task_wall),
-                     "load_1min": os.getloadavg()[0],
-                     "parent_cpu_s": (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)})
+        rows.append(
+            {
+                "workers": workers,
+                "sessions": len(specs),
+                "wall_s": rep.wall_s,
+                "sessions_per_hour": 3600 * len(specs) / rep.wall_s,
+                "mean_task_s": sum(task_wall) / len(task_wall),
+                "load_1min": os.getloadavg()[0],
+                "parent_cpu_s": (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system),
+            }
+        )
         shutil.rmtree(out, ignore_errors=True)
-    print(f"\nBatch throughput: {args.sessions} pistachio sessions of {args.rows} rows x "
-          f"{args.trees_per_row} trees, {os.cpu_count()} cores\n")
+    print(
+        f"\nBatch throughput: {args.sessions} pistachio sessions of {args.rows} rows x "
+        f"{args.trees_per_row} trees, {os.cpu_count()} cores\n"
+    )
     print("| workers | wall (s) | sessions / hour | mean time per session (s) | load (1 min) |")
     print("|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['workers']} | {r['wall_s']:.0f} | {r['sessions_per_hour']:.0f} | "
-              f"{r['mean_task_s']:.0f} | {r['load_1min']:.1f} |")
+        print(
+            f"| {r['workers']} | {r['wall_s']:.0f} | {r['sessions_per_hour']:.0f} | "
+            f"{r['mean_task_s']:.0f} | {r['load_1min']:.1f} |"
+        )
     print(json.dumps(rows))
 
 
@@ -111,8 +134,12 @@ def memory(args: argparse.Namespace) -> None:
         for mode in ("batch", "stream"):
             out = OUT / "runs" / f"{mode}_{n_rows}x{args.trees_per_row}"
             shutil.rmtree(out, ignore_errors=True)
-            proc = subprocess.run([sys.executable, "-c", CHILD, mode, str(sim / "session"), str(out)],
-                                  capture_output=True, text=True, check=True)
+            proc = subprocess.run(
+                [sys.executable, "-c", CHILD, mode, str(sim / "session"), str(out)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
             rec = json.loads(proc.stdout.strip().splitlines()[-1])
             rows.append({"rows": n_rows, "drive_s": duration, **rec})
             if mode == "stream":  # trees and volumes against the batch run just before
@@ -123,15 +150,22 @@ def memory(args: argparse.Namespace) -> None:
                 rows[-1]["same_labels"] = len(both) == len(b) == len(s)
                 rows[-1]["max_alpha_diff_pct"] = 100 * float(rel.max()) if len(rel) else None
     print(f"\nPeak memory, batch vs streaming: pistachio, {args.trees_per_row} trees per row\n")
-    print("| rows | drive (s) | mode | trees | peak RSS (MB) | map / window peak (points) | "
-          "wall (s) | CPU (s) | stream vs batch: labels, max alpha diff |")
+    print(
+        "| rows | drive (s) | mode | trees | peak RSS (MB) | map / window peak (points) | "
+        "wall (s) | CPU (s) | stream vs batch: labels, max alpha diff |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         pts = r.get("map_points", r.get("window_peak_points"))
-        cmp = (f"{'same' if r['same_labels'] else 'DIFFER'}, {r['max_alpha_diff_pct']:.2f} %"
-               if "same_labels" in r else "")
-        print(f"| {r['rows']} | {r['drive_s']:.0f} | {r['mode']} | {r['n_trees']} | "
-              f"{r['peak_rss_mb']:.0f} | {pts:,} | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | {cmp} |")
+        cmp = (
+            f"{'same' if r['same_labels'] else 'DIFFER'}, {r['max_alpha_diff_pct']:.2f} %"
+            if "same_labels" in r
+            else ""
+        )
+        print(
+            f"| {r['rows']} | {r['drive_s']:.0f} | {r['mode']} | {r['n_trees']} | "
+            f"{r['peak_rss_mb']:.0f} | {pts:,} | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | {cmp} |"
+        )
     print(json.dumps(rows))
 
 
@@ -162,14 +196,25 @@ def store(args: argparse.Namespace) -> None:
             xy = layout[keep] + shift + rng.normal(0, 0.1, (keep.sum(), 2))
             lat, lon, _ = frame.to_wgs84(np.column_stack([xy, np.zeros(len(xy))]))
             vol = base[keep] * (1 + 0.05 * k) * rng.normal(1, 0.03, keep.sum())
-            table = pd.DataFrame({"segment": np.arange(len(xy)), "label": "L0",
-                                  "row": np.repeat(np.arange(n_rows), per_row)[keep],
-                                  "lat": lat, "lon": lon, "n_points": 5000, "height_m": 4.0,
-                                  "crown_diameter_m": 4.0, "volume_convex_hull_m3": 1.05 * vol,
-                                  "volume_alpha_m3": vol, "volume_flags": ""})
+            table = pd.DataFrame(
+                {
+                    "segment": np.arange(len(xy)),
+                    "label": "L0",
+                    "row": np.repeat(np.arange(n_rows), per_row)[keep],
+                    "lat": lat,
+                    "lon": lon,
+                    "n_points": 5000,
+                    "height_m": 4.0,
+                    "crown_diameter_m": 4.0,
+                    "volume_convex_hull_m3": 1.05 * vol,
+                    "volume_alpha_m3": vol,
+                    "volume_flags": "",
+                }
+            )
             t0, c0 = time.perf_counter(), time.process_time()
-            db.ingest(SessionRecord(f"v{k:02d}", "big", dt.date(2025, 1, 1) + dt.timedelta(30 * k)),
-                      table)
+            db.ingest(
+                SessionRecord(f"v{k:02d}", "big", dt.date(2025, 1, 1) + dt.timedelta(30 * k)), table
+            )
             ingest_s.append((time.perf_counter() - t0, time.process_time() - c0))
         n_obs = db.one("SELECT count(*) FROM observations")[0]
         tid = int(db.one("SELECT min(tree_id) FROM trees")[0])
@@ -178,9 +223,14 @@ def store(args: argparse.Namespace) -> None:
             ("growth (every tree x session)", lambda: growth(db)),
             ("row growth (per row x session)", lambda: row_growth(db)),
             ("changes (events)", lambda: changes(db)),
-            ("one tree's history", lambda: db.query(
-                "SELECT s.date, v.volume_m3 FROM volumes v JOIN sessions s USING (session_id) "
-                "WHERE v.tree_id = ? AND v.method = 'alpha_shape' ORDER BY s.date", [tid])),
+            (
+                "one tree's history",
+                lambda: db.query(
+                    "SELECT s.date, v.volume_m3 FROM volumes v JOIN sessions s USING (session_id) "
+                    "WHERE v.tree_id = ? AND v.method = 'alpha_shape' ORDER BY s.date",
+                    [tid],
+                ),
+            ),
             ("export growth to Parquet", lambda: export(db, "growth", tmp / "growth.parquet")),
         ]:
             best, best_cpu = np.inf, np.inf
@@ -189,17 +239,24 @@ def store(args: argparse.Namespace) -> None:
                 res = fn()
                 best = min(best, time.perf_counter() - t0)
                 best_cpu = min(best_cpu, time.process_time() - c0)
-            rows_out = len(res) if hasattr(res, "__len__") and not isinstance(res, Path) else \
-                len(pd.read_parquet(res))
+            rows_out = (
+                len(res)
+                if hasattr(res, "__len__") and not isinstance(res, Path)
+                else len(pd.read_parquet(res))
+            )
             timings[name] = (best, best_cpu, rows_out)
     size_mb = path.stat().st_size / 1e6
     shutil.rmtree(tmp, ignore_errors=True)
-    print(f"\nStore: {len(layout):,} trees x {args.sessions} sessions ({n_obs:,} observations, "
-          f"{size_mb:.0f} MB on disk)\n")
+    print(
+        f"\nStore: {len(layout):,} trees x {args.sessions} sessions ({n_obs:,} observations, "
+        f"{size_mb:.0f} MB on disk)\n"
+    )
     wall, cpu = np.array(ingest_s).T
-    print(f"Ingest (align + match + write, one transaction each): median {np.median(wall):.1f} s "
-          f"wall ({np.median(cpu):.1f} s CPU), max {wall.max():.1f} s per session; "
-          f"load (1 min) {os.getloadavg()[0]:.1f}\n")
+    print(
+        f"Ingest (align + match + write, one transaction each): median {np.median(wall):.1f} s "
+        f"wall ({np.median(cpu):.1f} s CPU), max {wall.max():.1f} s per session; "
+        f"load (1 min) {os.getloadavg()[0]:.1f}\n"
+    )
     print("| query | best of 3, wall (s) | CPU (s) | rows |")
     print("|---|---|---|---|")
     for name, (sec, cpu_s, n) in timings.items():

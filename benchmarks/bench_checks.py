@@ -14,12 +14,23 @@ import json
 import sys
 from pathlib import Path
 
-COLUMNS = ["widest crown over the tree spacing along the row", "widest crown over the row spacing",
-           "most trunks under one segmented tree",
-           "alpha shape vs aerial height-aware ellipsoid volume (MAPE)",
-           "alpha shape vs aerial paper's sphere volume (MAPE)"]
-HEADER = ["run", "trees", "crown / tree spacing", "crown / row spacing", "trunks under one tree",
-          "MAPE vs ellipsoid", "MAPE vs sphere", "pass / warn / fail / info"]
+COLUMNS = [
+    "widest crown over the tree spacing along the row",
+    "widest crown over the row spacing",
+    "most trunks under one segmented tree",
+    "alpha shape vs aerial height-aware ellipsoid volume (MAPE)",
+    "alpha shape vs aerial paper's sphere volume (MAPE)",
+]
+HEADER = [
+    "run",
+    "trees",
+    "crown / tree spacing",
+    "crown / row spacing",
+    "trunks under one tree",
+    "MAPE vs ellipsoid",
+    "MAPE vs sphere",
+    "pass / warn / fail / info",
+]
 
 
 def row(label: str, run: Path) -> list[str]:

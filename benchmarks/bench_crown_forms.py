@@ -38,14 +38,27 @@ def session(cache: Path, form: str, rows: int, trees: int, seed: int, penetratio
 
     root = cache / f"{form}_{rows}x{trees}_s{seed}_p{penetration:g}"
     if not (root / "map.npz").exists():
-        overrides = {"seed": seed, "orchard": {"rows": rows, "trees_per_row": trees, "crown_form": form,
-                                               "leaf_penetration_m": penetration},
-                     "lidar": {"columns": 512}, "imu": {"enabled": False}, "gnss": {"enabled": False}}
+        overrides = {
+            "seed": seed,
+            "orchard": {
+                "rows": rows,
+                "trees_per_row": trees,
+                "crown_form": form,
+                "leaf_penetration_m": penetration,
+            },
+            "lidar": {"columns": 512},
+            "imu": {"enabled": False},
+            "gnss": {"enabled": False},
+        }
         print(f"simulating {root} ...", file=sys.stderr, flush=True)
         simulate_session(root, load_sim_config("pistachio", overrides), fmt="ros1", overwrite=True)
         cloud = truth_map(root, voxel_size=0.05)
-        np.savez(root / "map.npz", xyz=cloud.xyz, tree_id=cloud.fields["tree_id"],
-                 time=cloud.fields["time"])
+        np.savez(
+            root / "map.npz",
+            xyz=cloud.xyz,
+            tree_id=cloud.fields["tree_id"],
+            time=cloud.fields["time"],
+        )
     return root
 
 
@@ -55,8 +68,12 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=2)
     parser.add_argument("--trees", type=int, default=3)
     parser.add_argument("--seed", type=int, default=41)
-    parser.add_argument("--penetration", type=float, default=math.inf,
-                        help="orchard.leaf_penetration_m (default inf: through the whole crown)")
+    parser.add_argument(
+        "--penetration",
+        type=float,
+        default=math.inf,
+        help="orchard.leaf_penetration_m (default inf: through the whole crown)",
+    )
     parser.add_argument("--cache", type=Path, default=Path("/tmp/canopy_kit_bench_crown_forms"))
     args = parser.parse_args()
     from canopy_kit.cloud import PointCloud
@@ -71,7 +88,11 @@ def main() -> None:
         table = error_table(volume_errors(trees, SPECS))
         table.insert(0, "form", form)
         tables.append(table)
-        print(f"{form}: {len(trees)} trees, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+        print(
+            f"{form}: {len(trees)} trees, {time.perf_counter() - t0:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
     out = pd.concat(tables, ignore_index=True)
     out["bias %"] = (100 * out.pop("bias")).round(1)
     out["MAPE %"] = (100 * out.pop("mape")).round(1)

@@ -39,15 +39,21 @@ def flight(work: Path, kind: str, rows: int, trees: int, seed: int) -> Path:
 
     root = work / f"{kind}_{rows}x{trees}_s{seed}"
     if not (root / "truth" / "drone_cameras.csv").exists():
-        cfg = load_sim_config(kind, {"seed": seed, "orchard": {"rows": rows, "trees_per_row": trees},
-                                     "drone": {"enabled": True}})
+        cfg = load_sim_config(
+            kind,
+            {
+                "seed": seed,
+                "orchard": {"rows": rows, "trees_per_row": trees},
+                "drone": {"enabled": True},
+            },
+        )
         t0 = time.perf_counter()
         simulate_drone_session(root, cfg)
         print(f"  rendered {root.name} in {time.perf_counter() - t0:.0f} s")
     return root
 
 
-def frame_of(root: Path):  # noqa: ANN201
+def frame_of(root: Path):
     from canopy_kit.geo import LocalFrame
 
     return LocalFrame.from_dict(json.loads((root / "truth" / "frame.json").read_text())["frame"])
@@ -68,14 +74,21 @@ def accuracy(work: Path, orchards: list[str] | None = None) -> None:
             out = root / f"gt_{seeding}"
             t0, c0 = time.perf_counter(), time.process_time()
             # The second run reuses SfM, surface and mosaic: only the crowns differ.
-            result = process_flight(root / "drone", out, frame=frame_of(root), reuse=result,
-                                    seeds=root / "truth" / "trees.csv" if seeding == "tree_positions" else None)
+            result = process_flight(
+                root / "drone",
+                out,
+                frame=frame_of(root),
+                reuse=result,
+                seeds=root / "truth" / "trees.csv" if seeding == "tree_positions" else None,
+            )
             total, cpu = time.perf_counter() - t0, time.process_time() - c0
             cams = camera_errors(result.model, root / "truth" / "drone_cameras.csv")
             _, m = crown_agreement(result.crowns, truth)
             sfm = result.report["sfm"]
             line = {
-                "flight": root.name, "seeding": seeding, "photos": sfm["total_images"],
+                "flight": root.name,
+                "seeding": seeding,
+                "photos": sfm["total_images"],
                 "registered": sfm["registered_images"],
                 "reprojection_px": round(sfm["mean_reprojection_error_px"], 3),
                 "camera_error_mean_m": round(float(cams["error_m"].mean()), 3),
@@ -84,7 +97,8 @@ def accuracy(work: Path, orchards: list[str] | None = None) -> None:
                 "gps_residual_rms_v_m": round(sfm["gps_residual_rms_vertical_m"], 3),
                 **{k: (round(v, 3) if isinstance(v, float) else v) for k, v in m.items()},
                 "alignment": sfm.get("alignment"),
-                "run_wall_s": round(total, 1), "run_cpu_s": round(cpu, 1),
+                "run_wall_s": round(total, 1),
+                "run_cpu_s": round(cpu, 1),
                 "stage_s": {k: round(v, 1) for k, v in result.report["timings_s"].items()},
             }
             print(json.dumps(line))
@@ -102,14 +116,27 @@ def sphere_bias(n_rows: int = 10, n_trees: int = 20) -> None:
         cfg = load_sim_config(kind, {"orchard": {"rows": n_rows, "trees_per_row": n_trees}})
         t = tree_table(generate_orchard(cfg.orchard, np.random.default_rng(7)))
         v = t["crown_volume_m3"].to_numpy()
-        for name, d in (("widest extent", t["crown_diameter_m"]),
-                        ("mean of perpendicular extents", t["crown_diameter_mean_m"])):
+        for name, d in (
+            ("widest extent", t["crown_diameter_m"]),
+            ("mean of perpendicular extents", t["crown_diameter_mean_m"]),
+        ):
             sphere = np.pi * d.to_numpy() ** 3 / 6
             a = agreement(sphere, v)
-            print(json.dumps({"orchard": kind, "trees": len(t), "diameter": name,
-                              "bias_pct": round(a.bias_pct, 1), "mape_pct": round(a.mape_pct, 1),
-                              "ratio_median": round(float(np.median(sphere / v)), 3),
-                              "ratio_p5_p95": [round(float(q), 3) for q in np.percentile(sphere / v, [5, 95])]}))
+            print(
+                json.dumps(
+                    {
+                        "orchard": kind,
+                        "trees": len(t),
+                        "diameter": name,
+                        "bias_pct": round(a.bias_pct, 1),
+                        "mape_pct": round(a.mape_pct, 1),
+                        "ratio_median": round(float(np.median(sphere / v)), 3),
+                        "ratio_p5_p95": [
+                            round(float(q), 3) for q in np.percentile(sphere / v, [5, 95])
+                        ],
+                    }
+                )
+            )
 
 
 def speed(work: Path) -> None:
@@ -128,12 +155,22 @@ def speed(work: Path) -> None:
         n = len(photos.images)
         # On a shared machine the wall time mostly measures the other jobs: the CPU time
         # (all threads) over the 2 cores is what the SfM would take on an idle machine.
-        print(json.dumps({"flight": root.name, "photos": n, "registered": model.n_registered,
-                          "matching": model.matching, "sfm_wall_s": round(total, 1),
-                          "sfm_cpu_s": round(cpu, 1), "sfm_cpu_per_photo_s": round(cpu / n, 2),
-                          "idle_2core_estimate_s": round(cpu / min(os.cpu_count() or 1, 2), 1),
-                          "load_average_start_end": [round(load, 1), round(os.getloadavg()[0], 1)],
-                          "stages_wall_s": {k: round(v, 1) for k, v in model.timings.items()}}))
+        print(
+            json.dumps(
+                {
+                    "flight": root.name,
+                    "photos": n,
+                    "registered": model.n_registered,
+                    "matching": model.matching,
+                    "sfm_wall_s": round(total, 1),
+                    "sfm_cpu_s": round(cpu, 1),
+                    "sfm_cpu_per_photo_s": round(cpu / n, 2),
+                    "idle_2core_estimate_s": round(cpu / min(os.cpu_count() or 1, 2), 1),
+                    "load_average_start_end": [round(load, 1), round(os.getloadavg()[0], 1)],
+                    "stages_wall_s": {k: round(v, 1) for k, v in model.timings.items()},
+                }
+            )
+        )
 
 
 def recrown(gt_dir: Path, seeds: Path | None) -> tuple[object, object, pd.DataFrame]:
@@ -169,23 +206,37 @@ def figures(work: Path, docs: Path, sources: list[list[str]] | None = None) -> N
 
     docs.mkdir(parents=True, exist_ok=True)
     if not sources:
-        sources = [[kind, str(work / f"{kind}_{r}x{t}_s{s}"),
-                    str(work / f"{kind}_{r}x{t}_s{s}" / "gt_tree_positions"),
-                    str(work / f"{kind}_{r}x{t}_s{s}" / "truth" / "trees.csv")]
-                   for kind, r, t, s in ACCURACY_FLIGHTS]
+        sources = [
+            [
+                kind,
+                str(work / f"{kind}_{r}x{t}_s{s}"),
+                str(work / f"{kind}_{r}x{t}_s{s}" / "gt_tree_positions"),
+                str(work / f"{kind}_{r}x{t}_s{s}" / "truth" / "trees.csv"),
+            ]
+            for kind, r, t, s in ACCURACY_FLIGHTS
+        ]
     for kind, root_s, gt_s, seeds_s in sources:
         root = Path(root_s)
         result, seg, crowns = recrown(Path(gt_s), None if seeds_s == "-" else Path(seeds_s))
         truth = read_trees(root / "truth" / "trees.csv", result.frame)
-        truth = truth.assign(x=truth["tree_x"], y=truth["tree_y"], diameter=truth["crown_diameter_m"])
+        truth = truth.assign(
+            x=truth["tree_x"], y=truth["tree_y"], diameter=truth["crown_diameter_m"]
+        )
         ax = plot_crowns(result.ortho, seg, crowns, truth=truth)
-        seeded = "LiDAR tree positions" if "run" in seeds_s else ("tree positions" if seeds_s != "-" else
-                                                                  "CHM maxima")
-        ax.set_title(f"{kind}: crowns seeded by {seeded} (red, numbered); true widest extent (cyan)")
+        seeded = (
+            "LiDAR tree positions"
+            if "run" in seeds_s
+            else ("tree positions" if seeds_s != "-" else "CHM maxima")
+        )
+        ax.set_title(
+            f"{kind}: crowns seeded by {seeded} (red, numbered); true widest extent (cyan)"
+        )
         ax.figure.savefig(docs / f"ground_truth_{kind}_crowns.png", dpi=80, bbox_inches="tight")
         plt.close(ax.figure)
         axes = plot_surface(result.surface)
-        axes[0].figure.savefig(docs / f"ground_truth_{kind}_dsm_chm.png", dpi=80, bbox_inches="tight")
+        axes[0].figure.savefig(
+            docs / f"ground_truth_{kind}_dsm_chm.png", dpi=80, bbox_inches="tight"
+        )
         plt.close(axes[0].figure)
         photos = sorted((root / "drone").glob("*.jpg"))
         with Image.open(photos[len(photos) // 2]) as im:
@@ -199,8 +250,13 @@ def main() -> None:
     parser.add_argument("--only", choices=["accuracy", "sphere", "speed", "figures"])
     parser.add_argument("--docs", type=Path, default=REPO / "docs" / "figures")
     parser.add_argument("--orchard", action="append", help="accuracy: only these orchards")
-    parser.add_argument("--figure-flight", nargs=4, action="append", metavar=("KIND", "ROOT", "GT_DIR", "SEEDS"),
-                        help="figures from this processed flight (SEEDS: a trees CSV or -)")
+    parser.add_argument(
+        "--figure-flight",
+        nargs=4,
+        action="append",
+        metavar=("KIND", "ROOT", "GT_DIR", "SEEDS"),
+        help="figures from this processed flight (SEEDS: a trees CSV or -)",
+    )
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     if args.only in (None, "sphere"):

@@ -51,18 +51,22 @@ from pathlib import Path
 
 from canopy_kit.parallel import cpu_seconds
 
-DEFAULT = ("canopy-kit build_map (defaults: IMU + GNSS, every 3rd sweep registered, odometry in "
-           "one time chunk per core unless the LiDAR is tilted over 5 deg, map pass in 2 stretches: "
-           "the parent and 1 worker)")
+DEFAULT = (
+    "canopy-kit build_map (defaults: IMU + GNSS, every 3rd sweep registered, odometry in "
+    "one time chunk per core unless the LiDAR is tilted over 5 deg, map pass in 2 stretches: "
+    "the parent and 1 worker)"
+)
 RKO_LIO = Path(os.environ.get("RKO_LIO", "/work/rko_venv/bin/rko_lio"))
 RKO_INSTALL = "python3 -m venv /work/rko_venv && /work/rko_venv/bin/pip install rko_lio rosbags"
 TUM = ["time", "x", "y", "z", "qx", "qy", "qz", "qw"]
 # Runs a command and writes its exit code, CPU s and max RSS (kB) to argv[1]. A child's max RSS
 # starts at its parent's peak (exec keeps the high-water mark of the memory it replaces), so
 # rko_lio is started from this small process rather than from the benchmark's.
-WAIT4 = ("import os, subprocess, sys; p = subprocess.Popen(sys.argv[2:]); _, s, r = os.wait4(p.pid, 0); "
-         "open(sys.argv[1], 'w').write("
-         "f'{os.waitstatus_to_exitcode(s)} {r.ru_utime + r.ru_stime} {r.ru_maxrss}')")
+WAIT4 = (
+    "import os, subprocess, sys; p = subprocess.Popen(sys.argv[2:]); _, s, r = os.wait4(p.pid, 0); "
+    "open(sys.argv[1], 'w').write("
+    "f'{os.waitstatus_to_exitcode(s)} {r.ru_utime + r.ru_stime} {r.ru_maxrss}')"
+)
 
 
 def _peak_mb() -> tuple[float, float]:
@@ -71,12 +75,30 @@ def _peak_mb() -> tuple[float, float]:
     return own, children
 
 
-def _result(duration_s: float, wall_s: float, cpu_s: float, peak_mb: float, errors: dict, frame: str,
-            **extra: object) -> dict:
+def _result(
+    duration_s: float,
+    wall_s: float,
+    cpu_s: float,
+    peak_mb: float,
+    errors: dict,
+    frame: str,
+    **extra: object,
+) -> dict:
     """One pipeline's row: timing, memory, trajectory errors (and, with ``extra``, its map)."""
-    row = {"duration_s": duration_s, "wall_s": wall_s, "cpu_s": cpu_s, "peak_mb": peak_mb,
-           "worker_peak_mb": 0.0, "ate_m": errors["ate_rmse_m"], "drift_pct": errors["drift_percent"],
-           "frame": frame, "map_median_m": None, "map_p90_m": None, "map_points": None, "stages": {}}
+    row = {
+        "duration_s": duration_s,
+        "wall_s": wall_s,
+        "cpu_s": cpu_s,
+        "peak_mb": peak_mb,
+        "worker_peak_mb": 0.0,
+        "ate_m": errors["ate_rmse_m"],
+        "drift_pct": errors["drift_percent"],
+        "frame": frame,
+        "map_median_m": None,
+        "map_p90_m": None,
+        "map_points": None,
+        "stages": {},
+    }
     return row | extra
 
 
@@ -92,10 +114,20 @@ def run_canopy_kit(session: Path, overrides: dict) -> dict:
     own, children = _peak_mb()
     ev = evaluate_against_simulation(result, session)
     d = result.diagnostics
-    return _result(d["duration_s"], wall, cpu, own, ev, ev["trajectory_frame"], worker_peak_mb=children,
-                   map_median_m=ev["map_aligned"]["median_m"], map_p90_m=ev["map_aligned"]["p90_m"],
-                   map_points=d["map_points"], stages=d["timing"],
-                   odometry_processes=d["odometry_workers"])
+    return _result(
+        d["duration_s"],
+        wall,
+        cpu,
+        own,
+        ev,
+        ev["trajectory_frame"],
+        worker_peak_mb=children,
+        map_median_m=ev["map_aligned"]["median_m"],
+        map_p90_m=ev["map_aligned"]["p90_m"],
+        map_points=d["map_points"],
+        stages=d["timing"],
+        odometry_processes=d["odometry_workers"],
+    )
 
 
 def run_kiss_icp(session: Path) -> dict:
@@ -152,11 +184,18 @@ def run_rko_lio(session: Path, exe: Path) -> dict:
         cmd += ["--config", str(out / "extrinsics.yaml")]
     load, wall0 = os.getloadavg()[0], time.perf_counter()
     with open(out / "log.txt", "w") as log:
-        subprocess.run([sys.executable, "-c", WAIT4, str(out / "usage.txt"), *cmd], stdout=log,
-                       stderr=subprocess.STDOUT, cwd=out, check=False)
+        subprocess.run(
+            [sys.executable, "-c", WAIT4, str(out / "usage.txt"), *cmd],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            cwd=out,
+            check=False,
+        )
     wall = time.perf_counter() - wall0
     usage = out / "usage.txt"  # missing: the command did not start (the log says why)
-    code, cpu, max_rss_kb = (float(v) for v in usage.read_text().split()) if usage.exists() else (1, 0, 0)
+    code, cpu, max_rss_kb = (
+        (float(v) for v in usage.read_text().split()) if usage.exists() else (1, 0, 0)
+    )
     poses = sorted(out.glob("run_*/*_tum.txt"))  # TUM: time x y z qx qy qz qw, time = sweep end
     if code != 0 or not poses:
         tail = (out / "log.txt").read_text()[-3000:]
@@ -166,8 +205,15 @@ def run_rko_lio(session: Path, exe: Path) -> dict:
     print(f"rko_lio: {' '.join(cmd)}\n  poses: {poses[0]}", file=sys.stderr)
     errors = trajectory_errors(table, truth.trajectory_of(frame))
     duration = t[-1] - t[0] + float(pd.Series(t).diff().median())  # stamps at the sweeps' ends
-    return _result(duration, wall, cpu, max_rss_kb / 1024.0, errors, frame,
-                   load=0.5 * (load + os.getloadavg()[0]))
+    return _result(
+        duration,
+        wall,
+        cpu,
+        max_rss_kb / 1024.0,
+        errors,
+        frame,
+        load=0.5 * (load + os.getloadavg()[0]),
+    )
 
 
 def _rko_extrinsics(rig: dict) -> str:
@@ -182,19 +228,26 @@ def _rko_extrinsics(rig: dict) -> str:
         return from_rpy(m["translation"], m["rpy_deg"])
 
     imu = np.linalg.inv(mount("base_from_lidar")) @ mount("base_from_imu")
-    values = [round(float(v), 9) for v in [*Rotation.from_matrix(imu[:3, :3]).as_quat(), *imu[:3, 3]]]
-    return (f"extrinsic_imu2base_quat_xyzw_xyz: {values}\n"
-            "extrinsic_lidar2base_quat_xyzw_xyz: [0, 0, 0, 1, 0, 0, 0]\n")
+    values = [
+        round(float(v), 9) for v in [*Rotation.from_matrix(imu[:3, :3]).as_quat(), *imu[:3, 3]]
+    ]
+    return (
+        f"extrinsic_imu2base_quat_xyzw_xyz: {values}\n"
+        "extrinsic_lidar2base_quat_xyzw_xyz: [0, 0, 0, 1, 0, 0, 0]\n"
+    )
 
 
 def _rko_version(exe: Path) -> str | None:
     """rko_lio's and rosbags' versions in the environment of ``exe`` (None: not installed there)."""
     if not exe.exists():
         return None
-    code = ("import importlib.metadata as m; "
-            "print(f\"rko_lio {m.version('rko_lio')}, rosbags {m.version('rosbags')}\")")
-    out = subprocess.run([str(exe.parent / "python"), "-c", code], capture_output=True, text=True,
-                         check=False)
+    code = (
+        "import importlib.metadata as m; "
+        "print(f\"rko_lio {m.version('rko_lio')}, rosbags {m.version('rosbags')}\")"
+    )
+    out = subprocess.run(
+        [str(exe.parent / "python"), "-c", code], capture_output=True, text=True, check=False
+    )
     return out.stdout.strip() if out.returncode == 0 else None
 
 
@@ -206,9 +259,17 @@ def _child(mode: str, session: Path, code: Path | None = None, *args: str) -> di
     load = os.getloadavg()[0]
     env = None
     if code:  # that checkout's canopy_kit first on the path (before the editable install)
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(code), os.environ.get("PYTHONPATH")]))}
-    out = subprocess.run([sys.executable, __file__, "--child", mode, "--session", str(session), *args],
-                         capture_output=True, text=True, check=False, env=env)
+        env = {
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join(filter(None, [str(code), os.environ.get("PYTHONPATH")])),
+        }
+    out = subprocess.run(
+        [sys.executable, __file__, "--child", mode, "--session", str(session), *args],
+        capture_output=True,
+        text=True,
+        check=False,
+        env=env,
+    )
     if out.returncode != 0:
         raise RuntimeError(f"{mode} failed:\n{out.stderr[-3000:]}")
     result = json.loads(out.stdout.strip().splitlines()[-1])
@@ -219,42 +280,70 @@ def _child(mode: str, session: Path, code: Path | None = None, *args: str) -> di
 def _simulate(folder: Path, rig: str, sensor: str | None, seed: int) -> dict:
     from canopy_kit.sim import load_sim_config, simulate_session
 
-    cfg = load_sim_config("pistachio", {"seed": seed, "orchard": {"rows": 4, "trees_per_row": 10},
-                                        "rig": {"name": rig}}, sensor=sensor)
+    cfg = load_sim_config(
+        "pistachio",
+        {"seed": seed, "orchard": {"rows": 4, "trees_per_row": 10}, "rig": {"name": rig}},
+        sensor=sensor,
+    )
     return {"session": str(simulate_session(folder / f"bench_pistachio_{rig}", cfg).root)}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--session", type=Path, help="Simulated session folder (default: simulate one)")
-    parser.add_argument("--rig", help="Simulate the session on this sensor rig (identity, the default, "
-                                      "tower, imu-flipped, yawed-lever, side-tilt)")
-    parser.add_argument("--sensor", help="Simulated sensor model, e.g. vlp16 (default: the 32-ring one)")
+    parser.add_argument(
+        "--session", type=Path, help="Simulated session folder (default: simulate one)"
+    )
+    parser.add_argument(
+        "--rig",
+        help="Simulate the session on this sensor rig (identity, the default, "
+        "tower, imu-flipped, yawed-lever, side-tilt)",
+    )
+    parser.add_argument(
+        "--sensor", help="Simulated sensor model, e.g. vlp16 (default: the 32-ring one)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="Simulation seed")
     parser.add_argument("--keep", action="store_true", help="Keep the simulated session")
-    parser.add_argument("--rko-lio", type=Path, default=RKO_LIO,
-                        help="rko_lio's command, in its own virtual environment "
-                             "(default: $RKO_LIO or %(default)s)")
-    parser.add_argument("--repeat", type=int, default=0,
-                        help="Then run the default pipeline this many more times and print the median "
-                             "(the machine's speed varies by up to 40 %% between identical runs)")
-    parser.add_argument("--against", type=Path,
-                        help="With --repeat: a checkout of other canopy-kit code (e.g. `git worktree add "
-                             "/tmp/old REV`), run alternately with this code under the same conditions")
+    parser.add_argument(
+        "--rko-lio",
+        type=Path,
+        default=RKO_LIO,
+        help="rko_lio's command, in its own virtual environment (default: $RKO_LIO or %(default)s)",
+    )
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=0,
+        help="Then run the default pipeline this many more times and print the median "
+        "(the machine's speed varies by up to 40 %% between identical runs)",
+    )
+    parser.add_argument(
+        "--against",
+        type=Path,
+        help="With --repeat: a checkout of other canopy-kit code (e.g. `git worktree add "
+        "/tmp/old REV`), run alternately with this code under the same conditions",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.against and not args.repeat:
         parser.error("--against needs --repeat N (the number of alternating runs)")
     if args.session and (args.rig or args.sensor) and not args.child:
-        parser.error("--rig and --sensor simulate a session: not with --session (its rig is its own)")
+        parser.error(
+            "--rig and --sensor simulate a session: not with --session (its rig is its own)"
+        )
     args.rig = args.rig or "identity"
     if args.child:
-        result = (run_kiss_icp(args.session) if args.child == "kiss"
-                  else _simulate(args.session, args.rig, args.sensor, args.seed) if args.child == "simulate"
-                  else run_canopy_kit(args.session, json.loads(args.child)))
+        result = (
+            run_kiss_icp(args.session)
+            if args.child == "kiss"
+            else _simulate(args.session, args.rig, args.sensor, args.seed)
+            if args.child == "simulate"
+            else run_canopy_kit(args.session, json.loads(args.child))
+        )
         print(json.dumps(result))
         return
-    print(f"load average at the start: {', '.join(f'{v:.2f}' for v in os.getloadavg())} (1, 5, 15 min)")
+    print(
+        f"load average at the start: {', '.join(f'{v:.2f}' for v in os.getloadavg())} (1, 5, 15 min)"
+    )
     tmp = None
     session = args.session
     if session is None:
@@ -269,10 +358,12 @@ def main() -> None:
             DEFAULT: _child("{}", session),
             "canopy-kit build_map, one process, every sweep registered, ICP convergence 1e-4 "
             "(workers = 1, odometry_every = 1)": _child(
-                '{"workers": 1, "odometry_every": 1, "kiss_convergence": 0.0001}', session),
+                '{"workers": 1, "odometry_every": 1, "kiss_convergence": 0.0001}', session
+            ),
             "KISS-ICP (Python API, unfiltered, all cores)": _child("kiss", session),
-            "rko_lio (its CLI, default config, all cores)": (run_rko_lio(session, args.rko_lio)
-                                                             if rko_version else None),
+            "rko_lio (its CLI, default config, all cores)": (
+                run_rko_lio(session, args.rko_lio) if rko_version else None
+            ),
         }
         duration = next(iter(runs.values()))["duration_s"]
         _print_table(session, runs, duration, rko_version)
@@ -292,12 +383,16 @@ def _inputs(session: Path) -> dict[str, str]:
     else:
         ours = "no /tf_static: every sensor in the LiDAR's frame"
         theirs = "no /tf_static: extrinsics from truth/frame.json in --config"
-    return {"canopy-kit": f"LiDAR + IMU + GNSS; {ours}", "KISS-ICP": "LiDAR",
-            "rko_lio": f"LiDAR + IMU; {theirs}"}
+    return {
+        "canopy-kit": f"LiDAR + IMU + GNSS; {ours}",
+        "KISS-ICP": "LiDAR",
+        "rko_lio": f"LiDAR + IMU; {theirs}",
+    }
 
 
-def _print_table(session: Path, runs: dict[str, dict | None], duration: float,
-                 rko_version: str | None) -> None:
+def _print_table(
+    session: Path, runs: dict[str, dict | None], duration: float, rko_version: str | None
+) -> None:
     from importlib.metadata import version
 
     import canopy_kit
@@ -305,30 +400,47 @@ def _print_table(session: Path, runs: dict[str, dict | None], duration: float,
 
     cfg = load_sim_config_of(session)
     lidar = cfg.lidar
-    print(f"session: {session} ({duration:.0f} s of driving, {lidar.rings} rings x {lidar.columns} "
-          f"columns, {lidar.rate_hz:g} Hz, rig {cfg.rig.name}, seed {cfg.seed})")
-    print(f"versions: canopy-kit {canopy_kit.__version__}, kiss-icp {version('kiss-icp')}, "
-          f"{rko_version or 'rko_lio not installed'}")
-    print(f"machine: {os.cpu_count()} cores, load average at the end "
-          f"{', '.join(f'{v:.2f}' for v in os.getloadavg())} (1, 5, 15 min)\n")
-    print("| pipeline | inputs | poses of | real-time factor, wall | real-time factor, CPU | wall s | CPU s "
-          "| load avg | peak RSS MB | ATE m | drift % | map to true surfaces, median / 90 % (cm) |")
+    print(
+        f"session: {session} ({duration:.0f} s of driving, {lidar.rings} rings x {lidar.columns} "
+        f"columns, {lidar.rate_hz:g} Hz, rig {cfg.rig.name}, seed {cfg.seed})"
+    )
+    print(
+        f"versions: canopy-kit {canopy_kit.__version__}, kiss-icp {version('kiss-icp')}, "
+        f"{rko_version or 'rko_lio not installed'}"
+    )
+    print(
+        f"machine: {os.cpu_count()} cores, load average at the end "
+        f"{', '.join(f'{v:.2f}' for v in os.getloadavg())} (1, 5, 15 min)\n"
+    )
+    print(
+        "| pipeline | inputs | poses of | real-time factor, wall | real-time factor, CPU | wall s | CPU s "
+        "| load avg | peak RSS MB | ATE m | drift % | map to true surfaces, median / 90 % (cm) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     inputs = _inputs(session)
     for name, r in runs.items():
         what = inputs[name.split()[0]]
         if r is None:
-            print(f"| {name} | {what} | not installed: `{RKO_INSTALL}` (or --rko-lio PATH) |"
-                  + " - |" * 9)
+            print(
+                f"| {name} | {what} | not installed: `{RKO_INSTALL}` (or --rko-lio PATH) |"
+                + " - |" * 9
+            )
             continue
-        peak = f"{r['peak_mb']:.0f}" + (f" + {r['worker_peak_mb']:.0f}/worker" if r["worker_peak_mb"] else "")
-        print(f"| {name} | {what} | {r['frame']} | {r['duration_s'] / r['wall_s']:.1f}x | "
-              f"{r['duration_s'] / r['cpu_s']:.1f}x | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | "
-              f"{r['load']:.1f} | {peak} | {r['ate_m']:.3f} | {r['drift_pct']:.2f} | "
-              f"{_cm(r['map_median_m'])} / {_cm(r['map_p90_m'])} |")
+        peak = f"{r['peak_mb']:.0f}" + (
+            f" + {r['worker_peak_mb']:.0f}/worker" if r["worker_peak_mb"] else ""
+        )
+        print(
+            f"| {name} | {what} | {r['frame']} | {r['duration_s'] / r['wall_s']:.1f}x | "
+            f"{r['duration_s'] / r['cpu_s']:.1f}x | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | "
+            f"{r['load']:.1f} | {peak} | {r['ate_m']:.3f} | {r['drift_pct']:.2f} | "
+            f"{_cm(r['map_median_m'])} / {_cm(r['map_p90_m'])} |"
+        )
     stages = runs[DEFAULT]["stages"]
-    print(f"\nstages (default run, odometry in {runs[DEFAULT]['odometry_processes']} process(es)): "
-          + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()), flush=True)
+    print(
+        f"\nstages (default run, odometry in {runs[DEFAULT]['odometry_processes']} process(es)): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()),
+        flush=True,
+    )
 
 
 def _repeat(session: Path, n: int, against: Path | None, duration: float) -> None:
@@ -337,19 +449,26 @@ def _repeat(session: Path, n: int, against: Path | None, duration: float) -> Non
 
     codes = {"this code": None} | ({f"code at {against}": against} if against else {})
     walls: dict[str, list[float]] = {name: [] for name in codes}
-    print(f"\nthe default pipeline {n} times" + (", alternating with the code at " + str(against)
-                                                  if against else "") + ": wall s (load average)")
+    print(
+        f"\nthe default pipeline {n} times"
+        + (", alternating with the code at " + str(against) if against else "")
+        + ": wall s (load average)"
+    )
     for i in range(n):
         line = []
-        order = list(codes.items()) if i % 2 == 0 else list(codes.items())[::-1]  # neither always first
+        order = (
+            list(codes.items()) if i % 2 == 0 else list(codes.items())[::-1]
+        )  # neither always first
         for name, code in order:
             r = _child("{}", session, code)
             walls[name].append(r["wall_s"])
             line.append(f"{name} {r['wall_s']:.1f} ({r['load']:.1f})")
         print(f"  run {i + 1}: " + ", ".join(line), flush=True)
     for name, w in walls.items():
-        print(f"{name}: median {statistics.median(w):.1f} s = {duration / statistics.median(w):.1f}x wall "
-              f"(best {duration / min(w):.1f}x, worst {duration / max(w):.1f}x, {n} runs)")
+        print(
+            f"{name}: median {statistics.median(w):.1f} s = {duration / statistics.median(w):.1f}x wall "
+            f"(best {duration / min(w):.1f}x, worst {duration / max(w):.1f}x, {n} runs)"
+        )
 
 
 if __name__ == "__main__":

@@ -37,21 +37,29 @@ from canopy_kit.config import load_preset
 
 PAPER = {
     "dbscan": {"eps": 0.8, "min_samples": 1300},
-    "dbscan_spectral": {"eps": 0.8, "min_samples": 1300, "max_cluster_size": 45000,
-                        "n_neighbors": 10},
+    "dbscan_spectral": {
+        "eps": 0.8,
+        "min_samples": 1300,
+        "max_cluster_size": 45000,
+        "n_neighbors": 10,
+    },
     "adaptive": {},
 }
 # the paper's almond method with its split threshold and graph at our map's scale, as the
 # shipped preset sets it (canopy_kit/presets/almond-scaled.toml)
 PAPER["dbscan_spectral_scaled"] = dict(load_preset("almond-scaled").segment.params)
 # only the graph at our scale, the paper's threshold (an ablation)
-PAPER["dbscan_spectral_cells"] = {**PAPER["dbscan_spectral_scaled"],
-                                  "max_cluster_size": PAPER["dbscan_spectral"]["max_cluster_size"]}
+PAPER["dbscan_spectral_cells"] = {
+    **PAPER["dbscan_spectral_scaled"],
+    "max_cluster_size": PAPER["dbscan_spectral"]["max_cluster_size"],
+}
 #: what the benchmark runs unless told (the ablation only when asked for)
 DEFAULT_METHODS = ["dbscan", "dbscan_spectral", "dbscan_spectral_scaled", "adaptive"]
 #: method names of this benchmark that run a segmenter under another name
-SEGMENTER = {"dbscan_spectral_scaled": "dbscan_spectral",
-             "dbscan_spectral_cells": "dbscan_spectral"}
+SEGMENTER = {
+    "dbscan_spectral_scaled": "dbscan_spectral",
+    "dbscan_spectral_cells": "dbscan_spectral",
+}
 
 
 def bench_segmenter(method: str):
@@ -62,8 +70,16 @@ def bench_segmenter(method: str):
 
 
 # -- sessions ----------------------------------------------------------------------------
-def session_map(cache: Path, orchard: str, rows: int, trees: int, seed: int,
-                overrides: dict | None = None, sensor: str | None = None, tag: str = ""):
+def session_map(
+    cache: Path,
+    orchard: str,
+    rows: int,
+    trees: int,
+    seed: int,
+    overrides: dict | None = None,
+    sensor: str | None = None,
+    tag: str = "",
+):
     """(map PointCloud with tree_id, sim dir): simulated once, then read from the cache."""
     from canopy_kit.cloud import PointCloud
     from canopy_kit.config import merge
@@ -84,15 +100,23 @@ def session_map(cache: Path, orchard: str, rows: int, trees: int, seed: int,
         shutil.rmtree(bag) if bag.is_dir() else bag.unlink()
     d = np.load(npz)
     frame = load_truth(sim_dir).frame
-    cloud = PointCloud(d["xyz"], {"tree_id": d["tree_id"], "intensity": d["intensity"]},
-                       crs=frame.crs, origin=frame.origin)
+    cloud = PointCloud(
+        d["xyz"],
+        {"tree_id": d["tree_id"], "intensity": d["intensity"]},
+        crs=frame.crs,
+        origin=frame.origin,
+    )
     return cloud, sim_dir, name
 
 
 def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
     """Every method on one map: success by point and by footprint IoU, plus the ceiling."""
-    from canopy_kit.evaluate import (envelope_ceiling, score_footprints, score_point_labels,
-                                     truth_footprints)
+    from canopy_kit.evaluate import (
+        envelope_ceiling,
+        score_footprints,
+        score_point_labels,
+        truth_footprints,
+    )
     from canopy_kit.segment.rows import driving_direction_from_trajectory
     from canopy_kit.segment.verb import segment
     from canopy_kit.sim.truth import load_truth
@@ -105,39 +129,66 @@ def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
     out = []
     for method in methods:
         t0 = time.perf_counter()
-        seg = segment(cloud, bench_segmenter(method), driving_direction=direction,
-                      direction_source="trajectory")
+        seg = segment(
+            cloud,
+            bench_segmenter(method),
+            driving_direction=direction,
+            direction_source="trajectory",
+        )
         elapsed = time.perf_counter() - t0
         pl = seg.table().set_index("segment_id")[["row", "label"]]
-        pts = score_point_labels(seg.labels, cloud.fields["tree_id"], truth_labels=tl,
-                                 pred_labels=pl)
+        pts = score_point_labels(
+            seg.labels, cloud.fields["tree_id"], truth_labels=tl, pred_labels=pl
+        )
         fp = score_footprints(seg.footprints, footprints, truth_labels=tl, pred_labels=pl)
-        out.append({"method": method, "n_truth": pts.n_truth, "n_predicted": pts.n_predicted,
-                    "success_points": pts.success_rate, "success_footprints": fp.success_rate,
-                    "ceiling_points": ceiling.success_rate, "n_merged": pts.n_merged,
-                    "n_split": pts.n_split, "n_other": pts.n_other, "f1_points": pts.f1,
-                    "label_accuracy": pts.label_accuracy, "seconds": round(elapsed, 2),
-                    "warnings": " | ".join(seg.warnings)})
+        out.append(
+            {
+                "method": method,
+                "n_truth": pts.n_truth,
+                "n_predicted": pts.n_predicted,
+                "success_points": pts.success_rate,
+                "success_footprints": fp.success_rate,
+                "ceiling_points": ceiling.success_rate,
+                "n_merged": pts.n_merged,
+                "n_split": pts.n_split,
+                "n_other": pts.n_other,
+                "f1_points": pts.f1,
+                "label_accuracy": pts.label_accuracy,
+                "seconds": round(elapsed, 2),
+                "warnings": " | ".join(seg.warnings),
+            }
+        )
     return out
 
 
 def accuracy(args: argparse.Namespace) -> None:
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    overrides = {}
-    for item in args.set:
-        from canopy_kit.cli.common import parse_overrides
+    from canopy_kit.cli.common import parse_overrides
 
-        overrides = parse_overrides(args.set)
-        break
+    overrides = parse_overrides(args.set) if args.set else {}
     rows = []
     for orchard in args.orchards:
         for seed in args.seeds:
-            cloud, sim_dir, name = session_map(cache, orchard, args.rows, args.trees_per_row,
-                                               seed, overrides, args.sensor, args.tag)
+            cloud, sim_dir, name = session_map(
+                cache,
+                orchard,
+                args.rows,
+                args.trees_per_row,
+                seed,
+                overrides,
+                args.sensor,
+                args.tag,
+            )
             for r in score_session(cloud, sim_dir, args.methods):
-                r.update({"orchard": orchard, "seed": seed, "session": name,
-                          "variant": args.tag.strip("_") or "default"})
+                r.update(
+                    {
+                        "orchard": orchard,
+                        "seed": seed,
+                        "session": name,
+                        "variant": args.tag.strip("_") or "default",
+                    }
+                )
                 rows.append(r)
                 print(json.dumps(r), file=sys.stderr, flush=True)
     df = pd.DataFrame(rows)
@@ -145,8 +196,11 @@ def accuracy(args: argparse.Namespace) -> None:
         path = Path(args.csv)
         old = pd.read_csv(path) if path.exists() else pd.DataFrame()
         if len(old):
-            old = old[~old.set_index(["session", "method"]).index.isin(
-                df.set_index(["session", "method"]).index)]
+            old = old[
+                ~old.set_index(["session", "method"]).index.isin(
+                    df.set_index(["session", "method"]).index
+                )
+            ]
         pd.concat([old, df], ignore_index=True).to_csv(path, index=False, float_format="%.4f")
     from canopy_kit.paper.segmentation_results import success_table
 
@@ -200,8 +254,16 @@ def _measure(job: str, npz: str, queue) -> None:  # runs in a fresh process
     # CPU seconds (all threads): robust to other jobs on a shared machine, unlike wall time.
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     peak = _rss_mb("VmHWM")
-    queue.put({"seconds": seconds, "cpu_s": cpu, "peak_mb": peak, "base_mb": base,
-               "delta_mb": peak - base, "n_clusters": int(np.max(labels)) + 1})
+    queue.put(
+        {
+            "seconds": seconds,
+            "cpu_s": cpu,
+            "peak_mb": peak,
+            "base_mb": base,
+            "delta_mb": peak - base,
+            "n_clusters": int(np.max(labels)) + 1,
+        }
+    )
 
 
 def repeated_rows(cloud, sim_dir: Path, n_rows: int):
@@ -249,24 +311,46 @@ def speed(args: argparse.Namespace) -> None:
         prep = prepare(cloud, PreprocessConfig())
         t_prep = time.perf_counter() - t0
         npz = cache / f"{name}_canopy.npz"
-        np.savez(npz, xyz=prep.normalized(cloud, prep.seen_index), weight=prep.seen_weight,
-                 stems=prep.normalized(cloud, prep.stem_index))
+        np.savez(
+            npz,
+            xyz=prep.normalized(cloud, prep.seen_index),
+            weight=prep.seen_weight,
+            stems=prep.normalized(cloud, prep.stem_index),
+        )
         for job in args.jobs:
             q = ctx.Queue()
             proc = ctx.Process(target=_measure, args=(job, str(npz), q))
             proc.start()
             proc.join()
-            res = q.get() if proc.exitcode == 0 else {"seconds": np.nan, "cpu_s": np.nan,
-                                                       "peak_mb": np.nan, "delta_mb": np.nan,
-                                                       "n_clusters": -1}
-            res.update({"rows": n_rows, "job": job, "map_points": len(cloud),
-                        "canopy_voxels": len(prep.seen_index), "preprocess_s": t_prep})
+            res = (
+                q.get()
+                if proc.exitcode == 0
+                else {
+                    "seconds": np.nan,
+                    "cpu_s": np.nan,
+                    "peak_mb": np.nan,
+                    "delta_mb": np.nan,
+                    "n_clusters": -1,
+                }
+            )
+            res.update(
+                {
+                    "rows": n_rows,
+                    "job": job,
+                    "map_points": len(cloud),
+                    "canopy_voxels": len(prep.seen_index),
+                    "preprocess_s": t_prep,
+                }
+            )
             rows.append(res)
             print(json.dumps(res), file=sys.stderr, flush=True)
     df = pd.DataFrame(rows)
     table = df.pivot_table(index="rows", columns="job", values=["cpu_s", "seconds", "peak_mb"])
-    print(df[["rows", "map_points", "canopy_voxels", "preprocess_s"]].drop_duplicates()
-          .to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    print(
+        df[["rows", "map_points", "canopy_voxels", "preprocess_s"]]
+        .drop_duplicates()
+        .to_string(index=False, float_format=lambda v: f"{v:.1f}")
+    )
     print(table.to_string(float_format=lambda v: f"{v:.1f}"))
     if args.csv:
         df.to_csv(args.csv, index=False, float_format="%.3f")
@@ -285,8 +369,9 @@ def figures(args: argparse.Namespace) -> None:
 
     cache, out = Path(args.cache), Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    cloud, sim_dir, name = session_map(cache, args.orchard, args.rows, args.trees_per_row,
-                                       args.seed)
+    cloud, sim_dir, name = session_map(
+        cache, args.orchard, args.rows, args.trees_per_row, args.seed
+    )
     traj = load_truth(sim_dir).trajectory[["x", "y"]].to_numpy()
     direction = driving_direction_from_trajectory(traj)
     truth = np.asarray(cloud.fields["tree_id"])
@@ -325,9 +410,11 @@ def real(args: argparse.Namespace) -> None:
         sc = score_point_labels(seg.labels, truth)
         both = (truth >= 0) | (seg.labels >= 0)
         ari = adjusted_rand_score(truth[both], seg.labels[both])
-        print(f"| {method} | {seg.n_trees} | {sc.n_correct} of {sc.n_truth} | "
-              f"{100 * sc.success_rate:.1f} % | {100 * sc.precision:.1f} % | {sc.n_merged} | "
-              f"{ari:.3f} | {seconds:.0f} |")
+        print(
+            f"| {method} | {seg.n_trees} | {sc.n_correct} of {sc.n_truth} | "
+            f"{100 * sc.success_rate:.1f} % | {100 * sc.precision:.1f} % | {sc.n_merged} | "
+            f"{ari:.3f} | {seconds:.0f} |"
+        )
         for w in seg.warnings:
             print(f"  {method}: {w[:120]}", file=sys.stderr)
 
@@ -343,12 +430,16 @@ def table(args: argparse.Namespace) -> None:
     def pct(v: float) -> str:
         return "" if pd.isna(v) else f"{100 * v:.0f} %"
 
-    print("| orchard | method | seeds | trees | correct | success | per-session range | paper | target |")
+    print(
+        "| orchard | method | seeds | trees | correct | success | per-session range | paper | target |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in t.itertuples():
-        print(f"| {r.orchard} | {r.method} | {r.seeds} | {r.trees} | {r.correct} | "
-              f"**{100 * r.success:.1f} %** | {pct(r.min)}-{pct(r.max)} | {pct(r.paper)} | "
-              f"{'>= ' + pct(r.target) if not pd.isna(r.target) else ''} |")
+        print(
+            f"| {r.orchard} | {r.method} | {r.seeds} | {r.trees} | {r.correct} | "
+            f"**{100 * r.success:.1f} %** | {pct(r.min)}-{pct(r.max)} | {pct(r.paper)} | "
+            f"{'>= ' + pct(r.target) if not pd.isna(r.target) else ''} |"
+        )
 
 
 def main() -> None:
@@ -371,8 +462,9 @@ def main() -> None:
     sp.add_argument("--rows", nargs="+", type=int, default=[1, 2, 4, 10])
     sp.add_argument("--trees-per-row", type=int, default=8)
     sp.add_argument("--seed", type=int, default=7)
-    sp.add_argument("--jobs", nargs="+", default=["dbscan", "dbscan_spectral", "adaptive",
-                                                  "open3d", "sklearn"])
+    sp.add_argument(
+        "--jobs", nargs="+", default=["dbscan", "dbscan_spectral", "adaptive", "open3d", "sklearn"]
+    )
     sp.add_argument("--cache", default="out/bench_segment")
     sp.add_argument("--csv", default=None)
     sp.set_defaults(func=speed)
@@ -393,8 +485,11 @@ def main() -> None:
     tb.add_argument("--csv", default="canopy_kit/paper/data/segmentation_results.csv")
     tb.add_argument("--seeds", nargs="*", type=int, default=None)
     tb.add_argument("--variant", default="default")
-    tb.add_argument("--metric", default="success_points",
-                    choices=["success_points", "success_footprints", "ceiling_points"])
+    tb.add_argument(
+        "--metric",
+        default="success_points",
+        choices=["success_points", "success_footprints", "ceiling_points"],
+    )
     tb.set_defaults(func=table)
     args = parser.parse_args()
     args.func(args)

@@ -42,8 +42,9 @@ print(json.dumps({"seconds": elapsed, "cpu_s": cpu, "driving_s": s.trajectory.du
 
 
 def run(case: dict) -> dict:
-    out = subprocess.run([sys.executable, "-c", CHILD, json.dumps(case)], capture_output=True,
-                         text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, json.dumps(case)], capture_output=True, text=True, check=True
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -54,26 +55,38 @@ def main() -> None:
     sixty = {"orchard": {"rows": 1, "trees_per_row": 13}}  # two alleys and a U-turn
     cases = [
         ("one alley pair, 32 rings x 1024", {"orchard": "pistachio", "overrides": sixty}),
-        ("same, exact per-column poses (baseline)", {"orchard": "pistachio", "overrides": sixty,
-                                                     "exact_poses": True}),
+        (
+            "same, exact per-column poses (baseline)",
+            {"orchard": "pistachio", "overrides": sixty, "exact_poses": True},
+        ),
         ("2 rows x 10 trees", {"orchard": "pistachio", "overrides": {"orchard": {"rows": 2}}}),
     ]
     if not args.quick:
         cases += [
             ("6 rows x 10 trees", {"orchard": "pistachio", "overrides": {"orchard": {"rows": 6}}}),
-            ("10 rows x 10 trees", {"orchard": "pistachio", "overrides": {"orchard": {"rows": 10}}}),
+            (
+                "10 rows x 10 trees",
+                {"orchard": "pistachio", "overrides": {"orchard": {"rows": 10}}},
+            ),
         ]
     load = os.getloadavg()[0]
-    print(f"python {sys.version.split()[0]}, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
-          f"load average {load:.1f} at start (wall times stretch under load; CPU times less)")
-    print("| case | driving (s) | wall (s) | CPU (s) | real-time factor (wall) | points/s | scans | "
-          "peak RSS (MB) | bag (MB) |")
+    print(
+        f"python {sys.version.split()[0]}, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
+        f"load average {load:.1f} at start (wall times stretch under load; CPU times less)"
+    )
+    print(
+        "| case | driving (s) | wall (s) | CPU (s) | real-time factor (wall) | points/s | scans | "
+        "peak RSS (MB) | bag (MB) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for name, case in cases:
         r = run(case)
-        print(f"| {name} | {r['driving_s']:.0f} | {r['seconds']:.1f} | {r['cpu_s']:.1f} | "
-              f"{r['driving_s'] / r['seconds']:.2f}x | {r['points'] / r['seconds'] / 1e6:.2f} M | "
-              f"{r['scans']} | {r['peak_rss_mb']:.0f} | {r['bag_mb']:.0f} |", flush=True)
+        print(
+            f"| {name} | {r['driving_s']:.0f} | {r['seconds']:.1f} | {r['cpu_s']:.1f} | "
+            f"{r['driving_s'] / r['seconds']:.2f}x | {r['points'] / r['seconds'] / 1e6:.2f} M | "
+            f"{r['scans']} | {r['peak_rss_mb']:.0f} | {r['bag_mb']:.0f} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -35,8 +35,9 @@ def crown(n: int, seed: int, one_sided: bool) -> np.ndarray:
         pts = d * axes * rng.uniform(0, 1, (2 * n, 1)) ** 0.25 + [0, 0, 1.0 + axes[2]]
         if one_sided:
             normal = d / axes
-            sensor = np.column_stack([pts[:, 0], np.full(len(pts), -axes[1] - 2.0),
-                                      np.full(len(pts), 1.5)])
+            sensor = np.column_stack(
+                [pts[:, 0], np.full(len(pts), -axes[1] - 2.0), np.full(len(pts), 1.5)]
+            )
             pts = pts[((sensor - pts) * normal).sum(axis=1) > 0]
         out.append(pts + rng.normal(scale=0.02, size=pts.shape))
     return np.concatenate(out)[:n]
@@ -71,8 +72,10 @@ def main() -> None:
     parser.add_argument("--alpha", type=float, default=0.9)
     args = parser.parse_args()
 
-    estimators = {m: estimator(m, alpha=args.alpha) if m in ("alpha_shape", "alpha_hull")
-                  else estimator(m) for m in METHODS}
+    estimators = {
+        m: estimator(m, alpha=args.alpha) if m in ("alpha_shape", "alpha_hull") else estimator(m)
+        for m in METHODS
+    }
     rows = []
     for n in args.sizes:
         repeats = 3 if n <= 20_000 else 1
@@ -94,28 +97,53 @@ def main() -> None:
                 if v is not None:
                     agree_o3d.append(abs(values["alpha_shape"] / v - 1))
                 agree_fast.append(values["alpha_hull"] / values["alpha_shape"] - 1)
-        rows.append((n, {m: float(np.median(s)) for m, s in times.items()}, fails, 2 * args.trees,
-                     agree_o3d, agree_fast))
+        rows.append(
+            (
+                n,
+                {m: float(np.median(s)) for m, s in times.items()},
+                fails,
+                2 * args.trees,
+                agree_o3d,
+                agree_fast,
+            )
+        )
 
-    print(f"Volume estimators, alpha = {args.alpha} m, median seconds per tree over "
-          f"{args.trees} complete + {args.trees} one-sided synthetic crowns "
-          f"({platform.processor() or platform.machine()}, numpy {np.__version__})\n")
-    head = ["points", *METHODS, "open3d alpha", "open3d failures", "alpha_hull speed-up",
-            "alpha_shape speed-up"]
+    print(
+        f"Volume estimators, alpha = {args.alpha} m, median seconds per tree over "
+        f"{args.trees} complete + {args.trees} one-sided synthetic crowns "
+        f"({platform.processor() or platform.machine()}, numpy {np.__version__})\n"
+    )
+    head = [
+        "points",
+        *METHODS,
+        "open3d alpha",
+        "open3d failures",
+        "alpha_hull speed-up",
+        "alpha_shape speed-up",
+    ]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for n, med, fails, total, _, _ in rows:
         cells = [f"{n:,}"] + [f"{med[m]:.3f}" for m in METHODS] + [f"{med['open3d']:.3f}"]
-        cells += [f"{fails['open3d']}/{total}", f"{med['open3d'] / med['alpha_hull']:.0f}×",
-                  f"{med['open3d'] / med['alpha_shape']:.1f}×"]
+        cells += [
+            f"{fails['open3d']}/{total}",
+            f"{med['open3d'] / med['alpha_hull']:.0f}×",
+            f"{med['open3d'] / med['alpha_shape']:.1f}×",
+        ]
         print("| " + " | ".join(cells) + " |")
     print()
     for n, _, fails, total, agree_o3d, agree_fast in rows:
         ours = sum(fails[m] for m in METHODS)
-        o3d = (f"max |alpha_shape / open3d - 1| = {max(agree_o3d):.1e} on {len(agree_o3d)} "
-               f"watertight meshes" if agree_o3d else "open3d failed on every crown")
-        print(f"- {n:,} points: canopy-kit failures {ours}/{total * len(METHODS)}; {o3d}; "
-              f"alpha_hull / alpha_shape - 1 from {min(agree_fast):+.1%} to {max(agree_fast):+.1%}")
+        o3d = (
+            f"max |alpha_shape / open3d - 1| = {max(agree_o3d):.1e} on {len(agree_o3d)} "
+            f"watertight meshes"
+            if agree_o3d
+            else "open3d failed on every crown"
+        )
+        print(
+            f"- {n:,} points: canopy-kit failures {ours}/{total * len(METHODS)}; {o3d}; "
+            f"alpha_hull / alpha_shape - 1 from {min(agree_fast):+.1%} to {max(agree_fast):+.1%}"
+        )
 
 
 if __name__ == "__main__":

@@ -39,13 +39,20 @@ def session(cache: Path, orchard: str, rows: int, trees: int) -> Path:
 
     root = cache / f"{orchard}_{rows}x{trees}"
     if not (root / "map.npz").exists():
-        overrides = {"orchard": {"rows": rows, "trees_per_row": trees},
-                     "imu": {"enabled": False}, "gnss": {"enabled": False}}
+        overrides = {
+            "orchard": {"rows": rows, "trees_per_row": trees},
+            "imu": {"enabled": False},
+            "gnss": {"enabled": False},
+        }
         print(f"simulating {root} ...", file=sys.stderr, flush=True)
         simulate_session(root, load_sim_config(orchard, overrides), fmt="ros1", overwrite=True)
         cloud = truth_map(root, voxel_size=0.05)
-        np.savez(root / "map.npz", xyz=cloud.xyz, tree_id=cloud.fields["tree_id"],
-                 time=cloud.fields["time"])
+        np.savez(
+            root / "map.npz",
+            xyz=cloud.xyz,
+            tree_id=cloud.fields["tree_id"],
+            time=cloud.fields["time"],
+        )
     return root
 
 
@@ -70,8 +77,12 @@ def open3d_errors(trees: list) -> dict[str, float]:
             except RuntimeError:
                 failed += 1
     e = np.array(errs)
-    return {"failed": failed, "total": total, "mape": float(np.abs(e).mean()) if len(e) else np.nan,
-            "bias": float(e.mean()) if len(e) else np.nan}
+    return {
+        "failed": failed,
+        "total": total,
+        "mape": float(np.abs(e).mean()) if len(e) else np.nan,
+        "bias": float(e.mean()) if len(e) else np.nan,
+    }
 
 
 def main() -> None:
@@ -83,8 +94,10 @@ def main() -> None:
     parser.add_argument("--csv", type=Path, default=None, help="also write per-tree errors here")
     args = parser.parse_args()
 
-    print("Volume error against the simulator's exact crown volume (reference map from true "
-          "poses, trees cut by the simulator's tree_id, 0.1 m voxels)\n")
+    print(
+        "Volume error against the simulator's exact crown volume (reference map from true "
+        "poses, trees cut by the simulator's tree_id, 0.1 m voxels)\n"
+    )
     for orchard in args.orchards:
         start = time.perf_counter()
         root = session(args.cache, orchard, args.rows, args.trees_per_row)
@@ -92,12 +105,15 @@ def main() -> None:
         errors = volume_errors(trees, SPECS)
         if args.csv:
             errors.assign(orchard=orchard).to_csv(
-                args.csv.with_name(f"{args.csv.stem}_{orchard}{args.csv.suffix}"), index=False)
+                args.csv.with_name(f"{args.csv.stem}_{orchard}{args.csv.suffix}"), index=False
+            )
         table = error_table(errors)
         sizes = [len(t.complete) for t in trees]
-        print(f"### {orchard}: {len(trees)} trees, {min(sizes):,}-{max(sizes):,} points each "
-              f"(complete), true volumes {min(t.true_volume_m3 for t in trees):.1f}-"
-              f"{max(t.true_volume_m3 for t in trees):.1f} m³\n")
+        print(
+            f"### {orchard}: {len(trees)} trees, {min(sizes):,}-{max(sizes):,} points each "
+            f"(complete), true volumes {min(t.true_volume_m3 for t in trees):.1f}-"
+            f"{max(t.true_volume_m3 for t in trees):.1f} m³\n"
+        )
         print("| method | complete MAPE | complete bias | one-sided MAPE | one-sided bias |")
         print("|---|---|---|---|---|")
         for spec in SPECS:
@@ -108,16 +124,23 @@ def main() -> None:
                 cells += [f"{row.mape:.1%}{flag}", f"{row.bias:+.1%}"]
             print("| " + " | ".join(cells) + " |")
         o3d = open3d_errors(trees)
-        print(f"\nOpen3D alpha shape + get_volume (α = 0.9 m) on the same scans: failed on "
-              f"{o3d['failed']} of {o3d['total']}; where it worked, MAPE {o3d['mape']:.1%}, "
-              f"bias {o3d['bias']:+.1%}.")
+        print(
+            f"\nOpen3D alpha shape + get_volume (α = 0.9 m) on the same scans: failed on "
+            f"{o3d['failed']} of {o3d['total']}; where it worked, MAPE {o3d['mape']:.1%}, "
+            f"bias {o3d['bias']:+.1%}."
+        )
         seen = [len(t.sides[s]) / len(t.complete) for t in trees for s in t.sides]
-        far = [np.mean(((t.sides[s][:, :2] - t.trunk_xy) @ t.across_row) * sign < 0)
-               for t in trees for s, sign in (("left", 1), ("right", -1))]
-        print(f"\nOne-sided scans hold {min(seen):.0%}-{max(seen):.0%} (mean {np.mean(seen):.0%}) "
-              f"of a tree's points; {min(far):.0%}-{max(far):.0%} (mean {np.mean(far):.0%}) of "
-              f"them lie beyond the trunk plane, away from the sensor. "
-              f"({time.perf_counter() - start:.0f} s)\n")
+        far = [
+            np.mean(((t.sides[s][:, :2] - t.trunk_xy) @ t.across_row) * sign < 0)
+            for t in trees
+            for s, sign in (("left", 1), ("right", -1))
+        ]
+        print(
+            f"\nOne-sided scans hold {min(seen):.0%}-{max(seen):.0%} (mean {np.mean(seen):.0%}) "
+            f"of a tree's points; {min(far):.0%}-{max(far):.0%} (mean {np.mean(far):.0%}) of "
+            f"them lie beyond the trunk plane, away from the sensor. "
+            f"({time.perf_counter() - start:.0f} s)\n"
+        )
 
 
 if __name__ == "__main__":

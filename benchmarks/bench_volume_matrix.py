@@ -39,8 +39,7 @@ ESTIMATORS = ["convex_hull", "alpha_shape", "adaptive_alpha"]
 RECOMMENDED = "adaptive_alpha"  # the adaptive preset's [volume] recommended
 
 
-def session(cache: Path, sensor: str, form: str, seed: int,
-            orchard: dict | None = None) -> Path:
+def session(cache: Path, sensor: str, form: str, seed: int, orchard: dict | None = None) -> Path:
     """A simulated session (cached): 2 rows × 4 trees, no IMU/GNSS (true poses map it);
     ``orchard`` adds ``[orchard]`` settings (e.g. deeper lobes, a leaf depth)."""
     from canopy_kit.sim import load_sim_config, simulate_session
@@ -48,12 +47,16 @@ def session(cache: Path, sensor: str, form: str, seed: int,
     variant = "".join(f"_{k}={v}" for k, v in sorted((orchard or {}).items())).replace(" ", "")
     root = cache / f"{sensor}_{form}_s{seed}{variant}"
     if not (root / "truth").exists():
-        overrides = {"seed": seed, "orchard": {"rows": 2, "trees_per_row": 4, "crown_form": form,
-                                               **(orchard or {})},
-                     "imu": {"enabled": False}, "gnss": {"enabled": False}}
+        overrides = {
+            "seed": seed,
+            "orchard": {"rows": 2, "trees_per_row": 4, "crown_form": form, **(orchard or {})},
+            "imu": {"enabled": False},
+            "gnss": {"enabled": False},
+        }
         print(f"simulating {root.name} ...", file=sys.stderr, flush=True)
-        simulate_session(root, load_sim_config("pistachio", overrides, sensor=sensor), fmt="ros1",
-                         overwrite=True)
+        simulate_session(
+            root, load_sim_config("pistachio", overrides, sensor=sensor), fmt="ros1", overwrite=True
+        )
     return root
 
 
@@ -64,8 +67,12 @@ def evaluate_session(root: Path, sensor: str, form: str, seed: int) -> pd.DataFr
 
     t0 = time.perf_counter()
     errors, score = segmented_volume_errors(root, load_preset("adaptive"), ESTIMATORS)
-    print(f"  {root.name}: {score.n_correct}/{score.n_truth} trees segmented one-to-one, "
-          f"{time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    print(
+        f"  {root.name}: {score.n_correct}/{score.n_truth} trees segmented one-to-one, "
+        f"{time.perf_counter() - t0:.1f} s",
+        file=sys.stderr,
+        flush=True,
+    )
     errors = errors.assign(sensor=sensor, form=form, seed=seed)
     errors.attrs["segmented"] = (score.n_correct, score.n_truth)
     return errors
@@ -76,9 +83,16 @@ def summarise(errors: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     scan = np.where(errors["scan"] == "both", "both", "one-sided")
     df = errors.assign(scan=scan)
     est = df[df["method"] != "interval"].assign(abs_error=lambda d: d["error"].abs())
-    table = est.groupby([*by, "method"], sort=False).agg(
-        n=("error", "size"), bias=("error", "mean"), mape=("abs_error", "mean"),
-        p90=("abs_error", lambda a: float(np.quantile(a, 0.9)))).reset_index()
+    table = (
+        est.groupby([*by, "method"], sort=False)
+        .agg(
+            n=("error", "size"),
+            bias=("error", "mean"),
+            mape=("abs_error", "mean"),
+            p90=("abs_error", lambda a: float(np.quantile(a, 0.9))),
+        )
+        .reset_index()
+    )
     cover = df[df["method"] == "interval"].groupby(by, sort=False)["covered"].mean()
     table = table.join(cover.rename("interval_covers"), on=by)
     # the interval columns bound the preset's recommended estimator only
@@ -94,8 +108,18 @@ def write_summary(errors: pd.DataFrame, path: Path) -> None:
     table = pd.concat([overall, dense, summarise(errors, ["scan", "form"])], ignore_index=True)
     table["sensors"] = " ".join(sorted(errors["sensor"].unique()))
     table["seeds"] = " ".join(str(s) for s in sorted(errors["seed"].unique()))
-    columns = ["scan", "form", "method", "n", "bias", "mape", "p90", "interval_covers",
-               "sensors", "seeds"]
+    columns = [
+        "scan",
+        "form",
+        "method",
+        "n",
+        "bias",
+        "mape",
+        "p90",
+        "interval_covers",
+        "sensors",
+        "seeds",
+    ]
     path.parent.mkdir(parents=True, exist_ok=True)
     table[columns].to_csv(path, index=False, float_format="%.4f")
 
@@ -107,14 +131,27 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=HELD_OUT_SEEDS)
     parser.add_argument("--cache", type=Path, default=Path("out/bench_volume_matrix"))
     parser.add_argument("--csv", type=Path, default=None, help="write every tree's row here")
-    parser.add_argument("--summary", type=Path, default=None,
-                        help="write the per-scan and per-form summary the report quotes here "
-                             "(canopy_kit/volume/data/accuracy.csv)")
-    parser.add_argument("--orchard-set", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="[orchard] settings for harsher crowns, values as TOML, e.g. "
-                             "'lobe_hollow_range=[0.25, 0.35]' leaf_penetration_m=0.3")
-    parser.add_argument("--from-csv", type=Path, default=None,
-                        help="summarise the rows a previous run wrote with --csv (no simulation)")
+    parser.add_argument(
+        "--summary",
+        type=Path,
+        default=None,
+        help="write the per-scan and per-form summary the report quotes here "
+        "(canopy_kit/volume/data/accuracy.csv)",
+    )
+    parser.add_argument(
+        "--orchard-set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="[orchard] settings for harsher crowns, values as TOML, e.g. "
+        "'lobe_hollow_range=[0.25, 0.35]' leaf_penetration_m=0.3",
+    )
+    parser.add_argument(
+        "--from-csv",
+        type=Path,
+        default=None,
+        help="summarise the rows a previous run wrote with --csv (no simulation)",
+    )
     args = parser.parse_args()
     if args.from_csv:
         errors = pd.read_csv(args.from_csv)
@@ -129,8 +166,9 @@ def main() -> None:
     for sensor in args.sensors:
         for form in args.forms:
             for seed in args.seeds:
-                part = evaluate_session(session(args.cache, sensor, form, seed, orchard),
-                                        sensor, form, seed)
+                part = evaluate_session(
+                    session(args.cache, sensor, form, seed, orchard), sensor, form, seed
+                )
                 segmented = [a + b for a, b in zip(segmented, part.attrs["segmented"], strict=True)]
                 parts.append(part)
     errors = pd.concat(parts, ignore_index=True)
@@ -145,8 +183,12 @@ def _report(errors: pd.DataFrame, args: argparse.Namespace) -> None:
     if args.summary:
         write_summary(errors, args.summary)
     pd.set_option("display.width", 200)
-    pct = {"bias": "{:+.1%}".format, "mape": "{:.1%}".format, "p90": "{:.1%}".format,
-           "interval_covers": "{:.0%}".format}
+    pct = {
+        "bias": "{:+.1%}".format,
+        "mape": "{:.1%}".format,
+        "p90": "{:.1%}".format,
+        "interval_covers": "{:.0%}".format,
+    }
     for by in (["scan"], ["scan", "form"], ["scan", "sensor"]):
         print(f"\nby {' × '.join(by)}:")
         print(summarise(errors, by).to_string(index=False, formatters=pct))

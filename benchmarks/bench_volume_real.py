@@ -21,12 +21,15 @@ from canopy_kit.voxel import voxel_downsample
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument(
+        "--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data"
+    )
     args = parser.parse_args()
     methods = plugins.names("volumes")
 
-    print("TreeLS terrestrial scans (clipped to a 2.5 m column), 0.1 m voxels: volume m³ "
-          "(seconds)\n")
+    print(
+        "TreeLS terrestrial scans (clipped to a 2.5 m column), 0.1 m voxels: volume m³ (seconds)\n"
+    )
     print("| tree | points | height m | " + " | ".join(methods) + " |")
     print("|---|---|---|" + "---|" * len(methods))
     for name in ("pine", "spruce"):
@@ -35,8 +38,10 @@ def main() -> None:
         for m in methods:
             start = time.perf_counter()
             r = estimate_volume(xyz, m)
-            cells.append(f"{r.volume_m3:.1f} ({time.perf_counter() - start:.2f})"
-                         + ("" if r.valid else " invalid"))
+            cells.append(
+                f"{r.volume_m3:.1f} ({time.perf_counter() - start:.2f})"
+                + ("" if r.valid else " invalid")
+            )
         print("| " + " | ".join(cells) + " |")
 
     cloud = read_cloud(args.data / "lidr" / "MixedConifer.laz")
@@ -53,17 +58,21 @@ def main() -> None:
     ref = stats["hull_volume_3d_all_m3"].to_numpy()
     ours = np.array(vols["convex_hull"])
     both = ~np.isnan(ref) & ~np.isnan(ours)
-    print(f"\nlidR MixedConifer (airborne, {len(stats)} reference tree IDs, 1-350 points each): "
-          f"median volume per tree m³ and trees flagged invalid\n")
+    print(
+        f"\nlidR MixedConifer (airborne, {len(stats)} reference tree IDs, 1-350 points each): "
+        f"median volume per tree m³ and trees flagged invalid\n"
+    )
     print("| method | median m³ | invalid |")
     print("|---|---|---|")
     for m in methods:
         valid = np.array(vols[m])[~np.isnan(vols[m])]
         median = f"{np.median(valid):.1f}" if len(valid) else "–"
         print(f"| {m} | {median} | {invalid[m]} |")
-    print(f"\nconvex_hull vs the shipped table: max |difference| "
-          f"{np.max(np.abs(ours[both] - ref[both])):.4f} m³ on {both.sum()} trees; the table has "
-          f"no hull for {np.isnan(ref).sum()} trees, canopy-kit flags {np.isnan(ours).sum()}")
+    print(
+        f"\nconvex_hull vs the shipped table: max |difference| "
+        f"{np.max(np.abs(ours[both] - ref[both])):.4f} m³ on {both.sum()} trees; the table has "
+        f"no hull for {np.isnan(ref).sum()} trees, canopy-kit flags {np.isnan(ours).sum()}"
+    )
 
 
 if __name__ == "__main__":

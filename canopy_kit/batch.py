@@ -27,8 +27,19 @@ from canopy_kit.errors import CanopyKitError, ConfigError, InputError
 from canopy_kit.extras import needs_extra
 
 Progress = Callable[[str, float, float], None]
-SESSION_KEYS = {"id", "bag", "orchard", "date", "preset", "drone_images", "truth", "report",
-                "stream", "set", "rig"}
+SESSION_KEYS = {
+    "id",
+    "bag",
+    "orchard",
+    "date",
+    "preset",
+    "drone_images",
+    "truth",
+    "report",
+    "stream",
+    "set",
+    "rig",
+}
 # A session id names one folder under OUT/sessions/: a name, never a path.
 SESSION_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
@@ -85,11 +96,23 @@ class BatchReport:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data for ``batch.json`` (per-tree tables left out)."""
-        return {"out_dir": str(self.out_dir), "store": str(self.store) if self.store else None,
-                "scheduler": self.scheduler, "n_workers": self.n_workers, "wall_s": self.wall_s,
-                "sessions": {k: {**{f: v for f, v in asdict(o).items() if f != "trees"},
-                                 "date": o.date.isoformat()} for k, o in self.outcomes.items()},
-                "ingests": self.ingests, "failures": self.failures, "skipped": self.skipped}
+        return {
+            "out_dir": str(self.out_dir),
+            "store": str(self.store) if self.store else None,
+            "scheduler": self.scheduler,
+            "n_workers": self.n_workers,
+            "wall_s": self.wall_s,
+            "sessions": {
+                k: {
+                    **{f: v for f, v in asdict(o).items() if f != "trees"},
+                    "date": o.date.isoformat(),
+                }
+                for k, o in self.outcomes.items()
+            },
+            "ingests": self.ingests,
+            "failures": self.failures,
+            "skipped": self.skipped,
+        }
 
 
 # -- manifest -------------------------------------------------------------------------------
@@ -118,8 +141,10 @@ def load_manifest(path: str | Path, default_rig: str | Path | None = None) -> li
     if not entries:
         raise InputError(f"{path}: manifest lists no session")
     if default_rig is not None:
-        defaults.setdefault("rig", str(Path(default_rig).resolve()) if Path(default_rig).exists()
-                            else str(default_rig))
+        defaults.setdefault(
+            "rig",
+            str(Path(default_rig).resolve()) if Path(default_rig).exists() else str(default_rig),
+        )
     specs = [_spec(path, i, {**defaults, **entry}) for i, entry in enumerate(entries, 1)]
     check_distinct_folders(specs, str(path))
     return specs
@@ -131,7 +156,11 @@ def check_distinct_folders(specs: list[SessionSpec], where: str) -> None:
     for s in specs:
         folder = s.session_id.casefold()
         if folder in seen:
-            same = "appears twice" if seen[folder] == s.session_id else f"names the folder of {seen[folder]!r}"
+            same = (
+                "appears twice"
+                if seen[folder] == s.session_id
+                else f"names the folder of {seen[folder]!r}"
+            )
             raise ConfigError(f"{where}: session id {s.session_id!r} {same}")
         seen[folder] = s.session_id
 
@@ -143,17 +172,20 @@ def _csv_entries(path: Path) -> list[dict[str, str]]:
     try:
         text = raw.decode(encoding)
     except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise InputError(f"{path}: not {encoding.split('-sig')[0].upper()} text (line {line}, byte "
-                         f"{exc.start}: {raw[exc.start:exc.start + 1]!r}); save the manifest as UTF-8"
-                         ) from None
+        line = raw[: exc.start].count(b"\n") + 1
+        raise InputError(
+            f"{path}: not {encoding.split('-sig')[0].upper()} text (line {line}, byte "
+            f"{exc.start}: {raw[exc.start : exc.start + 1]!r}); save the manifest as UTF-8"
+        ) from None
     reader = csv.DictReader(io.StringIO(text, newline=""))
     entries = []
     for number, row in enumerate(reader, 1):
         if None in row:  # more cells than the header has columns
-            raise ConfigError(f"{path}: session {number} (line {reader.line_num}) has "
-                              f"{len(reader.fieldnames or []) + len(row[None])} cells, the header "
-                              f"{len(reader.fieldnames or [])} columns ({', '.join(reader.fieldnames or [])})")
+            raise ConfigError(
+                f"{path}: session {number} (line {reader.line_num}) has "
+                f"{len(reader.fieldnames or []) + len(row[None])} cells, the header "
+                f"{len(reader.fieldnames or [])} columns ({', '.join(reader.fieldnames or [])})"
+            )
         entries.append({k.strip(): v for k, v in row.items() if v not in (None, "")})
     return entries
 
@@ -164,8 +196,10 @@ def check_session_id(session_id: str, where: str) -> str:
     Letters, digits, ``.``, ``_`` and ``-``, starting with a letter or digit: no separator,
     no ``..``, nothing absolute, no control character, so no manifest writes outside --out."""
     if not SESSION_ID.fullmatch(session_id):
-        raise ConfigError(f"{where}: session id {session_id!r} cannot name a folder: use letters, "
-                          "digits, '.', '_' and '-', starting with a letter or digit (at most 128)")
+        raise ConfigError(
+            f"{where}: session id {session_id!r} cannot name a folder: use letters, "
+            "digits, '.', '_' and '-', starting with a letter or digit (at most 128)"
+        )
     return session_id
 
 
@@ -190,7 +224,9 @@ def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
     where = f"{path}: session {number}"
     unknown = sorted(set(entry) - SESSION_KEYS)
     if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(sorted(SESSION_KEYS))})")
+        raise ConfigError(
+            f"{where}: unknown key {unknown[0]!r} (known: {', '.join(sorted(SESSION_KEYS))})"
+        )
     for key in ("bag", "date", "orchard"):
         if key not in entry:
             raise ConfigError(f"{where}: no {key!r}")
@@ -219,15 +255,28 @@ def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
         from canopy_kit.rig import rig_overrides, rig_preset_names
 
         rig = str(entry["rig"])
-        overrides = merge(overrides, rig_overrides(rig if rig in rig_preset_names() else resolve(rig)))
+        overrides = merge(
+            overrides, rig_overrides(rig if rig in rig_preset_names() else resolve(rig))
+        )
 
     orchard = str(entry["orchard"])
-    session_id = check_session_id(str(entry["id"]), where) if "id" in entry else default_session_id(orchard, date)
-    return SessionSpec(session_id, resolve(entry["bag"]),
-                       orchard, date, str(entry.get("preset", "adaptive")), overrides,
-                       resolve(entry.get("drone_images")), resolve(entry.get("truth")),
-                       _flag(entry.get("report", True), where, "report"),
-                       _flag(entry.get("stream", False), where, "stream"))
+    session_id = (
+        check_session_id(str(entry["id"]), where)
+        if "id" in entry
+        else default_session_id(orchard, date)
+    )
+    return SessionSpec(
+        session_id,
+        resolve(entry["bag"]),
+        orchard,
+        date,
+        str(entry.get("preset", "adaptive")),
+        overrides,
+        resolve(entry.get("drone_images")),
+        resolve(entry.get("truth")),
+        _flag(entry.get("report", True), where, "report"),
+        _flag(entry.get("stream", False), where, "stream"),
+    )
 
 
 def _parse_set(text: str, where: str) -> dict[str, Any]:
@@ -271,8 +320,9 @@ def _flag(value: Any, where: str, name: str) -> bool:
 
 
 # -- one session (runs on a worker) ---------------------------------------------------------
-def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1,
-                    token: str = "") -> SessionOutcome:
+def process_session(
+    spec: SessionSpec, out_root: str, mapping_threads: int = 1, token: str = ""
+) -> SessionOutcome:
     """Run one session's pipeline; bad input is returned as a failed outcome (not retried),
     naming the stage. ``token`` (one per batch) marks the session's trail on disk
     (:mod:`canopy_kit.session_log`): a session whose worker crashed is not run again."""
@@ -286,9 +336,16 @@ def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1,
     worker = f"{socket.gethostname()}:{os.getpid()}"
     earlier = read_trail(out, token) if token else None
     if earlier is not None and earlier["signal"]:
-        return SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(out),
-                              error=f"WorkerCrash: {spec.bag}: {crash_message(earlier)}; not run again "
-                              "(the same input crashes the same code)", worker=worker)
+        return SessionOutcome(
+            spec.session_id,
+            spec.orchard,
+            spec.date,
+            False,
+            str(out),
+            error=f"WorkerCrash: {spec.bag}: {crash_message(earlier)}; not run again "
+            "(the same input crashes the same code)",
+            worker=worker,
+        )
     trail = SessionTrail(out, token or "-", own_process=own_worker_process())
     try:
         with trail:
@@ -300,14 +357,33 @@ def process_session(spec: SessionSpec, out_root: str, mapping_threads: int = 1,
     except CanopyKitError as exc:
         message = str(exc) if str(spec.bag) in str(exc) else f"{spec.bag}: {exc}"
         stage = f" in stage {trail.stage!r}" if trail.stage else ""
-        return SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(out),
-                              error=f"{type(exc).__name__}{stage}: {message}",
-                              wall_s=time.perf_counter() - wall, worker=worker)
+        return SessionOutcome(
+            spec.session_id,
+            spec.orchard,
+            spec.date,
+            False,
+            str(out),
+            error=f"{type(exc).__name__}{stage}: {message}",
+            wall_s=time.perf_counter() - wall,
+            worker=worker,
+        )
     m = results.metrics
-    summary = {"n_trees": m.get("n_trees"), "warnings": m.get("warnings", []),
-               "mode": "stream" if spec.stream else "batch"}
-    return SessionOutcome(spec.session_id, spec.orchard, spec.date, True, str(out), results.trees,
-                          summary=summary, wall_s=time.perf_counter() - wall, worker=worker)
+    summary = {
+        "n_trees": m.get("n_trees"),
+        "warnings": m.get("warnings", []),
+        "mode": "stream" if spec.stream else "batch",
+    }
+    return SessionOutcome(
+        spec.session_id,
+        spec.orchard,
+        spec.date,
+        True,
+        str(out),
+        results.trees,
+        summary=summary,
+        wall_s=time.perf_counter() - wall,
+        worker=worker,
+    )
 
 
 def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | None = None) -> Any:
@@ -318,14 +394,24 @@ def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | Non
 
         return run_stream(config, spec.bag, out, progress=progress, orchard=spec.orchard)
     if spec.report:
-        return pipeline.run(config, spec.bag, out, drone_images=spec.drone_images, truth=spec.truth,
-                            progress=progress, orchard=spec.orchard)
+        return pipeline.run(
+            config,
+            spec.bag,
+            out,
+            drone_images=spec.drone_images,
+            truth=spec.truth,
+            progress=progress,
+            orchard=spec.orchard,
+        )
     from canopy_kit.provenance import provenance
 
     started, t0 = time.time(), time.perf_counter()
-    ctx, cache = pipeline.compute(config, spec.bag, out, spec.drone_images, spec.truth, progress=progress)
-    prov = provenance(spec.bag, config.name, started, time.perf_counter() - t0, spec.orchard,
-                      spec.drone_images)
+    ctx, cache = pipeline.compute(
+        config, spec.bag, out, spec.drone_images, spec.truth, progress=progress
+    )
+    prov = provenance(
+        spec.bag, config.name, started, time.perf_counter() - t0, spec.orchard, spec.drone_images
+    )
     return _write_tables(ctx, cache, out, prov)
 
 
@@ -341,16 +427,25 @@ def _write_tables(ctx: Any, cache: Any, out: Path, prov: dict[str, Any] | None =
     # segmentation.json and crowns among them: `canopy-kit evaluate` scores the session by footprints
     files = write_tree_tables(ctx, ctx.table, out, prov)
     files["metrics.json"] = atomic_write_text(
-        out / "metrics.json", json.dumps(metrics, indent=2, default=str) + "\n")
+        out / "metrics.json", json.dumps(metrics, indent=2, default=str) + "\n"
+    )
     return Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])))
 
 
 # -- the batch ------------------------------------------------------------------------------
-def run_batch(sessions: list[SessionSpec], out: str | Path, scheduler: str | None = None,
-              n_workers: int | None = None, retries: int = 2, store: str | Path | None = None,
-              match: Any = None, mapping_threads: int = 1, skip_stored: bool = True,
-              progress: Progress | None = None,
-              on_session: Callable[[SessionOutcome], None] | None = None) -> BatchReport:
+def run_batch(
+    sessions: list[SessionSpec],
+    out: str | Path,
+    scheduler: str | None = None,
+    n_workers: int | None = None,
+    retries: int = 2,
+    store: str | Path | None = None,
+    match: Any = None,
+    mapping_threads: int = 1,
+    skip_stored: bool = True,
+    progress: Progress | None = None,
+    on_session: Callable[[SessionOutcome], None] | None = None,
+) -> BatchReport:
     """Process ``sessions`` on Dask (one task each) and store them; see the module docstring.
 
     ``scheduler`` is the address of a running Dask scheduler (``tcp://host:8786``); without
@@ -368,8 +463,11 @@ def run_batch(sessions: list[SessionSpec], out: str | Path, scheduler: str | Non
     store_path = out / "orchard.duckdb" if store is None else (Path(store) if store else None)
     db = OrchardStore(store_path) if store_path is not None else None
     wall = time.perf_counter()
-    skipped = [s.session_id for s in sessions if db is not None and skip_stored
-               and db.has_session(s.session_id)]
+    skipped = [
+        s.session_id
+        for s in sessions
+        if db is not None and skip_stored and db.has_session(s.session_id)
+    ]
     todo = [s for s in sessions if s.session_id not in skipped]
     outcomes: dict[str, SessionOutcome] = {}
     ingests: dict[str, dict[str, Any]] = {}
@@ -380,20 +478,42 @@ def run_batch(sessions: list[SessionSpec], out: str | Path, scheduler: str | Non
         n_live = len(client.scheduler_info().get("workers", {}))
         report("sessions", 0, len(todo))
         if todo:
-            _collect(client, todo, out, retries, mapping_threads, outcomes, failures, report,
-                     on_session, lambda: _ingest_ready(db, order, outcomes, ingests, failures,
-                                                       match or MatchSettings()))
+            _collect(
+                client,
+                todo,
+                out,
+                retries,
+                mapping_threads,
+                outcomes,
+                failures,
+                report,
+                on_session,
+                lambda: _ingest_ready(
+                    db, order, outcomes, ingests, failures, match or MatchSettings()
+                ),
+            )
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
         if db is not None:
             db.close()
-    result = BatchReport(out, store_path, outcomes, ingests, failures, skipped,
-                         time.perf_counter() - wall, n_live, scheduler or "LocalCluster")
+    result = BatchReport(
+        out,
+        store_path,
+        outcomes,
+        ingests,
+        failures,
+        skipped,
+        time.perf_counter() - wall,
+        n_live,
+        scheduler or "LocalCluster",
+    )
     from canopy_kit.io.atomic import atomic_write_text
 
-    atomic_write_text(out / "batch.json", json.dumps(result.to_dict(), indent=2, default=str) + "\n")
+    atomic_write_text(
+        out / "batch.json", json.dumps(result.to_dict(), indent=2, default=str) + "\n"
+    )
     return result
 
 
@@ -407,24 +527,50 @@ def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
         try:
             return Client(scheduler, timeout="20s"), None
         except (OSError, TimeoutError) as exc:
-            raise InputError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
-    cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+            raise InputError(
+                f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})"
+            ) from None
+    cluster = LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        silence_logs=logging.ERROR,
+    )
     return Client(cluster), cluster
 
 
-def _collect(client: Any, todo: list[SessionSpec], out: Path, retries: int, mapping_threads: int,
-             outcomes: dict[str, SessionOutcome], failures: dict[str, str], report: Progress,
-             on_session: Callable[[SessionOutcome], None] | None, ingest: Callable[[], None]) -> None:
+def _collect(
+    client: Any,
+    todo: list[SessionSpec],
+    out: Path,
+    retries: int,
+    mapping_threads: int,
+    outcomes: dict[str, SessionOutcome],
+    failures: dict[str, str],
+    report: Progress,
+    on_session: Callable[[SessionOutcome], None] | None,
+    ingest: Callable[[], None],
+) -> None:
     with needs_extra("batch"):
         from distributed import as_completed
 
     from canopy_kit.session_log import crash_message, read_trail
 
     token = f"{os.getpid()}-{time.time_ns()}"  # marks this batch's session trails
-    futures = {client.submit(process_session, spec, str(out.resolve()), mapping_threads, token,
-                             key=f"canopy-kit-session-{spec.session_id}-{time.time_ns()}",
-                             retries=retries, pure=False): spec for spec in todo}
+    futures = {
+        client.submit(
+            process_session,
+            spec,
+            str(out.resolve()),
+            mapping_threads,
+            token,
+            key=f"canopy-kit-session-{spec.session_id}-{time.time_ns()}",
+            retries=retries,
+            pure=False,
+        ): spec
+        for spec in todo
+    }
     for n, future in enumerate(as_completed(futures), 1):
         spec = futures[future]
         try:
@@ -432,8 +578,14 @@ def _collect(client: Any, todo: list[SessionSpec], out: Path, retries: int, mapp
         except Exception as exc:  # the task itself died: a lost worker, memory, a bug
             folder = session_folder(out, spec.session_id)
             why = crash_message(read_trail(folder, token))
-            outcome = SessionOutcome(spec.session_id, spec.orchard, spec.date, False, str(folder),
-                                     error=f"{type(exc).__name__}: {spec.bag}: {why} ({exc})")
+            outcome = SessionOutcome(
+                spec.session_id,
+                spec.orchard,
+                spec.date,
+                False,
+                str(folder),
+                error=f"{type(exc).__name__}: {spec.bag}: {why} ({exc})",
+            )
         outcomes[spec.session_id] = outcome
         if not outcome.ok:
             failures[spec.session_id] = outcome.error or "failed"
@@ -450,8 +602,14 @@ def _ingest_order(todo: list[SessionSpec]) -> dict[str, list[SessionSpec]]:
     return order
 
 
-def _ingest_ready(db: Any, order: dict[str, list[SessionSpec]], outcomes: dict[str, SessionOutcome],
-                  ingests: dict[str, dict[str, Any]], failures: dict[str, str], match: Any) -> None:
+def _ingest_ready(
+    db: Any,
+    order: dict[str, list[SessionSpec]],
+    outcomes: dict[str, SessionOutcome],
+    ingests: dict[str, dict[str, Any]],
+    failures: dict[str, str],
+    match: Any,
+) -> None:
     """Store every finished session whose orchard's earlier sessions are all settled."""
     from canopy_kit.store import SessionRecord
 
@@ -463,8 +621,15 @@ def _ingest_ready(db: Any, order: dict[str, list[SessionSpec]], outcomes: dict[s
             outcome = outcomes[spec.session_id]
             if not outcome.ok or outcome.trees is None:
                 continue
-            record = SessionRecord(spec.session_id, spec.orchard, spec.date, str(spec.bag),
-                                   spec.preset, outcome.out_dir, outcome.summary)
+            record = SessionRecord(
+                spec.session_id,
+                spec.orchard,
+                spec.date,
+                str(spec.bag),
+                spec.preset,
+                outcome.out_dir,
+                outcome.summary,
+            )
             try:
                 ingests[spec.session_id] = db.ingest(record, outcome.trees, match).summary()
             except CanopyKitError as exc:

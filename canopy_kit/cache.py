@@ -29,8 +29,12 @@ def fingerprint(path: str | Path) -> dict[str, Any]:
     p = Path(path).resolve()
     if p.is_dir():
         files = sorted(f for f in p.rglob("*") if f.is_file())
-        return {"path": str(p), "files": [(str(f.relative_to(p)), f.stat().st_size,
-                                           f.stat().st_mtime_ns) for f in files]}
+        return {
+            "path": str(p),
+            "files": [
+                (str(f.relative_to(p)), f.stat().st_size, f.stat().st_mtime_ns) for f in files
+            ],
+        }
     st = p.stat()
     return {"path": str(p), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 

@@ -41,7 +41,9 @@ class Check:
         elif isinstance(self.status, bool | np.bool_):
             self.status = "pass" if self.status else "fail"
         elif self.status not in STATUSES:
-            raise ValueError(f"check {self.name!r}: status {self.status!r} is not one of {STATUSES}")
+            raise ValueError(
+                f"check {self.name!r}: status {self.status!r} is not one of {STATUSES}"
+            )
 
     def as_dict(self) -> dict[str, str]:
         """Plain data for metrics.json."""
@@ -78,13 +80,17 @@ def _share(n: int, total: int) -> float:
     return n / total if total else 0.0
 
 
-def _thresholds(warn: float, fail: float, unit: str = "", digits: int = 2, below: bool = False) -> str:
+def _thresholds(
+    warn: float, fail: float, unit: str = "", digits: int = 2, below: bool = False
+) -> str:
     sign = "<" if below else ">"
     return f"warn {sign} {warn:.{digits}f}{unit}, fail {sign} {fail:.{digits}f}{unit}"
 
 
 # -- without truth --------------------------------------------------------------------------
-def crown_spacing_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) -> list[Check]:
+def crown_spacing_checks(
+    trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig
+) -> list[Check]:
     """Crowns far wider than the spacing of the trees along the row or of the rows: merged."""
     out = []
     if "crown_diameter_m" not in trees or not len(trees):
@@ -93,9 +99,14 @@ def crown_spacing_checks(trees: pd.DataFrame, layout: dict[str, Any], st: Checks
     if not np.isfinite(diameter).any():
         return out
     for key, what, warn, fail in (
-            ("tree_spacing_m", "tree spacing along the row", st.crown_tree_spacing_warn,
-             st.crown_tree_spacing_fail),
-            ("row_spacing_m", "row spacing", st.crown_row_spacing_warn, st.crown_row_spacing_fail)):
+        (
+            "tree_spacing_m",
+            "tree spacing along the row",
+            st.crown_tree_spacing_warn,
+            st.crown_tree_spacing_fail,
+        ),
+        ("row_spacing_m", "row spacing", st.crown_row_spacing_warn, st.crown_row_spacing_fail),
+    ):
         spacing = layout.get(key)
         if spacing is None or not np.isfinite(spacing) or spacing <= 0:
             continue
@@ -107,8 +118,15 @@ def crown_spacing_checks(trees: pd.DataFrame, layout: dict[str, Any], st: Checks
         wide = ratio > warn
         if wide.any():
             note += f"; wider than {warn:g}x: {_names(trees, wide)} (merged trees?)"
-        out.append(Check(f"widest crown over the {what}", status, f"{worst:.2f}x",
-                         _thresholds(warn, fail, "x"), note))
+        out.append(
+            Check(
+                f"widest crown over the {what}",
+                status,
+                f"{worst:.2f}x",
+                _thresholds(warn, fail, "x"),
+                note,
+            )
+        )
     return out
 
 
@@ -118,14 +136,26 @@ def trunk_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) 
         return []
     n = trees["n_trunks"].to_numpy(int)
     worst = int(n.max()) if len(n) else 0
-    status: Status = ("fail" if worst >= st.trunks_per_segment_fail
-                      else "warn" if worst >= st.trunks_per_segment_warn else "pass")
+    status: Status = (
+        "fail"
+        if worst >= st.trunks_per_segment_fail
+        else "warn"
+        if worst >= st.trunks_per_segment_warn
+        else "pass"
+    )
     many = n >= st.trunks_per_segment_warn
     note = f"{layout['trunks']} trunks found in the stem band, {int((n > 0).sum())} trees stand on one or more"
     if many.any():
         note += f"; on {st.trunks_per_segment_warn} or more: {_names(trees, many)}"
-    return [Check("most trunks under one segmented tree", status, str(worst),
-                  f"warn ≥ {st.trunks_per_segment_warn}, fail ≥ {st.trunks_per_segment_fail}", note)]
+    return [
+        Check(
+            "most trunks under one segmented tree",
+            status,
+            str(worst),
+            f"warn ≥ {st.trunks_per_segment_warn}, fail ≥ {st.trunks_per_segment_fail}",
+            note,
+        )
+    ]
 
 
 def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
@@ -135,17 +165,35 @@ def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     n = len(trees)
     out = [Check("trees segmented", n > 0, str(n), "fail < 1")]
     for column, name, warn, fail in (
-            ("volume_flags", "volumes flagged as unreliable", st.flagged_volume_share_warn,
-             st.flagged_volume_share_fail),
-            ("segment_flags", ("crowns unlike the others of their row (below 0.5x or above 1.6x "
-                               "the median diameter: fragments or merged trees?)"), st.crown_outlier_share_warn,
-             st.crown_outlier_share_fail)):
+        (
+            "volume_flags",
+            "volumes flagged as unreliable",
+            st.flagged_volume_share_warn,
+            st.flagged_volume_share_fail,
+        ),
+        (
+            "segment_flags",
+            (
+                "crowns unlike the others of their row (below 0.5x or above 1.6x "
+                "the median diameter: fragments or merged trees?)"
+            ),
+            st.crown_outlier_share_warn,
+            st.crown_outlier_share_fail,
+        ),
+    ):
         if column not in trees:
             continue
         odd = flagged(trees, column).to_numpy()
         share = _share(int(odd.sum()), n)
-        out.append(Check(name, grade(share, warn, fail), f"{int(odd.sum())} ({100 * share:.0f} %)",
-                         _thresholds(100 * warn, 100 * fail, " %", 0), _names(trees, odd, 12)))
+        out.append(
+            Check(
+                name,
+                grade(share, warn, fail),
+                f"{int(odd.sum())} ({100 * share:.0f} %)",
+                _thresholds(100 * warn, 100 * fail, " %", 0),
+                _names(trees, odd, 12),
+            )
+        )
     return out
 
 
@@ -157,28 +205,52 @@ def map_checks(mapping: dict[str, Any], st: ChecksConfig) -> list[Check]:
     if registered:
         rejected = int(mapping.get("registrations_rejected", 0))
         share = _share(rejected, int(registered) + rejected)
-        out.append(Check("ICP registrations rejected (correction too large)",
-                         grade(share, st.rejected_registrations_share_warn,
-                               st.rejected_registrations_share_fail),
-                         f"{rejected} of {int(registered) + rejected} ({100 * share:.1f} %)",
-                         _thresholds(100 * st.rejected_registrations_share_warn,
-                                     100 * st.rejected_registrations_share_fail, " %", 0)))
+        out.append(
+            Check(
+                "ICP registrations rejected (correction too large)",
+                grade(
+                    share,
+                    st.rejected_registrations_share_warn,
+                    st.rejected_registrations_share_fail,
+                ),
+                f"{rejected} of {int(registered) + rejected} ({100 * share:.1f} %)",
+                _thresholds(
+                    100 * st.rejected_registrations_share_warn,
+                    100 * st.rejected_registrations_share_fail,
+                    " %",
+                    0,
+                ),
+            )
+        )
     gnss = mapping.get("gnss") or {}
     if "rejected_share" in gnss:
         share = float(gnss["rejected_share"])
-        out.append(Check("GNSS fixes rejected", grade(share, st.gnss_rejected_share_warn,
-                                                      st.gnss_rejected_share_fail),
-                         f"{100 * share:.1f} %", _thresholds(100 * st.gnss_rejected_share_warn,
-                                                             100 * st.gnss_rejected_share_fail, " %", 0)))
+        out.append(
+            Check(
+                "GNSS fixes rejected",
+                grade(share, st.gnss_rejected_share_warn, st.gnss_rejected_share_fail),
+                f"{100 * share:.1f} %",
+                _thresholds(
+                    100 * st.gnss_rejected_share_warn, 100 * st.gnss_rejected_share_fail, " %", 0
+                ),
+            )
+        )
     if "bias_rms_m" in gnss and np.isfinite(gnss["bias_rms_m"]):
         bias = float(gnss["bias_rms_m"])
-        out.append(Check("GNSS bias absorbed by the pose graph (RMS)",
-                         grade(bias, st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m),
-                         format_value(bias, " m"), _thresholds(st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m, " m", 1),
-                         f"{gnss.get('mode_changes', 0)} receiver mode changes"))
+        out.append(
+            Check(
+                "GNSS bias absorbed by the pose graph (RMS)",
+                grade(bias, st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m),
+                format_value(bias, " m"),
+                _thresholds(st.gnss_bias_rms_warn_m, st.gnss_bias_rms_fail_m, " m", 1),
+                f"{gnss.get('mode_changes', 0)} receiver mode changes",
+            )
+        )
     flags = list(mapping.get("quality_flags", []))
     if flags:
-        out.append(Check("map quality flags", "warn", str(len(flags)), "warn ≥ 1", ", ".join(flags)))
+        out.append(
+            Check("map quality flags", "warn", str(len(flags)), "warn ≥ 1", ", ".join(flags))
+        )
     rig = imu_mount_check(mapping)
     if rig is not None:
         out.append(rig)
@@ -192,9 +264,13 @@ def imu_mount_check(mapping: dict[str, Any]) -> Check | None:
         return None
     angle = float(ext["difference_deg"])
     tolerance_deg = float(ext.get("tolerance_deg", 2.0))
-    return Check("IMU mount agrees with the drive (gyro vs LiDAR rotations)", angle <= tolerance_deg,
-                 f"{angle:.2f}°", f"fail > {tolerance_deg:g}°",
-                 f"mount from {mapping.get('rig', {}).get('sources', {}).get('imu', '?')}")
+    return Check(
+        "IMU mount agrees with the drive (gyro vs LiDAR rotations)",
+        angle <= tolerance_deg,
+        f"{angle:.2f}°",
+        f"fail > {tolerance_deg:g}°",
+        f"mount from {mapping.get('rig', {}).get('sources', {}).get('imu', '?')}",
+    )
 
 
 def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
@@ -214,30 +290,66 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
     n = len(trees)
     matched = int(aerial.get("matched_trees", 0))
     compared = int(aerial.get("compared_trees", matched))
-    out = [Check("LiDAR trees matched to an aerial crown",
-                 grade(_share(matched, n), st.aerial_matched_share_warn, st.aerial_matched_share_fail,
-                       lower_is_worse=True), f"{matched}/{n}",
-                 _thresholds(100 * st.aerial_matched_share_warn, 100 * st.aerial_matched_share_fail,
-                             " %", 0, below=True)),
-           Check("matched aerial crowns of plausible size",
-                 grade(_share(compared, matched) if matched else float("nan"),
-                       st.aerial_matched_share_warn, st.aerial_matched_share_fail, lower_is_worse=True),
-                 f"{compared}/{matched}",
-                 _thresholds(100 * st.aerial_matched_share_warn, 100 * st.aerial_matched_share_fail,
-                             " %", 0, below=True),
-                 "others are fragments or merged neighbours: flagged in the table, left out of the "
-                 "comparison" if compared < matched else "")]
+    out = [
+        Check(
+            "LiDAR trees matched to an aerial crown",
+            grade(
+                _share(matched, n),
+                st.aerial_matched_share_warn,
+                st.aerial_matched_share_fail,
+                lower_is_worse=True,
+            ),
+            f"{matched}/{n}",
+            _thresholds(
+                100 * st.aerial_matched_share_warn,
+                100 * st.aerial_matched_share_fail,
+                " %",
+                0,
+                below=True,
+            ),
+        ),
+        Check(
+            "matched aerial crowns of plausible size",
+            grade(
+                _share(compared, matched) if matched else float("nan"),
+                st.aerial_matched_share_warn,
+                st.aerial_matched_share_fail,
+                lower_is_worse=True,
+            ),
+            f"{compared}/{matched}",
+            _thresholds(
+                100 * st.aerial_matched_share_warn,
+                100 * st.aerial_matched_share_fail,
+                " %",
+                0,
+                below=True,
+            ),
+            "others are fragments or merged neighbours: flagged in the table, left out of the "
+            "comparison"
+            if compared < matched
+            else "",
+        ),
+    ]
     if ALPHA_COLUMN not in trees or "aerial_sphere_volume_m3" not in trees:
         return out
     usable = comparable_aerial_sphere(trees).notna() & trees[ALPHA_COLUMN].notna()
-    for column, model in (("aerial_ellipsoid_volume_m3", "height-aware ellipsoid"),
-                          ("aerial_sphere_volume_m3", "paper's sphere")):
+    for column, model in (
+        ("aerial_ellipsoid_volume_m3", "height-aware ellipsoid"),
+        ("aerial_sphere_volume_m3", "paper's sphere"),
+    ):
         if column not in trees:
             continue
         ok = usable & trees[column].notna()
         if ok.sum() < 2:
-            out.append(Check(f"alpha shape vs aerial {model} volume (MAPE)", "info", "n/a",
-                             "", f"{int(ok.sum())} trees comparable"))
+            out.append(
+                Check(
+                    f"alpha shape vs aerial {model} volume (MAPE)",
+                    "info",
+                    "n/a",
+                    "",
+                    f"{int(ok.sum())} trees comparable",
+                )
+            )
             continue
         lidar, drone = trees.loc[ok, ALPHA_COLUMN].to_numpy(), trees.loc[ok, column].to_numpy()
         mape = stats.mape(lidar, drone)
@@ -251,8 +363,15 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
             else:
                 status = "warn" if status == "fail" else status
                 note += "; the sphere itself is biased +28 % to +85 %: warns at most"
-        out.append(Check(f"alpha shape vs aerial {model} volume (MAPE)", status,
-                         format_value(mape, " %", 1), threshold, note))
+        out.append(
+            Check(
+                f"alpha shape vs aerial {model} volume (MAPE)",
+                status,
+                format_value(mape, " %", 1),
+                threshold,
+                note,
+            )
+        )
     return out
 
 
@@ -262,38 +381,81 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
     out = []
     mapping = evaluation.get("mapping", {})
     if "ate_rmse_m" in mapping:
-        out.append(Check("trajectory ATE RMSE (vs true odometry)", mapping["ate_rmse_m"] <= 0.20,
-                         format_value(mapping["ate_rmse_m"], " m", 3), "fail > 0.20 m"))
+        out.append(
+            Check(
+                "trajectory ATE RMSE (vs true odometry)",
+                mapping["ate_rmse_m"] <= 0.20,
+                format_value(mapping["ate_rmse_m"], " m", 3),
+                "fail > 0.20 m",
+            )
+        )
     if "drift_percent" in mapping:
-        out.append(Check("drift (% of path length)", mapping["drift_percent"] <= 0.5,
-                         format_value(mapping["drift_percent"], " %", 3), "fail > 0.5 %"))
+        out.append(
+            Check(
+                "drift (% of path length)",
+                mapping["drift_percent"] <= 0.5,
+                format_value(mapping["drift_percent"], " %", 3),
+                "fail > 0.5 %",
+            )
+        )
     if "map_aligned" in mapping:
         d = mapping["map_aligned"]
-        out.append(Check("map points to true surfaces, after alignment (median)", d["median_m"] <= 0.05,
-                         format_value(d["median_m"], " m", 3), "fail > 0.05 m",
-                         f"90 % within {format_value(d['p90_m'], ' m', 3)}"))
+        out.append(
+            Check(
+                "map points to true surfaces, after alignment (median)",
+                d["median_m"] <= 0.05,
+                format_value(d["median_m"], " m", 3),
+                "fail > 0.05 m",
+                f"90 % within {format_value(d['p90_m'], ' m', 3)}",
+            )
+        )
     if "georeferenced" in mapping:
         g = mapping["georeferenced"]
-        out.append(Check("absolute position error of the trajectory (GNSS-limited)", None,
-                         format_value(g["horizontal_rmse_m"], " m", 2), "",
-                         f"vertical {format_value(g['vertical_rmse_m'], ' m', 2)}"))
+        out.append(
+            Check(
+                "absolute position error of the trajectory (GNSS-limited)",
+                None,
+                format_value(g["horizontal_rmse_m"], " m", 2),
+                "",
+                f"vertical {format_value(g['vertical_rmse_m'], ' m', 2)}",
+            )
+        )
     seg = evaluation.get("segmentation")
     if seg:
-        out.append(Check("trees segmented one-to-one (IoU ≥ 0.5)", seg["success_rate"] >= 0.95,
-                         f"{seg['n_correct']}/{seg['n_truth']} ({100 * seg['success_rate']:.0f} %)",
-                         "fail < 95 %", f"merged {seg['n_merged']}, split {seg['n_split']}, "
-                         f"missed {seg['n_missed']}"))
-        out.append(Check("row and label correct", seg["label_accuracy"] >= 0.95,
-                         f"{100 * seg['label_accuracy']:.0f} %", "fail < 95 % of matched trees"))
+        out.append(
+            Check(
+                "trees segmented one-to-one (IoU ≥ 0.5)",
+                seg["success_rate"] >= 0.95,
+                f"{seg['n_correct']}/{seg['n_truth']} ({100 * seg['success_rate']:.0f} %)",
+                "fail < 95 %",
+                f"merged {seg['n_merged']}, split {seg['n_split']}, missed {seg['n_missed']}",
+            )
+        )
+        out.append(
+            Check(
+                "row and label correct",
+                seg["label_accuracy"] >= 0.95,
+                f"{100 * seg['label_accuracy']:.0f} %",
+                "fail < 95 % of matched trees",
+            )
+        )
     for method, v in evaluation.get("volumes", {}).items():
         if isinstance(v, dict) and "mape_pct" in v and method in ("alpha_shape", "convex_hull"):
-            out.append(Check(f"{method} volume vs true crown volume (MAPE)", None,
-                             format_value(v["mape_pct"], " %", 1), "", f"bias {format_value(v['bias_pct'], ' %', 1)}"))
+            out.append(
+                Check(
+                    f"{method} volume vs true crown volume (MAPE)",
+                    None,
+                    format_value(v["mape_pct"], " %", 1),
+                    "",
+                    f"bias {format_value(v['bias_pct'], ' %', 1)}",
+                )
+            )
     return out
 
 
-def run_checks(metrics: dict[str, Any], trees: pd.DataFrame,
-               settings: ChecksConfig | None = None) -> list[Check]:
+def run_checks(
+    metrics: dict[str, Any], trees: pd.DataFrame, settings: ChecksConfig | None = None
+) -> list[Check]:
     """Every check of a run, from its metrics (metrics.json's content) and per-tree table."""
     st = settings or ChecksConfig()
     layout = metrics.get("layout", {})

@@ -47,7 +47,7 @@ class PointCloud:
             raise InputError("an empty point cloud has no bounds")
         return self.xyz.min(axis=0), self.xyz.max(axis=0)
 
-    def select(self, index: np.ndarray) -> "PointCloud":
+    def select(self, index: np.ndarray) -> PointCloud:
         """Subset by boolean mask or integer index, attributes included."""
         return PointCloud(
             self.xyz[index],
@@ -56,14 +56,14 @@ class PointCloud:
             origin=self.origin.copy(),
         )
 
-    def with_field(self, name: str, values: np.ndarray) -> "PointCloud":
+    def with_field(self, name: str, values: np.ndarray) -> PointCloud:
         """A copy with one attribute added or replaced."""
         fields = dict(self.fields)
         fields[name] = np.asarray(values)
         return PointCloud(self.xyz, fields, crs=self.crs, origin=self.origin.copy())
 
     @staticmethod
-    def concatenate(clouds: list["PointCloud"]) -> "PointCloud":
+    def concatenate(clouds: list[PointCloud]) -> PointCloud:
         """Join clouds that share origin and CRS; keeps attributes present in all of them."""
         if not clouds:
             return PointCloud(np.zeros((0, 3)))

@@ -10,10 +10,11 @@ import dataclasses
 import tomllib
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, Mapping, TypeVar, get_args, get_origin, get_type_hints
+from typing import Any, Literal, TypeVar, get_args, get_origin, get_type_hints
 
 from canopy_kit.errors import ConfigError, InputError
 
@@ -87,7 +88,9 @@ class MappingConfig:
     rig: dict[str, Any] = field(default_factory=dict)
     rig_name: str = ""
     extrinsics: Literal["auto", "identity", "calibrate"] = "auto"
-    base_frame: str = ""  # the frame the trajectory is reported in (default: base_link, else the LiDAR's)
+    base_frame: str = (
+        ""  # the frame the trajectory is reported in (default: base_link, else the LiDAR's)
+    )
     extrinsic_tolerance_deg: float = 2.0
 
 
@@ -157,13 +160,18 @@ class VolumeConfig:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.workers, int) and self.workers >= 0):
-            raise ConfigError(f"volume.workers: must be an integer >= 0 (0: one per core), got {self.workers!r}")
+            raise ConfigError(
+                f"volume.workers: must be an integer >= 0 (0: one per core), got {self.workers!r}"
+            )
         if not (isinstance(self.voxel_size, (int, float)) and self.voxel_size >= 0):
-            raise ConfigError(f"volume.voxel_size: must be a number >= 0 (0: every map point), "
-                              f"got {self.voxel_size!r}")
+            raise ConfigError(
+                f"volume.voxel_size: must be a number >= 0 (0: every map point), "
+                f"got {self.voxel_size!r}"
+            )
         if not (isinstance(self.recommended, str) and self.recommended):
-            raise ConfigError(f"volume.recommended: must be the name of a volume method, "
-                              f"got {self.recommended!r}")
+            raise ConfigError(
+                f"volume.recommended: must be the name of a volume method, got {self.recommended!r}"
+            )
 
 
 @dataclass
@@ -197,21 +205,26 @@ class GroundTruthConfig:
         for name in ("max_image_size", "work_image_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 64:
-                raise ConfigError(f"ground_truth.{name}: expected an integer >= 64 (px), "
-                                  f"got {value!r}")
+                raise ConfigError(
+                    f"ground_truth.{name}: expected an integer >= 64 (px), got {value!r}"
+                )
         for name in ("max_canopy_height", "match_distance_m"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
                 raise ConfigError(f"ground_truth.{name}: expected a number > 0, got {value!r}")
         res = self.ortho_resolution
-        if res is not None and (isinstance(res, bool) or not isinstance(res, int | float)
-                                or res <= 0):
-            raise ConfigError(f"ground_truth.ortho_resolution: expected a number > 0 (m) or no "
-                              f"value (the ground sampling distance), got {res!r}")
+        if res is not None and (
+            isinstance(res, bool) or not isinstance(res, int | float) or res <= 0
+        ):
+            raise ConfigError(
+                f"ground_truth.ortho_resolution: expected a number > 0 (m) or no "
+                f"value (the ground sampling distance), got {res!r}"
+            )
         if not 0 <= self.min_diameter_ratio < self.max_diameter_ratio:
             raise ConfigError(
                 "ground_truth.min_diameter_ratio/max_diameter_ratio: expected "
-                f"0 <= min < max, got {self.min_diameter_ratio} and {self.max_diameter_ratio}")
+                f"0 <= min < max, got {self.min_diameter_ratio} and {self.max_diameter_ratio}"
+            )
 
 
 @dataclass
@@ -256,8 +269,10 @@ class ChecksConfig:
                 raise ConfigError(f"checks.{f.name}: expected a number >= 0, got {warn!r}")
             lower_is_worse = f.name.startswith("aerial_matched")
             if (warn < fail) if lower_is_worse else (warn > fail):
-                raise ConfigError(f"checks.{f.name}/{fail_name}: the warning threshold must come "
-                                  f"before the failure threshold, got {warn} and {fail}")
+                raise ConfigError(
+                    f"checks.{f.name}/{fail_name}: the warning threshold must come "
+                    f"before the failure threshold, got {warn} and {fail}"
+                )
 
 
 @dataclass
@@ -385,7 +400,9 @@ def preset_names() -> list[str]:
     return sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".toml"))
 
 
-def load_preset(name_or_path: str | Path, overrides: Mapping[str, Any] | None = None) -> PipelineConfig:
+def load_preset(
+    name_or_path: str | Path, overrides: Mapping[str, Any] | None = None
+) -> PipelineConfig:
     """Load a shipped preset by name (``pistachio``, ``almond``) or a TOML file by path."""
     text_name = str(name_or_path)
     if text_name in preset_names():
@@ -417,10 +434,13 @@ def check_plugin_param_types(config: PipelineConfig, where: str = "config") -> N
     from canopy_kit.errors import PluginError
     from canopy_kit.params import check_types
 
-    tables = [("segmenters", config.segment.method, config.segment.params,
-               f"{where}.segment.params")]
-    tables += [("volumes", method, params, f"{where}.volume.params.{method}")
-               for method, params in config.volume.params.items()]
+    tables = [
+        ("segmenters", config.segment.method, config.segment.params, f"{where}.segment.params")
+    ]
+    tables += [
+        ("volumes", method, params, f"{where}.volume.params.{method}")
+        for method, params in config.volume.params.items()
+    ]
     for kind, name, params, at in tables:
         try:
             target = plugins.load(kind, name)
@@ -438,8 +458,12 @@ def apply_overrides(data: Mapping[str, Any], overrides: Mapping[str, Any]) -> di
     """
     base = dict(data)
     seg_over, seg_base = overrides.get("segment"), base.get("segment")
-    if (isinstance(seg_over, Mapping) and isinstance(seg_base, Mapping) and "method" in seg_over
-            and seg_over["method"] != seg_base.get("method", SegmentConfig.method)):
+    if (
+        isinstance(seg_over, Mapping)
+        and isinstance(seg_base, Mapping)
+        and "method" in seg_over
+        and seg_over["method"] != seg_base.get("method", SegmentConfig.method)
+    ):
         base["segment"] = {k: v for k, v in seg_base.items() if k != "params"}
     return merge(base, overrides)
 

@@ -70,14 +70,19 @@ class SegmentationScore:
         """Trees not correctly segmented, lowest IoU first, as ``{description: truth id}``
         (e.g. ``"tree 7 (r0-L3): merged, IoU 0.31"``), for a picker."""
         bad = self.trees[self.trees["status"] != "correct"].sort_values(
-            ["iou", "truth_id"], kind="stable")
+            ["iou", "truth_id"], kind="stable"
+        )
         out = {}
         for row in bad.to_dict("records"):
             label = row.get("truth_label")
-            where = (f" (r{int(row['truth_row'])}-{label})"
-                     if isinstance(label, str) and pd.notna(row.get("truth_row")) else "")
+            where = (
+                f" (r{int(row['truth_row'])}-{label})"
+                if isinstance(label, str) and pd.notna(row.get("truth_row"))
+                else ""
+            )
             out[f"tree {row['truth_id']}{where}: {row['status']}, IoU {row['iou']:.2f}"] = int(
-                row["truth_id"])
+                row["truth_id"]
+            )
         return out
 
     def only(self, truth_ids: Any) -> SegmentationScore:
@@ -91,12 +96,21 @@ class SegmentationScore:
     def to_dict(self) -> dict[str, Any]:
         """Plain numbers (for JSON), without the per-tree table."""
         return {
-            "mode": self.mode, "min_iou": self.min_iou, "n_truth": self.n_truth,
-            "n_predicted": self.n_predicted, "n_correct": self.n_correct,
-            "success_rate": self.success_rate, "precision": self.precision,
-            "recall": self.recall, "f1": self.f1, "n_merged": self.n_merged,
-            "n_split": self.n_split, "n_missed": self.n_missed, "n_other": self.n_other,
-            "n_false_segments": self.n_false_segments, "n_label_correct": self.n_label_correct,
+            "mode": self.mode,
+            "min_iou": self.min_iou,
+            "n_truth": self.n_truth,
+            "n_predicted": self.n_predicted,
+            "n_correct": self.n_correct,
+            "success_rate": self.success_rate,
+            "precision": self.precision,
+            "recall": self.recall,
+            "f1": self.f1,
+            "n_merged": self.n_merged,
+            "n_split": self.n_split,
+            "n_missed": self.n_missed,
+            "n_other": self.n_other,
+            "n_false_segments": self.n_false_segments,
+            "n_label_correct": self.n_label_correct,
             "label_accuracy": self.label_accuracy,
         }
 
@@ -117,8 +131,9 @@ def _match(iou: np.ndarray, min_iou: float) -> np.ndarray:
     return match
 
 
-def _classify(overlap: np.ndarray, truth_size: np.ndarray, match: np.ndarray,
-              min_fraction: float) -> list[str]:
+def _classify(
+    overlap: np.ndarray, truth_size: np.ndarray, match: np.ndarray, min_fraction: float
+) -> list[str]:
     """Failure class of each true tree from the overlap matrix (truth x segments)."""
     n_t, n_s = overlap.shape
     best_seg = overlap.argmax(axis=1) if n_s else np.full(n_t, -1)
@@ -133,8 +148,11 @@ def _classify(overlap: np.ndarray, truth_size: np.ndarray, match: np.ndarray,
             out.append("missed")
             continue
         s = best_seg[t]
-        shared = [u for u in range(n_t) if u != t and best_seg[u] == s
-                  and overlap[u, s] >= min_fraction * truth_size[u]]
+        shared = [
+            u
+            for u in range(n_t)
+            if u != t and best_seg[u] == s and overlap[u, s] >= min_fraction * truth_size[u]
+        ]
         pieces = np.flatnonzero((best_tree == t) & (frac >= min_fraction))
         if shared:
             out.append("merged")
@@ -145,10 +163,18 @@ def _classify(overlap: np.ndarray, truth_size: np.ndarray, match: np.ndarray,
     return out
 
 
-def _score(overlap: np.ndarray, truth_size: np.ndarray, pred_size: np.ndarray,
-           truth_ids: np.ndarray, pred_ids: np.ndarray, mode: str, min_iou: float,
-           min_fraction: float, truth_labels: pd.DataFrame | None,
-           pred_labels: pd.DataFrame | None) -> SegmentationScore:
+def _score(
+    overlap: np.ndarray,
+    truth_size: np.ndarray,
+    pred_size: np.ndarray,
+    truth_ids: np.ndarray,
+    pred_ids: np.ndarray,
+    mode: str,
+    min_iou: float,
+    min_fraction: float,
+    truth_labels: pd.DataFrame | None,
+    pred_labels: pd.DataFrame | None,
+) -> SegmentationScore:
     union = truth_size[:, None] + pred_size[None, :] - overlap
     iou = np.where(union > 0, overlap / np.maximum(union, 1e-12), 0.0)
     match = _match(iou, min_iou)
@@ -158,10 +184,13 @@ def _score(overlap: np.ndarray, truth_size: np.ndarray, pred_size: np.ndarray,
     for t, tid in enumerate(truth_ids):
         s = match[t]
         best = int(iou[t].argmax()) if iou.shape[1] else -1
-        row: dict[str, Any] = {"truth_id": int(tid), "status": status[t],
-                               "segment_id": int(pred_ids[s]) if s >= 0 else -1,
-                               "iou": float(iou[t, s]) if s >= 0 else (float(iou[t, best]) if best >= 0 else 0.0),
-                               "best_segment_id": int(pred_ids[best]) if best >= 0 else -1}
+        row: dict[str, Any] = {
+            "truth_id": int(tid),
+            "status": status[t],
+            "segment_id": int(pred_ids[s]) if s >= 0 else -1,
+            "iou": float(iou[t, s]) if s >= 0 else (float(iou[t, best]) if best >= 0 else 0.0),
+            "best_segment_id": int(pred_ids[best]) if best >= 0 else -1,
+        }
         if truth_labels is not None and tid in truth_labels.index:
             row["truth_row"] = int(truth_labels.loc[tid, "row"])
             row["truth_label"] = str(truth_labels.loc[tid, "label"])
@@ -169,21 +198,39 @@ def _score(overlap: np.ndarray, truth_size: np.ndarray, pred_size: np.ndarray,
             row["pred_row"] = int(pred_labels.loc[pred_ids[s], "row"])
             row["pred_label"] = str(pred_labels.loc[pred_ids[s], "label"])
             if "truth_row" in row and (row["pred_row"], row["pred_label"]) == (
-                    row["truth_row"], row["truth_label"]):
+                row["truth_row"],
+                row["truth_label"],
+            ):
                 n_label += 1
         rows.append(row)
     trees = pd.DataFrame(rows)
     dominant = overlap.max(axis=0) if overlap.shape[0] else np.zeros(overlap.shape[1])
     n_false = int(np.sum(dominant < 0.5 * np.maximum(pred_size, 1)))
     counts = {s: status.count(s) for s in STATUSES}
-    return SegmentationScore(mode, len(truth_ids), len(pred_ids), counts["correct"],
-                             counts["merged"], counts["split"], counts["missed"], counts["other"],
-                             n_false, n_label, trees, min_iou)
+    return SegmentationScore(
+        mode,
+        len(truth_ids),
+        len(pred_ids),
+        counts["correct"],
+        counts["merged"],
+        counts["split"],
+        counts["missed"],
+        counts["other"],
+        n_false,
+        n_label,
+        trees,
+        min_iou,
+    )
 
 
-def score_point_labels(predicted: np.ndarray, truth: np.ndarray, min_iou: float = 0.5,
-                       min_fraction: float = 0.1, truth_labels: pd.DataFrame | None = None,
-                       pred_labels: pd.DataFrame | None = None) -> SegmentationScore:
+def score_point_labels(
+    predicted: np.ndarray,
+    truth: np.ndarray,
+    min_iou: float = 0.5,
+    min_fraction: float = 0.1,
+    truth_labels: pd.DataFrame | None = None,
+    pred_labels: pd.DataFrame | None = None,
+) -> SegmentationScore:
     """Score per-point predicted segment ids against per-point true tree ids (-1 = none).
 
     ``truth_labels`` / ``pred_labels``: tables indexed by tree id / segment id with
@@ -206,12 +253,23 @@ def score_point_labels(predicted: np.ndarray, truth: np.ndarray, min_iou: float 
     np.add.at(overlap, (ti[both], pi[both]), 1.0)
     truth_size = np.bincount(ti[has_t], minlength=n_t).astype(float)
     pred_size = np.bincount(pi[has_p], minlength=n_p).astype(float)
-    return _score(overlap, truth_size, pred_size, truth_ids[keep_t], pred_ids[keep_p], "points",
-                  min_iou, min_fraction, truth_labels, pred_labels)
+    return _score(
+        overlap,
+        truth_size,
+        pred_size,
+        truth_ids[keep_t],
+        pred_ids[keep_p],
+        "points",
+        min_iou,
+        min_fraction,
+        truth_labels,
+        pred_labels,
+    )
 
 
-def polygon_mask(poly: np.ndarray, origin: np.ndarray, shape: tuple[int, int],
-                 cell: float) -> np.ndarray:
+def polygon_mask(
+    poly: np.ndarray, origin: np.ndarray, shape: tuple[int, int], cell: float
+) -> np.ndarray:
     """Boolean raster of a polygon (M, 2) on a grid with lower-left ``origin``."""
     from skimage.draw import polygon
 
@@ -222,19 +280,33 @@ def polygon_mask(poly: np.ndarray, origin: np.ndarray, shape: tuple[int, int],
     return mask
 
 
-def score_footprints(predicted: dict[int, np.ndarray], truth: dict[int, np.ndarray],
-                     min_iou: float = 0.5, min_fraction: float = 0.1, cell: float = 0.05,
-                     truth_labels: pd.DataFrame | None = None,
-                     pred_labels: pd.DataFrame | None = None) -> SegmentationScore:
+def score_footprints(
+    predicted: dict[int, np.ndarray],
+    truth: dict[int, np.ndarray],
+    min_iou: float = 0.5,
+    min_fraction: float = 0.1,
+    cell: float = 0.05,
+    truth_labels: pd.DataFrame | None = None,
+    pred_labels: pd.DataFrame | None = None,
+) -> SegmentationScore:
     """Score predicted crown footprints against true ones (polygons in the same frame)."""
     t_ids = np.array(sorted(truth), dtype=np.int64)
     p_ids = np.array(sorted(predicted), dtype=np.int64)
     polys = [truth[i] for i in t_ids] + [predicted[i] for i in p_ids]
     pts = np.concatenate([p for p in polys if len(p)]) if polys else np.zeros((0, 2))
     if len(pts) == 0:
-        return _score(np.zeros((len(t_ids), len(p_ids))), np.zeros(len(t_ids)),
-                      np.zeros(len(p_ids)), t_ids, p_ids, "footprints", min_iou, min_fraction,
-                      truth_labels, pred_labels)
+        return _score(
+            np.zeros((len(t_ids), len(p_ids))),
+            np.zeros(len(t_ids)),
+            np.zeros(len(p_ids)),
+            t_ids,
+            p_ids,
+            "footprints",
+            min_iou,
+            min_fraction,
+            truth_labels,
+            pred_labels,
+        )
     lo = pts.min(axis=0) - cell
     shape = tuple(np.ceil((pts.max(axis=0) + cell - lo) / cell).astype(int) + 1)
     # One label raster per side would lose overlaps between true crowns; keep sparse masks.
@@ -250,9 +322,18 @@ def score_footprints(predicted: dict[int, np.ndarray], truth: dict[int, np.ndarr
             if np.linalg.norm(p_centres[b] - tc) <= reach + pr:
                 overlap[a, b] = len(np.intersect1d(tm, pm, assume_unique=True))
     area = cell * cell
-    return _score(overlap * area, np.array([len(m) for m in t_masks]) * area,
-                  np.array([len(m) for m in p_masks]) * area, t_ids, p_ids, "footprints",
-                  min_iou, min_fraction, truth_labels, pred_labels)
+    return _score(
+        overlap * area,
+        np.array([len(m) for m in t_masks]) * area,
+        np.array([len(m) for m in p_masks]) * area,
+        t_ids,
+        p_ids,
+        "footprints",
+        min_iou,
+        min_fraction,
+        truth_labels,
+        pred_labels,
+    )
 
 
 def truth_footprints(sim_dir: str | Path) -> dict[int, np.ndarray]:
@@ -264,13 +345,14 @@ def truth_footprints(sim_dir: str | Path) -> dict[int, np.ndarray]:
     try:
         orchard = truth.orchard()
         return {t.tree_id: t.crown.footprint() for t in orchard.trees}
-    except Exception:  # noqa: BLE001 - no stored config: fall back on the table
+    except Exception:
         ang = np.linspace(0, 2 * np.pi, 72, endpoint=False)
         out = {}
         for _, r in truth.trees.iterrows():
             rad = 0.5 * float(r["crown_diameter_mean_m"])
-            out[int(r["tree_id"])] = np.column_stack([r["crown_x"] + rad * np.cos(ang),
-                                                      r["crown_y"] + rad * np.sin(ang)])
+            out[int(r["tree_id"])] = np.column_stack(
+                [r["crown_x"] + rad * np.cos(ang), r["crown_y"] + rad * np.sin(ang)]
+            )
         return out
 
 
@@ -307,8 +389,9 @@ def envelope_ceiling(xyz: np.ndarray, sim_dir: str | Path, min_height: float = 0
     return out
 
 
-def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
-                 mode: str = "auto") -> SegmentationScore:
+def evaluate_run(
+    run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5, mode: str = "auto"
+) -> SegmentationScore:
     """Score a ``canopy-kit segment`` or ``canopy-kit run`` folder against a simulated session's truth.
 
     ``mode``: ``points`` (needs the truth field ``truth_tree_id`` in the segmented map),
@@ -328,15 +411,23 @@ def evaluate_run(run_dir: str | Path, sim_dir: str | Path, min_iou: float = 0.5,
     truth_field = truth_ids(run.cloud) if run.cloud is not None else None
     if mode == "points" or (mode == "auto" and truth_field is not None):
         if truth_field is None:
-            raise InputError(f"{run_dir}: the segmented map has no per-point truth field "
-                             "'truth_tree_id'; use footprints mode")
+            raise InputError(
+                f"{run_dir}: the segmented map has no per-point truth field "
+                "'truth_tree_id'; use footprints mode"
+            )
         observed = set(np.unique(truth_field[truth_field >= 0]).tolist())
         labels = truth_labels.loc[sorted(observed & set(truth_labels.index))]
-        return score_point_labels(run.cloud.fields["segment_id"], truth_field, min_iou,
-                                  truth_labels=labels, pred_labels=pred_labels)
+        return score_point_labels(
+            run.cloud.fields["segment_id"],
+            truth_field,
+            min_iou,
+            truth_labels=labels,
+            pred_labels=pred_labels,
+        )
     pred = {k: v + shift for k, v in run.footprints.items()}
-    return score_footprints(pred, truth_footprints(sim_dir), min_iou,
-                            truth_labels=truth_labels, pred_labels=pred_labels)
+    return score_footprints(
+        pred, truth_footprints(sim_dir), min_iou, truth_labels=truth_labels, pred_labels=pred_labels
+    )
 
 
 def _frame_shift(summary: dict[str, Any], truth_origin: np.ndarray, truth_crs: str) -> np.ndarray:
@@ -346,5 +437,3 @@ def _frame_shift(summary: dict[str, Any], truth_origin: np.ndarray, truth_crs: s
     if crs and truth_crs and crs != truth_crs:
         raise InputError(f"segmentation CRS {crs} differs from the truth's {truth_crs}")
     return (origin - np.asarray(truth_origin, float))[:2]
-
-

@@ -17,13 +17,21 @@ def session_paths(session: str | Path) -> dict[str, Path | None]:
         raise InputError(f"{root}: session folder does not exist")
     drone = drone_dir(root)
     truth = truth_dir(root)
-    return {"bag": find_bag(root), "drone": drone if drone.is_dir() else None,
-            "truth": root if truth.is_dir() else None}
+    return {
+        "bag": find_bag(root),
+        "drone": drone if drone.is_dir() else None,
+        "truth": root if truth.is_dir() else None,
+    }
 
 
-def load_context(session: str | Path | None = None, bag: str | Path | None = None,
-                 run_dir: str | Path | None = None, preset: str = "adaptive",
-                 use_drone: bool = True, progress: Any = None) -> Any:
+def load_context(
+    session: str | Path | None = None,
+    bag: str | Path | None = None,
+    run_dir: str | Path | None = None,
+    preset: str = "adaptive",
+    use_drone: bool = True,
+    progress: Any = None,
+) -> Any:
     """Every stage's result for a session (cached in ``run_dir/.cache``), as a RunContext.
 
     Give a session folder (bag + optional ``drone/`` and ``truth/``) or a bag alone.
@@ -32,10 +40,18 @@ def load_context(session: str | Path | None = None, bag: str | Path | None = Non
 
     if session is None and bag is None:
         raise InputError("give a session folder or a bag")
-    paths = session_paths(session) if session is not None else {"bag": Path(bag), "drone": None,
-                                                                  "truth": None}
+    paths = (
+        session_paths(session)
+        if session is not None
+        else {"bag": Path(bag), "drone": None, "truth": None}
+    )
     run_dir = Path(run_dir) if run_dir is not None else Path(paths["bag"]).parent / "notebook_run"
-    ctx, _ = compute(load_preset(preset), paths["bag"], run_dir,
-                     drone_images=paths["drone"] if use_drone else None, truth=paths["truth"],
-                     progress=progress)
+    ctx, _ = compute(
+        load_preset(preset),
+        paths["bag"],
+        run_dir,
+        drone_images=paths["drone"] if use_drone else None,
+        truth=paths["truth"],
+        progress=progress,
+    )
     return ctx

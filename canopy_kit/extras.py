@@ -42,4 +42,5 @@ def needs_extra(extra: str) -> Iterator[None]:
         purpose = EXTRAS[extra][1]
         raise MissingExtraError(
             f"{purpose} needs the package {missing.split('.')[0]!r}, which is not installed; "
-            f"install the extra with: pip install 'canopy-kit[{extra}]'") from exc
+            f"install the extra with: pip install 'canopy-kit[{extra}]'"
+        ) from exc

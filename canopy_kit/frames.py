@@ -19,12 +19,16 @@ from scipy.spatial.transform import Rotation
 from canopy_kit.errors import InputError
 
 
-def rigid(rotation: np.ndarray | Rotation | None = None,
-          translation: np.ndarray | Iterable[float] | None = None) -> np.ndarray:
+def rigid(
+    rotation: np.ndarray | Rotation | None = None,
+    translation: np.ndarray | Iterable[float] | None = None,
+) -> np.ndarray:
     """A 4x4 rigid transform from a rotation (matrix or scipy Rotation) and a translation."""
     out = np.eye(4)
     if rotation is not None:
-        out[:3, :3] = rotation.as_matrix() if isinstance(rotation, Rotation) else np.asarray(rotation, float)
+        out[:3, :3] = (
+            rotation.as_matrix() if isinstance(rotation, Rotation) else np.asarray(rotation, float)
+        )
     if translation is not None:
         out[:3, 3] = np.asarray(list(translation), float)
     return out
@@ -77,10 +81,16 @@ class FrameTransform:
 
     def to_dict(self) -> dict:
         """Parent, translation, quaternion, roll/pitch/yaw and source (for JSON and reports)."""
-        return {"parent": self.parent, "child": self.child,
-                "translation": [round(float(v), 6) for v in self.matrix[:3, 3]],
-                "quaternion": [round(float(v), 9) for v in Rotation.from_matrix(self.matrix[:3, :3]).as_quat()],
-                "rpy_deg": [round(v, 4) for v in rpy_deg(self.matrix)], "source": self.source}
+        return {
+            "parent": self.parent,
+            "child": self.child,
+            "translation": [round(float(v), 6) for v in self.matrix[:3, 3]],
+            "quaternion": [
+                round(float(v), 9) for v in Rotation.from_matrix(self.matrix[:3, :3]).as_quat()
+            ],
+            "rpy_deg": [round(v, 4) for v in rpy_deg(self.matrix)],
+            "source": self.source,
+        }
 
 
 class FrameGraph:
@@ -96,8 +106,10 @@ class FrameGraph:
         if transform.parent == transform.child:
             raise InputError(f"frame {transform.child!r}: a transform from a frame to itself")
         if not np.all(np.isfinite(transform.matrix)):
-            raise InputError(f"transform {transform.parent!r} -> {transform.child!r} ({transform.source}): "
-                             "non-finite values")
+            raise InputError(
+                f"transform {transform.parent!r} -> {transform.child!r} ({transform.source}): "
+                "non-finite values"
+            )
         self._edges[transform.child] = transform
 
     def __contains__(self, frame: str) -> bool:
@@ -157,8 +169,9 @@ class FrameGraph:
         out = self.try_transform(target, source)
         if out is None:
             known = ", ".join(sorted(self.frames)) or "none"
-            raise InputError(f"no transform between frames {source!r} and {target!r} "
-                             f"(frames known: {known})")
+            raise InputError(
+                f"no transform between frames {source!r} and {target!r} (frames known: {known})"
+            )
         return out
 
     def sources(self, target: str, source: str) -> list[str]:

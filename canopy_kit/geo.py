@@ -28,7 +28,7 @@ class LocalFrame:
     origin_height: float = 0.0
 
     @classmethod
-    def at(cls, lat: float, lon: float, height: float = 0.0) -> "LocalFrame":
+    def at(cls, lat: float, lon: float, height: float = 0.0) -> LocalFrame:
         """The UTM-based frame whose origin is at (lat, lon, height)."""
         epsg = utm_epsg(lat, lon)
         e, n = _transformer(epsg, inverse=False).transform(lon, lat)
@@ -43,20 +43,25 @@ class LocalFrame:
         return np.array([self.origin_easting, self.origin_northing, self.origin_height])
 
     @cached_property
-    def _forward(self):  # noqa: ANN202
+    def _forward(self):
         return _transformer(self.epsg, inverse=False)
 
     @cached_property
-    def _inverse(self):  # noqa: ANN202
+    def _inverse(self):
         return _transformer(self.epsg, inverse=True)
 
-    def to_local(self, lat: np.ndarray, lon: np.ndarray, height: np.ndarray | float = 0.0) -> np.ndarray:
+    def to_local(
+        self, lat: np.ndarray, lon: np.ndarray, height: np.ndarray | float = 0.0
+    ) -> np.ndarray:
         """WGS84 latitude, longitude (degrees) and height to local (N, 3) coordinates."""
         e, n = self._forward.transform(np.asarray(lon, float), np.asarray(lat, float))
         h = np.broadcast_to(np.asarray(height, float), np.shape(e))
         return np.column_stack(
-            [np.ravel(e) - self.origin_easting, np.ravel(n) - self.origin_northing,
-             np.ravel(h) - self.origin_height]
+            [
+                np.ravel(e) - self.origin_easting,
+                np.ravel(n) - self.origin_northing,
+                np.ravel(h) - self.origin_height,
+            ]
         )
 
     def to_wgs84(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -65,7 +70,11 @@ class LocalFrame:
         lon, lat = self._inverse.transform(
             xyz[:, 0] + self.origin_easting, xyz[:, 1] + self.origin_northing
         )
-        h = xyz[:, 2] + self.origin_height if xyz.shape[1] > 2 else np.full(len(xyz), self.origin_height)
+        h = (
+            xyz[:, 2] + self.origin_height
+            if xyz.shape[1] > 2
+            else np.full(len(xyz), self.origin_height)
+        )
         return np.asarray(lat), np.asarray(lon), h
 
     def to_dict(self) -> dict[str, float | int | str]:
@@ -78,15 +87,19 @@ class LocalFrame:
         }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "LocalFrame":
+    def from_dict(cls, data: dict) -> LocalFrame:
         try:
-            return cls(int(data["epsg"]), float(data["origin_easting"]),
-                       float(data["origin_northing"]), float(data.get("origin_height", 0.0)))
+            return cls(
+                int(data["epsg"]),
+                float(data["origin_easting"]),
+                float(data["origin_northing"]),
+                float(data.get("origin_height", 0.0)),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"local frame description is incomplete or malformed: {exc}") from None
 
 
-def _transformer(epsg: int, inverse: bool):  # noqa: ANN202
+def _transformer(epsg: int, inverse: bool):
     from pyproj import Transformer
 
     if inverse:
@@ -98,18 +111,22 @@ def lonlat_of(xy: np.ndarray, crs: str, origin: np.ndarray) -> tuple[np.ndarray,
     """Longitude and latitude (WGS84 degrees) of local map points ``xy`` (N, 2+): the map's
     projected ``crs`` coordinates are ``xy + origin``."""
     xy = np.atleast_2d(np.asarray(xy, float))
-    lon, lat = _crs_transformer(crs, inverse=True).transform(xy[:, 0] + origin[0], xy[:, 1] + origin[1])
+    lon, lat = _crs_transformer(crs, inverse=True).transform(
+        xy[:, 0] + origin[0], xy[:, 1] + origin[1]
+    )
     return np.asarray(lon, float), np.asarray(lat, float)
 
 
 def local_of(lon: np.ndarray, lat: np.ndarray, crs: str, origin: np.ndarray) -> np.ndarray:
     """Local map (N, 2) coordinates of WGS84 ``lon``, ``lat``: the inverse of :func:`lonlat_of`."""
-    e, n = _crs_transformer(crs, inverse=False).transform(np.asarray(lon, float), np.asarray(lat, float))
+    e, n = _crs_transformer(crs, inverse=False).transform(
+        np.asarray(lon, float), np.asarray(lat, float)
+    )
     return np.column_stack([np.ravel(e) - origin[0], np.ravel(n) - origin[1]])
 
 
 @lru_cache(maxsize=16)
-def _crs_transformer(crs: str, inverse: bool):  # noqa: ANN202
+def _crs_transformer(crs: str, inverse: bool):
     from pyproj import CRS, Transformer
     from pyproj.exceptions import CRSError
 

@@ -26,8 +26,11 @@ def _finite(value: Any) -> Any:
 
 def feature(geometry: dict[str, Any], properties: dict[str, Any]) -> dict[str, Any]:
     """One Feature; NaN properties become null."""
-    return {"type": "Feature", "geometry": geometry,
-            "properties": {k: _finite(v) for k, v in properties.items()}}
+    return {
+        "type": "Feature",
+        "geometry": geometry,
+        "properties": {k: _finite(v) for k, v in properties.items()},
+    }
 
 
 def point(lon: float, lat: float, height: float | None = None) -> dict[str, Any]:
@@ -53,8 +56,9 @@ def line_string(lon: np.ndarray, lat: np.ndarray) -> dict[str, Any]:
     return {"type": "LineString", "coordinates": np.column_stack([lon, lat]).astype(float).tolist()}
 
 
-def feature_collection(features: list[dict[str, Any]],
-                       provenance: dict[str, Any] | None = None) -> str:
+def feature_collection(
+    features: list[dict[str, Any]], provenance: dict[str, Any] | None = None
+) -> str:
     """The FeatureCollection as text, with ``provenance`` as a foreign member."""
     data: dict[str, Any] = {"type": "FeatureCollection", "features": features}
     if provenance:

@@ -35,8 +35,11 @@ def run_metrics(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
     from canopy_kit.checks import Check, run_checks
     from canopy_kit.checks import summary as checks_summary
 
-    m: dict[str, Any] = {"n_trees": int(len(trees)), "preset": ctx.config.name,
-                         "segmenter": ctx.config.segment.method}
+    m: dict[str, Any] = {
+        "n_trees": int(len(trees)),
+        "preset": ctx.config.name,
+        "segmenter": ctx.config.segment.method,
+    }
     warnings = list(getattr(ctx.mapping, "warnings", []))
     warnings += list(getattr(ctx.segmentation, "warnings", []))
     m["mapping"] = dict(getattr(ctx.mapping, "diagnostics", {}))
@@ -46,9 +49,12 @@ def run_metrics(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
     if ctx.aerial is not None and "aerial_sphere_volume_m3" in trees:
         matched = trees["aerial_sphere_volume_m3"].notna()
         ok = comparable_aerial_sphere(trees).notna()
-        m["aerial"] = {"matched_trees": int(matched.sum()), "compared_trees": int(ok.sum()),
-                       "implausible_crowns": int((matched & ~ok).sum()),
-                       **dict(getattr(ctx.aerial, "diagnostics", {}))}
+        m["aerial"] = {
+            "matched_trees": int(matched.sum()),
+            "compared_trees": int(ok.sum()),
+            "implausible_crowns": int((matched & ~ok).sum()),
+            **dict(getattr(ctx.aerial, "diagnostics", {})),
+        }
         offset = (getattr(ctx.aerial, "report", None) or {}).get("seed_offset")
         if offset:  # the LiDAR map's georeferencing against the drone's (docs/GROUND_TRUTH.md)
             m["aerial"]["seed_offset"] = offset  # crowns minus LiDAR trees
@@ -56,8 +62,9 @@ def run_metrics(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
             if col in trees and ok.any():
                 good = ok & trees[col].notna()
                 sphere = trees.loc[good, "aerial_sphere_volume_m3"].to_numpy()
-                m["aerial"][col] = stats.agreement(trees.loc[good, col].to_numpy(),
-                                                   sphere).as_dict()
+                m["aerial"][col] = stats.agreement(
+                    trees.loc[good, col].to_numpy(), sphere
+                ).as_dict()
     if ctx.layout is not None:
         m["layout"] = ctx.layout.as_dict()
     if ctx.evaluation:
@@ -81,8 +88,9 @@ def config_used(ctx: Any) -> PipelineConfig:
     return ctx.config
 
 
-def write_tree_tables(ctx: Any, trees: pd.DataFrame, out: Path,
-                      provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+def write_tree_tables(
+    ctx: Any, trees: pd.DataFrame, out: Path, provenance: dict[str, Any] | None = None
+) -> dict[str, Path]:
     """trees.csv, trees.parquet, trees.geojson, config.toml and what ``canopy-kit evaluate``
     needs besides them (segmentation.json, crowns, rows, trees.gpkg): the outputs of every
     run, batch ones included."""
@@ -95,13 +103,20 @@ def write_tree_tables(ctx: Any, trees: pd.DataFrame, out: Path,
         from canopy_kit.mapping.outputs import RIG_TOML, write_rig
 
         files[RIG_TOML] = write_rig(rig, out / RIG_TOML)
-    files.update({p.name: p for p in write_segmentation_summary(
-        out, ctx.segmentation, trees=trees, provenance=provenance).values()})
+    files.update(
+        {
+            p.name: p
+            for p in write_segmentation_summary(
+                out, ctx.segmentation, trees=trees, provenance=provenance
+            ).values()
+        }
+    )
     return files
 
 
-def write_trees(trees: pd.DataFrame, out: Path,
-                provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+def write_trees(
+    trees: pd.DataFrame, out: Path, provenance: dict[str, Any] | None = None
+) -> dict[str, Path]:
     """The per-tree table as trees.csv (full precision), trees.parquet (``provenance`` in its
     schema metadata) and trees.geojson (none when no tree has a WGS84 position)."""
     import pyarrow as pa
@@ -131,7 +146,9 @@ def trees_geojson(trees: pd.DataFrame, provenance: dict[str, Any] | None = None)
 
     if "lat" not in trees or "lon" not in trees or not trees["lat"].notna().any():
         return None
-    features = [geojson.feature(geojson.point(rec["lon"], rec["lat"]), rec)
-                for rec in trees.to_dict(orient="records")
-                if pd.notna(rec["lon"]) and pd.notna(rec["lat"])]
+    features = [
+        geojson.feature(geojson.point(rec["lon"], rec["lat"]), rec)
+        for rec in trees.to_dict(orient="records")
+        if pd.notna(rec["lon"]) and pd.notna(rec["lat"])
+    ]
     return geojson.feature_collection(features, provenance)

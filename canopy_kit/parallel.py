@@ -48,9 +48,14 @@ def worker_count(setting: int, most: int) -> int:
     return max(1, min(wanted, most))
 
 
-def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str, total: int,
-               progress: Callable[[str, float, float], None] | None = None,
-               first_in_parent: bool = False) -> list[Any]:
+def run_forked(
+    function: Callable[[Any, Tick], Any],
+    jobs: list[Any],
+    label: str,
+    total: int,
+    progress: Callable[[str, float, float], None] | None = None,
+    first_in_parent: bool = False,
+) -> list[Any]:
     """``[function(job, tick) for job in jobs]``, one forked process per job.
 
     ``tick()`` advances the progress count reported as ``progress(label, count, total)``.
@@ -65,8 +70,10 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
     skip = 1 if first_in_parent else 0  # jobs[skip + i] runs in procs[i]
     forked = jobs[skip:]
     pipes = [ctx.Pipe(duplex=False) for _ in forked]
-    procs = [ctx.Process(target=_child, args=(function, job, counter, send), daemon=True)
-             for job, (_, send) in zip(forked, pipes)]
+    procs = [
+        ctx.Process(target=_child, args=(function, job, counter, send), daemon=True)
+        for job, (_, send) in zip(forked, pipes)
+    ]
     for proc in procs:
         proc.start()
     results: list = [None] * len(forked)
@@ -74,6 +81,7 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
     try:
         own = []
         if first_in_parent:
+
             def tick() -> None:
                 with counter.get_lock():
                     counter.value += 1
@@ -81,8 +89,10 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
                     progress(label, counter.value, total)
                 killed = [i for i, p in enumerate(procs) if p.exitcode not in (None, 0)]
                 if killed:  # a worker killed (out of memory, a signal): no use finishing ours
-                    raise ProcessingError(f"{label}: worker {killed[0] + skip} ended without a result "
-                                          f"(exit code {procs[killed[0]].exitcode})")
+                    raise ProcessingError(
+                        f"{label}: worker {killed[0] + skip} ended without a result "
+                        f"(exit code {procs[killed[0]].exitcode})"
+                    )
 
             own = [("ok", function(jobs[0], tick))]
         while any(r is None for r in results):
@@ -91,11 +101,16 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
                     results[i] = recv.recv()
             if progress:
                 progress(label, counter.value, total)
-            dead = [i for i, p in enumerate(procs) if results[i] is None and not p.is_alive()
-                    and not pipes[i][0].poll()]
+            dead = [
+                i
+                for i, p in enumerate(procs)
+                if results[i] is None and not p.is_alive() and not pipes[i][0].poll()
+            ]
             if dead:
-                raise ProcessingError(f"{label}: worker {dead[0] + skip} ended without a result "
-                                      f"(exit code {procs[dead[0]].exitcode})")
+                raise ProcessingError(
+                    f"{label}: worker {dead[0] + skip} ended without a result "
+                    f"(exit code {procs[dead[0]].exitcode})"
+                )
         finished = True
     finally:
         for proc in procs:
@@ -110,9 +125,14 @@ def run_forked(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str
     return [value for _, value in own + results]
 
 
-def run_jobs(function: Callable[[Any, Tick], Any], jobs: list[Any], label: str, total: int,
-             progress: Callable[[str, float, float], None] | None = None,
-             first_in_parent: bool = False) -> list[Any]:
+def run_jobs(
+    function: Callable[[Any, Tick], Any],
+    jobs: list[Any],
+    label: str,
+    total: int,
+    progress: Callable[[str, float, float], None] | None = None,
+    first_in_parent: bool = False,
+) -> list[Any]:
     """:func:`run_forked`, or in this process when there is a single job."""
     if len(jobs) != 1:
         return run_forked(function, jobs, label, total, progress, first_in_parent)

@@ -57,8 +57,11 @@ def init_parameters(cls: type) -> list[inspect.Parameter]:
         sig = inspect.signature(cls.__init__)
     except (TypeError, ValueError):
         return []
-    return [p for name, p in sig.parameters.items() if name != "self"
-            and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    return [
+        p
+        for name, p in sig.parameters.items()
+        if name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
 
 
 def takes_any_keyword(cls: type) -> bool:
@@ -87,7 +90,7 @@ def docstring_parameters(doc: str | None) -> dict[str, str]:
         if match.group(1).strip().lower() != "parameters":
             continue
         end = sections[i + 1].start() if i + 1 < len(sections) else len(text)
-        return _entries(text[match.end():end])
+        return _entries(text[match.end() : end])
     return {}
 
 
@@ -109,8 +112,10 @@ def parameters_of(cls: type) -> list[ParamInfo]:
     """Every keyword parameter of plugin class ``cls`` with type, default and meaning."""
     hints = annotations(cls)
     docs = docstring_parameters(cls.__doc__)
-    return [ParamInfo(p.name, hints.get(p.name, Any), p.default, docs.get(p.name, ""))
-            for p in init_parameters(cls)]
+    return [
+        ParamInfo(p.name, hints.get(p.name, Any), p.default, docs.get(p.name, ""))
+        for p in init_parameters(cls)
+    ]
 
 
 def _is_number(value: Any) -> bool:
@@ -122,8 +127,9 @@ def _is_int(value: Any) -> bool:
 
 
 def _expected(tp: Any) -> str:
-    return {float: "a number", int: "an integer", bool: "true or false",
-            str: "a string"}.get(tp, type_name(tp))
+    return {float: "a number", int: "an integer", bool: "true or false", str: "a string"}.get(
+        tp, type_name(tp)
+    )
 
 
 def matches(value: Any, tp: Any) -> bool:
@@ -174,8 +180,9 @@ def check_types(params: dict[str, Any], cls: type, where: str) -> None:
             check_type(value, hints[key], f"{where}.{key}" if where else key)
 
 
-def check_positive(value: Any, name: str, owner: str | None = None, *,
-                   allow_none: bool = False) -> None:
+def check_positive(
+    value: Any, name: str, owner: str | None = None, *, allow_none: bool = False
+) -> None:
     """ConfigError naming ``owner: name`` unless ``value`` is a positive finite number."""
     if value is None and allow_none:
         return
@@ -200,5 +207,6 @@ def validate_types(obj: Any, owner: str | None = None) -> None:
             value = getattr(obj, p.name)
             if not matches(value, hints[p.name]):
                 prefix = f"{owner}: " if owner else ""
-                raise ConfigError(f"{prefix}{p.name} must be {_expected(hints[p.name])}, "
-                                  f"got {value!r}")
+                raise ConfigError(
+                    f"{prefix}{p.name} must be {_expected(hints[p.name])}, got {value!r}"
+                )

@@ -47,10 +47,17 @@ class RunContext:
     estimators: dict[str, Any] | None = None  # the volume estimators, built once per run
 
 
-def run(config: PipelineConfig, bag: str | Path, out: str | Path,
-        drone_images: str | Path | None = None, truth: str | Path | None = None,
-        use_cache: bool = True, progress: Progress | None = None,
-        orchard: str | None = None, export_trees: bool = False) -> Results:
+def run(
+    config: PipelineConfig,
+    bag: str | Path,
+    out: str | Path,
+    drone_images: str | Path | None = None,
+    truth: str | Path | None = None,
+    use_cache: bool = True,
+    progress: Progress | None = None,
+    orchard: str | None = None,
+    export_trees: bool = False,
+) -> Results:
     """Run every stage on ``bag`` and write the outputs (all atomically) into ``out``.
 
     ``orchard`` names the orchard or block in the provenance (default: the bag's stem);
@@ -65,8 +72,9 @@ def run(config: PipelineConfig, bag: str | Path, out: str | Path,
     metrics = run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
     metrics["cached_stages"] = list(cache.hits)
-    metrics["provenance"] = provenance(bag, config.name, started, time.perf_counter() - t0,
-                                       orchard, drone_images)
+    metrics["provenance"] = provenance(
+        bag, config.name, started, time.perf_counter() - t0, orchard, drone_images
+    )
     exported = {}
     if export_trees:  # before the outputs: metrics.json and report.html come last
         from canopy_kit.segment.tree_export import export_trees as write_tree_clouds
@@ -76,10 +84,15 @@ def run(config: PipelineConfig, bag: str | Path, out: str | Path,
     return Results(out, ctx.table, metrics, files, list(metrics.get("warnings", [])), cache.hits)
 
 
-def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
-            drone_images: str | Path | None = None, truth: str | Path | None = None,
-            use_cache: bool = True, progress: Progress | None = None
-            ) -> tuple[RunContext, StageCache]:
+def compute(
+    config: PipelineConfig,
+    bag: str | Path,
+    out: str | Path,
+    drone_images: str | Path | None = None,
+    truth: str | Path | None = None,
+    use_cache: bool = True,
+    progress: Progress | None = None,
+) -> tuple[RunContext, StageCache]:
     """Every stage's result (from the cache in ``out/.cache`` when unchanged), no outputs.
 
     Notebooks call this to explore a run; :func:`run` adds the output files.
@@ -102,16 +115,17 @@ def compute(config: PipelineConfig, bag: str | Path, out: str | Path,
     ctx = RunContext(config, estimators=estimators)
     map_key = stage_key("map", fingerprint(bag), config.mapping)
     ctx.mapping = cache.get_or_compute("map", map_key, lambda: map_stage(bag, config, report))
-    seg_key = stage_key("segment", map_key, config.preprocess, config.segment, config.rows,
-                        config.seed)
-    ctx.segmentation = cache.get_or_compute("segment", seg_key,
-                                            lambda: segment_stage(ctx, report))
+    seg_key = stage_key(
+        "segment", map_key, config.preprocess, config.segment, config.rows, config.seed
+    )
+    ctx.segmentation = cache.get_or_compute("segment", seg_key, lambda: segment_stage(ctx, report))
     vol_key = stage_key("volumes", seg_key, config.volume)
     ctx.trees = cache.get_or_compute("volumes", vol_key, lambda: volume_stage(ctx, report))
     if drone_images is not None:
         gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
         ctx.aerial = cache.get_or_compute(
-            "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report))
+            "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report)
+        )
     ctx.layout = layout_stage(ctx)
     ctx.table = tree_table(ctx)
     if truth is not None:
@@ -133,8 +147,9 @@ def check_settings(config: PipelineConfig) -> dict[str, Any]:
     from canopy_kit.volume.verb import build_estimators
 
     check_preprocess_config(config.preprocess)
-    plugins.create("segmenters", config.segment.method, config.segment.params,
-                   where="segment.params")
+    plugins.create(
+        "segmenters", config.segment.method, config.segment.params, where="segment.params"
+    )
     return build_estimators(config.volume)
 
 
@@ -162,10 +177,16 @@ def segment_stage(ctx: RunContext, progress: Progress) -> Any:
     cfg = ctx.config
     segmenter = make_segmenter(cfg.segment.method, cfg.segment.params)
     direction = driving_direction(ctx.mapping.trajectory)
-    return segment(ctx.mapping.map, segmenter, cfg.preprocess, cfg.rows,
-                   driving_direction=direction,
-                   direction_source="trajectory" if direction is not None else None,
-                   seed=cfg.seed, progress=progress)
+    return segment(
+        ctx.mapping.map,
+        segmenter,
+        cfg.preprocess,
+        cfg.rows,
+        driving_direction=direction,
+        direction_source="trajectory" if direction is not None else None,
+        seed=cfg.seed,
+        progress=progress,
+    )
 
 
 def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
@@ -175,9 +196,14 @@ def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
     from canopy_kit.volume.verb import measure_trees
 
     seg = ctx.segmentation
-    table = measure_trees(on_las_grid(ctx.mapping.map), seg.labels, ctx.config.volume,
-                          ground_height=seg.ground.height, progress=progress,
-                          estimators=ctx.estimators)
+    table = measure_trees(
+        on_las_grid(ctx.mapping.map),
+        seg.labels,
+        ctx.config.volume,
+        ground_height=seg.ground.height,
+        progress=progress,
+        estimators=ctx.estimators,
+    )
     records = seg.table().set_index("segment_id")
     table = table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")
     return table
@@ -188,8 +214,9 @@ def layout_stage(ctx: RunContext) -> Any:
     from canopy_kit.segment.layout import measure_layout
 
     seg = ctx.segmentation
-    return measure_layout(ctx.mapping.map.xyz, seg.height, seg,
-                          tuple(ctx.config.preprocess.stem_band))
+    return measure_layout(
+        ctx.mapping.map.xyz, seg.height, seg, tuple(ctx.config.preprocess.stem_band)
+    )
 
 
 def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -> Any:
@@ -197,12 +224,22 @@ def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -
     from ground_truth import process_flight
 
     shift = ctx.mapping.map.origin[:2] - _frame_origin(ctx)[:2]
-    seeds = pd.DataFrame({"segment": ctx.trees["segment"].to_numpy(),
-                          "tree_id": ctx.trees["tree_id"].astype(str).to_numpy(),
-                          "x": ctx.trees["x"].to_numpy() + shift[0],
-                          "y": ctx.trees["y"].to_numpy() + shift[1]})
-    return process_flight(images, out, frame=ctx.mapping.frame, seeds=seeds, progress=progress,
-                          config=ctx.config.ground_truth)
+    seeds = pd.DataFrame(
+        {
+            "segment": ctx.trees["segment"].to_numpy(),
+            "tree_id": ctx.trees["tree_id"].astype(str).to_numpy(),
+            "x": ctx.trees["x"].to_numpy() + shift[0],
+            "y": ctx.trees["y"].to_numpy() + shift[1],
+        }
+    )
+    return process_flight(
+        images,
+        out,
+        frame=ctx.mapping.frame,
+        seeds=seeds,
+        progress=progress,
+        config=ctx.config.ground_truth,
+    )
 
 
 def _frame_origin(ctx: RunContext) -> np.ndarray:
@@ -211,8 +248,9 @@ def _frame_origin(ctx: RunContext) -> np.ndarray:
 
 
 # -- outputs --------------------------------------------------------------------------------
-def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any], out: Path,
-                  progress: Progress) -> dict[str, Path]:
+def write_outputs(
+    ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any], out: Path, progress: Progress
+) -> dict[str, Path]:
     """Every output file, each written under a temporary name and renamed.
 
     ``map.laz`` (the longest, compressed by lazrs outside the GIL) is written on a thread
@@ -246,9 +284,11 @@ def write_outputs(ctx: RunContext, trees: pd.DataFrame, metrics: dict[str, Any],
     return files
 
 
-def _write_tables(ctx: RunContext, trees: pd.DataFrame, out: Path,
-                  provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+def _write_tables(
+    ctx: RunContext, trees: pd.DataFrame, out: Path, provenance: dict[str, Any] | None = None
+) -> dict[str, Path]:
     files = write_tree_tables(ctx, trees, out, provenance)
     files["trajectory.csv"] = atomic_write_text(
-        out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f"))
+        out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f")
+    )
     return files

@@ -14,8 +14,13 @@ from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
 from canopy_kit.errors import ConfigError, PluginError
-from canopy_kit.params import (ParamInfo, check_types, init_parameters, parameters_of,
-                               takes_any_keyword)
+from canopy_kit.params import (
+    ParamInfo,
+    check_types,
+    init_parameters,
+    parameters_of,
+    takes_any_keyword,
+)
 
 GROUPS: dict[str, str] = {
     "readers": "canopy_kit.readers",
@@ -26,11 +31,24 @@ GROUPS: dict[str, str] = {
 
 
 #: How an error message calls a plugin of each kind.
-LABELS: dict[str, str] = {"readers": "reader", "segmenters": "segmenter",
-                          "volumes": "volume method", "commands": "command"}
+LABELS: dict[str, str] = {
+    "readers": "reader",
+    "segmenters": "segmenter",
+    "volumes": "volume method",
+    "commands": "command",
+}
 
-__all__ = ["GROUPS", "ParamInfo", "PluginInfo", "create", "describe", "kinds_of", "load",
-           "names", "parameters"]
+__all__ = [
+    "GROUPS",
+    "ParamInfo",
+    "PluginInfo",
+    "create",
+    "describe",
+    "kinds_of",
+    "load",
+    "names",
+    "parameters",
+]
 
 
 @dataclass(frozen=True)
@@ -106,8 +124,14 @@ def _label(kind: str) -> str:
     return LABELS.get(short, short)
 
 
-def create(kind: str, name: str, params: dict[str, Any] | None = None, *, where: str = "",
-           validate: bool = True) -> Any:
+def create(
+    kind: str,
+    name: str,
+    params: dict[str, Any] | None = None,
+    *,
+    where: str = "",
+    validate: bool = True,
+) -> Any:
     """An instance of plugin ``name`` of ``kind`` configured with keyword ``params``.
 
     An unknown key is a ConfigError naming it and listing the accepted parameters; with
@@ -120,14 +144,18 @@ def create(kind: str, name: str, params: dict[str, Any] | None = None, *, where:
     label = _label(kind)
     if not isinstance(target, type):
         if params:
-            raise ConfigError(f"{prefix}{label} {name!r} is not a class and takes no "
-                              f"parameters, got {sorted(params)}")
+            raise ConfigError(
+                f"{prefix}{label} {name!r} is not a class and takes no "
+                f"parameters, got {sorted(params)}"
+            )
         return target
     accepted = [p.name for p in init_parameters(target)]
     unknown = sorted(set(params) - set(accepted))
     if unknown and not takes_any_keyword(target):
-        raise ConfigError(f"{prefix}{label} {name!r} has no parameter {unknown[0]!r} "
-                          f"(parameters: {', '.join(accepted) or 'none'})")
+        raise ConfigError(
+            f"{prefix}{label} {name!r} has no parameter {unknown[0]!r} "
+            f"(parameters: {', '.join(accepted) or 'none'})"
+        )
     if validate:
         check_types(params, target, where or name)
     instance = target(**params)

@@ -48,16 +48,27 @@ def session_date(bag: str | Path) -> str:
         return utc_iso(session.start_time)
 
 
-def provenance(bag: str | Path, preset: str, started: float, seconds: float,
-               orchard: str | None = None,
-               drone_images: str | Path | None = None) -> dict[str, Any]:
+def provenance(
+    bag: str | Path,
+    preset: str,
+    started: float,
+    seconds: float,
+    orchard: str | None = None,
+    drone_images: str | Path | None = None,
+) -> dict[str, Any]:
     """The provenance dict of a run of ``bag`` (``orchard`` defaults to the bag's stem;
     ``started`` POSIX time, ``seconds`` how long the run took)."""
     from canopy_kit import __version__
 
     bag = Path(bag)
-    return {"orchard": orchard or bag.stem, "session_date": session_date(bag),
-            "bag": bag.name, "bag_sha256": bag_sha256(bag),
-            "drone_images": str(drone_images) if drone_images is not None else "",
-            "software_version": __version__, "preset": preset,
-            "run_started_utc": utc_iso(started), "run_seconds": round(float(seconds), 3)}
+    return {
+        "orchard": orchard or bag.stem,
+        "session_date": session_date(bag),
+        "bag": bag.name,
+        "bag_sha256": bag_sha256(bag),
+        "drone_images": str(drone_images) if drone_images is not None else "",
+        "software_version": __version__,
+        "preset": preset,
+        "run_started_utc": utc_iso(started),
+        "run_seconds": round(float(seconds), 3),
+    }

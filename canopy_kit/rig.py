@@ -75,13 +75,17 @@ def parse_rig(data: Mapping[str, Any], where: str = "rig") -> RigSpec:
     """A :class:`RigSpec` from a rig file's tables; errors name ``where`` and the key."""
     unknown = sorted(set(data) - {"rig", "frames"})
     if unknown:
-        raise ConfigError(f"{where}: unknown table {unknown[0]!r} (a rig file has [rig] and [frames.NAME])")
+        raise ConfigError(
+            f"{where}: unknown table {unknown[0]!r} (a rig file has [rig] and [frames.NAME])"
+        )
     head = data.get("rig", {})
     if not isinstance(head, Mapping):
         raise ConfigError(f"{where}: [rig] must be a table")
     bad = sorted(set(head) - RIG_KEYS)
     if bad:
-        raise ConfigError(f"{where}: rig.{bad[0]} is not a rig setting (known: {', '.join(sorted(RIG_KEYS))})")
+        raise ConfigError(
+            f"{where}: rig.{bad[0]} is not a rig setting (known: {', '.join(sorted(RIG_KEYS))})"
+        )
     spec = RigSpec(where=where)
     for key in ("base_frame", "lidar_frame", "imu_frame", "gnss_frame"):
         if key in head:
@@ -91,7 +95,9 @@ def parse_rig(data: Mapping[str, Any], where: str = "rig") -> RigSpec:
     if "imu_time_offset_s" in head:
         offset = head["imu_time_offset_s"]
         if isinstance(offset, bool) or not isinstance(offset, int | float) or not abs(offset) < 10:
-            raise ConfigError(f"{where}: rig.imu_time_offset_s: expected seconds (|offset| < 10), got {offset!r}")
+            raise ConfigError(
+                f"{where}: rig.imu_time_offset_s: expected seconds (|offset| < 10), got {offset!r}"
+            )
         spec.imu_time_offset_s = float(offset)
     frames = data.get("frames", {})
     if not isinstance(frames, Mapping):
@@ -120,7 +126,9 @@ def _frame(name: str, table: Any, base_frame: str, where: str) -> FrameTransform
         except ValueError as exc:
             raise ConfigError(f"{where}.quaternion: {exc}") from None
     else:
-        matrix = from_rpy(translation, _vector(table.get("rpy_deg", [0.0, 0.0, 0.0]), 3, f"{where}.rpy_deg"))
+        matrix = from_rpy(
+            translation, _vector(table.get("rpy_deg", [0.0, 0.0, 0.0]), 3, f"{where}.rpy_deg")
+        )
     return FrameTransform(parent, name, matrix, RIG_FILE_SOURCE)
 
 
@@ -149,18 +157,27 @@ def rig_data(name_or_path: str | Path) -> tuple[dict[str, Any], str]:
         return tomllib.loads(text), f"rig preset {name!r}"
     path = Path(name_or_path)
     if not path.exists():
-        raise ConfigError(f"rig {name!r} is neither a shipped rig ({', '.join(rig_preset_names())}) "
-                          "nor an existing TOML file")
+        raise ConfigError(
+            f"rig {name!r} is neither a shipped rig ({', '.join(rig_preset_names())}) "
+            "nor an existing TOML file"
+        )
     return read_toml(path), str(path)
 
 
-def rig_tables(base_frame: str, transforms: list[FrameTransform], **names: str | float) -> dict[str, Any]:
+def rig_tables(
+    base_frame: str, transforms: list[FrameTransform], **names: str | float
+) -> dict[str, Any]:
     """Rig-file tables (as :func:`parse_rig` reads them) for frames and transforms."""
     head: dict[str, Any] = {"base_frame": base_frame}
     head.update({k: v for k, v in names.items() if v not in ("", None)})
-    frames = {t.child: {"parent": t.parent,
-                        "translation": [round(float(v), 6) for v in t.matrix[:3, 3]],
-                        "rpy_deg": [round(v, 6) for v in rpy_deg(t.matrix)]} for t in transforms}
+    frames = {
+        t.child: {
+            "parent": t.parent,
+            "translation": [round(float(v), 6) for v in t.matrix[:3, 3]],
+            "rpy_deg": [round(v, 6) for v in rpy_deg(t.matrix)],
+        }
+        for t in transforms
+    }
     return {"rig": head, "frames": frames}
 
 
@@ -182,6 +199,7 @@ def rig_overrides(rig: str | Path | None = None, extrinsics: str | None = None) 
 def extrinsics_mode(assume_identity: bool, calibrate: bool) -> str | None:
     """``mapping.extrinsics`` from the two command-line flags (None: neither given)."""
     if assume_identity and calibrate:
-        raise ConfigError("--assume-identity-extrinsics and --calibrate-extrinsics exclude each other")
+        raise ConfigError(
+            "--assume-identity-extrinsics and --calibrate-extrinsics exclude each other"
+        )
     return "identity" if assume_identity else "calibrate" if calibrate else None
-

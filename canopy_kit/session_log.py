@@ -19,8 +19,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 LOG_NAME = "worker.log"
-SIGNALS = {"Segmentation fault": "SIGSEGV", "Aborted": "SIGABRT", "Floating point exception": "SIGFPE",
-           "Bus error": "SIGBUS", "Illegal instruction": "SIGILL"}
+SIGNALS = {
+    "Segmentation fault": "SIGSEGV",
+    "Aborted": "SIGABRT",
+    "Floating point exception": "SIGFPE",
+    "Bus error": "SIGBUS",
+    "Illegal instruction": "SIGILL",
+}
 Progress = Callable[[str, float, float], None]
 
 
@@ -93,9 +98,13 @@ def read_trail(folder: Path, token: str) -> dict[str, str] | None:
 
 def _says_why(line: str) -> bool:
     text = line.strip()
-    return bool(text) and not text.startswith(("File ", "Current thread", "Thread ", "Extension modules",
-                                               "Stack (most recent")) and (
-        "failed" in text.lower() or "error" in text.lower() or "assert" in text.lower())
+    return (
+        bool(text)
+        and not text.startswith(
+            ("File ", "Current thread", "Thread ", "Extension modules", "Stack (most recent")
+        )
+        and ("failed" in text.lower() or "error" in text.lower() or "assert" in text.lower())
+    )
 
 
 def crash_message(trail: dict[str, str] | None) -> str:
@@ -105,9 +114,13 @@ def crash_message(trail: dict[str, str] | None) -> str:
     where = f" during stage {trail['stage']!r}" if trail["stage"] else " before its first stage"
     if trail["signal"]:
         cause = f": {trail['cause']}" if trail["cause"] else ""
-        return f"the worker process died of {trail['signal']}{where} (a crash in compiled code{cause})"
-    return (f"the worker process died{where} without a fault report (killed: SIGKILL, e.g. out of "
-            "memory, or a lost machine)")
+        return (
+            f"the worker process died of {trail['signal']}{where} (a crash in compiled code{cause})"
+        )
+    return (
+        f"the worker process died{where} without a fault report (killed: SIGKILL, e.g. out of "
+        "memory, or a lost machine)"
+    )
 
 
 def own_worker_process() -> bool:

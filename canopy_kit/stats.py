@@ -19,8 +19,9 @@ from canopy_kit.errors import InputError
 Z_95 = 1.959963984540054
 
 
-def _pair(estimate: ArrayLike, reference: ArrayLike, *, min_n: int = 1,
-          nonzero_reference: bool = False) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _pair(
+    estimate: ArrayLike, reference: ArrayLike, *, min_n: int = 1, nonzero_reference: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Validate and convert a pair of equally long 1-D finite arrays."""
     est = np.asarray(estimate, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
@@ -31,9 +32,7 @@ def _pair(estimate: ArrayLike, reference: ArrayLike, *, min_n: int = 1,
             bad = int(np.flatnonzero(~np.isfinite(arr))[0])
             raise InputError(f"{name}: value at index {bad} is not finite ({arr[bad]})")
     if est.shape != ref.shape:
-        raise InputError(
-            f"estimate and reference differ in length ({est.size} vs {ref.size})"
-        )
+        raise InputError(f"estimate and reference differ in length ({est.size} vs {ref.size})")
     if est.size < min_n:
         raise InputError(f"need at least {min_n} pairs, got {est.size}")
     if nonzero_reference and np.any(ref == 0):
@@ -109,8 +108,13 @@ def bland_altman(estimate: ArrayLike, reference: ArrayLike) -> BlandAltman:
     diff = est - ref
     mean = float(diff.mean())
     sd = float(diff.std(ddof=1))
-    return BlandAltman(n=int(diff.size), mean_difference=mean, sd_difference=sd,
-                       lower_limit=mean - Z_95 * sd, upper_limit=mean + Z_95 * sd)
+    return BlandAltman(
+        n=int(diff.size),
+        mean_difference=mean,
+        sd_difference=sd,
+        lower_limit=mean - Z_95 * sd,
+        upper_limit=mean + Z_95 * sd,
+    )
 
 
 @dataclass(frozen=True)

@@ -31,8 +31,15 @@ import numpy as np
 from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.params import annotations, init_parameters
 
-__all__ = ["Check", "check_segmenter", "check_volume_estimator", "checks_for",
-           "parametrize_with_checks", "segmenter_checks", "volume_checks"]
+__all__ = [
+    "Check",
+    "check_segmenter",
+    "check_volume_estimator",
+    "checks_for",
+    "parametrize_with_checks",
+    "segmenter_checks",
+    "volume_checks",
+]
 
 WRONG_TYPE = "not-a-number"
 TRANSLATION_RTOL = 0.01
@@ -53,8 +60,10 @@ class Check:
             message = f"rule {self.name!r} broken by {_label(estimator)}: {exc}"
             raise AssertionError(message) from exc
         except Exception as exc:  # a crash breaks the rule too
-            raise AssertionError(f"rule {self.name!r} broken by {_label(estimator)}: raised "
-                                 f"{type(exc).__name__}: {exc}") from exc
+            raise AssertionError(
+                f"rule {self.name!r} broken by {_label(estimator)}: raised "
+                f"{type(exc).__name__}: {exc}"
+            ) from exc
 
     def __repr__(self) -> str:
         return self.name
@@ -113,8 +122,11 @@ def _numeric_params(est: Any) -> list[str]:
     """Parameters annotated as a number (or an optional number)."""
     out = []
     for name, tp in annotations(type(est)).items():
-        args = typing.get_args(tp) if typing.get_origin(tp) in (typing.Union,
-                                                                types.UnionType) else (tp,)
+        args = (
+            typing.get_args(tp)
+            if typing.get_origin(tp) in (typing.Union, types.UnionType)
+            else (tp,)
+        )
         args = tuple(a for a in args if a is not type(None))
         if name in _param_names(est) and args and all(a in (float, int) for a in args):
             out.append(name)
@@ -136,12 +148,15 @@ def check_init_stores_params(est: Any) -> None:
     try:
         built = type(est)(**sentinels)
     except Exception as exc:
-        raise AssertionError(f"__init__ works on its parameters (placeholder values raised "
-                             f"{type(exc).__name__}: {exc}); store them unchanged and check "
-                             f"them in validate_params") from exc
+        raise AssertionError(
+            f"__init__ works on its parameters (placeholder values raised "
+            f"{type(exc).__name__}: {exc}); store them unchanged and check "
+            f"them in validate_params"
+        ) from exc
     for p, sentinel in sentinels.items():
         assert getattr(built, p, None) is sentinel, (
-            f"__init__ must store parameter {p!r} unchanged as self.{p} (no conversion)")
+            f"__init__ must store parameter {p!r} unchanged as self.{p} (no conversion)"
+        )
     extra = sorted(set(vars(built)) - set(params))
     assert not extra, f"__init__ sets attributes that are not parameters: {extra} (do work in fit)"
 
@@ -150,7 +165,8 @@ def check_get_params_round_trip(est: Any) -> None:
     """``get_params()`` names every ``__init__`` parameter; building from it gives the same."""
     params = est.get_params()
     assert set(params) == set(_param_names(est)), (
-        f"get_params() keys {sorted(params)} differ from __init__'s {sorted(_param_names(est))}")
+        f"get_params() keys {sorted(params)} differ from __init__'s {sorted(_param_names(est))}"
+    )
     again = type(est)(**params).get_params()
     assert all(_same(again[k], v) for k, v in params.items()), "rebuilding changed the params"
     est.set_params(**params)
@@ -186,7 +202,8 @@ def _rejects(est: Any, run: Callable[[Any], Any], where: str) -> None:
                 call(bad)
             except ConfigError as exc:
                 assert p in str(exc), (
-                    f"{action} with {p}={WRONG_TYPE!r}: message {exc} misses {p!r}")
+                    f"{action} with {p}={WRONG_TYPE!r}: message {exc} misses {p!r}"
+                )
             else:
                 raise AssertionError(f"{action} accepted {p}={WRONG_TYPE!r} (expected ConfigError)")
 
@@ -211,7 +228,8 @@ def check_labels(est: Any) -> None:
     assert labels.min() >= -1, f"labels_ below -1: {labels.min()} (noise is -1)"
     n = len(np.unique(labels[labels >= 0]))
     assert getattr(est, "n_clusters_", None) == n, (
-        f"n_clusters_ = {getattr(est, 'n_clusters_', None)!r}, labels_ hold {n} trees")
+        f"n_clusters_ = {getattr(est, 'n_clusters_', None)!r}, labels_ hold {n} trees"
+    )
 
 
 def check_fit_predict(est: Any) -> None:
@@ -303,7 +321,8 @@ def check_coplanar(est: Any) -> None:
     """Coplanar points enclose nothing: ``valid=False``, 0 m³ and a reason."""
     result = est(coplanar())
     assert result.valid is False and result.volume_m3 == 0.0, (
-        f"coplanar points: valid={result.valid}, {result.volume_m3} m³")
+        f"coplanar points: valid={result.valid}, {result.volume_m3} m³"
+    )
     assert result.reason, "no reason for an invalid result"
 
 
@@ -311,7 +330,8 @@ def check_too_few_points(est: Any) -> None:
     """Three points enclose nothing: ``valid=False`` and 0 m³."""
     result = est(np.eye(3))
     assert result.valid is False and result.volume_m3 == 0.0, (
-        f"3 points: valid={result.valid}, {result.volume_m3} m³")
+        f"3 points: valid={result.valid}, {result.volume_m3} m³"
+    )
 
 
 def check_vol_rejects_nan(est: Any) -> None:
@@ -396,7 +416,7 @@ def checks_for(estimator: Any) -> list[Check]:
     cls = estimator if isinstance(estimator, type) else type(estimator)
     if hasattr(cls, "fit"):
         return segmenter_checks()
-    if callable(getattr(cls, "__call__", None)):
+    if any("__call__" in vars(k) for k in cls.__mro__[:-1]):
         return volume_checks()
     raise TypeError(f"{cls.__name__} is neither a segmenter (fit) nor a volume estimator")
 
@@ -434,5 +454,6 @@ def parametrize_with_checks(estimators: Iterable[Any]) -> Any:
     import pytest
 
     pairs = list(_pairs(estimators))
-    return pytest.mark.parametrize("estimator, check", [(e, c) for e, c, _ in pairs],
-                                   ids=[i for _, _, i in pairs])
+    return pytest.mark.parametrize(
+        "estimator, check", [(e, c) for e, c, _ in pairs], ids=[i for _, _, i in pairs]
+    )

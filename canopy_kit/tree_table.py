@@ -12,8 +12,19 @@ import pandas as pd
 from canopy_kit.config import GroundTruthConfig
 from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS
 
-FIRST_COLUMNS = ["tree_id", "label", "row", "x", "y", "lat", "lon", "n_points", "height_m",
-                 "crown_diameter_m", *PAPER_VOLUME_COLUMNS]
+FIRST_COLUMNS = [
+    "tree_id",
+    "label",
+    "row",
+    "x",
+    "y",
+    "lat",
+    "lon",
+    "n_points",
+    "height_m",
+    "crown_diameter_m",
+    *PAPER_VOLUME_COLUMNS,
+]
 
 
 def tree_table(ctx: Any) -> pd.DataFrame:
@@ -53,8 +64,9 @@ AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tr
 }
 
 
-def join_aerial(trees: pd.DataFrame, aerial: Any,
-                settings: GroundTruthConfig | None = None) -> pd.DataFrame:
+def join_aerial(
+    trees: pd.DataFrame, aerial: Any, settings: GroundTruthConfig | None = None
+) -> pd.DataFrame:
     """Add the matched aerial crown diameter and sphere volume, and the LiDAR-vs-aerial errors.
 
     ``aerial_flag`` names an aerial crown that cannot be the same tree's crown (its diameter
@@ -70,9 +82,13 @@ def join_aerial(trees: pd.DataFrame, aerial: Any,
     ratio = out["aerial_diameter_m"] / out["crown_diameter_m"]
     out["aerial_flag"] = np.select(
         [ratio < st.min_diameter_ratio, ratio > st.max_diameter_ratio],
-        [f"aerial crown a fragment (diameter below {st.min_diameter_ratio:g}x the LiDAR crown's)",
-         f"aerial crown merged with neighbours (diameter above {st.max_diameter_ratio:g}x "
-         "the LiDAR crown's)"], default="")
+        [
+            f"aerial crown a fragment (diameter below {st.min_diameter_ratio:g}x the LiDAR crown's)",
+            f"aerial crown merged with neighbours (diameter above {st.max_diameter_ratio:g}x "
+            "the LiDAR crown's)",
+        ],
+        default="",
+    )
     usable = comparable_aerial_sphere(out)
     for col in PAPER_VOLUME_COLUMNS:
         if col in out:

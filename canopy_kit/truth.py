@@ -33,10 +33,27 @@ from canopy_kit.io.atomic import atomic_write_text
 from canopy_kit.session_layout import SIM_CONFIG, TRUTH_DIR
 
 TREE_COLUMNS = [
-    "tree_id", "row", "index_in_row", "label", "x", "y", "z_ground", "lat", "lon",
-    "crown_x", "crown_y", "crown_z", "trunk_height_m", "crown_base_height_m", "crown_height_m",
-    "tree_height_m", "crown_diameter_m", "crown_diameter_mean_m", "crown_volume_m3",
-    "sphere_volume_m3", "doubled",
+    "tree_id",
+    "row",
+    "index_in_row",
+    "label",
+    "x",
+    "y",
+    "z_ground",
+    "lat",
+    "lon",
+    "crown_x",
+    "crown_y",
+    "crown_z",
+    "trunk_height_m",
+    "crown_base_height_m",
+    "crown_height_m",
+    "tree_height_m",
+    "crown_diameter_m",
+    "crown_diameter_mean_m",
+    "crown_volume_m3",
+    "sphere_volume_m3",
+    "doubled",
 ]
 TRUTH_FILES = ("trees.csv", "trajectory.csv", "frame.json")
 
@@ -102,9 +119,14 @@ def load_truth(session_dir: str | Path) -> SessionTruth:
             raise InputError(f"{truth}: not a simulated session's truth folder (no {name})")
     info = json.loads((truth / "frame.json").read_text())
     base = truth / "base_trajectory.csv"
-    return SessionTruth(truth.parent, pd.read_csv(truth / "trees.csv"),
-                        pd.read_csv(truth / "trajectory.csv"), LocalFrame.from_dict(info["frame"]),
-                        info, pd.read_csv(base) if base.exists() else None)
+    return SessionTruth(
+        truth.parent,
+        pd.read_csv(truth / "trees.csv"),
+        pd.read_csv(truth / "trajectory.csv"),
+        LocalFrame.from_dict(info["frame"]),
+        info,
+        pd.read_csv(base) if base.exists() else None,
+    )
 
 
 def load_world(session_dir: str | Path) -> WorldModel:
@@ -114,12 +136,14 @@ def load_world(session_dir: str | Path) -> WorldModel:
         if (truth / marker).exists():
             module, _, attr = ref.partition(":")
             return getattr(importlib.import_module(module), attr)(Path(session_dir))
-    raise InputError(f"{truth}: no generator's files ({', '.join(WORLD_MODELS)}) to rebuild "
-                     "the exact world from")
+    raise InputError(
+        f"{truth}: no generator's files ({', '.join(WORLD_MODELS)}) to rebuild the exact world from"
+    )
 
 
-def true_pose_interpolator(session_dir: str | Path
-                           ) -> Callable[[np.ndarray], tuple[np.ndarray, Any]]:
+def true_pose_interpolator(
+    session_dir: str | Path,
+) -> Callable[[np.ndarray], tuple[np.ndarray, Any]]:
     """``f(times) -> (positions, rotations)`` from the session's true trajectory."""
     from scipy.spatial.transform import Rotation, Slerp
 

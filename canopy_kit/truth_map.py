@@ -23,9 +23,13 @@ from canopy_kit.truth import load_truth, true_pose_interpolator
 from canopy_kit.voxel import voxel_downsample
 
 
-def truth_map(sim_dir: str | Path, voxel_size: float = 0.05, every: int = 1,
-              max_range: float = 30.0, progress: Callable[[str, float, float], None] | None = None
-              ) -> PointCloud:
+def truth_map(
+    sim_dir: str | Path,
+    voxel_size: float = 0.05,
+    every: int = 1,
+    max_range: float = 30.0,
+    progress: Callable[[str, float, float], None] | None = None,
+) -> PointCloud:
     """Deskew every ``every``-th scan with the true poses and accumulate a voxel-thinned map.
 
     Per-point attributes (intensity, ring, tree_id...) are kept; ``time`` holds absolute
@@ -47,7 +51,9 @@ def truth_map(sim_dir: str | Path, voxel_size: float = 0.05, every: int = 1,
             p, r = pose_at(uniq)
             mats = r.as_matrix()[inv.ravel()]
             world = np.einsum("nij,nj->ni", mats, scan.xyz[keep]) + p[inv.ravel()]
-            fields = {k: v[keep] for k, v in scan.fields.items() if k not in ("t", "time", "timestamp")}
+            fields = {
+                k: v[keep] for k, v in scan.fields.items() if k not in ("t", "time", "timestamp")
+            }
             fields["time"] = times[keep]
             chunks.append(PointCloud(world, fields))
             pending += len(world)
@@ -73,13 +79,17 @@ class TruthMapping:
     warnings: list[str] = field(default_factory=list)
 
 
-def truth_mapping(sim_dir: str | Path, voxel_size: float = 0.05,
-                  progress: Callable[[str, float, float], None] | None = None,
-                  max_range: float = 30.0) -> TruthMapping:
+def truth_mapping(
+    sim_dir: str | Path,
+    voxel_size: float = 0.05,
+    progress: Callable[[str, float, float], None] | None = None,
+    max_range: float = 30.0,
+) -> TruthMapping:
     """Map and trajectory of a simulated session from its true poses (for controlled studies)."""
     truth = load_truth(sim_dir)
     cloud = truth_map(sim_dir, voxel_size, max_range=max_range, progress=progress)
     traj = truth.trajectory.copy()
     steps = np.linalg.norm(np.diff(traj[["x", "y", "z"]].to_numpy(), axis=0), axis=1)
-    return TruthMapping(cloud, traj, truth.frame,
-                        {"source": "true poses", "path_length_m": float(steps.sum())})
+    return TruthMapping(
+        cloud, traj, truth.frame, {"source": "true poses", "path_length_m": float(steps.sum())}
+    )

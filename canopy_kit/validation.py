@@ -12,12 +12,15 @@ from canopy_kit import stats
 from canopy_kit.errors import InputError
 
 
-def truth_offset(run_origin: np.ndarray, run_crs: str | None, truth_origin: np.ndarray,
-                 truth_crs: str) -> np.ndarray:
+def truth_offset(
+    run_origin: np.ndarray, run_crs: str | None, truth_origin: np.ndarray, truth_crs: str
+) -> np.ndarray:
     """Vector to add to run-local coordinates to get truth-local ones (same CRS required)."""
     if run_crs is None:
-        raise InputError("the map has no CRS (no GNSS?): footprints cannot be compared with the "
-                         "truth; keep the per-point truth field for evaluation")
+        raise InputError(
+            "the map has no CRS (no GNSS?): footprints cannot be compared with the "
+            "truth; keep the per-point truth field for evaluation"
+        )
     if run_crs != truth_crs:
         raise InputError(f"map CRS {run_crs} differs from the truth's {truth_crs}")
     return np.asarray(run_origin, float) - np.asarray(truth_origin, float)
@@ -35,12 +38,14 @@ def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
     if "tree_id" in cloud.fields:
         field = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
         observed = sorted(set(np.unique(field[field >= 0]).tolist()) & set(truth_labels.index))
-        return score_point_labels(seg.labels, field, truth_labels=truth_labels.loc[observed],
-                                  pred_labels=pred_labels)
+        return score_point_labels(
+            seg.labels, field, truth_labels=truth_labels.loc[observed], pred_labels=pred_labels
+        )
     shift = truth_offset(cloud.origin, cloud.crs, truth.frame.origin, truth.frame.crs)[:2]
     pred = {k: v + shift for k, v in seg.footprints.items()}
-    return score_footprints(pred, truth_footprints(sim_dir), truth_labels=truth_labels,
-                            pred_labels=pred_labels)
+    return score_footprints(
+        pred, truth_footprints(sim_dir), truth_labels=truth_labels, pred_labels=pred_labels
+    )
 
 
 def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict[str, Any]:
@@ -52,13 +57,31 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
     score = score_segmentation(ctx, sim_dir)
     pairs = score.trees[score.trees["segment_id"] >= 0][["truth_id", "segment_id"]]
     t = truth.trees.set_index("tree_id")
-    matched = pairs.join(t[["label", "row", "crown_volume_m3", "sphere_volume_m3",
-                            "crown_diameter_m", "tree_height_m"]], on="truth_id")
-    matched = matched.rename(columns={
-        "truth_id": "truth_tree_id", "segment_id": "segment", "label": "truth_label",
-        "row": "truth_row", "crown_volume_m3": "true_crown_volume_m3",
-        "sphere_volume_m3": "true_sphere_volume_m3", "crown_diameter_m": "true_crown_diameter_m",
-        "tree_height_m": "true_height_m"})
+    matched = pairs.join(
+        t[
+            [
+                "label",
+                "row",
+                "crown_volume_m3",
+                "sphere_volume_m3",
+                "crown_diameter_m",
+                "tree_height_m",
+            ]
+        ],
+        on="truth_id",
+    )
+    matched = matched.rename(
+        columns={
+            "truth_id": "truth_tree_id",
+            "segment_id": "segment",
+            "label": "truth_label",
+            "row": "truth_row",
+            "crown_volume_m3": "true_crown_volume_m3",
+            "sphere_volume_m3": "true_sphere_volume_m3",
+            "crown_diameter_m": "true_crown_diameter_m",
+            "tree_height_m": "true_height_m",
+        }
+    )
     out = trees.merge(matched, on="segment", how="left")
     volumes: dict[str, Any] = {}
     ok = out["true_crown_volume_m3"].notna()
@@ -66,19 +89,28 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
         col = volume_column(method)
         if col not in out:
             continue
-        out[f"error_{method}_vs_true_pct"] = 100 * (out[col] - out["true_crown_volume_m3"]) / out[
-            "true_crown_volume_m3"]
+        out[f"error_{method}_vs_true_pct"] = (
+            100 * (out[col] - out["true_crown_volume_m3"]) / out["true_crown_volume_m3"]
+        )
         good = ok & out[col].notna()
         if good.sum() >= 2:
-            volumes[method] = stats.agreement(out.loc[good, col].to_numpy(),
-                                              out.loc[good, "true_crown_volume_m3"].to_numpy()).as_dict()
+            volumes[method] = stats.agreement(
+                out.loc[good, col].to_numpy(), out.loc[good, "true_crown_volume_m3"].to_numpy()
+            ).as_dict()
     if ok.sum() >= 2:
         volumes["sphere_from_lidar_diameter"] = stats.agreement(
-            out.loc[ok, "sphere_volume_m3"].to_numpy(), out.loc[ok, "true_crown_volume_m3"].to_numpy()).as_dict()
-        volumes["diameter_mae_m"] = float(np.mean(np.abs(out.loc[ok, "crown_diameter_m"]
-                                                         - out.loc[ok, "true_crown_diameter_m"])))
-    result: dict[str, Any] = {"segmentation": score.to_dict(), "volumes": volumes,
-                              "segmentation_trees": score.trees, "trees": out}
+            out.loc[ok, "sphere_volume_m3"].to_numpy(),
+            out.loc[ok, "true_crown_volume_m3"].to_numpy(),
+        ).as_dict()
+        volumes["diameter_mae_m"] = float(
+            np.mean(np.abs(out.loc[ok, "crown_diameter_m"] - out.loc[ok, "true_crown_diameter_m"]))
+        )
+    result: dict[str, Any] = {
+        "segmentation": score.to_dict(),
+        "volumes": volumes,
+        "segmentation_trees": score.trees,
+        "trees": out,
+    }
     mapping_eval = _mapping_evaluation(ctx, sim_dir)
     if mapping_eval:
         result["mapping"] = mapping_eval

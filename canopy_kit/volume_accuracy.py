@@ -35,8 +35,9 @@ def alley_sides(sim_dir: str | Path, cloud: Any, trees: Any) -> np.ndarray:
     return side
 
 
-def segmented_volume_errors(sim_dir: str | Path, config: Any, methods: list[str],
-                            reference_map: Any = None) -> tuple[Any, Any]:
+def segmented_volume_errors(
+    sim_dir: str | Path, config: Any, methods: list[str], reference_map: Any = None
+) -> tuple[Any, Any]:
     """Volume errors on the trees the pipeline segments, as trees.csv measures them.
 
     The map (true poses unless ``reference_map`` is given) is segmented with ``config``'s
@@ -51,15 +52,21 @@ def segmented_volume_errors(sim_dir: str | Path, config: Any, methods: list[str]
     from canopy_kit.evaluate import score_point_labels
     from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.segment.verb import make_segmenter, segment
-    from canopy_kit.volume.verb import measure_trees, volume_column
     from canopy_kit.truth import load_truth
     from canopy_kit.truth_map import truth_map
+    from canopy_kit.volume.verb import measure_trees, volume_column
 
     truth = load_truth(sim_dir)
-    cloud = on_las_grid(reference_map if reference_map is not None
-                        else truth_map(sim_dir, voxel_size=0.05))
-    seg = segment(cloud, make_segmenter(config.segment.method, config.segment.params),
-                  config.preprocess, config.rows, seed=config.seed)
+    cloud = on_las_grid(
+        reference_map if reference_map is not None else truth_map(sim_dir, voxel_size=0.05)
+    )
+    seg = segment(
+        cloud,
+        make_segmenter(config.segment.method, config.segment.params),
+        config.preprocess,
+        config.rows,
+        seed=config.seed,
+    )
     score = score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
     correct = score.trees[score.trees["status"] == "correct"]
     true_id_of = dict(zip(correct["segment_id"], correct["truth_id"], strict=True))
@@ -78,8 +85,15 @@ def segmented_volume_errors(sim_dir: str | Path, config: Any, methods: list[str]
             for method in methods:
                 v = float(getattr(tree, volume_column(method)))
                 rows.append({**base, "method": method, "volume_m3": v, "error": v / truth_v - 1})
-            rows.append({**base, "method": "interval", "volume_m3": np.nan, "error": np.nan,
-                         "covered": bool(tree.volume_low_m3 <= truth_v <= tree.volume_high_m3),
-                         "coverage": float(tree.scan_coverage),
-                         "flags": str(tree.volume_interval_flags)})
+            rows.append(
+                {
+                    **base,
+                    "method": "interval",
+                    "volume_m3": np.nan,
+                    "error": np.nan,
+                    "covered": bool(tree.volume_low_m3 <= truth_v <= tree.volume_high_m3),
+                    "coverage": float(tree.scan_coverage),
+                    "flags": str(tree.volume_interval_flags),
+                }
+            )
     return pd.DataFrame(rows), score

@@ -71,8 +71,9 @@ def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.
     return reps, inverse
 
 
-def voxel_downsample(cloud: PointCloud, size: float,
-                     mode: Literal["nearest", "centroid"] = "nearest") -> PointCloud:
+def voxel_downsample(
+    cloud: PointCloud, size: float, mode: Literal["nearest", "centroid"] = "nearest"
+) -> PointCloud:
     """One point per occupied voxel with all attributes kept.
 
     ``nearest`` keeps the real point closest to the voxel centre (attributes untouched);
@@ -88,8 +89,9 @@ def voxel_downsample(cloud: PointCloud, size: float,
 def group_means(xyz: np.ndarray, groups: np.ndarray) -> np.ndarray:
     """Mean point of each group (groups: non-negative ints, every one up to the largest used)."""
     counts = np.bincount(groups)
-    return np.stack([np.bincount(groups, xyz[:, i]) for i in range(xyz.shape[1])], 1) / \
-        counts[:, None]
+    return (
+        np.stack([np.bincount(groups, xyz[:, i]) for i in range(xyz.shape[1])], 1) / counts[:, None]
+    )
 
 
 def voxel_centroids(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,9 @@ class PosedCamera:
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
-            raise InputError(f"camera {self.name}: model {self.model} is not one of {', '.join(MODELS)}")
+            raise InputError(
+                f"camera {self.name}: model {self.model} is not one of {', '.join(MODELS)}"
+            )
 
     @property
     def center(self) -> np.ndarray:
@@ -73,18 +75,39 @@ class PosedCamera:
             x, y = x * d, y * d
         return np.column_stack([fx * x + cx, fy * y + cy]), depth
 
-    def scaled(self, factor: float) -> "PosedCamera":
+    def scaled(self, factor: float) -> PosedCamera:
         """The same camera for the image resized by ``factor`` (e.g. 0.5 for half size)."""
         p = list(self.params)
         n_lin = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 3, "RADIAL": 3}[self.model]
         p[:n_lin] = [v * factor for v in p[:n_lin]]
-        return PosedCamera(self.name, self.model, tuple(p), round(self.width * factor),
-                           round(self.height * factor), self.rotation, self.translation)
+        return PosedCamera(
+            self.name,
+            self.model,
+            tuple(p),
+            round(self.width * factor),
+            round(self.height * factor),
+            self.rotation,
+            self.translation,
+        )
 
 
-def camera_from_pose(name: str, model: str, params: tuple[float, ...], width: int, height: int,
-                     center: np.ndarray, cam_to_world: np.ndarray) -> PosedCamera:
+def camera_from_pose(
+    name: str,
+    model: str,
+    params: tuple[float, ...],
+    width: int,
+    height: int,
+    center: np.ndarray,
+    cam_to_world: np.ndarray,
+) -> PosedCamera:
     """A camera from its centre and camera-to-world rotation (as the simulator stores them)."""
     r = np.asarray(cam_to_world, float).T
-    return PosedCamera(name, model, tuple(float(v) for v in params), int(width), int(height), r,
-                       -r @ np.asarray(center, float))
+    return PosedCamera(
+        name,
+        model,
+        tuple(float(v) for v in params),
+        int(width),
+        int(height),
+        r,
+        -r @ np.asarray(center, float),
+    )

@@ -25,14 +25,34 @@ import pandas as pd
 from canopy_kit.errors import ProcessingError
 from ground_truth.envelope import envelope_volume
 from ground_truth.raster import Grid
-from ground_truth.rows import (RowDirection, directional_extents, estimate_row_direction,
-                               principal_axis)
+from ground_truth.rows import (
+    RowDirection,
+    directional_extents,
+    estimate_row_direction,
+    principal_axis,
+)
 
 CROWN_COLUMNS = [
-    "crown_id", "x", "y", "area_m2", "diameter_max_m", "diameter_perp_m", "diameter_mean_m",
-    "diameter_along_row_m", "diameter_across_row_m", "diameter_equivalent_m", "height_m",
-    "edge_height_m", "outline_height_m", "sphere_volume_m3", "sphere_volume_mean_m3",
-    "ellipsoid_volume_m3", "chm_volume_m3", "envelope_volume_m3", "seed_id", "touches_border",
+    "crown_id",
+    "x",
+    "y",
+    "area_m2",
+    "diameter_max_m",
+    "diameter_perp_m",
+    "diameter_mean_m",
+    "diameter_along_row_m",
+    "diameter_across_row_m",
+    "diameter_equivalent_m",
+    "height_m",
+    "edge_height_m",
+    "outline_height_m",
+    "sphere_volume_m3",
+    "sphere_volume_mean_m3",
+    "ellipsoid_volume_m3",
+    "chm_volume_m3",
+    "envelope_volume_m3",
+    "seed_id",
+    "touches_border",
     "shared_outline_fraction",
 ]
 
@@ -53,7 +73,9 @@ class CrownOptions:
     gap_closing_m: float = 0.1
     speck_opening_m: float = 0.25
     seed_snap_m: float = 1.0
-    seed_disc_fraction: float = 0.3  # seeded: marker discs of this share of the nearest-seed distance
+    seed_disc_fraction: float = (
+        0.3  # seeded: marker discs of this share of the nearest-seed distance
+    )
     seed_disc_max_m: float = 1.5
     use_color: bool = True
 
@@ -108,7 +130,7 @@ def vegetation_images(rgbs: list[np.ndarray], sigma: float = 0.0) -> list[np.nda
 
 def _disk(radius_cells: float) -> np.ndarray:
     r = max(int(np.ceil(radius_cells)), 1)
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     return (xx**2 + yy**2) <= radius_cells**2 + 1e-9
 
 
@@ -130,8 +152,13 @@ def raised_mask(chm: np.ndarray, resolution: float, options: CrownOptions) -> np
     its dark shadow (measured: about 1.5 m high beside 4 m crowns), which would otherwise
     glue shadowed weeds to the crown.
     """
-    from scipy.ndimage import (binary_closing, binary_dilation, binary_fill_holes, maximum_filter,
-                               median_filter)
+    from scipy.ndimage import (
+        binary_closing,
+        binary_dilation,
+        binary_fill_holes,
+        maximum_filter,
+        median_filter,
+    )
 
     # Work on cells of about 0.1 m: the CHM is no finer than that, and filters stay cheap.
     step = max(int(round(0.1 / resolution)), 1)
@@ -150,8 +177,9 @@ def raised_mask(chm: np.ndarray, resolution: float, options: CrownOptions) -> np
     return raised[np.ix_(rows, cols)]
 
 
-def canopy_mask(rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: Grid,
-                options: CrownOptions) -> tuple[np.ndarray, np.ndarray, float]:
+def canopy_mask(
+    rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: Grid, options: CrownOptions
+) -> tuple[np.ndarray, np.ndarray, float]:
     """(canopy, vegetation, excess-green threshold) on the orthomosaic grid.
 
     Porous crowns give a CHM full of holes (the surface found is often deep inside or
@@ -174,8 +202,9 @@ def canopy_mask(rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: Grid,
     return canopy, vegetation, threshold
 
 
-def _markers_from_seeds(seeds_xy: np.ndarray, canopy: np.ndarray, grid: Grid,
-                        snap_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _markers_from_seeds(
+    seeds_xy: np.ndarray, canopy: np.ndarray, grid: Grid, snap_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Marker cells for given positions, snapped into the canopy within ``snap_m``."""
     from scipy.ndimage import distance_transform_edt
 
@@ -192,16 +221,22 @@ def _markers_from_seeds(seeds_xy: np.ndarray, canopy: np.ndarray, grid: Grid,
     return np.array(cells, int).reshape(-1, 2), np.array(ids, int)
 
 
-def _markers_from_maxima(chm_smooth: np.ndarray, canopy: np.ndarray, grid: Grid,
-                         options: CrownOptions) -> np.ndarray:
+def _markers_from_maxima(
+    chm_smooth: np.ndarray, canopy: np.ndarray, grid: Grid, options: CrownOptions
+) -> np.ndarray:
     """Local CHM maxima at least ``min_tree_spacing_m`` apart; one per canopy patch at least."""
     from scipy.ndimage import label, maximum_position
     from skimage.feature import peak_local_max
 
     patches, n = label(canopy)
     spacing = max(int(round(options.min_tree_spacing_m / grid.resolution)), 1)
-    peaks = peak_local_max(np.where(canopy, chm_smooth, 0.0), min_distance=spacing,
-                           threshold_abs=options.min_height, labels=patches, exclude_border=False)
+    peaks = peak_local_max(
+        np.where(canopy, chm_smooth, 0.0),
+        min_distance=spacing,
+        threshold_abs=options.min_height,
+        labels=patches,
+        exclude_border=False,
+    )
     have = set(patches[tuple(peaks.T)].tolist()) if len(peaks) else set()
     missing = [k for k in range(1, n + 1) if k not in have]
     if missing:
@@ -210,8 +245,9 @@ def _markers_from_maxima(chm_smooth: np.ndarray, canopy: np.ndarray, grid: Grid,
     return peaks.reshape(-1, 2)
 
 
-def _seed_discs(markers: np.ndarray, cells: np.ndarray, canopy: np.ndarray, grid: Grid,
-                options: CrownOptions) -> np.ndarray:
+def _seed_discs(
+    markers: np.ndarray, cells: np.ndarray, canopy: np.ndarray, grid: Grid, options: CrownOptions
+) -> np.ndarray:
     """Grow each seed marker into a disc (in the canopy) of ``seed_disc_fraction`` of the
     distance to its nearest other seed, at most ``seed_disc_max_m``.
 
@@ -225,32 +261,51 @@ def _seed_discs(markers: np.ndarray, cells: np.ndarray, canopy: np.ndarray, grid
 
     pos = cells.astype(float)
     dist, _ = cKDTree(pos).query(pos, k=2)
-    radius = np.minimum(options.seed_disc_fraction * dist[:, 1],
-                        options.seed_disc_max_m / grid.resolution)
+    radius = np.minimum(
+        options.seed_disc_fraction * dist[:, 1], options.seed_disc_max_m / grid.resolution
+    )
     out = markers.copy()
     for k, ((r, c), rad) in enumerate(zip(cells, radius)):
         if markers[r, c] != k + 1 or rad < 1:
             continue
         ri = int(np.ceil(rad))
-        r0, r1, c0, c1 = max(r - ri, 0), min(r + ri + 1, grid.rows), max(c - ri, 0), min(c + ri + 1, grid.cols)
+        r0, r1, c0, c1 = (
+            max(r - ri, 0),
+            min(r + ri + 1, grid.rows),
+            max(c - ri, 0),
+            min(c + ri + 1, grid.cols),
+        )
         yy, xx = np.mgrid[r0:r1, c0:c1]
-        disc = ((yy - r) ** 2 + (xx - c) ** 2 <= rad**2) & canopy[r0:r1, c0:c1] & (out[r0:r1, c0:c1] == 0)
+        disc = (
+            ((yy - r) ** 2 + (xx - c) ** 2 <= rad**2)
+            & canopy[r0:r1, c0:c1]
+            & (out[r0:r1, c0:c1] == 0)
+        )
         out[r0:r1, c0:c1][disc] = k + 1
     return out
 
 
-def delineate_crowns(rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: Grid,
-                     seeds_xy: np.ndarray | None = None,
-                     options: CrownOptions | None = None) -> CrownSegmentation:
+def delineate_crowns(
+    rgb: np.ndarray,
+    valid: np.ndarray,
+    chm: np.ndarray,
+    grid: Grid,
+    seeds_xy: np.ndarray | None = None,
+    options: CrownOptions | None = None,
+) -> CrownSegmentation:
     """Individual crowns on the orthomosaic grid; ``chm`` must be on the same grid."""
     from scipy.ndimage import gaussian_filter
     from skimage.segmentation import watershed
 
     opts = options or CrownOptions()
     canopy, vegetation, threshold = canopy_mask(rgb, valid, chm, grid, opts)
-    chm_smooth = gaussian_filter(np.nan_to_num(chm, nan=0.0), opts.chm_smoothing_m / grid.resolution)
+    chm_smooth = gaussian_filter(
+        np.nan_to_num(chm, nan=0.0), opts.chm_smoothing_m / grid.resolution
+    )
     if seeds_xy is not None and len(seeds_xy):
-        cells, seed_ids = _markers_from_seeds(np.asarray(seeds_xy, float), canopy, grid, opts.seed_snap_m)
+        cells, seed_ids = _markers_from_seeds(
+            np.asarray(seeds_xy, float), canopy, grid, opts.seed_snap_m
+        )
     else:
         cells = _markers_from_maxima(chm_smooth, canopy, grid, opts)
         seed_ids = np.full(len(cells), -1)
@@ -260,14 +315,23 @@ def delineate_crowns(rgb: np.ndarray, valid: np.ndarray, chm: np.ndarray, grid: 
             markers[r, c] = k + 1
     if seeds_xy is not None and len(cells) > 1 and opts.seed_disc_fraction > 0:
         markers = _seed_discs(markers, cells, canopy, grid, opts)
-    labels = watershed(-chm_smooth, markers, mask=canopy) if len(cells) else np.zeros(grid.shape, np.int32)
+    labels = (
+        watershed(-chm_smooth, markers, mask=canopy)
+        if len(cells)
+        else np.zeros(grid.shape, np.int32)
+    )
     x, y = grid.centers()
-    pos = np.column_stack([x[tuple(cells.T)], y[tuple(cells.T)]]) if len(cells) else np.zeros((0, 2))
-    return CrownSegmentation(grid, labels.astype(np.int32), canopy, vegetation, threshold, pos,
-                             np.asarray(seed_ids, int))
+    pos = (
+        np.column_stack([x[tuple(cells.T)], y[tuple(cells.T)]]) if len(cells) else np.zeros((0, 2))
+    )
+    return CrownSegmentation(
+        grid, labels.astype(np.int32), canopy, vegetation, threshold, pos, np.asarray(seed_ids, int)
+    )
 
 
-def feret_extents(rows: np.ndarray, cols: np.ndarray, resolution: float) -> tuple[float, float, float]:
+def feret_extents(
+    rows: np.ndarray, cols: np.ndarray, resolution: float
+) -> tuple[float, float, float]:
     """(widest extent, extent perpendicular to it, widest axis angle) of a pixel region, metres.
 
     Extents of pixel centres plus one cell: unbiased for regions much larger than a cell.
@@ -309,8 +373,9 @@ def _closed_chm(chm: np.ndarray, resolution: float, radius_m: float = 0.3) -> np
     return closed[np.ix_(rows, cols)]
 
 
-def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
-                   row_direction: RowDirection | None = None) -> pd.DataFrame:
+def measure_crowns(
+    seg: CrownSegmentation, chm: np.ndarray, row_direction: RowDirection | None = None
+) -> pd.DataFrame:
     """One row per crown: centre, area, diameters, heights and volume models.
 
     ``row_direction`` (default: estimated from the crowns, ``rows.estimate_row_direction``)
@@ -334,42 +399,63 @@ def measure_crowns(seg: CrownSegmentation, chm: np.ndarray,
         d_max, d_perp, _ = feret_extents(rr_abs, cc_abs, res)
         h = np.nan_to_num(chm[sl][region], nan=0.0)
         top = float(np.percentile(h, 95)) if h.size else 0.0
-        ring = region & ~binary_erosion(region, structure=_disk(max(0.3 / res, 1.0)), border_value=0)
+        ring = region & ~binary_erosion(
+            region, structure=_disk(max(0.3 / res, 1.0)), border_value=0
+        )
         edge = float(np.median(np.nan_to_num(chm[sl][ring], nan=0.0))) if ring.any() else 0.0
         edge = min(max(edge, 0.0), top)
         depth = 2.0 * (top - edge)
         # The envelope's widest level: the CHM right at the outline (cells within 0.15 m).
-        rim = region & ~binary_erosion(region, structure=_disk(max(0.15 / res, 1.0)),
-                                       border_value=0)
+        rim = region & ~binary_erosion(
+            region, structure=_disk(max(0.15 / res, 1.0)), border_value=0
+        )
         outline = float(np.median(np.nan_to_num(chm[sl][rim], nan=0.0))) if rim.any() else 0.0
         outline = min(max(outline, 0.0), top)
         d_mean = 0.5 * (d_max + d_perp)
         seed = int(seg.marker_seed_ids[lab - 1]) if lab - 1 < len(seg.marker_seed_ids) else -1
-        touches = bool(sl[0].start == 0 or sl[1].start == 0 or sl[0].stop == grid.rows
-                       or sl[1].stop == grid.cols)
+        touches = bool(
+            sl[0].start == 0
+            or sl[1].start == 0
+            or sl[0].stop == grid.rows
+            or sl[1].stop == grid.cols
+        )
         wide = tuple(slice(max(a.start - 1, 0), a.stop + 1) for a in sl)
         around = labels[wide]
         shared = shared_outline_fraction(around == lab, (around > 0) & (around != lab))
         cx, cy = x[rr_abs, cc_abs], y[rr_abs, cc_abs]
         cells.append((rr_abs, cc_abs, *principal_axis(rr_abs, cc_abs)))
-        rows.append({
-            "crown_id": lab, "x": float(cx.mean()), "y": float(cy.mean()),
-            "area_m2": float(area), "diameter_max_m": d_max, "diameter_perp_m": d_perp,
-            "diameter_mean_m": d_mean, "diameter_equivalent_m": float(2 * np.sqrt(area / np.pi)),
-            "height_m": top, "edge_height_m": edge, "outline_height_m": outline,
-            "sphere_volume_m3": np.pi * d_max**3 / 6.0,
-            "sphere_volume_mean_m3": np.pi * d_mean**3 / 6.0,
-            "ellipsoid_volume_m3": np.pi / 6.0 * d_max * d_perp * depth,
-            "chm_volume_m3": float(2.0 * np.sum(np.clip(surface[sl][region] - edge, 0.0, None)) * res**2),
-            "envelope_volume_m3": envelope_volume(h, cx, cy, outline, res),
-            "seed_id": seed, "touches_border": touches,
-            "shared_outline_fraction": shared,
-        })
+        rows.append(
+            {
+                "crown_id": lab,
+                "x": float(cx.mean()),
+                "y": float(cy.mean()),
+                "area_m2": float(area),
+                "diameter_max_m": d_max,
+                "diameter_perp_m": d_perp,
+                "diameter_mean_m": d_mean,
+                "diameter_equivalent_m": float(2 * np.sqrt(area / np.pi)),
+                "height_m": top,
+                "edge_height_m": edge,
+                "outline_height_m": outline,
+                "sphere_volume_m3": np.pi * d_max**3 / 6.0,
+                "sphere_volume_mean_m3": np.pi * d_mean**3 / 6.0,
+                "ellipsoid_volume_m3": np.pi / 6.0 * d_max * d_perp * depth,
+                "chm_volume_m3": float(
+                    2.0 * np.sum(np.clip(surface[sl][region] - edge, 0.0, None)) * res**2
+                ),
+                "envelope_volume_m3": envelope_volume(h, cx, cy, outline, res),
+                "seed_id": seed,
+                "touches_border": touches,
+                "shared_outline_fraction": shared,
+            }
+        )
     table = pd.DataFrame(rows, columns=CROWN_COLUMNS)
     if row_direction is None:
-        row_direction = estimate_row_direction(table[["x", "y"]].to_numpy(),
-                                               np.array([c[2] for c in cells]),
-                                               np.array([c[3] for c in cells]))
+        row_direction = estimate_row_direction(
+            table[["x", "y"]].to_numpy(),
+            np.array([c[2] for c in cells]),
+            np.array([c[3] for c in cells]),
+        )
     extents = [directional_extents(r, c, res, row_direction.vector) for r, c, _, _ in cells]
     table["diameter_along_row_m"] = [e[0] for e in extents]
     table["diameter_across_row_m"] = [e[1] for e in extents]

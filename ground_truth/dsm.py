@@ -75,8 +75,13 @@ def _fill_nans(values: np.ndarray, max_sigma: float = 64.0) -> np.ndarray:
     return out
 
 
-def reliable_points(points: np.ndarray, track_lengths: np.ndarray, errors: np.ndarray,
-                    min_track: int = 3, max_error_px: float = 1.0) -> np.ndarray:
+def reliable_points(
+    points: np.ndarray,
+    track_lengths: np.ndarray,
+    errors: np.ndarray,
+    min_track: int = 3,
+    max_error_px: float = 1.0,
+) -> np.ndarray:
     """Sparse points seen in at least ``min_track`` photos with a small reprojection error.
 
     Two-view points include rare gross outliers (one was 200 m below the ground).
@@ -85,8 +90,9 @@ def reliable_points(points: np.ndarray, track_lengths: np.ndarray, errors: np.nd
     return np.asarray(points)[keep]
 
 
-def ground_model(points: np.ndarray, grid: Grid, window_m: float = 10.0,
-                 resolution: float = 1.0) -> np.ndarray:
+def ground_model(
+    points: np.ndarray, grid: Grid, window_m: float = 10.0, resolution: float = 1.0
+) -> np.ndarray:
     """Ground heights on ``grid``: lowest point per coarse cell, opened by ``window_m``.
 
     The opening (minimum then maximum filter) removes anything narrower than the window
@@ -107,21 +113,29 @@ def ground_model(points: np.ndarray, grid: Grid, window_m: float = 10.0,
     low[~np.isfinite(low)] = np.nan
     size = max(int(round(window_m / resolution)) | 1, 3)
     filled = _fill_nans(low)
-    opened = maximum_filter(minimum_filter(filled, size=size, mode="nearest"), size=size, mode="nearest")
+    opened = maximum_filter(
+        minimum_filter(filled, size=size, mode="nearest"), size=size, mode="nearest"
+    )
     smooth = gaussian_filter(opened, sigma=max(size / 4.0, 1.0), mode="nearest")
     # Back to the fine grid (bilinear).
     fine = zoom(smooth, (grid.rows / coarse.rows, grid.cols / coarse.cols), order=1, mode="nearest")
     out = np.empty(grid.shape)
     out[: fine.shape[0], : fine.shape[1]] = fine[: grid.rows, : grid.cols]
     if fine.shape[0] < grid.rows:
-        out[fine.shape[0]:, :] = out[fine.shape[0] - 1: fine.shape[0], :]
+        out[fine.shape[0] :, :] = out[fine.shape[0] - 1 : fine.shape[0], :]
     if fine.shape[1] < grid.cols:
-        out[:, fine.shape[1]:] = out[:, fine.shape[1] - 1: fine.shape[1]]
+        out[:, fine.shape[1] :] = out[:, fine.shape[1] - 1 : fine.shape[1]]
     return out
 
 
-def nadir_views(cameras: Sequence[PosedCamera], grid: Grid, heights: np.ndarray, k: int,
-                margin_px: float = 8.0, block_m: float = 0.25) -> np.ndarray:
+def nadir_views(
+    cameras: Sequence[PosedCamera],
+    grid: Grid,
+    heights: np.ndarray,
+    k: int,
+    margin_px: float = 8.0,
+    block_m: float = 0.25,
+) -> np.ndarray:
     """(rows, cols, k) indices of the cameras seeing each cell nearest to nadir (-1: none).
 
     Decided per block of about ``block_m`` (the choice changes slowly across the ground),
@@ -141,13 +155,21 @@ def nadir_views(cameras: Sequence[PosedCamera], grid: Grid, heights: np.ndarray,
     for i, cam in enumerate(cameras):
         uv, depth = cam.project(pts)
         pad = margin_px + step * grid.resolution * cam.focal / max(float(np.median(depth)), 1e-6)
-        inside = ((depth > 0) & (uv[:, 0] >= pad) & (uv[:, 0] < cam.width - pad)
-                  & (uv[:, 1] >= pad) & (uv[:, 1] < cam.height - pad))
+        inside = (
+            (depth > 0)
+            & (uv[:, 0] >= pad)
+            & (uv[:, 0] < cam.width - pad)
+            & (uv[:, 1] >= pad)
+            & (uv[:, 1] < cam.height - pad)
+        )
         centre = cam.center
         dist[inside, i] = np.hypot(bx[inside] - centre[0], by[inside] - centre[1])
     kk = min(k, len(cameras))
-    order = np.argpartition(dist, kk - 1, axis=1)[:, :kk] if kk < len(cameras) else \
-        np.tile(np.arange(len(cameras)), (len(pts), 1))
+    order = (
+        np.argpartition(dist, kk - 1, axis=1)[:, :kk]
+        if kk < len(cameras)
+        else np.tile(np.arange(len(cameras)), (len(pts), 1))
+    )
     chosen = np.take_along_axis(dist, order, axis=1)
     sort = np.argsort(chosen, axis=1)
     order = np.take_along_axis(order, sort, axis=1)
@@ -165,8 +187,14 @@ class _ViewSampler:
     rotation column, so each height costs one division and one bilinear lookup per cell.
     """
 
-    def __init__(self, cameras: Sequence[PosedCamera], images: Sequence[np.ndarray],
-                 views: np.ndarray, xy: np.ndarray, ground: np.ndarray) -> None:
+    def __init__(
+        self,
+        cameras: Sequence[PosedCamera],
+        images: Sequence[np.ndarray],
+        views: np.ndarray,
+        xy: np.ndarray,
+        ground: np.ndarray,
+    ) -> None:
         self.n = len(views)
         self.groups = []
         for i in np.unique(views):
@@ -176,8 +204,9 @@ class _ViewSampler:
             cam = cameras[i]
             pts = np.column_stack([xy[idx], ground[idx]])
             base = (pts @ cam.rotation.T + cam.translation).astype(np.float32)
-            self.groups.append((idx, base, cam.rotation[:, 2].astype(np.float32), cam.intrinsics(),
-                                images[i]))
+            self.groups.append(
+                (idx, base, cam.rotation[:, 2].astype(np.float32), cam.intrinsics(), images[i])
+            )
 
     def sample(self, height: float) -> np.ndarray:
         from scipy.ndimage import map_coordinates
@@ -192,13 +221,23 @@ class _ViewSampler:
                 d = 1.0 + k1 * r2 + k2 * r2 * r2
                 x, y = x * d, y * d
             # map_coordinates indexes pixel centres at integers: shift by half a pixel.
-            out[idx] = map_coordinates(image, [fy * y + (cy - 0.5), fx * x + (cx - 0.5)], order=1,
-                                       mode="constant", cval=np.nan)
+            out[idx] = map_coordinates(
+                image,
+                [fy * y + (cy - 0.5), fx * x + (cx - 0.5)],
+                order=1,
+                mode="constant",
+                cval=np.nan,
+            )
         return out
 
 
-def _ncc(a: np.ndarray, b: np.ndarray, size: int, mask: np.ndarray | None = None,
-         min_fraction: float = 0.4) -> np.ndarray:
+def _ncc(
+    a: np.ndarray,
+    b: np.ndarray,
+    size: int,
+    mask: np.ndarray | None = None,
+    min_fraction: float = 0.4,
+) -> np.ndarray:
     """Windowed normalised cross-correlation of two rasters over the cells in ``mask``.
 
     NaN where either raster is NaN or fewer than ``min_fraction`` of the window counts.
@@ -232,10 +271,16 @@ def _class_disagreement(a: np.ndarray, b: np.ndarray, size: int) -> np.ndarray:
         return uniform_filter(diff, size) / w
 
 
-def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], grid: Grid,
-                  ground: np.ndarray, max_height: float, options: SurfaceOptions | None = None,
-                  classes: Sequence[np.ndarray] | None = None,
-                  progress: Progress | None = None) -> SurfaceModel:
+def dense_surface(
+    cameras: Sequence[PosedCamera],
+    images: Sequence[np.ndarray],
+    grid: Grid,
+    ground: np.ndarray,
+    max_height: float,
+    options: SurfaceOptions | None = None,
+    classes: Sequence[np.ndarray] | None = None,
+    progress: Progress | None = None,
+) -> SurfaceModel:
     """DSM by multi-view height matching above ``ground`` up to ``max_height`` (m).
 
     ``images`` are grey float32 arrays matching ``cameras`` (same size as each camera);
@@ -254,8 +299,11 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
     xy = np.column_stack([x.ravel(), y.ravel()])
     g = ground.ravel()
     samplers = [_ViewSampler(cameras, images, flat_views[:, j], xy, g) for j in range(k)]
-    class_samplers = (None if classes is None else
-                      [_ViewSampler(cameras, classes, flat_views[:, j], xy, g) for j in range(k)])
+    class_samplers = (
+        None
+        if classes is None
+        else [_ViewSampler(cameras, classes, flat_views[:, j], xy, g) for j in range(k)]
+    )
     best = np.full(len(g), -np.inf, np.float32)
     best_level = np.zeros(len(g), np.int32)
     before = np.full(len(g), np.nan, np.float32)
@@ -269,22 +317,32 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
         keep = len(pairs) - 1 if k > 2 else len(pairs)
     for li, h in enumerate(levels):
         grey = [s.sample(h).reshape(grid.shape) for s in samplers]
-        cls = None if class_samplers is None else [s.sample(h).reshape(grid.shape) for s in class_samplers]
+        cls = (
+            None
+            if class_samplers is None
+            else [s.sample(h).reshape(grid.shape) for s in class_samplers]
+        )
         scores = []
         for i, j in pairs:
             score_ij = _ncc(grey[i], grey[j], opts.window_cells, min_fraction=0.8)
             if cls is not None:
-                score_ij = score_ij - opts.class_weight * _class_disagreement(cls[i], cls[j],
-                                                                               opts.window_cells)
+                score_ij = score_ij - opts.class_weight * _class_disagreement(
+                    cls[i], cls[j], opts.window_cells
+                )
             scores.append(score_ij)
         stack = np.stack(scores)
         # Robust to one view that sees something else (occlusion): average the best pairs.
-        stack = np.sort(np.where(np.isfinite(stack), stack, -np.inf), axis=0)[len(pairs) - keep:]
+        stack = np.sort(np.where(np.isfinite(stack), stack, -np.inf), axis=0)[len(pairs) - keep :]
         stack[~np.isfinite(stack)] = np.nan
         finite = np.isfinite(stack)
         count = finite.sum(axis=0)
-        score = np.where(count > 0, np.where(finite, stack, 0.0).sum(axis=0) / np.maximum(count, 1),
-                         -np.inf).ravel().astype(np.float32)
+        score = (
+            np.where(
+                count > 0, np.where(finite, stack, 0.0).sum(axis=0) / np.maximum(count, 1), -np.inf
+            )
+            .ravel()
+            .astype(np.float32)
+        )
         just_after = best_level == li - 1
         after[just_after] = score[just_after]
         better = score > best
@@ -306,8 +364,14 @@ def dense_surface(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], 
     return SurfaceModel(grid, dsm, ground, score, views, [c.name for c in cameras])
 
 
-def canopy_top(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], grid: Grid,
-               ground: np.ndarray, max_height: float, options: SurfaceOptions | None = None) -> float:
+def canopy_top(
+    cameras: Sequence[PosedCamera],
+    images: Sequence[np.ndarray],
+    grid: Grid,
+    ground: np.ndarray,
+    max_height: float,
+    options: SurfaceOptions | None = None,
+) -> float:
     """Height above ground of the highest canopy (m), from a quick coarse matching pass.
 
     Sets the search range of the fine pass: most orchards stay well below ``max_height``.
@@ -317,10 +381,17 @@ def canopy_top(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], gri
     opts = options or SurfaceOptions()
     factor = 4
     coarse = grid.resampled(grid.resolution * factor)
-    g = zoom(ground, (coarse.rows / grid.rows, coarse.cols / grid.cols), order=1)[: coarse.rows, : coarse.cols]
+    g = zoom(ground, (coarse.rows / grid.rows, coarse.cols / grid.cols), order=1)[
+        : coarse.rows, : coarse.cols
+    ]
     g = np.pad(g, ((0, coarse.rows - g.shape[0]), (0, coarse.cols - g.shape[1])), mode="edge")
-    rough = SurfaceOptions(resolution=coarse.resolution, height_step=max(2 * opts.height_step, 0.25),
-                           views_per_cell=opts.views_per_cell, window_cells=5, min_score=0.5)
+    rough = SurfaceOptions(
+        resolution=coarse.resolution,
+        height_step=max(2 * opts.height_step, 0.25),
+        views_per_cell=opts.views_per_cell,
+        window_cells=5,
+        min_score=0.5,
+    )
     model = dense_surface(cameras, images, coarse, g, max_height, rough)
     chm = clean_surface(model.dsm, g) - g  # median filter: isolated false matches go
     return float(min(max(np.nanmax(chm) + 1.0, 2.0), max_height))
@@ -331,7 +402,9 @@ def ground_from_surface(dsm: np.ndarray, grid: Grid, window_m: float) -> np.ndar
     from scipy.ndimage import gaussian_filter, maximum_filter, minimum_filter
 
     size = max(int(round(window_m / grid.resolution)) | 1, 3)
-    opened = maximum_filter(minimum_filter(dsm, size=size, mode="nearest"), size=size, mode="nearest")
+    opened = maximum_filter(
+        minimum_filter(dsm, size=size, mode="nearest"), size=size, mode="nearest"
+    )
     return gaussian_filter(opened, sigma=size / 4.0, mode="nearest")
 
 

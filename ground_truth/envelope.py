@@ -32,12 +32,13 @@ import numpy as np
 
 def _disk(radius_cells: float) -> np.ndarray:
     r = max(int(np.ceil(radius_cells)), 1)
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     return (xx**2 + yy**2) <= radius_cells**2 + 1e-9
 
 
-def upper_envelope(heights: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float,
-                   radius_m: float = 0.75) -> np.ndarray:
+def upper_envelope(
+    heights: np.ndarray, x: np.ndarray, y: np.ndarray, resolution: float, radius_m: float = 0.75
+) -> np.ndarray:
     """Per cell of a crown (heights and cell-centre x, y on a grid of ``resolution``), the upper
     envelope of its top surface: a grey closing by a disc of ``radius_m`` within the crown.
 
@@ -60,8 +61,14 @@ def upper_envelope(heights: np.ndarray, x: np.ndarray, y: np.ndarray, resolution
     return grey_closing(raster, footprint=_disk(radius_m / resolution), mode="nearest")[row, col]
 
 
-def envelope_volume(heights: np.ndarray, x: np.ndarray, y: np.ndarray, base: float,
-                    resolution: float, **envelope_options: float) -> float:
+def envelope_volume(
+    heights: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    base: float,
+    resolution: float,
+    **envelope_options: float,
+) -> float:
     """2.5-D envelope volume (m³) of one crown: top envelope down to its mirror about ``base``.
 
     ``heights``: the crown's CHM cells (m above ground); ``x``, ``y`` their centres;

@@ -24,37 +24,61 @@ def camera_errors(model: SparseModel, cameras_csv: str | Path) -> pd.DataFrame:
     for name, cam in sorted(model.cameras.items()):
         t = truth.loc[name, ["x", "y", "z"]].to_numpy(float)
         d = cam.center - t
-        rows.append({"image": name, "dx": d[0], "dy": d[1], "dz": d[2], "error_m": float(np.linalg.norm(d))})
+        rows.append(
+            {"image": name, "dx": d[0], "dy": d[1], "dz": d[2], "error_m": float(np.linalg.norm(d))}
+        )
     return pd.DataFrame(rows)
 
 
-def crown_agreement(crowns: pd.DataFrame, truth: pd.DataFrame, max_distance_m: float = 1.5,
-                    exclude_border: bool = True) -> tuple[pd.DataFrame, dict]:
+def crown_agreement(
+    crowns: pd.DataFrame,
+    truth: pd.DataFrame,
+    max_distance_m: float = 1.5,
+    exclude_border: bool = True,
+) -> tuple[pd.DataFrame, dict]:
     """Match crowns one-to-one to true trees (Hungarian, gated) and summarise the errors.
 
     Returns (per-tree table, metrics). Detection rate: trees with exactly one crown within
     the gate. Crowns cut by the mosaic border are left out when ``exclude_border``.
     """
-    c = crowns[~crowns["touches_border"]] if exclude_border and "touches_border" in crowns else crowns
+    c = (
+        crowns[~crowns["touches_border"]]
+        if exclude_border and "touches_border" in crowns
+        else crowns
+    )
     c = c.reset_index(drop=True)
-    ia, ib, dist = assign(truth[["crown_x", "crown_y"]].to_numpy(), c[["x", "y"]].to_numpy(),
-                          max_distance_m)
+    ia, ib, dist = assign(
+        truth[["crown_x", "crown_y"]].to_numpy(), c[["x", "y"]].to_numpy(), max_distance_m
+    )
     t = truth.iloc[ia].reset_index(drop=True)
     m = c.iloc[ib].reset_index(drop=True)
-    table = pd.DataFrame({
-        "tree_id": t["tree_id"], "label": t["label"], "row": t["row"], "distance_m": dist,
-        "diameter_true_m": t["crown_diameter_m"], "diameter_m": m["diameter_max_m"],
-        "diameter_mean_true_m": t["crown_diameter_mean_m"], "diameter_mean_m": m["diameter_mean_m"],
-        "height_true_m": t["tree_height_m"], "height_m": m["height_m"],
-        "volume_true_m3": t["crown_volume_m3"], "sphere_true_diameter_m3": t["sphere_volume_m3"],
-        "sphere_volume_m3": m["sphere_volume_m3"], "sphere_volume_mean_m3": m["sphere_volume_mean_m3"],
-        "ellipsoid_volume_m3": m["ellipsoid_volume_m3"], "chm_volume_m3": m["chm_volume_m3"],
-        "envelope_volume_m3": m.get("envelope_volume_m3", pd.Series(np.nan, index=m.index)),
-    })
+    table = pd.DataFrame(
+        {
+            "tree_id": t["tree_id"],
+            "label": t["label"],
+            "row": t["row"],
+            "distance_m": dist,
+            "diameter_true_m": t["crown_diameter_m"],
+            "diameter_m": m["diameter_max_m"],
+            "diameter_mean_true_m": t["crown_diameter_mean_m"],
+            "diameter_mean_m": m["diameter_mean_m"],
+            "height_true_m": t["tree_height_m"],
+            "height_m": m["height_m"],
+            "volume_true_m3": t["crown_volume_m3"],
+            "sphere_true_diameter_m3": t["sphere_volume_m3"],
+            "sphere_volume_m3": m["sphere_volume_m3"],
+            "sphere_volume_mean_m3": m["sphere_volume_mean_m3"],
+            "ellipsoid_volume_m3": m["ellipsoid_volume_m3"],
+            "chm_volume_m3": m["chm_volume_m3"],
+            "envelope_volume_m3": m.get("envelope_volume_m3", pd.Series(np.nan, index=m.index)),
+        }
+    )
     err = table["diameter_m"] - table["diameter_true_m"]
     err_mean = table["diameter_mean_m"] - table["diameter_mean_true_m"]
     metrics = {
-        "trees": int(len(truth)), "crowns": int(len(c)), "matched": int(len(table)),
+        "trees": int(len(truth)),
+        "crowns": int(len(c)),
+        "matched": int(len(table)),
         "detection_rate": float(len(table) / max(len(truth), 1)),
         "unmatched_crowns": int(len(c) - len(table)),
         "centre_error_mean_m": float(dist.mean()) if len(dist) else np.nan,
@@ -63,14 +87,18 @@ def crown_agreement(crowns: pd.DataFrame, truth: pd.DataFrame, max_distance_m: f
         "diameter_mean_mae_m": float(err_mean.abs().mean()) if len(err) else np.nan,
         "diameter_mean_bias_m": float(err_mean.mean()) if len(err) else np.nan,
         "height_mae_m": float((table["height_m"] - table["height_true_m"]).abs().mean())
-        if len(err) else np.nan,
+        if len(err)
+        else np.nan,
     }
     if len(table) >= 2:
-        for name, col in (("sphere_from_true_diameter", "sphere_true_diameter_m3"),
-                          ("sphere_aerial", "sphere_volume_m3"),
-                          ("sphere_mean_aerial", "sphere_volume_mean_m3"),
-                          ("ellipsoid_aerial", "ellipsoid_volume_m3"),
-                          ("chm_aerial", "chm_volume_m3"), ("envelope_aerial", "envelope_volume_m3")):
+        for name, col in (
+            ("sphere_from_true_diameter", "sphere_true_diameter_m3"),
+            ("sphere_aerial", "sphere_volume_m3"),
+            ("sphere_mean_aerial", "sphere_volume_mean_m3"),
+            ("ellipsoid_aerial", "ellipsoid_volume_m3"),
+            ("chm_aerial", "chm_volume_m3"),
+            ("envelope_aerial", "envelope_volume_m3"),
+        ):
             if table[col].notna().sum() < 2:  # crowns measured before the model existed
                 continue
             a = agreement(table[col].to_numpy(float), table["volume_true_m3"].to_numpy(float))

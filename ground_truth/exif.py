@@ -72,14 +72,19 @@ class Flight:
 
     def local_positions(self, frame: LocalFrame) -> np.ndarray:
         """GPS positions of the photos as (N, 3) coordinates in ``frame``."""
-        return frame.to_local(np.array([im.lat for im in self.images]),
-                              np.array([im.lon for im in self.images]),
-                              np.array([im.altitude for im in self.images]))
+        return frame.to_local(
+            np.array([im.lat for im in self.images]),
+            np.array([im.lon for im in self.images]),
+            np.array([im.altitude for im in self.images]),
+        )
 
     def default_frame(self) -> LocalFrame:
         """A UTM-based frame at the flight's mean position (heights kept as they are)."""
-        return LocalFrame.at(float(np.mean([im.lat for im in self.images])),
-                             float(np.mean([im.lon for im in self.images])), 0.0)
+        return LocalFrame.at(
+            float(np.mean([im.lat for im in self.images])),
+            float(np.mean([im.lon for im in self.images])),
+            0.0,
+        )
 
 
 def _ratio(value: object) -> float:
@@ -150,8 +155,11 @@ def read_image(path: str | Path) -> FlightImage:
     if not any(exif.get(k) for k in ("0th", "Exif", "GPS")):
         raise InputError(f"{path}: no EXIF metadata (a geotagged drone photo is needed)")
     gps = exif.get("GPS") or {}
-    needed = {piexif.GPSIFD.GPSLatitude: "GPSLatitude", piexif.GPSIFD.GPSLongitude: "GPSLongitude",
-              piexif.GPSIFD.GPSAltitude: "GPSAltitude"}
+    needed = {
+        piexif.GPSIFD.GPSLatitude: "GPSLatitude",
+        piexif.GPSIFD.GPSLongitude: "GPSLongitude",
+        piexif.GPSIFD.GPSAltitude: "GPSAltitude",
+    }
     missing = [name for tag, name in needed.items() if tag not in gps]
     if missing:
         raise InputError(f"{path}: no GPS position in EXIF ({', '.join(missing)} missing)")
@@ -167,9 +175,19 @@ def read_image(path: str | Path) -> FlightImage:
         raise InputError(f"{path}: GPS position ({lat}, {lon}) is not a valid fix")
     focal, source = focal_length_px(exif, width)
     zeroth, ex = exif.get("0th", {}), exif.get("Exif", {})
-    return FlightImage(path, width, height, lat, lon, alt, focal, source,
-                       _text(zeroth.get(piexif.ImageIFD.Make)), _text(zeroth.get(piexif.ImageIFD.Model)),
-                       _text(ex.get(piexif.ExifIFD.DateTimeOriginal)))
+    return FlightImage(
+        path,
+        width,
+        height,
+        lat,
+        lon,
+        alt,
+        focal,
+        source,
+        _text(zeroth.get(piexif.ImageIFD.Make)),
+        _text(zeroth.get(piexif.ImageIFD.Model)),
+        _text(ex.get(piexif.ExifIFD.DateTimeOriginal)),
+    )
 
 
 def list_images(folder: str | Path) -> list[Path]:
@@ -185,8 +203,10 @@ def read_flight(folder: str | Path, min_images: int = MIN_IMAGES) -> Flight:
     folder = Path(folder)
     paths = list_images(folder)
     if len(paths) < min_images:
-        raise InputError(f"{folder}: {len(paths)} JPEG image(s), at least {min_images} are needed "
-                         "for structure from motion")
+        raise InputError(
+            f"{folder}: {len(paths)} JPEG image(s), at least {min_images} are needed "
+            "for structure from motion"
+        )
     images, seen = [], {}
     for path in paths:
         digest = hashlib.sha1(path.read_bytes()).hexdigest()
@@ -197,13 +217,17 @@ def read_flight(folder: str | Path, min_images: int = MIN_IMAGES) -> Flight:
     first = images[0]
     for im in images[1:]:
         if (im.width, im.height) != (first.width, first.height):
-            raise InputError(f"{im.path}: {im.width}x{im.height} px while {first.name} is "
-                             f"{first.width}x{first.height} px; all photos must have one size")
+            raise InputError(
+                f"{im.path}: {im.width}x{im.height} px while {first.name} is "
+                f"{first.width}x{first.height} px; all photos must have one size"
+            )
     flight = Flight(folder, tuple(images))
     positions = flight.local_positions(flight.default_frame())
     span = float(np.max(np.linalg.norm(positions - positions.mean(axis=0), axis=1))) * 2.0
     if span < MIN_BASELINE_M:
-        raise InputError(f"{folder}: the {len(images)} photos were all taken within {span:.2f} m of "
-                         f"each other (GPS): structure from motion needs photos taken along a flight "
-                         f"path, at least {MIN_BASELINE_M:g} m apart")
+        raise InputError(
+            f"{folder}: the {len(images)} photos were all taken within {span:.2f} m of "
+            f"each other (GPS): structure from motion needs photos taken along a flight "
+            f"path, at least {MIN_BASELINE_M:g} m apart"
+        )
     return flight

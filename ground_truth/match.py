@@ -30,7 +30,9 @@ def read_trees(path: str | Path, frame: LocalFrame | None) -> pd.DataFrame:
     return tree_positions(trees, frame, str(path))
 
 
-def tree_positions(trees: pd.DataFrame, frame: LocalFrame | None, where: str = "trees") -> pd.DataFrame:
+def tree_positions(
+    trees: pd.DataFrame, frame: LocalFrame | None, where: str = "trees"
+) -> pd.DataFrame:
     """Add ``tree_x``/``tree_y`` (local frame) from ``lat``/``lon`` or from crown/trunk x, y."""
     out = trees.copy()
     if {"lat", "lon"} <= set(out.columns) and frame is not None:
@@ -45,11 +47,15 @@ def tree_positions(trees: pd.DataFrame, frame: LocalFrame | None, where: str = "
         if {cx, cy} <= set(out.columns):
             out["tree_x"], out["tree_y"] = out[cx].astype(float), out[cy].astype(float)
             return out
-    raise InputError(f"{where}: needs lat/lon (with a frame) or x/y columns for tree positions; "
-                     f"found {', '.join(map(str, out.columns))}")
+    raise InputError(
+        f"{where}: needs lat/lon (with a frame) or x/y columns for tree positions; "
+        f"found {', '.join(map(str, out.columns))}"
+    )
 
 
-def assign(a_xy: np.ndarray, b_xy: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def assign(
+    a_xy: np.ndarray, b_xy: np.ndarray, max_distance: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Hungarian assignment of points ``a`` to ``b`` within ``max_distance``: (ia, ib, distance)."""
     from scipy.optimize import linear_sum_assignment
 
@@ -81,14 +87,20 @@ def match_crowns(trees: pd.DataFrame, crowns: pd.DataFrame, max_distance_m: floa
             crown_of_tree[int(si)] = ci
     free_trees = np.flatnonzero(crown_of_tree < 0)
     free_crowns = np.setdiff1d(np.arange(len(crowns)), crown_of_tree[crown_of_tree >= 0])
-    ia, ib, _ = assign(out.loc[free_trees, ["tree_x", "tree_y"]].to_numpy(),
-                       crowns.iloc[free_crowns][["x", "y"]].to_numpy(), max_distance_m)
+    ia, ib, _ = assign(
+        out.loc[free_trees, ["tree_x", "tree_y"]].to_numpy(),
+        crowns.iloc[free_crowns][["x", "y"]].to_numpy(),
+        max_distance_m,
+    )
     crown_of_tree[free_trees[ia]] = free_crowns[ib]
-    rows = [aerial.iloc[c] if c >= 0 else pd.Series(index=aerial.columns, dtype=float)
-            for c in crown_of_tree]
+    rows = [
+        aerial.iloc[c] if c >= 0 else pd.Series(index=aerial.columns, dtype=float)
+        for c in crown_of_tree
+    ]
     joined = pd.concat([out, pd.DataFrame(rows).reset_index(drop=True)], axis=1)
-    joined["aerial_distance_m"] = np.hypot(joined["aerial_x"] - joined["tree_x"],
-                                           joined["aerial_y"] - joined["tree_y"])
+    joined["aerial_distance_m"] = np.hypot(
+        joined["aerial_x"] - joined["tree_x"], joined["aerial_y"] - joined["tree_y"]
+    )
     joined["matched"] = crown_of_tree >= 0
     return joined
 
@@ -105,23 +117,35 @@ def seed_offset(matched: pd.DataFrame, min_pairs: int = 3) -> dict:
     normal sample). ``significant``: the offset exceeds three standard errors and 5 cm.
     """
     ok = matched["matched"].to_numpy(bool) if "matched" in matched else np.ones(len(matched), bool)
-    d = np.column_stack([matched["aerial_x"] - matched["tree_x"],
-                         matched["aerial_y"] - matched["tree_y"]])[ok]
+    d = np.column_stack(
+        [matched["aerial_x"] - matched["tree_x"], matched["aerial_y"] - matched["tree_y"]]
+    )[ok]
     d = d[np.isfinite(d).all(axis=1)]
     n = len(d)
     if n < min_pairs:
-        return {"pairs": n, "east_m": None, "north_m": None, "standard_error_m": None,
-                "significant": False}
+        return {
+            "pairs": n,
+            "east_m": None,
+            "north_m": None,
+            "standard_error_m": None,
+            "significant": False,
+        }
     med = np.median(d, axis=0)
     se = float(1.2533 * np.sqrt(np.mean(np.var(d, axis=0, ddof=1))) / np.sqrt(n))
     size = float(np.hypot(*med))
-    return {"pairs": n, "east_m": float(med[0]), "north_m": float(med[1]), "standard_error_m": se,
-            "significant": bool(size > max(3 * se, 0.05))}
+    return {
+        "pairs": n,
+        "east_m": float(med[0]),
+        "north_m": float(med[1]),
+        "standard_error_m": se,
+        "significant": bool(size > max(3 * se, 0.05)),
+    }
 
 
 def crown_tree_ids(crowns: pd.DataFrame, matched: pd.DataFrame) -> pd.Series:
     """Per crown, the ``tree_id`` of the tree it was matched to ("" for an unmatched crown)."""
     hit = matched[matched["matched"].to_numpy(bool)]
     by_crown = dict(zip(hit["aerial_crown_id"].astype(int), hit["tree_id"].astype(str)))
-    return pd.Series([by_crown.get(int(c), "") for c in crowns["crown_id"]], index=crowns.index,
-                     dtype=object)
+    return pd.Series(
+        [by_crown.get(int(c), "") for c in crowns["crown_id"]], index=crowns.index, dtype=object
+    )

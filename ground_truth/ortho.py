@@ -38,8 +38,14 @@ class Orthomosaic:
         return self.rgba[..., 3] > 0
 
 
-def _line_of_sight_clear(points: np.ndarray, camera: PosedCamera, dsm_grid: Grid, dsm: np.ndarray,
-                         top: float, step: float) -> np.ndarray:
+def _line_of_sight_clear(
+    points: np.ndarray,
+    camera: PosedCamera,
+    dsm_grid: Grid,
+    dsm: np.ndarray,
+    top: float,
+    step: float,
+) -> np.ndarray:
     """True where the ray from each point towards the camera stays above the DSM."""
     c = camera.center
     d = c - points
@@ -70,8 +76,13 @@ def _max_reach(cameras: Sequence[PosedCamera], relief: float) -> float:
     return 1.1 * relief * tan_half_diagonal
 
 
-def crown_region_sources(cameras: Sequence[PosedCamera], grid: Grid, regions: np.ndarray,
-                         heights: np.ndarray, margin_px: float = 8.0) -> np.ndarray:
+def crown_region_sources(
+    cameras: Sequence[PosedCamera],
+    grid: Grid,
+    regions: np.ndarray,
+    heights: np.ndarray,
+    margin_px: float = 8.0,
+) -> np.ndarray:
     """One source photo per crown region: the most nadir photo that sees all of it (-1: none).
 
     Taking a whole crown from one photo keeps its outline consistent: both edges move
@@ -93,17 +104,29 @@ def crown_region_sources(cameras: Sequence[PosedCamera], grid: Grid, regions: np
             if d >= best_d:
                 continue
             uv, depth = cam.project(pts)
-            if ((depth > 0).all() and (uv[:, 0] >= margin_px).all() and (uv[:, 1] >= margin_px).all()
-                    and (uv[:, 0] < cam.width - margin_px).all() and (uv[:, 1] < cam.height - margin_px).all()):
+            if (
+                (depth > 0).all()
+                and (uv[:, 0] >= margin_px).all()
+                and (uv[:, 1] >= margin_px).all()
+                and (uv[:, 0] < cam.width - margin_px).all()
+                and (uv[:, 1] < cam.height - margin_px).all()
+            ):
                 best, best_d = i, d
         source[sl][inside] = best
     return source
 
 
-def orthomosaic(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], dsm_grid: Grid,
-                dsm: np.ndarray, resolution: float, views: int = 4,
-                regions: np.ndarray | None = None, region_heights: np.ndarray | None = None,
-                progress: Progress | None = None) -> Orthomosaic:
+def orthomosaic(
+    cameras: Sequence[PosedCamera],
+    images: Sequence[np.ndarray],
+    dsm_grid: Grid,
+    dsm: np.ndarray,
+    resolution: float,
+    views: int = 4,
+    regions: np.ndarray | None = None,
+    region_heights: np.ndarray | None = None,
+    progress: Progress | None = None,
+) -> Orthomosaic:
     """Orthomosaic at ``resolution`` over the DSM's extent; ``images`` are RGB uint8 arrays.
 
     ``regions`` (labels on the orthomosaic grid) are crowns taken whole from one photo each,
@@ -128,7 +151,9 @@ def orthomosaic(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], ds
         source[forced >= 0] = forced[forced >= 0]
         pending &= forced < 0
     # Only cells with something higher nearby can be hidden: march rays for those alone.
-    reach_cells = int(np.ceil(_max_reach(cameras, top - float(np.nanmin(dsm))) / dsm_grid.resolution))
+    reach_cells = int(
+        np.ceil(_max_reach(cameras, top - float(np.nanmin(dsm))) / dsm_grid.resolution)
+    )
     nearby_top = maximum_filter(np.nan_to_num(dsm, nan=-np.inf), size=2 * reach_cells + 1)
     exposed = sample_bilinear(dsm_grid, nearby_top, x, y).ravel() <= pts[:, 2] + 0.15
     for slot in range(views):
@@ -138,8 +163,9 @@ def orthomosaic(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], ds
             sel = np.flatnonzero(pending & (candidates[:, slot] == i))
             clear = exposed[sel].copy()
             hidden = ~clear
-            clear[hidden] = _line_of_sight_clear(pts[sel[hidden]], cameras[i], dsm_grid, dsm, top,
-                                                 resolution * 2)
+            clear[hidden] = _line_of_sight_clear(
+                pts[sel[hidden]], cameras[i], dsm_grid, dsm, top, resolution * 2
+            )
             source[sel[clear]] = i
             pending[sel[clear]] = False
         report("Orthomosaic", slot + 1, views)
@@ -154,9 +180,22 @@ def orthomosaic(cameras: Sequence[PosedCamera], images: Sequence[np.ndarray], ds
         uv, _ = cameras[i].project(pts[sel])
         img = images[i]
         for band in range(3):
-            rgba[sel, band] = np.clip(np.round(map_coordinates(
-                img[..., band].astype(np.float32), [uv[:, 1] - 0.5, uv[:, 0] - 0.5], order=1,
-                mode="nearest")), 0, 255)
+            rgba[sel, band] = np.clip(
+                np.round(
+                    map_coordinates(
+                        img[..., band].astype(np.float32),
+                        [uv[:, 1] - 0.5, uv[:, 0] - 0.5],
+                        order=1,
+                        mode="nearest",
+                    )
+                ),
+                0,
+                255,
+            )
         rgba[sel, 3] = 255
-    return Orthomosaic(grid, rgba.reshape(grid.rows, grid.cols, 4), source.reshape(grid.shape),
-                       [c.name for c in cameras])
+    return Orthomosaic(
+        grid,
+        rgba.reshape(grid.rows, grid.cols, 4),
+        source.reshape(grid.shape),
+        [c.name for c in cameras],
+    )

@@ -17,10 +17,22 @@ from canopy_kit.errors import ProcessingError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
 from ground_truth.camera import PosedCamera
-from ground_truth.crowns import (CrownSegmentation, delineate_crowns, measure_crowns,
-                                 vegetation_images)
-from ground_truth.dsm import (SurfaceModel, SurfaceOptions, canopy_top, clean_surface, dense_surface,
-                             ground_from_surface, ground_model, reliable_points)
+from ground_truth.crowns import (
+    CrownSegmentation,
+    delineate_crowns,
+    measure_crowns,
+    vegetation_images,
+)
+from ground_truth.dsm import (
+    SurfaceModel,
+    SurfaceOptions,
+    canopy_top,
+    clean_surface,
+    dense_surface,
+    ground_from_surface,
+    ground_model,
+    reliable_points,
+)
 from ground_truth.exif import Flight, read_flight
 from ground_truth.match import crown_tree_ids, match_crowns, read_trees, seed_offset, tree_positions
 from ground_truth.ortho import Orthomosaic, orthomosaic
@@ -62,8 +74,9 @@ def ortho_resolution(gsd: float, config: GroundTruthConfig) -> float:
     return config.ortho_resolution or max(round(gsd, 2), 0.02)
 
 
-def load_work_images(flight: Flight, cameras: list[PosedCamera], max_size: int
-                     ) -> tuple[list[PosedCamera], list[np.ndarray]]:
+def load_work_images(
+    flight: Flight, cameras: list[PosedCamera], max_size: int
+) -> tuple[list[PosedCamera], list[np.ndarray]]:
     """The photos downscaled to ``max_size`` px on their longest side, with their cameras."""
     from PIL import Image
 
@@ -74,7 +87,9 @@ def load_work_images(flight: Flight, cameras: list[PosedCamera], max_size: int
         with Image.open(flight.folder / cam.name) as im:
             im = im.convert("RGB")
             if factor < 1.0:
-                im = im.resize((round(width * factor), round(height * factor)), Image.Resampling.LANCZOS)
+                im = im.resize(
+                    (round(width * factor), round(height * factor)), Image.Resampling.LANCZOS
+                )
             rgbs.append(np.asarray(im))
         scaled.append(cam.scaled(factor) if factor < 1.0 else cam)
     return scaled, rgbs
@@ -97,9 +112,14 @@ def _survey_grid(model: SparseModel, resolution: float) -> Grid:
     return Grid.covering(lo - pad, hi + pad, resolution)
 
 
-def _reconstruct(flight: Flight, out: Path, frame: LocalFrame, opts: GroundTruthConfig,
-                 report: Progress, timings: dict[str, float]
-                 ) -> tuple[SparseModel, SurfaceModel, Orthomosaic, float, float, float]:
+def _reconstruct(
+    flight: Flight,
+    out: Path,
+    frame: LocalFrame,
+    opts: GroundTruthConfig,
+    report: Progress,
+    timings: dict[str, float],
+) -> tuple[SparseModel, SurfaceModel, Orthomosaic, float, float, float]:
     """SfM, surface models and orthomosaic of a flight."""
     t0 = time.perf_counter()
     model = run_sfm(flight, out / "sfm", frame, sfm_options(opts), report)
@@ -107,19 +127,26 @@ def _reconstruct(flight: Flight, out: Path, frame: LocalFrame, opts: GroundTruth
 
     t0 = time.perf_counter()
     names = sorted(model.cameras)
-    cameras, rgbs = load_work_images(flight, [model.cameras[n] for n in names],
-                                     opts.work_image_size)
+    cameras, rgbs = load_work_images(
+        flight, [model.cameras[n] for n in names], opts.work_image_size
+    )
     heights = np.array([c.center[2] for c in cameras]) - np.median(model.points[:, 2])
     gsd = float(np.median(heights) / np.median([c.focal for c in cameras]))
     ortho_res = ortho_resolution(gsd, opts)
     surface_opts = SurfaceOptions()
     grid = _survey_grid(model, max(surface_opts.resolution, 2 * ortho_res))
     points = reliable_points(model.points, model.track_lengths, model.point_errors)
-    ground = ground_model(points, grid, surface_opts.ground_window_m, surface_opts.ground_resolution)
-    greys = [_grey(rgb, 0.35 * grid.resolution / gsd) for rgb in rgbs]  # anti-alias to the cell size
+    ground = ground_model(
+        points, grid, surface_opts.ground_window_m, surface_opts.ground_resolution
+    )
+    greys = [
+        _grey(rgb, 0.35 * grid.resolution / gsd) for rgb in rgbs
+    ]  # anti-alias to the cell size
     classes = vegetation_images(rgbs, 0.35 * grid.resolution / gsd)
     top = canopy_top(cameras, greys, grid, ground, opts.max_canopy_height, surface_opts)
-    raw = dense_surface(cameras, greys, grid, ground, top, surface_opts, classes=classes, progress=report)
+    raw = dense_surface(
+        cameras, greys, grid, ground, top, surface_opts, classes=classes, progress=report
+    )
     dsm = clean_surface(raw.dsm, ground)
     # The dense surface sees far more ground than the sparse points: refine the ground from it.
     ground = np.minimum(ground_from_surface(dsm, grid, surface_opts.ground_window_m), dsm)
@@ -132,10 +159,15 @@ def _reconstruct(flight: Flight, out: Path, frame: LocalFrame, opts: GroundTruth
     return model, surface, mosaic, gsd, ortho_res, top
 
 
-def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFrame | None = None,
-                   seeds: str | Path | pd.DataFrame | None = None, progress: Progress | None = None,
-                   config: GroundTruthConfig | None = None,
-                   reuse: GroundTruthResult | None = None) -> GroundTruthResult:
+def process_flight(
+    images_dir: str | Path,
+    out_dir: str | Path,
+    frame: LocalFrame | None = None,
+    seeds: str | Path | pd.DataFrame | None = None,
+    progress: Progress | None = None,
+    config: GroundTruthConfig | None = None,
+    reuse: GroundTruthResult | None = None,
+) -> GroundTruthResult:
     """Drone photos → georeferenced orthomosaic, DSM/DTM/CHM, crowns and (with seeds) per-tree table.
 
     ``frame`` is the local metric frame of the LiDAR map (default: UTM at the flight);
@@ -155,28 +187,43 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     frame = frame or (reuse.frame if reuse is not None else flight.default_frame())
     if reuse is not None:
         if reuse.model is None:
-            raise ProcessingError("a result loaded from disk has no SfM model to reuse; process the "
-                                  "photos again")
+            raise ProcessingError(
+                "a result loaded from disk has no SfM model to reuse; process the photos again"
+            )
         if reuse.frame != frame or sorted(reuse.model.cameras) != sorted(
-                n for n in flight.names if n not in reuse.model.unregistered):
-            raise ProcessingError(f"{images_dir}: the result to reuse comes from other photos or "
-                                  "another frame")
+            n for n in flight.names if n not in reuse.model.unregistered
+        ):
+            raise ProcessingError(
+                f"{images_dir}: the result to reuse comes from other photos or another frame"
+            )
         made_with = reuse.config or GroundTruthConfig()
         changed = [k for k in RECONSTRUCTION_KEYS if getattr(made_with, k) != getattr(opts, k)]
         if changed:
             key = changed[0]
-            raise ProcessingError(f"ground_truth.{key}: the result to reuse was made with "
-                                  f"{getattr(made_with, key)!r}, not {getattr(opts, key)!r}; "
-                                  "process the photos again")
+            raise ProcessingError(
+                f"ground_truth.{key}: the result to reuse was made with "
+                f"{getattr(made_with, key)!r}, not {getattr(opts, key)!r}; "
+                "process the photos again"
+            )
         model, surface, mosaic = reuse.model, reuse.surface, reuse.ortho
-        timings.update({k: v for k, v in reuse.report["timings_s"].items()
-                        if k in ("sfm", "surface", "orthomosaic")})
-        gsd, ortho_res, top = (reuse.report["ground_sampling_distance_m"],
-                               reuse.report["orthomosaic_resolution_m"], reuse.report["canopy_search_height_m"])
+        timings.update(
+            {
+                k: v
+                for k, v in reuse.report["timings_s"].items()
+                if k in ("sfm", "surface", "orthomosaic")
+            }
+        )
+        gsd, ortho_res, top = (
+            reuse.report["ground_sampling_distance_m"],
+            reuse.report["orthomosaic_resolution_m"],
+            reuse.report["canopy_search_height_m"],
+        )
     else:
         fresh = not (out / "sfm").exists()
         try:
-            model, surface, mosaic, gsd, ortho_res, top = _reconstruct(flight, out, frame, opts, report, timings)
+            model, surface, mosaic, gsd, ortho_res, top = _reconstruct(
+                flight, out, frame, opts, report, timings
+            )
         except BaseException:
             if fresh:  # no half-made reconstruction left behind under --out
                 shutil.rmtree(out / "sfm", ignore_errors=True)
@@ -186,19 +233,27 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     t0 = time.perf_counter()
     trees = None
     if seeds is not None:
-        trees = (read_trees(seeds, frame) if not isinstance(seeds, pd.DataFrame)
-                 else tree_positions(seeds, frame))
+        trees = (
+            read_trees(seeds, frame)
+            if not isinstance(seeds, pd.DataFrame)
+            else tree_positions(seeds, frame)
+        )
     seg, crowns, matched, offset = crowns_stage(mosaic, surface, trees, frame, opts)
     timings["crowns"] = time.perf_counter() - t0
 
     summary = {
-        "images": str(Path(images_dir)), "frame": frame.to_dict(), "sfm": model.report(),
-        "ground_sampling_distance_m": gsd, "orthomosaic_resolution_m": ortho_res,
-        "surface_resolution_m": grid.resolution, "canopy_search_height_m": top,
+        "images": str(Path(images_dir)),
+        "frame": frame.to_dict(),
+        "sfm": model.report(),
+        "ground_sampling_distance_m": gsd,
+        "orthomosaic_resolution_m": ortho_res,
+        "surface_resolution_m": grid.resolution,
+        "canopy_search_height_m": top,
         "crowns": int(len(crowns)),
         "trees_matched": int(matched["matched"].sum()) if matched is not None else None,
         "trees": int(len(matched)) if matched is not None else None,
-        "sphere_diameter": "diameter_max_m (widest extent)", "timings_s": timings,
+        "sphere_diameter": "diameter_max_m (widest extent)",
+        "timings_s": timings,
     }
     row_dir = crowns.attrs.get("row_direction")
     if row_dir is not None:
@@ -206,13 +261,18 @@ def process_flight(images_dir: str | Path, out_dir: str | Path, frame: LocalFram
     if offset is not None:
         summary["seed_offset"] = offset
     paths = _write_outputs(out, frame, model, surface, mosaic, seg, crowns, matched, summary, opts)
-    return GroundTruthResult(out, frame, model, surface, mosaic, seg, crowns, matched, summary,
-                             paths, opts)
+    return GroundTruthResult(
+        out, frame, model, surface, mosaic, seg, crowns, matched, summary, paths, opts
+    )
 
 
-def crowns_stage(mosaic: Orthomosaic, surface: SurfaceModel, trees: pd.DataFrame | None,
-                 frame: LocalFrame, opts: GroundTruthConfig
-                 ) -> tuple[CrownSegmentation, pd.DataFrame, pd.DataFrame | None, dict | None]:
+def crowns_stage(
+    mosaic: Orthomosaic,
+    surface: SurfaceModel,
+    trees: pd.DataFrame | None,
+    frame: LocalFrame,
+    opts: GroundTruthConfig,
+) -> tuple[CrownSegmentation, pd.DataFrame, pd.DataFrame | None, dict | None]:
     """Crowns on the orthomosaic, measured and (with ``trees``) matched to the trees.
 
     With seed trees, the offset of the crowns from their seeds is measured (``seed_offset``:
@@ -257,9 +317,22 @@ def cameras_table(model: SparseModel) -> pd.DataFrame:
     for name, cam in sorted(model.cameras.items()):
         q = Rotation.from_matrix(cam.rotation.T).as_quat()
         c = cam.center
-        rows.append({"image": name, "x": c[0], "y": c[1], "z": c[2], "qw": q[3], "qx": q[0], "qy": q[1],
-                     "qz": q[2], "focal_px": cam.focal, "gps_dx": res.loc[name, "dx"],
-                     "gps_dy": res.loc[name, "dy"], "gps_dz": res.loc[name, "dz"]})
+        rows.append(
+            {
+                "image": name,
+                "x": c[0],
+                "y": c[1],
+                "z": c[2],
+                "qw": q[3],
+                "qx": q[0],
+                "qy": q[1],
+                "qz": q[2],
+                "focal_px": cam.focal,
+                "gps_dx": res.loc[name, "dx"],
+                "gps_dy": res.loc[name, "dy"],
+                "gps_dz": res.loc[name, "dz"],
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -268,41 +341,76 @@ def table_csv(table: pd.DataFrame) -> str:
     return table.to_csv(index=False, float_format="%.9f")
 
 
-def _write_outputs(out: Path, frame: LocalFrame, model: SparseModel, surface: SurfaceModel,
-                   mosaic: Orthomosaic,
-                   seg: CrownSegmentation, crowns: pd.DataFrame, trees: pd.DataFrame | None,
-                   summary: dict, opts: GroundTruthConfig) -> dict[str, Path]:
+def _write_outputs(
+    out: Path,
+    frame: LocalFrame,
+    model: SparseModel,
+    surface: SurfaceModel,
+    mosaic: Orthomosaic,
+    seg: CrownSegmentation,
+    crowns: pd.DataFrame,
+    trees: pd.DataFrame | None,
+    summary: dict,
+    opts: GroundTruthConfig,
+) -> dict[str, Path]:
     from ground_truth.plots import overlay_crowns_rgb
 
     paths = {
         "orthomosaic_tif": write_geotiff(out / "orthomosaic.tif", mosaic.rgba, mosaic.grid, frame),
         "orthomosaic_png": atomic_write_bytes(out / "orthomosaic.png", png_bytes(mosaic.rgba)),
-        "dsm_tif": write_geotiff(out / "dsm.tif", (surface.dsm + frame.origin_height).astype(np.float32),
-                                 surface.grid, frame, nodata=float("nan")),
-        "dtm_tif": write_geotiff(out / "dtm.tif", (surface.dtm + frame.origin_height).astype(np.float32),
-                                 surface.grid, frame, nodata=float("nan")),
-        "chm_tif": write_geotiff(out / "chm.tif", surface.chm.astype(np.float32), surface.grid, frame,
-                                 nodata=float("nan")),
+        "dsm_tif": write_geotiff(
+            out / "dsm.tif",
+            (surface.dsm + frame.origin_height).astype(np.float32),
+            surface.grid,
+            frame,
+            nodata=float("nan"),
+        ),
+        "dtm_tif": write_geotiff(
+            out / "dtm.tif",
+            (surface.dtm + frame.origin_height).astype(np.float32),
+            surface.grid,
+            frame,
+            nodata=float("nan"),
+        ),
+        "chm_tif": write_geotiff(
+            out / "chm.tif",
+            surface.chm.astype(np.float32),
+            surface.grid,
+            frame,
+            nodata=float("nan"),
+        ),
         "chm_png": atomic_write_bytes(out / "chm.png", png_bytes(colorize(surface.chm, 0.0, None))),
-        "crown_labels_tif": write_geotiff(out / "crown_labels.tif", seg.labels.astype(np.int32),
-                                          mosaic.grid, frame, nodata=0),
-        "crowns_png": atomic_write_bytes(out / "crowns.png", png_bytes(overlay_crowns_rgb(mosaic, seg))),
+        "crown_labels_tif": write_geotiff(
+            out / "crown_labels.tif", seg.labels.astype(np.int32), mosaic.grid, frame, nodata=0
+        ),
+        "crowns_png": atomic_write_bytes(
+            out / "crowns.png", png_bytes(overlay_crowns_rgb(mosaic, seg))
+        ),
         "crowns_csv": atomic_write_text(out / "crowns.csv", table_csv(crowns)),
     }
-    paths["cameras_csv"] = atomic_write_text(out / "cameras.csv", cameras_table(model).to_csv(
-        index=False, float_format="%.6f"))
+    paths["cameras_csv"] = atomic_write_text(
+        out / "cameras.csv", cameras_table(model).to_csv(index=False, float_format="%.6f")
+    )
     if trees is not None:
         paths["trees_csv"] = atomic_write_text(out / "trees.csv", table_csv(trees))
-    paths["report_json"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=2, default=str))
-    paths["config_json"] = atomic_write_text(out / "ground_truth_config.json",
-                                             json.dumps(asdict(opts), indent=2, default=str))
+    paths["report_json"] = atomic_write_text(
+        out / "report.json", json.dumps(summary, indent=2, default=str)
+    )
+    paths["config_json"] = atomic_write_text(
+        out / "ground_truth_config.json", json.dumps(asdict(opts), indent=2, default=str)
+    )
     return paths
 
 
 def _grid_of(geo: dict, shape: tuple[int, ...], frame: LocalFrame) -> Grid:
     res = float(geo["pixel_scale"][0])
-    return Grid(float(geo["tiepoint"][3]) - frame.origin_easting, float(geo["tiepoint"][4]) - frame.origin_northing,
-                res, int(shape[0]), int(shape[1]))
+    return Grid(
+        float(geo["tiepoint"][3]) - frame.origin_easting,
+        float(geo["tiepoint"][4]) - frame.origin_northing,
+        res,
+        int(shape[0]),
+        int(shape[1]),
+    )
 
 
 def load_result(out_dir: str | Path) -> GroundTruthResult:
@@ -321,15 +429,27 @@ def load_result(out_dir: str | Path) -> GroundTruthResult:
     dsm, geo_s = read_geotiff(out / "dsm.tif")
     dtm, _ = read_geotiff(out / "dtm.tif")
     sgrid = _grid_of(geo_s, dsm.shape, frame)
-    surface = SurfaceModel(sgrid, dsm.astype(float) - frame.origin_height,
-                           dtm.astype(float) - frame.origin_height, np.full(dsm.shape, np.nan),
-                           np.zeros(dsm.shape + (0,), int), [])
+    surface = SurfaceModel(
+        sgrid,
+        dsm.astype(float) - frame.origin_height,
+        dtm.astype(float) - frame.origin_height,
+        np.full(dsm.shape, np.nan),
+        np.zeros(dsm.shape + (0,), int),
+        [],
+    )
     mosaic = Orthomosaic(ogrid, rgba, np.full(rgba.shape[:2], -1, np.int32), [])
     labels, _ = read_geotiff(out / "crown_labels.tif")
     crowns = pd.read_csv(out / "crowns.csv")
     vegetation, threshold = vegetation_mask(mosaic.rgb, mosaic.valid)
-    seg = CrownSegmentation(ogrid, labels.astype(np.int32), labels > 0, vegetation, threshold,
-                            crowns[["x", "y"]].to_numpy(), crowns["seed_id"].to_numpy())
+    seg = CrownSegmentation(
+        ogrid,
+        labels.astype(np.int32),
+        labels > 0,
+        vegetation,
+        threshold,
+        crowns[["x", "y"]].to_numpy(),
+        crowns["seed_id"].to_numpy(),
+    )
     trees = pd.read_csv(out / "trees.csv") if (out / "trees.csv").exists() else None
     paths = {p.stem + "_" + p.suffix[1:]: p for p in out.iterdir() if p.is_file()}
     return GroundTruthResult(out, frame, None, surface, mosaic, seg, crowns, trees, report, paths)

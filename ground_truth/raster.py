@@ -29,7 +29,7 @@ class Grid:
     cols: int
 
     @classmethod
-    def covering(cls, lo: np.ndarray, hi: np.ndarray, resolution: float) -> "Grid":
+    def covering(cls, lo: np.ndarray, hi: np.ndarray, resolution: float) -> Grid:
         """The grid of ``resolution`` cells covering the box ``lo``..``hi`` (x, y)."""
         if resolution <= 0:
             raise InputError(f"raster resolution must be positive, got {resolution}")
@@ -51,9 +51,11 @@ class Grid:
 
     def index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(row, col) float indices of points (cell centres at integers)."""
-        return (self.y0 - np.asarray(y)) / self.resolution - 0.5, (np.asarray(x) - self.x0) / self.resolution - 0.5
+        return (self.y0 - np.asarray(y)) / self.resolution - 0.5, (
+            np.asarray(x) - self.x0
+        ) / self.resolution - 0.5
 
-    def resampled(self, resolution: float) -> "Grid":
+    def resampled(self, resolution: float) -> Grid:
         """The same extent with another cell size."""
         cols = int(round(self.cols * self.resolution / resolution))
         rows = int(round(self.rows * self.resolution / resolution))
@@ -62,8 +64,12 @@ class Grid:
     @property
     def extent(self) -> tuple[float, float, float, float]:
         """(left, right, bottom, top) for matplotlib's ``imshow``."""
-        return (self.x0, self.x0 + self.cols * self.resolution, self.y0 - self.rows * self.resolution,
-                self.y0)
+        return (
+            self.x0,
+            self.x0 + self.cols * self.resolution,
+            self.y0 - self.rows * self.resolution,
+            self.y0,
+        )
 
 
 def sample_bilinear(grid: Grid, values: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -71,12 +77,15 @@ def sample_bilinear(grid: Grid, values: np.ndarray, x: np.ndarray, y: np.ndarray
     from scipy.ndimage import map_coordinates
 
     r, c = grid.index(x, y)
-    out = map_coordinates(np.asarray(values, float), [np.ravel(r), np.ravel(c)], order=1,
-                          mode="constant", cval=np.nan)
+    out = map_coordinates(
+        np.asarray(values, float), [np.ravel(r), np.ravel(c)], order=1, mode="constant", cval=np.nan
+    )
     return out.reshape(np.shape(x))
 
 
-def geotiff_bytes(array: np.ndarray, grid: Grid, frame: LocalFrame, nodata: float | None = None) -> bytes:
+def geotiff_bytes(
+    array: np.ndarray, grid: Grid, frame: LocalFrame, nodata: float | None = None
+) -> bytes:
     """A GeoTIFF of ``array`` (rows, cols[, bands]) georeferenced in the frame's UTM CRS."""
     with needs_extra("aerial"):
         import tifffile
@@ -95,18 +104,29 @@ def geotiff_bytes(array: np.ndarray, grid: Grid, frame: LocalFrame, nodata: floa
     buf = io.BytesIO()
     photometric = "rgb" if array.ndim == 3 and array.shape[2] in (3, 4) else "minisblack"
     extrasamples = ("unassalpha",) if array.ndim == 3 and array.shape[2] == 4 else None
-    tifffile.imwrite(buf, array, photometric=photometric, extrasamples=extrasamples,
-                     extratags=extratags, compression="zlib")
+    tifffile.imwrite(
+        buf,
+        array,
+        photometric=photometric,
+        extrasamples=extrasamples,
+        extratags=extratags,
+        compression="zlib",
+    )
     return buf.getvalue()
 
 
-def write_geotiff(path, array: np.ndarray, grid: Grid, frame: LocalFrame,  # noqa: ANN001
-                  nodata: float | None = None):  # noqa: ANN201
+def write_geotiff(
+    path,
+    array: np.ndarray,
+    grid: Grid,
+    frame: LocalFrame,
+    nodata: float | None = None,
+):
     """Write a GeoTIFF atomically; returns the path."""
     return atomic_write_bytes(path, geotiff_bytes(array, grid, frame, nodata))
 
 
-def read_geotiff(path) -> tuple[np.ndarray, dict]:  # noqa: ANN001
+def read_geotiff(path) -> tuple[np.ndarray, dict]:
     """Array and georeferencing tags (pixel scale, tie point, EPSG) of a GeoTIFF written here."""
     with needs_extra("aerial"):
         import tifffile
@@ -119,8 +139,11 @@ def read_geotiff(path) -> tuple[np.ndarray, dict]:  # noqa: ANN001
         for i in range(4, len(keys), 4):
             if keys[i] == 3072:
                 epsg = keys[i + 3]
-        return page.asarray(), {"pixel_scale": tags.get("ModelPixelScaleTag"),
-                                "tiepoint": tags.get("ModelTiepointTag"), "epsg": epsg}
+        return page.asarray(), {
+            "pixel_scale": tags.get("ModelPixelScaleTag"),
+            "tiepoint": tags.get("ModelTiepointTag"),
+            "epsg": epsg,
+        }
 
 
 def png_bytes(rgb: np.ndarray) -> bytes:
@@ -132,8 +155,9 @@ def png_bytes(rgb: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None = None,
-             cmap: str = "viridis") -> np.ndarray:
+def colorize(
+    values: np.ndarray, vmin: float | None = None, vmax: float | None = None, cmap: str = "viridis"
+) -> np.ndarray:
     """An RGBA uint8 rendering of a float raster (NaN transparent)."""
     from matplotlib import colormaps
 

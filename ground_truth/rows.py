@@ -40,8 +40,11 @@ class RowDirection:
 
     def to_dict(self) -> dict:
         """For ``report.json``."""
-        return {"bearing_deg": round(self.bearing_deg, 2), "source": self.source,
-                "concentration": round(self.concentration, 3)}
+        return {
+            "bearing_deg": round(self.bearing_deg, 2),
+            "source": self.source,
+            "concentration": round(self.concentration, 3),
+        }
 
 
 def _axial_mean(angles: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
@@ -54,9 +57,12 @@ def _axial_mean(angles: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
     return float(0.5 * np.arctan2(s, c)), float(np.hypot(c, s))
 
 
-def estimate_row_direction(centres: np.ndarray, axis_angles: np.ndarray | None = None,
-                           elongation: np.ndarray | None = None,
-                           min_concentration: float = 0.5) -> RowDirection:
+def estimate_row_direction(
+    centres: np.ndarray,
+    axis_angles: np.ndarray | None = None,
+    elongation: np.ndarray | None = None,
+    min_concentration: float = 0.5,
+) -> RowDirection:
     """The row direction from crown centres (N, 2) and, as fallback, the crowns' widest axes.
 
     ``axis_angles``: each crown's principal axis angle (radians from east, ``principal_axis``);
@@ -91,8 +97,9 @@ def principal_axis(rows: np.ndarray, cols: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(major[1], major[0])), float(1.0 - evals[0] / max(evals[1], 1e-12))
 
 
-def directional_extents(rows: np.ndarray, cols: np.ndarray, resolution: float,
-                        direction: tuple[float, float]) -> tuple[float, float]:
+def directional_extents(
+    rows: np.ndarray, cols: np.ndarray, resolution: float, direction: tuple[float, float]
+) -> tuple[float, float]:
     """(extent along ``direction``, extent across it) of a pixel region, metres.
 
     Extents of the pixel centres plus one cell, the convention of ``crowns.feret_extents``.

@@ -86,9 +86,12 @@ class SparseModel:
             "points": int(len(self.points)),
             "mean_reprojection_error_px": self.mean_reprojection_error_px,
             "gps_residual_rms_horizontal_m": float(np.sqrt(np.mean(horiz**2))),
-            "gps_residual_rms_vertical_m": float(np.sqrt(np.mean(r["dz"] ** 2))) if len(r) else np.nan,
-            "gps_residual_max_m": float(np.sqrt(r["dx"]**2 + r["dy"]**2 + r["dz"]**2).max())
-            if len(r) else np.nan,
+            "gps_residual_rms_vertical_m": float(np.sqrt(np.mean(r["dz"] ** 2)))
+            if len(r)
+            else np.nan,
+            "gps_residual_max_m": float(np.sqrt(r["dx"] ** 2 + r["dy"] ** 2 + r["dz"] ** 2).max())
+            if len(r)
+            else np.nan,
             "matching": self.matching,
             "alignment": dict(self.alignment),
             "timings_s": dict(self.timings),
@@ -115,7 +118,7 @@ def _neighbour_distance(positions: np.ndarray) -> float:
     return float(8.0 * np.median(d.min(axis=1)))
 
 
-def _quiet_colmap():  # noqa: ANN202
+def _quiet_colmap():
     import zlib  # noqa: F401  (before pycolmap: see module docstring)
 
     with needs_extra("aerial"):
@@ -126,8 +129,13 @@ def _quiet_colmap():  # noqa: ANN202
     return pycolmap, previous
 
 
-def run_sfm(flight: Flight, work_dir: str | Path, frame: LocalFrame | None = None,
-            options: SfmOptions | None = None, progress: Progress | None = None) -> SparseModel:
+def run_sfm(
+    flight: Flight,
+    work_dir: str | Path,
+    frame: LocalFrame | None = None,
+    options: SfmOptions | None = None,
+    progress: Progress | None = None,
+) -> SparseModel:
     """Reconstruct the flight with pycolmap and georeference it into ``frame``."""
     opts = options or SfmOptions()
     report = progress or (lambda *_: None)
@@ -171,15 +179,17 @@ def run_sfm(flight: Flight, work_dir: str | Path, frame: LocalFrame | None = Non
         pycolmap.logging.minloglevel = previous_level
 
 
-def _extract(pycolmap, flight: Flight, database: Path, opts: SfmOptions) -> None:  # noqa: ANN001
+def _extract(pycolmap, flight: Flight, database: Path, opts: SfmOptions) -> None:
     width, height = flight.size
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
     focal = flight.focal_px or 1.2 * max(width, height)  # COLMAP's own default guess
     extra = {"SIMPLE_PINHOLE": [], "PINHOLE": None, "SIMPLE_RADIAL": [0.0], "RADIAL": [0.0, 0.0]}
     if opts.camera_model not in extra or opts.camera_model == "PINHOLE":
-        raise ProcessingError(f"SfM camera model {opts.camera_model} is not supported "
-                              "(SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL)")
+        raise ProcessingError(
+            f"SfM camera model {opts.camera_model} is not supported "
+            "(SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL)"
+        )
     params = [focal, width / 2.0, height / 2.0, *extra[opts.camera_model]]
     reader.camera_params = ",".join(f"{v:.6f}" for v in params)
     extraction = pycolmap.FeatureExtractionOptions()
@@ -187,17 +197,29 @@ def _extract(pycolmap, flight: Flight, database: Path, opts: SfmOptions) -> None
     extraction.max_image_size = opts.max_image_size
     extraction.sift.max_num_features = opts.max_num_features
     extraction.sift.first_octave = opts.first_octave
-    pycolmap.extract_features(str(database), str(flight.folder), flight.names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    pycolmap.extract_features(
+        str(database),
+        str(flight.folder),
+        flight.names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
 
 
-def _write_position_priors(pycolmap, database: Path, flight: Flight, gps: np.ndarray,  # noqa: ANN001
-                           opts: SfmOptions) -> None:
+def _write_position_priors(
+    pycolmap,
+    database: Path,
+    flight: Flight,
+    gps: np.ndarray,
+    opts: SfmOptions,
+) -> None:
     """Replace the WGS84 priors COLMAP read from EXIF by local-frame (Cartesian) ones."""
     by_name = dict(zip(flight.names, gps))
-    cov = np.diag([opts.gps_sigma_horizontal**2, opts.gps_sigma_horizontal**2,
-                   opts.gps_sigma_vertical**2])
+    cov = np.diag(
+        [opts.gps_sigma_horizontal**2, opts.gps_sigma_horizontal**2, opts.gps_sigma_vertical**2]
+    )
     db = pycolmap.Database.open(str(database))
     try:
         existing = {p.corr_data_id.id: p for p in db.read_all_pose_priors()}
@@ -217,7 +239,7 @@ def _write_position_priors(pycolmap, database: Path, flight: Flight, gps: np.nda
         db.close()
 
 
-def _match(pycolmap, database: Path, matching: str, gps: np.ndarray, opts: SfmOptions) -> None:  # noqa: ANN001
+def _match(pycolmap, database: Path, matching: str, gps: np.ndarray, opts: SfmOptions) -> None:
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = opts.num_threads
     kw = {"matching_options": options, "device": pycolmap.Device.cpu}
@@ -234,12 +256,19 @@ def _match(pycolmap, database: Path, matching: str, gps: np.ndarray, opts: SfmOp
         pairing.overlap = opts.sequential_overlap
         pycolmap.match_sequential(str(database), pairing_options=pairing, **kw)
     else:
-        raise ProcessingError(f"SfM matching {matching!r} is not one of auto, exhaustive, "
-                              "spatial, sequential")
+        raise ProcessingError(
+            f"SfM matching {matching!r} is not one of auto, exhaustive, spatial, sequential"
+        )
 
 
-def _map(pycolmap, database: Path, flight: Flight, work: Path, opts: SfmOptions,  # noqa: ANN001
-         report: Progress):  # noqa: ANN202
+def _map(
+    pycolmap,
+    database: Path,
+    flight: Flight,
+    work: Path,
+    opts: SfmOptions,
+    report: Progress,
+):
     n = len(flight.images)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = opts.num_threads
@@ -259,16 +288,24 @@ def _map(pycolmap, database: Path, flight: Flight, work: Path, opts: SfmOptions,
         report("SfM registration", min(registered[0] + 1, n), n)
 
     report("SfM registration", 0, n)
-    models = pycolmap.incremental_mapping(str(database), str(flight.folder), str(work / "models"),
-                                          options=options, next_image_callback=next_image)
+    models = pycolmap.incremental_mapping(
+        str(database),
+        str(flight.folder),
+        str(work / "models"),
+        options=options,
+        next_image_callback=next_image,
+    )
     if not models:
-        raise ProcessingError(f"{flight.folder}: structure from motion registered no images "
-                              "(too little overlap or texture between the photos?)")
+        raise ProcessingError(
+            f"{flight.folder}: structure from motion registered no images "
+            "(too little overlap or texture between the photos?)"
+        )
     best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
     if best.num_reg_images() < max(3, opts.min_registered_fraction * n):
         raise ProcessingError(
             f"{flight.folder}: only {best.num_reg_images()} of {n} photos registered in one model "
-            f"(need {opts.min_registered_fraction:.0%}); check overlap, blur and exposure")
+            f"(need {opts.min_registered_fraction:.0%}); check overlap, blur and exposure"
+        )
     report("SfM registration", n, n)
     return best
 
@@ -284,8 +321,9 @@ def _rotation_to_up(up: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k * ((1.0 - c) / s**2)
 
 
-def _levelled_fit(centres: np.ndarray, targets: np.ndarray, up: np.ndarray,
-                  inliers: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def _levelled_fit(
+    centres: np.ndarray, targets: np.ndarray, up: np.ndarray, inliers: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
     """(scale, rotation, translation) mapping model ``up`` to +z: a horizontal similarity
     (Umeyama in 2-D) plus a height offset, fitted on the ``inliers``."""
     r0 = _rotation_to_up(up)
@@ -316,8 +354,12 @@ def _umeyama(a: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray, np.ndarra
     return s, r, mb - s * r @ ma
 
 
-def georeference(centres: np.ndarray, optical_axes: np.ndarray, targets: np.ndarray,
-                 options: SfmOptions | None = None) -> tuple[float, np.ndarray, np.ndarray, dict]:
+def georeference(
+    centres: np.ndarray,
+    optical_axes: np.ndarray,
+    targets: np.ndarray,
+    options: SfmOptions | None = None,
+) -> tuple[float, np.ndarray, np.ndarray, dict]:
     """Similarity (scale, rotation, translation) taking model camera centres onto GPS positions.
 
     Which way is up comes from two estimates, weighted by their precision: the tilt of a full
@@ -337,14 +379,22 @@ def georeference(centres: np.ndarray, optical_axes: np.ndarray, targets: np.ndar
     opts = options or SfmOptions()
     centres, targets = np.asarray(centres, float), np.asarray(targets, float)
     n = len(centres)
-    if n < 3 or np.ptp(targets[:, :2], axis=0).max() < 1e-6 or np.ptp(centres, axis=0).max() < 1e-12:
-        raise ProcessingError("the model could not be aligned to the photos' GPS positions "
-                              "(fewer than 3 registered photos, or all in one spot)")
+    if (
+        n < 3
+        or np.ptp(targets[:, :2], axis=0).max() < 1e-6
+        or np.ptp(centres, axis=0).max() < 1e-12
+    ):
+        raise ProcessingError(
+            "the model could not be aligned to the photos' GPS positions "
+            "(fewer than 3 registered photos, or all in one spot)"
+        )
     axes = np.asarray(optical_axes, float)
     down = axes.mean(axis=0)
     down /= np.linalg.norm(down)
     scatter = np.arccos(np.clip(axes @ down, -1.0, 1.0))
-    sigma_nadir = float(np.hypot(np.sqrt(np.mean(scatter**2) / n), np.radians(opts.nadir_tilt_sigma_deg)))
+    sigma_nadir = float(
+        np.hypot(np.sqrt(np.mean(scatter**2) / n), np.radians(opts.nadir_tilt_sigma_deg))
+    )
     s_full, r_full, t_full = _umeyama(centres, targets)
     res_full = s_full * centres @ r_full.T + t_full - targets
     sigma_axis = float(np.sqrt(np.sum(res_full**2) / max(3 * n - 7, 1)))
@@ -379,7 +429,7 @@ def georeference(centres: np.ndarray, optical_axes: np.ndarray, targets: np.ndar
     return scale, rotation, t, info
 
 
-def _align(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> dict:  # noqa: ANN001
+def _align(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> dict:
     """Move the model onto the GPS positions (``georeference``); returns what was decided."""
     by_name = dict(zip(flight.names, gps))
     images = list(rec.images.values())
@@ -394,7 +444,7 @@ def _align(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> 
     return info
 
 
-def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> None:  # noqa: ANN001
+def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOptions) -> None:
     """Bundle adjustment with GPS position priors as tight as the GPS turns out to be.
 
     A nadir block from one altitude bends into a dome (radial distortion trades against
@@ -404,7 +454,9 @@ def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOp
     by_name = dict(zip(flight.names, gps))
     images = list(rec.images.values())
     res = np.array([im.projection_center() - by_name[im.name] for im in images])
-    sigma_h = max(float(np.sqrt(np.mean(res[:, 0] ** 2 + res[:, 1] ** 2) / 2)), opts.gps_sigma_floor)
+    sigma_h = max(
+        float(np.sqrt(np.mean(res[:, 0] ** 2 + res[:, 1] ** 2) / 2)), opts.gps_sigma_floor
+    )
     sigma_v = max(float(np.sqrt(np.mean(res[:, 2] ** 2))), 2 * opts.gps_sigma_floor)
     priors = []
     for im in images:
@@ -415,8 +467,11 @@ def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOp
         prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
         priors.append(prior)
     ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = opts.refine_focal_length if opts.refine_focal_length is not None \
+    ba.refine_focal_length = (
+        opts.refine_focal_length
+        if opts.refine_focal_length is not None
         else flight.focal_px is None
+    )
     ba.print_summary = False
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.reg_image_ids():
@@ -427,16 +482,29 @@ def _refine_with_gps(pycolmap, rec, flight: Flight, gps: np.ndarray, opts: SfmOp
     adjuster.solve()
 
 
-def _to_model(rec, flight: Flight, gps: np.ndarray, frame: LocalFrame, matching: str,  # noqa: ANN001
-              timings: dict[str, float], alignment: dict) -> SparseModel:
+def _to_model(
+    rec,
+    flight: Flight,
+    gps: np.ndarray,
+    frame: LocalFrame,
+    matching: str,
+    timings: dict[str, float],
+    alignment: dict,
+) -> SparseModel:
     cameras: dict[str, PosedCamera] = {}
     for image in rec.images.values():
         cam = rec.cameras[image.camera_id]
         pose = image.cam_from_world()
         m = pose.matrix()
-        cameras[image.name] = PosedCamera(image.name, cam.model.name, tuple(float(v) for v in cam.params),
-                                          int(cam.width), int(cam.height), np.array(m[:, :3]),
-                                          np.array(m[:, 3]))
+        cameras[image.name] = PosedCamera(
+            image.name,
+            cam.model.name,
+            tuple(float(v) for v in cam.params),
+            int(cam.width),
+            int(cam.height),
+            np.array(m[:, :3]),
+            np.array(m[:, 3]),
+        )
     ids = list(rec.points3D.keys())
     pts = rec.points3D
     points = np.array([pts[i].xyz for i in ids]).reshape(-1, 3)
@@ -448,5 +516,17 @@ def _to_model(rec, flight: Flight, gps: np.ndarray, frame: LocalFrame, matching:
     res = np.array([cameras[n].center - by_name[n] for n in names]).reshape(-1, 3)
     residuals = pd.DataFrame({"image": names, "dx": res[:, 0], "dy": res[:, 1], "dz": res[:, 2]})
     unregistered = [n for n in flight.names if n not in cameras]
-    return SparseModel(frame, cameras, points, colors, errors, tracks, unregistered, residuals,
-                       float(rec.compute_mean_reprojection_error()), matching, timings, alignment)
+    return SparseModel(
+        frame,
+        cameras,
+        points,
+        colors,
+        errors,
+        tracks,
+        unregistered,
+        residuals,
+        float(rec.compute_mean_reprojection_error()),
+        matching,
+        timings,
+        alignment,
+    )

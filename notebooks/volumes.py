@@ -20,8 +20,14 @@ def _():
     from canopy_kit.volume import alpha_curve, auto_alpha, estimate_volume
     from canopy_kit.volume.alpha import PAPER_ALPHA_M
     from canopy_kit.volume.hull import hull_mesh
-    from canopy_kit.volume.verb import (ALPHA_COLUMN, CONVEX_HULL_COLUMN, measure_tree,
-                                        measured_points, tree_points, volume_column)
+    from canopy_kit.volume.verb import (
+        ALPHA_COLUMN,
+        CONVEX_HULL_COLUMN,
+        measure_tree,
+        measured_points,
+        tree_points,
+        volume_column,
+    )
 
     return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, PAPER_ALPHA_M, alpha_curve, auto_alpha,
             estimate_volume, go, hull_mesh, load_context, measure_tree, measured_points, mo, np,

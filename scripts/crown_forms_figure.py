@@ -15,17 +15,17 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from canopy_kit.sim.config import load_sim_config  # noqa: E402
-from canopy_kit.sim.orchard import generate_orchard  # noqa: E402
-from canopy_kit.sim.scene import FOLIAGE, build_scene  # noqa: E402
+from canopy_kit.sim.config import load_sim_config
+from canopy_kit.sim.orchard import generate_orchard
+from canopy_kit.sim.scene import FOLIAGE, build_scene
 
 FORMS = ["ellipsoid", "lobed", "vase", "hedged", "sparse"]
 
 
-def _section(crown, e1: np.ndarray, e2: np.ndarray, origin: np.ndarray, n: int = 720) -> np.ndarray:  # noqa: ANN001
+def _section(crown, e1: np.ndarray, e2: np.ndarray, origin: np.ndarray, n: int = 720) -> np.ndarray:
     """Outline of the envelope in the plane ``origin + s e1 + t e2`` (rays from the plane's
     foot of the centre; exact for planes through the centre, a good picture otherwise)."""
     ang = np.linspace(0, 2 * np.pi, n)
@@ -48,8 +48,17 @@ def main() -> None:
     args = parser.parse_args()
     fig, axes = plt.subplots(2, len(FORMS), figsize=(3.2 * len(FORMS), 6.4))
     for k, form in enumerate(FORMS):
-        cfg = load_sim_config("pistachio", {"orchard": {"rows": 1, "trees_per_row": 1, "crown_form": form,
-                                                        "leaf_penetration_m": 0.5}})
+        cfg = load_sim_config(
+            "pistachio",
+            {
+                "orchard": {
+                    "rows": 1,
+                    "trees_per_row": 1,
+                    "crown_form": form,
+                    "leaf_penetration_m": 0.5,
+                }
+            },
+        )
         rng = np.random.default_rng(args.seed)
         orchard = generate_orchard(cfg.orchard, rng)
         scene = build_scene(orchard, rng)
@@ -67,7 +76,12 @@ def main() -> None:
         ax.plot(outline[:, 0], outline[:, 1] + c[2], "k-", lw=1.2)
         base = np.asarray(tree.base) - c
         top = np.asarray(tree.trunk_top) - c
-        ax.plot([base @ across, top @ across], [tree.base[2], tree.trunk_top[2]], color="saddlebrown", lw=3)
+        ax.plot(
+            [base @ across, top @ across],
+            [tree.base[2], tree.trunk_top[2]],
+            color="saddlebrown",
+            lw=3,
+        )
         ax.plot([0], [c[2]], "r+", ms=10)
         ax.set_title(f"{form}: {tree.crown.volume:.1f} m³")
         ax.set_xlabel("across row (m)")

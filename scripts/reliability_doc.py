@@ -61,15 +61,25 @@ def catalogue_block(cases: tuple) -> str:
     categories = list(dict.fromkeys(c.category for c in cases))
     for category in categories:
         chosen = [c for c in cases if c.category == category]
-        lines += [f"### {SECTIONS.get(category, category)} ({len(chosen)} case{'s' if len(chosen) != 1 else ''})", "",
-                  "| case | input | behaviour | exit | message or warnings hold | quality flags |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            f"### {SECTIONS.get(category, category)} ({len(chosen)} case{'s' if len(chosen) != 1 else ''})",
+            "",
+            "| case | input | behaviour | exit | message or warnings hold | quality flags |",
+            "|---|---|---|---|---|---|",
+        ]
         for c in chosen:
             flags = ", ".join(f"`{f}`" for f in c.flags)
             if c.absent_flags:
-                flags += (" " if flags else "") + "(not " + ", ".join(f"`{f}`" for f in c.absent_flags) + ")"
-            lines.append(f"| `{c.id}` | {_cell(c.input)} | {_cell(c.behaviour)} | "
-                         f"{OUTCOME.get(c.exit_code, c.exit_code)} | {_code(c.expect)} | {flags} |")
+                flags += (
+                    (" " if flags else "")
+                    + "(not "
+                    + ", ".join(f"`{f}`" for f in c.absent_flags)
+                    + ")"
+                )
+            lines.append(
+                f"| `{c.id}` | {_cell(c.input)} | {_cell(c.behaviour)} | "
+                f"{OUTCOME.get(c.exit_code, c.exit_code)} | {_code(c.expect)} | {flags} |"
+            )
         lines.append("")
     lines.append(END)
     return "\n".join(lines)
@@ -81,20 +91,27 @@ def render(text: str, block: str) -> str:
         head, rest = text.split(BEGIN, 1)
         _, tail = rest.split(END, 1)
     except ValueError:
-        raise SystemExit(f"{DOC}: the catalogue markers are missing ({BEGIN!r} ... {END!r})") from None
+        raise SystemExit(
+            f"{DOC}: the catalogue markers are missing ({BEGIN!r} ... {END!r})"
+        ) from None
     return head + block + tail
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="only report whether the doc is up to date")
+    parser.add_argument(
+        "--check", action="store_true", help="only report whether the doc is up to date"
+    )
     parser.add_argument("--doc", type=Path, default=DOC)
     args = parser.parse_args(argv)
     text = args.doc.read_text()
     new = render(text, catalogue_block(load_cases()))
     if args.check:
         if new != text:
-            print(f"{args.doc}: catalogue out of step; run scripts/reliability_doc.py", file=sys.stderr)
+            print(
+                f"{args.doc}: catalogue out of step; run scripts/reliability_doc.py",
+                file=sys.stderr,
+            )
             return 1
         return 0
     if new != text:

@@ -1,6 +1,6 @@
 """Make the simulator figures in docs/figures (top views, one scan by time).
 
-    .venv/bin/python scripts/sim_figures.py [--out docs/figures]
+.venv/bin/python scripts/sim_figures.py [--out docs/figures]
 """
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from canopy_kit.io.bag import open_bag  # noqa: E402
-from canopy_kit.sim import load_sim_config, simulate_session  # noqa: E402
-from canopy_kit.sim.plots import plot_orchard_top_view, plot_scan_by_time  # noqa: E402
-from canopy_kit.sim.session import build_world  # noqa: E402
+from canopy_kit.io.bag import open_bag
+from canopy_kit.sim import load_sim_config, simulate_session
+from canopy_kit.sim.plots import plot_orchard_top_view, plot_scan_by_time
+from canopy_kit.sim.session import build_world
 
 
 def main() -> None:
@@ -35,8 +35,9 @@ def main() -> None:
     fig.tight_layout()
     fig.savefig(args.out / "sim_orchards_top.png", dpi=110)
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = load_sim_config("pistachio", {"orchard": {"rows": 2, "trees_per_row": 4},
-                                            "drive": {"alleys": "inner"}})
+        cfg = load_sim_config(
+            "pistachio", {"orchard": {"rows": 2, "trees_per_row": 4}, "drive": {"alleys": "inner"}}
+        )
         session = simulate_session(Path(tmp) / "s", cfg)
         with open_bag(session.bag) as bag:
             for scan in bag.scans():

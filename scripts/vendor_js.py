@@ -48,7 +48,9 @@ def vendor(package: str, version: str, expected: str, files: dict[str, str]) -> 
         data = resp.read()
     got = integrity(data)
     if got != expected:
-        raise SystemExit(f"{package}@{version}: integrity mismatch\n  expected {expected}\n  got      {got}")
+        raise SystemExit(
+            f"{package}@{version}: integrity mismatch\n  expected {expected}\n  got      {got}"
+        )
     VENDOR.mkdir(parents=True, exist_ok=True)
     sha256 = {}
     with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
@@ -61,8 +63,12 @@ def vendor(package: str, version: str, expected: str, files: dict[str, str]) -> 
             tmp.write_bytes(content)
             tmp.replace(VENDOR / name)
             sha256[name] = hashlib.sha256(content).hexdigest()
-    return {"version": version, "integrity": expected, "tarball": url,
-            "files": dict(sorted(sha256.items()))}
+    return {
+        "version": version,
+        "integrity": expected,
+        "tarball": url,
+        "files": dict(sorted(sha256.items())),
+    }
 
 
 def main() -> int:

@@ -20,11 +20,24 @@ MICRO = {"orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {"columns": 256, "
 # The files whose module fixtures take longest (simulated drives, flights, whole runs), as
 # measured with --durations: they go first, so that with one file per worker (make test)
 # no worker is left finishing a long file after the others are done.
-LONG_FILES = ["test_rigs_sim.py", "test_checks_runs.py", "test_ground_truth_flight.py",
-              "test_message_faults.py", "test_segment_sim.py", "test_reliability_catalogue.py",
-              "test_interrupted_run.py", "test_notebooks.py", "test_batch.py", "test_pipeline.py",
-              "test_mapping_sim.py", "test_stream.py", "test_paper_experiments.py",
-              "test_sim_crown_forms.py", "test_report_interactive.py", "test_gis_outputs.py"]
+LONG_FILES = [
+    "test_rigs_sim.py",
+    "test_checks_runs.py",
+    "test_ground_truth_flight.py",
+    "test_message_faults.py",
+    "test_segment_sim.py",
+    "test_reliability_catalogue.py",
+    "test_interrupted_run.py",
+    "test_notebooks.py",
+    "test_batch.py",
+    "test_pipeline.py",
+    "test_mapping_sim.py",
+    "test_stream.py",
+    "test_paper_experiments.py",
+    "test_sim_crown_forms.py",
+    "test_report_interactive.py",
+    "test_gis_outputs.py",
+]
 
 
 def pytest_collection_modifyitems(config, items):
@@ -40,13 +53,21 @@ def sim_factory(tmp_path_factory):
 
     cache: dict = {}
 
-    def make(orchard: str = "pistachio", fmt: str = "ros2-mcap", seed: int = 0,
-             overrides: dict | None = None, truth_field: bool = True, sensor: str | None = None):
+    def make(
+        orchard: str = "pistachio",
+        fmt: str = "ros2-mcap",
+        seed: int = 0,
+        overrides: dict | None = None,
+        truth_field: bool = True,
+        sensor: str | None = None,
+    ):
         key = (orchard, fmt, seed, repr(overrides), truth_field, sensor)
         if key not in cache:
             cfg = load_sim_config(orchard, merge({"seed": seed}, overrides or {}), sensor=sensor)
             out = tmp_path_factory.mktemp(f"sim_{orchard}_{seed}")
-            cache[key] = simulate_session(out, cfg, fmt=fmt, truth_field=truth_field, overwrite=True)
+            cache[key] = simulate_session(
+                out, cfg, fmt=fmt, truth_field=truth_field, overwrite=True
+            )
         return cache[key]
 
     return make

@@ -18,14 +18,23 @@ class SyntheticOrchard:
     centres: np.ndarray  # (n, 2) crown centres
     rows: np.ndarray
     index_in_row: np.ndarray
-    ground: callable  # noqa: UP006 - z = ground(x, y)
+    ground: callable
 
 
-def synthetic_orchard(rows: int = 2, trees_per_row: int = 4, spacing: float = 5.0,
-                      row_spacing: float = 6.0, crown_radius: float = 1.8,
-                      bearing_deg: float = 0.0, slope_deg: float = 0.0, bow: float = 0.0,
-                      trunks: bool = True, density: float = 400.0, seed: int = 0,
-                      ground_extent: float = 6.0) -> SyntheticOrchard:
+def synthetic_orchard(
+    rows: int = 2,
+    trees_per_row: int = 4,
+    spacing: float = 5.0,
+    row_spacing: float = 6.0,
+    crown_radius: float = 1.8,
+    bearing_deg: float = 0.0,
+    slope_deg: float = 0.0,
+    bow: float = 0.0,
+    trunks: bool = True,
+    density: float = 400.0,
+    seed: int = 0,
+    ground_extent: float = 6.0,
+) -> SyntheticOrchard:
     """Rows of hollow ellipsoid crowns on trunks over a sloped, slightly bumpy ground.
 
     Rows run along the bearing ``bearing_deg`` (clockwise from +y), numbered left to right
@@ -62,8 +71,9 @@ def synthetic_orchard(rows: int = 2, trees_per_row: int = 4, spacing: float = 5.
             if trunks:
                 h = rng.uniform(0.0, 1.2, 250)
                 ang = rng.uniform(0, 2 * np.pi, 250)
-                pts.append(np.column_stack([xy[0] + 0.1 * np.cos(ang), xy[1] + 0.1 * np.sin(ang),
-                                            g + h]))
+                pts.append(
+                    np.column_stack([xy[0] + 0.1 * np.cos(ang), xy[1] + 0.1 * np.sin(ang), g + h])
+                )
                 ids.append(np.full(250, -1))
             centres.append(xy)
             row_of.append(r)
@@ -79,8 +89,12 @@ def synthetic_orchard(rows: int = 2, trees_per_row: int = 4, spacing: float = 5.
     pts.append(np.column_stack([gxy, gz]))
     ids.append(np.full(n_ground, -1))
     xyz = np.concatenate(pts)
-    cloud = PointCloud(xyz, {"tree_id": np.concatenate(ids).astype(np.int32)}, crs="EPSG:32610",
-                       origin=np.array([700000.0, 4100000.0, 50.0]))
+    cloud = PointCloud(
+        xyz,
+        {"tree_id": np.concatenate(ids).astype(np.int32)},
+        crs="EPSG:32610",
+        origin=np.array([700000.0, 4100000.0, 50.0]),
+    )
     return SyntheticOrchard(cloud, centres_a, np.array(row_of), np.array(idx_of), ground)
 
 

@@ -63,7 +63,8 @@ def modules() -> dict[str, Path]:
 
 def _is_type_checking(test: ast.expr) -> bool:
     return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
 
 
 def imports_of(name: str, path: Path, known: set[str]) -> list[Import]:
@@ -87,8 +88,9 @@ def imports_of(name: str, path: Path, known: set[str]) -> list[Import]:
                     base = ".".join(anchor + ([base] if base else []))
                 for a in child.names:
                     sub = f"{base}.{a.name}"
-                    found.append(Import(name, sub if sub in known else base, child.lineno,
-                                        module_level))
+                    found.append(
+                        Import(name, sub if sub in known else base, child.lineno, module_level)
+                    )
             if isinstance(child, ast.If) and _is_type_checking(child.test):
                 for stmt in child.body:
                     visit(ast.Module(body=[stmt], type_ignores=[]), False)
@@ -113,9 +115,11 @@ def _within(name: str, prefix: str) -> bool:
 
 def forbidden_sim_imports(imports: list[Import]) -> list[str]:
     """``module:line imports target`` for each import of the simulator outside its importers."""
-    return [f"{imp.module} ({modules()[imp.module].relative_to(ROOT)}:{imp.line}) imports "
-            f"{imp.target}" for imp in imports
-            if _within(imp.target, SIM) and not any(_within(imp.module, a) for a in SIM_IMPORTERS)]
+    return [
+        f"{imp.module} ({modules()[imp.module].relative_to(ROOT)}:{imp.line}) imports {imp.target}"
+        for imp in imports
+        if _within(imp.target, SIM) and not any(_within(imp.module, a) for a in SIM_IMPORTERS)
+    ]
 
 
 def part_of(module: str) -> str | None:
@@ -173,13 +177,21 @@ def cycles(graph: dict[str, set[str]]) -> list[frozenset[str]]:
     return out
 
 
-def _edges_within(graph: dict[str, set[str]], component: frozenset[str],
-                  imports: list[Import], module_level_only: bool) -> list[str]:
+def _edges_within(
+    graph: dict[str, set[str]],
+    component: frozenset[str],
+    imports: list[Import],
+    module_level_only: bool,
+) -> list[str]:
     """Where each import along a cycle is written, for the failure message."""
-    return sorted(f"{imp.module}:{imp.line} -> {imp.target}" for imp in imports
-                  if (imp.module_level or not module_level_only)
-                  and part_of(imp.module) in component and part_of(imp.target) in component
-                  and part_of(imp.module) != part_of(imp.target))
+    return sorted(
+        f"{imp.module}:{imp.line} -> {imp.target}"
+        for imp in imports
+        if (imp.module_level or not module_level_only)
+        and part_of(imp.module) in component
+        and part_of(imp.target) in component
+        and part_of(imp.module) != part_of(imp.target)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -189,32 +201,44 @@ def imports() -> list[Import]:
 
 def test_the_parser_sees_every_kind_of_import(tmp_path: Path) -> None:
     """The checks below are only as good as the parser: it must see nested and relative imports."""
-    source = ("import canopy_kit.sim.truth\nfrom . import figures\nfrom ..sim import load_truth\n"
-              "def f():\n    from canopy_kit import sim\n    import canopy_kit.sim as s\n"
-              "if TYPE_CHECKING:\n    from canopy_kit.pipeline import RunContext\n")
+    source = (
+        "import canopy_kit.sim.truth\nfrom . import figures\nfrom ..sim import load_truth\n"
+        "def f():\n    from canopy_kit import sim\n    import canopy_kit.sim as s\n"
+        "if TYPE_CHECKING:\n    from canopy_kit.pipeline import RunContext\n"
+    )
     probe = tmp_path / "probe.py"
     probe.write_text(source)
     found = imports_of("canopy_kit.report.probe", probe, set(modules()))
     got = [(i.target, i.line, i.module_level) for i in found]
-    assert got == [("canopy_kit.sim.truth", 1, True), ("canopy_kit.report.figures", 2, True),
-                   ("canopy_kit.sim", 3, True), ("canopy_kit.sim", 5, False),
-                   ("canopy_kit.sim", 6, False), ("canopy_kit.pipeline", 8, False)]
+    assert got == [
+        ("canopy_kit.sim.truth", 1, True),
+        ("canopy_kit.report.figures", 2, True),
+        ("canopy_kit.sim", 3, True),
+        ("canopy_kit.sim", 5, False),
+        ("canopy_kit.sim", 6, False),
+        ("canopy_kit.pipeline", 8, False),
+    ]
 
 
 def test_no_library_stage_imports_the_simulator(imports: list[Import]) -> None:
     bad = forbidden_sim_imports(imports)
-    assert not bad, ("library stages must not import the simulator (read truth and the session "
-                     "layout through canopy_kit.truth / canopy_kit.session_layout):\n  "
-                     + "\n  ".join(bad))
+    assert not bad, (
+        "library stages must not import the simulator (read truth and the session "
+        "layout through canopy_kit.truth / canopy_kit.session_layout):\n  " + "\n  ".join(bad)
+    )
 
 
-def _new_cycles(imports: list[Import], module_level_only: bool,
-                allowed: list[frozenset[str]]) -> list[str]:
+def _new_cycles(
+    imports: list[Import], module_level_only: bool, allowed: list[frozenset[str]]
+) -> list[str]:
     """Each cycle that is not inside an allowed one, with the imports along it."""
     graph = part_graph(imports, module_level_only)
-    return [f"cycle {' <-> '.join(sorted(c))}:\n    "
-            + "\n    ".join(_edges_within(graph, c, imports, module_level_only))
-            for c in cycles(graph) if not any(c <= ok for ok in allowed)]
+    return [
+        f"cycle {' <-> '.join(sorted(c))}:\n    "
+        + "\n    ".join(_edges_within(graph, c, imports, module_level_only))
+        for c in cycles(graph)
+        if not any(c <= ok for ok in allowed)
+    ]
 
 
 def test_no_cycle_of_module_level_imports_between_parts(imports: list[Import]) -> None:
@@ -224,17 +248,26 @@ def test_no_cycle_of_module_level_imports_between_parts(imports: list[Import]) -
 
 def test_no_new_cycle_through_imports_inside_functions(imports: list[Import]) -> None:
     new = _new_cycles(imports, False, ALLOWED_CYCLES_THROUGH_FUNCTION_IMPORTS)
-    assert not new, ("import cycles between parts of canopy_kit (counting imports inside "
-                     "functions) beyond ALLOWED_CYCLES_THROUGH_FUNCTION_IMPORTS:\n  "
-                     + "\n  ".join(new))
+    assert not new, (
+        "import cycles between parts of canopy_kit (counting imports inside "
+        "functions) beyond ALLOWED_CYCLES_THROUGH_FUNCTION_IMPORTS:\n  " + "\n  ".join(new)
+    )
 
 
 def _loaded_after(imported: list[str], parts: tuple[str, ...]) -> list[str]:
     """The modules of ``parts`` a fresh interpreter has loaded after importing ``imported``."""
-    code = (f"import sys\nfor m in {imported!r}: __import__(m)\n"
-            f"print(sorted(m for m in sys.modules if m.startswith({parts!r})))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    code = (
+        f"import sys\nfor m in {imported!r}: __import__(m)\n"
+        f"print(sorted(m for m in sys.modules if m.startswith({parts!r})))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=ROOT,
+        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+    )
     return ast.literal_eval(out.stdout.strip())
 
 
@@ -244,8 +277,16 @@ def test_segment_and_volume_load_no_simulator_report_paper_or_cli() -> None:
 
 
 def test_evaluation_and_truth_modules_load_no_simulator() -> None:
-    stages = ["canopy_kit.truth", "canopy_kit.truth_map", "canopy_kit.session_layout",
-              "canopy_kit.evaluate", "canopy_kit.validation", "canopy_kit.mapping.evaluate",
-              "canopy_kit.volume.evaluate", "canopy_kit.explore", "canopy_kit.segment.export",
-              "canopy_kit.paper.segmentation_results"]
+    stages = [
+        "canopy_kit.truth",
+        "canopy_kit.truth_map",
+        "canopy_kit.session_layout",
+        "canopy_kit.evaluate",
+        "canopy_kit.validation",
+        "canopy_kit.mapping.evaluate",
+        "canopy_kit.volume.evaluate",
+        "canopy_kit.explore",
+        "canopy_kit.segment.export",
+        "canopy_kit.paper.segmentation_results",
+    ]
     assert _loaded_after(stages, ("canopy_kit.sim",)) == []

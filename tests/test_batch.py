@@ -29,11 +29,22 @@ REMOVED = 5  # R1 in the middle of the second row: it has neighbours on both sid
 # Three visits: crown growth, removal and replanting, a different start and GNSS error each time.
 VISITS = {
     "spring": (dt.date(2025, 4, 1), {"session_seed": 1, "orchard": {"crown_scale": 1.0}}),
-    "summer": (dt.date(2025, 6, 15), {"session_seed": 2, "drive": {"reverse": True},
-                                      "orchard": {"crown_scale": 1.12, "removed_trees": [REMOVED]}}),
-    "autumn": (dt.date(2025, 9, 20), {"session_seed": 3, "drive": {"lead_in": 12.0},
-                                      "orchard": {"crown_scale": 1.22,
-                                                  "replanted_trees": [REMOVED]}}),
+    "summer": (
+        dt.date(2025, 6, 15),
+        {
+            "session_seed": 2,
+            "drive": {"reverse": True},
+            "orchard": {"crown_scale": 1.12, "removed_trees": [REMOVED]},
+        },
+    ),
+    "autumn": (
+        dt.date(2025, 9, 20),
+        {
+            "session_seed": 3,
+            "drive": {"lead_in": 12.0},
+            "orchard": {"crown_scale": 1.22, "replanted_trees": [REMOVED]},
+        },
+    ),
 }
 # Only what the identity and growth checks use: two volume methods, no report.
 PIPELINE = {"volume": {"methods": ["convex_hull", "alpha_shape"]}}
@@ -48,35 +59,62 @@ def orchard_batch(tmp_path_factory):
     from canopy_kit.sim import load_sim_config, simulate_session
 
     root = tmp_path_factory.mktemp("orchard_over_time")
-    lines = ["preset = \"adaptive\"", "orchard = \"block-a\"", "report = false", "",
-             "[set.volume]", "methods = [\"convex_hull\", \"alpha_shape\"]", ""]
+    lines = [
+        'preset = "adaptive"',
+        'orchard = "block-a"',
+        "report = false",
+        "",
+        "[set.volume]",
+        'methods = ["convex_hull", "alpha_shape"]',
+        "",
+    ]
     sims = {}
     for sid, (date, overrides) in VISITS.items():
-        cfg = load_sim_config("pistachio", merge({"seed": 7, "orchard": ORCHARD, "lidar": LIDAR},
-                                                 overrides))
+        cfg = load_sim_config(
+            "pistachio", merge({"seed": 7, "orchard": ORCHARD, "lidar": LIDAR}, overrides)
+        )
         sims[sid] = simulate_session(root / "sim" / sid, cfg)
-        lines += ["[[session]]", f"id = \"{sid}\"", f"bag = \"sim/{sid}/session\"",
-                  f"date = {date.isoformat()}", f"truth = \"sim/{sid}\"", ""]
+        lines += [
+            "[[session]]",
+            f'id = "{sid}"',
+            f'bag = "sim/{sid}/session"',
+            f"date = {date.isoformat()}",
+            f'truth = "sim/{sid}"',
+            "",
+        ]
     corrupt = root / "sim" / "broken" / "session.mcap"
     corrupt.parent.mkdir(parents=True)
     corrupt.write_bytes(b"\x89MCAP0\r\n" + np.random.default_rng(0).bytes(4096))
-    lines += ["[[session]]", "id = \"broken\"", "bag = \"sim/broken/session.mcap\"",
-              "date = 2025-07-30", ""]
+    lines += [
+        "[[session]]",
+        'id = "broken"',
+        'bag = "sim/broken/session.mcap"',
+        "date = 2025-07-30",
+        "",
+    ]
     manifest = root / "sessions.toml"
     manifest.write_text("\n".join(lines))
     specs = load_manifest(manifest)
     seen: list[str] = []
-    report = run_batch(specs, root / "out", n_workers=2, retries=1,
-                       progress=lambda *_: None, on_session=lambda o: seen.append(o.session_id))
+    report = run_batch(
+        specs,
+        root / "out",
+        n_workers=2,
+        retries=1,
+        progress=lambda *_: None,
+        on_session=lambda o: seen.append(o.session_id),
+    )
     return report, sims, specs, seen
 
 
 def _observed(report) -> pd.DataFrame:
     """Every stored observation with the simulator's tree and its true volume."""
     with OrchardStore(report.store, read_only=True) as db:
-        obs = db.query("SELECT o.session_id, o.tree_id, o.kind, o.segment, v.volume_m3 "
-                       "FROM observations o JOIN volumes v USING (session_id, tree_id) "
-                       "WHERE v.method = 'alpha_shape'")
+        obs = db.query(
+            "SELECT o.session_id, o.tree_id, o.kind, o.segment, v.volume_m3 "
+            "FROM observations o JOIN volumes v USING (session_id, tree_id) "
+            "WHERE v.method = 'alpha_shape'"
+        )
     parts = []
     for sid, outcome in report.outcomes.items():
         if outcome.ok:
@@ -120,8 +158,9 @@ def test_removed_and_replanted_tree_are_reported(orchard_batch):
     assert report.ingests["summer"]["n_new"] == 0
     young = obs[(obs.session_id == "autumn") & (obs.truth_tree_id == REMOVED)]
     assert young["kind"].item() == "replanted" and young["tree_id"].item() != original
-    assert report.ingests["autumn"]["replanted"] == [[young["tree_id"].item(), original]] or \
-        report.ingests["autumn"]["replanted"] == [(young["tree_id"].item(), original)]
+    assert report.ingests["autumn"]["replanted"] == [
+        [young["tree_id"].item(), original]
+    ] or report.ingests["autumn"]["replanted"] == [(young["tree_id"].item(), original)]
     with OrchardStore(report.store, read_only=True) as db:
         status = dict(db.run("SELECT tree_id, status FROM trees"))
         kinds = changes(db).groupby("session_id")["kind"].apply(set).to_dict()
@@ -135,19 +174,29 @@ def test_measured_growth_matches_simulated_growth(orchard_batch):
     obs = _observed(report)
     with OrchardStore(report.store, read_only=True) as db:
         g = growth(db)
-    g = g.merge(obs[["session_id", "tree_id", "truth_tree_id", "true_crown_volume_m3"]],
-                on=["session_id", "tree_id"])
+    g = g.merge(
+        obs[["session_id", "tree_id", "truth_tree_id", "true_crown_volume_m3"]],
+        on=["session_id", "tree_id"],
+    )
     g = g.sort_values(["tree_id", "date"])
     g["true_growth"] = g.groupby("tree_id")["true_crown_volume_m3"].transform(
-        lambda v: v / v.iloc[0] - 1)
+        lambda v: v / v.iloc[0] - 1
+    )
     later = g[(g.days_since_first > 0) & (g.kind == "matched")]
     assert len(later) == 2 * 7  # 7 persistent trees, seen again in summer and autumn
     measured, true = 1 + later["growth_since_first"], 1 + later["true_growth"]
     error = measured / true - 1
-    print(json.dumps({"true_growth_autumn_median": float(later[later.session_id == "autumn"]
-                                                         ["true_growth"].median()),
-                      "growth_error_median_abs": float(error.abs().median()),
-                      "growth_error_max_abs": float(error.abs().max())}))
+    print(
+        json.dumps(
+            {
+                "true_growth_autumn_median": float(
+                    later[later.session_id == "autumn"]["true_growth"].median()
+                ),
+                "growth_error_median_abs": float(error.abs().median()),
+                "growth_error_max_abs": float(error.abs().max()),
+            }
+        )
+    )
     # Simulated growth is large against the method's error: the check can fail.
     assert later[later.session_id == "autumn"]["true_growth"].median() > 3 * VOLUME_ERROR
     # Each growth is a ratio of two volumes, each within the method's error of the truth.
@@ -193,8 +242,9 @@ def test_batch_joins_an_existing_scheduler(tmp_path):
 
     specs = _broken_manifest(tmp_path)
     assert specs[0].bag == tmp_path / "broken.mcap" and not specs[0].report
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                      dashboard_address=":0") as cluster:
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
+    ) as cluster:
         report = run_batch(specs, tmp_path / "out", scheduler=cluster.scheduler_address, retries=0)
         assert len(cluster.scheduler.workers) == 1  # the cluster outlives the batch
     assert report.scheduler == cluster.scheduler_address and report.n_workers == 1
@@ -231,18 +281,23 @@ def test_manifest_rigs_reach_each_sessions_mapping_config(tmp_path):
 
     (tmp_path / "rigs").mkdir()
     (tmp_path / "rigs" / "ours.toml").write_text(
-        '[rig]\nbase_frame = "base_link"\n[frames.lidar]\ntranslation = [0, 0, 2.0]\n')
+        '[rig]\nbase_frame = "base_link"\n[frames.lidar]\ntranslation = [0, 0, 2.0]\n'
+    )
     manifest = tmp_path / "sessions.toml"
     manifest.write_text(
         '[[session]]\nid = "a"\nbag = "a.mcap"\norchard = "o"\ndate = 2025-04-01\nrig = "rigs/ours.toml"\n'
         '[[session]]\nid = "b"\nbag = "b.mcap"\norchard = "o"\ndate = 2025-05-01\nrig = "tower"\n'
-        '[[session]]\nid = "c"\nbag = "c.mcap"\norchard = "o"\ndate = 2025-06-01\n')
+        '[[session]]\nid = "c"\nbag = "c.mcap"\norchard = "o"\ndate = 2025-06-01\n'
+    )
     specs = {s.session_id: s for s in load_manifest(manifest, default_rig="imu-flipped")}
     a, b, c = (specs[k].overrides["mapping"] for k in "abc")
     assert a["rig"]["frames"]["lidar"]["translation"] == [0, 0, 2.0]
     assert a["rig_name"] == str(tmp_path / "rigs" / "ours.toml")
-    assert b["rig"]["rig"]["lidar_frame"] == "velodyne" and c["rig"]["rig"]["lidar_frame"] == "os_sensor"
-    (tmp_path / "rigs" / "ours.toml").write_text('[frames.lidar]\nrpy_deg = [0, 0]\n')
+    assert (
+        b["rig"]["rig"]["lidar_frame"] == "velodyne"
+        and c["rig"]["rig"]["lidar_frame"] == "os_sensor"
+    )
+    (tmp_path / "rigs" / "ours.toml").write_text("[frames.lidar]\nrpy_deg = [0, 0]\n")
     with pytest.raises(ConfigError, match=r"ours.toml: frames.lidar.rpy_deg"):
         load_manifest(manifest)
 

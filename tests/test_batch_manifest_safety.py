@@ -12,22 +12,38 @@ import os
 from pathlib import Path
 
 import pytest
+from test_cli_foundation import run_cli
 
 from canopy_kit.batch import SessionSpec, load_manifest, run_batch, session_folder
 from canopy_kit.errors import ConfigError, InputError
-from test_cli_foundation import run_cli
 
 HEADER = "id,bag,orchard,date\n"
 
 
 def _toml(tmp_path: Path, *sessions: str) -> Path:
     path = tmp_path / "sessions.toml"
-    path.write_text("".join(f'[[session]]\nbag = "b.mcap"\ndate = 2025-04-01\n{s}\n' for s in sessions))
+    path.write_text(
+        "".join(f'[[session]]\nbag = "b.mcap"\ndate = 2025-04-01\n{s}\n' for s in sessions)
+    )
     return path
 
 
-@pytest.mark.parametrize("session_id", ["/tmp/elsewhere", "../../x", "a/b", "..", ".", "a\\b",
-                                        "line\nbreak", "tab\tid", "", ".hidden", "x" * 129])
+@pytest.mark.parametrize(
+    "session_id",
+    [
+        "/tmp/elsewhere",
+        "../../x",
+        "a/b",
+        "..",
+        ".",
+        "a\\b",
+        "line\nbreak",
+        "tab\tid",
+        "",
+        ".hidden",
+        "x" * 129,
+    ],
+)
 def test_an_id_that_is_not_a_folder_name_is_refused(tmp_path, session_id):
     manifest = _toml(tmp_path, f'orchard = "o"\nid = {json.dumps(session_id)}')  # a TOML string
     with pytest.raises(ConfigError, match="cannot name a folder"):
@@ -39,7 +55,10 @@ def test_an_orchard_name_with_separators_gives_a_safe_default_id(tmp_path):
     ids = [s.session_id for s in load_manifest(manifest)]
     assert ids == ["North-block-7-2025-04-01", "abs-2025-04-01"]
     for sid in ids:
-        assert session_folder(tmp_path / "out", sid).parent == (tmp_path / "out" / "sessions").resolve()
+        assert (
+            session_folder(tmp_path / "out", sid).parent
+            == (tmp_path / "out" / "sessions").resolve()
+        )
 
 
 def test_two_ids_naming_one_folder_are_refused(tmp_path):
@@ -75,16 +94,22 @@ def test_a_link_planted_under_sessions_is_not_followed(tmp_path):
 def test_csv_manifests_from_spreadsheets(tmp_path):
     """Excel's UTF-8 with BOM and UTF-16 read; extra cells and bad bytes name the file and row."""
     rows = "s1,b.mcap,o,2025-04-01\n"
-    for name, data in {"bom.csv": b"\xef\xbb\xbf" + (HEADER + rows).encode(),
-                       "utf16.csv": (HEADER + rows).encode("utf-16")}.items():
+    for name, data in {
+        "bom.csv": b"\xef\xbb\xbf" + (HEADER + rows).encode(),
+        "utf16.csv": (HEADER + rows).encode("utf-16"),
+    }.items():
         (tmp_path / name).write_bytes(data)
         [spec] = load_manifest(tmp_path / name)
         assert (spec.session_id, spec.orchard, spec.date) == ("s1", "o", dt.date(2025, 4, 1))
     (tmp_path / "extra.csv").write_text(HEADER + rows + "s2,b.mcap,o,2025-05-01,oops\n")
-    with pytest.raises(ConfigError, match=r"extra.csv: session 2 \(line 3\) has 5 cells, the header 4"):
+    with pytest.raises(
+        ConfigError, match=r"extra.csv: session 2 \(line 3\) has 5 cells, the header 4"
+    ):
         load_manifest(tmp_path / "extra.csv")
     (tmp_path / "latin.csv").write_bytes((HEADER + "s1,b.mcap,Höhe,2025-04-01\n").encode("latin-1"))
-    with pytest.raises(InputError, match=r"latin.csv: not UTF-8 text \(line 2, byte 31: b'\\xf6'\)"):
+    with pytest.raises(
+        InputError, match=r"latin.csv: not UTF-8 text \(line 2, byte 31: b'\\xf6'\)"
+    ):
         load_manifest(tmp_path / "latin.csv")
 
 
@@ -112,8 +137,12 @@ def test_fuzzed_ids_and_manifest_bytes_give_a_folder_inside_out_or_a_named_error
     sessions = (tmp_path / "out" / "sessions").resolve()
     for k in range(300):
         sid = "".join(rng.choice(alphabet) for _ in range(rng.randint(0, 12)))
-        manifest = _toml(tmp_path, f'orchard = {json.dumps(sid)}\nid = {json.dumps(sid)}'
-                         if k % 2 else f'orchard = {json.dumps(sid)}')
+        manifest = _toml(
+            tmp_path,
+            f"orchard = {json.dumps(sid)}\nid = {json.dumps(sid)}"
+            if k % 2
+            else f"orchard = {json.dumps(sid)}",
+        )
         try:
             specs = load_manifest(manifest)
         except InputError as exc:  # ConfigError is an InputError

@@ -24,9 +24,17 @@ ST = ChecksConfig()
 
 def _row(diameters: list[float], spacing: float = 5.0) -> pd.DataFrame:
     n = len(diameters)
-    return pd.DataFrame({"tree_id": [f"r0-L{i}" for i in range(n)], "row": 0,
-                         "x": np.zeros(n), "y": spacing * np.arange(n),
-                         "crown_diameter_m": diameters, "segment_flags": "", "volume_flags": ""})
+    return pd.DataFrame(
+        {
+            "tree_id": [f"r0-L{i}" for i in range(n)],
+            "row": 0,
+            "x": np.zeros(n),
+            "y": spacing * np.arange(n),
+            "crown_diameter_m": diameters,
+            "segment_flags": "",
+            "volume_flags": "",
+        }
+    )
 
 
 def _by_name(checks: list[Check], start: str) -> Check:
@@ -36,24 +44,32 @@ def _by_name(checks: list[Check], start: str) -> Check:
 
 def test_regular_trees_pass_the_spacing_checks() -> None:
     trees = _row([4.0, 4.2, 3.9, 4.1, 4.0, 4.3])
-    checks = crown_spacing_checks(trees, {"tree_spacing_m": 5.0, "row_spacing_m": 6.0,
-                                          "tree_spacing_source": "trunks"}, ST)
+    checks = crown_spacing_checks(
+        trees, {"tree_spacing_m": 5.0, "row_spacing_m": 6.0, "tree_spacing_source": "trunks"}, ST
+    )
     assert [c.status for c in checks] == ["pass", "pass"]
     assert _by_name(checks, "widest crown over the tree").value == "0.86x"  # 4.3 / 5.0
 
 
 def test_a_crown_three_spacings_wide_fails() -> None:
     trees = _row([4.0, 4.2, 15.0, 4.1, 4.0, 4.3])  # 15 m = 3x the 5 m spacing, 2.5x the rows'
-    checks = crown_spacing_checks(trees, {"tree_spacing_m": 5.0, "row_spacing_m": 6.0,
-                                          "tree_spacing_source": "trunks"}, ST)
-    tree, row = _by_name(checks, "widest crown over the tree"), _by_name(checks, "widest crown over the row")
+    checks = crown_spacing_checks(
+        trees, {"tree_spacing_m": 5.0, "row_spacing_m": 6.0, "tree_spacing_source": "trunks"}, ST
+    )
+    tree, row = (
+        _by_name(checks, "widest crown over the tree"),
+        _by_name(checks, "widest crown over the row"),
+    )
     assert tree.value == "3.00x" and tree.status == "warn"  # fail beyond 3.0x, not at it
     assert row.value == "2.50x" and row.status == "fail" and "r0-L2" in row.note
     assert row.threshold == "warn > 1.00x, fail > 1.75x"
 
 
 def test_unknown_spacings_give_no_spacing_check() -> None:
-    assert crown_spacing_checks(_row([4.0, 4.0]), {"tree_spacing_m": None, "row_spacing_m": None}, ST) == []
+    assert (
+        crown_spacing_checks(_row([4.0, 4.0]), {"tree_spacing_m": None, "row_spacing_m": None}, ST)
+        == []
+    )
 
 
 def test_trunks_per_segment() -> None:
@@ -77,11 +93,18 @@ def test_crown_outliers_share() -> None:
 
 
 def test_map_quality_from_the_mapping_diagnostics() -> None:
-    clean = {"sweeps_registered": 200, "registrations_rejected": 1,
-             "gnss": {"rejected_share": 0.01, "bias_rms_m": 0.8, "mode_changes": 0}}
+    clean = {
+        "sweeps_registered": 200,
+        "registrations_rejected": 1,
+        "gnss": {"rejected_share": 0.01, "bias_rms_m": 0.8, "mode_changes": 0},
+    }
     assert [c.status for c in map_checks(clean, ST)] == ["pass", "pass", "pass"]
-    bad = {"sweeps_registered": 150, "registrations_rejected": 50,  # 25 % rejected
-           "gnss": {"rejected_share": 0.6, "bias_rms_m": 4.0}, "quality_flags": ["scan_gaps"]}
+    bad = {
+        "sweeps_registered": 150,
+        "registrations_rejected": 50,  # 25 % rejected
+        "gnss": {"rejected_share": 0.6, "bias_rms_m": 4.0},
+        "quality_flags": ["scan_gaps"],
+    }
     checks = map_checks(bad, ST)
     assert [c.status for c in checks] == ["fail", "fail", "warn", "warn"]
     assert checks[0].value == "50 of 200 (25.0 %)"
@@ -89,8 +112,12 @@ def test_map_quality_from_the_mapping_diagnostics() -> None:
 
 def _aerial_table(alpha: list[float], ellipsoid: list[float]) -> tuple[dict, pd.DataFrame]:
     n = len(alpha)
-    trees = _row([4.0] * n).assign(volume_alpha_m3=alpha, aerial_ellipsoid_volume_m3=ellipsoid,
-                                   aerial_sphere_volume_m3=np.asarray(ellipsoid) * 1.5, aerial_flag="")
+    trees = _row([4.0] * n).assign(
+        volume_alpha_m3=alpha,
+        aerial_ellipsoid_volume_m3=ellipsoid,
+        aerial_sphere_volume_m3=np.asarray(ellipsoid) * 1.5,
+        aerial_flag="",
+    )
     return {"aerial": {"matched_trees": n, "compared_trees": n}}, trees
 
 
@@ -116,7 +143,12 @@ def test_few_trees_matched_to_the_drone_fails() -> None:
 
 
 def test_checks_status_and_summary() -> None:
-    checks = [Check("a", True, "1"), Check("b", False, "2"), Check("c", None, "3"), Check("d", "warn", "4")]
+    checks = [
+        Check("a", True, "1"),
+        Check("b", False, "2"),
+        Check("c", None, "3"),
+        Check("d", "warn", "4"),
+    ]
     assert [c.status for c in checks] == ["pass", "fail", "info", "warn"]
     assert summary(checks) == {"pass": 1, "warn": 1, "fail": 1, "info": 1}
     with pytest.raises(ValueError, match="status 'bad'"):
@@ -130,17 +162,21 @@ def test_thresholds_are_settings_and_checked() -> None:
     assert cfg.checks.aerial_mape_warn_pct == 20.0
     with pytest.raises(ConfigError, match=r"checks\.aerial_mape_warn_pct/aerial_mape_fail_pct"):
         load_preset("pistachio", {"checks": {"aerial_mape_warn_pct": 70.0}})
-    with pytest.raises(ConfigError, match=r"checks\.aerial_matched_share_warn/aerial_matched_share_fail"):
+    with pytest.raises(
+        ConfigError, match=r"checks\.aerial_matched_share_warn/aerial_matched_share_fail"
+    ):
         ChecksConfig(aerial_matched_share_warn=0.5)
 
 
 def test_the_report_headline_says_when_not_to_trust_a_run() -> None:
     from canopy_kit.report.html import render_report
 
-    checks = [Check("trees segmented", True, "4", "fail < 1"),
-              Check("widest crown over the row spacing", "fail", "2.50x", "warn > 1.00x, fail > 1.50x"),
-              Check("GNSS bias", "warn", "4.00 m", "warn > 3.0 m, fail > 10.0 m"),
-              Check("absolute position error", None, "1.2 m")]
+    checks = [
+        Check("trees segmented", True, "4", "fail < 1"),
+        Check("widest crown over the row spacing", "fail", "2.50x", "warn > 1.00x, fail > 1.50x"),
+        Check("GNSS bias", "warn", "4.00 m", "warn > 3.0 m, fail > 10.0 m"),
+        Check("absolute position error", None, "1.2 m"),
+    ]
     page = render_report("r", {}, _row([4.0]), [], checks, "")
     assert "Do not trust this run: 1 check failed" in page
     assert "widest crown over the row spacing: 2.50x (warn &gt; 1.00x, fail &gt; 1.50x)" in page
@@ -154,11 +190,14 @@ def test_the_report_headline_says_when_not_to_trust_a_run() -> None:
 
 def test_layout_spacings_on_a_synthetic_orchard() -> None:
     """Rows 6 m apart with trees every 5 m: the layout measures both from the map."""
-    from canopy_kit.segment.layout import measure_layout
-    from canopy_kit.segment.verb import segment
     from fixtures_sim import synthetic_orchard
 
-    orchard = synthetic_orchard(rows=2, trees_per_row=5, spacing=5.0, row_spacing=6.0, crown_radius=1.6)
+    from canopy_kit.segment.layout import measure_layout
+    from canopy_kit.segment.verb import segment
+
+    orchard = synthetic_orchard(
+        rows=2, trees_per_row=5, spacing=5.0, row_spacing=6.0, crown_radius=1.6
+    )
     seg = segment(orchard.cloud, "adaptive")
     layout = measure_layout(orchard.cloud.xyz, seg.height, seg)
     assert layout.row_spacing_m == pytest.approx(6.0, abs=0.2)
@@ -171,7 +210,9 @@ def test_layout_spacings_on_a_synthetic_orchard() -> None:
 def test_strict_refuses_a_streamed_run_it_could_not_check(tmp_path) -> None:
     from test_cli_foundation import run_cli
 
-    result = run_cli("run", str(tmp_path / "none.bag"), "--out", str(tmp_path / "o"), "--stream", "--strict")
+    result = run_cli(
+        "run", str(tmp_path / "none.bag"), "--out", str(tmp_path / "o"), "--stream", "--strict"
+    )
     assert result.returncode == 2
     assert "--strict: a --stream run has no checks" in result.stderr + result.stdout
     assert "Traceback" not in result.stderr

@@ -38,15 +38,21 @@ def run_folder(tmp_path_factory):
         if orchard not in folders:
             folders[orchard] = tmp_path_factory.mktemp(f"{orchard}_runs")
         return folders[orchard]
+
     return folder
 
 
 def _cli_run(session, out, preset: str, *extra: str):
     import subprocess
 
-    return subprocess.run([*cli_command(), "run", str(session.bag), "--out", str(out), "--preset", preset,
-                           *extra], capture_output=True, text=True, timeout=900, check=False,
-                          env={**os.environ, "COLUMNS": "400"})
+    return subprocess.run(
+        [*cli_command(), "run", str(session.bag), "--out", str(out), "--preset", preset, *extra],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+        env={**os.environ, "COLUMNS": "400"},
+    )
 
 
 def _failed(out) -> list[dict]:
@@ -79,8 +85,15 @@ def test_merged_almond_trees_fail_the_run(small_almond, run_folder):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("orchard", "preset"), [("almond", "almond"), ("almond", "adaptive"),
-                                                 ("pistachio", "pistachio"), ("pistachio", "adaptive")])
+@pytest.mark.parametrize(
+    ("orchard", "preset"),
+    [
+        ("almond", "almond"),
+        ("almond", "adaptive"),
+        ("pistachio", "pistachio"),
+        ("pistachio", "adaptive"),
+    ],
+)
 def test_the_demo_runs_fail_no_check(orchard, preset, small_almond, small_pistachio, run_folder):
     session = small_almond if orchard == "almond" else small_pistachio
     result = _cli_run(session, run_folder(orchard), preset, "--strict")

@@ -168,22 +168,28 @@ def test_unexpected_failure_is_one_line_exit_3(monkeypatch, capsys) -> None:
         cli.main()
 
 
-def test_a_library_message_with_escapes_and_lines_is_printed_as_one_plain_line(monkeypatch, capsys) -> None:
+def test_a_library_message_with_escapes_and_lines_is_printed_as_one_plain_line(
+    monkeypatch, capsys
+) -> None:
     """Open3D and other C++ libraries write coloured, multi-line text; the CLI prints one line."""
     import canopy_kit.cli as cli
     from canopy_kit.errors import InputError
 
     def failing() -> None:
-        raise InputError("tree.ply: \x1b[1;31m[Open3D WARNING]\x1b[0m Read PLY failed:\n"
-                         "  unable to read file: /src/io/FilePLY.cpp:42")
+        raise InputError(
+            "tree.ply: \x1b[1;31m[Open3D WARNING]\x1b[0m Read PLY failed:\n"
+            "  unable to read file: /src/io/FilePLY.cpp:42"
+        )
 
     monkeypatch.setattr(cli, "app", failing)
     with pytest.raises(SystemExit) as exit_info:
         cli.main()
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
-    assert err == ("error: tree.ply: [Open3D WARNING] Read PLY failed: unable to read file: "
-                   "/src/io/FilePLY.cpp:42\n")
+    assert err == (
+        "error: tree.ply: [Open3D WARNING] Read PLY failed: unable to read file: "
+        "/src/io/FilePLY.cpp:42\n"
+    )
 
 
 def test_version_and_help_name_what_is_shipped() -> None:

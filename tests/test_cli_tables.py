@@ -59,11 +59,12 @@ def test_experiments_at_80_columns_and_piped(terminal):
     common.console = common.make_console()
     piped = invoke("paper", "experiments", "--show-saved")
     lines = piped.splitlines()
-    head = lines.index("# Segmentation success (%): one-to-one point IoU >= 0.5 with a true "
-                       "tree") + 1
+    head = (
+        lines.index("# Segmentation success (%): one-to-one point IoU >= 0.5 with a true tree") + 1
+    )
     columns = lines[head].split("\t")
     assert columns[:4] == ["orchard", "method", "mapping", "paper"] and len(columns) == 12
-    rows = [line.split("\t") for line in lines[head + 1:head + 1 + len(saved.comparison)]]
+    rows = [line.split("\t") for line in lines[head + 1 : head + 1 + len(saved.comparison)]]
     assert all(len(r) == 12 for r in rows)
     assert [r[1] for r in rows] == list(saved.comparison["method"])
     assert [r[4] for r in rows] == [f"{v:.1f}" for v in saved.comparison["success_pct"]]
@@ -73,16 +74,22 @@ def test_experiments_at_80_columns_and_piped(terminal):
 def test_table1_at_80_columns(terminal):
     text = invoke("paper", "table1")
     assert_fits(text)
-    for value in ("28.06", "33.26", "18.55", "Bland-Altman 95% limits (m³)", "reordered",
-                  "-2.406 .. +6.492", "3.7700 .. 3.7704"):
+    for value in (
+        "28.06",
+        "33.26",
+        "18.55",
+        "Bland-Altman 95% limits (m³)",
+        "reordered",
+        "-2.406 .. +6.492",
+        "3.7700 .. 3.7704",
+    ):
         assert value in text
 
 
 def test_a_grid_too_wide_for_parts_becomes_records():
     from rich.console import Console
 
-    grid = Grid(["very long key column name", "another long key"] + ["x"] * 3,
-                keys=2, title="wide")
+    grid = Grid(["very long key column name", "another long key"] + ["x"] * 3, keys=2, title="wide")
     grid.add_row("k" * 40, "j" * 35, "1", "2", "3")
     con = Console(force_terminal=True, width=WIDTH, color_system=None, record=True)
     print_grid(grid, con)
@@ -117,14 +124,22 @@ def test_store_growth_at_80_columns_and_piped(terminal, tmp_path):
     lat, lon, _ = frame.to_wgs84(xy)
     with OrchardStore(tmp_path / "orchard.duckdb") as db:
         for month, factor in ((4, 1.0), (6, 1.25)):
-            table = pd.DataFrame({
-                "segment": range(6), "label": [f"L{i}" for i in range(6)],
-                "row": [0, 0, 0, 1, 1, 1], "lat": lat, "lon": lon, "n_points": 1000,
-                "height_m": 3.0, "crown_diameter_m": 3.5,
-                "volume_convex_hull_m3": 31.5 * factor, "volume_alpha_m3": 30.0 * factor,
-                "volume_flags": ""})
-            db.ingest(SessionRecord(f"block-a-{month}", "block-a", dt.date(2025, month, 1)),
-                      table)
+            table = pd.DataFrame(
+                {
+                    "segment": range(6),
+                    "label": [f"L{i}" for i in range(6)],
+                    "row": [0, 0, 0, 1, 1, 1],
+                    "lat": lat,
+                    "lon": lon,
+                    "n_points": 1000,
+                    "height_m": 3.0,
+                    "crown_diameter_m": 3.5,
+                    "volume_convex_hull_m3": 31.5 * factor,
+                    "volume_alpha_m3": 30.0 * factor,
+                    "volume_flags": "",
+                }
+            )
+            db.ingest(SessionRecord(f"block-a-{month}", "block-a", dt.date(2025, month, 1)), table)
     store = str(tmp_path / "orchard.duckdb")
     for args in (("sessions",), ("growth",), ("growth", "--rows")):
         text = invoke("store", *args, store)

@@ -113,8 +113,9 @@ def test_another_method_starts_from_its_own_defaults() -> None:
     assert other.segment.method == "adaptive" and other.segment.params == {}
     same = load_preset("almond", overrides={"segment": {"method": "dbscan_spectral"}})
     assert same.segment.params == load_preset("almond").segment.params
-    given = load_preset("almond", overrides={"segment": {"method": "dbscan",
-                                                         "params": {"eps": 0.5}}})
+    given = load_preset(
+        "almond", overrides={"segment": {"method": "dbscan", "params": {"eps": 0.5}}}
+    )
     assert given.segment.params == {"eps": 0.5}
 
 

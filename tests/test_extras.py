@@ -40,8 +40,14 @@ PRELUDE = textwrap.dedent(f"""
 def _run_without_extras(code: str, tmp_path: Path) -> subprocess.CompletedProcess:
     script = tmp_path / "without_extras.py"
     script.write_text(PRELUDE + textwrap.dedent(code))
-    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
-                          cwd=ROOT, timeout=600, check=False)
+    return subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+        check=False,
+    )
 
 
 def test_every_extra_module_is_declared_in_pyproject():
@@ -49,7 +55,8 @@ def test_every_extra_module_is_declared_in_pyproject():
     import tomllib
 
     optional = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"][
-        "optional-dependencies"]
+        "optional-dependencies"
+    ]
     for extra, (modules, _) in EXTRAS.items():
         declared = " ".join(optional[extra]).lower().replace("-", "_")
         for module in modules:
@@ -73,7 +80,8 @@ def test_core_install_segments_a_las_and_missing_extras_are_named(tmp_path):
     orchard = synthetic_orchard(rows=2, trees_per_row=4, seed=3)
     las = write_las(tmp_path / "orchard.laz", orchard.cloud)
     out = tmp_path / "seg"
-    proc = _run_without_extras(f"""
+    proc = _run_without_extras(
+        f"""
         from canopy_kit.cli import main
         try:
             sys.argv = ["canopy-kit", "segment", {str(las)!r}, "--out", {str(out)!r},
@@ -101,7 +109,9 @@ def test_core_install_segments_a_las_and_missing_extras_are_named(tmp_path):
             except MissingExtraError as exc:
                 result[name] = str(exc)
         print(json.dumps(result))
-    """, tmp_path)
+    """,
+        tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["loaded"] == []

@@ -44,14 +44,21 @@ def _run_worker(cases: list[fuzz.Case], folder: Path) -> dict[str, dict]:
         (folder / name).write_bytes(case.data)
         entries.append({"id": case.id, "file": name})
     (folder / "cases.json").write_text(json.dumps(entries))
-    proc = subprocess.run([sys.executable, "-m", "bad_inputs.fuzz", str(folder)], cwd=TESTS,
-                          env=ENV, capture_output=True, text=True, check=False,
-                          timeout=30 + 2 * len(cases))
+    proc = subprocess.run(
+        [sys.executable, "-m", "bad_inputs.fuzz", str(folder)],
+        cwd=TESTS,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=30 + 2 * len(cases),
+    )
     results = {r["id"]: r for r in map(json.loads, proc.stdout.splitlines())}
     done = len(results)
     assert proc.returncode == 0 and done == len(cases), (
         f"worker exit {proc.returncode} after {done} of {len(cases)} cases (next: "
-        f"{cases[done].id if done < len(cases) else '-'}): {proc.stderr[-2000:]}")
+        f"{cases[done].id if done < len(cases) else '-'}): {proc.stderr[-2000:]}"
+    )
     return results
 
 
@@ -115,6 +122,7 @@ def test_fuzz_ply_pcd(tmp_path: Path) -> None:
 
 # -- through the command a user runs ------------------------------------------------------------
 
+
 def _cli_files(root: Path) -> list[tuple[str, Path, bool]]:
     """(case, file, cut) for the command-line cases: the findings of the hostile-user report."""
     rng = np.random.default_rng(23)
@@ -128,10 +136,20 @@ def _cli_files(root: Path) -> list[tuple[str, Path, bool]]:
         "las-scale-1e-300": (las_bytes(ints, scale=1e-300), False),
         "las-cut-at-record": (las[: 227 + 1234 * 20], True),
         "las-zero-header-bounds": (las_bytes(ints, header_bounds=((0, 0, 0), (0, 0, 0))), False),
-        "ply-face-before-vertex": (ply_bytes(ints * 0.01, before=(
-            ("face", 500, "property list uchar int vertex_indices", b"\x03" + b"\0" * 12),)), False),
+        "ply-face-before-vertex": (
+            ply_bytes(
+                ints * 0.01,
+                before=(
+                    ("face", 500, "property list uchar int vertex_indices", b"\x03" + b"\0" * 12),
+                ),
+            ),
+            False,
+        ),
         "ply-valid-ascii": (ply_bytes(ints * 0.01, "ascii"), False),
-        "pcd-compressed-0-bytes": (pcd_bytes(ints * 0.01, "binary_compressed", sizes=(0, 32000)), False),
+        "pcd-compressed-0-bytes": (
+            pcd_bytes(ints * 0.01, "binary_compressed", sizes=(0, 32000)),
+            False,
+        ),
         "pcd-binary-cut": (pcd_bytes(ints * 0.01, "binary")[:-100], True),
     }
     out = []
@@ -147,9 +165,15 @@ def test_info_command_on_hostile_files(tmp_path: Path) -> None:
     failures = []
     for name, path, cut in _cli_files(tmp_path):
         try:
-            proc = subprocess.run([*cli_command(), "info", "--json", str(path)], env=ENV,
-                                  capture_output=True, text=True, timeout=fuzz.CASE_SECONDS,
-                                  preexec_fn=_limits, check=False)
+            proc = subprocess.run(
+                [*cli_command(), "info", "--json", str(path)],
+                env=ENV,
+                capture_output=True,
+                text=True,
+                timeout=fuzz.CASE_SECONDS,
+                preexec_fn=_limits,
+                check=False,
+            )
         except subprocess.TimeoutExpired:
             failures.append(f"{name}: over {fuzz.CASE_SECONDS} s")
             continue
@@ -171,8 +195,14 @@ def test_info_command_on_hostile_files(tmp_path: Path) -> None:
 
 def test_info_plain_output_shows_true_bounds_and_warnings(tmp_path: Path) -> None:
     cases = {name: path for name, path, _ in _cli_files(tmp_path)}
-    proc = subprocess.run([*cli_command(), "info", str(cases["las-zero-header-bounds"])], env=ENV,
-                          capture_output=True, text=True, timeout=30, check=False)
+    proc = subprocess.run(
+        [*cli_command(), "info", str(cases["las-zero-header-bounds"])],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     lo = grid_points(2000).min(axis=0) * 0.01
     assert f"{lo[0]:.3f}" in proc.stdout and "warning: " in proc.stdout

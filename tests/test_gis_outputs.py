@@ -15,14 +15,22 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures_sim import synthetic_orchard
 
 from canopy_kit.cloud import PointCloud
 from canopy_kit.io.clouds import read_cloud
 
-from fixtures_sim import synthetic_orchard
-
-PROVENANCE_KEYS = {"orchard", "session_date", "bag", "bag_sha256", "drone_images",
-                   "software_version", "preset", "run_started_utc", "run_seconds"}
+PROVENANCE_KEYS = {
+    "orchard",
+    "session_date",
+    "bag",
+    "bag_sha256",
+    "drone_images",
+    "software_version",
+    "preset",
+    "run_started_utc",
+    "run_seconds",
+}
 
 
 # -- an RFC 7946 validator, independent of canopy_kit.geojson ------------------------------
@@ -85,8 +93,14 @@ def gis_run(tiny_pistachio, tmp_path_factory):
     from canopy_kit.pipeline import run
 
     out = tmp_path_factory.mktemp("gis_run")
-    results = run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root,
-                  orchard="block 7", export_trees=True)
+    results = run(
+        load_preset("adaptive"),
+        tiny_pistachio.bag,
+        out,
+        truth=tiny_pistachio.root,
+        orchard="block 7",
+        export_trees=True,
+    )
     return tiny_pistachio, out, results
 
 
@@ -108,8 +122,10 @@ def test_geojson_coordinates_agree_with_pyproj_and_the_simulator(gis_run) -> Non
     crs, origin = summary["crs"], np.asarray(summary["origin"])
     trees = pd.read_csv(out / "trees.csv", dtype={"tree_id": str})
     lon, lat = _utm_to_lonlat(crs, trees["x"] + origin[0], trees["y"] + origin[1])
-    feats = {f["properties"]["tree_id"]: f["geometry"]["coordinates"]
-             for f in json.loads((out / "trees.geojson").read_text())["features"]}
+    feats = {
+        f["properties"]["tree_id"]: f["geometry"]["coordinates"]
+        for f in json.loads((out / "trees.geojson").read_text())["features"]
+    }
     got = np.array([feats[t] for t in trees["tree_id"]])
     assert np.allclose(got[:, 0], lon, atol=1e-10) and np.allclose(got[:, 1], lat, atol=1e-10)
     assert np.allclose(trees["lon"], lon, atol=1e-10) and np.allclose(trees["lat"], lat, atol=1e-10)
@@ -118,8 +134,11 @@ def test_geojson_coordinates_agree_with_pyproj_and_the_simulator(gis_run) -> Non
     matched = trees.dropna(subset=["truth_tree_id"])
     assert len(matched) == len(truth)
     t = truth.loc[matched["truth_tree_id"].astype(int)]
-    t_lon, t_lat = _utm_to_lonlat(frame["crs"], t["crown_x"] + frame["origin_easting"],
-                                  t["crown_y"] + frame["origin_northing"])
+    t_lon, t_lat = _utm_to_lonlat(
+        frame["crs"],
+        t["crown_x"] + frame["origin_easting"],
+        t["crown_y"] + frame["origin_northing"],
+    )
     # The table's position is the median of the scanned points (0.3-0.6 m from the crown
     # centre here); mixing up the map's and the GNSS frame's origins would move it 5.5 m.
     assert _metres(matched["lon"], matched["lat"], t_lon, t_lat).max() < 1.0
@@ -206,15 +225,29 @@ def test_exported_tree_volume_matches_trees_csv(gis_run) -> None:
     csv = pd.read_csv(out / "trees.csv", dtype={"tree_id": str}).set_index("tree_id")
     runner = CliRunner()
     for tree_id in csv.index:
-        for method, column, extra in (("convex_hull", "volume_convex_hull_m3", []),
-                                      ("alpha_shape", "volume_alpha_m3", ["--alpha", "0.9"])):
-            res = runner.invoke(app, ["volume", str(out / "trees" / f"{tree_id}.laz"), "-m", method,
-                                      "--voxel-size", "0.1", "--json", *extra])
+        for method, column, extra in (
+            ("convex_hull", "volume_convex_hull_m3", []),
+            ("alpha_shape", "volume_alpha_m3", ["--alpha", "0.9"]),
+        ):
+            res = runner.invoke(
+                app,
+                [
+                    "volume",
+                    str(out / "trees" / f"{tree_id}.laz"),
+                    "-m",
+                    method,
+                    "--voxel-size",
+                    "0.1",
+                    "--json",
+                    *extra,
+                ],
+            )
             assert res.exit_code == 0, res.output
             got = json.loads(res.output)["volume_m3"]
             assert got == pytest.approx(csv.loc[tree_id, column], rel=1e-12), (tree_id, method)
-        plain = runner.invoke(app, ["volume", str(out / "trees" / f"{tree_id}.laz"), "-m",
-                                    "convex_hull", "--json"])
+        plain = runner.invoke(
+            app, ["volume", str(out / "trees" / f"{tree_id}.laz"), "-m", "convex_hull", "--json"]
+        )
         n_all = json.loads(plain.output)["n_points"]
         assert n_all == csv.loc[tree_id, "n_points"]
 
@@ -235,8 +268,15 @@ def test_provenance_in_metrics_tables_gpkg_and_geojson(gis_run) -> None:
         digest.update(p.relative_to(bag).as_posix().encode() + b"\0" + p.read_bytes())
     with AnyReader([bag]) as reader:
         first = reader.start_time  # ns of the bag's first message
-    assert prov == {**prov, "orchard": "block 7", "bag": bag.name, "bag_sha256": digest.hexdigest(),
-                    "software_version": __version__, "preset": "adaptive", "drone_images": ""}
+    assert prov == {
+        **prov,
+        "orchard": "block 7",
+        "bag": bag.name,
+        "bag_sha256": digest.hexdigest(),
+        "software_version": __version__,
+        "preset": "adaptive",
+        "drone_images": "",
+    }
     assert pd.Timestamp(prov["session_date"]).value == first
     assert prov["session_date"].endswith("Z") and prov["run_started_utc"].endswith("Z")
     assert 0 < prov["run_seconds"] < 3600
@@ -299,7 +339,9 @@ def test_segment_folder_geojson_and_gpkg_round_trip(tmp_path) -> None:
         data = validate_rfc7946(paths[key], min_features=0 if key == "rows" else 1)
         assert data["provenance"] == {"orchard": "x"}
     pos = json.loads(paths["positions"].read_text())["features"]
-    lon, lat = _utm_to_lonlat("EPSG:32610", seg.trees[0].x + seg.origin[0], seg.trees[0].y + seg.origin[1])
+    lon, lat = _utm_to_lonlat(
+        "EPSG:32610", seg.trees[0].x + seg.origin[0], seg.trees[0].y + seg.origin[1]
+    )
     assert pos[0]["geometry"]["coordinates"][:2] == pytest.approx([lon, lat], abs=1e-10)
     assert pos[0]["geometry"]["coordinates"][2] == pytest.approx(seg.trees[0].z + seg.origin[2])
     run = read_segmentation(tmp_path / "run")
@@ -360,8 +402,9 @@ def test_crowns_are_labelled_by_the_matched_lidar_tree() -> None:
     from ground_truth.plots import crown_labels
 
     crowns = pd.DataFrame({"crown_id": [1, 2, 3], "x": [0.0, 5, 10], "y": [0.0, 0, 0]})
-    matched = pd.DataFrame({"tree_id": ["r0-L0", "r0-L1"], "matched": [True, False],
-                            "aerial_crown_id": [3.0, np.nan]})
+    matched = pd.DataFrame(
+        {"tree_id": ["r0-L0", "r0-L1"], "matched": [True, False], "aerial_crown_id": [3.0, np.nan]}
+    )
     crowns["tree_id"] = crown_tree_ids(crowns, matched)
     assert crowns["tree_id"].tolist() == ["", "", "r0-L0"]
     assert crown_labels(crowns) == ["aerial 1", "aerial 2", "r0-L0"]
@@ -373,8 +416,15 @@ def test_ground_truth_tables_keep_lat_lon_to_1e_9_degrees() -> None:
     one position, issue 26)."""
     from ground_truth.pipeline import table_csv
 
-    text = table_csv(pd.DataFrame({"crown_id": [1, 2], "lat": [37.28100123456, 37.28104567891],
-                                   "lon": [-120.41999987654, -120.4199]}))
+    text = table_csv(
+        pd.DataFrame(
+            {
+                "crown_id": [1, 2],
+                "lat": [37.28100123456, 37.28104567891],
+                "lon": [-120.41999987654, -120.4199],
+            }
+        )
+    )
     rows = [line.split(",") for line in text.splitlines()[1:]]
     assert [r[1] for r in rows] == ["37.281001235", "37.281045679"]
     assert [r[2] for r in rows] == ["-120.419999877", "-120.419900000"]
@@ -395,23 +445,35 @@ def test_cli_run_and_segment_export_trees(gis_run, tmp_path) -> None:
     (again / "trees").mkdir()
     (again / "trees" / "r9-L9.laz").write_bytes(b"")  # a tree of an earlier run: removed
     runner = CliRunner()
-    res = runner.invoke(app, ["run", str(sim.bag), "--out", str(again), "--export-trees",
-                              "--orchard", "north block"])
+    res = runner.invoke(
+        app,
+        ["run", str(sim.bag), "--out", str(again), "--export-trees", "--orchard", "north block"],
+    )
     assert res.exit_code == 0, res.output
     metrics = json.loads((again / "metrics.json").read_text())
     assert metrics["provenance"]["orchard"] == "north block"
     assert set(metrics["cached_stages"]) >= {"map", "segment", "volumes"}
     ids = pd.read_csv(again / "trees.csv", dtype={"tree_id": str})["tree_id"]
     assert sorted(p.stem for p in (again / "trees").glob("*.laz")) == sorted(ids)
-    res = runner.invoke(app, ["segment", str(out / "map.laz"), "--out", str(tmp_path / "seg"),
-                              "--export-trees", "--no-cloud"])
+    res = runner.invoke(
+        app,
+        [
+            "segment",
+            str(out / "map.laz"),
+            "--out",
+            str(tmp_path / "seg"),
+            "--export-trees",
+            "--no-cloud",
+        ],
+    )
     assert res.exit_code == 0, res.output
     seg_ids = pd.read_csv(tmp_path / "seg" / "trees.csv", dtype={"tree_id": str})["tree_id"]
     assert sorted(p.stem for p in (tmp_path / "seg" / "trees").glob("*.laz")) == sorted(seg_ids)
     for name in ("trees.geojson", "crowns.geojson", "rows.geojson"):
         validate_rfc7946(tmp_path / "seg" / name)
-    res = runner.invoke(app, ["run", str(sim.bag), "--out", str(tmp_path / "s"), "--stream",
-                              "--export-trees"])
+    res = runner.invoke(
+        app, ["run", str(sim.bag), "--out", str(tmp_path / "s"), "--stream", "--export-trees"]
+    )
     assert "--export-trees" in str(res.exception)  # an InputError: `canopy-kit` exits 2
 
 
@@ -420,15 +482,27 @@ def test_a_table_without_positions_gets_no_trees_geojson(tmp_path) -> None:
     earlier run's is removed), full-precision positions where there are some."""
     from canopy_kit.outputs import trees_geojson, write_trees
 
-    local = pd.DataFrame({"tree_id": ["r0-L0"], "segment": [0], "x": [1.0], "y": [2.0],
-                          "lat": [np.nan], "lon": [np.nan]})
+    local = pd.DataFrame(
+        {
+            "tree_id": ["r0-L0"],
+            "segment": [0],
+            "x": [1.0],
+            "y": [2.0],
+            "lat": [np.nan],
+            "lon": [np.nan],
+        }
+    )
     (tmp_path / "trees.geojson").write_text("{}")
     files = write_trees(local, tmp_path, {"orchard": "o"})
-    assert set(files) == {"trees.csv", "trees.parquet"} and not (tmp_path / "trees.geojson").exists()
+    assert (
+        set(files) == {"trees.csv", "trees.parquet"} and not (tmp_path / "trees.geojson").exists()
+    )
     placed = local.assign(lat=[37.123456789012], lon=[-120.98765432101], volume=[np.nan])
     data = json.loads(trees_geojson(placed, {"orchard": "o"}))
     assert data["features"][0]["geometry"]["coordinates"] == [-120.98765432101, 37.123456789012]
-    assert data["features"][0]["properties"]["volume"] is None and data["provenance"] == {"orchard": "o"}
+    assert data["features"][0]["properties"]["volume"] is None and data["provenance"] == {
+        "orchard": "o"
+    }
 
 
 def test_tree_file_names_are_safe() -> None:
@@ -451,16 +525,24 @@ def test_drone_crowns_carry_the_lidar_tree_id(sim_factory, tmp_path) -> None:
     from canopy_kit.pipeline import compute, run
     from ground_truth.plots import plot_crowns
 
-    sim = sim_factory("pistachio", seed=4, overrides={"orchard": {"rows": 2, "trees_per_row": 3},
-                                                      "lidar": {"columns": 512},
-                                                      "drone": {"enabled": True}})
+    sim = sim_factory(
+        "pistachio",
+        seed=4,
+        overrides={
+            "orchard": {"rows": 2, "trees_per_row": 3},
+            "lidar": {"columns": 512},
+            "drone": {"enabled": True},
+        },
+    )
     drone = sim.root / "drone"
     out = tmp_path / "run"
     results = run(load_preset("adaptive"), sim.bag, out, drone_images=drone)
     assert results.metrics["provenance"]["drone_images"] == str(drone)
     trees = pd.read_csv(out / "trees.csv", dtype={"tree_id": str}).set_index("tree_id")
     text = (out / "aerial" / "crowns.csv").read_text().splitlines()
-    crowns = pd.read_csv(out / "aerial" / "crowns.csv", dtype={"tree_id": str}).fillna({"tree_id": ""})
+    crowns = pd.read_csv(out / "aerial" / "crowns.csv", dtype={"tree_id": str}).fillna(
+        {"tree_id": ""}
+    )
     header = text[0].split(",")
     for line in text[1:]:
         for col in ("lat", "lon"):

@@ -46,15 +46,27 @@ SEED = 21
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
 
 
-def _series(local: np.ndarray, t: np.ndarray, sigma: float | np.ndarray = 0.6,
-            status: int | np.ndarray = 0, cov_type: int | np.ndarray = 2) -> GnssSeries:
+def _series(
+    local: np.ndarray,
+    t: np.ndarray,
+    sigma: float | np.ndarray = 0.6,
+    status: int | np.ndarray = 0,
+    cov_type: int | np.ndarray = 2,
+) -> GnssSeries:
     lat, lon, h = FRAME.to_wgs84(local)
     n = len(t)
     cov = np.zeros((n, 9))
     cov[:, [0, 4]] = (np.broadcast_to(sigma, n) ** 2)[:, None]
     cov[:, 8] = (2 * np.broadcast_to(sigma, n)) ** 2
-    return GnssSeries(t, lat, lon, h, np.broadcast_to(status, n).astype(int).copy(), cov,
-                      np.broadcast_to(cov_type, n).astype(int).copy())
+    return GnssSeries(
+        t,
+        lat,
+        lon,
+        h,
+        np.broadcast_to(status, n).astype(int).copy(),
+        cov,
+        np.broadcast_to(cov_type, n).astype(int).copy(),
+    )
 
 
 def _drive(duration: float = 80.0, rate: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
@@ -106,8 +118,18 @@ def test_rejection_reasons_and_counts() -> None:
     s.altitude[7] = 20_000.0
     s.latitude[8], s.longitude[8] = 0.0, 0.0  # a receiver's placeholder before its first fix
     reasons = rejection_reasons(s)
-    assert list(reasons) == ["", "no_fix", "non_finite", "non_finite", "no_fix", "out_of_range",
-                             "out_of_range", "out_of_range", "out_of_range", ""]
+    assert list(reasons) == [
+        "",
+        "no_fix",
+        "non_finite",
+        "non_finite",
+        "no_fix",
+        "out_of_range",
+        "out_of_range",
+        "out_of_range",
+        "out_of_range",
+        "",
+    ]
     report = fix_report(s, reasons)
     assert report["rejected"] == {"no_fix": 2, "non_finite": 2, "out_of_range": 4, "jump": 0}
     assert report["by_status"] == {"fix": 8, "no_fix": 2} and report["rejected_share"] == 0.8
@@ -141,8 +163,10 @@ def test_outages_are_found_and_placed_in_time() -> None:
     line = report_warning("/gps/fix", report)
     assert line is not None and line.startswith("GNSS topic '/gps/fix': 17 % of 300 fixes rejected")
     assert "the longest 5.1 s at 9.9 s after the first LiDAR sweep" in line
-    assert report_warning("/gps/fix", fix_report(_series(np.zeros((50, 3)), t[:50]),
-                                                 np.full(50, ""))) is None
+    assert (
+        report_warning("/gps/fix", fix_report(_series(np.zeros((50, 3)), t[:50]), np.full(50, "")))
+        is None
+    )
 
 
 def test_an_epoch_does_not_average_rtk_with_standalone_fixes() -> None:
@@ -205,8 +229,9 @@ def test_a_new_offset_at_a_status_change_is_not_a_jump() -> None:
 
 # -- the receiver in the simulator --------------------------------------------------------------
 def _micro(gnss: dict) -> tuple:
-    cfg = load_sim_config("pistachio", {"seed": 2, "orchard": {"rows": 1, "trees_per_row": 2},
-                                        "gnss": gnss})
+    cfg = load_sim_config(
+        "pistachio", {"seed": 2, "orchard": {"rows": 1, "trees_per_row": 2}, "gnss": gnss}
+    )
     _, trajectory, _, rngs = build_world(cfg)
     return trajectory, cfg.gnss, rngs["gnss"]
 
@@ -223,8 +248,16 @@ def test_simulated_receiver_is_unchanged_by_default() -> None:
 
 def test_simulated_outages_jumps_and_rtk_intervals() -> None:
     base = simulate_gnss(*_micro({}))
-    fixes = simulate_gnss(*_micro({"outages": [[10.0, 4.0]], "jumps": [[20.0, 3.0, 3.0]],
-                                   "rtk_intervals": [[0.0, 8.0]], "standalone_status": 1}))
+    fixes = simulate_gnss(
+        *_micro(
+            {
+                "outages": [[10.0, 4.0]],
+                "jumps": [[20.0, 3.0, 3.0]],
+                "rtk_intervals": [[0.0, 8.0]],
+                "standalone_status": 1,
+            }
+        )
+    )
     rel = fixes.t - fixes.events["start_time"]
     out = (rel >= 10.0) & (rel < 14.0)
     assert (fixes.status[out] == -1).all() and np.isnan(fixes.local_xyz[out]).all()
@@ -246,12 +279,15 @@ def test_simulated_outages_jumps_and_rtk_intervals() -> None:
     assert len(many.events["outages"]) == 2 and len(many.events["jumps"]) == 2
 
 
-@pytest.mark.parametrize("gnss, message", [
-    ({"outages": [[3.0]]}, "gnss.outages[0]: expected [start_s, duration_s]"),
-    ({"jumps": [[3.0, 0.0, 2.0]]}, "gnss.jumps[0]: start must be >= 0 and duration positive"),
-    ({"mode": "rtk", "rtk_intervals": [[0.0, 5.0]]}, "rtk_intervals need mode 'standard'"),
-    ({"covariance_type": 4}, "gnss.covariance_type: must be 0, 1, 2 or 3"),
-])
+@pytest.mark.parametrize(
+    "gnss, message",
+    [
+        ({"outages": [[3.0]]}, "gnss.outages[0]: expected [start_s, duration_s]"),
+        ({"jumps": [[3.0, 0.0, 2.0]]}, "gnss.jumps[0]: start must be >= 0 and duration positive"),
+        ({"mode": "rtk", "rtk_intervals": [[0.0, 5.0]]}, "rtk_intervals need mode 'standard'"),
+        ({"covariance_type": 4}, "gnss.covariance_type: must be 0, 1, 2 or 3"),
+    ],
+)
 def test_receiver_settings_are_checked(gnss: dict, message: str) -> None:
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
         load_sim_config("pistachio", {"gnss": gnss})
@@ -268,8 +304,15 @@ def test_covariance_type_is_written_and_read_back(tmp_path: Path) -> None:
     assert np.all(series.covariance[0] == 0) and series.covariance[1, 0] == pytest.approx(4e-4)
     buffer = GnssBuffer()
     for i in range(3):
-        buffer.append(series.t[i], series.latitude[i], series.longitude[i], series.altitude[i],
-                      int(series.status[i]), series.covariance[i], int(series.covariance_type[i]))
+        buffer.append(
+            series.t[i],
+            series.latitude[i],
+            series.longitude[i],
+            series.altitude[i],
+            int(series.status[i]),
+            series.covariance[i],
+            int(series.covariance_type[i]),
+        )
     again = buffer.series()
     assert list(again.covariance_type) == [0, 2, 2]
     assert list(rejection_reasons(again)) == ["", "", "no_fix"]
@@ -277,7 +320,7 @@ def test_covariance_type_is_written_and_read_back(tmp_path: Path) -> None:
 
 
 # -- mapping simulated sessions -----------------------------------------------------------------
-def _alley_middle(trajectory, alley: int = 1) -> float:  # noqa: ANN001
+def _alley_middle(trajectory, alley: int = 1) -> float:
     """Seconds from the drive start to the middle of the ``alley``-th alley (0-based)."""
     starts = np.r_[0.0, np.cumsum([seg.length for seg in trajectory.segments])]
     lines = [k for k, turn in enumerate(trajectory.turn_flags) if not turn]
@@ -287,7 +330,7 @@ def _alley_middle(trajectory, alley: int = 1) -> float:  # noqa: ANN001
     return float(np.interp(s_mid, trajectory.arc_length(t), t) - trajectory.start_time)
 
 
-def _lateral(result, sim, window: list[float]) -> np.ndarray:  # noqa: ANN001
+def _lateral(result, sim, window: list[float]) -> np.ndarray:
     """Across-track error (m) of the SE(3)-aligned trajectory over ``window`` [start_s, duration_s]."""
     reference = load_truth(sim.root).trajectory
     times = result.trajectory["time"].to_numpy()
@@ -304,26 +347,26 @@ def _lateral(result, sim, window: list[float]) -> np.ndarray:  # noqa: ANN001
     return np.sum((aligned[w, :3, 3] - ref[w, :3, 3])[:, :2] * left, axis=1)
 
 
-def _events(sim) -> dict:  # noqa: ANN001
+def _events(sim) -> dict:
     return json.loads((sim.truth_dir / "gnss_events.json").read_text())
 
 
 @pytest.fixture(scope="module")
-def drive(sim_factory):  # noqa: ANN001, ANN201
+def drive(sim_factory):
     """The 2 × 3 pistachio drive with a well-behaved standalone receiver, mapped."""
     sim = sim_factory("pistachio", seed=SEED, overrides=SMALL)
     res = build_map(sim.bag, MappingConfig())
     return sim, res, trajectory_errors(res.trajectory, load_truth(sim.root).trajectory)
 
 
-def _variant(sim_factory, gnss: dict):  # noqa: ANN001, ANN202
+def _variant(sim_factory, gnss: dict):
     sim = sim_factory("pistachio", seed=SEED, overrides={**SMALL, "gnss": gnss})
     res = build_map(sim.bag, MappingConfig())
     return sim, res, trajectory_errors(res.trajectory, load_truth(sim.root).trajectory)
 
 
 @pytest.mark.slow
-def test_outage_in_an_alley_does_not_bend_the_trajectory(drive, sim_factory) -> None:  # noqa: ANN001
+def test_outage_in_an_alley_does_not_bend_the_trajectory(drive, sim_factory) -> None:
     sim0, res0, err0 = drive
     mid = _alley_middle(sim0.trajectory)
     window = [round(mid - 2.5, 2), 5.0]
@@ -333,7 +376,9 @@ def test_outage_in_an_alley_does_not_bend_the_trajectory(drive, sim_factory) -> 
     g = res.diagnostics["gnss"]
     assert g["rejected"]["no_fix"] == 50 and g["by_status"]["no_fix"] == 50
     assert g["outages"]["count"] == 1 and g["outages"]["longest_s"] == pytest.approx(5.0, abs=0.15)
-    assert g["outages"]["intervals"][0][0] == pytest.approx(window[0], abs=0.3)  # s from the first sweep
+    assert g["outages"]["intervals"][0][0] == pytest.approx(
+        window[0], abs=0.3
+    )  # s from the first sweep
     line = r"GNSS topic '/gps/fix': \d+ % of \d+ fixes rejected \(50 no fix\); 1 outage\(s\), the longest 5\.\d s"
     assert any(re.match(line, w) for w in res.warnings), res.warnings
     assert err["ate_rmse_m"] <= max(1.1 * err0["ate_rmse_m"], err0["ate_rmse_m"] + 0.01)
@@ -347,12 +392,12 @@ def test_outage_in_an_alley_does_not_bend_the_trajectory(drive, sim_factory) -> 
 
 
 @pytest.fixture(scope="module")
-def rtk_drive(sim_factory):  # noqa: ANN001, ANN201
+def rtk_drive(sim_factory):
     return _variant(sim_factory, {"mode": "rtk"})
 
 
 @pytest.mark.slow
-def test_a_jump_under_rtk_is_rejected_and_does_not_pull(drive, rtk_drive, sim_factory) -> None:  # noqa: ANN001
+def test_a_jump_under_rtk_is_rejected_and_does_not_pull(drive, rtk_drive, sim_factory) -> None:
     sim0, _, _ = drive
     _, _, err0 = rtk_drive
     mid = _alley_middle(sim0.trajectory)
@@ -369,12 +414,14 @@ def test_a_jump_under_rtk_is_rejected_and_does_not_pull(drive, rtk_drive, sim_fa
 
 
 @pytest.mark.slow
-def test_rtk_lost_mid_drive_with_a_standalone_jump(drive, sim_factory) -> None:  # noqa: ANN001
+def test_rtk_lost_mid_drive_with_a_standalone_jump(drive, sim_factory) -> None:
     sim0, _, _ = drive
     mid = _alley_middle(sim0.trajectory)
     late = _alley_middle(sim0.trajectory, 2)
-    sim, res, err = _variant(sim_factory, {"rtk_intervals": [[0.0, round(mid, 2)]],
-                                           "jumps": [[round(late - 1.5, 2), 3.0, 3.0]]})
+    sim, res, err = _variant(
+        sim_factory,
+        {"rtk_intervals": [[0.0, round(mid, 2)]], "jumps": [[round(late - 1.5, 2), 3.0, 3.0]]},
+    )
     g = res.diagnostics["gnss"]
     assert g["by_status"]["gbas"] > 250 and g["by_status"]["fix"] > 250
     assert g["mode_changes"] == 1
@@ -384,8 +431,11 @@ def test_rtk_lost_mid_drive_with_a_standalone_jump(drive, sim_factory) -> None: 
 
 def test_unknown_covariance_and_nan_fixes_are_handled_and_counted(sim_factory) -> None:
     """A cheap receiver: covariance type 0, and NaN positions while it claims a fix."""
-    micro = {"orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {"columns": 512},
-             "gnss": {"covariance_type": 0, "outages": [[12.0, 3.0]], "outage_status": 0}}
+    micro = {
+        "orchard": {"rows": 1, "trees_per_row": 2},
+        "lidar": {"columns": 512},
+        "gnss": {"covariance_type": 0, "outages": [[12.0, 3.0]], "outage_status": 0},
+    }
     sim = sim_factory("pistachio", seed=SEED, overrides=micro)
     events = _events(sim)
     res = build_map(sim.bag, MappingConfig())

@@ -33,9 +33,14 @@ def flight_dir(tmp_path_factory) -> Path:
     from canopy_kit.sim.drone import simulate_drone_session
 
     root = tmp_path_factory.mktemp("gt_config")
-    cfg = load_sim_config("pistachio", {"seed": 4, "orchard": {"rows": 1, "trees_per_row": 2},
-                                        "drone": {"enabled": True, "image_width": 400,
-                                                  "image_height": 300}})
+    cfg = load_sim_config(
+        "pistachio",
+        {
+            "seed": 4,
+            "orchard": {"rows": 1, "trees_per_row": 2},
+            "drone": {"enabled": True, "image_width": 400, "image_height": 300},
+        },
+    )
     simulate_drone_session(root / "sim", cfg)
     return root / "sim" / "drone"
 
@@ -70,8 +75,12 @@ def _work_pixels(config: GroundTruthConfig, flight_dir: Path, tmp_path: Path) ->
 
     flight = read_flight(flight_dir)
     w, h = flight.size
-    cams = [camera_from_pose(n, "SIMPLE_PINHOLE", (300.0, w / 2, h / 2), w, h,
-                             np.array([0.0, 0.0, 30.0]), NADIR) for n in flight.names[:2]]
+    cams = [
+        camera_from_pose(
+            n, "SIMPLE_PINHOLE", (300.0, w / 2, h / 2), w, h, np.array([0.0, 0.0, 30.0]), NADIR
+        )
+        for n in flight.names[:2]
+    ]
     scaled, rgbs = load_work_images(flight, cams, config.work_image_size)
     assert [c.width for c in scaled] == [rgb.shape[1] for rgb in rgbs]
     return float(sum(rgb.shape[0] * rgb.shape[1] for rgb in rgbs))
@@ -92,8 +101,11 @@ def _two_photos_of_a_block():
         t = np.where(on_block, t_top, (0.0 - 30.0) / d[:, 2])
         p = view.position + d * t[:, None]
         images.append(fbm2(p[:, 0], p[:, 1], 0.6, 3, 5).reshape(300, 300).astype(np.float32))
-        cams.append(camera_from_pose(f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300,
-                                     view.position, NADIR))
+        cams.append(
+            camera_from_pose(
+                f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300, view.position, NADIR
+            )
+        )
     return cams, images
 
 
@@ -104,8 +116,9 @@ def _canopy_search_height(config: GroundTruthConfig, *_) -> float:
 
     cams, images = _two_photos_of_a_block()
     grid = Grid(-6.0, 6.0, 0.1, 120, 120)
-    return canopy_top(cams, images, grid, np.zeros(grid.shape), config.max_canopy_height,
-                      SurfaceOptions())
+    return canopy_top(
+        cams, images, grid, np.zeros(grid.shape), config.max_canopy_height, SurfaceOptions()
+    )
 
 
 def _mosaic_pixels(config: GroundTruthConfig, *_) -> float:
@@ -115,8 +128,9 @@ def _mosaic_pixels(config: GroundTruthConfig, *_) -> float:
     from ground_truth.raster import Grid
 
     cams, images = _two_photos_of_a_block()
-    rgbs = [np.repeat((255 * np.clip(g, 0, 1)).astype(np.uint8)[..., None], 3, axis=2)
-            for g in images]
+    rgbs = [
+        np.repeat((255 * np.clip(g, 0, 1)).astype(np.uint8)[..., None], 3, axis=2) for g in images
+    ]
     grid = Grid(-6.0, 6.0, 0.1, 120, 120)
     gsd = 30.0 / cams[0].focal
     mosaic = orthomosaic(cams, rgbs, grid, np.zeros(grid.shape), ortho_resolution(gsd, config))
@@ -133,11 +147,14 @@ def _orchard_with_offset_seeds():
     grid, rgb, chm, crowns = _synthetic_orchard()
     rgba = np.dstack([rgb, np.full(grid.shape, 255, np.uint8)])
     mosaic = Orthomosaic(grid, rgba, np.zeros(grid.shape, np.int32), ["a"])
-    surface = SurfaceModel(grid, chm, np.zeros(grid.shape), np.ones(grid.shape),
-                           np.zeros(grid.shape + (0,), int), [])
+    surface = SurfaceModel(
+        grid, chm, np.zeros(grid.shape), np.ones(grid.shape), np.zeros(grid.shape + (0,), int), []
+    )
     truth = np.array([(cx, cy) for cx, cy, _, _ in crowns])
-    trees = tree_positions(pd.DataFrame({"tree_id": list("abcd"), "x": truth[:, 0] + 0.45,
-                                         "y": truth[:, 1] - 0.3}), None)
+    trees = tree_positions(
+        pd.DataFrame({"tree_id": list("abcd"), "x": truth[:, 0] + 0.45, "y": truth[:, 1] - 0.3}),
+        None,
+    )
     return mosaic, surface, trees, truth
 
 
@@ -145,8 +162,9 @@ def _crowns_stage(config: GroundTruthConfig):
     from ground_truth.pipeline import crowns_stage
 
     mosaic, surface, trees, truth = _orchard_with_offset_seeds()
-    seg, _, matched, _ = crowns_stage(mosaic, surface, trees, LocalFrame.at(37.281, -120.42, 50.0),
-                                      config)
+    seg, _, matched, _ = crowns_stage(
+        mosaic, surface, trees, LocalFrame.at(37.281, -120.42, 50.0), config
+    )
     return seg, matched, truth
 
 
@@ -164,16 +182,27 @@ def _seed_error(config: GroundTruthConfig, *_) -> float:
 
 def _flagged_crowns(config: GroundTruthConfig, *_) -> float:
     """Aerial crowns flagged as fragments or merges in the per-tree table."""
-    from canopy_kit.pipeline import join_aerial
+    from canopy_kit.tree_table import join_aerial
 
     d = np.array([2.0, 2.6, 3.2, 4.0, 4.8, 5.6, 6.4, 8.0])
-    aerial = SimpleNamespace(trees=pd.DataFrame({
-        "segment": np.arange(len(d)), "matched": True, "aerial_diameter_max_m": d,
-        "aerial_diameter_mean_m": d, "aerial_sphere_volume_m3": np.pi * d**3 / 6,
-        "aerial_ellipsoid_volume_m3": np.nan, "aerial_chm_volume_m3": np.nan,
-        "aerial_height_m": 4.0, "aerial_distance_m": 0.2}))
-    lidar = pd.DataFrame({"segment": np.arange(len(d)), "crown_diameter_m": 4.0,
-                          "volume_alpha_m3": 20.0})
+    aerial = SimpleNamespace(
+        trees=pd.DataFrame(
+            {
+                "segment": np.arange(len(d)),
+                "matched": True,
+                "aerial_diameter_max_m": d,
+                "aerial_diameter_mean_m": d,
+                "aerial_sphere_volume_m3": np.pi * d**3 / 6,
+                "aerial_ellipsoid_volume_m3": np.nan,
+                "aerial_chm_volume_m3": np.nan,
+                "aerial_height_m": 4.0,
+                "aerial_distance_m": 0.2,
+            }
+        )
+    )
+    lidar = pd.DataFrame(
+        {"segment": np.arange(len(d)), "crown_diameter_m": 4.0, "volume_alpha_m3": 20.0}
+    )
     return float((join_aerial(lidar, aerial, config)["aerial_flag"] != "").sum())
 
 
@@ -216,8 +245,10 @@ def test_a_preset_sets_the_key(key: str, tmp_path: Path) -> None:
     path.write_text(tomlkit.dumps({"name": "p", "ground_truth": {key: value}}))
     config = load_preset(path)
     assert getattr(config.ground_truth, key) == value
-    assert getattr(load_preset(path.as_posix(), {"ground_truth": {key: value}}).ground_truth,
-                   key) == value
+    assert (
+        getattr(load_preset(path.as_posix(), {"ground_truth": {key: value}}).ground_truth, key)
+        == value
+    )
 
 
 def test_an_unknown_key_fails_naming_it(tmp_path: Path) -> None:
@@ -227,9 +258,16 @@ def test_an_unknown_key_fails_naming_it(tmp_path: Path) -> None:
         load_preset(path)
 
 
-@pytest.mark.parametrize("table", [{"max_image_size": 10}, {"work_image_size": 0},
-                                   {"match_distance_m": 0.0}, {"max_canopy_height": -1.0},
-                                   {"ortho_resolution": 0.0}])
+@pytest.mark.parametrize(
+    "table",
+    [
+        {"max_image_size": 10},
+        {"work_image_size": 0},
+        {"match_distance_m": 0.0},
+        {"max_canopy_height": -1.0},
+        {"ortho_resolution": 0.0},
+    ],
+)
 def test_impossible_values_are_named(table: dict) -> None:
     from canopy_kit.config import from_dict
 
@@ -237,20 +275,23 @@ def test_impossible_values_are_named(table: dict) -> None:
         from_dict(PipelineConfig, {"ground_truth": table})
 
 
-def test_process_flight_hands_the_config_to_sfm(flight_dir: Path, tmp_path: Path,
-                                                monkeypatch: pytest.MonkeyPatch) -> None:
+def test_process_flight_hands_the_config_to_sfm(
+    flight_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The config given to ``process_flight`` reaches pycolmap's feature extraction."""
     import ground_truth.pipeline as gp
 
     seen = {}
 
-    def fake_sfm(flight, work, frame, options, report):  # noqa: ANN001, ANN202
+    def fake_sfm(flight, work, frame, options, report):
         seen["max_image_size"] = options.max_image_size
         raise ProcessingError("stop after SfM")
 
     monkeypatch.setattr(gp, "run_sfm", fake_sfm)
     with pytest.raises(ProcessingError, match="stop after SfM"):
-        gp.process_flight(flight_dir, tmp_path / "out", config=GroundTruthConfig(max_image_size=640))
+        gp.process_flight(
+            flight_dir, tmp_path / "out", config=GroundTruthConfig(max_image_size=640)
+        )
     assert seen == {"max_image_size": 640}
 
 
@@ -264,23 +305,29 @@ def test_reuse_refuses_other_reconstruction_settings(flight_dir: Path, tmp_path:
     model = SimpleNamespace(cameras={n: None for n in flight.names}, unregistered=[])
     reuse = SimpleNamespace(model=model, frame=frame, config=GroundTruthConfig())
     with pytest.raises(ProcessingError, match="ground_truth.work_image_size"):
-        process_flight(flight_dir, tmp_path / "out", config=GroundTruthConfig(work_image_size=500),
-                       reuse=reuse)
+        process_flight(
+            flight_dir, tmp_path / "out", config=GroundTruthConfig(work_image_size=500), reuse=reuse
+        )
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["--set", "ground_truth.match_distanse_m=1.0"], "'match_distanse_m'"),
-    (["--set", "volume.voxel_size=0.2"], "ground_truth.key=value"),
-    (["--work-size", "10"], "ground_truth.work_image_size"),
-])
-def test_ground_truth_cli_settings_are_checked_before_any_work(args: list[str], fragment: str,
-                                                               tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--set", "ground_truth.match_distanse_m=1.0"], "'match_distanse_m'"),
+        (["--set", "volume.voxel_size=0.2"], "ground_truth.key=value"),
+        (["--work-size", "10"], "ground_truth.work_image_size"),
+    ],
+)
+def test_ground_truth_cli_settings_are_checked_before_any_work(
+    args: list[str], fragment: str, tmp_path: Path
+) -> None:
     """``canopy-kit ground-truth`` builds its [ground_truth] config with the preset loader."""
     from typer.testing import CliRunner
 
     from canopy_kit.cli import app
 
-    res = CliRunner().invoke(app, ["ground-truth", str(tmp_path / "photos"), "--out",
-                                   str(tmp_path / "out"), *args])
+    res = CliRunner().invoke(
+        app, ["ground-truth", str(tmp_path / "photos"), "--out", str(tmp_path / "out"), *args]
+    )
     assert isinstance(res.exception, ConfigError) and fragment in str(res.exception), res.output
     assert not (tmp_path / "out").exists()

@@ -18,8 +18,15 @@ from ground_truth.exif import read_flight, read_image
 WHEN = datetime(2024, 6, 18, 11, 0, 0)
 
 
-def _photo(path: Path, lat: float = 37.281, lon: float = -120.42, alt: float = 85.0,
-           size: tuple[int, int] = (160, 120), seed: int = 0, exif: bytes | None = None) -> Path:
+def _photo(
+    path: Path,
+    lat: float = 37.281,
+    lon: float = -120.42,
+    alt: float = 85.0,
+    size: tuple[int, int] = (160, 120),
+    seed: int = 0,
+    exif: bytes | None = None,
+) -> Path:
     spec = DroneSpec(image_width=size[0], image_height=size[1])
     pixels = np.random.default_rng(seed).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
     data = exif if exif is not None else exif_bytes(spec, lat, lon, alt, WHEN)
@@ -40,12 +47,16 @@ def test_reads_gps_and_focal_length(tmp_path):
     assert (im.width, im.height) == (160, 120)
     assert im.lat == pytest.approx(-33.5, abs=1e-8) and im.lon == pytest.approx(151.25, abs=1e-8)
     assert im.altitude == pytest.approx(123.456, abs=1e-3)
-    assert im.focal_px == pytest.approx(focal_px(DroneSpec(image_width=160, image_height=120)), rel=1e-4)
+    assert im.focal_px == pytest.approx(
+        focal_px(DroneSpec(image_width=160, image_height=120)), rel=1e-4
+    )
     assert im.focal_source == "FocalLength+FocalPlaneXResolution"
 
 
 def test_focal_from_35mm_equivalent_and_none(tmp_path):
-    exif = piexif.load(exif_bytes(DroneSpec(image_width=160, image_height=120), 37.0, -120.0, 50.0, WHEN))
+    exif = piexif.load(
+        exif_bytes(DroneSpec(image_width=160, image_height=120), 37.0, -120.0, 50.0, WHEN)
+    )
     for tag in (piexif.ExifIFD.FocalPlaneXResolution, piexif.ExifIFD.FocalPlaneYResolution):
         exif["Exif"].pop(tag)
     im = read_image(_photo(tmp_path / "b.jpg", exif=piexif.dump(exif)))
@@ -59,7 +70,9 @@ def test_focal_from_35mm_equivalent_and_none(tmp_path):
 def test_resized_photo_rescales_focal_length(tmp_path):
     spec = DroneSpec(image_width=320, image_height=240)
     pixels = np.zeros((120, 160, 3), np.uint8)  # half the size the EXIF was written for
-    (tmp_path / "half.jpg").write_bytes(encode_jpeg(pixels, exif_bytes(spec, 37.0, -120.0, 50.0, WHEN), 90))
+    (tmp_path / "half.jpg").write_bytes(
+        encode_jpeg(pixels, exif_bytes(spec, 37.0, -120.0, 50.0, WHEN), 90)
+    )
     assert read_image(tmp_path / "half.jpg").focal_px == pytest.approx(focal_px(spec) / 2, rel=1e-4)
 
 
@@ -92,11 +105,16 @@ def test_image_without_exif(tmp_path):
 
 def test_image_without_gps(tmp_path):
     folder = _flight(tmp_path / "f", 3)
-    exif = piexif.load(exif_bytes(DroneSpec(image_width=160, image_height=120), 37.0, -120.0, 50.0, WHEN))
+    exif = piexif.load(
+        exif_bytes(DroneSpec(image_width=160, image_height=120), 37.0, -120.0, 50.0, WHEN)
+    )
     exif["GPS"] = {}
     _photo(folder / "IMG_9999.jpg", exif=piexif.dump(exif))
-    with pytest.raises(InputError, match=r"IMG_9999.jpg: no GPS position in EXIF \(GPSLatitude, "
-                                         r"GPSLongitude, GPSAltitude missing\)"):
+    with pytest.raises(
+        InputError,
+        match=r"IMG_9999.jpg: no GPS position in EXIF \(GPSLatitude, "
+        r"GPSLongitude, GPSAltitude missing\)",
+    ):
         read_flight(folder)
 
 
@@ -125,7 +143,9 @@ def test_duplicate_photo(tmp_path):
 def test_photo_of_another_size(tmp_path):
     folder = _flight(tmp_path / "f", 3)
     _photo(folder / "IMG_0007.jpg", size=(200, 150), seed=9)
-    with pytest.raises(InputError, match=r"IMG_0007.jpg: 200x150 px while IMG_0000.jpg is 160x120 px"):
+    with pytest.raises(
+        InputError, match=r"IMG_0007.jpg: 200x150 px while IMG_0000.jpg is 160x120 px"
+    ):
         read_flight(folder)
 
 
@@ -148,8 +168,12 @@ def test_photos_taken_at_one_place_are_refused_before_any_work(tmp_path):
     folder.mkdir()
     for k in range(6):  # one GPS point, a few decimetres of jitter, different pixels
         _photo(folder / f"IMG_{k:04d}.jpg", lat=37.281 + 2e-6 * (k % 2), seed=k)
-    with pytest.raises(InputError, match=r"hover: the 6 photos were all taken within 0\.\d\d m of each other"):
+    with pytest.raises(
+        InputError, match=r"hover: the 6 photos were all taken within 0\.\d\d m of each other"
+    ):
         read_flight(folder)
-    with pytest.raises(InputError, match="structure from motion needs photos taken along a flight path"):
+    with pytest.raises(
+        InputError, match="structure from motion needs photos taken along a flight path"
+    ):
         process_flight(folder, tmp_path / "out")
     assert not (tmp_path / "out").exists()

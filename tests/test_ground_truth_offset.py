@@ -30,9 +30,15 @@ def drone_run(sim_factory, tmp_path_factory):
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run
 
-    sim = sim_factory("pistachio", seed=4, overrides={"orchard": {"rows": 2, "trees_per_row": 3},
-                                                      "lidar": {"columns": 512},
-                                                      "drone": {"enabled": True}})
+    sim = sim_factory(
+        "pistachio",
+        seed=4,
+        overrides={
+            "orchard": {"rows": 2, "trees_per_row": 3},
+            "lidar": {"columns": 512},
+            "drone": {"enabled": True},
+        },
+    )
     out = tmp_path_factory.mktemp("offset_run")
     results = run(load_preset("adaptive"), sim.bag, out, drone_images=sim.root / "drone")
     return sim.root, out, results.metrics
@@ -57,12 +63,19 @@ def _map_offset(sim, out, frame: LocalFrame) -> np.ndarray:
     """Mean (east, north) of the mapped LiDAR trajectory from the true one: the map's
     georeferencing error."""
     trees = pd.read_csv(out / "trees.csv")
-    to_truth = (frame.to_local(trees["lat"].to_numpy(), trees["lon"].to_numpy())[:, :2]
-                - trees[["x", "y"]].to_numpy()).mean(axis=0)  # run frame -> truth frame
+    to_truth = (
+        frame.to_local(trees["lat"].to_numpy(), trees["lon"].to_numpy())[:, :2]
+        - trees[["x", "y"]].to_numpy()
+    ).mean(axis=0)  # run frame -> truth frame
     true = pd.read_csv(sim / "truth" / "trajectory.csv")
     mapped = pd.read_csv(out / "trajectory.csv")
-    tx, ty = np.interp(mapped["time"], true["time"], true["x"]), np.interp(mapped["time"], true["time"], true["y"])
-    return np.array([(mapped["x"] + to_truth[0] - tx).mean(), (mapped["y"] + to_truth[1] - ty).mean()])
+    tx, ty = (
+        np.interp(mapped["time"], true["time"], true["x"]),
+        np.interp(mapped["time"], true["time"], true["y"]),
+    )
+    return np.array(
+        [(mapped["x"] + to_truth[0] - tx).mean(), (mapped["y"] + to_truth[1] - ty).mean()]
+    )
 
 
 def test_drone_crowns_are_on_the_true_crown_centres(drone_run):

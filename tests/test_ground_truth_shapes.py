@@ -40,8 +40,9 @@ def _hedgerow(res: float = 0.04, a: float = 2.4, b: float = 1.5, c_up: float = 2
 
 def _segmentation(grid: Grid, labels: np.ndarray) -> CrownSegmentation:
     n = int(labels.max())
-    return CrownSegmentation(grid, labels, labels > 0, labels > 0, 0.0, np.zeros((n, 2)),
-                             np.full(n, -1))
+    return CrownSegmentation(
+        grid, labels, labels > 0, labels > 0, 0.0, np.zeros((n, 2)), np.full(n, -1)
+    )
 
 
 def test_row_direction_from_crown_centres_of_a_rotated_row():
@@ -54,8 +55,9 @@ def test_row_direction_from_crown_centres_of_a_rotated_row():
 
 def test_row_direction_falls_back_on_the_crowns_axes():
     """One crown: no neighbours; its elongation says which way the row runs."""
-    found = estimate_row_direction(np.zeros((1, 2)), np.array([np.arctan2(ALONG[1], ALONG[0])]),
-                                   np.array([1.8]))
+    found = estimate_row_direction(
+        np.zeros((1, 2)), np.array([np.arctan2(ALONG[1], ALONG[0])]), np.array([1.8])
+    )
     assert found.source == "crown_axes"
     assert found.bearing_deg == pytest.approx(BEARING, abs=1e-6)
 
@@ -99,7 +101,8 @@ def test_envelope_volume_of_an_exact_ellipsoid():
     lab = table["crown_id"].to_numpy()[0]
     region = labels == lab
     assert table["envelope_volume_m3"].iloc[0] == pytest.approx(
-        envelope_volume(chm[region], x[region], y[region], edge[0], res))
+        envelope_volume(chm[region], x[region], y[region], edge[0], res)
+    )
     assert np.all(table["envelope_volume_m3"].to_numpy() < 0.7 * volume)  # 0.60 of it
 
 
@@ -135,7 +138,8 @@ def test_envelope_column_stops_at_the_ground():
     yy, xx = np.mgrid[-10:11, -10:11] * res
     heights = np.full(xx.size, 3.0)
     assert envelope_volume(heights, xx.ravel(), yy.ravel(), 1.0, res) == pytest.approx(
-        3.0 * xx.size * res**2)
+        3.0 * xx.size * res**2
+    )
 
 
 def test_crown_agreement_scores_the_envelope_when_measured():
@@ -143,15 +147,34 @@ def test_crown_agreement_scores_the_envelope_when_measured():
 
     from ground_truth.evaluate import crown_agreement
 
-    truth = pd.DataFrame({"tree_id": [1, 2, 3], "label": list("abc"), "row": 0,
-                          "crown_x": [0.0, 5, 10], "crown_y": 0.0, "crown_diameter_m": 3.0,
-                          "crown_diameter_mean_m": 3.0, "tree_height_m": 4.0,
-                          "crown_volume_m3": [10.0, 12, 14], "sphere_volume_m3": [14.0, 15, 18]})
-    crowns = pd.DataFrame({"x": [0.1, 5, 10], "y": 0.0, "touches_border": False,
-                           "diameter_max_m": 3.0, "diameter_mean_m": 3.0, "height_m": 4.0,
-                           "sphere_volume_m3": [14.0, 15, 17],
-                           "sphere_volume_mean_m3": [13.0, 12, 16],
-                           "ellipsoid_volume_m3": [11.0, 12, 15], "chm_volume_m3": [8.0, 9, 7]})
+    truth = pd.DataFrame(
+        {
+            "tree_id": [1, 2, 3],
+            "label": list("abc"),
+            "row": 0,
+            "crown_x": [0.0, 5, 10],
+            "crown_y": 0.0,
+            "crown_diameter_m": 3.0,
+            "crown_diameter_mean_m": 3.0,
+            "tree_height_m": 4.0,
+            "crown_volume_m3": [10.0, 12, 14],
+            "sphere_volume_m3": [14.0, 15, 18],
+        }
+    )
+    crowns = pd.DataFrame(
+        {
+            "x": [0.1, 5, 10],
+            "y": 0.0,
+            "touches_border": False,
+            "diameter_max_m": 3.0,
+            "diameter_mean_m": 3.0,
+            "height_m": 4.0,
+            "sphere_volume_m3": [14.0, 15, 17],
+            "sphere_volume_mean_m3": [13.0, 12, 16],
+            "ellipsoid_volume_m3": [11.0, 12, 15],
+            "chm_volume_m3": [8.0, 9, 7],
+        }
+    )
     _, metrics = crown_agreement(crowns, truth)  # crowns measured before the envelope existed
     assert "volume_envelope_aerial_bias_pct" not in metrics
     crowns["envelope_volume_m3"] = [11.0, 13.2, 15.4]  # 10 % high

@@ -18,14 +18,18 @@ NADIR = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # camera x east, y 
 
 
 def test_projection_inverts_the_renderer_rays():
-    rot = NADIR @ np.array([[np.cos(0.02), 0, np.sin(0.02)], [0, 1, 0], [-np.sin(0.02), 0, np.cos(0.02)]])
+    rot = NADIR @ np.array(
+        [[np.cos(0.02), 0, np.sin(0.02)], [0, 1, 0], [-np.sin(0.02), 0, np.cos(0.02)]]
+    )
     view = PinholeView(np.array([3.0, -2.0, 35.0]), rot, 800.0, 120, 90)
     cam = camera_from_pose("a", "SIMPLE_PINHOLE", (800.0, 60.0, 45.0), 120, 90, view.position, rot)
     d = view.ray_directions()
     pts = view.position + d.reshape(-1, 3) * 30.0
     uv, depth = cam.project(pts)
     jj, ii = np.meshgrid(np.arange(120) + 0.5, np.arange(90) + 0.5)
-    assert np.allclose(uv[:, 0], jj.ravel(), atol=1e-6) and np.allclose(uv[:, 1], ii.ravel(), atol=1e-6)
+    assert np.allclose(uv[:, 0], jj.ravel(), atol=1e-6) and np.allclose(
+        uv[:, 1], ii.ravel(), atol=1e-6
+    )
     assert (depth > 0).all()
     assert np.allclose(cam.center, view.position)
     half = cam.scaled(0.5)
@@ -66,7 +70,12 @@ def _synthetic_orchard(res: float = 0.05):
     rgb[...] = (150, 120, 90)
     rgb = np.clip(rgb + rng.normal(0, 8, rgb.shape), 0, 255).astype(np.uint8)
     chm = np.zeros(grid.shape)
-    crowns = [(5.0, 10.0, 3.0, 4.0), (12.0, 10.0, 4.0, 5.0), (15.7, 10.0, 3.4, 4.5), (24.0, 6.0, 2.6, 3.5)]
+    crowns = [
+        (5.0, 10.0, 3.0, 4.0),
+        (12.0, 10.0, 4.0, 5.0),
+        (15.7, 10.0, 3.4, 4.5),
+        (24.0, 6.0, 2.6, 3.5),
+    ]
     for cx, cy, d, h in crowns:
         r2 = ((x - cx) ** 2 + (y - cy) ** 2) / (d / 2) ** 2
         inside = r2 <= 1
@@ -79,7 +88,9 @@ def _synthetic_orchard(res: float = 0.05):
 
 def test_crowns_found_measured_and_weeds_ignored():
     grid, rgb, chm, crowns = _synthetic_orchard()
-    seg = delineate_crowns(rgb, np.ones(grid.shape, bool), chm, grid, options=CrownOptions(min_tree_spacing_m=2.0))
+    seg = delineate_crowns(
+        rgb, np.ones(grid.shape, bool), chm, grid, options=CrownOptions(min_tree_spacing_m=2.0)
+    )
     table = measure_crowns(seg, chm)
     truth = np.array([(cx, cy) for cx, cy, _, _ in crowns])
     ia, ib, dist = assign(truth, table[["x", "y"]].to_numpy(), 1.0)
@@ -90,8 +101,9 @@ def test_crowns_found_measured_and_weeds_ignored():
     lone = [k for k, i in enumerate(ia) if i in (0, 3)]
     assert np.abs(d_est[lone] - d_true[lone]).max() < 0.1
     assert np.abs(d_est - d_true).max() < 0.6
-    assert table.loc[ib[lone], "height_m"].to_numpy() == pytest.approx([crowns[i][3] for i in ia[lone]],
-                                                                        abs=0.3)
+    assert table.loc[ib[lone], "height_m"].to_numpy() == pytest.approx(
+        [crowns[i][3] for i in ia[lone]], abs=0.3
+    )
     sphere = table["sphere_volume_m3"].to_numpy()
     assert sphere == pytest.approx(np.pi * table["diameter_max_m"].to_numpy() ** 3 / 6)
 
@@ -107,8 +119,15 @@ def test_crowns_seeded_by_tree_positions():
 def test_match_crowns_to_trees_with_gate():
     trees = pd.DataFrame({"tree_id": [1, 2, 3], "x": [0.0, 5.0, 10.0], "y": [0.0, 0.0, 0.0]})
     trees = tree_positions(trees, None)
-    crowns = pd.DataFrame({"crown_id": [7, 8, 9], "x": [5.3, 0.2, 30.0], "y": [0.1, -0.2, 0.0],
-                           "seed_id": [-1, -1, -1], "diameter_max_m": [3.0, 4.0, 5.0]})
+    crowns = pd.DataFrame(
+        {
+            "crown_id": [7, 8, 9],
+            "x": [5.3, 0.2, 30.0],
+            "y": [0.1, -0.2, 0.0],
+            "seed_id": [-1, -1, -1],
+            "diameter_max_m": [3.0, 4.0, 5.0],
+        }
+    )
     out = match_crowns(trees, crowns, max_distance_m=1.5)
     assert out["matched"].tolist() == [True, True, False]
     assert out["aerial_crown_id"].tolist()[:2] == [8, 7]
@@ -153,11 +172,20 @@ def test_dense_surface_recovers_a_raised_block():
         t = np.where(on_block, t_top, (0.0 - 30.0) / d[:, 2])
         p = view.position + d * t[:, None]
         images.append(fbm2(p[:, 0], p[:, 1], 0.6, 3, 5).reshape(300, 300).astype(np.float32))
-        cams.append(camera_from_pose(f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300,
-                                     view.position, NADIR))
+        cams.append(
+            camera_from_pose(
+                f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300, view.position, NADIR
+            )
+        )
     grid = Grid(-6.0, 6.0, res, 120, 120)
-    surface = dense_surface(cams, images, grid, np.zeros(grid.shape), 3.0,
-                            SurfaceOptions(resolution=res, views_per_cell=2, window_cells=5))
+    surface = dense_surface(
+        cams,
+        images,
+        grid,
+        np.zeros(grid.shape),
+        3.0,
+        SurfaceOptions(resolution=res, views_per_cell=2, window_cells=5),
+    )
     x, y = grid.centers()
     top = (np.abs(x) < 2.5) & (np.abs(y) < 2.5)
     ground = (np.abs(x) > 3.5) & (np.abs(x) < 5.5) & (np.abs(y) < 5)
@@ -178,8 +206,9 @@ def _survey(rng: np.random.Generator, attitude_deg: float = 0.8):
 
     xs, ys = np.meshgrid(np.arange(5) * 8.0, np.arange(3) * 10.0)
     true = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 35.0)])
-    tilts = Rotation.from_rotvec(np.column_stack([rng.normal(0, np.radians(attitude_deg), (xs.size, 2)),
-                                                  np.zeros(xs.size)]))
+    tilts = Rotation.from_rotvec(
+        np.column_stack([rng.normal(0, np.radians(attitude_deg), (xs.size, 2)), np.zeros(xs.size)])
+    )
     axes_true = tilts.apply([0.0, 0.0, -1.0])
     g = Rotation.from_rotvec([0.4, -0.7, 1.1]).as_matrix()
     model = 0.13 * true @ g.T + np.array([3.0, -1.0, 2.0])
@@ -255,9 +284,17 @@ def test_seed_off_its_crown_top_still_gets_its_crown():
     seeds = np.array([(8.0, 5.0), (10.6, 5.0), (17.0, 5.0)])
     widths = {}
     for fraction in (0.0, CrownOptions().seed_disc_fraction):
-        seg = delineate_crowns(rgb, np.ones(grid.shape, bool), chm, grid, seeds,
-                               CrownOptions(seed_disc_fraction=fraction))
-        widths[fraction] = measure_crowns(seg, chm).sort_values("seed_id")["diameter_max_m"].to_numpy()
+        seg = delineate_crowns(
+            rgb,
+            np.ones(grid.shape, bool),
+            chm,
+            grid,
+            seeds,
+            CrownOptions(seed_disc_fraction=fraction),
+        )
+        widths[fraction] = (
+            measure_crowns(seg, chm).sort_values("seed_id")["diameter_max_m"].to_numpy()
+        )
     assert widths[0.0][0] > 9.0  # the failure the discs fix
     assert widths[CrownOptions().seed_disc_fraction] == pytest.approx([6.0, 5.0, 5.0], abs=0.45)
 
@@ -266,34 +303,48 @@ def test_seed_offset_is_measured_and_the_seeds_registered():
     """Seeds from a map georeferenced by standalone GNSS sit off the photos' crowns by one
     translation (simulated: 0.3-0.9 m). The crowns stage measures it as the median crown-from-
     seed offset, moves the seeds by it and delineates again; the crowns stay where they are."""
+    from canopy_kit.config import GroundTruthConfig
     from ground_truth.dsm import SurfaceModel
     from ground_truth.ortho import Orthomosaic
-    from canopy_kit.config import GroundTruthConfig
     from ground_truth.pipeline import crowns_stage
 
     grid, rgb, chm, crowns = _synthetic_orchard()
     rgba = np.dstack([rgb, np.full(grid.shape, 255, np.uint8)])
     mosaic = Orthomosaic(grid, rgba, np.zeros(grid.shape, np.int32), ["a"])
-    surface = SurfaceModel(grid, chm, np.zeros(grid.shape), np.ones(grid.shape), np.zeros(grid.shape + (0,), int),
-                           [])
+    surface = SurfaceModel(
+        grid, chm, np.zeros(grid.shape), np.ones(grid.shape), np.zeros(grid.shape + (0,), int), []
+    )
     frame = LocalFrame.at(37.281, -120.42, 50.0)
     truth = np.array([(cx, cy) for cx, cy, _, _ in crowns])
     gnss_error = np.array([0.45, -0.3])
-    trees = tree_positions(pd.DataFrame({"tree_id": list("abcd"), "x": truth[:, 0] + gnss_error[0],
-                                         "y": truth[:, 1] + gnss_error[1]}), None)
+    trees = tree_positions(
+        pd.DataFrame(
+            {
+                "tree_id": list("abcd"),
+                "x": truth[:, 0] + gnss_error[0],
+                "y": truth[:, 1] + gnss_error[1],
+            }
+        ),
+        None,
+    )
     for register in (False, True):
-        seg, _, matched, offset = crowns_stage(mosaic, surface, trees, frame,
-                                               GroundTruthConfig(register_seeds=register))
+        seg, _, matched, offset = crowns_stage(
+            mosaic, surface, trees, frame, GroundTruthConfig(register_seeds=register)
+        )
         assert matched["matched"].all() and offset["pairs"] == 4
         assert [offset["east_m"], offset["north_m"]] == pytest.approx(-gnss_error, abs=0.05)
         assert offset["significant"] and offset["seeds_shifted"] == register
         # The crowns' centres come from the photos whatever the seeds: unbiased either way.
         centres = matched[["aerial_x", "aerial_y"]].to_numpy()
         assert np.abs((centres - truth).mean(axis=0)).max() < 0.05
-        assert matched["aerial_distance_m"].to_numpy() == pytest.approx(np.hypot(*gnss_error), abs=0.1)
+        assert matched["aerial_distance_m"].to_numpy() == pytest.approx(
+            np.hypot(*gnss_error), abs=0.1
+        )
         if register:
             assert seg.markers == pytest.approx(truth, abs=0.15)  # seeds moved onto the crowns
-            assert [offset["east_after_m"], offset["north_after_m"]] == pytest.approx(-gnss_error, abs=0.05)
+            assert [offset["east_after_m"], offset["north_after_m"]] == pytest.approx(
+                -gnss_error, abs=0.05
+            )
     exact = tree_positions(pd.DataFrame({"x": truth[:, 0], "y": truth[:, 1]}), None)
     _, _, _, offset = crowns_stage(mosaic, surface, exact, frame, GroundTruthConfig())
     assert not offset["significant"] and not offset["seeds_shifted"]

@@ -22,21 +22,42 @@ import time
 from pathlib import Path
 
 import pytest
-
 from test_cli_foundation import cli_command
 
-OUTPUTS = ("trees.csv", "trees.parquet", "trees.geojson", "map.laz", "trajectory.csv",
-           "config.toml", "metrics.json", "report.html")
+OUTPUTS = (
+    "trees.csv",
+    "trees.parquet",
+    "trees.geojson",
+    "map.laz",
+    "trajectory.csv",
+    "config.toml",
+    "metrics.json",
+    "report.html",
+)
 
 
 def _args(session, out: Path) -> list[str]:
-    return ["run", str(session.bag), "--out", str(out), "--preset", "adaptive",
-            "--truth", str(session.root)]
+    return [
+        "run",
+        str(session.bag),
+        "--out",
+        str(out),
+        "--preset",
+        "adaptive",
+        "--truth",
+        str(session.root),
+    ]
 
 
 def _finish(args: list[str]) -> dict:
-    result = subprocess.run([*cli_command(), *args], capture_output=True, text=True, timeout=900,
-                            check=False, env={**os.environ, "COLUMNS": "200"})
+    result = subprocess.run(
+        [*cli_command(), *args],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "Traceback" not in result.stderr
     return result
@@ -64,12 +85,19 @@ def reference_csv(tiny_pistachio_run) -> str:
 
 def test_killed_after_mapping_leaves_no_output_and_resumes(tiny_pistachio, reference_csv, tmp_path):
     out = tmp_path / "run"
-    proc = subprocess.Popen([*cli_command(), *_args(tiny_pistachio, out)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "200"})
+    proc = subprocess.Popen(
+        [*cli_command(), *_args(tiny_pistachio, out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     deadline = time.monotonic() + 600
     try:
         while not list((out / ".cache").glob("map-*.pkl")):
-            assert proc.poll() is None, f"run ended before the map was cached: {proc.stderr.read()[-3000:]}"
+            assert proc.poll() is None, (
+                f"run ended before the map was cached: {proc.stderr.read()[-3000:]}"
+            )
             assert time.monotonic() < deadline, "no map stage in the cache after 600 s"
             time.sleep(0.02)
         os.kill(proc.pid, signal.SIGKILL)
@@ -84,7 +112,9 @@ def test_killed_after_mapping_leaves_no_output_and_resumes(tiny_pistachio, refer
     result = _finish(_args(tiny_pistachio, out))
     metrics = json.loads((out / "metrics.json").read_text())
     ate = metrics["evaluation"]["mapping"]["ate_rmse_m"]
-    assert f"trajectory vs truth: ATE {ate:.3f} m" in result.stdout  # printed, not only in the report
+    assert (
+        f"trajectory vs truth: ATE {ate:.3f} m" in result.stdout
+    )  # printed, not only in the report
     assert "map" in metrics["cached_stages"]
     assert "map" not in metrics["stage_timings"]  # not recomputed
     assert {"segment", "volumes"} <= set(metrics["stage_timings"])
@@ -111,13 +141,19 @@ main()
 
 
 @pytest.mark.parametrize("target", ["metrics.json", "report.html"])
-def test_killed_while_writing_outputs_leaves_no_partial_file(target, tiny_pistachio, tiny_pistachio_run,
-                                                             reference_csv, tmp_path):
+def test_killed_while_writing_outputs_leaves_no_partial_file(
+    target, tiny_pistachio, tiny_pistachio_run, reference_csv, tmp_path
+):
     out = tmp_path / "run"
     # Start from the reference run's stage cache: the killed run goes straight to the outputs.
     shutil.copytree(tiny_pistachio_run.out_dir / ".cache", out / ".cache")
-    result = subprocess.run([sys.executable, "-c", _KILL_AT_RENAME, target, *_args(tiny_pistachio, out)],
-                            capture_output=True, text=True, timeout=900, check=False)
+    result = subprocess.run(
+        [sys.executable, "-c", _KILL_AT_RENAME, target, *_args(tiny_pistachio, out)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
     assert result.returncode == -signal.SIGKILL, result.stderr[-3000:]
     visible = _visible(out)
     assert target not in visible

@@ -50,7 +50,9 @@ def test_hand_built_las_reads_exactly(tmp_path: Path, point_format: int, minor: 
     path = write(tmp_path, las_bytes(ints, offset=OFFSET, point_format=point_format, minor=minor))
     cloud, notes = read_with_warnings(path)
     assert notes == []
-    np.testing.assert_allclose(cloud.absolute_xyz, ints * 0.01 + np.asarray(OFFSET), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        cloud.absolute_xyz, ints * 0.01 + np.asarray(OFFSET), rtol=0, atol=1e-9
+    )
     np.testing.assert_array_equal(cloud.fields["intensity"], np.arange(N))
     facts = describe_las(path)
     assert facts["points"] == N and facts["point_format"] == point_format
@@ -70,13 +72,16 @@ def test_vlr_longer_than_the_space_before_the_points(tmp_path: Path) -> None:
     refused(write(tmp_path, bytes(data)), "'record length after header (VLR 0)'")
 
 
-@pytest.mark.parametrize("field,value,named", [
-    ("header_size", 100, "'header size'"),
-    ("header_size", 5000, "'header size'"),
-    ("offset_to_points", 10**9, "'offset to point data'"),
-    ("record_length", 65535, "'point data record length'"),
-    ("record_length", 12, "'point data record length'"),
-])
+@pytest.mark.parametrize(
+    "field,value,named",
+    [
+        ("header_size", 100, "'header size'"),
+        ("header_size", 5000, "'header size'"),
+        ("offset_to_points", 10**9, "'offset to point data'"),
+        ("record_length", 65535, "'point data record length'"),
+        ("record_length", 12, "'point data record length'"),
+    ],
+)
 def test_lying_layout_fields_are_named(tmp_path: Path, field: str, value: int, named: str) -> None:
     refused(write(tmp_path, las_bytes(grid_points(N), **{field: value})), named)
 
@@ -112,8 +117,12 @@ def test_claimed_points_beyond_the_file_give_the_points_present(tmp_path: Path) 
     ints = grid_points(N)
     cloud, notes = read_with_warnings(write(tmp_path, las_bytes(ints, point_count=100_000_000)))
     assert len(cloud) == N
-    assert notes == [(f"{tmp_path / 't.las'}: only {N} of 100000000 points are in the file (cut "
-                     "short, or the header's point count is wrong); read those")]
+    assert notes == [
+        (
+            f"{tmp_path / 't.las'}: only {N} of 100000000 points are in the file (cut "
+            "short, or the header's point count is wrong); read those"
+        )
+    ]
 
 
 @pytest.mark.parametrize("keep_bytes", [0, 1, 19])  # at a record boundary, 1 and 19 bytes in
@@ -123,7 +132,9 @@ def test_cut_file_gives_the_complete_records_and_a_warning(tmp_path: Path, keep_
     path = write(tmp_path, data[: 227 + 600 * 20 + keep_bytes])
     cloud, notes = read_with_warnings(path)
     assert len(cloud) == 600 and len(notes) == 1 and f"only 600 of {N} points" in notes[0]
-    np.testing.assert_allclose(cloud.absolute_xyz, ints[:600] * 0.01 + np.asarray(OFFSET), atol=1e-9)
+    np.testing.assert_allclose(
+        cloud.absolute_xyz, ints[:600] * 0.01 + np.asarray(OFFSET), atol=1e-9
+    )
     facts, _ = describe_warned(path)
     assert facts["points"] == 600 and facts["points_declared"] == N
     assert any(f"only 600 of {N} points" in w for w in facts["warnings"])
@@ -136,11 +147,17 @@ def describe_warned(path: Path) -> tuple[dict, list[str]]:
     return facts, facts["warnings"]
 
 
-@pytest.mark.parametrize("cut,named", [
-    (100, "cut short"),  # inside the fixed header
-    (227 + 30, "'offset to point data'"),  # inside the VLR: the points would start beyond the end
-    (227 + 64 + 10, "no complete point record"),  # inside the first point record
-])
+@pytest.mark.parametrize(
+    "cut,named",
+    [
+        (100, "cut short"),  # inside the fixed header
+        (
+            227 + 30,
+            "'offset to point data'",
+        ),  # inside the VLR: the points would start beyond the end
+        (227 + 64 + 10, "no complete point record"),  # inside the first point record
+    ],
+)
 def test_file_cut_before_any_point_is_refused(tmp_path: Path, cut: int, named: str) -> None:
     data = las_bytes(grid_points(N), vlrs=(vlr_bytes(b"me", 1, b"x" * 10),))
     refused(write(tmp_path, data[:cut]), named)
@@ -149,11 +166,16 @@ def test_file_cut_before_any_point_is_refused(tmp_path: Path, cut: int, named: s
 def test_evlrs_that_do_not_fit_are_refused(tmp_path: Path) -> None:
     ints = grid_points(N)
     body = las_bytes(ints, minor=4, point_format=6)
-    path = write(tmp_path, las_bytes(ints, minor=4, point_format=6, evlr_start=len(body), n_evlrs=3))
+    path = write(
+        tmp_path, las_bytes(ints, minor=4, point_format=6, evlr_start=len(body), n_evlrs=3)
+    )
     refused(path, "'start of first extended variable length record'")
     evlr = struct.pack("<H16sHQ32s", 0, b"me", 1, 10**12, b"")
-    path = write(tmp_path, las_bytes(ints, minor=4, point_format=6, evlr_start=len(body),
-                                     n_evlrs=1) + evlr, "e.las")
+    path = write(
+        tmp_path,
+        las_bytes(ints, minor=4, point_format=6, evlr_start=len(body), n_evlrs=1) + evlr,
+        "e.las",
+    )
     refused(path, "'record length after header (EVLR 0)'")
 
 
@@ -183,14 +205,19 @@ def test_laz_point_count_checked_against_the_chunk_table(tmp_path: Path) -> None
     struct.pack_into("<I", data, 107, N + 60_000)  # one chunk of 50,000 points cannot hold it
     refused(write(tmp_path, bytes(data), "more.laz"), "'number of point records'", "chunk table")
     struct.pack_into("<I", data, 107, 4_000_000_000)  # reported as fact by info before
-    refused(write(tmp_path, bytes(data), "bomb.laz"), "'number of point records'",
-            "compressed bytes hold at most")
+    refused(
+        write(tmp_path, bytes(data), "bomb.laz"),
+        "'number of point records'",
+        "compressed bytes hold at most",
+    )
 
 
 def test_laz_record_length_must_match_the_laszip_items(tmp_path: Path) -> None:
     data = bytearray(laz_of(tmp_path, grid_points(N)))
     struct.pack_into("<H", data, 105, 40)
-    refused(write(tmp_path, bytes(data), "r.laz"), "'point data record length'", "LASzip items make 20")
+    refused(
+        write(tmp_path, bytes(data), "r.laz"), "'point data record length'", "LASzip items make 20"
+    )
 
 
 @pytest.mark.parametrize("fraction", [0.3, 0.9, 0.999])
@@ -210,7 +237,8 @@ def test_layout_of_a_real_file_matches_laspy(tmp_path: Path) -> None:
     assert (layout.point_count, layout.points_in_file, layout.point_format) == (11631, 11631, 7)
     assert layout.record_length == las.header.point_format.size
     facts, notes = describe_warned(path)
-    assert facts["bounds"]["min"] == pytest.approx([float(las.x.min()), float(las.y.min()),
-                                                    float(las.z.min())], abs=1e-6)
+    assert facts["bounds"]["min"] == pytest.approx(
+        [float(las.x.min()), float(las.y.min()), float(las.z.min())], abs=1e-6
+    )
     assert facts["bounds"]["max"][2] == pytest.approx(float(las.z.max()), abs=1e-6)
     assert any("disagree with the points'" in n for n in notes)

@@ -41,8 +41,10 @@ def test_chunk_borders_give_every_worker_the_same_work(n_scans, n_chunks) -> Non
     bounds = balanced_bounds(n_scans, n_chunks)
     assert bounds[0] == 0 and bounds[-1] == n_scans and np.all(np.diff(bounds) > 0)
     # Work of chunk k: its own scans, the overlap it repeats and the scans it skips undecoded.
-    work = [b - a + (OVERLAP_SWEEPS + SKIP_COST * (a - OVERLAP_SWEEPS) if k else 0)
-            for k, (a, b) in enumerate(itertools.pairwise(bounds))]
+    work = [
+        b - a + (OVERLAP_SWEEPS + SKIP_COST * (a - OVERLAP_SWEEPS) if k else 0)
+        for k, (a, b) in enumerate(itertools.pairwise(bounds))
+    ]
     assert max(work) - min(work) <= 2
     if n_chunks > 1:
         assert bounds[1] > n_scans / n_chunks  # the first chunk, which skips nothing, owns more
@@ -56,11 +58,20 @@ def test_tie_recovers_the_transform_between_chunk_frames() -> None:
         world = _pose(rng.normal(0, 0.1, 3), np.array([0.5 * i, 0.0, 0.0]))
         noisy = world @ _pose(rng.normal(0, 2e-4, 3), rng.normal(0, 0.005, 3))
         previous.append(SweepRecord(i, float(i), world, 1.0, True, True))
-        current.append(SweepRecord(i, float(i), np.linalg.inv(truth) @ noisy, 1.0, True, i % 2 == 0))
+        current.append(
+            SweepRecord(i, float(i), np.linalg.inv(truth) @ noisy, 1.0, True, i % 2 == 0)
+        )
     a = tie(previous, current, own=140)
     assert a is not None
     assert np.abs(a[:3, 3] - truth[:3, 3]).max() < 0.01
-    assert np.degrees((Rotation.from_matrix(a[:3, :3]) * Rotation.from_matrix(truth[:3, :3]).inv()).magnitude()) < 0.05
+    assert (
+        np.degrees(
+            (
+                Rotation.from_matrix(a[:3, :3]) * Rotation.from_matrix(truth[:3, :3]).inv()
+            ).magnitude()
+        )
+        < 0.05
+    )
     assert tie(previous[:4], current[:4], own=140) is None  # nothing to tie with
 
 
@@ -68,7 +79,9 @@ def test_tie_recovers_the_transform_between_chunk_frames() -> None:
 def test_chunked_odometry_maps_as_accurately_as_one_process(tmp_path) -> None:
     cfg = load_sim_config("pistachio", {"seed": 12, "orchard": {"rows": 2, "trees_per_row": 3}})
     session = simulate_session(tmp_path / "p2x3", cfg)
-    single = evaluate_against_simulation(build_map(session.bag, MappingConfig(workers=1)), session.root)
+    single = evaluate_against_simulation(
+        build_map(session.bag, MappingConfig(workers=1)), session.root
+    )
     chunked_result = build_map(session.bag, MappingConfig(workers=3, odometry_chunk_sweeps=150))
     chunked = evaluate_against_simulation(chunked_result, session.root)
     assert chunked_result.diagnostics["odometry_workers"] == 3
@@ -80,7 +93,9 @@ def test_chunked_odometry_maps_as_accurately_as_one_process(tmp_path) -> None:
     assert chunked["map_aligned"]["median_m"] < 0.05
 
 
-@pytest.mark.parametrize("setting", [{"odometry_every": 0}, {"odometry_chunk_sweeps": 0}, {"workers": -1}])
+@pytest.mark.parametrize(
+    "setting", [{"odometry_every": 0}, {"odometry_chunk_sweeps": 0}, {"workers": -1}]
+)
 def test_bad_parallel_settings_are_named(setting: dict, tmp_path) -> None:
     from canopy_kit.errors import ConfigError
 
@@ -109,9 +124,17 @@ def test_map_pass_on_several_workers_equals_one_process(sim_factory, fmt) -> Non
     sweeps = {r.index: r.deskewed for r in one.records}
     assert len(one.scan_log_ns) == one.n_scans and np.all(np.diff(one.scan_log_ns) > 0)
     single = assemble_map(str(session.bag), one.topics.scans, sweeps, trajectory, cfg)
-    split = assemble_map(str(session.bag), one.topics.scans, sweeps, trajectory, MappingConfig(workers=3),
-                         scan_log_ns=one.scan_log_ns)
-    unseeked = assemble_map(str(session.bag), one.topics.scans, sweeps, trajectory, MappingConfig(workers=2))
+    split = assemble_map(
+        str(session.bag),
+        one.topics.scans,
+        sweeps,
+        trajectory,
+        MappingConfig(workers=3),
+        scan_log_ns=one.scan_log_ns,
+    )
+    unseeked = assemble_map(
+        str(session.bag), one.topics.scans, sweeps, trajectory, MappingConfig(workers=2)
+    )
     assert single[2] == split[2] == unseeked[2] > 0  # every point offered once
     for other in (split, unseeked):
         assert np.array_equal(other[0], single[0])

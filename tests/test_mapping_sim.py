@@ -25,24 +25,24 @@ LIDAR_ONLY = {"use_imu": False, "use_gnss": False}
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):  # noqa: ANN201
+def session(tmp_path_factory):
     """Two rows of three pistachio trees: three alleys joined by two U-turns (~65 s)."""
     cfg = load_sim_config("pistachio", {"seed": 11, "orchard": {"rows": 2, "trees_per_row": 3}})
     return simulate_session(tmp_path_factory.mktemp("mapping") / "p2x3", cfg)
 
 
 @pytest.fixture(scope="module")
-def result(session):  # noqa: ANN001, ANN201
+def result(session):
     return build_map(session.bag, MappingConfig())
 
 
 @pytest.fixture(scope="module")
-def evaluation(session, result):  # noqa: ANN001, ANN201
+def evaluation(session, result):
     return evaluate_against_simulation(result, session.root)
 
 
 # -- accuracy -----------------------------------------------------------------------------
-def test_drift_and_ate_within_targets(evaluation) -> None:  # noqa: ANN001
+def test_drift_and_ate_within_targets(evaluation) -> None:
     assert evaluation["drift_percent"] <= 0.5
     assert evaluation["ate_rmse_m"] <= 0.20
     # What the project actually achieves on this session, with margin.
@@ -50,7 +50,7 @@ def test_drift_and_ate_within_targets(evaluation) -> None:  # noqa: ANN001
     assert evaluation["map_aligned"]["median_m"] < 0.05
 
 
-def test_map_is_georeferenced_gravity_aligned_and_float64(session, result, evaluation) -> None:  # noqa: ANN001
+def test_map_is_georeferenced_gravity_aligned_and_float64(session, result, evaluation) -> None:
     truth = load_truth(session.root)
     assert result.frame is not None and result.map.crs == truth.frame.crs
     assert np.allclose(result.map.origin, result.frame.origin)
@@ -64,7 +64,7 @@ def test_map_is_georeferenced_gravity_aligned_and_float64(session, result, evalu
     assert d["up_source"] == "imu" and d["georeferenced"]
 
 
-def test_every_point_attribute_is_carried_untouched(session, result) -> None:  # noqa: ANN001
+def test_every_point_attribute_is_carried_untouched(session, result) -> None:
     fields = result.map.fields
     assert {"intensity", "t", "ring", "tree_id", TIME_FIELD} <= set(fields)
     assert fields["tree_id"].dtype == np.int32 and fields["t"].dtype == np.uint32
@@ -76,7 +76,9 @@ def test_every_point_attribute_is_carried_untouched(session, result) -> None:  #
         for scan in bag.scans():
             for i in np.flatnonzero((times >= scan.times.min()) & (times <= scan.times.max())):
                 k = sample[i]
-                hit = np.flatnonzero((scan.times == times[i]) & (scan.fields["ring"] == fields["ring"][k]))
+                hit = np.flatnonzero(
+                    (scan.times == times[i]) & (scan.fields["ring"] == fields["ring"][k])
+                )
                 if len(hit) != 1:
                     continue
                 for name in ("tree_id", "intensity", "t", "ring"):
@@ -85,7 +87,7 @@ def test_every_point_attribute_is_carried_untouched(session, result) -> None:  #
     assert matched >= 30
 
 
-def test_outputs_written_with_crs_and_trajectories(tmp_path: Path, result) -> None:  # noqa: ANN001
+def test_outputs_written_with_crs_and_trajectories(tmp_path: Path, result) -> None:
     from canopy_kit.io.las import read_las
     from canopy_kit.mapping.outputs import read_tum, write_mapping_outputs
 
@@ -99,7 +101,7 @@ def test_outputs_written_with_crs_and_trajectories(tmp_path: Path, result) -> No
     assert (tmp_path / "mapping_config.toml").exists() and (tmp_path / "mapping.json").exists()
 
 
-def test_cli_map_evaluate(tmp_path: Path, session, result, monkeypatch) -> None:  # noqa: ANN001
+def test_cli_map_evaluate(tmp_path: Path, session, result, monkeypatch) -> None:
     from typer.testing import CliRunner
 
     import canopy_kit.mapping as mapping
@@ -114,7 +116,7 @@ def test_cli_map_evaluate(tmp_path: Path, session, result, monkeypatch) -> None:
         assert (out / name).exists(), name
 
 
-def test_stream_yields_registered_sweeps_close_to_the_smoothed_map(session, result) -> None:  # noqa: ANN001
+def test_stream_yields_registered_sweeps_close_to_the_smoothed_map(session, result) -> None:
     sweeps = list(stream_map(session.bag))
     assert [s.index for s in sweeps] == sorted(s.index for s in sweeps)
     assert len(sweeps) == result.diagnostics["sweeps_mapped"]
@@ -140,19 +142,32 @@ def test_stream_yields_registered_sweeps_close_to_the_smoothed_map(session, resu
 
 # -- the flat-ground trap ---------------------------------------------------------------------
 @pytest.mark.slow
-def test_flat_ground_trap_is_handled(tmp_path_factory) -> None:  # noqa: ANN001
+def test_flat_ground_trap_is_handled(tmp_path_factory) -> None:
     """On a flat bare field, KISS-ICP fed the ground barely moves; the ground filter fixes it."""
-    cfg = load_sim_config("pistachio", {
-        "seed": 13, "orchard": {"rows": 2, "trees_per_row": 3, "terrain_bump_amplitude": 0.0,
-                                "grass_density": 0.0},
-        "drive": {"alleys": "inner"}})
+    cfg = load_sim_config(
+        "pistachio",
+        {
+            "seed": 13,
+            "orchard": {
+                "rows": 2,
+                "trees_per_row": 3,
+                "terrain_bump_amplitude": 0.0,
+                "grass_density": 0.0,
+            },
+            "drive": {"alleys": "inner"},
+        },
+    )
     sim = simulate_session(tmp_path_factory.mktemp("flat") / "flat", cfg)
     reference = load_truth(sim.root).trajectory
     path = sim.trajectory.length
     # 30 m range keeps the test quick (the ground-kept run registers far more points).
     good = build_map(sim.bag, MappingConfig(**LIDAR_ONLY, max_range=30.0))
-    trap = build_map(sim.bag, MappingConfig(**LIDAR_ONLY, max_range=30.0, odometry_ground_band=-100.0,
-                                            odometry_ground_refine=False))
+    trap = build_map(
+        sim.bag,
+        MappingConfig(
+            **LIDAR_ONLY, max_range=30.0, odometry_ground_band=-100.0, odometry_ground_refine=False
+        ),
+    )
     good_err = trajectory_errors(good.trajectory, reference)
     trap_err = trajectory_errors(trap.trajectory, reference)
     assert abs(good.diagnostics["path_length_m"] - path) < 0.02 * path
@@ -161,8 +176,14 @@ def test_flat_ground_trap_is_handled(tmp_path_factory) -> None:  # noqa: ANN001
 
 
 # -- bad input --------------------------------------------------------------------------------
-def _derive_bag(src: Path, dst: Path, n_scans: int, imu: bool = True, gnss: bool = True,
-                columns: Callable | None = None) -> Path:
+def _derive_bag(
+    src: Path,
+    dst: Path,
+    n_scans: int,
+    imu: bool = True,
+    gnss: bool = True,
+    columns: Callable | None = None,
+) -> Path:
     """The first ``n_scans`` of ``src`` (and IMU/GNSS up to their end), with scans reshaped."""
     with open_bag(src) as bag:
         scans = list(islice(bag.scans(), n_scans))
@@ -171,20 +192,51 @@ def _derive_bag(src: Path, dst: Path, n_scans: int, imu: bool = True, gnss: bool
     end = scans[-1].stamp + 0.1
     events: list[tuple[float, int, Callable]] = []
     for scan in scans:
-        cols = {"x": scan.xyz[:, 0].astype(np.float32), "y": scan.xyz[:, 1].astype(np.float32),
-                "z": scan.xyz[:, 2].astype(np.float32), **scan.fields}
+        cols = {
+            "x": scan.xyz[:, 0].astype(np.float32),
+            "y": scan.xyz[:, 1].astype(np.float32),
+            "z": scan.xyz[:, 2].astype(np.float32),
+            **scan.fields,
+        }
         cols = columns(cols) if columns else cols
-        events.append((scan.stamp + 0.1, 2, lambda w, s=scan.stamp, c=cols: w.write_points("/points", s, c)))
+        events.append(
+            (scan.stamp + 0.1, 2, lambda w, s=scan.stamp, c=cols: w.write_points("/points", s, c))
+        )
     if imu_s is not None:
         for i in np.flatnonzero(imu_s.t <= end):
-            events.append((imu_s.t[i], 0, lambda w, i=i: w.write_imu(
-                "/imu/data", imu_s.t[i], imu_s.angular_velocity[i], imu_s.linear_acceleration[i], None, "lidar")))
+            events.append(
+                (
+                    imu_s.t[i],
+                    0,
+                    lambda w, i=i: w.write_imu(
+                        "/imu/data",
+                        imu_s.t[i],
+                        imu_s.angular_velocity[i],
+                        imu_s.linear_acceleration[i],
+                        None,
+                        "lidar",
+                    ),
+                )
+            )
     if gnss_s is not None:
         for i in np.flatnonzero(gnss_s.t <= end):
             sh, sv = np.sqrt(gnss_s.covariance[i, 0]), np.sqrt(gnss_s.covariance[i, 8])
-            events.append((gnss_s.t[i], 1, lambda w, i=i, sh=sh, sv=sv: w.write_fix(
-                "/gps/fix", gnss_s.t[i], gnss_s.latitude[i], gnss_s.longitude[i], gnss_s.altitude[i],
-                sh, sv, int(gnss_s.status[i]))))
+            events.append(
+                (
+                    gnss_s.t[i],
+                    1,
+                    lambda w, i=i, sh=sh, sv=sv: w.write_fix(
+                        "/gps/fix",
+                        gnss_s.t[i],
+                        gnss_s.latitude[i],
+                        gnss_s.longitude[i],
+                        gnss_s.altitude[i],
+                        sh,
+                        sv,
+                        int(gnss_s.status[i]),
+                    ),
+                )
+            )
     events.sort(key=lambda e: (e[0], e[1]))
     with BagWriter(dst, "ros2-mcap") as writer:
         for _, _, write in events:
@@ -192,7 +244,7 @@ def _derive_bag(src: Path, dst: Path, n_scans: int, imu: bool = True, gnss: bool
     return writer.path
 
 
-def test_bag_without_imu_maps_lidar_only_and_says_so(tmp_path: Path, session) -> None:  # noqa: ANN001
+def test_bag_without_imu_maps_lidar_only_and_says_so(tmp_path: Path, session) -> None:
     bag = _derive_bag(session.bag, tmp_path / "no_imu", 150, imu=False)
     res = build_map(bag, MappingConfig())
     assert any("no IMU topic" in w and "LiDAR only" in w for w in res.warnings), res.warnings
@@ -202,29 +254,52 @@ def test_bag_without_imu_maps_lidar_only_and_says_so(tmp_path: Path, session) ->
     assert err["ate_rmse_m"] < 0.2
 
 
-def test_scans_without_point_time_map_without_deskew_and_say_so(tmp_path: Path, session) -> None:  # noqa: ANN001
-    bag = _derive_bag(session.bag, tmp_path / "no_time", 150,
-                      columns=lambda c: {k: v for k, v in c.items() if k != "t"})
+def test_scans_without_point_time_map_without_deskew_and_say_so(tmp_path: Path, session) -> None:
+    bag = _derive_bag(
+        session.bag,
+        tmp_path / "no_time",
+        150,
+        columns=lambda c: {k: v for k, v in c.items() if k != "t"},
+    )
     res = build_map(bag, MappingConfig())
-    assert any("no per-point time field" in w and "without deskew" in w for w in res.warnings), res.warnings
-    assert res.diagnostics["sweeps_deskewed"] == 0 and res.diagnostics["scans_without_point_time"] == 150
+    assert any("no per-point time field" in w and "without deskew" in w for w in res.warnings), (
+        res.warnings
+    )
+    assert (
+        res.diagnostics["sweeps_deskewed"] == 0
+        and res.diagnostics["scans_without_point_time"] == 150
+    )
     assert "t" not in res.map.fields and TIME_FIELD in res.map.fields
 
 
-def test_too_few_points_per_scan_is_a_clear_error(tmp_path: Path, session) -> None:  # noqa: ANN001
-    bag = _derive_bag(session.bag, tmp_path / "sparse", 30,
-                      columns=lambda c: {k: v[:100] for k, v in c.items()})
-    with pytest.raises(InputError, match=r"topic '/points': scans 0\.\.4: only \d+ valid points.*at least 500"):
+def test_too_few_points_per_scan_is_a_clear_error(tmp_path: Path, session) -> None:
+    bag = _derive_bag(
+        session.bag, tmp_path / "sparse", 30, columns=lambda c: {k: v[:100] for k, v in c.items()}
+    )
+    with pytest.raises(
+        InputError, match=r"topic '/points': scans 0\.\.4: only \d+ valid points.*at least 500"
+    ):
         build_map(bag, MappingConfig())
 
 
 # -- generalisation -----------------------------------------------------------------------------
 @pytest.mark.slow
-def test_vlp16_ros1_sloped_rotated_rows(tmp_path_factory) -> None:  # noqa: ANN001
+def test_vlp16_ros1_sloped_rotated_rows(tmp_path_factory) -> None:
     """Velodyne ``time`` field, a ROS1 bag, 4 degree slope along rows set 35 degrees off north."""
-    cfg = load_sim_config("almond", {"seed": 17, "orchard": {
-        "rows": 2, "trees_per_row": 3, "terrain_slope_deg": 4.0, "row_bearing_deg": 35.0},
-        "drive": {"alleys": "inner"}}, sensor="vlp16")
+    cfg = load_sim_config(
+        "almond",
+        {
+            "seed": 17,
+            "orchard": {
+                "rows": 2,
+                "trees_per_row": 3,
+                "terrain_slope_deg": 4.0,
+                "row_bearing_deg": 35.0,
+            },
+            "drive": {"alleys": "inner"},
+        },
+        sensor="vlp16",
+    )
     sim = simulate_session(tmp_path_factory.mktemp("vlp16") / "v", cfg, fmt="ros1")
     res = build_map(sim.bag, MappingConfig())
     ev = evaluate_against_simulation(res, sim.root)

@@ -70,12 +70,16 @@ def test_ground_plane_none_without_ground() -> None:
 def test_range_mask_and_point_count_message() -> None:
     pts = np.array([[0.5, 0, 0], [2.0, 0, 0], [70.0, 0, 0], [np.nan, 0, 0]])
     assert range_mask(pts, 1.0, 60.0).tolist() == [False, True, False, False]
-    with pytest.raises(InputError, match=r"bag.bag: topic '/p': only 12 valid points.*at least 500"):
+    with pytest.raises(
+        InputError, match=r"bag.bag: topic '/p': only 12 valid points.*at least 500"
+    ):
         check_point_count(12, 500, "bag.bag: topic '/p'")
 
 
 # -- IMU -------------------------------------------------------------------------------
-def _imu(rate: float = 200.0, still: float = 2.0, duration: float = 6.0, tilt=(0.05, -0.03)) -> ImuSeries:
+def _imu(
+    rate: float = 200.0, still: float = 2.0, duration: float = 6.0, tilt=(0.05, -0.03)
+) -> ImuSeries:
     t = np.arange(0.0, duration, 1.0 / rate)
     r = Rotation.from_euler("xy", tilt)
     f = r.inv().apply([0.0, 0.0, GRAVITY])
@@ -111,7 +115,9 @@ def test_rotation_track_integrates_and_extends() -> None:
         part.extend(t[k : k + 37], w[k : k + 37])
     assert np.allclose(whole.quaternions(t), part.quaternions(t), atol=1e-12)
     # Constant rate about z: the relative rotation is omega * dt.
-    imu_z = ImuSeries(t, np.tile([0, 0, 0.5], (len(t), 1)), np.zeros((len(t), 3)), np.zeros((len(t), 4)))
+    imu_z = ImuSeries(
+        t, np.tile([0, 0, 0.5], (len(t), 1)), np.zeros((len(t), 3)), np.zeros((len(t), 4))
+    )
     rv = RotationTrack(imu_z).relative_rotvecs(1.0, np.array([1.1, 0.9]))
     assert np.allclose(rv, [[0, 0, 0.05], [0, 0, -0.05]], atol=1e-9)
 
@@ -191,10 +197,15 @@ def test_transform_binned_applies_each_points_own_pose() -> None:
 def test_accumulator_keeps_first_point_per_voxel_with_fields_untouched() -> None:
     acc = MapAccumulator(0.1)
     p1 = np.array([[0.01, 0.01, 0.01], [0.5, 0.5, 0.5], [0.02, 0.02, 0.02]])
-    f1 = {"tree_id": np.array([7, 8, 9], np.int32), "intensity": np.array([1.5, 2.5, 3.5], np.float32)}
+    f1 = {
+        "tree_id": np.array([7, 8, 9], np.int32),
+        "intensity": np.array([1.5, 2.5, 3.5], np.float32),
+    }
     acc.add(p1, f1)
-    acc.add(np.array([[0.03, 0.03, 0.03], [1.0, 1.0, 1.0]]),
-            {"tree_id": np.array([1, 2], np.int32), "intensity": np.array([4.0, 5.0], np.float32)})
+    acc.add(
+        np.array([[0.03, 0.03, 0.03], [1.0, 1.0, 1.0]]),
+        {"tree_id": np.array([1, 2], np.int32), "intensity": np.array([4.0, 5.0], np.float32)},
+    )
     cloud = acc.cloud()
     assert len(cloud) == 3
     assert cloud.fields["tree_id"].tolist() == [7, 8, 2]
@@ -253,7 +264,10 @@ def test_ground_correction_recovers_height_and_tilt() -> None:
 # -- trajectory and fusion -----------------------------------------------------------------
 def test_continuous_trajectory_passes_through_keyframes() -> None:
     t = np.arange(0.0, 10.0, 0.1)
-    odo = _poses(np.column_stack([1.5 * t, np.sin(t), 0 * t]), Rotation.from_rotvec(np.outer(0.1 * t, [0, 0, 1])))
+    odo = _poses(
+        np.column_stack([1.5 * t, np.sin(t), 0 * t]),
+        Rotation.from_rotvec(np.outer(0.1 * t, [0, 0, 1])),
+    )
     key = np.arange(0, len(t), 5)
     fused = odo[key].copy()
     fused[:, 1, 3] += np.linspace(0, 0.5, len(key))
@@ -284,8 +298,9 @@ def test_heading_alignment_recovers_yaw_and_shift() -> None:
     assert abs(est - yaw) < 1e-9 and np.allclose(shift, [5.0, -3.0, 1.0])
 
 
-def _gnss_series(frame_lat: float, frame_lon: float, local: np.ndarray, t: np.ndarray,
-                 sigma: float) -> GnssSeries:
+def _gnss_series(
+    frame_lat: float, frame_lon: float, local: np.ndarray, t: np.ndarray, sigma: float
+) -> GnssSeries:
     from canopy_kit.geo import LocalFrame
 
     frame = LocalFrame.at(frame_lat, frame_lon, 50.0)
@@ -302,7 +317,9 @@ def test_gnss_bounds_drift_and_georeferences() -> None:
     lane = np.floor(s / 60.0)
     along = np.where(lane % 2 == 0, s % 60.0, 60.0 - s % 60.0)
     pos = np.column_stack([lane * 6.0, along, np.zeros_like(t)])
-    truth = _poses(pos, Rotation.from_euler("z", np.where(lane % 2 == 0, np.pi / 2, -np.pi / 2)[:, None]))
+    truth = _poses(
+        pos, Rotation.from_euler("z", np.where(lane % 2 == 0, np.pi / 2, -np.pi / 2)[:, None])
+    )
     # Odometry: the true steps with 0.03 deg of heading drift per metre, started 30 deg off.
     odo = truth.copy()
     odo[0, :3, :3] = Rotation.from_euler("z", np.pi / 2 + 0.5).as_matrix()
@@ -331,14 +348,22 @@ def test_segment_drift_of_a_scaled_path() -> None:
     est = ref.copy()
     est[:, 0, 3] *= 1.01
     drift = segment_drift(est, ref, lengths=(50.0, 100.0))
-    assert drift["50m"] == pytest.approx(1.0, rel=0.02) and drift["100m"] == pytest.approx(1.0, rel=0.02)
+    assert drift["50m"] == pytest.approx(1.0, rel=0.02) and drift["100m"] == pytest.approx(
+        1.0, rel=0.02
+    )
 
 
 def test_trajectory_errors_after_rigid_motion_are_zero() -> None:
     t = np.arange(0.0, 60.0, 0.1)
-    truth = _poses(np.column_stack([np.cos(t / 10) * 20, np.sin(t / 10) * 20, 0.1 * np.sin(t)]),
-                   Rotation.from_euler("z", (t / 10 + np.pi / 2)[:, None]))
-    moved = np.einsum("ij,njk->nik", _poses(np.array([[3.0, -2.0, 1.0]]), Rotation.from_euler("z", [0.3]))[0], truth)
+    truth = _poses(
+        np.column_stack([np.cos(t / 10) * 20, np.sin(t / 10) * 20, 0.1 * np.sin(t)]),
+        Rotation.from_euler("z", (t / 10 + np.pi / 2)[:, None]),
+    )
+    moved = np.einsum(
+        "ij,njk->nik",
+        _poses(np.array([[3.0, -2.0, 1.0]]), Rotation.from_euler("z", [0.3]))[0],
+        truth,
+    )
     r = trajectory_errors(pose_table(t, moved), pose_table(t, truth))
     assert r["ate_rmse_m"] < 1e-6 and r["drift_percent"] < 1e-4 and r["rotation_rmse_deg"] < 1e-4
 
@@ -374,8 +399,14 @@ def test_imu_fields_read_in_place_match_a_full_deserialisation(tmp_path, fmt: st
     frames = ["", "a", "imu", "lidar", "base_imu", "imu_link_long", "x" * 14, "ü_frame"]
     with BagWriter(tmp_path / "b", fmt) as writer:
         for i, frame in enumerate(frames):
-            writer.write_imu("/imu", 100.0 + 0.005 * i + 1e-9 * i, RNG.normal(size=3), RNG.normal(size=3),
-                             None, frame)
+            writer.write_imu(
+                "/imu",
+                100.0 + 0.005 * i + 1e-9 * i,
+                RNG.normal(size=3),
+                RNG.normal(size=3),
+                None,
+                frame,
+            )
     n = 0
     with open_bag(writer.path) as bag:
         reader = bag.reader
@@ -388,7 +419,9 @@ def test_imu_fields_read_in_place_match_a_full_deserialisation(tmp_path, fmt: st
             assert got == (stamp, msg.header.frame_id, (w.x, w.y, w.z), (a.x, a.y, a.z))
             n += 1
     assert n == len(frames)
-    assert imu_fields(b"\x00\x00\x00\x00" + bytes(300), True) is None  # big-endian CDR: rosbags decodes
+    assert (
+        imu_fields(b"\x00\x00\x00\x00" + bytes(300), True) is None
+    )  # big-endian CDR: rosbags decodes
     assert imu_fields(b"\x00\x01\x00\x00" + bytes(8), True) is None  # cut short
 
 

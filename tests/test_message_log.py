@@ -13,15 +13,18 @@ from canopy_kit.io.message_log import MessageLog, TopicLog, imu_sample_fault, me
 GRAVITY = (0.0, 0.0, 9.81)
 
 
-@pytest.mark.parametrize(("gyro", "acc", "fault"), [
-    ((0.01, -0.02, 0.3), GRAVITY, None),
-    ((49.0, 0.0, 0.0), (0.0, 0.0, 499.0), None),
-    ((1e308, math.inf, 0.0), GRAVITY, "angular velocity not finite"),
-    ((1e308, 1e308, 0.0), GRAVITY, "angular velocity above 50 rad/s"),  # its square overflows
-    ((30.0, 30.0, 30.0), GRAVITY, "angular velocity above 50 rad/s"),  # |w| = 52
-    ((0.0, 0.0, 0.0), (math.nan, 0.0, 9.8), "linear acceleration not finite"),
-    ((0.0, 0.0, 0.0), (300.0, 300.0, 300.0), "linear acceleration above 500 m/s²"),  # |a| = 520
-])
+@pytest.mark.parametrize(
+    ("gyro", "acc", "fault"),
+    [
+        ((0.01, -0.02, 0.3), GRAVITY, None),
+        ((49.0, 0.0, 0.0), (0.0, 0.0, 499.0), None),
+        ((1e308, math.inf, 0.0), GRAVITY, "angular velocity not finite"),
+        ((1e308, 1e308, 0.0), GRAVITY, "angular velocity above 50 rad/s"),  # its square overflows
+        ((30.0, 30.0, 30.0), GRAVITY, "angular velocity above 50 rad/s"),  # |w| = 52
+        ((0.0, 0.0, 0.0), (math.nan, 0.0, 9.8), "linear acceleration not finite"),
+        ((0.0, 0.0, 0.0), (300.0, 300.0, 300.0), "linear acceleration above 500 m/s²"),  # |a| = 520
+    ],
+)
 def test_imu_sample_fault(gyro: tuple, acc: tuple, fault: str | None) -> None:
     assert imu_sample_fault(gyro, acc) == fault
 
@@ -34,15 +37,25 @@ def test_drops_up_to_a_fifth_are_warned_of_and_more_are_an_error() -> None:
         else:
             log.use(i, 100.0 + i)
     log.check()  # 2 of 10: 20 %, not more
-    assert log.warnings() == ["bag: topic '/imu': 2 of 10 IMU samples dropped (2 angular velocity not "
-                              "finite); first: message 3: nan"]
+    assert log.warnings() == [
+        "bag: topic '/imu': 2 of 10 IMU samples dropped (2 angular velocity not "
+        "finite); first: message 3: nan"
+    ]
     log.drop(10, "linear acceleration not finite", "message 10: nan")  # 3 of 11
-    with pytest.raises(InputError, match=r"bag: topic '/imu': 3 of 11 IMU samples unusable \(more than "
-                                         r"20 %: 2 angular velocity not finite, 1 linear acceleration not "
-                                         r"finite\); first: message 3: nan"):
+    with pytest.raises(
+        InputError,
+        match=r"bag: topic '/imu': 3 of 11 IMU samples unusable \(more than "
+        r"20 %: 2 angular velocity not finite, 1 linear acceleration not "
+        r"finite\); first: message 3: nan",
+    ):
         log.check()
     summary = log.summary()
-    assert (summary["used"], summary["dropped"], summary["first_stamp"], summary["last_stamp"]) == (8, 3, 100.0, 109.0)
+    assert (summary["used"], summary["dropped"], summary["first_stamp"], summary["last_stamp"]) == (
+        8,
+        3,
+        100.0,
+        109.0,
+    )
 
 
 def test_mostly_bad_first_messages_stop_at_once() -> None:
@@ -64,7 +77,9 @@ def test_extra_bytes_are_trimmed_and_a_lying_header_on_most_scans_is_an_error() 
     assert log.undercounted == 1 and "(20008 bytes ignored)" in log.warnings()[0]
     for i in (5, 6):
         log.trim(i, 20_000, 20_000, "")
-    with pytest.raises(InputError, match="3 of 10 scans hold more data than their header describes"):
+    with pytest.raises(
+        InputError, match="3 of 10 scans hold more data than their header describes"
+    ):
         log.check()
 
 
@@ -110,7 +125,10 @@ def test_chunk_logs_restricted_to_their_own_scans_merge_into_the_whole() -> None
     assert whole.index_range == (0, 100)
     mlog = MessageLog("bag")
     mlog.topics["/points"] = whole
-    assert mlog.flags() == ["scans_malformed"] and mlog.summary({"pointcloud": "/points"})["pointcloud"]["dropped"] == 3
+    assert (
+        mlog.flags() == ["scans_malformed"]
+        and mlog.summary({"pointcloud": "/points"})["pointcloud"]["dropped"] == 3
+    )
 
 
 def test_a_second_pass_counts_each_message_once() -> None:

@@ -18,17 +18,23 @@ from canopy_kit.paper import experiments as ex
 
 # One seed, one row of three trees per orchard, a sparse 16 x 256 sensor; the map from the
 # true poses keeps odometry out of the test's time (the pipeline mapping is tested below).
-TINY = ex.ExperimentConfig(seeds=(1,), rows=1, trees_per_row=3,
-                           methods=("dbscan", "dbscan_spectral"), mappings=("true_poses",),
-                           sim_overrides={"lidar": {"columns": 256, "rings": 16}})
+TINY = ex.ExperimentConfig(
+    seeds=(1,),
+    rows=1,
+    trees_per_row=3,
+    methods=("dbscan", "dbscan_spectral"),
+    mappings=("true_poses",),
+    sim_overrides={"lidar": {"columns": 256, "rings": 16}},
+)
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     work = tmp_path_factory.mktemp("experiments")
     calls: list[tuple[str, float, float]] = []
-    results = ex.run_experiments(TINY, work, progress=lambda *a: calls.append(a),
-                                 keep_sessions=True)
+    results = ex.run_experiments(
+        TINY, work, progress=lambda *a: calls.append(a), keep_sessions=True
+    )
     return results, work, calls
 
 
@@ -37,14 +43,16 @@ def test_one_run_per_orchard_seed_mapping_method(tiny):
     runs, comp = results.runs, results.comparison
     assert len(runs) == TINY.n_runs() == 4
     assert set(zip(runs["orchard"], runs["method"])) == {
-        (o, m) for o in ("pistachio", "almond") for m in ("dbscan", "dbscan_spectral")}
+        (o, m) for o in ("pistachio", "almond") for m in ("dbscan", "dbscan_spectral")
+    }
     assert (runs["error"] == "").all() and (runs["mapping"] == "true_poses").all()
     assert list(runs["preset"]) == [ex.METHOD_PRESETS[m] for m in runs["method"]]
     assert len(comp) == 4 and (comp["sessions"] == 1).all()
     assert ("experiment runs", 4, 4) in calls
     # Every segment of every run is in the tree table, tagged with its run.
     assert set(results.trees.groupby(["orchard", "method"]).size().index) == set(
-        zip(runs["orchard"], runs["method"]))
+        zip(runs["orchard"], runs["method"])
+    )
 
 
 def test_segmentation_numbers_are_those_of_the_runs(tiny):
@@ -53,8 +61,11 @@ def test_segmentation_numbers_are_those_of_the_runs(tiny):
     for r in runs.to_dict("records"):
         truth = pd.read_csv(work / r["session"] / "truth" / "trees.csv")
         assert r["n_truth"] == len(truth)
-        matched = trees[(trees["orchard"] == r["orchard"]) & (trees["method"] == r["method"])
-                        & trees["truth_tree_id"].notna()]
+        matched = trees[
+            (trees["orchard"] == r["orchard"])
+            & (trees["method"] == r["method"])
+            & trees["truth_tree_id"].notna()
+        ]
         assert len(matched) == r["n_correct"]  # volumes are only scored on correct trees
         assert r["success_rate"] == pytest.approx(r["n_correct"] / r["n_truth"])
         c = comp[(comp["orchard"] == r["orchard"]) & (comp["method"] == r["method"])].iloc[0]
@@ -74,9 +85,15 @@ def test_segmentation_rescored_independently(tiny):
     run = results.runs.query("orchard == 'almond' and method == 'dbscan_spectral'").iloc[0]
     mapping = truth_mapping(work / run["session"])
     cfg = load_preset("almond")
-    seg = segment(mapping.map, make_segmenter(cfg.segment.method, cfg.segment.params),
-                  cfg.preprocess, cfg.rows, driving_direction=driving_direction(mapping.trajectory),
-                  direction_source="trajectory", seed=cfg.seed)
+    seg = segment(
+        mapping.map,
+        make_segmenter(cfg.segment.method, cfg.segment.params),
+        cfg.preprocess,
+        cfg.rows,
+        driving_direction=driving_direction(mapping.trajectory),
+        direction_source="trajectory",
+        seed=cfg.seed,
+    )
     score = score_point_labels(seg.labels, mapping.map.fields["tree_id"])
     assert (score.n_correct, score.n_truth) == (run["n_correct"], run["n_truth"])
 
@@ -85,7 +102,7 @@ def test_volume_errors_against_the_truth_folder(tiny):
     results, work, _ = tiny
     trees = results.trees.dropna(subset=["truth_tree_id"])
     assert len(trees) > 0
-    for (orchard, method), group in trees.groupby(["orchard", "method"]):
+    for (orchard, method), group in trees.groupby(["orchard", "method"]):  # noqa: B007 (query)
         session = results.runs.query("orchard == @orchard and method == @method")["session"].iloc[0]
         truth = pd.read_csv(work / session / "truth" / "trees.csv").set_index("tree_id")
         t = truth.loc[group["truth_tree_id"].astype(int)]
@@ -93,8 +110,14 @@ def test_volume_errors_against_the_truth_folder(tiny):
         assert np.allclose(group["true_sphere_volume_m3"], np.pi * t["crown_diameter_m"] ** 3 / 6)
         assert np.allclose(group["true_crown_volume_m3"], t["crown_volume_m3"])
         c = results.comparison.query("orchard == @orchard and method == @method").iloc[0]
-        for est, col in (("convex_hull", "volume_convex_hull_m3"), ("alpha_shape", "volume_alpha_m3")):
-            for ref, ref_col in (("sphere", "true_sphere_volume_m3"), ("crown", "true_crown_volume_m3")):
+        for est, col in (
+            ("convex_hull", "volume_convex_hull_m3"),
+            ("alpha_shape", "volume_alpha_m3"),
+        ):
+            for ref, ref_col in (
+                ("sphere", "true_sphere_volume_m3"),
+                ("crown", "true_crown_volume_m3"),
+            ):
                 err = 100 * (group[col] - group[ref_col]) / group[ref_col]
                 assert c[f"{est}_mape_vs_{ref}_pct"] == pytest.approx(err.abs().mean())
                 assert c[f"{est}_bias_vs_{ref}_pct"] == pytest.approx(err.mean())
@@ -113,9 +136,11 @@ def test_paper_column_holds_the_printed_figures(tiny):
     table = check_table1().corrected
     row = comp.loc[("pistachio", "dbscan")]
     assert row["paper_alpha_shape_mape_vs_sphere_pct"] == pytest.approx(
-        table["alpha_err_pct"].mean(), abs=0.01)  # 8.54
+        table["alpha_err_pct"].mean(), abs=0.01
+    )  # 8.54
     assert row["paper_convex_hull_mape_vs_sphere_pct"] == pytest.approx(
-        table["hull_err_pct"].mean(), abs=0.01)  # 10.68
+        table["hull_err_pct"].mean(), abs=0.01
+    )  # 10.68
     assert row["paper_alpha_shape_max_error_vs_sphere_pct"] == 22.91
     assert row["paper_alpha_better"] == "12/17"
     assert comp.drop(("pistachio", "dbscan"))["paper_alpha_shape_mape_vs_sphere_pct"].isna().all()
@@ -132,13 +157,17 @@ def test_results_files_round_trip_and_cli_shows_them(tiny, tmp_path):
     back = ex.load_results(tmp_path)
     assert back.config == results.config
     pd.testing.assert_frame_equal(back.comparison, results.comparison, check_dtype=False)
-    out = CliRunner().invoke(app, ["paper", "experiments", "--show-saved", "--out",
-                                   str(tmp_path), "--json"])
+    out = CliRunner().invoke(
+        app, ["paper", "experiments", "--show-saved", "--out", str(tmp_path), "--json"]
+    )
     assert out.exit_code == 0, out.output
     data = json.loads(out.output)
     assert len(data["comparison"]) == 4 and data["paper"]["n_trees"] == 17
-    text = CliRunner().invoke(app, ["paper", "experiments", "--show-saved", "--out",
-                                    str(tmp_path)], env={"COLUMNS": "250"})
+    text = CliRunner().invoke(
+        app,
+        ["paper", "experiments", "--show-saved", "--out", str(tmp_path)],
+        env={"COLUMNS": "250"},
+    )
     assert text.exit_code == 0 and "Segmentation success" in text.output
 
 
@@ -161,8 +190,7 @@ def test_settings_are_checked():
     ex.ExperimentConfig(orchards=("almond-paper",)).validate()
     # the scaled almond method on request, through a preset that sets it up
     ex.ExperimentConfig(methods=("dbscan_spectral_scaled",)).validate()
-    assert load_preset(ex.METHOD_PRESETS["dbscan_spectral_scaled"]).segment.params[
-        "graph_cell"] > 0
+    assert load_preset(ex.METHOD_PRESETS["dbscan_spectral_scaled"]).segment.params["graph_cell"] > 0
     assert "dbscan_spectral_scaled" not in ex.ExperimentConfig().methods
     # the CLI (which keeps pandas out of its start-up) offers the same default methods
     cli_default = inspect.signature(paper_cli.experiments).parameters["method"].default
@@ -176,8 +204,14 @@ def test_settings_are_checked():
 @pytest.mark.slow
 def test_pipeline_mapping_run(tmp_path):
     """The main table's path: the pipeline's own mapping (compute), scored with its ATE."""
-    config = ex.ExperimentConfig(seeds=(2,), rows=1, trees_per_row=3, orchards=("pistachio",),
-                                 methods=("dbscan",), sim_overrides=TINY.sim_overrides)
+    config = ex.ExperimentConfig(
+        seeds=(2,),
+        rows=1,
+        trees_per_row=3,
+        orchards=("pistachio",),
+        methods=("dbscan",),
+        sim_overrides=TINY.sim_overrides,
+    )
     results = ex.run_experiments(config, tmp_path)
     run = results.runs.iloc[0]
     assert run["error"] == "" and run["mapping"] == "pipeline"
@@ -252,8 +286,9 @@ def test_committed_results_are_never_overwritten_by_default(tiny, tmp_path):
     with pytest.raises(InputError, match=str(ex.default_results_dir())):
         ex.check_results_dir(ex.default_results_dir() / "sub")
     assert committed.read_bytes() == before
-    assert ex.check_results_dir(ex.default_results_dir(), overwrite=True) \
-        == ex.default_results_dir()
+    assert (
+        ex.check_results_dir(ex.default_results_dir(), overwrite=True) == ex.default_results_dir()
+    )
     # A folder holding results is refused too, unless asked.
     ex.write_results(results, tmp_path)
     with pytest.raises(InputError, match="already holds experiment results"):
@@ -272,8 +307,7 @@ def test_cli_refuses_committed_data_before_running(monkeypatch):
         raise AssertionError("ran experiments before checking --out")
 
     monkeypatch.setattr(ex, "run_experiments", no_run)
-    got = CliRunner().invoke(app, ["paper", "experiments", "--out",
-                                   str(ex.default_results_dir())])
+    got = CliRunner().invoke(app, ["paper", "experiments", "--out", str(ex.default_results_dir())])
     assert isinstance(got.exception, InputError)
     assert str(ex.default_results_dir()) in str(got.exception)
 
@@ -287,8 +321,11 @@ def test_committed_results_are_complete_and_their_tables_recompute():
     out = ex.default_results_dir()
     assert len(runs) == saved.config.n_runs() and (runs["error"].fillna("") == "").all()
     assert set(zip(runs["orchard"], runs["seed"], runs["method"])) == {
-        (o, s, m) for o in saved.config.orchards for s in saved.config.seeds
-        for m in saved.config.methods}
+        (o, s, m)
+        for o in saved.config.orchards
+        for s in saved.config.seeds
+        for m in saved.config.methods
+    }
     assert (runs.groupby(["orchard", "seed"])["n_truth"].nunique() == 1).all()
     comp_csv = pd.read_csv(out / ex.RESULT_FILES["comparison"])
     for col in [c for c in comp if comp[c].map(lambda v: isinstance(v, str)).any()]:
@@ -297,15 +334,19 @@ def test_committed_results_are_complete_and_their_tables_recompute():
     pd.testing.assert_frame_equal(comp_csv, comp, check_dtype=False, atol=1e-4)
     runs_csv = pd.read_csv(out / ex.RESULT_FILES["runs"], keep_default_na=False)
     numeric = runs.select_dtypes("number").columns
-    pd.testing.assert_frame_equal(runs_csv[numeric].astype(float), runs[numeric].astype(float),
-                                  atol=1e-4)
+    pd.testing.assert_frame_equal(
+        runs_csv[numeric].astype(float), runs[numeric].astype(float), atol=1e-4
+    )
     matched = trees.dropna(subset=["truth_tree_id"])
     # A true tree's crown and sphere are the same in every run of its session.
     per_tree = matched.groupby(["orchard", "seed", "truth_tree_id"])
     assert (per_tree[["true_crown_volume_m3", "true_sphere_volume_m3"]].nunique() == 1).all().all()
     for r in runs.to_dict("records"):
-        got = matched[(matched["orchard"] == r["orchard"]) & (matched["seed"] == r["seed"])
-                      & (matched["method"] == r["method"])]
+        got = matched[
+            (matched["orchard"] == r["orchard"])
+            & (matched["seed"] == r["seed"])
+            & (matched["method"] == r["method"])
+        ]
         assert len(got) == r["n_correct"] and got["truth_tree_id"].is_unique
     for c in comp.to_dict("records"):
         r = runs[(runs["orchard"] == c["orchard"]) & (runs["method"] == c["method"])]
@@ -318,23 +359,31 @@ def test_committed_results_are_complete_and_their_tables_recompute():
         assert c["map_points_per_tree_median"] == r["map_points_per_tree_median"].median()
         t = matched[(matched["orchard"] == c["orchard"]) & (matched["method"] == c["method"])]
         errs = {}
-        for ref, ref_col in (("sphere", "true_sphere_volume_m3"), ("crown", "true_crown_volume_m3")):
-            for est, col in (("convex_hull", "volume_convex_hull_m3"),
-                             ("alpha_shape", "volume_alpha_m3")):
+        for ref, ref_col in (
+            ("sphere", "true_sphere_volume_m3"),
+            ("crown", "true_crown_volume_m3"),
+        ):
+            for est, col in (
+                ("convex_hull", "volume_convex_hull_m3"),
+                ("alpha_shape", "volume_alpha_m3"),
+            ):
                 errs[est] = err = 100 * (t[col] - t[ref_col]) / t[ref_col]
                 assert c[f"{est}_mape_vs_{ref}_pct"] == pytest.approx(err.abs().mean(), abs=1e-3)
                 assert c[f"{est}_bias_vs_{ref}_pct"] == pytest.approx(err.mean(), abs=1e-3)
-                assert c[f"{est}_max_error_vs_{ref}_pct"] == pytest.approx(err.abs().max(),
-                                                                           abs=1e-3)
-            assert c[f"alpha_better_vs_{ref}"] == (
-                errs["alpha_shape"].abs() < errs["convex_hull"].abs()).sum()
+                assert c[f"{est}_max_error_vs_{ref}_pct"] == pytest.approx(
+                    err.abs().max(), abs=1e-3
+                )
+            assert (
+                c[f"alpha_better_vs_{ref}"]
+                == (errs["alpha_shape"].abs() < errs["convex_hull"].abs()).sum()
+            )
             assert c[f"n_trees_vs_{ref}"] == len(t)
 
 
 def test_reproduction_doc_quotes_the_committed_tables():
     """docs/REPRODUCTION.md's result tables are those of data/paper/experiments_comparison.csv."""
     doc = (ex.default_results_dir().parents[1] / "docs" / "REPRODUCTION.md").read_text()
-    results = doc[doc.index("### Results"):doc.index("**On an almond orchard like the paper's**")]
+    results = doc[doc.index("### Results") : doc.index("**On an almond orchard like the paper's**")]
     rows = {}
     for line in results.splitlines():
         cells = [x.strip() for x in line.strip().strip("|").split("|")]
@@ -348,17 +397,25 @@ def test_reproduction_doc_quotes_the_committed_tables():
         assert seg[2] == ("-" if math.isnan(paper) else f"{paper:.0f}")
         assert seg[3] == f"{c['success_pct']:.1f}"
         assert seg[4] == f"{c['success_min_pct']:.0f}-{c['success_max_pct']:.0f}"
-        assert seg[5:11] == [f"{c['n_correct']}/{c['n_truth']}", str(c["n_merged"]),
-                             str(c["n_split"]), str(c["n_missed"]), str(c["n_other"]),
-                             f"{c['map_points_per_tree_median']:.0f}"]
+        assert seg[5:11] == [
+            f"{c['n_correct']}/{c['n_truth']}",
+            str(c["n_merged"]),
+            str(c["n_split"]),
+            str(c["n_missed"]),
+            str(c["n_other"]),
+            f"{c['map_points_per_tree_median']:.0f}",
+        ]
 
         def mape_bias(est, ref, c=c):
-            return (f"{c[f'{est}_mape_vs_{ref}_pct']:.1f} "
-                    f"({c[f'{est}_bias_vs_{ref}_pct']:+.1f})")
+            return f"{c[f'{est}_mape_vs_{ref}_pct']:.1f} ({c[f'{est}_bias_vs_{ref}_pct']:+.1f})"
 
         assert vol[2:] == [
-            str(c["n_trees_vs_sphere"]), mape_bias("convex_hull", "sphere"),
-            mape_bias("alpha_shape", "sphere"), f"{c['alpha_shape_max_error_vs_sphere_pct']:.1f}",
+            str(c["n_trees_vs_sphere"]),
+            mape_bias("convex_hull", "sphere"),
+            mape_bias("alpha_shape", "sphere"),
+            f"{c['alpha_shape_max_error_vs_sphere_pct']:.1f}",
             f"{c['alpha_better_vs_sphere']}/{c['n_trees_vs_sphere']}",
-            mape_bias("convex_hull", "crown"), mape_bias("alpha_shape", "crown"),
-            f"{c['alpha_better_vs_crown']}/{c['n_trees_vs_crown']}"]
+            mape_bias("convex_hull", "crown"),
+            mape_bias("alpha_shape", "crown"),
+            f"{c['alpha_better_vs_crown']}/{c['n_trees_vs_crown']}",
+        ]

@@ -31,15 +31,19 @@ CSV = default_table1_path()
 
 # ----------------------------------------------------------------------------- transcription
 
-@pytest.mark.parametrize("tree, column, printed", [
-    (1, "gt_m3", "28.06"),
-    (2, "alpha_m3", "24.90"),
-    (5, "hull_err_pct", "0.21"),
-    (9, "alpha_err_pct", "0.29"),
-    (10, "alpha_err_pct", "10.80"),
-    (13, "gt_m3", "9.53"),
-    (17, "alpha_m3", "3.75"),  # printed under "Alpha Shape (m³)", whatever it really is
-])
+
+@pytest.mark.parametrize(
+    "tree, column, printed",
+    [
+        (1, "gt_m3", "28.06"),
+        (2, "alpha_m3", "24.90"),
+        (5, "hull_err_pct", "0.21"),
+        (9, "alpha_err_pct", "0.29"),
+        (10, "alpha_err_pct", "10.80"),
+        (13, "gt_m3", "9.53"),
+        (17, "alpha_m3", "3.75"),  # printed under "Alpha Shape (m³)", whatever it really is
+    ],
+)
 def test_literal_cells_as_printed(tree: int, column: str, printed: str) -> None:
     assert read_table1_text()[column][tree] == printed
 
@@ -47,8 +51,12 @@ def test_literal_cells_as_printed(tree: int, column: str, printed: str) -> None:
 def test_headers_and_shape_as_printed() -> None:
     header = CSV.read_text(encoding="utf-8").splitlines()[0].split(",")
     assert header == [
-        "Tree Number", "Ground Truth Volume (m³)", "Convex Hull (m³)",
-        "Convex Hull Error (%)", "Alpha Shape (m³)", "Alpha Shape Error (%)",
+        "Tree Number",
+        "Ground Truth Volume (m³)",
+        "Convex Hull (m³)",
+        "Convex Hull Error (%)",
+        "Alpha Shape (m³)",
+        "Alpha Shape Error (%)",
     ]
     table = load_table1()
     assert list(table.index) == list(range(1, 18))
@@ -115,6 +123,7 @@ def test_every_cell_matches_the_latex_source() -> None:
 
 
 # ------------------------------------------------------------------ column-order detection
+
 
 def _brute_force_orders(text: pd.DataFrame) -> dict[int, list[tuple[str, ...]]]:
     """Independent check: every order of the value columns whose recomputed errors fall
@@ -190,6 +199,7 @@ def test_flat_tolerance_without_rounding_leaves_rows_unresolved() -> None:
 
 # ------------------------------------------------------------------------------ statistics
 
+
 def _independent_correction() -> pd.DataFrame:
     """Table I corrected without the code under test: per row, the orders the brute force
     accepts, narrowed by "an alpha shape lies inside its convex hull"; one must remain."""
@@ -211,32 +221,39 @@ def test_mape_of_corrected_table_matches_printed_error_means() -> None:
     independent = _independent_correction()
     check = check_table1()
     summary = summarise_table1(check)
-    pd.testing.assert_frame_equal(check.corrected[independent.columns], independent,
-                                  check_names=False)
-    for method, (vol, err) in {"hull": ("hull_m3", "hull_err_pct"),
-                               "alpha": ("alpha_m3", "alpha_err_pct")}.items():
-        by_hand = sum(abs(v - g) / g * 100
-                      for v, g in zip(independent[vol], independent["gt_m3"])) / 17
+    pd.testing.assert_frame_equal(
+        check.corrected[independent.columns], independent, check_names=False
+    )
+    for method, (vol, err) in {
+        "hull": ("hull_m3", "hull_err_pct"),
+        "alpha": ("alpha_m3", "alpha_err_pct"),
+    }.items():
+        by_hand = (
+            sum(abs(v - g) / g * 100 for v, g in zip(independent[vol], independent["gt_m3"])) / 17
+        )
         printed_mean = sum(independent[err]) / 17  # the printed error cells, as printed
         assert summary.agreement[method].mape_pct == pytest.approx(by_hand, abs=1e-12)
         assert summary.printed_error_means[method] == pytest.approx(printed_mean, abs=1e-12)
         assert abs(summary.agreement[method].mape_pct - printed_mean) < 0.01
     # Under the printed header the alpha figures do not agree at all: the check has teeth.
     as_printed = summarise_table1(check, "as_printed")
-    assert abs(as_printed.agreement["alpha"].mape_pct
-               - as_printed.printed_error_means["alpha"]) > 1.0
+    assert (
+        abs(as_printed.agreement["alpha"].mape_pct - as_printed.printed_error_means["alpha"]) > 1.0
+    )
 
 
 def test_alpha_claim_counts_match_an_independent_count() -> None:
     check = check_table1()
     claim = summarise_table1(check).claim
     t = check.corrected
-    alpha_lower = [tree for tree, r in t.iterrows()
-                   if abs(r.alpha_m3 - r.gt_m3) < abs(r.hull_m3 - r.gt_m3)]
+    alpha_lower = [
+        tree for tree, r in t.iterrows() if abs(r.alpha_m3 - r.gt_m3) < abs(r.hull_m3 - r.gt_m3)
+    ]
     assert claim.alpha_better == alpha_lower
     assert len(claim.alpha_better) + len(claim.hull_better) + len(claim.ties) == 17
-    assert claim.alpha_better_printed == [tree for tree, r in t.iterrows()
-                                          if r.alpha_err_pct < r.hull_err_pct]
+    assert claim.alpha_better_printed == [
+        tree for tree, r in t.iterrows() if r.alpha_err_pct < r.hull_err_pct
+    ]
 
 
 def test_implied_diameters() -> None:
@@ -273,12 +290,15 @@ def test_perfect_agreement() -> None:
     assert stats.bland_altman(x, x).upper_limit == 0.0
 
 
-@pytest.mark.parametrize("est, ref, message", [
-    ([1.0, 2.0], [1.0], "differ in length"),
-    ([1.0, 2.0], [0.0, 1.0], "index 0 is zero"),
-    ([1.0, float("nan")], [1.0, 2.0], "estimate: value at index 1 is not finite"),
-    ([[1.0, 2.0]], [[1.0, 2.0]], "1-D"),
-])
+@pytest.mark.parametrize(
+    "est, ref, message",
+    [
+        ([1.0, 2.0], [1.0], "differ in length"),
+        ([1.0, 2.0], [0.0, 1.0], "index 0 is zero"),
+        ([1.0, float("nan")], [1.0, 2.0], "estimate: value at index 1 is not finite"),
+        ([[1.0, 2.0]], [[1.0, 2.0]], "1-D"),
+    ],
+)
 def test_stats_reject_bad_input(est: list, ref: list, message: str) -> None:
     with pytest.raises(InputError, match=re.escape(message)):
         stats.mape(est, ref)
@@ -290,6 +310,7 @@ def test_r_squared_needs_varying_reference() -> None:
 
 
 # ------------------------------------------------------------------------------ bad input
+
 
 def _broken_csv(tmp_path: Path, edit) -> Path:
     lines = CSV.read_text(encoding="utf-8").splitlines()
@@ -312,14 +333,19 @@ def _negative_cell(lines: list[str]) -> list[str]:
     return lines
 
 
-@pytest.mark.parametrize("edit, message", [
-    (_drop_last_column, "missing column 'Alpha Shape Error (%)'"),
-    (_bad_cell, "data row 6 (tree '6'), column 'Convex Hull (m³)': not a number: '2B.97'"),
-    (_negative_cell,
-     "data row 3 (tree '3'), column 'Ground Truth Volume (m³)': must be a positive"),
-    (lambda lines: lines[:-1], "expected 17 tree rows (Table I), found 16"),
-    (lambda lines: lines + [lines[-1]], "expected 17 tree rows (Table I), found 18"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (_drop_last_column, "missing column 'Alpha Shape Error (%)'"),
+        (_bad_cell, "data row 6 (tree '6'), column 'Convex Hull (m³)': not a number: '2B.97'"),
+        (
+            _negative_cell,
+            "data row 3 (tree '3'), column 'Ground Truth Volume (m³)': must be a positive",
+        ),
+        (lambda lines: lines[:-1], "expected 17 tree rows (Table I), found 16"),
+        (lambda lines: lines + [lines[-1]], "expected 17 tree rows (Table I), found 18"),
+    ],
+)
 def test_bad_files_name_the_file_and_the_problem(tmp_path: Path, edit, message: str) -> None:
     path = _broken_csv(tmp_path, edit)
     with pytest.raises(InputError) as info:
@@ -335,6 +361,7 @@ def test_missing_file(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------------- CLI
 
+
 def test_cli_json() -> None:
     from typer.testing import CliRunner
 
@@ -346,7 +373,8 @@ def test_cli_json() -> None:
     check = check_table1()
     assert [f["tree"] for f in data["findings"]] == [r.tree for r in check.findings]
     assert data["agreement"]["alpha"]["mape_pct"] == pytest.approx(
-        summarise_table1(check).agreement["alpha"].mape_pct)
+        summarise_table1(check).agreement["alpha"].mape_pct
+    )
     printed = CliRunner().invoke(app, ["paper", "table1", "--json", "--as-printed"])
     assert json.loads(printed.stdout)["reading"] == "as_printed"
 
@@ -365,7 +393,11 @@ def test_cli_bad_path_exits_2(tmp_path: Path) -> None:
     exe = shutil.which("canopy-kit", path=str(Path(sys.executable).parent))
     if exe is None:
         pytest.skip("canopy-kit console script not installed")
-    proc = subprocess.run([exe, "paper", "table1", "--path", str(tmp_path / "x.csv")],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [exe, "paper", "table1", "--path", str(tmp_path / "x.csv")],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     assert f"{tmp_path / 'x.csv'}: Table I file does not exist" in proc.stderr

@@ -23,7 +23,9 @@ def _fail_or_die(x: int, tick) -> None:
 
 def test_run_forked_returns_results_in_job_order_from_other_processes() -> None:
     seen = []
-    out = run_forked(_square_pid, [3, 1, 2], "squares", 3, lambda label, n, total: seen.append((label, n, total)))
+    out = run_forked(
+        _square_pid, [3, 1, 2], "squares", 3, lambda label, n, total: seen.append((label, n, total))
+    )
     assert [r[0] for r in out] == [9, 1, 4]
     assert os.getpid() not in {r[1] for r in out}
     assert seen[-1] == ("squares", 3, 3)
@@ -47,8 +49,14 @@ def _square_or_fail_in_parent(job: tuple[int, int], tick) -> tuple[int, int]:
 def test_the_first_job_can_run_in_the_parent_while_the_others_fork() -> None:
     me = os.getpid()
     seen = []
-    out = run_forked(_square_or_fail_in_parent, [(3, me), (1, me), (2, me)], "squares", 3,
-                     lambda label, n, total: seen.append((label, n, total)), first_in_parent=True)
+    out = run_forked(
+        _square_or_fail_in_parent,
+        [(3, me), (1, me), (2, me)],
+        "squares",
+        3,
+        lambda label, n, total: seen.append((label, n, total)),
+        first_in_parent=True,
+    )
     assert [r[0] for r in out] == [9, 1, 4]
     assert out[0][1] == me
     assert me not in {r[1] for r in out[1:]} and out[1][1] != out[2][1]
@@ -57,7 +65,9 @@ def test_the_first_job_can_run_in_the_parent_while_the_others_fork() -> None:
     import multiprocessing as mp
 
     with pytest.raises(InputError, match="stretch 0: scan 5 has no points"):
-        run_forked(_square_or_fail_in_parent, [(-1, me), (2, me)], "squares", 2, first_in_parent=True)
+        run_forked(
+            _square_or_fail_in_parent, [(-1, me), (2, me)], "squares", 2, first_in_parent=True
+        )
     assert not [p for p in mp.active_children() if p.is_alive()]
 
 

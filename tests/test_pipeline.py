@@ -31,12 +31,24 @@ def test_end_to_end_against_truth(pistachio_run, tiny_pistachio):
     assert ev["volumes"]["convex_hull"]["mape_pct"] < 10.0
     assert ev["volumes"]["alpha_shape"]["mape_pct"] < 10.0
     trees = r.trees
-    assert list(trees.columns[:12]) == ["tree_id", "label", "row", "x", "y", "lat", "lon",
-                                        "n_points", "height_m", "crown_diameter_m",
-                                        "volume_convex_hull_m3", "volume_alpha_m3"]
+    assert list(trees.columns[:12]) == [
+        "tree_id",
+        "label",
+        "row",
+        "x",
+        "y",
+        "lat",
+        "lon",
+        "n_points",
+        "height_m",
+        "crown_diameter_m",
+        "volume_convex_hull_m3",
+        "volume_alpha_m3",
+    ]
     # Positions in WGS84 agree with the truth's (same tree matched by segmentation).
     m = trees.dropna(subset=["truth_tree_id"]).merge(
-        truth, left_on="truth_tree_id", right_on="tree_id", suffixes=("", "_true"))
+        truth, left_on="truth_tree_id", right_on="tree_id", suffixes=("", "_true")
+    )
     assert np.allclose(m["lat"], m["lat_true"], atol=2e-5)  # ~2 m: GNSS-level
     assert (m["label"] == m["label_true"]).all()
     # Every tree segmented one-to-one: no crown is flagged as a merge or a fragment.
@@ -53,7 +65,9 @@ def test_a_run_folder_can_be_scored_by_evaluate(pistachio_run, tiny_pistachio):
     points = evaluate_run(pistachio_run.out_dir, tiny_pistachio.root).to_dict()
     for key in ("n_truth", "n_predicted", "n_correct", "n_label_correct", "mode"):
         assert points[key] == recorded[key], key
-    footprints = evaluate_run(pistachio_run.out_dir, tiny_pistachio.root, mode="footprints").to_dict()
+    footprints = evaluate_run(
+        pistachio_run.out_dir, tiny_pistachio.root, mode="footprints"
+    ).to_dict()
     assert footprints["n_truth"] == recorded["n_truth"]
     assert footprints["n_correct"] == recorded["n_truth"]  # every pistachio crown stands apart
 
@@ -63,8 +77,16 @@ def test_outputs_are_complete_and_readable(pistachio_run):
     from canopy_kit.io.las import read_las
 
     out = pistachio_run.out_dir
-    for name in ("trees.csv", "trees.parquet", "trees.geojson", "map.laz", "trajectory.csv",
-                 "config.toml", "metrics.json", "report.html"):
+    for name in (
+        "trees.csv",
+        "trees.parquet",
+        "trees.geojson",
+        "map.laz",
+        "trajectory.csv",
+        "config.toml",
+        "metrics.json",
+        "report.html",
+    ):
         assert (out / name).stat().st_size > 0, name
     assert not list(out.glob(".*.tmp*"))  # no temporary files left behind
     csv = pd.read_csv(out / "trees.csv")
@@ -84,8 +106,13 @@ def test_rerun_reuses_unchanged_stages_and_is_deterministic(pistachio_run, tiny_
     again = run(cfg, tiny_pistachio.bag, pistachio_run.out_dir, truth=tiny_pistachio.root)
     assert set(again.cache_hits) == {"map", "segment"}
     assert not np.allclose(again.trees["volume_alpha_m3"], pistachio_run.trees["volume_alpha_m3"])
-    same = run(load_preset("adaptive"), tiny_pistachio.bag, pistachio_run.out_dir,
-               truth=tiny_pistachio.root, use_cache=False)
+    same = run(
+        load_preset("adaptive"),
+        tiny_pistachio.bag,
+        pistachio_run.out_dir,
+        truth=tiny_pistachio.root,
+        use_cache=False,
+    )
     pd.testing.assert_frame_equal(same.trees, pistachio_run.trees)
 
 
@@ -96,16 +123,19 @@ def test_report_shows_the_run_offline(pistachio_run):
 
     from canopy_kit.report.browser import render_page
 
-    page = render_page(pistachio_run.files["report.html"],
-                       screenshot=REPO / "test-artifacts" / "pipeline_report.png")
+    page = render_page(
+        pistachio_run.files["report.html"],
+        screenshot=REPO / "test-artifacts" / "pipeline_report.png",
+    )
     assert page.tree_rows == len(pistachio_run.trees)
     assert page.images_loaded >= 3 and page.images_broken == 0
     assert page.check_rows >= 6
     assert page.blocked_requests == [] and page.console_errors == []
 
 
-def test_a_failing_map_writer_leaves_no_report_and_names_the_error(tiny_pistachio, tiny_pistachio_run,
-                                                                   tmp_path, monkeypatch) -> None:
+def test_a_failing_map_writer_leaves_no_report_and_names_the_error(
+    tiny_pistachio, tiny_pistachio_run, tmp_path, monkeypatch
+) -> None:
     """map.laz is written on a thread beside the report: when it fails the run raises that
     error, and neither metrics.json nor report.html (written last) claims a finished run."""
     import shutil
@@ -114,7 +144,9 @@ def test_a_failing_map_writer_leaves_no_report_and_names_the_error(tiny_pistachi
     from canopy_kit.errors import InputError
 
     out = tmp_path / "run"
-    shutil.copytree(tiny_pistachio_run.out_dir / ".cache", out / ".cache")  # straight to the outputs
+    shutil.copytree(
+        tiny_pistachio_run.out_dir / ".cache", out / ".cache"
+    )  # straight to the outputs
 
     def broken(path, cloud):
         raise InputError(f"{path}: disk full (simulated)")

@@ -14,12 +14,17 @@ from canopy_kit import plugins
 from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.params import check_positive
 from canopy_kit.segment.base import Segmenter, check_points
-from canopy_kit.testing import (check_segmenter, check_volume_estimator, parametrize_with_checks,
-                                unit_cube)
+from canopy_kit.testing import (
+    check_segmenter,
+    check_volume_estimator,
+    parametrize_with_checks,
+    unit_cube,
+)
 from canopy_kit.volume.base import VolumeEstimator, VolumeResult
 
-BUILT_IN = [plugins.load(kind, name) for kind in ("segmenters", "volumes")
-            for name in plugins.names(kind)]
+BUILT_IN = [
+    plugins.load(kind, name) for kind in ("segmenters", "volumes") for name in plugins.names(kind)
+]
 
 
 # -- a third-party segmenter and volume estimator -------------------------------------------
@@ -43,7 +48,7 @@ class GapSegmenter(Segmenter):
         check_positive(self.min_points, "min_points", "GapSegmenter")
         super().validate_params()
 
-    def fit(self, X: np.ndarray, y: None = None) -> GapSegmenter:  # noqa: N803
+    def fit(self, X: np.ndarray, y: None = None) -> GapSegmenter:
         self.validate_params()
         xyz = check_points(X)
         order = np.argsort(xyz[:, 0], kind="stable")
@@ -95,7 +100,7 @@ class WorkInInitSegmenter(GapSegmenter):
 class ShortLabelsSegmenter(GapSegmenter):
     """Drops the last point's label."""
 
-    def fit(self, X: np.ndarray, y: None = None) -> ShortLabelsSegmenter:  # noqa: N803
+    def fit(self, X: np.ndarray, y: None = None) -> ShortLabelsSegmenter:
         super().fit(X)
         self.labels_ = self.labels_[:-1]
         return self
@@ -122,10 +127,12 @@ def toy_plugins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     dist = tmp_path / "canopy_toy_plugins-0.1.dist-info"
     dist.mkdir()
     (dist / "METADATA").write_text(
-        "Metadata-Version: 2.1\nName: canopy-toy-plugins\nVersion: 0.1\n")
+        "Metadata-Version: 2.1\nName: canopy-toy-plugins\nVersion: 0.1\n"
+    )
     (dist / "entry_points.txt").write_text(
         f"[canopy_kit.segmenters]\ntoy_gap = {__name__}:GapSegmenter\n\n"
-        f"[canopy_kit.volumes]\ntoy_box = {__name__}:BoxVolume\n")
+        f"[canopy_kit.volumes]\ntoy_box = {__name__}:BoxVolume\n"
+    )
     monkeypatch.syspath_prepend(str(tmp_path))  # also invalidates importlib's caches
     clear = getattr(plugins.entry_points, "cache_clear", None)
     if clear is not None:
@@ -168,8 +175,11 @@ def test_third_party_plugins_are_reachable_and_conform(toy_plugins: None) -> Non
 
 
 def test_create_checks_keys_types_and_values(toy_plugins: None) -> None:
-    with pytest.raises(ConfigError, match=r"segmenter 'toy_gap' has no parameter 'gapp' "
-                                          r"\(parameters: gap, min_points\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"segmenter 'toy_gap' has no parameter 'gapp' "
+        r"\(parameters: gap, min_points\)",
+    ):
         plugins.create("segmenters", "toy_gap", {"gapp": 1.0})
     with pytest.raises(ConfigError, match=r"toy_gap.gap: expected a number, got 'wide'"):
         plugins.create("segmenters", "toy_gap", {"gap": "wide"})
@@ -212,8 +222,11 @@ def test_preset_plugin_params_fail_before_mapping(toy_plugins: None) -> None:
         load_preset("pistachio", {"volume": {"params": {"alpha_shape": {"alpha": "big"}}}})
     config = load_preset("pistachio", {"volume": {"methods": ["toy_box"]}})
     config.segment = SegmentConfig("toy_gap", {"gapp": 1.0})
-    with pytest.raises(ConfigError, match=r"segment.params: segmenter 'toy_gap' has no parameter "
-                                          r"'gapp'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"segment.params: segmenter 'toy_gap' has no parameter "
+        r"'gapp'",
+    ):
         check_settings(config)
     config.segment = SegmentConfig("toy_gap", {"gap": 0})
     with pytest.raises(ConfigError, match="gap must be a positive number"):
@@ -226,12 +239,15 @@ def test_preset_plugin_params_fail_before_mapping(toy_plugins: None) -> None:
 
 
 # -- broken plugins fail with the rule they break ---------------------------------------------
-@pytest.mark.parametrize(("broken", "rule", "check"), [
-    (WorkInInitSegmenter, "init_stores_params", check_segmenter),
-    (ShortLabelsSegmenter, "labels_one_per_point", check_segmenter),
-    (FloatVolume, "result_is_volume_result", check_volume_estimator),
-    (UncheckedVolume, "validate_params_rejects_wrong_type", check_volume_estimator),
-])
+@pytest.mark.parametrize(
+    ("broken", "rule", "check"),
+    [
+        (WorkInInitSegmenter, "init_stores_params", check_segmenter),
+        (ShortLabelsSegmenter, "labels_one_per_point", check_segmenter),
+        (FloatVolume, "result_is_volume_result", check_volume_estimator),
+        (UncheckedVolume, "validate_params_rejects_wrong_type", check_volume_estimator),
+    ],
+)
 def test_broken_plugin_fails_naming_the_rule(broken: type, rule: str, check) -> None:
     with pytest.raises(AssertionError) as err:
         check(broken)
@@ -294,8 +310,11 @@ def test_annotation_checks_and_docstring_sections() -> None:
     x : float
         Not a parameter.
     """
-    assert docstring_parameters(doc) == {"a": "First line second line.",
-                                         "b": "First line second line.", "c": ""}
+    assert docstring_parameters(doc) == {
+        "a": "First line second line.",
+        "b": "First line second line.",
+        "c": "",
+    }
     assert docstring_parameters("No sections.") == {}
 
 

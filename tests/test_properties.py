@@ -32,10 +32,16 @@ from canopy_kit.cloud import PointCloud
 from canopy_kit.errors import InputError
 from canopy_kit.voxel import voxel_downsample, voxel_keys
 
-FAST = settings(max_examples=40, deadline=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-FEW = settings(max_examples=15, deadline=None,
-               suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+FAST = settings(
+    max_examples=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+FEW = settings(
+    max_examples=15,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 
 coordinate = st.floats(-50.0, 50.0, allow_nan=False, allow_infinity=False, width=64)
 seeds = st.integers(0, 2**32 - 1)
@@ -44,7 +50,8 @@ seeds = st.integers(0, 2**32 - 1)
 def point_arrays(min_n: int = 1, max_n: int = 60) -> st.SearchStrategy[np.ndarray]:
     """(N, 3) float64 arrays, duplicates and degenerate layouts included."""
     return st.integers(min_n, max_n).flatmap(
-        lambda n: hnp.arrays(np.float64, (n, 3), elements=coordinate))
+        lambda n: hnp.arrays(np.float64, (n, 3), elements=coordinate)
+    )
 
 
 def generic_points(rng: np.random.Generator, n: int, spread: float = 2.0) -> np.ndarray:
@@ -76,8 +83,12 @@ def test_every_point_lies_in_its_voxel(xyz: np.ndarray, size: float) -> None:
 @given(xyz=point_arrays(), size=st.floats(0.05, 5.0), mode=st.sampled_from(["nearest", "centroid"]))
 def test_voxel_downsample_keeps_one_point_per_voxel_with_its_attributes(xyz, size, mode) -> None:
     n = len(xyz)
-    cloud = PointCloud(xyz, {"index": np.arange(n), "label": (np.arange(n) * 7 % 5).astype(np.int32)},
-                       crs="EPSG:32610", origin=np.array([6e5, 4.2e6, 10.0]))
+    cloud = PointCloud(
+        xyz,
+        {"index": np.arange(n), "label": (np.arange(n) * 7 % 5).astype(np.int32)},
+        crs="EPSG:32610",
+        origin=np.array([6e5, 4.2e6, 10.0]),
+    )
     out = voxel_downsample(cloud, size, mode)
     origin = xyz.min(axis=0)
     keys = [tuple(k) for k in voxel_keys(xyz, size, origin)]
@@ -104,8 +115,13 @@ def test_voxel_downsample_keeps_one_point_per_voxel_with_its_attributes(xyz, siz
 
 @FAST
 @given(xyz=point_arrays(), size=st.floats(0.05, 5.0), seed=seeds)
-@example(xyz=np.array([[0.0, 1.2221804682774977e-29, 1.2221804682774977e-29]] + [[1.2221804682774977e-29] * 3] * 2),
-         size=1.0, seed=0)  # two points equally near the centre (found by hypothesis)
+@example(
+    xyz=np.array(
+        [[0.0, 1.2221804682774977e-29, 1.2221804682774977e-29]] + [[1.2221804682774977e-29] * 3] * 2
+    ),
+    size=1.0,
+    seed=0,
+)  # two points equally near the centre (found by hypothesis)
 def test_voxel_downsample_does_not_depend_on_point_order(xyz, size, seed) -> None:
     perm = np.random.default_rng(seed).permutation(len(xyz))
     a = voxel_downsample(PointCloud(xyz), size).xyz
@@ -138,8 +154,12 @@ _A = 1.25788199e-07  # a plane 1e-7 m across at UTM coordinates, found by hypoth
 
 
 @FEW
-@given(xyz=st.integers(1, 40).flatmap(lambda n: hnp.arrays(np.float64, (n, 3), elements=crown_coordinate)),
-       far=st.booleans())
+@given(
+    xyz=st.integers(1, 40).flatmap(
+        lambda n: hnp.arrays(np.float64, (n, 3), elements=crown_coordinate)
+    ),
+    far=st.booleans(),
+)
 @example(xyz=np.array([[0.0, _A, _A], [_A, 0.0, _A]] + [[_A, _A, _A]] * 8), far=True)
 def test_every_volume_estimator_gives_a_finite_non_negative_volume(xyz, far) -> None:
     """Any finite points of a crown-sized extent (duplicates, planes, lines included), near
@@ -153,7 +173,11 @@ def test_every_volume_estimator_gives_a_finite_non_negative_volume(xyz, far) -> 
 
 
 @FAST
-@given(seed=seeds, n=st.integers(5, 120), alphas=st.lists(st.floats(0.05, 20.0), min_size=2, max_size=4))
+@given(
+    seed=seeds,
+    n=st.integers(5, 120),
+    alphas=st.lists(st.floats(0.05, 20.0), min_size=2, max_size=4),
+)
 def test_convex_hull_bounds_alpha_shape_and_alpha_is_monotone(seed, n, alphas) -> None:
     from canopy_kit.volume.alpha import alpha_volume, delaunay_tetrahedra
     from canopy_kit.volume.hull import hull_volume
@@ -171,8 +195,13 @@ def test_convex_hull_bounds_alpha_shape_and_alpha_is_monotone(seed, n, alphas) -
 
 
 @FAST
-@given(seed=seeds, n=st.integers(5, 300), spread=st.floats(0.2, 5.0), alpha=st.floats(0.05, 30.0),
-       grid=st.sampled_from([0.0, 0.1]))
+@given(
+    seed=seeds,
+    n=st.integers(5, 300),
+    spread=st.floats(0.2, 5.0),
+    alpha=st.floats(0.05, 30.0),
+    grid=st.sampled_from([0.0, 0.1]),
+)
 def test_alpha_tetrahedra_give_qhulls_alpha_volume(seed, n, spread, alpha, grid) -> None:
     """VTK's triangulation (used where it is provably complete for the alpha asked) gives the
     alpha-complex volume of qhull's, for points in general position and for points snapped
@@ -206,7 +235,9 @@ def test_alpha_tetrahedra_refuse_vtks_overlapping_tetrahedra_on_a_rounded_lattic
     raw = _vtk_simplices(np.ascontiguousarray(centred))
     assert raw is not None  # VTK accepts the points and raises no warning...
     a = centred[raw[:, 0]]
-    det = np.einsum("ij,ij->i", centred[raw[:, 1]] - a, np.cross(centred[raw[:, 2]] - a, centred[raw[:, 3]] - a))
+    det = np.einsum(
+        "ij,ij->i", centred[raw[:, 1]] - a, np.cross(centred[raw[:, 2]] - a, centred[raw[:, 3]] - a)
+    )
     assert (det < 0).any()  # ...but some of its tetrahedra are inverted
     tetra = alpha_tetrahedra(xyz, 0.9)
     assert tetra.volume.sum() <= ConvexHull(xyz).volume * (1 + 1e-9)
@@ -214,7 +245,9 @@ def test_alpha_tetrahedra_refuse_vtks_overlapping_tetrahedra_on_a_rounded_lattic
     assert alpha_volume(tetra, 0.9) == pytest.approx(exact, rel=1e-6)
 
 
-def test_alpha_tetrahedra_use_vtk_on_a_crown_and_fall_back_where_it_is_incomplete(monkeypatch) -> None:
+def test_alpha_tetrahedra_use_vtk_on_a_crown_and_fall_back_where_it_is_incomplete(
+    monkeypatch,
+) -> None:
     """On a crown-like shell VTK's tetrahedra are used; for an alpha beyond the range where
     they are complete, or when VTK leaves a point out, qhull's are (same volume either way)."""
     from canopy_kit.volume import alpha as alpha_module
@@ -235,33 +268,52 @@ def test_alpha_tetrahedra_use_vtk_on_a_crown_and_fall_back_where_it_is_incomplet
     # Two points 1 µm apart are merged by VTK's tolerance: detected, qhull decides.
     twin = np.vstack([xyz, xyz[:1] + 1e-6])
     assert real(twin - twin.mean(axis=0)) is None
-    assert alpha_module.alpha_volume(alpha_module.alpha_tetrahedra(twin, 0.9), 0.9) == pytest.approx(
-        alpha_module.alpha_volume(alpha_module.delaunay_tetrahedra(twin), 0.9), rel=1e-9)
+    assert alpha_module.alpha_volume(
+        alpha_module.alpha_tetrahedra(twin, 0.9), 0.9
+    ) == pytest.approx(
+        alpha_module.alpha_volume(alpha_module.delaunay_tetrahedra(twin), 0.9), rel=1e-9
+    )
 
 
 @FAST
-@given(seed=seeds, n=st.integers(5, 100), shift=st.tuples(coordinate, coordinate, coordinate),
-       scale=st.floats(0.1, 10.0), alpha=st.floats(0.3, 5.0))
-def test_volumes_are_invariant_to_rigid_motion_and_order_and_scale_as_cube(seed, n, shift, scale,
-                                                                          alpha) -> None:
+@given(
+    seed=seeds,
+    n=st.integers(5, 100),
+    shift=st.tuples(coordinate, coordinate, coordinate),
+    scale=st.floats(0.1, 10.0),
+    alpha=st.floats(0.3, 5.0),
+)
+def test_volumes_are_invariant_to_rigid_motion_and_order_and_scale_as_cube(
+    seed, n, shift, scale, alpha
+) -> None:
     from canopy_kit.volume import estimate_volume
 
     rng = np.random.default_rng(seed)
     xyz = generic_points(rng, n)
     moved = xyz @ random_rotation(rng).T + np.array(shift) * 1000.0  # far from the origin too
     shuffled = xyz[rng.permutation(n)]
-    for method, params, scaled_params in (("convex_hull", {}, {}),
-                                          ("alpha_shape", {"alpha": alpha}, {"alpha": alpha * scale})):
+    for method, params, scaled_params in (
+        ("convex_hull", {}, {}),
+        ("alpha_shape", {"alpha": alpha}, {"alpha": alpha * scale}),
+    ):
         base = estimate_volume(xyz, method, **params).volume_m3
-        assert estimate_volume(moved, method, **params).volume_m3 == pytest.approx(base, rel=1e-6, abs=1e-9)
-        assert estimate_volume(shuffled, method, **params).volume_m3 == pytest.approx(base, rel=1e-9, abs=1e-12)
+        assert estimate_volume(moved, method, **params).volume_m3 == pytest.approx(
+            base, rel=1e-6, abs=1e-9
+        )
+        assert estimate_volume(shuffled, method, **params).volume_m3 == pytest.approx(
+            base, rel=1e-9, abs=1e-12
+        )
         grown = estimate_volume(xyz * scale, method, **scaled_params).volume_m3
         assert grown == pytest.approx(base * scale**3, rel=1e-6, abs=1e-9)
 
 
 @FAST
-@given(size=st.tuples(*[st.floats(0.1, 20.0)] * 3), corner=st.tuples(coordinate, coordinate, coordinate),
-       seed=seeds, inside=st.integers(0, 50))
+@given(
+    size=st.tuples(*[st.floats(0.1, 20.0)] * 3),
+    corner=st.tuples(coordinate, coordinate, coordinate),
+    seed=seeds,
+    inside=st.integers(0, 50),
+)
 def test_hull_of_a_box_is_its_volume(size, corner, seed, inside) -> None:
     from canopy_kit.volume import estimate_volume
 
@@ -275,14 +327,18 @@ def test_hull_of_a_box_is_its_volume(size, corner, seed, inside) -> None:
 # -- segmentation -----------------------------------------------------------------------------
 @FEW
 @given(seed=seeds, n_blobs=st.integers(1, 4), algorithm=st.sampled_from(["grid", "exact"]))
-def test_dbscan_core_clusters_and_noise_do_not_depend_on_point_order(seed, n_blobs, algorithm) -> None:
+def test_dbscan_core_clusters_and_noise_do_not_depend_on_point_order(
+    seed, n_blobs, algorithm
+) -> None:
     """DBSCAN's core points and their clusters are order-free; a border point may join any of
     the clusters it touches, so only core points and noise are compared."""
     from canopy_kit.segment.dbscan import DBSCANSegmenter
 
     rng = np.random.default_rng(seed)
     centres = rng.uniform(-2.5, 2.5, (n_blobs, 3))
-    xyz = np.vstack([c + rng.normal(0, 0.35, (60, 3)) for c in centres] + [rng.uniform(-3, 3, (20, 3))])
+    xyz = np.vstack(
+        [c + rng.normal(0, 0.35, (60, 3)) for c in centres] + [rng.uniform(-3, 3, (20, 3))]
+    )
     perm = rng.permutation(len(xyz))
     a = DBSCANSegmenter(eps=0.6, min_samples=8, algorithm=algorithm).fit(xyz)
     b = DBSCANSegmenter(eps=0.6, min_samples=8, algorithm=algorithm).fit(xyz[perm])
@@ -310,8 +366,27 @@ def typestore():
 @st.composite
 def pointcloud_columns(draw) -> dict[str, np.ndarray]:
     n = draw(st.integers(0, 40))
-    names = draw(st.lists(st.sampled_from(["x", "y", "z", "intensity", "ring", "t", "time", "reflectivity",
-                                           "ambient", "range"]), min_size=1, max_size=6, unique=True))
+    names = draw(
+        st.lists(
+            st.sampled_from(
+                [
+                    "x",
+                    "y",
+                    "z",
+                    "intensity",
+                    "ring",
+                    "t",
+                    "time",
+                    "reflectivity",
+                    "ambient",
+                    "range",
+                ]
+            ),
+            min_size=1,
+            max_size=6,
+            unique=True,
+        )
+    )
     columns = {}
     for name in names:
         dtype = np.dtype(draw(st.sampled_from(DTYPES)))
@@ -329,8 +404,13 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 @FAST
-@given(columns=pointcloud_columns(), stamp=st.floats(0, 2e9), big_endian=st.booleans(),
-       pad=st.integers(0, 7), cdr=st.booleans())
+@given(
+    columns=pointcloud_columns(),
+    stamp=st.floats(0, 2e9),
+    big_endian=st.booleans(),
+    pad=st.integers(0, 7),
+    cdr=st.booleans(),
+)
 def test_pointcloud2_round_trip(typestore, columns, stamp, big_endian, pad, cdr) -> None:
     from canopy_kit.io import pointcloud2 as pc2
 
@@ -373,20 +453,31 @@ def test_pointcloud2_with_missing_bytes_is_an_input_error(typestore, columns, cu
 
 # -- LAS --------------------------------------------------------------------------------------
 @FEW
-@given(seed=seeds, n=st.integers(1, 300), extent=st.floats(0.01, 5000.0),
-       origin=st.tuples(st.floats(-1e6, 1e6), st.floats(-1e7, 1e7), st.floats(-100, 3000)),
-       scale=st.sampled_from([0.001, 0.01, 0.0001]), laz=st.booleans())
+@given(
+    seed=seeds,
+    n=st.integers(1, 300),
+    extent=st.floats(0.01, 5000.0),
+    origin=st.tuples(st.floats(-1e6, 1e6), st.floats(-1e7, 1e7), st.floats(-100, 3000)),
+    scale=st.sampled_from([0.001, 0.01, 0.0001]),
+    laz=st.booleans(),
+)
 def test_las_write_read_round_trip(seed, n, extent, origin, scale, laz) -> None:
     from canopy_kit.io.las import read_las, write_las
 
     rng = np.random.default_rng(seed)
     xyz = rng.uniform(-extent, extent, (n, 3))
     assume(np.abs(xyz).max() / scale < 2**31 - 2)
-    cloud = PointCloud(xyz, {"intensity": rng.integers(0, 65535, n).astype(np.uint16),
-                             "classification": rng.integers(0, 31, n).astype(np.uint8),
-                             "segment_id": rng.integers(-1, 500, n).astype(np.int32),
-                             "t": rng.uniform(0, 1e9, n)},
-                       crs="EPSG:32610", origin=np.array(origin))
+    cloud = PointCloud(
+        xyz,
+        {
+            "intensity": rng.integers(0, 65535, n).astype(np.uint16),
+            "classification": rng.integers(0, 31, n).astype(np.uint8),
+            "segment_id": rng.integers(-1, 500, n).astype(np.int32),
+            "t": rng.uniform(0, 1e9, n),
+        },
+        crs="EPSG:32610",
+        origin=np.array(origin),
+    )
     with tempfile.TemporaryDirectory() as tmp:
         path = write_las(Path(tmp) / ("c.laz" if laz else "c.las"), cloud, scale=scale)
         back = read_las(path)
@@ -404,7 +495,9 @@ def las_bytes() -> dict[str, bytes]:
     from canopy_kit.io.las import write_las
 
     rng = np.random.default_rng(0)
-    cloud = PointCloud(rng.uniform(0, 10, (300, 3)), {"intensity": rng.integers(0, 999, 300).astype(np.uint16)})
+    cloud = PointCloud(
+        rng.uniform(0, 10, (300, 3)), {"intensity": rng.integers(0, 999, 300).astype(np.uint16)}
+    )
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         for suffix in (".las", ".laz"):
@@ -425,8 +518,10 @@ def test_damaged_las_is_read_or_refused_with_an_input_error(las_bytes, suffix, d
 
     raw = bytearray(las_bytes[suffix])
     cut = data.draw(st.integers(0, len(raw)), label="cut")
-    edits = data.draw(st.lists(st.tuples(st.integers(0, len(raw) - 1), st.integers(0, 255)), max_size=8),
-                      label="edits")
+    edits = data.draw(
+        st.lists(st.tuples(st.integers(0, len(raw) - 1), st.integers(0, 255)), max_size=8),
+        label="edits",
+    )
     for offset, value in edits:
         raw[offset] = value
     with tempfile.TemporaryDirectory() as tmp:
@@ -446,8 +541,12 @@ def test_damaged_las_is_read_or_refused_with_an_input_error(las_bytes, suffix, d
 
 # -- geo --------------------------------------------------------------------------------------
 @FAST
-@given(lat=st.floats(-79.0, 83.0), lon=st.floats(-179.0, 179.0), h=st.floats(-400, 8000),
-       offsets=hnp.arrays(np.float64, (5, 3), elements=st.floats(-2000, 2000)))
+@given(
+    lat=st.floats(-79.0, 83.0),
+    lon=st.floats(-179.0, 179.0),
+    h=st.floats(-400, 8000),
+    offsets=hnp.arrays(np.float64, (5, 3), elements=st.floats(-2000, 2000)),
+)
 def test_local_frame_round_trips(lat, lon, h, offsets) -> None:
     from canopy_kit.geo import LocalFrame
 
@@ -461,8 +560,12 @@ def test_local_frame_round_trips(lat, lon, h, offsets) -> None:
 
 # -- atomic writes and the stage cache --------------------------------------------------------
 @FAST
-@given(old=st.one_of(st.none(), st.binary(max_size=200)), new=st.binary(max_size=2000),
-       fail_after=st.one_of(st.none(), st.integers(0, 2000)), suffix=st.sampled_from([".csv", ".laz", ""]))
+@given(
+    old=st.one_of(st.none(), st.binary(max_size=200)),
+    new=st.binary(max_size=2000),
+    fail_after=st.one_of(st.none(), st.integers(0, 2000)),
+    suffix=st.sampled_from([".csv", ".laz", ""]),
+)
 def test_atomic_write_leaves_the_old_file_or_the_new_one(old, new, fail_after, suffix) -> None:
     from canopy_kit.io.atomic import atomic_path
 
@@ -484,10 +587,16 @@ def test_atomic_write_leaves_the_old_file_or_the_new_one(old, new, fail_after, s
 
 
 @FAST
-@given(value=st.recursive(st.one_of(st.integers(), st.text(max_size=20), st.floats(allow_nan=False)),
-                          lambda c: st.lists(c, max_size=5) | st.dictionaries(st.text(max_size=5), c, max_size=5),
-                          max_leaves=30),
-       damage=st.sampled_from(["cut", "overwrite"]), where=st.floats(0.0, 1.0), seed=seeds)
+@given(
+    value=st.recursive(
+        st.one_of(st.integers(), st.text(max_size=20), st.floats(allow_nan=False)),
+        lambda c: st.lists(c, max_size=5) | st.dictionaries(st.text(max_size=5), c, max_size=5),
+        max_leaves=30,
+    ),
+    damage=st.sampled_from(["cut", "overwrite"]),
+    where=st.floats(0.0, 1.0),
+    seed=seeds,
+)
 def test_damaged_cache_entry_is_recomputed(value, damage, where, seed) -> None:
     from canopy_kit.cache import StageCache
 
@@ -508,8 +617,11 @@ def test_damaged_cache_entry_is_recomputed(value, damage, where, seed) -> None:
         if damage == "cut":
             raw = raw[:at]
         else:
-            raw[at:at + 4] = np.random.default_rng(seed).integers(0, 256, len(raw[at:at + 4]),
-                                                                  dtype=np.uint8).tobytes()
+            raw[at : at + 4] = (
+                np.random.default_rng(seed)
+                .integers(0, 256, len(raw[at : at + 4]), dtype=np.uint8)
+                .tobytes()
+            )
         entry.write_bytes(bytes(raw))
         try:
             damaged = pickle.loads(bytes(raw))
@@ -525,13 +637,17 @@ def test_damaged_cache_entry_is_recomputed(value, damage, where, seed) -> None:
         assert [p.name for p in Path(tmp).iterdir()] == ["map-k.pkl"]
 
 
-@pytest.mark.parametrize("raw", [
-    b"\x80\x5f",  # ValueError: unsupported pickle protocol
-    b"\x80\x04\x8c\x02\xff\xfe\x94.",  # UnicodeDecodeError in a string
-    b"\x80\x04\x95" + b"\xff" * 8 + b"N.",  # OverflowError: FRAME length
-    b"\x80\x04K",  # UnpicklingError: truncated
-    b"",  # EOFError
-], ids=["protocol", "unicode", "frame-length", "truncated", "empty"])
+@pytest.mark.parametrize(
+    "raw",
+    [
+        b"\x80\x5f",  # ValueError: unsupported pickle protocol
+        b"\x80\x04\x8c\x02\xff\xfe\x94.",  # UnicodeDecodeError in a string
+        b"\x80\x04\x95" + b"\xff" * 8 + b"N.",  # OverflowError: FRAME length
+        b"\x80\x04K",  # UnpicklingError: truncated
+        b"",  # EOFError
+    ],
+    ids=["protocol", "unicode", "frame-length", "truncated", "empty"],
+)
 def test_cache_entry_that_does_not_unpickle_is_recomputed(raw: bytes, tmp_path: Path) -> None:
     """Found by the property above: pickle raises more than UnpicklingError on bad bytes."""
     from canopy_kit.cache import StageCache

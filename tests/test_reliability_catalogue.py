@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from bad_inputs.catalogue import CASES, Case
 from test_cli_foundation import cli_command
 
@@ -25,8 +24,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _run(args: list[str]) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*cli_command(), *args], capture_output=True, text=True, timeout=600,
-                          check=False, env={**os.environ, "COLUMNS": "400"})
+    return subprocess.run(
+        [*cli_command(), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+        env={**os.environ, "COLUMNS": "400"},
+    )
 
 
 def _selected(request: pytest.FixtureRequest) -> list[Case]:
@@ -46,7 +51,9 @@ def _selected(request: pytest.FixtureRequest) -> list[Case]:
 
 
 @pytest.fixture(scope="module")
-def outcomes(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> dict[str, tuple]:
+def outcomes(
+    tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+) -> dict[str, tuple]:
     built = {}
     for case in _selected(request):
         root = tmp_path_factory.mktemp(case.id)
@@ -113,11 +120,12 @@ def test_clean_drive_has_no_warnings_or_flags(tmp_path: Path) -> None:
     assert mapping["diagnostics"]["sweeps_mapped"] == drive.n_scans
 
 
-def test_corrupt_bytes_do_not_move_the_trajectory(outcomes: dict[str, tuple], tmp_path: Path) -> None:
+def test_corrupt_bytes_do_not_move_the_trajectory(
+    outcomes: dict[str, tuple], tmp_path: Path
+) -> None:
     """The damaged drives of ``bag-corrupt-bytes-*`` map like the undamaged drive: no silently
     wrong poses (before the fix one scrambled point time moved them by 2-2.6 m)."""
     import pandas as pd
-
     from bad_inputs.catalogue import _drive
 
     clean = _drive(tmp_path)
@@ -127,8 +135,14 @@ def test_corrupt_bytes_do_not_move_the_trajectory(outcomes: dict[str, tuple], tm
     for fmt in ("ros1", "sqlite3", "mcap"):
         root = outcomes[f"bag-corrupt-bytes-{fmt}"][0]
         got = pd.read_csv(root / "out" / "trajectory.csv")
-        both = pd.merge_asof(ref.sort_values("time"), got.sort_values("time"), on="time",
-                             direction="nearest", tolerance=0.02, suffixes=("", "_bad"))
+        both = pd.merge_asof(
+            ref.sort_values("time"),
+            got.sort_values("time"),
+            on="time",
+            direction="nearest",
+            tolerance=0.02,
+            suffixes=("", "_bad"),
+        )
         assert both["x_bad"].notna().sum() >= len(ref) - 2, fmt  # a scan or two lost at most
         err = np.hypot(both["x"] - both["x_bad"], both["y"] - both["y_bad"])
         assert err.max() < 0.05, (fmt, float(err.max()))
@@ -146,7 +160,9 @@ def test_reliability_doc_table_is_generated_from_the_catalogue() -> None:
     """docs/RELIABILITY.md holds exactly what scripts/reliability_doc.py makes of CASES."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("reliability_doc", REPO / "scripts" / "reliability_doc.py")
+    spec = importlib.util.spec_from_file_location(
+        "reliability_doc", REPO / "scripts" / "reliability_doc.py"
+    )
     doc = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(doc)
     text = (REPO / "docs" / "RELIABILITY.md").read_text()

@@ -27,12 +27,22 @@ def _figure():
 
 @pytest.mark.browser
 def test_report_renders_offline_in_chromium(tmp_path):
-    trees = pd.DataFrame({"tree_id": np.arange(12), "label": [f"L{i}" for i in range(12)],
-                          "volume_alpha_m3": np.linspace(30.0, 8.0, 12)})
+    trees = pd.DataFrame(
+        {
+            "tree_id": np.arange(12),
+            "label": [f"L{i}" for i in range(12)],
+            "volume_alpha_m3": np.linspace(30.0, 8.0, 12),
+        }
+    )
     page = render_report(
-        "Test session", {"trees": 12, "ATE (m)": "0.05"}, trees,
+        "Test session",
+        {"trees": 12, "ATE (m)": "0.05"},
+        trees,
         [ReportSection("Map", figures=[("a figure", _figure()), ("another", _figure())])],
-        [Check("trees matched", True, "12/12", "≥ 95 %"), Check("flagged volumes", False, "3", "0")],
+        [
+            Check("trees matched", True, "12/12", "≥ 95 %"),
+            Check("flagged volumes", False, "3", "0"),
+        ],
         "[segment]\nmethod = 'adaptive'\n",
     )
     path = write_report(tmp_path / "report.html", page)
@@ -58,8 +68,14 @@ def test_table_keeps_enough_decimals_for_geographic_coordinates() -> None:
     from canopy_kit.report.html import table_html
 
     lat0 = 37.281002
-    df = pd.DataFrame({"tree_id": ["r0-L0", "r0-L1"], "lat": [lat0, lat0 + 5 / 111_320],
-                       "lon": [-120.419997, -120.419997], "height_m": [4.12345, 3.5]})
+    df = pd.DataFrame(
+        {
+            "tree_id": ["r0-L0", "r0-L1"],
+            "lat": [lat0, lat0 + 5 / 111_320],
+            "lon": [-120.419997, -120.419997],
+            "height_m": [4.12345, 3.5],
+        }
+    )
     page = table_html(df, "trees")
     assert ">37.281002<" in page and ">37.281047<" in page and ">-120.419997<" in page
     assert ">4.123<" in page  # metres keep 3 decimals

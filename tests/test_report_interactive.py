@@ -34,7 +34,10 @@ def test_columns_get_human_names_with_units() -> None:
 def test_report_title_names_the_orchard_when_the_provenance_does() -> None:
     from canopy_kit.report.session import report_title
 
-    assert report_title({"orchard": "Block 7 pistachio"}, "adaptive")[0] == "canopy-kit report: Block 7 pistachio"
+    assert (
+        report_title({"orchard": "Block 7 pistachio"}, "adaptive")[0]
+        == "canopy-kit report: Block 7 pistachio"
+    )
     assert "adaptive" in report_title({"orchard": "Block 7 pistachio"}, "adaptive")[1]
     assert report_title({}, "adaptive")[0] == "canopy-kit report: adaptive"
 
@@ -90,7 +93,12 @@ def test_mapping_map_is_coloured_by_height_above_the_ground() -> None:
 def _ball(n: int = 600, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(n, 3))
-    return 2.0 * v / np.linalg.norm(v, axis=1, keepdims=True) * rng.uniform(0.6, 1.0, (n, 1)) ** (1 / 3)
+    return (
+        2.0
+        * v
+        / np.linalg.norm(v, axis=1, keepdims=True)
+        * rng.uniform(0.6, 1.0, (n, 1)) ** (1 / 3)
+    )
 
 
 def _closed(faces: np.ndarray) -> bool:
@@ -124,7 +132,10 @@ def test_encoded_points_round_trip_to_the_centimetre() -> None:
 
     xyz = _ball() + [500.0, 300.0, 20.0]
     centre = np.array([500.0, 300.0, 18.0])
-    back = np.frombuffer(base64.b64decode(encode_xyz(xyz, centre)), "<i2").reshape(-1, 3) / 100 + centre
+    back = (
+        np.frombuffer(base64.b64decode(encode_xyz(xyz, centre)), "<i2").reshape(-1, 3) / 100
+        + centre
+    )
     assert np.abs(back - xyz).max() <= 0.005 + 1e-9
     idx = downsample(10_000, 2000, seed=3)
     assert len(idx) == 2000 and len(np.unique(idx)) == 2000 and np.all(np.diff(idx) > 0)
@@ -146,7 +157,10 @@ def test_ortho_crop_is_around_the_tree() -> None:
     assert crop is not None and crop["uri"].startswith("data:image/jpeg;base64,")
     assert crop["x0"] == pytest.approx(17.0, abs=0.1) and crop["x1"] == pytest.approx(23.0, abs=0.1)
     assert crop["y0"] == pytest.approx(27.0, abs=0.1) and crop["y1"] == pytest.approx(33.0, abs=0.1)
-    assert ortho_crop(Orthomosaic(grid, rgba, np.zeros((1000, 1000), int), ["a"]), 200.0, 30.0, 3.0) is None
+    assert (
+        ortho_crop(Orthomosaic(grid, rgba, np.zeros((1000, 1000), int), ["a"]), 200.0, 30.0, 3.0)
+        is None
+    )
 
 
 def test_script_json_cannot_close_its_script_element() -> None:
@@ -176,12 +190,17 @@ def test_the_vendored_files_are_those_of_the_pinned_tarball() -> None:
 
 def _marker_position(page, tree_id: str) -> tuple[float, float]:
     """Where the map draws ``tree_id``'s marker, in page pixels (from plotly's own axes)."""
-    return tuple(page.evaluate("""id => {
+    return tuple(
+        page.evaluate(
+            """id => {
         const gd = document.getElementById('map'), fl = gd._fullLayout, r = gd.getBoundingClientRect();
         const tr = gd.data.find(t => t.meta && t.meta.markers);
         const k = tr.customdata.indexOf(id);
         return [r.left + fl._size.l + fl.xaxis.l2p(tr.x[k]), r.top + fl._size.t + fl.yaxis.l2p(tr.y[k])];
-    }""", tree_id))
+    }""",
+            tree_id,
+        )
+    )
 
 
 @pytest.mark.browser
@@ -198,7 +217,9 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
     blocked: list[str] = []
     errors: list[str] = []
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        browser = pw.chromium.launch(
+            executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True
+        )
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
 
         def route(r):
@@ -219,17 +240,27 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         # The header: named after the orchard, every provenance key of metrics.json shown.
         provenance = json.loads((run.out_dir / "metrics.json").read_text())["provenance"]
         assert page.title() == f"canopy-kit report: {provenance['orchard']}"
-        shown = dict(zip(page.locator("#provenance dt").all_inner_texts(),
-                         page.locator("#provenance dd").all_inner_texts(), strict=True))
+        shown = dict(
+            zip(
+                page.locator("#provenance dt").all_inner_texts(),
+                page.locator("#provenance dd").all_inner_texts(),
+                strict=True,
+            )
+        )
         assert shown["bag sha256"] == provenance["bag_sha256"]
         assert len(shown) == len(provenance) and shown["drone images"] == "none"
 
         # The map: one crown polygon and one marker per tree, named by trees.csv's tree_id.
-        crowns = page.evaluate("document.getElementById('map').data.filter(t => t.meta && t.meta.crown)"
-                               ".map(t => t.meta.crown)")
-        markers = page.evaluate("document.getElementById('map').data.find(t => t.meta && t.meta.markers)"
-                                ".customdata")
-        assert sorted(crowns) == sorted(trees["tree_id"]) and sorted(markers) == sorted(trees["tree_id"])
+        crowns = page.evaluate(
+            "document.getElementById('map').data.filter(t => t.meta && t.meta.crown)"
+            ".map(t => t.meta.crown)"
+        )
+        markers = page.evaluate(
+            "document.getElementById('map').data.find(t => t.meta && t.meta.markers).customdata"
+        )
+        assert sorted(crowns) == sorted(trees["tree_id"]) and sorted(markers) == sorted(
+            trees["tree_id"]
+        )
         page.locator("#explore").scroll_into_view_if_needed()
         page.screenshot(path=str(ARTIFACTS / "report_interactive_map.png"))
 
@@ -242,10 +273,14 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         summary = page.locator("#drill-summary")
         assert summary.get_attribute("data-tree") == tree["tree_id"]
         assert int(summary.get_attribute("data-points")) == int(tree["n_points"])
-        shown = float(page.locator("#drill-values td[data-key='volume_alpha_m3']").get_attribute("data-v"))
+        shown = float(
+            page.locator("#drill-values td[data-key='volume_alpha_m3']").get_attribute("data-v")
+        )
         assert shown == pytest.approx(tree["volume_alpha_m3"], rel=1e-9)
-        surfaces = page.evaluate(f"window.canopyReport.data.details['{tree['tree_id']}'].surfaces"
-                                 ".map(s => [s.name, s.volume_m3])")
+        surfaces = page.evaluate(
+            f"window.canopyReport.data.details['{tree['tree_id']}'].surfaces"
+            ".map(s => [s.name, s.volume_m3])"
+        )
         volumes = {name.split(" (")[0]: v for name, v in surfaces}
         assert volumes["alpha shape"] == pytest.approx(tree["volume_alpha_m3"], rel=1e-9)
         assert volumes["convex hull"] == pytest.approx(tree["volume_convex_hull_m3"], rel=1e-9)
@@ -257,8 +292,10 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         # Search: typing a tree_id leaves that tree's row only.
         target = trees["tree_id"].iloc[-1]
         page.fill("#tree-search", target)
-        visible = page.eval_on_selector_all("#trees tbody tr", "rs => rs.filter(r => r.style.display !== 'none')"
-                                            ".map(r => r.dataset.id)")
+        visible = page.eval_on_selector_all(
+            "#trees tbody tr",
+            "rs => rs.filter(r => r.style.display !== 'none').map(r => r.dataset.id)",
+        )
         assert visible == [target]
         assert page.locator("#tree-count").inner_text() == f"1 of {len(trees)} trees shown"
         page.fill("#tree-search", "")
@@ -267,8 +304,10 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         # Sorting a numeric column orders it by value; a click on a row opens that tree.
         page.locator("#trees th[data-key='volume_alpha_m3']").click()
         col = int(page.locator("#trees th[data-key='volume_alpha_m3']").get_attribute("data-col"))
-        values = page.eval_on_selector_all(f"#trees tbody tr td:nth-child({col + 1})",
-                                           "els => els.map(e => parseFloat(e.dataset.v))")
+        values = page.eval_on_selector_all(
+            f"#trees tbody tr td:nth-child({col + 1})",
+            "els => els.map(e => parseFloat(e.dataset.v))",
+        )
         assert values == pytest.approx(sorted(trees["volume_alpha_m3"]))
         smallest = trees.loc[trees["volume_alpha_m3"].idxmin(), "tree_id"]
         page.locator("#trees tbody tr").first.click()
@@ -277,8 +316,15 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
         page.screenshot(path=str(ARTIFACTS / "report_interactive_table.png"))
 
         # Downloads are Blobs of the embedded files, each byte for byte the file the run wrote.
-        names = page.eval_on_selector_all("#downloads a", "as => as.map(a => [a.dataset.name, a.href])")
-        assert [n for n, _ in names] == ["trees.csv", "trees.geojson", "crowns.geojson", "rows.geojson"]
+        names = page.eval_on_selector_all(
+            "#downloads a", "as => as.map(a => [a.dataset.name, a.href])"
+        )
+        assert [n for n, _ in names] == [
+            "trees.csv",
+            "trees.geojson",
+            "crowns.geojson",
+            "rows.geojson",
+        ]
         assert all(href.startswith("blob:") for _, href in names)
         for name, href in names:
             embedded = page.evaluate("href => fetch(href).then(r => r.text())", href)
@@ -286,7 +332,9 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
 
         # Colouring by flag redraws the map with the same trees.
         page.select_option("#map-colour", "flag")
-        again = page.evaluate("document.getElementById('map').data.filter(t => t.meta && t.meta.crown).length")
+        again = page.evaluate(
+            "document.getElementById('map').data.filter(t => t.meta && t.meta.crown).length"
+        )
         assert again == len(trees)
         browser.close()
     assert blocked == []
@@ -310,9 +358,14 @@ def test_header_shows_every_provenance_key_present() -> None:
 def test_row_summary_counts_sums_and_flags_per_row() -> None:
     from canopy_kit.report.explorer import row_summary
 
-    trees = pd.DataFrame({"row": [0, 0, 0, 1], "volume_alpha_m3": [1.0, 3.0, 8.0, np.nan],
-                          "volume_flags": ["", "alpha_shape: too few points", None, ""],
-                          "aerial_flag": ["", "", "", "aerial crown merged with neighbours"]})
+    trees = pd.DataFrame(
+        {
+            "row": [0, 0, 0, 1],
+            "volume_alpha_m3": [1.0, 3.0, 8.0, np.nan],
+            "volume_flags": ["", "alpha_shape: too few points", None, ""],
+            "aerial_flag": ["", "", "", "aerial crown merged with neighbours"],
+        }
+    )
     rows = row_summary(trees)
     assert rows["row"].tolist() == [0, 1] and rows["trees"].tolist() == [3, 1]
     assert rows["median_m3"].iloc[0] == 3.0 and rows["total_m3"].iloc[0] == 12.0
@@ -327,10 +380,20 @@ def tiny_drone_run(sim_factory, tmp_path_factory):
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run
 
-    sim = sim_factory("pistachio", overrides={"orchard": {"rows": 2, "trees_per_row": 3},
-                                              "lidar": {"columns": 512}, "drone": {"enabled": True}})
-    return run(load_preset("adaptive"), sim.bag, tmp_path_factory.mktemp("drone_run"),
-               drone_images=sim.drone_dir)
+    sim = sim_factory(
+        "pistachio",
+        overrides={
+            "orchard": {"rows": 2, "trees_per_row": 3},
+            "lidar": {"columns": 512},
+            "drone": {"enabled": True},
+        },
+    )
+    return run(
+        load_preset("adaptive"),
+        sim.bag,
+        tmp_path_factory.mktemp("drone_run"),
+        drone_images=sim.drone_dir,
+    )
 
 
 @pytest.mark.slow
@@ -347,9 +410,16 @@ def test_drill_down_shows_the_drone_crop_around_the_tree(tiny_drone_run) -> None
     errors: list[str] = []
     outside: list[str] = []
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        browser = pw.chromium.launch(
+            executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True
+        )
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        page.on("request", lambda r: outside.append(r.url) if not (r.url == url or r.url.startswith(ALLOWED)) else None)
+        page.on(
+            "request",
+            lambda r: (
+                outside.append(r.url) if not (r.url == url or r.url.startswith(ALLOWED)) else None
+            ),
+        )
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(url, wait_until="load")
@@ -365,9 +435,13 @@ def test_drill_down_shows_the_drone_crop_around_the_tree(tiny_drone_run) -> None
             assert image["y"] == pytest.approx(tree.y + half, abs=0.2)
             shown = page.locator("#drill-values td[data-key='aerial_sphere_volume_m3']")
             if not np.isnan(tree.aerial_sphere_volume_m3):
-                assert float(shown.get_attribute("data-v")) == pytest.approx(tree.aerial_sphere_volume_m3)
+                assert float(shown.get_attribute("data-v")) == pytest.approx(
+                    tree.aerial_sphere_volume_m3
+                )
         assert page.locator("#drill-ortho image").count() == 1  # drawn, not only configured
-        page.locator("#drill").screenshot(path=str(ARTIFACTS / "report_interactive_drilldown_drone.png"))
+        page.locator("#drill").screenshot(
+            path=str(ARTIFACTS / "report_interactive_drilldown_drone.png")
+        )
         browser.close()
     assert outside == [] and errors == []
 
@@ -377,11 +451,18 @@ def _explorer(trees: pd.DataFrame) -> dict:
     from canopy_kit.report.explorer import _flagged, column_specs, json_records
 
     square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-    return {"trees": json_records(trees), "columns": column_specs(trees),
-            "flagged": [bool(f) for f in _flagged(trees)],
-            "map": {"footprints": {t.tree_id: (square + [t.x, t.y]).tolist() for t in trees.itertuples()},
-                    "rows": [], "drive": []},
-            "details": {}, "downloads": [{"name": "trees.csv", "mime": "text/csv", "text": trees.to_csv()}]}
+    return {
+        "trees": json_records(trees),
+        "columns": column_specs(trees),
+        "flagged": [bool(f) for f in _flagged(trees)],
+        "map": {
+            "footprints": {t.tree_id: (square + [t.x, t.y]).tolist() for t in trees.itertuples()},
+            "rows": [],
+            "drive": [],
+        },
+        "details": {},
+        "downloads": [{"name": "trees.csv", "mime": "text/csv", "text": trees.to_csv()}],
+    }
 
 
 @pytest.mark.browser
@@ -394,22 +475,34 @@ def test_a_run_with_no_or_unmeasured_trees_still_renders_without_errors(tmp_path
     from canopy_kit.report import render_report
     from canopy_kit.report.browser import CHROMIUM_ARGS, find_chromium
 
-    trees = pd.DataFrame({"tree_id": ["r0-L0", "r0-L1"], "row": [0, 0], "x": [0.0, 5.0], "y": [0.0, 0.0],
-                          "crown_diameter_m": [2.0, np.nan], "volume_alpha_m3": [12.0, np.nan],
-                          "volume_flags": ["", "alpha_shape: qhull could not triangulate the points"],
-                          "segment_flags": ["", ""]}).head(n_trees)
+    trees = pd.DataFrame(
+        {
+            "tree_id": ["r0-L0", "r0-L1"],
+            "row": [0, 0],
+            "x": [0.0, 5.0],
+            "y": [0.0, 0.0],
+            "crown_diameter_m": [2.0, np.nan],
+            "volume_alpha_m3": [12.0, np.nan],
+            "volume_flags": ["", "alpha_shape: qhull could not triangulate the points"],
+            "segment_flags": ["", ""],
+        }
+    ).head(n_trees)
     path = tmp_path / "report.html"
     path.write_text(render_report("t", {}, trees, [], [], "", explorer=_explorer(trees)))
     errors: list[str] = []
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        browser = pw.chromium.launch(
+            executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True
+        )
         page = browser.new_page()
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(path.as_uri(), wait_until="load")
         page.wait_for_function("window.canopyReport !== undefined")
         page.select_option("#map-colour", "flag")
-        crowns = page.evaluate("document.getElementById('map').data.filter(t => t.meta && t.meta.crown).length")
+        crowns = page.evaluate(
+            "document.getElementById('map').data.filter(t => t.meta && t.meta.crown).length"
+        )
         title = page.locator("#drill-title").inner_text()
         browser.close()
     assert errors == []

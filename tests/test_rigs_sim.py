@@ -23,12 +23,17 @@ SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
 
 
 def _session(sim_factory, rig: str, seed: int = 41, **rig_settings):
-    return sim_factory("pistachio", seed=seed, overrides={**SMALL, "rig": {"name": rig, **rig_settings}})
+    return sim_factory(
+        "pistachio", seed=seed, overrides={**SMALL, "rig": {"name": rig, **rig_settings}}
+    )
 
 
 def _true_lidar_from_imu(sim_dir: Path) -> np.ndarray:
     rig = load_truth(sim_dir).info["rig"]
-    mount = {k: from_rpy(rig[k]["translation"], rig[k]["rpy_deg"]) for k in ("base_from_lidar", "base_from_imu")}
+    mount = {
+        k: from_rpy(rig[k]["translation"], rig[k]["rpy_deg"])
+        for k in ("base_from_lidar", "base_from_imu")
+    }
     return invert(mount["base_from_lidar"]) @ mount["base_from_imu"]
 
 
@@ -57,12 +62,17 @@ def test_a_rig_maps_the_drive_as_well_as_one_frame(sim_factory, identity_run, ri
     assert res.rig.sources == {"base": "tf_static", "imu": "tf_static", "gnss": "tf_static"}
 
 
-def test_different_frames_and_no_extrinsics_stop_with_both_frames_named(sim_factory, tmp_path) -> None:
+def test_different_frames_and_no_extrinsics_stop_with_both_frames_named(
+    sim_factory, tmp_path
+) -> None:
     from test_cli_foundation import run_cli
 
     sim = _session(sim_factory, "tower", write_tf_static=False)
-    with pytest.raises(InputError, match=r"frame 'velodyne'.*frame 'imu_link'.*--rig FILE.*"
-                                         r"--calibrate-extrinsics.*--assume-identity-extrinsics"):
+    with pytest.raises(
+        InputError,
+        match=r"frame 'velodyne'.*frame 'imu_link'.*--rig FILE.*"
+        r"--calibrate-extrinsics.*--assume-identity-extrinsics",
+    ):
         build_map(sim.bag, MappingConfig())
     cli = run_cli("map", str(sim.bag), "--out", str(tmp_path / "m"))
     assert cli.returncode == 2 and "'velodyne'" in cli.stderr and "'imu_link'" in cli.stderr
@@ -70,7 +80,9 @@ def test_different_frames_and_no_extrinsics_stop_with_both_frames_named(sim_fact
 
 
 @pytest.mark.slow
-def test_calibrate_extrinsics_estimates_the_imu_mount_within_a_degree(sim_factory, identity_run) -> None:
+def test_calibrate_extrinsics_estimates_the_imu_mount_within_a_degree(
+    sim_factory, identity_run
+) -> None:
     sim = _session(sim_factory, "tower", write_tf_static=False)
     res = build_map(sim.bag, MappingConfig(extrinsics="calibrate"))
     error = rotation_angle_deg(res.rig.lidar_from_imu, _true_lidar_from_imu(sim.root))
@@ -102,7 +114,9 @@ def test_a_rig_file_wrong_by_five_degrees_is_named_with_its_angle(sim_factory, t
     angle = float(warning[0].split(" deg from")[0].rsplit(" ", 1)[1])
     assert 3.5 <= angle <= 6.5  # the file is 5 deg off
     assert res.diagnostics["extrinsics"]["difference_deg"] == pytest.approx(angle, abs=0.05)
-    assert rotation_angle_deg(res.rig.lidar_from_imu, _true_lidar_from_imu(sim.root)) == pytest.approx(5.0, abs=1e-6)
+    assert rotation_angle_deg(
+        res.rig.lidar_from_imu, _true_lidar_from_imu(sim.root)
+    ) == pytest.approx(5.0, abs=1e-6)
 
 
 @pytest.mark.slow
@@ -114,8 +128,16 @@ def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, identity_run, tmp_p
     with_tf = _session(sim_factory, "tower")
     without = _session(sim_factory, "tower", write_tf_static=False)
     a = build_map(with_tf.bag, MappingConfig())
-    cli = run_cli("map", str(without.bag), "--out", str(tmp_path / "m"), "--rig", "tower", "--no-plots",
-                  timeout=600)
+    cli = run_cli(
+        "map",
+        str(without.bag),
+        "--out",
+        str(tmp_path / "m"),
+        "--rig",
+        "tower",
+        "--no-plots",
+        timeout=600,
+    )
     assert cli.returncode == 0, cli.stderr
     b = pd.read_csv(tmp_path / "m" / "trajectory.csv")
     assert np.allclose(a.trajectory[["x", "y", "z"]], b[["x", "y", "z"]], atol=2e-3)
@@ -128,7 +150,7 @@ def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, identity_run, tmp_p
 
 
 @pytest.mark.slow
-def test_a_rig_finds_the_same_trees_with_the_same_volumes(sim_factory, tmp_path_factory) -> None:  # noqa: ANN001
+def test_a_rig_finds_the_same_trees_with_the_same_volumes(sim_factory, tmp_path_factory) -> None:
     """The whole pipeline on the same drive recorded by the identity and the tower rig: the
     same trees, and each tree's volume within 2 % of the identity rig's (sums within 2 %)."""
     from canopy_kit.config import load_preset
@@ -137,7 +159,9 @@ def test_a_rig_finds_the_same_trees_with_the_same_volumes(sim_factory, tmp_path_
     tables = {}
     for rig in ("identity", "tower"):
         sim = _session(sim_factory, rig)
-        res = run(load_preset("adaptive"), sim.bag, tmp_path_factory.mktemp(f"run_{rig}"), truth=sim.root)
+        res = run(
+            load_preset("adaptive"), sim.bag, tmp_path_factory.mktemp(f"run_{rig}"), truth=sim.root
+        )
         seg = res.metrics["evaluation"]["segmentation"]
         assert seg["n_correct"] == seg["n_truth"] == len(res.trees), rig
         tables[rig] = res.trees.set_index("truth_tree_id")
@@ -150,7 +174,7 @@ def test_a_rig_finds_the_same_trees_with_the_same_volumes(sim_factory, tmp_path_
 
 
 @pytest.mark.slow
-def test_streaming_uses_the_rig(sim_factory, tmp_path) -> None:  # noqa: ANN001
+def test_streaming_uses_the_rig(sim_factory, tmp_path) -> None:
     """Streaming reads the same frames: a tower session streams its six trees (with the IMU
     taken as in the LiDAR's frame the window never closed: 17 "trees", a 4 M point window)."""
     from canopy_kit.config import load_preset
@@ -160,4 +184,8 @@ def test_streaming_uses_the_rig(sim_factory, tmp_path) -> None:  # noqa: ANN001
     res = run_stream(load_preset("adaptive"), sim.bag, tmp_path / "s")
     assert len(res.trees) == len(load_truth(sim.root).trees)
     with pytest.raises(InputError, match="does not stream"):
-        run_stream(load_preset("adaptive", {"mapping": {"extrinsics": "calibrate"}}), sim.bag, tmp_path / "c")
+        run_stream(
+            load_preset("adaptive", {"mapping": {"extrinsics": "calibrate"}}),
+            sim.bag,
+            tmp_path / "c",
+        )

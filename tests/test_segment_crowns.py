@@ -16,8 +16,13 @@ from canopy_kit.evaluate import score_point_labels
 from canopy_kit.segment.crowns import crown_split, fit_crowns, point_normals
 
 
-def shell(rng: np.random.Generator, centre: np.ndarray, radii: tuple[float, float],
-          n: int, thickness: float = 0.15) -> np.ndarray:
+def shell(
+    rng: np.random.Generator,
+    centre: np.ndarray,
+    radii: tuple[float, float],
+    n: int,
+    thickness: float = 0.15,
+) -> np.ndarray:
     """Points on (just inside) an ellipsoidal shell with horizontal/vertical radii."""
     u = rng.normal(size=(n, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -25,8 +30,11 @@ def shell(rng: np.random.Generator, centre: np.ndarray, radii: tuple[float, floa
     return centre + u * r[:, None] * np.array([radii[0], radii[0], radii[1]])
 
 
-def union_surface(rng: np.random.Generator, crowns: list[tuple[np.ndarray, tuple[float, float]]],
-                  density: float = 250.0) -> tuple[np.ndarray, np.ndarray]:
+def union_surface(
+    rng: np.random.Generator,
+    crowns: list[tuple[np.ndarray, tuple[float, float]]],
+    density: float = 250.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Visible points of overlapping crowns (each crown's shell outside the others), truth ids."""
     pts, ids = [], []
     for k, (c, (h, v)) in enumerate(crowns):

@@ -36,8 +36,9 @@ def test_adaptive_agrees_with_the_tree_ids_above_a_floor(mixed_conifer) -> None:
     truth = np.where(np.isfinite(tid) & (tid < 1e300), tid, -1).astype(np.int64)
     truth[cloud.fields["classification"] == 2] = -1  # ground points carry IDs too
     # Conifers are taller than orchard trees: widen the canopy band, nothing else.
-    seg = segment(cloud, "adaptive", PreprocessConfig(min_canopy_height=2.0,
-                                                      max_canopy_height=40.0))
+    seg = segment(
+        cloud, "adaptive", PreprocessConfig(min_canopy_height=2.0, max_canopy_height=40.0)
+    )
     score = score_point_labels(seg.labels, truth)
     both = (truth >= 0) | (seg.labels >= 0)
     ari = adjusted_rand_score(truth[both], seg.labels[both])

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fixtures_sim import truth_map_of
 
 from canopy_kit.config import load_preset
 from canopy_kit.evaluate import envelope_ceiling, score_point_labels
@@ -22,15 +23,19 @@ from canopy_kit.segment.rows import driving_direction_from_trajectory
 from canopy_kit.segment.verb import make_segmenter, segment
 from canopy_kit.sim.truth import load_truth
 
-from fixtures_sim import truth_map_of
-
 pytestmark = pytest.mark.slow
 
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
-PAPER = {"dbscan": {"eps": 0.8, "min_samples": 1300},
-         "dbscan_spectral": {"eps": 0.8, "min_samples": 1300, "max_cluster_size": 45000,
-                             "n_neighbors": 10},
-         "adaptive": {}}
+PAPER = {
+    "dbscan": {"eps": 0.8, "min_samples": 1300},
+    "dbscan_spectral": {
+        "eps": 0.8,
+        "min_samples": 1300,
+        "max_cluster_size": 45000,
+        "n_neighbors": 10,
+    },
+    "adaptive": {},
+}
 #: the paper's almond method at our map's scale, as the shipped preset sets it
 SCALED = load_preset("almond-scaled").segment
 
@@ -59,10 +64,15 @@ def scores(sessions):
         for method, (name, params) in runs.items():
             seg = segment(cloud, make_segmenter(name, params), driving_direction=direction)
             pl = seg.table().set_index("segment_id")[["row", "label"]]
-            out[orchard, method] = (score_point_labels(seg.labels, cloud.fields["tree_id"],
-                                                       truth_labels=tl, pred_labels=pl), seg)
-        out[orchard, "ceiling"] = score_point_labels(envelope_ceiling(cloud.xyz, s.root),
-                                                     cloud.fields["tree_id"])
+            out[orchard, method] = (
+                score_point_labels(
+                    seg.labels, cloud.fields["tree_id"], truth_labels=tl, pred_labels=pl
+                ),
+                seg,
+            )
+        out[orchard, "ceiling"] = score_point_labels(
+            envelope_ceiling(cloud.xyz, s.root), cloud.fields["tree_id"]
+        )
     return out
 
 
@@ -87,8 +97,9 @@ def test_adaptive_targets_with_the_same_settings_on_both_orchards(scores) -> Non
     ceiling = scores["almond", "ceiling"]
     # At most one tree below what exact knowledge of the crowns would allow.
     assert almond.n_correct >= ceiling.n_correct - 1
-    assert almond.success_rate >= max(scores["almond", m][0].success_rate
-                                      for m in ("dbscan", "dbscan_spectral"))
+    assert almond.success_rate >= max(
+        scores["almond", m][0].success_rate for m in ("dbscan", "dbscan_spectral")
+    )
     assert seg.rows.direction_source == "given" and len(seg.rows.lines) == 2
 
 
@@ -101,12 +112,13 @@ def test_adaptive_almond_target_on_the_paper_like_orchard(scores) -> None:
     assert adaptive.n_truth >= 5
     assert adaptive.n_correct >= ceiling.n_correct - 1 and adaptive.success_rate >= 0.8
     assert adaptive.label_accuracy == 1.0 and len(seg.rows.lines) == 2
-    assert scores["almond-paper", "dbscan_spectral"][0].n_correct >= \
-        scores["almond-paper", "dbscan"][0].n_correct
+    assert (
+        scores["almond-paper", "dbscan_spectral"][0].n_correct
+        >= scores["almond-paper", "dbscan"][0].n_correct
+    )
 
 
-def test_paper_method_at_our_map_scale_reaches_the_paper_on_the_paper_like_orchard(scores
-                                                                                  ) -> None:
+def test_paper_method_at_our_map_scale_reaches_the_paper_on_the_paper_like_orchard(scores) -> None:
     """The ``almond-scaled`` preset (split threshold = a typical tree's map points, kNN graph
     on 0.3 m cells) gets 81-90 % of never-seen almond-paper trees per set (88.1 % of 519,
     docs/SEGMENTATION.md); on
@@ -130,8 +142,9 @@ def test_adaptive_crown_split_no_worse_than_the_nearest_trunk(sessions, scores) 
     s, cloud = sessions["almond"]
     truth = load_truth(s.root)
     direction = driving_direction_from_trajectory(truth.trajectory[["x", "y"]].to_numpy())
-    flat = segment(cloud, make_segmenter("adaptive", {"crown_split": False}),
-                   driving_direction=direction)
+    flat = segment(
+        cloud, make_segmenter("adaptive", {"crown_split": False}), driving_direction=direction
+    )
     flat_score = score_point_labels(flat.labels, cloud.fields["tree_id"])
     crowns, _ = scores["almond", "adaptive"]
     assert crowns.n_correct >= flat_score.n_correct
@@ -146,24 +159,46 @@ def test_cli_segment_and_evaluate_round_trip(sessions, tmp_path: Path) -> None:
     map_path = write_cloud(tmp_path / "map.laz", _las_compatible(cloud))
     out = tmp_path / "run"
     exe = [str(Path(sys.executable).parent / "canopy-kit")]
-    res = subprocess.run(exe + ["segment", str(map_path), "--preset", "almond", "--method",
-                                "adaptive", "--out", str(out), "--trajectory",
-                                str(s.root / "truth" / "trajectory.csv")],
-                         capture_output=True, text=True)
+    res = subprocess.run(
+        exe
+        + [
+            "segment",
+            str(map_path),
+            "--preset",
+            "almond",
+            "--method",
+            "adaptive",
+            "--out",
+            str(out),
+            "--trajectory",
+            str(s.root / "truth" / "trajectory.csv"),
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
     assert res.returncode == 0, res.stderr
     assert "segmented 6 trees in 2 rows (adaptive" in res.stdout
     summary = json.loads((out / "segmentation.json").read_text())
     assert summary["driving_direction_source"] == "trajectory trajectory.csv"
     assert "adaptive" in (out / "config.toml").read_text()
     for mode in ("points", "footprints"):
-        res = subprocess.run(exe + ["evaluate", str(out), "--truth", str(s.root), "--json",
-                                    "--mode", mode], capture_output=True, text=True)
+        res = subprocess.run(
+            exe + ["evaluate", str(out), "--truth", str(s.root), "--json", "--mode", mode],
+            check=False,
+            capture_output=True,
+            text=True,
+        )
         assert res.returncode == 0, res.stderr
         data = json.loads(res.stdout)
         assert data["mode"] == mode and data["n_truth"] == 6 and data["success_rate"] == 1.0
         assert data["label_accuracy"] == 1.0
-    bad = subprocess.run(exe + ["evaluate", str(tmp_path), "--truth", str(s.root)],
-                         capture_output=True, text=True)
+    bad = subprocess.run(
+        exe + ["evaluate", str(tmp_path), "--truth", str(s.root)],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 2 and "not a segmentation folder" in bad.stderr
 
 
@@ -187,8 +222,11 @@ def test_scaled_spectral_split_does_not_depend_on_the_voxel_order(sessions, scor
     from canopy_kit.config import PreprocessConfig
 
     _, cloud = sessions["almond-paper"]
-    after = segment(cloud, make_segmenter(SCALED.method, SCALED.params),
-                    PreprocessConfig(voxelize="after_clustering"),
-                    driving_direction=scores["almond-paper", "scaled"][1].rows.direction)
+    after = segment(
+        cloud,
+        make_segmenter(SCALED.method, SCALED.params),
+        PreprocessConfig(voxelize="after_clustering"),
+        driving_direction=scores["almond-paper", "scaled"][1].rows.direction,
+    )
     score = score_point_labels(after.labels, cloud.fields["tree_id"])
     assert score.n_correct == scores["almond-paper", "scaled"][0].n_correct

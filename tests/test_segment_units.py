@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures_sim import synthetic_orchard
 from sklearn.base import clone
 from sklearn.cluster import DBSCAN
 from sklearn.metrics import adjusted_rand_score
@@ -19,21 +20,24 @@ from canopy_kit.evaluate import score_footprints, score_point_labels
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan, weighted_dbscan
 from canopy_kit.segment.ground import fit_ground, ransac_plane
 from canopy_kit.segment.preprocess import prepare
-from canopy_kit.segment.rows import (assign_rows, bearing_to_vector, default_direction,
-                                     driving_direction_from_trajectory)
+from canopy_kit.segment.rows import (
+    assign_rows,
+    bearing_to_vector,
+    default_direction,
+    driving_direction_from_trajectory,
+)
 from canopy_kit.segment.spectral import spectral_split
 from canopy_kit.segment.stems import detect_stems
 from canopy_kit.segment.verb import make_segmenter, segment
 from canopy_kit.voxel import voxel_centroids
 
-from fixtures_sim import synthetic_orchard
-
 
 def blobs(seed: int = 0, n: int = 400) -> np.ndarray:
     rng = np.random.default_rng(seed)
     centres = np.array([[0, 0, 2], [4, 0, 2], [0, 5, 2.5]])
-    return np.concatenate([c + rng.normal(0, 0.4, (n, 3)) for c in centres]
-                          + [rng.uniform(-3, 8, (30, 3))])
+    return np.concatenate(
+        [c + rng.normal(0, 0.4, (n, 3)) for c in centres] + [rng.uniform(-3, 8, (30, 3))]
+    )
 
 
 # -- ground and preprocessing ---------------------------------------------------------------
@@ -81,11 +85,14 @@ def test_prepare_bands_heights_and_weighs_voxels() -> None:
     assert len(after.seen_index) == len(after.canopy_index) and (after.seen_weight == 1).all()
 
 
-@pytest.mark.parametrize("field,value,message", [
-    ("stem_band", [0.8, 0.3], "preprocess.stem_band"),
-    ("voxel_size", 0.0, "preprocess.voxel_size"),
-    ("min_canopy_height", 20.0, "preprocess.min_canopy_height"),
-])
+@pytest.mark.parametrize(
+    "field,value,message",
+    [
+        ("stem_band", [0.8, 0.3], "preprocess.stem_band"),
+        ("voxel_size", 0.0, "preprocess.voxel_size"),
+        ("min_canopy_height", 20.0, "preprocess.min_canopy_height"),
+    ],
+)
 def test_preprocess_config_errors_name_the_setting(field: str, value: object, message: str) -> None:
     orch = synthetic_orchard(rows=1, trees_per_row=1)
     cfg = PreprocessConfig(**{field: value})
@@ -164,8 +171,10 @@ def test_spectral_splits_clusters_by_size() -> None:
 def test_spectral_split_on_graph_cells() -> None:
     rng = np.random.default_rng(1)
     xyz = np.concatenate([rng.normal([x, 0, 2], [0.7, 0.5, 0.5], (600, 3)) for x in (0, 2.2, 4.4)])
-    seg = make_segmenter("dbscan_spectral", {"min_samples": 20, "max_cluster_size": 600,
-                                             "graph_cell": 0.3, "n_neighbors": 15})
+    seg = make_segmenter(
+        "dbscan_spectral",
+        {"min_samples": 20, "max_cluster_size": 600, "graph_cell": 0.3, "n_neighbors": 15},
+    )
     labels = seg.fit_predict(xyz)
     assert seg.splits_ == {0: 3} and labels.max() == 2
     assert adjusted_rand_score(np.repeat([0, 1, 2], 600), labels) > 0.6
@@ -208,8 +217,15 @@ def test_stems_found_under_crowns_and_grass_ignored() -> None:
 @pytest.mark.parametrize("trunks", [True, False])
 def test_adaptive_splits_touching_crowns_in_a_hedgerow(trunks: bool) -> None:
     # crowns 3.6 m wide every 3 m: DBSCAN sees one cluster per row
-    orch = synthetic_orchard(rows=2, trees_per_row=5, spacing=3.0, row_spacing=6.0, trunks=trunks,
-                             bearing_deg=25.0, density=150)
+    orch = synthetic_orchard(
+        rows=2,
+        trees_per_row=5,
+        spacing=3.0,
+        row_spacing=6.0,
+        trunks=trunks,
+        bearing_deg=25.0,
+        density=150,
+    )
     truth = orch.cloud.fields["tree_id"]
     seg = segment(orch.cloud, make_segmenter("adaptive"))
     score = score_point_labels(seg.labels, truth)
@@ -223,15 +239,18 @@ def test_adaptive_splits_touching_crowns_in_a_hedgerow(trunks: bool) -> None:
 @pytest.mark.parametrize("bearing", [0.0, 30.0, 95.0, 200.0, 315.0])
 @pytest.mark.parametrize("bow", [0.0, 1.0])
 def test_rows_and_labels_at_any_bearing_and_curvature(bearing: float, bow: float) -> None:
-    orch = synthetic_orchard(rows=4, trees_per_row=7, bearing_deg=bearing, bow=bow, trunks=False,
-                             density=5)
+    orch = synthetic_orchard(
+        rows=4, trees_per_row=7, bearing_deg=bearing, bow=bow, trunks=False, density=5
+    )
     rng = np.random.default_rng(2)
     xy = orch.centres + rng.normal(0, 0.2, orch.centres.shape)
     perm = rng.permutation(len(xy))
     result = assign_rows(xy[perm], RowsConfig(), driving_direction=bearing_to_vector(bearing))
     assert result.row.tolist() == orch.rows[perm].tolist()
     assert result.index_in_row.tolist() == orch.index_in_row[perm].tolist()
-    expected = [f"{'L' if r % 2 == 0 else 'R'}{i}" for r, i in zip(orch.rows[perm], orch.index_in_row[perm])]
+    expected = [
+        f"{'L' if r % 2 == 0 else 'R'}{i}" for r, i in zip(orch.rows[perm], orch.index_in_row[perm])
+    ]
     assert result.labels == expected
     assert len(set(result.tree_ids)) == len(xy)
     assert not result.warnings
@@ -242,23 +261,33 @@ def test_stray_segments_between_rows_do_not_renumber_the_rows(bearing: float) ->
     """Two stray segments in the alleys (measured on a simulated almond drive: lines of 6, 1,
     7, 1, 7 trees) are labelled apart; the real rows keep their numbers and labels."""
     spacing = 6.0
-    orch = synthetic_orchard(rows=3, trees_per_row=7, row_spacing=spacing, bearing_deg=bearing,
-                             trunks=False, density=5)
+    orch = synthetic_orchard(
+        rows=3, trees_per_row=7, row_spacing=spacing, bearing_deg=bearing, trunks=False, density=5
+    )
     d = bearing_to_vector(bearing)
     right = np.array([d[1], -d[0]])
     first = orch.centres[orch.rows == 0].mean(axis=0)
     # one alone, and two pieces 5 m apart in the other alley (a "row" of two between rows)
-    strays = np.array([first + 0.5 * spacing * right + 2.0 * d, first + 1.5 * spacing * right - 3.0 * d,
-                       first + 1.5 * spacing * right + 4.0 * d])
+    strays = np.array(
+        [
+            first + 0.5 * spacing * right + 2.0 * d,
+            first + 1.5 * spacing * right - 3.0 * d,
+            first + 1.5 * spacing * right + 4.0 * d,
+        ]
+    )
     xy = np.vstack([orch.centres, strays])
     result = assign_rows(xy, RowsConfig(), driving_direction=d)
     assert result.row[:-3].tolist() == orch.rows.tolist()
-    assert result.labels[:-3] == [f"{'L' if r % 2 == 0 else 'R'}{i}"
-                                  for r, i in zip(orch.rows, orch.index_in_row)]
+    assert result.labels[:-3] == [
+        f"{'L' if r % 2 == 0 else 'R'}{i}" for r, i in zip(orch.rows, orch.index_in_row)
+    ]
     assert result.row[-3:].tolist() == [-1, -1, -1]
     assert result.labels[-3:] == ["T1", "T0", "T2"]  # numbered along the driving direction
     assert len(result.lines) == 3 and len(set(result.tree_ids)) == len(xy)
-    assert len(result.warnings) == 1 and "3 of 24 trees stand in the alleys between the 3 rows" in result.warnings[0]
+    assert (
+        len(result.warnings) == 1
+        and "3 of 24 trees stand in the alleys between the 3 rows" in result.warnings[0]
+    )
 
 
 def test_a_short_row_where_a_row_fits_stays_a_row() -> None:
@@ -279,7 +308,9 @@ def test_a_short_row_where_a_row_fits_stays_a_row() -> None:
     alley[truth > 3, 0] -= 6.0
     moved = assign_rows(alley, RowsConfig(), driving_direction=d)
     assert (moved.row[truth == 3] == -1).all()
-    assert moved.row[truth != 3].tolist() == np.where(truth > 3, truth - 1, truth)[truth != 3].tolist()
+    assert (
+        moved.row[truth != 3].tolist() == np.where(truth > 3, truth - 1, truth)[truth != 3].tolist()
+    )
 
 
 def test_the_first_trees_on_both_sides_of_an_alley_are_two_rows() -> None:
@@ -295,7 +326,9 @@ def test_the_first_trees_on_both_sides_of_an_alley_are_two_rows() -> None:
 
 
 def test_rows_default_direction_and_trajectory() -> None:
-    assert np.allclose(default_direction(np.array([0.2, -1.0])), np.array([-0.2, 1.0]) / np.hypot(0.2, 1))
+    assert np.allclose(
+        default_direction(np.array([0.2, -1.0])), np.array([-0.2, 1.0]) / np.hypot(0.2, 1)
+    )
     assert default_direction(np.array([-1.0, 0.0])).tolist() == [1.0, 0.0]
     traj = np.array([[0, 0], [0, 0], [0.1, 2], [0.2, 6], [1, 10]])
     d = driving_direction_from_trajectory(traj)
@@ -353,8 +386,7 @@ def test_failures_to_pick_from_and_one_at_a_time() -> None:
     s = score_point_labels(pred, truth, truth_labels=tl)
     picks = s.failures()
     assert list(picks.values())[0] == 4  # the missed tree, IoU 0, first
-    assert sorted(picks.values()) == sorted(
-        s.trees.loc[s.trees["status"] != "correct", "truth_id"])
+    assert sorted(picks.values()) == sorted(s.trees.loc[s.trees["status"] != "correct", "truth_id"])
     assert len(picks) == s.n_truth - s.n_correct
     assert "tree 4 (r0-L4): missed, IoU 0.00" in picks
     one = s.only(picks["tree 4 (r0-L4): missed, IoU 0.00"])
@@ -363,7 +395,9 @@ def test_failures_to_pick_from_and_one_at_a_time() -> None:
 
 
 def test_label_correctness_and_footprint_scores() -> None:
-    square = lambda x, y, r: np.array([[x - r, y - r], [x + r, y - r], [x + r, y + r], [x - r, y + r]])  # noqa: E731
+    square = lambda x, y, r: np.array(  # noqa: E731
+        [[x - r, y - r], [x + r, y - r], [x + r, y + r], [x - r, y + r]]
+    )
     truth = {0: square(0, 0, 1), 1: square(5, 0, 1), 2: square(10, 0, 1)}
     pred = {10: square(0.1, 0, 1), 11: square(7.5, 0, 3.6)}  # 1 and 2 merged
     tl = pd.DataFrame({"row": [0, 0, 0], "label": ["L0", "L1", "L2"]}, index=[0, 1, 2])
@@ -427,9 +461,14 @@ def test_write_and_read_a_run_folder(tmp_path) -> None:
 def test_results_table_pivots_long_form_runs(tmp_path) -> None:
     from canopy_kit.paper.segmentation_results import results_table, success_table
 
-    runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "adaptive"],
-                         "orchard": ["almond", "pistachio", "almond", "pistachio"],
-                         "success_points": [0.4, 0.9, 0.9, 1.0], "variant": "default"})
+    runs = pd.DataFrame(
+        {
+            "method": ["dbscan", "dbscan", "adaptive", "adaptive"],
+            "orchard": ["almond", "pistachio", "almond", "pistachio"],
+            "success_points": [0.4, 0.9, 0.9, 1.0],
+            "variant": "default",
+        }
+    )
     table = success_table(runs)
     assert table.loc["adaptive", ("mean", "almond")] == 0.9
     assert list(table.index) == ["dbscan", "adaptive"]
@@ -454,7 +493,10 @@ def test_plots_top_view_and_failure_gallery() -> None:
     gallery = plot_failure_gallery(orch.cloud, seg, score, truth, max_panels=3)
     assert gallery is not None and len(gallery.axes) == 2 * min(3, score.n_truth - score.n_correct)
     good = segment(orch.cloud, "adaptive")
-    assert plot_failure_gallery(orch.cloud, good, score_point_labels(good.labels, truth), truth) is None
+    assert (
+        plot_failure_gallery(orch.cloud, good, score_point_labels(good.labels, truth), truth)
+        is None
+    )
 
 
 def test_top_view_image_shows_the_highest_point_of_each_pixel() -> None:
@@ -486,18 +528,34 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
     one = synthetic_orchard(rows=1, trees_per_row=1, density=150).cloud
     scattered = []
     for k, c in enumerate(rng.uniform(0, 40, (8, 2))):
-        xyz = synthetic_orchard(rows=1, trees_per_row=1, seed=k, ground_extent=0.5,
-                                density=150).cloud.xyz.copy()
+        xyz = synthetic_orchard(
+            rows=1, trees_per_row=1, seed=k, ground_extent=0.5, density=150
+        ).cloud.xyz.copy()
         xyz[:, :2] += c
         scattered.append(xyz)
-    maps = {"flat": flat, "one": PointCloud(one.xyz),
-            "scattered": PointCloud(np.concatenate(scattered))}
+    maps = {
+        "flat": flat,
+        "one": PointCloud(one.xyz),
+        "scattered": PointCloud(np.concatenate(scattered)),
+    }
     res = {}
     for name, cloud in maps.items():
         path = write_cloud(tmp_path / f"{name}.laz", cloud)
-        res[name] = subprocess.run([exe, "segment", str(path), "--preset", "adaptive", "--out",
-                                    str(tmp_path / name), "--no-cloud"],
-                                   capture_output=True, text=True)
+        res[name] = subprocess.run(
+            [
+                exe,
+                "segment",
+                str(path),
+                "--preset",
+                "adaptive",
+                "--out",
+                str(tmp_path / name),
+                "--no-cloud",
+            ],
+            check=False,
+            capture_output=True,
+            text=True,
+        )
     assert res["flat"].returncode == 2
     assert res["flat"].stderr.strip().startswith("error: map has no points 0.8-12.0 m above")
     assert "Traceback" not in res["flat"].stderr
@@ -509,23 +567,39 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
     header = laspy.LasHeader(point_format=3, version="1.2")
     header.scales = [0.01, 0.01, 0.01]
     laspy.LasData(header).write(tmp_path / "empty.laz")
-    bad = subprocess.run([exe, "segment", str(tmp_path / "empty.laz"), "--out", str(tmp_path / "e")],
-                         capture_output=True, text=True)
+    bad = subprocess.run(
+        [exe, "segment", str(tmp_path / "empty.laz"), "--out", str(tmp_path / "e")],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 2 and bad.stderr.strip().endswith("LAS file has no points")
 
 
 def test_reproduction_table_pools_trees_and_sets_the_paper_beside(tmp_path) -> None:
     from canopy_kit.paper.segmentation_results import reproduction_results, reproduction_table
 
-    runs = pd.DataFrame({"method": ["dbscan", "dbscan", "adaptive", "dbscan", "dbscan"],
-                         "orchard": ["almond", "almond", "almond", "pistachio", "almond-paper"],
-                         "seed": [201, 202, 201, 201, 511], "n_truth": [10, 20, 10, 18, 17],
-                         "success_points": [0.5, 0.25, 1.0, 17 / 18, 8 / 17], "variant": "default"})
+    runs = pd.DataFrame(
+        {
+            "method": ["dbscan", "dbscan", "adaptive", "dbscan", "dbscan"],
+            "orchard": ["almond", "almond", "almond", "pistachio", "almond-paper"],
+            "seed": [201, 202, 201, 201, 511],
+            "n_truth": [10, 20, 10, 18, 17],
+            "success_points": [0.5, 0.25, 1.0, 17 / 18, 8 / 17],
+            "variant": "default",
+        }
+    )
     t = reproduction_table(runs).set_index(["orchard", "method"])
-    assert list(t.index) == [("pistachio", "dbscan"), ("almond", "dbscan"), ("almond", "adaptive"),
-                             ("almond-paper", "dbscan")]
+    assert list(t.index) == [
+        ("pistachio", "dbscan"),
+        ("almond", "dbscan"),
+        ("almond", "adaptive"),
+        ("almond-paper", "dbscan"),
+    ]
     assert t.loc[("almond-paper", "dbscan"), "paper"] == 0.46  # a preset of kind almond
-    assert t.loc[("almond", "dbscan"), "correct"] == 10 and t.loc[("almond", "dbscan"), "trees"] == 30
+    assert (
+        t.loc[("almond", "dbscan"), "correct"] == 10 and t.loc[("almond", "dbscan"), "trees"] == 30
+    )
     assert t.loc[("almond", "dbscan"), "success"] == pytest.approx(1 / 3)
     assert t.loc[("almond", "dbscan"), "seeds"] == "201 202"
     assert t.loc[("almond", "dbscan"), "paper"] == 0.46
@@ -556,16 +630,22 @@ def test_first_minimum_and_voxel_representatives_match_a_plain_loop() -> None:
     rng = np.random.default_rng(5)
     groups = rng.integers(0, 50, 2000)
     values = rng.integers(0, 20, 2000).astype(float)  # many ties
-    expected = [min(np.flatnonzero(groups == g), key=lambda i: (values[i], i)) for g in np.unique(groups)]
+    expected = [
+        min(np.flatnonzero(groups == g), key=lambda i: (values[i], i)) for g in np.unique(groups)
+    ]
     assert first_minimum(groups, values).tolist() == expected
-    xyz = np.round(rng.uniform(0, 1, (3000, 3)) * 64) / 64  # binary lattice: exact distances, true ties
+    xyz = (
+        np.round(rng.uniform(0, 1, (3000, 3)) * 64) / 64
+    )  # binary lattice: exact distances, true ties
     reps, inverse = voxel_representatives(xyz, 0.25)
     for v, rep in enumerate(reps):
         members = np.flatnonzero(inverse == v)
         centre = np.floor((xyz[rep] - xyz.min(axis=0)) / 0.25) * 0.25 + 0.125 + xyz.min(axis=0)
         dist = np.sum((xyz[members] - centre) ** 2, axis=1)
         best = members[dist == dist.min()]
-        assert rep == min(best, key=lambda i: tuple(xyz[i]))  # nearest the centre, then smallest x, y, z
+        assert rep == min(
+            best, key=lambda i: tuple(xyz[i])
+        )  # nearest the centre, then smallest x, y, z
 
 
 def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
@@ -576,7 +656,9 @@ def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
     rng = np.random.default_rng(4)
     diameters = rng.uniform(3.3, 4.4, 12)
     diameters[[3, 8]] = [9.1, 1.4]  # two trees in one segment; a fragment
-    trees = pd.DataFrame({"tree_id": [f"r0-L{i}" for i in range(12)], "crown_diameter_m": diameters})
+    trees = pd.DataFrame(
+        {"tree_id": [f"r0-L{i}" for i in range(12)], "crown_diameter_m": diameters}
+    )
     notes = crown_outliers(trees)
     assert [i for i, n in enumerate(notes) if n] == [3, 8]
     assert "two or more trees" in notes[3] and "fragment" in notes[8]
@@ -584,8 +666,12 @@ def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
     assert not crown_outliers(trees.drop(index=[3, 8])).str.len().any()
     # Rows of six or more trees are their own reference: a younger row is not flagged, a
     # merge in it is; trees in no row and short rows are compared with all trees.
-    young = pd.DataFrame({"row": [0] * 8 + [1] * 8 + [-1, 2, 2],
-                          "crown_diameter_m": [4.0] * 8 + [1.8] * 7 + [3.7, 4.2, 3.9, 9.0]})
+    young = pd.DataFrame(
+        {
+            "row": [0] * 8 + [1] * 8 + [-1, 2, 2],
+            "crown_diameter_m": [4.0] * 8 + [1.8] * 7 + [3.7, 4.2, 3.9, 9.0],
+        }
+    )
     flagged = [i for i, n in enumerate(crown_outliers(young)) if n]
     assert flagged == [15, 18] and "its row" in crown_outliers(young)[15]
     assert "all trees" in crown_outliers(young)[18]

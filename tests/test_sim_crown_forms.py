@@ -16,12 +16,14 @@ FORMS = ["ellipsoid", "lobed", "vase", "hedged", "sparse"]
 # existed: vertex count, vertices per tree (ground first) and the vertex sum to 1 mm.
 SCENES_BEFORE_FORMS = {
     "pistachio": (24971, [10080, 6616, 4544, 6028], [-549.528, 123795.978, 35355.476]),
-    "almond": (55779, [11032, 17308, 22388, 17076], [5922.313, 254240.716, 129363.135])}
+    "almond": (55779, [11032, 17308, 22388, 17076], [5922.313, 254240.716, 129363.135]),
+}
 
 
 def _orchard(form: str, seed: int, kind: str = "pistachio", **orchard):
-    cfg = load_sim_config(kind, {"orchard": {"rows": 1, "trees_per_row": 3, "crown_form": form,
-                                             **orchard}})
+    cfg = load_sim_config(
+        kind, {"orchard": {"rows": 1, "trees_per_row": 3, "crown_form": form, **orchard}}
+    )
     return generate_orchard(cfg.orchard, np.random.default_rng(seed))
 
 
@@ -37,7 +39,12 @@ def test_quadrature_volume_matches_monte_carlo(form):
             box = float(np.prod(hi - lo))
             sigma = np.sqrt(f * (1 - f) / n) * box
             assert abs(f * box - tree.crown.volume) < 3 * sigma + 5e-4 * tree.crown.volume, (
-                form, seed, tree.tree_id, f * box, tree.crown.volume)
+                form,
+                seed,
+                tree.tree_id,
+                f * box,
+                tree.crown.volume,
+            )
 
 
 @pytest.mark.parametrize("form", ["lobed", "vase", "hedged"])
@@ -56,8 +63,9 @@ def test_forms_are_what_they_say():
     mixed = {t.crown_form for s in (1, 2, 3) for t in _orchard("mix", s, trees_per_row=6).trees}
     assert len(mixed) >= 3 and mixed <= set(FORMS)
     # Mix is seeded: the same seed gives the same forms.
-    assert ([t.crown_form for t in _orchard("mix", 4).trees]
-            == [t.crown_form for t in _orchard("mix", 4).trees])
+    assert [t.crown_form for t in _orchard("mix", 4).trees] == [
+        t.crown_form for t in _orchard("mix", 4).trees
+    ]
 
 
 def test_vase_is_hollow_in_the_middle():
@@ -72,8 +80,13 @@ def test_vase_is_hollow_in_the_middle():
             # ... while the walls at mid height are inside, all round the axis.
             ang = np.linspace(0, 2 * np.pi, 12, endpoint=False)
             a, b = tree.crown.semi_axes[:2]
-            ring = np.column_stack([cx + 0.6 * min(a, b) * np.cos(ang),
-                                    cy + 0.6 * min(a, b) * np.sin(ang), np.full(12, mid)])
+            ring = np.column_stack(
+                [
+                    cx + 0.6 * min(a, b) * np.cos(ang),
+                    cy + 0.6 * min(a, b) * np.sin(ang),
+                    np.full(12, mid),
+                ]
+            )
             assert tree.crown.contains(ring).all()
 
 
@@ -93,7 +106,8 @@ def test_hedged_crowns_have_flat_faces():
             base_across = np.dot(tree.base[:2], orchard.right_direction)
             c_across = np.dot(tree.crown.center[:2], orchard.right_direction)
             assert (c_across + form.offsets[0]) - base_across == pytest.approx(
-                base_across - (c_across - form.offsets[1]), abs=1e-9)
+                base_across - (c_across - form.offsets[1]), abs=1e-9
+            )
 
 
 def test_lobed_crowns_have_deep_hollows_between_lobes():
@@ -103,10 +117,11 @@ def test_lobed_crowns_have_deep_hollows_between_lobes():
         at_lobes = tree.crown.radius(dirs)
         # Half-way (in azimuth) between neighbouring lobes, at the lobes' mean elevation.
         az = np.sort(np.arctan2(dirs[:, 1], dirs[:, 0]))
-        mid = (az + np.diff(np.append(az, az[0] + 2 * np.pi)) / 2)
+        mid = az + np.diff(np.append(az, az[0] + 2 * np.pi)) / 2
         el = np.arcsin(dirs[:, 2]).mean()
-        between = np.column_stack([np.cos(el) * np.cos(mid), np.cos(el) * np.sin(mid),
-                                   np.full(len(mid), np.sin(el))])
+        between = np.column_stack(
+            [np.cos(el) * np.cos(mid), np.cos(el) * np.sin(mid), np.full(len(mid), np.sin(el))]
+        )
         assert (at_lobes.min() - tree.crown.radius(between)).max() > 0.3
 
 
@@ -115,8 +130,10 @@ def test_default_form_is_bit_identical():
     Rounded, not hashed: a newer numpy may change the last bits of a sine."""
     from canopy_kit.sim.scene import build_scene
 
-    expected = {"pistachio": [25.284232072, 16.842441365, 22.793960436],
-                "almond": [71.380786427, 90.040413479, 69.958556124]}
+    expected = {
+        "pistachio": [25.284232072, 16.842441365, 22.793960436],
+        "almond": [71.380786427, 90.040413479, 69.958556124],
+    }
     made = {}
     for kind, volumes in expected.items():
         cfg = load_sim_config(kind, {"orchard": {"rows": 1, "trees_per_row": 3}})
@@ -125,8 +142,11 @@ def test_default_form_is_bit_identical():
         orchard = generate_orchard(cfg.orchard, rng)
         scene = build_scene(orchard, rng)
         assert [t.crown.volume for t in orchard.trees] == pytest.approx(volumes, rel=1e-9)
-        made[kind] = (len(scene.vertices), np.bincount(scene.tree_id + 1).tolist(),
-                      np.round(scene.vertices.sum(axis=0), 3).tolist())
+        made[kind] = (
+            len(scene.vertices),
+            np.bincount(scene.tree_id + 1).tolist(),
+            np.round(scene.vertices.sum(axis=0), 3).tolist(),
+        )
     assert made == SCENES_BEFORE_FORMS
 
 
@@ -139,7 +159,8 @@ def test_default_session_truth_is_unchanged(sim_factory):
     session = sim_factory("pistachio", overrides=MICRO)
     trees = pd.read_csv(session.truth_dir / "trees.csv")
     assert [t.crown.volume for t in session.orchard.trees] == pytest.approx(
-        trees["crown_volume_m3"].to_list(), rel=1e-6)  # the CSV keeps 6 decimals
+        trees["crown_volume_m3"].to_list(), rel=1e-6
+    )  # the CSV keeps 6 decimals
     assert session.n_points == 731076
 
 
@@ -147,8 +168,9 @@ def test_leaf_penetration_limits_the_foliage_depth():
     from canopy_kit.sim.scene import FOLIAGE, build_scene, depth_below_envelope
 
     for pen in (0.3, 0.6):
-        cfg = load_sim_config("pistachio", {"orchard": {"rows": 1, "trees_per_row": 2,
-                                                        "leaf_penetration_m": pen}})
+        cfg = load_sim_config(
+            "pistachio", {"orchard": {"rows": 1, "trees_per_row": 2, "leaf_penetration_m": pen}}
+        )
         rng = np.random.default_rng(3)
         orchard = generate_orchard(cfg.orchard, rng)
         scene = build_scene(orchard, rng)
@@ -189,13 +211,17 @@ def test_session_of_each_form_scans_its_envelopes(sim_factory, form):
     from canopy_kit.sim.truth_map import truth_map
 
     pen = 0.4
-    session = sim_factory("pistachio", seed=31, overrides=merge(SESSION, {"orchard": {
-        "crown_form": form, "leaf_penetration_m": pen}}))
+    session = sim_factory(
+        "pistachio",
+        seed=31,
+        overrides=merge(SESSION, {"orchard": {"crown_form": form, "leaf_penetration_m": pen}}),
+    )
     truth = load_truth(session.root)
     orchard = truth.orchard()
     assert [t.crown_form for t in orchard.trees] == [form] * 3
-    assert np.allclose(truth.trees["crown_volume_m3"], [t.crown.volume for t in orchard.trees],
-                       atol=1e-6)
+    assert np.allclose(
+        truth.trees["crown_volume_m3"], [t.crown.volume for t in orchard.trees], atol=1e-6
+    )
     if form == "sparse":
         assert (truth.trees["crown_diameter_m"] < 2.5).all()
     cloud = truth_map(session.root, voxel_size=0.03)
@@ -222,27 +248,42 @@ def test_drone_photos_show_every_form(tmp_path, form):
     from ground_truth.camera import camera_from_pose
     from ground_truth.crowns import excess_green
 
-    cfg = load_sim_config("pistachio", {"seed": 3, "orchard": {"rows": 1, "trees_per_row": 2,
-                                                               "crown_form": form},
-                                        "drone": {"enabled": True, "image_width": 240,
-                                                  "image_height": 180, "altitude": 30.0}})
+    cfg = load_sim_config(
+        "pistachio",
+        {
+            "seed": 3,
+            "orchard": {"rows": 1, "trees_per_row": 2, "crown_form": form},
+            "drone": {"enabled": True, "image_width": 240, "image_height": 180, "altitude": 30.0},
+        },
+    )
     simulate_drone_session(tmp_path, cfg)
     orchard = regenerate_orchard(tmp_path)
     assert {t.crown_form for t in orchard.trees} == {form}
     rows = pd.read_csv(tmp_path / "truth" / "drone_cameras.csv")
     greens, soil = [], []
     for r in rows.itertuples():
-        cam = camera_from_pose(r.image, "SIMPLE_PINHOLE", (r.focal_px, r.cx, r.cy), r.width, r.height,
-                               np.array([r.x, r.y, r.z]),
-                               Rotation.from_quat([r.qx, r.qy, r.qz, r.qw]).as_matrix())
+        cam = camera_from_pose(
+            r.image,
+            "SIMPLE_PINHOLE",
+            (r.focal_px, r.cx, r.cy),
+            r.width,
+            r.height,
+            np.array([r.x, r.y, r.z]),
+            Rotation.from_quat([r.qx, r.qy, r.qz, r.qw]).as_matrix(),
+        )
         img = np.asarray(Image.open(tmp_path / "drone" / cam.name)).astype(float)
         for tree in orchard.trees:
             s = tree.crown.surface_points(4000)
             tops = s[np.argsort(s[:, 2])[-40:]]  # on a lobe, the vase's rim, the hedge's top
             uv, _ = cam.project(tops)
-            ok = (uv[:, 0] > 3) & (uv[:, 0] < cam.width - 3) & (uv[:, 1] > 3) & (uv[:, 1] < cam.height - 3)
+            ok = (
+                (uv[:, 0] > 3)
+                & (uv[:, 0] < cam.width - 3)
+                & (uv[:, 1] > 3)
+                & (uv[:, 1] < cam.height - 3)
+            )
             for u, v in uv[ok].astype(int):
-                greens.append(excess_green(img[v - 1: v + 2, u - 1: u + 2]).mean())
+                greens.append(excess_green(img[v - 1 : v + 2, u - 1 : u + 2]).mean())
         soil.append(excess_green(img[:10, :10]).mean())
     assert len(greens) >= 40
     green = np.mean(np.asarray(greens) > 0.15)

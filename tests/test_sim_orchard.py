@@ -49,7 +49,11 @@ def test_pistachio_crowns_do_not_overlap_and_almond_crowns_do():
         overlaps = []
         for a in orchard.trees:
             for b in orchard.trees:
-                if a.tree_id < b.tree_id and a.row == b.row and abs(a.index_in_row - b.index_in_row) == 1:
+                if (
+                    a.tree_id < b.tree_id
+                    and a.row == b.row
+                    and abs(a.index_in_row - b.index_in_row) == 1
+                ):
                     overlaps.append(_overlap_fraction(a, b, rng))
         if expect_overlap:
             assert sum(f > 0.01 for f in overlaps) >= 2, overlaps
@@ -94,8 +98,10 @@ def test_almond_has_missing_and_doubled_trees():
         ({"orchard": {"spacing_range": [-5.0, 5.0]}}, "orchard.spacing_range"),
         ({"orchard": {"row_spacing": 0.0}}, "orchard.row_spacing"),
         ({"lidar": {"rings": 0}}, "lidar.rings"),
-        ({"orchard": {"rows": 1, "trees_per_row": 1, "crown_diameter_range": [30.0, 40.0]}},
-         "orchard.crown_diameter_range"),
+        (
+            {"orchard": {"rows": 1, "trees_per_row": 1, "crown_diameter_range": [30.0, 40.0]}},
+            "orchard.crown_diameter_range",
+        ),
         ({"lidar": {"min_range": 5.0, "max_range": 2.0}}, "lidar.min_range"),
         ({"orchard": {"alley_clearance": 4.0}}, "orchard.alley_clearance"),
     ],
@@ -123,12 +129,18 @@ def test_preset_extends_another_and_lists_only_what_differs(tmp_path):
     mine.write_text('extends = "almond-paper"\n[orchard]\nrows = 2\n')
     cfg = load_sim_config(mine)
     assert (cfg.orchard.kind, cfg.orchard.rows, cfg.orchard.crown_diameter_range) == (
-        "almond", 2, [3.5, 5.0])
+        "almond",
+        2,
+        [3.5, 5.0],
+    )
     from canopy_kit.sim.config import OrchardSpec, sim_preset_names
     from canopy_kit.truth import DEFAULT_ORCHARD_KIND, orchard_kind
 
     assert [orchard_kind(o) for o in ("almond-paper", "pistachio", "walnut")] == [
-        "almond", "pistachio", "walnut"]
+        "almond",
+        "pistachio",
+        "walnut",
+    ]
     # The truth module reads the presets as data: it must agree with the simulator's loader.
     assert OrchardSpec().kind == DEFAULT_ORCHARD_KIND
     assert all(orchard_kind(n) == load_sim_config(n).orchard.kind for n in sim_preset_names())

@@ -6,14 +6,13 @@ import filecmp
 
 import numpy as np
 import pytest
+from conftest import MICRO
 from scipy.spatial.transform import Rotation
 
 from canopy_kit.io.bag import open_bag
 from canopy_kit.sim import load_truth
 from canopy_kit.sim.session import load_sim_config_of
 from canopy_kit.sim.trajectory import GRAVITY
-
-from conftest import MICRO
 
 TRUTH_FILES = ["trees.csv", "trajectory.csv", "frame.json", "sim_config.toml"]
 
@@ -26,8 +25,9 @@ def test_same_seed_gives_identical_truth_files(sim_factory):
         assert filecmp.cmp(one.truth_dir / name, two.truth_dir / name, shallow=False), name
     assert one.n_points == two.n_points
     different = sim_factory("pistachio", seed=1, overrides=MICRO)
-    assert not filecmp.cmp(one.truth_dir / "trees.csv", different.truth_dir / "trees.csv",
-                           shallow=False)
+    assert not filecmp.cmp(
+        one.truth_dir / "trees.csv", different.truth_dir / "trees.csv", shallow=False
+    )
 
 
 @pytest.mark.parametrize("fmt", ["ros1", "ros2-sqlite3", "ros2-mcap"])
@@ -129,7 +129,9 @@ def test_imu_and_gnss_are_consistent_with_the_motion(tiny_pistachio):
         imu, gnss = bag.imu(), bag.gnss()
     still = imu.t < imu.t[0] + cfg.drive.start_still - 0.2
     # Standing still: the accelerometer measures gravity (plus bias), the gyro almost nothing.
-    assert np.linalg.norm(imu.linear_acceleration[still].mean(axis=0)) == pytest.approx(GRAVITY, abs=0.2)
+    assert np.linalg.norm(imu.linear_acceleration[still].mean(axis=0)) == pytest.approx(
+        GRAVITY, abs=0.2
+    )
     assert np.abs(imu.angular_velocity[still].mean(axis=0)).max() < 0.01
     # Integrated yaw rate follows the true heading change over the first U-turn.
     traj = truth.trajectory
@@ -162,8 +164,9 @@ def test_truth_table_describes_each_tree(tiny_pistachio):
 
 def test_time_field_conventions(sim_factory):
     """Velodyne-style float seconds (``time``) also round-trip as absolute point times."""
-    session = sim_factory("pistachio", overrides={**MICRO, "lidar": {"columns": 256}},
-                          sensor="vlp16", fmt="ros1")
+    session = sim_factory(
+        "pistachio", overrides={**MICRO, "lidar": {"columns": 256}}, sensor="vlp16", fmt="ros1"
+    )
     with open_bag(session.bag) as bag:
         scan = next(iter(bag.scans()))
         assert "time" in scan.fields and "t" not in scan.fields

@@ -13,8 +13,17 @@ import pytest
 
 from canopy_kit.errors import InputError
 from canopy_kit.geo import LocalFrame
-from canopy_kit.store import (MatchSettings, OrchardStore, SessionRecord, changes,
-                              consistency_problems, export, growth, match_trees, row_growth)
+from canopy_kit.store import (
+    MatchSettings,
+    OrchardStore,
+    SessionRecord,
+    changes,
+    consistency_problems,
+    export,
+    growth,
+    match_trees,
+    row_growth,
+)
 
 FRAME = LocalFrame.at(37.281, -120.42)
 ROWS, PER_ROW = 4, 6
@@ -32,11 +41,22 @@ def visit(shift=(0.0, 0.0), rotation_deg=0.0, absent=(), young=(), growth_factor
     volume = VOLUME * growth_factor
     volume[list(young)] = 2.0
     lat, lon, _ = FRAME.to_wgs84(np.column_stack([xy, np.zeros(len(xy))]))
-    table = pd.DataFrame({"segment": np.arange(len(xy)), "label": [f"L{i}" for i in range(len(xy))],
-                          "row": np.repeat(np.arange(ROWS), PER_ROW), "lat": lat, "lon": lon,
-                          "n_points": 1000, "height_m": 3.0, "crown_diameter_m": 3.5,
-                          "volume_convex_hull_m3": 1.05 * volume, "volume_alpha_m3": volume,
-                          "volume_flags": "", "truth": np.arange(len(xy))})
+    table = pd.DataFrame(
+        {
+            "segment": np.arange(len(xy)),
+            "label": [f"L{i}" for i in range(len(xy))],
+            "row": np.repeat(np.arange(ROWS), PER_ROW),
+            "lat": lat,
+            "lon": lon,
+            "n_points": 1000,
+            "height_m": 3.0,
+            "crown_diameter_m": 3.5,
+            "volume_convex_hull_m3": 1.05 * volume,
+            "volume_alpha_m3": volume,
+            "volume_flags": "",
+            "truth": np.arange(len(xy)),
+        }
+    )
     return table.drop(index=list(absent)).reset_index(drop=True)
 
 
@@ -48,11 +68,15 @@ def record(sid, month):
 def three_visits(tmp_path):
     """Spring (first), summer (tree 7 gone, GNSS off by 1.4 m and 0.6°), autumn (replanted)."""
     store = OrchardStore(tmp_path / "orchard.duckdb")
-    tables = {"spring": visit(seed=1),
-              "summer": visit((1.2, -0.8), 0.6, absent=(7,), growth_factor=1.2, seed=2),
-              "autumn": visit((-0.9, 1.4), -0.5, young=(7,), growth_factor=1.4, seed=3)}
-    reports = {sid: store.ingest(record(sid, m), tables[sid])
-               for sid, m in (("spring", 4), ("summer", 6), ("autumn", 9))}
+    tables = {
+        "spring": visit(seed=1),
+        "summer": visit((1.2, -0.8), 0.6, absent=(7,), growth_factor=1.2, seed=2),
+        "autumn": visit((-0.9, 1.4), -0.5, young=(7,), growth_factor=1.4, seed=3),
+    }
+    reports = {
+        sid: store.ingest(record(sid, m), tables[sid])
+        for sid, m in (("spring", 4), ("summer", 6), ("autumn", 9))
+    }
     yield store, tables, reports
     store.close()
 
@@ -73,7 +97,9 @@ def test_trees_keep_their_ids_across_shifted_visits(three_visits):
 
 def test_removed_tree_is_missing_then_replaced(three_visits):
     store, _, reports = three_visits
-    old = store.one("SELECT tree_id FROM observations WHERE session_id = 'spring' AND segment = 7")[0]
+    old = store.one("SELECT tree_id FROM observations WHERE session_id = 'spring' AND segment = 7")[
+        0
+    ]
     assert reports["summer"].missing == [old] and reports["summer"].new == []
     assert len(reports["autumn"].replanted) == 1 and reports["autumn"].replanted[0][1] == old
     new = reports["autumn"].replanted[0][0]
@@ -106,8 +132,10 @@ def test_a_failed_ingest_leaves_the_store_as_it_was(three_visits, monkeypatch):
     import canopy_kit.store.db as db
 
     store, _, _ = three_visits
-    before = {t: store.query(f"SELECT * FROM {t} ORDER BY ALL") for t in ("sessions", "trees",
-                                                                          "observations", "volumes")}
+    before = {
+        t: store.query(f"SELECT * FROM {t} ORDER BY ALL")
+        for t in ("sessions", "trees", "observations", "volumes")
+    }
 
     def fail(stage):
         if stage == "volumes":
@@ -135,7 +163,9 @@ from test_store import record, visit
 db._FAULT = lambda stage: os._exit(9) if stage == "volumes" else None
 OrchardStore({str(path)!r}).ingest(record("summer", 6), visit(seed=2))
 """
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", script], check=False, capture_output=True, text=True
+    )
     assert proc.returncode == 9, proc.stderr
     with OrchardStore(path, read_only=True) as store:
         assert store.query("SELECT session_id FROM sessions")["session_id"].tolist() == ["spring"]
@@ -146,7 +176,9 @@ OrchardStore({str(path)!r}).ingest(record("summer", 6), visit(seed=2))
 def test_errors_name_the_store_and_session(tmp_path):
     with OrchardStore(tmp_path / "o.duckdb") as store:
         store.ingest(record("spring", 4), visit())
-        with pytest.raises(InputError, match=r"o\.duckdb: session 'spring' is already in the store"):
+        with pytest.raises(
+            InputError, match=r"o\.duckdb: session 'spring' is already in the store"
+        ):
             store.ingest(record("spring", 4), visit())
         no_gnss = visit().assign(lat=np.nan)
         with pytest.raises(InputError, match=r"session 'summer': trees without latitude/longitude"):
@@ -173,7 +205,9 @@ def test_a_store_cut_short_is_bad_input_naming_it(tmp_path):
         with OrchardStore(cut) as store:
             store.ingest(record("autumn", 9), visit(seed=9))
     result = run_cli("store", "growth", str(cut))
-    assert result.returncode == 2 and result.stderr.startswith(f"error: {cut}: the store is damaged"), result.stderr
+    assert result.returncode == 2 and result.stderr.startswith(
+        f"error: {cut}: the store is damaged"
+    ), result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
 
 

@@ -25,10 +25,20 @@ from canopy_kit.streaming.window import PointWindow
 def streamed(tiny_pistachio, tmp_path_factory):
     out = tmp_path_factory.mktemp("stream")
     cli = Path(sys.executable).with_name("canopy-kit")
-    proc = subprocess.run([str(cli), "run", str(tiny_pistachio.bag), "--out", str(out), "--stream"],
-                          check=False, capture_output=True, text=True, timeout=1800)
+    proc = subprocess.run(
+        [str(cli), "run", str(tiny_pistachio.bag), "--out", str(out), "--stream"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return proc.stdout, pd.read_csv(out / "trees.csv"), json.loads((out / "metrics.json").read_text()), out
+    return (
+        proc.stdout,
+        pd.read_csv(out / "trees.csv"),
+        json.loads((out / "metrics.json").read_text()),
+        out,
+    )
 
 
 @pytest.mark.slow
@@ -46,8 +56,15 @@ def test_stream_finds_the_batch_trees_with_volumes_within_2_percent(streamed, ti
     for col in methods:
         rel = (both[f"{col}_stream"] / both[f"{col}_batch"] - 1).abs()
         diffs[col] = float(rel.max())
-    print(json.dumps({"n_trees": len(stream), "max_volume_diff": diffs,
-                      "max_position_shift_m": float(shift.max())}))
+    print(
+        json.dumps(
+            {
+                "n_trees": len(stream),
+                "max_volume_diff": diffs,
+                "max_position_shift_m": float(shift.max()),
+            }
+        )
+    )
     # The mirror estimator places its plane from the points themselves (volume.partial),
     # so the centimetre-level differences between the streamed and the fused map move it
     # more: measured 2.6-3.5 % on this session for several mapping settings, the other

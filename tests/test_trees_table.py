@@ -29,8 +29,12 @@ def _ball_orchard(n_trees: int, seed: int = 0) -> tuple[PointCloud, np.ndarray, 
 
 def test_volumes_of_solid_balls_and_the_same_table_on_any_number_of_workers() -> None:
     cloud, labels, radii = _ball_orchard(9)
-    config = VolumeConfig(methods=["convex_hull", "alpha_shape"], params={"alpha_shape": {"alpha": 0.9}},
-                          voxel_size=0.1, workers=1)
+    config = VolumeConfig(
+        methods=["convex_hull", "alpha_shape"],
+        params={"alpha_shape": {"alpha": 0.9}},
+        voxel_size=0.1,
+        workers=1,
+    )
     one = measure_trees(cloud, labels, config)
     true = 4 / 3 * np.pi * radii**3
     # Thinned to 0.1 m, the hull of a filled ball of radius r loses about one spacing of radius.
@@ -44,11 +48,18 @@ def test_volumes_of_solid_balls_and_the_same_table_on_any_number_of_workers() ->
 
 def test_volume_voxel_size_zero_measures_every_point_and_bad_settings_are_named() -> None:
     cloud, labels, radii = _ball_orchard(2)
-    every = measure_trees(cloud, labels, VolumeConfig(methods=["convex_hull"], voxel_size=0.0, workers=1))
-    thinned = measure_trees(cloud, labels, VolumeConfig(methods=["convex_hull"], voxel_size=0.2, workers=1))
+    every = measure_trees(
+        cloud, labels, VolumeConfig(methods=["convex_hull"], voxel_size=0.0, workers=1)
+    )
+    thinned = measure_trees(
+        cloud, labels, VolumeConfig(methods=["convex_hull"], voxel_size=0.2, workers=1)
+    )
     true = 4 / 3 * np.pi * radii**3
     # Every point of the 0.05 m grid: closer to the true ball than the 0.2 m thinning.
-    assert np.all(np.abs(every["volume_convex_hull_m3"] - true) < np.abs(thinned["volume_convex_hull_m3"] - true))
+    assert np.all(
+        np.abs(every["volume_convex_hull_m3"] - true)
+        < np.abs(thinned["volume_convex_hull_m3"] - true)
+    )
     with pytest.raises(ConfigError, match="volume.voxel_size"):
         VolumeConfig(voxel_size=-1)
     with pytest.raises(ConfigError, match="volume.workers"):
@@ -58,7 +69,11 @@ def test_volume_voxel_size_zero_measures_every_point_and_bad_settings_are_named(
 def test_flagged_counts_trees_with_a_note_and_not_missing_values() -> None:
     from canopy_kit.tree_table import flagged
 
-    trees = pd.DataFrame({"volume_flags": ["", "hull of fewer than 4 points", None, np.nan],
-                          "tree_id": ["a", "b", "c", "d"]})
+    trees = pd.DataFrame(
+        {
+            "volume_flags": ["", "hull of fewer than 4 points", None, np.nan],
+            "tree_id": ["a", "b", "c", "d"],
+        }
+    )
     assert flagged(trees, "volume_flags").tolist() == [False, True, False, False]
     assert flagged(trees, "segment_flags").tolist() == [False] * 4  # no such column

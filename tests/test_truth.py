@@ -19,8 +19,21 @@ def _truth_folder(root):
     truth = truth_dir(root)
     truth.mkdir(parents=True)
     write_csv(pd.DataFrame([dict.fromkeys(TREE_COLUMNS, 1)]), truth / "trees.csv")
-    write_csv(pd.DataFrame({"time": [0.0, 1.0], "x": [0.0, 1.0], "y": 0.0, "z": 0.0, "qx": 0.0,
-                            "qy": 0.0, "qz": 0.0, "qw": 1.0}), truth / "trajectory.csv")
+    write_csv(
+        pd.DataFrame(
+            {
+                "time": [0.0, 1.0],
+                "x": [0.0, 1.0],
+                "y": 0.0,
+                "z": 0.0,
+                "qx": 0.0,
+                "qy": 0.0,
+                "qz": 0.0,
+                "qw": 1.0,
+            }
+        ),
+        truth / "trajectory.csv",
+    )
     frame = LocalFrame(32610, 500000.0, 4100000.0, 50.0)
     info = {"frame": frame.to_dict(), "sensor_frame": "lidar"}
     (truth / "frame.json").write_text(json.dumps(info))

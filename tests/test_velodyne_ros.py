@@ -60,7 +60,10 @@ def test_velodyne_msgs_definitions_are_the_drivers() -> None:
     store = get_typestore(Stores.ROS1_NOETIC)
     register_velodyne_types(store)
     assert store.generate_msgdef(VELODYNE_SCAN)[1] == "50804fc9533a0e579e6322c04ae70566"
-    assert store.generate_msgdef("velodyne_msgs/msg/VelodynePacket")[1] == "ae4f90a23256f44e82baa08dd45c3456"
+    assert (
+        store.generate_msgdef("velodyne_msgs/msg/VelodynePacket")[1]
+        == "ae4f90a23256f44e82baa08dd45c3456"
+    )
 
 
 # -- a synthetic VLP-16 sweep built from the manual --------------------------------------------
@@ -76,22 +79,40 @@ def room_sweep(first_counter: int = HOUR_US - 50_000, packets: int = 76, rate_hz
     spin = 2 * np.pi * rate_hz * 1e-6
     alpha = spin * (t_us - first_counter)  # clockwise seen from above, 0 along +x
     omega = np.deg2rad(MANUAL_ELEVATION[laser])
-    d = np.stack(np.broadcast_arrays(np.cos(omega) * np.cos(alpha), -np.cos(omega) * np.sin(alpha),
-                                     np.sin(omega)), axis=-1)
+    d = np.stack(
+        np.broadcast_arrays(
+            np.cos(omega) * np.cos(alpha), -np.cos(omega) * np.sin(alpha), np.sin(omega)
+        ),
+        axis=-1,
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
         t_wall = np.where(d != 0, np.where(d > 0, [2.0, 2.0, 1.2], [-2.0, -2.0, -1.0]) / d, np.inf)
     ranges = t_wall.min(axis=-1)
     hit = d * ranges[..., None]
-    window = (t_wall.argmin(axis=-1) == 0) & (d[..., 0] > 0) & (np.abs(hit[..., 1]) < 0.5) & (
-        hit[..., 2] > 0)
+    window = (
+        (t_wall.argmin(axis=-1) == 0)
+        & (d[..., 0] > 0)
+        & (np.abs(hit[..., 1]) < 0.5)
+        & (hit[..., 2] > 0)
+    )
     ranges[window] = 0.0
-    block_azimuth = np.rint(np.rad2deg(spin * (counter[:, None] + np.arange(12) * BLOCK_US
-                                               - first_counter)) * 100) % 36000
+    block_azimuth = (
+        np.rint(
+            np.rad2deg(spin * (counter[:, None] + np.arange(12) * BLOCK_US - first_counter)) * 100
+        )
+        % 36000
+    )
     reflectivity = np.broadcast_to((7 * laser + block) % 200, ranges.shape)
     data = encode_packets(counter, block_azimuth, ranges, reflectivity)
-    return {"stamps": HOUR0 + counter * 1e-6, "data": data, "time": HOUR0 + t_us * 1e-6,
-            "xyz": hit, "range": ranges, "laser": np.broadcast_to(laser, ranges.shape),
-            "reflectivity": reflectivity}
+    return {
+        "stamps": HOUR0 + counter * 1e-6,
+        "data": data,
+        "time": HOUR0 + t_us * 1e-6,
+        "xyz": hit,
+        "range": ranges,
+        "laser": np.broadcast_to(laser, ranges.shape),
+        "reflectivity": reflectivity,
+    }
 
 
 def test_synthetic_sweep_round_trip(tmp_path: Path) -> None:
@@ -106,7 +127,9 @@ def test_synthetic_sweep_round_trip(tmp_path: Path) -> None:
     assert error.max() < 0.002  # 1 mm range rounding, 0.005° azimuth rounding at 3 m
     assert np.abs(scan.times - sweep["time"].reshape(-1)[got]).max() < 1e-6
     assert scan.times[-1] - scan.times[0] > 0.05  # the sweep crosses the counter's restart
-    np.testing.assert_array_equal(scan.fields["ring"], RING_OF_LASER[sweep["laser"].reshape(-1)[got]])
+    np.testing.assert_array_equal(
+        scan.fields["ring"], RING_OF_LASER[sweep["laser"].reshape(-1)[got]]
+    )
     np.testing.assert_array_equal(scan.fields["intensity"], sweep["reflectivity"].reshape(-1)[got])
     assert scan.stamp == scan.times[0] and scan.frame_id == "velodyne"
     np.testing.assert_allclose(scan.fields["time"], scan.times - scan.stamp, atol=1e-6)
@@ -117,10 +140,14 @@ def write_pcap(path: Path, stamps: np.ndarray, payloads: list[bytes]) -> Path:
     records = [struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1)]
     for t, payload in zip(stamps, payloads, strict=True):
         udp = struct.pack(">HHHH", 2368, 2368, 8 + len(payload), 0) + payload
-        ip = struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, 0, 64, 17, 0, bytes(4), bytes(4))
+        ip = struct.pack(
+            ">BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, 0, 64, 17, 0, bytes(4), bytes(4)
+        )
         frame = bytes(12) + b"\x08\x00" + ip + udp
         usec = round(t * 1e6)
-        records.append(struct.pack("<IIII", usec // 1_000_000, usec % 1_000_000, len(frame), len(frame)))
+        records.append(
+            struct.pack("<IIII", usec // 1_000_000, usec % 1_000_000, len(frame), len(frame))
+        )
         records.append(frame)
     path.write_bytes(b"".join(records))
     return path
@@ -130,7 +157,9 @@ def test_pcap_and_bag_of_the_same_packets_agree_across_the_hour(tmp_path: Path) 
     """One decoder: the pcap reader and the VelodyneScan reader give the same returns (in their
     two frames), both counting on across the sensor counter's hourly restart."""
     sweep = room_sweep()
-    pcap = write_pcap(tmp_path / "room.pcap", sweep["stamps"], [bytes(row) for row in sweep["data"]])
+    pcap = write_pcap(
+        tmp_path / "room.pcap", sweep["stamps"], [bytes(row) for row in sweep["data"]]
+    )
     from_pcap = list(pcap_scans(pcap))
     times = np.concatenate([s.times for s in from_pcap])
     got = sweep["range"].reshape(-1) > 0
@@ -138,8 +167,9 @@ def test_pcap_and_bag_of_the_same_packets_agree_across_the_hour(tmp_path: Path) 
     assert np.concatenate([s.fields["timestamp_us"] for s in from_pcap]).max() < HOUR_US
     xyz = np.concatenate([s.xyz for s in from_pcap])
     from_bag = scan_from_packets(sweep["stamps"], sweep["data"].tobytes(), "velodyne", "room", 0)
-    np.testing.assert_allclose(from_bag.xyz, np.column_stack([xyz[:, 1], -xyz[:, 0], xyz[:, 2]]),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        from_bag.xyz, np.column_stack([xyz[:, 1], -xyz[:, 0], xyz[:, 2]]), atol=1e-9
+    )
     np.testing.assert_allclose(from_bag.times, times, atol=1e-6)
 
 
@@ -153,7 +183,7 @@ def capture(shared_data: Path) -> dict:
     pos, times, payloads = 24, [], []
     while pos + 16 <= len(raw):
         sec, usec, incl, _ = struct.unpack_from("<IIII", raw, pos)
-        frame = raw[pos + 16: pos + 16 + incl]
+        frame = raw[pos + 16 : pos + 16 + incl]
         pos += 16 + incl
         if incl == 14 + 20 + 8 + 1206 and struct.unpack(">H", frame[36:38])[0] == 2368:
             times.append(sec + usec * 1e-6)
@@ -162,7 +192,8 @@ def capture(shared_data: Path) -> dict:
     reference = list(pcap_scans(path))
     return {
         "capture": np.array(times),
-        "sensor": SAMPLE_HOUR + np.array([struct.unpack("<I", p[1200:1204])[0] for p in payloads]) * 1e-6,
+        "sensor": SAMPLE_HOUR
+        + np.array([struct.unpack("<I", p[1200:1204])[0] for p in payloads]) * 1e-6,
         "payloads": payloads,
         "xyz": np.concatenate([s.xyz for s in reference]),
         "times": np.concatenate([s.times for s in reference]),
@@ -174,23 +205,27 @@ def capture(shared_data: Path) -> dict:
 
 @pytest.mark.parametrize("fmt", ["ros1", "ros2-mcap"])
 @pytest.mark.parametrize("clock", ["capture", "sensor"])
-def test_real_capture_in_a_bag_decodes_as_the_pcap_reader(tmp_path: Path, capture: dict, fmt: str,
-                                                          clock: str) -> None:
+def test_real_capture_in_a_bag_decodes_as_the_pcap_reader(
+    tmp_path: Path, capture: dict, fmt: str, clock: str
+) -> None:
     """(b) The capture's packets, 76 to a message as the driver records them, stamped with the
     capture times (the driver's default) or the sensor's own clock (its gps_time mode)."""
     stamps, payloads = capture[clock], capture["payloads"]
-    messages = [(stamps[i:i + 76], payloads[i:i + 76]) for i in range(0, len(payloads), 76)]
+    messages = [(stamps[i : i + 76], payloads[i : i + 76]) for i in range(0, len(payloads), 76)]
     scans = read_scans(write_packet_bag(tmp_path / "capture", fmt, messages))
     assert len(scans) == len(messages) == 20
     xyz = np.concatenate([s.xyz for s in scans])
     assert len(xyz) == len(capture["xyz"]) == 403_495
     # the same returns in the same order: intensity, range, elevation, ring
-    np.testing.assert_array_equal(np.concatenate([s.fields["intensity"] for s in scans]),
-                                  capture["intensity"])
-    np.testing.assert_array_equal(np.concatenate([s.fields["ring"] for s in scans]),
-                                  RING_OF_LASER[capture["laser"]])
-    np.testing.assert_allclose(np.linalg.norm(xyz, axis=1), np.linalg.norm(capture["xyz"], axis=1),
-                               rtol=1e-12)
+    np.testing.assert_array_equal(
+        np.concatenate([s.fields["intensity"] for s in scans]), capture["intensity"]
+    )
+    np.testing.assert_array_equal(
+        np.concatenate([s.fields["ring"] for s in scans]), RING_OF_LASER[capture["laser"]]
+    )
+    np.testing.assert_allclose(
+        np.linalg.norm(xyz, axis=1), np.linalg.norm(capture["xyz"], axis=1), rtol=1e-12
+    )
     np.testing.assert_allclose(xyz[:, 2], capture["xyz"][:, 2], atol=1e-12)
     # REP 103 frame: VeloView's (x, y) is (-y, x) here
     ros = np.column_stack([capture["xyz"][:, 1], -capture["xyz"][:, 0], capture["xyz"][:, 2]])
@@ -201,8 +236,10 @@ def test_real_capture_in_a_bag_decodes_as_the_pcap_reader(tmp_path: Path, captur
     last = np.zeros(len(xyz), bool)
     step_change = 0.0
     for (_, packets_m), (_, following) in itertools.pairwise(messages):
-        before, final = struct.unpack_from("<H", packets_m[-1], 1002)[0], struct.unpack_from(
-            "<H", packets_m[-1], 1102)[0]
+        before, final = (
+            struct.unpack_from("<H", packets_m[-1], 1002)[0],
+            struct.unpack_from("<H", packets_m[-1], 1102)[0],
+        )
         after = struct.unpack_from("<H", following[0], 2)[0]
         step_change = max(step_change, abs((after - final) % 36000 - (final - before) % 36000))
         t0 = struct.unpack_from("<I", packets_m[-1], 1200)[0] + 11 * BLOCK_US
@@ -220,7 +257,7 @@ def test_real_capture_in_a_bag_decodes_as_the_pcap_reader(tmp_path: Path, captur
         assert 2.9 < clock_offset < 3.1
         start = 0
         for scan in scans:
-            diff = scan.times - capture["times"][start:start + len(scan)]
+            diff = scan.times - capture["times"][start : start + len(scan)]
             start += len(scan)
             assert np.ptp(diff) < 1e-6
             assert abs(np.median(diff) - clock_offset) < 0.001
@@ -255,7 +292,10 @@ def test_pointcloud2_is_preferred_and_a_named_velodyne_topic_is_read(tmp_path: P
     assert len(read_scans(w.path, TOPIC)[0]) == (sweep["range"] > 0).sum()
     facts = describe_path(w.path)
     assert facts["lidar_topic"] == "/velodyne_points"
-    assert {t["name"]: t["role"] for t in facts["topics"]} == {TOPIC: "lidar", "/velodyne_points": "lidar"}
+    assert {t["name"]: t["role"] for t in facts["topics"]} == {
+        TOPIC: "lidar",
+        "/velodyne_points": "lidar",
+    }
 
 
 def test_bag_of_packets_only_shows_its_lidar_topic(tmp_path: Path) -> None:
@@ -281,36 +321,60 @@ def test_no_lidar_topic_names_both_types(tmp_path: Path) -> None:
         w.write_imu("/imu", HOUR0, (0, 0, 0), (0, 0, 9.81))
     with open_bag(w.path) as bag, pytest.raises(InputError) as err:
         resolve_topics(bag)
-    assert "no sensor_msgs/msg/PointCloud2 topic (or velodyne_msgs/msg/VelodyneScan)" in str(err.value)
+    assert "no sensor_msgs/msg/PointCloud2 topic (or velodyne_msgs/msg/VelodyneScan)" in str(
+        err.value
+    )
     with open_bag(w.path) as bag, pytest.raises(InputError) as err:
         resolve_topics(bag, "/imu")
-    assert ("carries sensor_msgs/msg/Imu, expected sensor_msgs/msg/PointCloud2 (or "
-            "velodyne_msgs/msg/VelodyneScan)") in str(err.value)
+    assert (
+        "carries sensor_msgs/msg/Imu, expected sensor_msgs/msg/PointCloud2 (or "
+        "velodyne_msgs/msg/VelodyneScan)"
+    ) in str(err.value)
 
 
 # -- malformed packets ----------------------------------------------------------------------------
 def _three_messages() -> list[tuple[np.ndarray, list[bytes]]]:
     sweep = room_sweep(first_counter=1_000_000, packets=12)
     packets = [bytes(row) for row in sweep["data"]]
-    return [(sweep["stamps"][i:i + 4], packets[i:i + 4]) for i in (0, 4, 8)]
+    return [(sweep["stamps"][i : i + 4], packets[i : i + 4]) for i in (0, 4, 8)]
 
 
 def _corrupt(messages: list, packet: int, offset: int, value: bytes) -> list:
     stamps, packets = messages[1]
     bad = bytearray(packets[packet])
-    bad[offset:offset + len(value)] = value
-    return [messages[0], (stamps, packets[:packet] + [bytes(bad)] + packets[packet + 1:]), messages[2]]
+    bad[offset : offset + len(value)] = value
+    return [
+        messages[0],
+        (stamps, packets[:packet] + [bytes(bad)] + packets[packet + 1 :]),
+        messages[2],
+    ]
 
 
-@pytest.mark.parametrize(("packet", "offset", "value", "says"), [
-    (2, 1205, b"\x55", "packet 2: product byte 0x55 is not a sensor this decoder knows (VLP-16 0x22"),
-    (1, 4 * 100, b"\x12\x34", "packet 1, block 4 starts with bytes 12 34, not the block flag FF EE"),
-    (3, 1204, b"\x39", "packet 3: dual-return packets (return mode 0x39) are not decoded yet"),
-])
-def test_malformed_packet_is_a_clear_error(tmp_path: Path, packet: int, offset: int, value: bytes,
-                                           says: str) -> None:
+@pytest.mark.parametrize(
+    ("packet", "offset", "value", "says"),
+    [
+        (
+            2,
+            1205,
+            b"\x55",
+            "packet 2: product byte 0x55 is not a sensor this decoder knows (VLP-16 0x22",
+        ),
+        (
+            1,
+            4 * 100,
+            b"\x12\x34",
+            "packet 1, block 4 starts with bytes 12 34, not the block flag FF EE",
+        ),
+        (3, 1204, b"\x39", "packet 3: dual-return packets (return mode 0x39) are not decoded yet"),
+    ],
+)
+def test_malformed_packet_is_a_clear_error(
+    tmp_path: Path, packet: int, offset: int, value: bytes, says: str
+) -> None:
     """(d) The error names the bag, the topic, the message and the packet, and what is wrong."""
-    bag = write_packet_bag(tmp_path / "bad", "ros2-mcap", _corrupt(_three_messages(), packet, offset, value))
+    bag = write_packet_bag(
+        tmp_path / "bad", "ros2-mcap", _corrupt(_three_messages(), packet, offset, value)
+    )
     with pytest.raises(InputError) as err:
         read_scans(bag)
     # one of three messages unusable: more than the 20 % a topic may lose (a few would be dropped)
@@ -327,8 +391,11 @@ def test_packet_of_the_wrong_length_is_a_clear_error(tmp_path: Path) -> None:
     messages[1] = (stamps, packets[:3] + [packets[3][:1000]])
     with BagWriter(tmp_path / "fork", "ros1") as w:
         types = get_types_from_msg("time stamp\nuint8[] data\n", "velodyne_msgs/msg/VelodynePacket")
-        types.update(get_types_from_msg("std_msgs/Header header\nvelodyne_msgs/VelodynePacket[] packets\n",
-                                        VELODYNE_SCAN))
+        types.update(
+            get_types_from_msg(
+                "std_msgs/Header header\nvelodyne_msgs/VelodynePacket[] packets\n", VELODYNE_SCAN
+            )
+        )
         w.typestore.register(types)  # the bag's own definition, which the reader then uses
         for s, p in messages:
             w.write_velodyne_scan(TOPIC, s, p)
@@ -349,9 +416,14 @@ def _one_return(product: int, block: int, channel: int, raw_distance: int) -> by
     return bytes(packet)
 
 
-@pytest.mark.parametrize(("channel", "elevation", "azimuth_offset"), [
-    (0, -25.0, 1.4), (1, -1.0, -4.2), (31, -1.333, -1.4),
-])
+@pytest.mark.parametrize(
+    ("channel", "elevation", "azimuth_offset"),
+    [
+        (0, -25.0, 1.4),
+        (1, -1.0, -4.2),
+        (31, -1.333, -1.4),
+    ],
+)
 def test_vlp32c_return(channel: int, elevation: float, azimuth_offset: float) -> None:
     """VLP-32C manual: one firing per block (55.296 µs), lasers in pairs 2.304 µs apart, 4 mm
     range unit; elevations and azimuth offsets of VeloView's VLP-32c calibration (offset = -rotCorrection)."""
@@ -365,7 +437,9 @@ def test_vlp32c_return(channel: int, elevation: float, azimuth_offset: float) ->
     assert VLP32C.name == "VLP-32C"
 
 
-@pytest.mark.parametrize(("channel", "elevation"), [(0, -30.67), (1, -9.33), (15, 0.0), (31, 10.67)])
+@pytest.mark.parametrize(
+    ("channel", "elevation"), [(0, -30.67), (1, -9.33), (15, 0.0), (31, 10.67)]
+)
 def test_hdl32e_return(channel: int, elevation: float) -> None:
     """HDL-32E manual: 32 lasers per block fired 1.152 µs apart, blocks 46.08 µs apart, 2 mm unit;
     in the REP 103 frame the return lies along its azimuth, clockwise from +x."""
@@ -378,8 +452,11 @@ def test_hdl32e_return(channel: int, elevation: float) -> None:
     assert points["azimuth"][i] == pytest.approx(azimuth * 100)
     scan = scan_from_packets(np.array([HOUR0 + 1.0]), data, "velodyne", "HDL-32E", 0)
     a, e = np.deg2rad(azimuth), np.deg2rad(elevation)
-    np.testing.assert_allclose(scan.xyz[0], 10 * np.array([np.cos(e) * np.cos(a), -np.cos(e) * np.sin(a),
-                                                          np.sin(e)]), atol=1e-9)
+    np.testing.assert_allclose(
+        scan.xyz[0],
+        10 * np.array([np.cos(e) * np.cos(a), -np.cos(e) * np.sin(a), np.sin(e)]),
+        atol=1e-9,
+    )
     assert scan.fields["ring"][0] == np.argsort(np.argsort(HDL32E.elevation_deg))[channel]
 
 
@@ -392,9 +469,20 @@ def test_simulated_vlp16_fires_like_the_manual_and_decodes_onto_the_scene() -> N
     from canopy_kit.sim.lidar import SpinningLidar
     from canopy_kit.sim.session import build_world
 
-    cfg = load_sim_config("pistachio", {"seed": 5, "orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {
-        "output": "velodyne_packets", "range_noise": 0.0, "dropout": 0.0, "frame_id": "velodyne"}},
-        sensor="vlp16")
+    cfg = load_sim_config(
+        "pistachio",
+        {
+            "seed": 5,
+            "orchard": {"rows": 1, "trees_per_row": 2},
+            "lidar": {
+                "output": "velodyne_packets",
+                "range_noise": 0.0,
+                "dropout": 0.0,
+                "frame_id": "velodyne",
+            },
+        },
+        sensor="vlp16",
+    )
     _, trajectory, scene, rngs = build_world(cfg)
     lidar = SpinningLidar(cfg.lidar, scene, trajectory, rngs["lidar"])
     surfaces = scene.raycasting_scene()
@@ -405,8 +493,12 @@ def test_simulated_vlp16_fires_like_the_manual_and_decodes_onto_the_scene() -> N
         assert len(counters) in (75, 76)  # 754 packets per second, 10 turns
         assert set(np.diff(counters)) <= {1327, 1328}  # 24 firings of 55.296 µs
         assert packets.stamps[0] >= stamp and packets.stamps[0] - stamp < 0.0014
-        assert set(bytes(packets.data[:, 1204])) == {0x37} and set(bytes(packets.data[:, 1205])) == {0x22}
-        azimuth = packets.data[:, :1200].reshape(-1, 12, 100)[:, :, 2:4].copy().view("<u2").reshape(-1)
+        assert set(bytes(packets.data[:, 1204])) == {0x37} and set(
+            bytes(packets.data[:, 1205])
+        ) == {0x22}
+        azimuth = (
+            packets.data[:, :1200].reshape(-1, 12, 100)[:, :, 2:4].copy().view("<u2").reshape(-1)
+        )
         steps = np.diff(azimuth.astype(int)) % 36000  # 3600°/s x 110.592 µs = 0.398°, in 0.01°
         assert set(steps) <= {39, 40, 41} and abs(steps.mean() - 39.81) < 0.05  # ± integer µs times
         scan = scan_from_packets(packets.stamps, packets.data.tobytes(), "velodyne", "sim", 0)
@@ -419,7 +511,10 @@ def test_simulated_vlp16_fires_like_the_manual_and_decodes_onto_the_scene() -> N
 
 def test_simulator_vlp16_settings_are_checked() -> None:
     cfg = load_sim_config("pistachio", {"lidar": {"output": "velodyne_packets"}}, sensor="vlp16")
-    assert (cfg.lidar.output, cfg.lidar.firing) == ("velodyne_packets", "columns")  # packets imply vlp16
+    assert (cfg.lidar.output, cfg.lidar.firing) == (
+        "velodyne_packets",
+        "columns",
+    )  # packets imply vlp16
     with pytest.raises(ConfigError, match="lidar.rate_hz: a VLP-16 turns at 5-20 Hz"):
         load_sim_config("pistachio", {"lidar": {"firing": "vlp16", "rate_hz": 25.0}})
     with pytest.raises(ConfigError, match="lidar.max_range"):
@@ -436,8 +531,15 @@ def twin_maps(tmp_path_factory) -> dict:
 
     out = {}
     for output in ("velodyne_packets", "points"):
-        cfg = load_sim_config("pistachio", {"seed": 23, "orchard": {"rows": 1, "trees_per_row": 3},
-                                            "lidar": {"firing": "vlp16", "output": output}}, sensor="vlp16")
+        cfg = load_sim_config(
+            "pistachio",
+            {
+                "seed": 23,
+                "orchard": {"rows": 1, "trees_per_row": 3},
+                "lidar": {"firing": "vlp16", "output": output},
+            },
+            sensor="vlp16",
+        )
         sim = simulate_session(tmp_path_factory.mktemp(output) / "s", cfg)
         result = build_map(sim.bag, MappingConfig())
         out[output] = (sim, result, evaluate_against_simulation(result, sim.root))

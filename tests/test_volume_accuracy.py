@@ -60,9 +60,12 @@ def test_the_report_names_the_estimator_and_shows_its_interval(tiny_pistachio_ru
     assert np.all(trees["volume_low_m3"] <= trees["volume_adaptive_alpha_m3"])
 
 
-MATRIX_SESSION = {"orchard": {"rows": 2, "trees_per_row": 2},
-                  "lidar": {"columns": 512, "rings": 16},
-                  "imu": {"enabled": False}, "gnss": {"enabled": False}}
+MATRIX_SESSION = {
+    "orchard": {"rows": 2, "trees_per_row": 2},
+    "lidar": {"columns": 512, "rings": 16},
+    "imu": {"enabled": False},
+    "gnss": {"enabled": False},
+}
 
 
 @pytest.mark.slow
@@ -80,8 +83,12 @@ def test_recommended_estimator_on_trees_the_pipeline_segments(sim_factory) -> No
     recommended = config.volume.recommended
     covered = []
     for form in FORM_NAMES:
-        session = sim_factory("pistachio", fmt="ros1", seed=451,
-                              overrides=merge(MATRIX_SESSION, {"orchard": {"crown_form": form}}))
+        session = sim_factory(
+            "pistachio",
+            fmt="ros1",
+            seed=451,
+            overrides=merge(MATRIX_SESSION, {"orchard": {"crown_form": form}}),
+        )
         errors, score = segmented_volume_errors(session.root, config, [recommended])
         # sparse young trees are the hard case for segmentation too (measured 3 of 4)
         assert score.n_truth == 4 and score.n_correct >= (3 if form == "sparse" else 4), form

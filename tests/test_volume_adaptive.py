@@ -21,11 +21,15 @@ def jittered_grid(inside, lo: float, hi: float, seed: int = 0) -> np.ndarray:
 
 
 def ball(r: float = 1.5):
-    return jittered_grid(lambda p: np.linalg.norm(p, axis=1) <= r, -r - 0.1, r + 0.1), 4 / 3 * np.pi * r**3
+    return jittered_grid(
+        lambda p: np.linalg.norm(p, axis=1) <= r, -r - 0.1, r + 0.1
+    ), 4 / 3 * np.pi * r**3
 
 
 def cube(a: float = 2.0):
-    return jittered_grid(lambda p: (np.abs(p) <= a / 2).all(axis=1), -a / 2 - 0.1, a / 2 + 0.1), a**3
+    return jittered_grid(
+        lambda p: (np.abs(p) <= a / 2).all(axis=1), -a / 2 - 0.1, a / 2 + 0.1
+    ), a**3
 
 
 def hollow_ball(r_in: float = 1.0, r_out: float = 2.0):
@@ -37,8 +41,11 @@ def hollow_ball(r_in: float = 1.0, r_out: float = 2.0):
 
 def l_shape():
     """Two 3 × 1 × 1 m boxes in an L (a concave solid of 5 m³)."""
-    inside = lambda p: (((p[:, 0] <= 3) & (p[:, 1] <= 1)) | ((p[:, 0] <= 1) & (p[:, 1] <= 3))) & (  # noqa: E731
-        (p[:, :2] >= 0).all(axis=1)) & (p[:, 2] >= 0) & (p[:, 2] <= 1)
+
+    def inside(p: np.ndarray) -> np.ndarray:
+        in_l = ((p[:, 0] <= 3) & (p[:, 1] <= 1)) | ((p[:, 0] <= 1) & (p[:, 1] <= 3))
+        return in_l & (p[:, :2] >= 0).all(axis=1) & (p[:, 2] >= 0) & (p[:, 2] <= 1)
+
     return jittered_grid(inside, -0.05, 3.05), 5.0
 
 
@@ -83,7 +90,8 @@ def test_closed_voids_are_filled_and_open_hollows_are_not() -> None:
     open_hollow = estimate_volume(bowl, "adaptive_alpha")
     assert open_hollow.extra["void_m3"] == 0.0
     assert open_hollow.volume_m3 == pytest.approx(
-        estimate_volume(bowl, "adaptive_alpha", fill_voids=False).volume_m3)
+        estimate_volume(bowl, "adaptive_alpha", fill_voids=False).volume_m3
+    )
 
 
 def test_alpha_follows_the_point_spacing() -> None:
@@ -119,8 +127,12 @@ def test_one_sided_and_sparse_crowns_widen_the_interval() -> None:
     assert volume_interval(pts, true, "slices") is None  # no calibration: no interval
 
 
-FORM_SESSION = {"orchard": {"rows": 1, "trees_per_row": 3}, "lidar": {"columns": 512, "rings": 16},
-                "imu": {"enabled": False}, "gnss": {"enabled": False}}
+FORM_SESSION = {
+    "orchard": {"rows": 1, "trees_per_row": 3},
+    "lidar": {"columns": 512, "rings": 16},
+    "imu": {"enabled": False},
+    "gnss": {"enabled": False},
+}
 
 
 @pytest.mark.slow
@@ -137,9 +149,15 @@ def test_interval_covers_the_true_volume_on_two_crown_forms(sim_factory) -> None
 
     inside, errors = [], []
     for form in ("lobed", "vase"):
-        session = sim_factory("pistachio", fmt="ros1", seed=431,
-                              overrides=merge(FORM_SESSION, {"orchard": {"crown_form": form}}))
-        trees = simulated_trees(session.root, reference_map=truth_map(session.root, voxel_size=0.05))
+        session = sim_factory(
+            "pistachio",
+            fmt="ros1",
+            seed=431,
+            overrides=merge(FORM_SESSION, {"orchard": {"crown_form": form}}),
+        )
+        trees = simulated_trees(
+            session.root, reference_map=truth_map(session.root, voxel_size=0.05)
+        )
         assert len(trees) == 3
         for tree in trees:
             for xyz in (tree.complete, *tree.sides.values()):
@@ -166,7 +184,10 @@ def test_real_trees_are_ordered_hull_alpha_shell(shared_data, name: str) -> None
     from canopy_kit.voxel import voxel_downsample
 
     xyz = voxel_downsample(read_cloud(shared_data / "real_trees" / name), 0.1).xyz
-    vol = {m: estimate_volume(xyz, m) for m in ("convex_hull", "alpha_shape", "adaptive_alpha", "voxel")}
+    vol = {
+        m: estimate_volume(xyz, m)
+        for m in ("convex_hull", "alpha_shape", "adaptive_alpha", "voxel")
+    }
     assert all(r.valid for r in vol.values()), {m: r.reason for m, r in vol.items()}
     v = {m: r.volume_m3 for m, r in vol.items()}
     assert v["convex_hull"] >= v["adaptive_alpha"] >= v["voxel"] > 0, v
@@ -183,8 +204,8 @@ def test_the_table_bounds_the_recommended_estimator() -> None:
     from canopy_kit.cloud import PointCloud
     from canopy_kit.config import VolumeConfig, load_preset
     from canopy_kit.errors import ConfigError
-    from canopy_kit.volume.verb import measure_trees
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS
+    from canopy_kit.volume.verb import measure_trees
 
     pts, true = ball()
     half = pts[pts[:, 0] > 0.3] + [6.0, 0.0, 0.0]

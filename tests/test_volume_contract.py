@@ -16,8 +16,16 @@ from canopy_kit.errors import ConfigError, InputError, PluginError
 from canopy_kit.volume import VolumeResult, estimate_volume, estimator, sphere_volume, tree_metrics
 from canopy_kit.volume.base import VolumeEstimator
 
-BUILT_IN = {"convex_hull", "alpha_shape", "alpha_hull", "alpha_auto", "adaptive_alpha", "voxel", "slices",
-            "mirror"}
+BUILT_IN = {
+    "convex_hull",
+    "alpha_shape",
+    "alpha_hull",
+    "alpha_auto",
+    "adaptive_alpha",
+    "voxel",
+    "slices",
+    "mirror",
+}
 
 
 def blob(n: int = 3000, seed: int = 0) -> np.ndarray:
@@ -33,10 +41,15 @@ DEGENERATE = {
     "three points": (np.eye(3), "too few points: 3"),
     "identical": (np.ones((10, 3)), "all 10 points are identical"),
     "collinear": (np.outer(np.arange(20.0), [1.0, 2.0, 0.5]), "all 20 points are collinear"),
-    "coplanar": (np.column_stack([np.random.default_rng(1).uniform(0, 3, (50, 2)),
-                                  np.full(50, 1.7)]), "all 50 points are coplanar"),
-    "tilted plane": (np.random.default_rng(2).uniform(0, 3, (60, 2)) @ [[1.0, 0, 0.3], [0, 1, -0.2]]
-                     + [5e5, 4e6, 90.0], "all 60 points are coplanar"),
+    "coplanar": (
+        np.column_stack([np.random.default_rng(1).uniform(0, 3, (50, 2)), np.full(50, 1.7)]),
+        "all 50 points are coplanar",
+    ),
+    "tilted plane": (
+        np.random.default_rng(2).uniform(0, 3, (60, 2)) @ [[1.0, 0, 0.3], [0, 1, -0.2]]
+        + [5e5, 4e6, 90.0],
+        "all 60 points are coplanar",
+    ),
 }
 
 
@@ -85,8 +98,11 @@ def test_non_finite_coordinates_are_refused_by_name(name: str) -> None:
     pts = blob(200)
     pts[17, 1] = np.nan
     pts[150, 2] = np.inf
-    with pytest.raises(InputError, match=r"xyz: 2 of 200 points have NaN or infinite "
-                                          r"coordinates \(first at row 17\)"):
+    with pytest.raises(
+        InputError,
+        match=r"xyz: 2 of 200 points have NaN or infinite "
+        r"coordinates \(first at row 17\)",
+    ):
         plugins.load("volumes", name)()(pts)
 
 
@@ -98,7 +114,9 @@ def test_wrong_shapes_are_refused(bad: object) -> None:
 
 def test_init_does_no_work_and_bad_parameters_name_themselves() -> None:
     est = estimator("alpha_shape", alpha=-1.0)  # constructing never fails...
-    with pytest.raises(ConfigError, match=r"^alpha_shape: alpha must be a positive number, got -1.0"):
+    with pytest.raises(
+        ConfigError, match=r"^alpha_shape: alpha must be a positive number, got -1.0"
+    ):
         est(blob())  # ...calling checks
     with pytest.raises(ConfigError, match=r"^slices: area must be one of \['hull', 'alpha'\]"):
         estimate_volume(blob(), "slices", area="circle")
@@ -106,7 +124,9 @@ def test_init_does_no_work_and_bad_parameters_name_themselves() -> None:
         estimate_volume(blob(), "alpha_hull", grid_step=0)
     with pytest.raises(ConfigError, match=r"^mirror: plane_point must be two finite numbers"):
         estimate_volume(blob(), "mirror", plane_point=(1.0, np.nan))
-    with pytest.raises(ConfigError, match=r"^voxel: voxel_size must be a positive number, got True"):
+    with pytest.raises(
+        ConfigError, match=r"^voxel: voxel_size must be a positive number, got True"
+    ):
         estimate_volume(blob(), "voxel", voxel_size=True)
     with pytest.raises(ConfigError, match=r"^adaptive_alpha: offset_factor must be a number >= 0"):
         estimate_volume(blob(), "adaptive_alpha", offset_factor=-0.1)
@@ -121,8 +141,11 @@ def test_the_verb_loads_plugins_by_name() -> None:
     assert estimate_volume(pts, "alpha_shape", alpha=1.5).params == {"alpha": 1.5}
     with pytest.raises(PluginError, match=r"no volumes plugin named 'sphere' \(registered: "):
         estimate_volume(pts, "sphere")
-    with pytest.raises(ConfigError, match=r"volume method 'voxel' has no parameter 'alpha' "
-                                          r"\(parameters: voxel_size, fill_holes\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"volume method 'voxel' has no parameter 'alpha' "
+        r"\(parameters: voxel_size, fill_holes\)",
+    ):
         estimate_volume(pts, "voxel", alpha=0.9)
 
 
@@ -132,7 +155,9 @@ def test_alpha_methods_order_between_nothing_and_the_hull() -> None:
     for alpha in (0.3, 0.9, 3.0):
         assert 0 < estimate_volume(pts, "alpha_shape", alpha=alpha).volume_m3 <= hull * (1 + 1e-9)
     # a huge α keeps every tetrahedron but flat hull slivers: the convex hull
-    assert estimate_volume(pts, "alpha_shape", alpha=100.0).volume_m3 == pytest.approx(hull, rel=1e-5)
+    assert estimate_volume(pts, "alpha_shape", alpha=100.0).volume_m3 == pytest.approx(
+        hull, rel=1e-5
+    )
     assert estimate_volume(pts, "alpha_hull", alpha=8.0).volume_m3 == pytest.approx(hull, rel=0.02)
 
 
@@ -201,8 +226,11 @@ def test_sphere_volume() -> None:
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     script = Path(sys.executable).with_name("canopy-kit")
-    cmd = [str(script)] if script.exists() else [sys.executable, "-c",
-                                                  "from canopy_kit.cli import main; main()"]
+    cmd = (
+        [str(script)]
+        if script.exists()
+        else [sys.executable, "-c", "from canopy_kit.cli import main; main()"]
+    )
     return subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=120, check=False)
 
 

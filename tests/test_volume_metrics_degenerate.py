@@ -56,7 +56,9 @@ def test_a_tree_in_one_vertical_plane_is_measured_in_linear_memory():
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    assert m.crown_diameter_max_m == pytest.approx(np.hypot(x.max() - x.min(), 0.5 * (x.max() - x.min())))
+    assert m.crown_diameter_max_m == pytest.approx(
+        np.hypot(x.max() - x.min(), 0.5 * (x.max() - x.min()))
+    )
     assert m.height_m == pytest.approx(xyz[:, 2].max() - xyz[:, 2].min())
     assert peak < 64 * 2**20, f"{peak / 2**20:.0f} MiB for {n} points"  # the points are 0.7 MiB
 

@@ -26,8 +26,9 @@ def crown(seed: int = 0, n: int = 20000) -> tuple[np.ndarray, np.ndarray]:
     return pts, normal / np.linalg.norm(normal, axis=1, keepdims=True)
 
 
-def one_sided(pts: np.ndarray, normal: np.ndarray, alley_y: float = -4.0,
-              sensor_z: float = 1.5) -> np.ndarray:
+def one_sided(
+    pts: np.ndarray, normal: np.ndarray, alley_y: float = -4.0, sensor_z: float = 1.5
+) -> np.ndarray:
     """Points whose surface faces a sensor driving along the line y = alley_y, z = sensor_z."""
     sensor = np.column_stack([pts[:, 0], np.full(len(pts), alley_y), np.full(len(pts), sensor_z)])
     return pts[((sensor - pts) * normal).sum(axis=1) > 0]
@@ -78,8 +79,9 @@ def test_estimated_plane_lies_behind_the_seen_face() -> None:
 def test_mirror_on_a_complete_scan_is_close_to_the_hull() -> None:
     pts, _ = crown(seed=3)
     hull = error(pts, "convex_hull")
-    assert error(pts, "mirror", plane_point=(0.0, 0.0), plane_normal=(0.0, 1.0)) == \
-        pytest.approx(hull, abs=0.03)
+    assert error(pts, "mirror", plane_point=(0.0, 0.0), plane_normal=(0.0, 1.0)) == pytest.approx(
+        hull, abs=0.03
+    )
     # the automatic rule assumes a round crown (across = along): this one is 10 % narrower
     assert 0 < error(pts, "mirror") - hull < 0.15
 
@@ -87,8 +89,12 @@ def test_mirror_on_a_complete_scan_is_close_to_the_hull() -> None:
 def test_mirror_plane_reflects() -> None:
     plane = MirrorPlane(np.array([1.0, 0.0]), np.array([1.0, 0.0]))
     np.testing.assert_allclose(plane.reflect(np.array([[3.0, 2.0, 5.0]])), [[-1.0, 2.0, 5.0]])
-    result = estimate_volume(np.random.default_rng(0).uniform(0, 1, (3000, 3)), "mirror",
-                             plane_point=(0.0, 0.0), plane_normal=(1.0, 0.0))
+    result = estimate_volume(
+        np.random.default_rng(0).uniform(0, 1, (3000, 3)),
+        "mirror",
+        plane_point=(0.0, 0.0),
+        plane_normal=(1.0, 0.0),
+    )
     assert result.extra["plane_normal"] == [1.0, 0.0] and result.extra["plane_point"] == [0.0, 0.0]
     # mirrored across x = 0, the unit cube of points becomes a 2 x 1 x 1 box
     assert result.volume_m3 == pytest.approx(2.0, rel=0.05)

@@ -19,7 +19,9 @@ def ball(n: int, radius: float, seed: int = 0) -> np.ndarray:
 def sphere_surface(n: int, radius: float, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
-    return d / np.linalg.norm(d, axis=1, keepdims=True) * radius + rng.normal(scale=1e-3, size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True) * radius + rng.normal(
+        scale=1e-3, size=(n, 3)
+    )
 
 
 def test_curve_is_the_exact_alpha_volume_at_every_alpha() -> None:
@@ -29,7 +31,9 @@ def test_curve_is_the_exact_alpha_volume_at_every_alpha() -> None:
     assert np.all(np.diff(curve.volumes) >= 0)
     for a, v in zip(alphas, curve.volumes):
         assert v == pytest.approx(estimate_volume(pts, "alpha_shape", alpha=a).volume_m3, rel=1e-12)
-    assert curve.hull_volume == pytest.approx(estimate_volume(pts, "convex_hull").volume_m3, rel=1e-9)
+    assert curve.hull_volume == pytest.approx(
+        estimate_volume(pts, "convex_hull").volume_m3, rel=1e-9
+    )
     assert curve.as_dict()["alphas"] == alphas
 
 
@@ -39,8 +43,9 @@ def test_curve_refuses_bad_alphas_and_degenerate_points() -> None:
     with pytest.raises(ConfigError, match="alphas: expected positive finite values"):
         alpha_curve(ball(100, 1.0), [])
     with pytest.raises(InputError, match="xyz: no alpha curve: all 30 points are coplanar"):
-        alpha_curve(np.column_stack([np.random.default_rng(0).uniform(size=(30, 2)), np.zeros(30)]),
-                    [1.0])
+        alpha_curve(
+            np.column_stack([np.random.default_rng(0).uniform(size=(30, 2)), np.zeros(30)]), [1.0]
+        )
 
 
 def test_auto_alpha_on_a_solid_crown_is_a_few_spacings() -> None:

@@ -81,8 +81,12 @@ def _union_surface(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def _l_surface(rng: np.random.Generator, n: int) -> np.ndarray:
     lo = np.zeros(3)
-    p = np.concatenate([_box_surface(rng, 2 * n, lo, np.array([3.0, 1, 1])),
-                        _box_surface(rng, 2 * n, lo, np.array([1.0, 1, 3]))])
+    p = np.concatenate(
+        [
+            _box_surface(rng, 2 * n, lo, np.array([3.0, 1, 1])),
+            _box_surface(rng, 2 * n, lo, np.array([1.0, 1, 3])),
+        ]
+    )
     # drop the parts of each box's faces that lie inside the other box
     hidden = ((p[:, 0] < 1) & (np.isclose(p[:, 2], 1))) | ((p[:, 2] < 1) & (np.isclose(p[:, 0], 1)))
     p = p[~hidden]
@@ -90,21 +94,52 @@ def _l_surface(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 SHAPES: dict[str, Shape] = {
-    "cube": Shape(8.0, (-1, -1, -1), (1, 1, 1), lambda p: np.ones(len(p), bool), _cube_surface,
-                  True, 0.9, 1.5),
-    "sphere": Shape(4 / 3 * np.pi * R_SPHERE**3, (-R_SPHERE,) * 3, (R_SPHERE,) * 3,
-                    lambda p: np.linalg.norm(p, axis=1) <= R_SPHERE,
-                    lambda rng, n: R_SPHERE * _unit(rng, n), True, 0.9, 2.0),
-    "ellipsoid": Shape(4 / 3 * np.pi * ELLIPSOID.prod(), tuple(-ELLIPSOID), tuple(ELLIPSOID),
-                       lambda p: np.linalg.norm(p / ELLIPSOID, axis=1) <= 1,
-                       lambda rng, n: ELLIPSOID * _unit(rng, n), True, 0.9, 3.0),
-    "two_spheres": Shape(2 * 4 / 3 * np.pi - lens_volume(1.0, 2 * UNION_OFFSET),
-                         (-1.75, -1, -1), (1.75, 1, 1),
-                         lambda p: (np.linalg.norm(p - [UNION_OFFSET, 0, 0], axis=1) <= 1)
-                         | (np.linalg.norm(p + [UNION_OFFSET, 0, 0], axis=1) <= 1),
-                         _union_surface, False, 0.7, 1.05),
-    "l_shape": Shape(5.0, (0, 0, 0), (3, 1, 3), lambda p: (p[:, 2] <= 1) | (p[:, 0] <= 1),
-                     _l_surface, False, 0.7, 0.6),
+    "cube": Shape(
+        8.0, (-1, -1, -1), (1, 1, 1), lambda p: np.ones(len(p), bool), _cube_surface, True, 0.9, 1.5
+    ),
+    "sphere": Shape(
+        4 / 3 * np.pi * R_SPHERE**3,
+        (-R_SPHERE,) * 3,
+        (R_SPHERE,) * 3,
+        lambda p: np.linalg.norm(p, axis=1) <= R_SPHERE,
+        lambda rng, n: R_SPHERE * _unit(rng, n),
+        True,
+        0.9,
+        2.0,
+    ),
+    "ellipsoid": Shape(
+        4 / 3 * np.pi * ELLIPSOID.prod(),
+        tuple(-ELLIPSOID),
+        tuple(ELLIPSOID),
+        lambda p: np.linalg.norm(p / ELLIPSOID, axis=1) <= 1,
+        lambda rng, n: ELLIPSOID * _unit(rng, n),
+        True,
+        0.9,
+        3.0,
+    ),
+    "two_spheres": Shape(
+        2 * 4 / 3 * np.pi - lens_volume(1.0, 2 * UNION_OFFSET),
+        (-1.75, -1, -1),
+        (1.75, 1, 1),
+        lambda p: (
+            (np.linalg.norm(p - [UNION_OFFSET, 0, 0], axis=1) <= 1)
+            | (np.linalg.norm(p + [UNION_OFFSET, 0, 0], axis=1) <= 1)
+        ),
+        _union_surface,
+        False,
+        0.7,
+        1.05,
+    ),
+    "l_shape": Shape(
+        5.0,
+        (0, 0, 0),
+        (3, 1, 3),
+        lambda p: (p[:, 2] <= 1) | (p[:, 0] <= 1),
+        _l_surface,
+        False,
+        0.7,
+        0.6,
+    ),
 }
 DENSITIES = (1000, 4000, 16000)
 
@@ -225,8 +260,10 @@ def test_fast_alpha_hull_depends_little_on_the_grid_step() -> None:
     # Finer grids resolve the bites between boundary points (smaller), coarser ones add a
     # curvature bias of about h²/(4ρ²) (larger): a few % across a 3× range of steps.
     pts = SHAPES["ellipsoid"].filled(np.random.default_rng(6), 8000)
-    volumes = [estimate_volume(pts, "alpha_hull", alpha=0.9, grid_step=h).volume_m3
-               for h in (0.3, 0.225, 0.15, 0.1)]
+    volumes = [
+        estimate_volume(pts, "alpha_hull", alpha=0.9, grid_step=h).volume_m3
+        for h in (0.3, 0.225, 0.15, 0.1)
+    ]
     assert np.ptp(volumes) < 0.035 * np.mean(volumes), volumes
 
 
@@ -235,12 +272,17 @@ def test_hull_mesh_is_the_hull_by_its_corners() -> None:
 
     rng = np.random.default_rng(3)
     cube = np.array([[x, y, z] for x in (0, 2) for y in (0, 3) for z in (0, 1)], float)
-    xyz = np.vstack([cube + [400000.0, 4000000.0, 0.0],
-                     rng.uniform(0.1, 0.9, (5000, 3)) * [2, 3, 1] + [400000.0, 4000000.0, 0.0]])
+    xyz = np.vstack(
+        [
+            cube + [400000.0, 4000000.0, 0.0],
+            rng.uniform(0.1, 0.9, (5000, 3)) * [2, 3, 1] + [400000.0, 4000000.0, 0.0],
+        ]
+    )
     corners, faces = hull_mesh(xyz)
     assert len(corners) == 8 and faces.min() == 0 and faces.max() == 7
-    np.testing.assert_allclose(np.sort(corners - corners.min(axis=0), axis=0),
-                               np.sort(cube, axis=0))
+    np.testing.assert_allclose(
+        np.sort(corners - corners.min(axis=0), axis=0), np.sort(cube, axis=0)
+    )
     # The triangles close the hull: the tetrahedra from its centre to them fill its volume.
     tri = (corners - corners.mean(axis=0))[faces]
     volume = np.abs(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))).sum() / 6

@@ -23,8 +23,17 @@ from canopy_kit.volume.verb import (
     volume_methods,
 )
 
-MEASURED = ["x", "y", "n_points", "height_m", "crown_diameter_m", "projected_area_m2",
-            "sphere_volume_m3", "volume_low_m3", "volume_high_m3"]
+MEASURED = [
+    "x",
+    "y",
+    "n_points",
+    "height_m",
+    "crown_diameter_m",
+    "projected_area_m2",
+    "sphere_volume_m3",
+    "volume_low_m3",
+    "volume_high_m3",
+]
 
 
 def _blobs(n_trees: int, seed: int = 0) -> tuple[PointCloud, np.ndarray]:
@@ -41,8 +50,9 @@ def _blobs(n_trees: int, seed: int = 0) -> tuple[PointCloud, np.ndarray]:
 def _assert_same(row: dict, expected: pd.Series, columns: list[str]) -> None:
     for col in columns:
         got, want = float(row[col]), float(expected[col])
-        assert (np.isnan(got) and np.isnan(want)) or got == pytest.approx(want, rel=1e-9,
-                                                                         abs=1e-12), col
+        assert (np.isnan(got) and np.isnan(want)) or got == pytest.approx(
+            want, rel=1e-9, abs=1e-12
+        ), col
 
 
 def test_volume_column_names_the_paper_estimators_and_any_plugin() -> None:
@@ -50,7 +60,10 @@ def test_volume_column_names_the_paper_estimators_and_any_plugin() -> None:
     assert volume_column("convex_hull") == verb.CONVEX_HULL_COLUMN == "volume_convex_hull_m3"
     assert volume_column("slices") == "volume_slices_m3"
     assert volume_methods(VolumeConfig(recommended="adaptive_alpha")) == [
-        "convex_hull", "alpha_shape", "adaptive_alpha"]
+        "convex_hull",
+        "alpha_shape",
+        "adaptive_alpha",
+    ]
 
 
 def test_measure_tree_gives_the_table_row_of_that_tree() -> None:
@@ -68,8 +81,9 @@ def test_tree_points_are_on_the_map_laz_grid() -> None:
     from canopy_kit.io.las_write import on_las_grid
 
     cloud, labels = _blobs(2)
-    np.testing.assert_array_equal(tree_points(cloud, labels, 1),
-                                  on_las_grid(cloud).xyz[labels == 1])
+    np.testing.assert_array_equal(
+        tree_points(cloud, labels, 1), on_las_grid(cloud).xyz[labels == 1]
+    )
 
 
 def test_estimators_are_built_once_per_table(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -118,18 +132,29 @@ def test_the_notebook_code_path_gives_trees_csv_numbers(run_context, tiny_pistac
 
 
 @pytest.mark.slow
-def test_the_volumes_notebook_shows_trees_csv_numbers(monkeypatch, tiny_pistachio,
-                                                      tiny_pistachio_run) -> None:
+def test_the_volumes_notebook_shows_trees_csv_numbers(
+    monkeypatch, tiny_pistachio, tiny_pistachio_run
+) -> None:
     """The notebook run in this process (marimo's ``app.run``): its first tree's volumes."""
     import importlib.util
 
     import matplotlib
 
     matplotlib.use("Agg")
-    monkeypatch.setattr(sys, "argv", ["volumes.py", "--session", str(tiny_pistachio.root),
-                                      "--run", str(tiny_pistachio_run.out_dir)])
-    spec = importlib.util.spec_from_file_location("volumes_notebook",
-                                                  REPO / "notebooks" / "volumes.py")
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "volumes.py",
+            "--session",
+            str(tiny_pistachio.root),
+            "--run",
+            str(tiny_pistachio_run.out_dir),
+        ],
+    )
+    spec = importlib.util.spec_from_file_location(
+        "volumes_notebook", REPO / "notebooks" / "volumes.py"
+    )
     notebook = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(notebook)
     _, defs = notebook.app.run()

@@ -34,8 +34,11 @@ def _show_version(value: bool) -> None:
 
 
 @app.callback()
-def _options(version: bool = typer.Option(False, "--version", callback=_show_version, is_eager=True,
-                                          help="Print the version and exit")) -> None:
+def _options(
+    version: bool = typer.Option(
+        False, "--version", callback=_show_version, is_eager=True, help="Print the version and exit"
+    ),
+) -> None:
     """Per-tree canopy volumes from mobile LiDAR orchard drives, checked against drone photos."""
 
 
@@ -78,21 +81,24 @@ def main() -> None:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:
         # A bug or an environment failure, not bad input: one line, and the traceback only
         # on request, so a field user never gets a wall of Python.
         if os.environ.get("CANOPY_KIT_DEBUG"):
             raise
         where = type(exc).__name__
-        print(f"error: processing failed ({where}: {one_line(str(exc))}); set "
-              "CANOPY_KIT_DEBUG=1 for the traceback and please report it", file=sys.stderr)
+        print(
+            f"error: processing failed ({where}: {one_line(str(exc))}); set "
+            "CANOPY_KIT_DEBUG=1 for the traceback and please report it",
+            file=sys.stderr,
+        )
         sys.exit(3)
 
 
 _python_showwarning = warnings.showwarning
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     if issubclass(category, InputWarning):
         print(f"warning: {one_line(str(message))}", file=sys.stderr)
     else:

@@ -6,9 +6,9 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import typer
 from rich.console import Console
 
-import typer
 
 def preset_help(extra: str = "") -> str:
     """The ``--preset`` help with the shipped presets' names (read from the package)."""
@@ -17,14 +17,23 @@ def preset_help(extra: str = "") -> str:
     return f"Preset name ({', '.join(preset_names())}) or TOML file{extra}"
 
 
-RIG_OPTION = typer.Option(None, "--rig", help="Rig file (TOML: sensor frames and mounts) or shipped rig; "
-                          "gives or overrides the bag's /tf_static (docs/MAPPING.md, 'Sensor rigs')")
-ASSUME_IDENTITY_OPTION = typer.Option(False, "--assume-identity-extrinsics",
-                                      help="Take the LiDAR's and the IMU's frames for one when nothing "
-                                           "relates them")
-CALIBRATE_OPTION = typer.Option(False, "--calibrate-extrinsics",
-                                help="Estimate the IMU's mount from the drive and map with it (one more "
-                                     "odometry pass)")
+RIG_OPTION = typer.Option(
+    None,
+    "--rig",
+    help="Rig file (TOML: sensor frames and mounts) or shipped rig; "
+    "gives or overrides the bag's /tf_static (docs/MAPPING.md, 'Sensor rigs')",
+)
+ASSUME_IDENTITY_OPTION = typer.Option(
+    False,
+    "--assume-identity-extrinsics",
+    help="Take the LiDAR's and the IMU's frames for one when nothing relates them",
+)
+CALIBRATE_OPTION = typer.Option(
+    False,
+    "--calibrate-extrinsics",
+    help="Estimate the IMU's mount from the drive and map with it (one more odometry pass)",
+)
+
 
 def make_console(**kwargs: Any) -> Console:
     """A stdout console: on a terminal lines wrap at its width; piped or redirected they
@@ -43,13 +52,25 @@ ProgressCallback = Callable[[str, float, float], None]
 @contextmanager
 def progress_bar(transient: bool = False) -> Iterator[ProgressCallback]:
     """A rich progress display; yields a ``callback(task, done, total)`` for the library."""
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                               TimeElapsedColumn, TimeRemainingColumn)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     tasks: dict[str, Any] = {}
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=err_console,
-                  transient=transient) as progress:
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=err_console,
+        transient=transient,
+    ) as progress:
 
         def callback(task: str, done: float, total: float) -> None:
             if task not in tasks:

@@ -12,16 +12,22 @@ from canopy_kit.cli.common import preset_help
 def ground_truth(
     images_dir: Path = typer.Argument(..., help="Folder of geotagged drone JPEGs"),
     out: Path = typer.Option(..., "--out", help="Output folder"),
-    seeds: Path = typer.Option(None, "--seeds",
-                               help="CSV of tree positions (lat/lon or x/y), e.g. the LiDAR trees.csv"),
-    frame: Path = typer.Option(None, "--frame",
-                               help="frame.json of the LiDAR map or simulated session (local frame "
-                                    "and CRS); default: UTM at the flight"),
+    seeds: Path = typer.Option(
+        None, "--seeds", help="CSV of tree positions (lat/lon or x/y), e.g. the LiDAR trees.csv"
+    ),
+    frame: Path = typer.Option(
+        None,
+        "--frame",
+        help="frame.json of the LiDAR map or simulated session (local frame "
+        "and CRS); default: UTM at the flight",
+    ),
     preset: str = typer.Option("adaptive", help=preset_help(": its [ground_truth] table is used")),
     set_: list[str] = typer.Option([], "--set", help="Override a setting: ground_truth.key=value"),
-    work_size: int = typer.Option(None, "--work-size",
-                                  help="Longest image side (px) for the surface and mosaic "
-                                       "(ground_truth.work_image_size)"),
+    work_size: int = typer.Option(
+        None,
+        "--work-size",
+        help="Longest image side (px) for the surface and mosaic (ground_truth.work_image_size)",
+    ),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON"),
 ) -> None:
     """Structure from motion, orthomosaic, DSM/CHM and crown diameters from drone photos."""
@@ -48,8 +54,9 @@ def ground_truth(
         overrides.setdefault("ground_truth", {})["work_image_size"] = work_size
     config = load_preset(preset, overrides).ground_truth
     with progress_bar(transient=True) as progress:
-        result = process_flight(images_dir, out, frame=local, seeds=seeds, progress=progress,
-                                config=config)
+        result = process_flight(
+            images_dir, out, frame=local, seeds=seeds, progress=progress, config=config
+        )
     if json_out:
         print_json(result.report)
         return
@@ -62,18 +69,22 @@ def ground_truth(
     )
     level = sfm.get("alignment", {})
     if level.get("vertical_from") == "camera_axes":
-        console.print(f"[yellow]levelled by the photos' optical axes[/]: the GPS heights would tilt the "
-                      f"model {level['gps_tilt_vs_camera_axes_deg']:.1f}° (GPS tilt sigma "
-                      f"{level['gps_tilt_sigma_deg']:.1f}°)")
+        console.print(
+            f"[yellow]levelled by the photos' optical axes[/]: the GPS heights would tilt the "
+            f"model {level['gps_tilt_vs_camera_axes_deg']:.1f}° (GPS tilt sigma "
+            f"{level['gps_tilt_sigma_deg']:.1f}°)"
+        )
     line = f"[green]crowns[/] {len(result.crowns)}"
     if result.trees is not None:
         line += f", matched to {int(result.trees['matched'].sum())} of {len(result.trees)} trees"
     console.print(line)
     offset = result.report.get("seed_offset") or {}
     if offset.get("significant"):
-        console.print(f"[yellow]crowns sit {offset['east_m']:+.2f} m east, {offset['north_m']:+.2f} m north "
-                      f"of their seed trees[/] (± {offset['standard_error_m']:.2f} m, {offset['pairs']} "
-                      "trees): the seeds' georeferencing differs from the photos'"
-                      + ("; seeds moved by it" if offset.get("seeds_shifted") else ""))
+        console.print(
+            f"[yellow]crowns sit {offset['east_m']:+.2f} m east, {offset['north_m']:+.2f} m north "
+            f"of their seed trees[/] (± {offset['standard_error_m']:.2f} m, {offset['pairs']} "
+            "trees): the seeds' georeferencing differs from the photos'"
+            + ("; seeds moved by it" if offset.get("seeds_shifted") else "")
+        )
     for name, path in result.paths.items():
         console.print(f"  {name:18s} {path}")

@@ -11,14 +11,25 @@ from canopy_kit.cli.common import ASSUME_IDENTITY_OPTION, CALIBRATE_OPTION, RIG_
 
 def map_bag(
     bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
-    out: Path = typer.Option(..., "--out", help="Output folder (map.laz, trajectory.csv/.tum, mapping.json)"),
-    evaluate: bool = typer.Option(False, "--evaluate",
-                                  help="Compare with the bag's ground-truth odometry (and, for a "
-                                       "simulated session, the true scene)"),
-    truth: Path = typer.Option(None, "--truth", help="Simulated session folder (default: the bag's folder)"),
-    preset: str = typer.Option(None, help="Use the mapping section of a preset (name or TOML file)"),
+    out: Path = typer.Option(
+        ..., "--out", help="Output folder (map.laz, trajectory.csv/.tum, mapping.json)"
+    ),
+    evaluate: bool = typer.Option(
+        False,
+        "--evaluate",
+        help="Compare with the bag's ground-truth odometry (and, for a "
+        "simulated session, the true scene)",
+    ),
+    truth: Path = typer.Option(
+        None, "--truth", help="Simulated session folder (default: the bag's folder)"
+    ),
+    preset: str = typer.Option(
+        None, help="Use the mapping section of a preset (name or TOML file)"
+    ),
     set_: list[str] = typer.Option([], "--set", help="Override a mapping setting: key=value"),
-    plots: bool = typer.Option(True, "--plots/--no-plots", help="Write trajectory and top-view PNGs"),
+    plots: bool = typer.Option(
+        True, "--plots/--no-plots", help="Write trajectory and top-view PNGs"
+    ),
     rig: Path = RIG_OPTION,
     assume_identity: bool = ASSUME_IDENTITY_OPTION,
     calibrate: bool = CALIBRATE_OPTION,
@@ -30,20 +41,26 @@ def map_bag(
     from canopy_kit.mapping.outputs import write_mapping_outputs
     from canopy_kit.rig import extrinsics_mode, rig_overrides
 
-    overrides = merge(parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate)))
-    overrides = merge({k: v for k, v in overrides.items() if k != "mapping"}, overrides.get("mapping", {}))
+    overrides = merge(
+        parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate))
+    )
+    overrides = merge(
+        {k: v for k, v in overrides.items() if k != "mapping"}, overrides.get("mapping", {})
+    )
     base = to_dict(load_preset(preset).mapping) if preset else {}
     config = from_dict(MappingConfig, merge(base, overrides), "mapping")
     with progress_bar(transient=True) as progress:
         result = build_map(bag, config, progress=progress)
-        evaluation, reference = (_evaluate(result, bag, truth, progress) if evaluate else (None, None))
+        evaluation, reference = (
+            _evaluate(result, bag, truth, progress) if evaluate else (None, None)
+        )
     paths = write_mapping_outputs(result, out, evaluation)
     if plots:
         paths.update(_write_plots(result, out, reference, evaluation))
     _print_summary(console, result, evaluation, paths)
 
 
-def _evaluate(result, bag: Path, truth: Path | None, progress):  # noqa: ANN001, ANN202
+def _evaluate(result, bag: Path, truth: Path | None, progress):
     from canopy_kit.mapping.evaluate import (
         estimate_in_frame,
         evaluate_against_simulation,
@@ -55,16 +72,20 @@ def _evaluate(result, bag: Path, truth: Path | None, progress):  # noqa: ANN001,
     reference = reference_from_bag(bag)
     sim_dir = truth
     if sim_dir is None:  # a simulated session keeps truth/ next to its bag
-        sim_dir = next((p for p in (bag.parent, bag.parent.parent)
-                        if (truth_dir(p) / "frame.json").exists()), None)
+        sim_dir = next(
+            (p for p in (bag.parent, bag.parent.parent) if (truth_dir(p) / "frame.json").exists()),
+            None,
+        )
     if sim_dir is not None:
         if progress:
             progress("evaluation: map vs true scene", 0, 1)
         return evaluate_against_simulation(result, sim_dir, reference), reference
-    return trajectory_errors(estimate_in_frame(result, reference.attrs.get("frame")), reference), reference
+    return trajectory_errors(
+        estimate_in_frame(result, reference.attrs.get("frame")), reference
+    ), reference
 
 
-def _write_plots(result, out: Path, reference, evaluation) -> dict[str, Path]:  # noqa: ANN001
+def _write_plots(result, out: Path, reference, evaluation) -> dict[str, Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -81,26 +102,36 @@ def _write_plots(result, out: Path, reference, evaluation) -> dict[str, Path]:  
     return paths
 
 
-def _print_summary(console, result, evaluation, paths) -> None:  # noqa: ANN001
+def _print_summary(console, result, evaluation, paths) -> None:
     d = result.diagnostics
     t = d["timing"]
-    console.print(f"[green]mapped[/] {d['sweeps_mapped']}/{d['scans']} sweeps ({d['sweeps_registered']} registered), "
-                  f"{d['path_length_m']:.0f} m in {d['duration_s']:.0f} s of driving, "
-                  f"{d['map_points']:,} map points "
-                  f"({result.map.crs or 'local frame, not georeferenced'})")
-    console.print(f"  compute {t['total_wall_s']:.1f} s wall, {t['total_cpu_s']:.1f} s CPU "
-                  f"({d['duration_s'] / max(t['total_wall_s'], 1e-9):.1f}x real time)")
+    console.print(
+        f"[green]mapped[/] {d['sweeps_mapped']}/{d['scans']} sweeps ({d['sweeps_registered']} registered), "
+        f"{d['path_length_m']:.0f} m in {d['duration_s']:.0f} s of driving, "
+        f"{d['map_points']:,} map points "
+        f"({result.map.crs or 'local frame, not georeferenced'})"
+    )
+    console.print(
+        f"  compute {t['total_wall_s']:.1f} s wall, {t['total_cpu_s']:.1f} s CPU "
+        f"({d['duration_s'] / max(t['total_wall_s'], 1e-9):.1f}x real time)"
+    )
     if evaluation is not None:
         e = evaluation
-        console.print(f"  ATE {100 * e['ate_rmse_m']:.1f} cm (SE(3)-aligned), drift "
-                      f"{e['drift_percent']:.2f} % of segment length, end drift "
-                      f"{e['end_drift_percent']:.2f} % of path")
+        console.print(
+            f"  ATE {100 * e['ate_rmse_m']:.1f} cm (SE(3)-aligned), drift "
+            f"{e['drift_percent']:.2f} % of segment length, end drift "
+            f"{e['end_drift_percent']:.2f} % of path"
+        )
         if "map_aligned" in e:
             m = e["map_aligned"]
-            console.print(f"  map vs true surfaces: median {100 * m['median_m']:.1f} cm, "
-                          f"90 % within {100 * m['p90_m']:.1f} cm")
+            console.print(
+                f"  map vs true surfaces: median {100 * m['median_m']:.1f} cm, "
+                f"90 % within {100 * m['p90_m']:.1f} cm"
+            )
         if "georeferenced" in e:
-            console.print(f"  georeferencing error (no alignment): {e['georeferenced']['rmse_m']:.2f} m RMS")
+            console.print(
+                f"  georeferencing error (no alignment): {e['georeferenced']['rmse_m']:.2f} m RMS"
+            )
     for w in result.warnings:
         console.print(f"  [yellow]warning[/]: {w}")
     for name, path in paths.items():

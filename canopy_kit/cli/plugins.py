@@ -7,10 +7,15 @@ import typer
 
 
 def plugins(
-    kind: str = typer.Argument(None,
-                               help="readers, segmenters, volumes or commands (default: all)"),
-    params: str = typer.Option(None, "--params", metavar="NAME",
-                               help="Print the parameters of plugin NAME: type, default, meaning"),
+    kind: str = typer.Argument(
+        None, help="readers, segmenters, volumes or commands (default: all)"
+    ),
+    params: str = typer.Option(
+        None,
+        "--params",
+        metavar="NAME",
+        help="Print the parameters of plugin NAME: type, default, meaning",
+    ),
 ) -> None:
     """List registered plugins (entry points) by group, with load errors if any."""
     if params is not None:
@@ -24,8 +29,13 @@ def plugins(
     table = Grid(["group", "name", "target", "package", "status"], keys=2, wrap={2, 4})
     for info in registry.describe(kind):
         status = "[green]ok[/]" if info.error is None else f"[red]{escape(str(info.error))}[/]"
-        table.add_row(info.group.removeprefix("canopy_kit."), info.name, info.value,
-                      info.distribution or "", status)
+        table.add_row(
+            info.group.removeprefix("canopy_kit."),
+            info.name,
+            info.value,
+            info.distribution or "",
+            status,
+        )
     print_grid(table)
 
 
@@ -41,11 +51,17 @@ def _print_params(kind: str | None, name: str) -> None:
     if not kinds:
         raise PluginError(f"no plugin named {name!r} among the segmenters, volumes or readers")
     if len(kinds) > 1:
-        raise PluginError(f"{name!r} names a plugin of several kinds ({', '.join(kinds)}); "
-                          f"give one: canopy-kit plugins KIND --params {name}")
+        raise PluginError(
+            f"{name!r} names a plugin of several kinds ({', '.join(kinds)}); "
+            f"give one: canopy-kit plugins KIND --params {name}"
+        )
     rows = registry.parameters(kinds[0], name)
-    table = Grid(["parameter", "type", "default", "meaning"], keys=1, wrap={3},
-                 title=f"{kinds[0]} plugin {name!r}: {len(rows)} parameter(s)")
+    table = Grid(
+        ["parameter", "type", "default", "meaning"],
+        keys=1,
+        wrap={3},
+        title=f"{kinds[0]} plugin {name!r}: {len(rows)} parameter(s)",
+    )
     for p in rows:
         default = "required" if p.default is REQUIRED else repr(p.default)
         table.add_row(escape(p.name), escape(p.type_name), escape(default), escape(p.doc or "-"))

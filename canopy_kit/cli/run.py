@@ -15,21 +15,40 @@ def run(
     bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
     out: Path = typer.Option(..., "--out", help="Output folder"),
     preset: str = typer.Option("adaptive", help=preset_help()),
-    drone_images: Path = typer.Option(None, "--drone-images", help="Folder of geotagged drone JPEGs"),
-    truth: Path = typer.Option(None, "--truth", help="Simulated session folder to evaluate against"),
+    drone_images: Path = typer.Option(
+        None, "--drone-images", help="Folder of geotagged drone JPEGs"
+    ),
+    truth: Path = typer.Option(
+        None, "--truth", help="Simulated session folder to evaluate against"
+    ),
     set_: list[str] = typer.Option([], "--set", help="Override a setting: section.key=value"),
     no_cache: bool = typer.Option(False, "--no-cache", help="Recompute every stage"),
-    stream: bool = typer.Option(False, "--stream", help="Emit each tree once the robot has passed "
-                                "it, keeping only a window of the map (no map or report)"),
+    stream: bool = typer.Option(
+        False,
+        "--stream",
+        help="Emit each tree once the robot has passed "
+        "it, keeping only a window of the map (no map or report)",
+    ),
     rig: Path = RIG_OPTION,
     assume_identity: bool = ASSUME_IDENTITY_OPTION,
     calibrate: bool = CALIBRATE_OPTION,
-    orchard: str = typer.Option(None, "--orchard", help="Orchard or block name for the "
-                                "provenance (metrics.json, tables, GeoJSON); default: the bag's name"),
-    export_trees: bool = typer.Option(False, "--export-trees", help="Also write each tree's "
-                                      "points as trees/<tree_id>.laz (for canopy-kit volume)"),
-    strict: bool = typer.Option(False, "--strict", help="Exit with code 4 when any check fails "
-                                "(after writing every output: they should not be trusted)"),
+    orchard: str = typer.Option(
+        None,
+        "--orchard",
+        help="Orchard or block name for the "
+        "provenance (metrics.json, tables, GeoJSON); default: the bag's name",
+    ),
+    export_trees: bool = typer.Option(
+        False,
+        "--export-trees",
+        help="Also write each tree's points as trees/<tree_id>.laz (for canopy-kit volume)",
+    ),
+    strict: bool = typer.Option(
+        False,
+        "--strict",
+        help="Exit with code 4 when any check fails "
+        "(after writing every output: they should not be trusted)",
+    ),
 ) -> None:
     """Map, segment, measure and (optionally) validate one field session; write the report.
 
@@ -43,11 +62,15 @@ def run(
     from canopy_kit.rig import extrinsics_mode, rig_overrides
 
     if stream and strict:  # a streamed run has no checks: --strict would pass it unchecked
-        raise InputError("--strict: a --stream run has no checks to hold it to; run without "
-                         "--stream for the checks and the report")
+        raise InputError(
+            "--strict: a --stream run has no checks to hold it to; run without "
+            "--stream for the checks and the report"
+        )
     if stream and export_trees:  # a streamed run keeps no map to cut the trees from
         raise InputError("--export-trees: a --stream run keeps no map; run without --stream")
-    overrides = merge(parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate)))
+    overrides = merge(
+        parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate))
+    )
     config = load_preset(preset, overrides)
     if stream:
         from canopy_kit.cli.stream import run_streaming
@@ -55,15 +78,23 @@ def run(
         run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
         return
     with progress_bar(transient=True) as progress:
-        results = run_pipeline(config, bag, out, drone_images=drone_images, truth=truth,
-                               use_cache=not no_cache, progress=progress, orchard=orchard,
-                               export_trees=export_trees)
+        results = run_pipeline(
+            config,
+            bag,
+            out,
+            drone_images=drone_images,
+            truth=truth,
+            use_cache=not no_cache,
+            progress=progress,
+            orchard=orchard,
+            export_trees=export_trees,
+        )
     print_results(results)
     if strict and results.metrics.get("checks_summary", {}).get("fail", 0):
         raise typer.Exit(CHECKS_FAILED_EXIT)
 
 
-def print_results(results) -> None:  # noqa: ANN001
+def print_results(results) -> None:
     """One screen of what a run found and where its files are."""
     from canopy_kit.cli.common import console
 
@@ -72,24 +103,34 @@ def print_results(results) -> None:  # noqa: ANN001
     ev = m.get("evaluation", {})
     mapping = ev.get("mapping", {})
     if "ate_rmse_m" in mapping:
-        console.print(f"  trajectory vs truth: ATE {mapping['ate_rmse_m']:.3f} m, "
-                      f"drift {mapping.get('drift_percent', float('nan')):.2f} % of the path")
+        console.print(
+            f"  trajectory vs truth: ATE {mapping['ate_rmse_m']:.3f} m, "
+            f"drift {mapping.get('drift_percent', float('nan')):.2f} % of the path"
+        )
     if "segmentation" in ev:
         s = ev["segmentation"]
-        console.print(f"  segmentation vs truth: {s['n_correct']}/{s['n_truth']} "
-                      f"({100 * s['success_rate']:.0f} %), labels {100 * s['label_accuracy']:.0f} %")
+        console.print(
+            f"  segmentation vs truth: {s['n_correct']}/{s['n_truth']} "
+            f"({100 * s['success_rate']:.0f} %), labels {100 * s['label_accuracy']:.0f} %"
+        )
     for method, a in ev.get("volumes", {}).items():
         if isinstance(a, dict) and "mape_pct" in a:
-            console.print(f"  {method} vs true crown volume: MAPE {a['mape_pct']:.1f} %, "
-                          f"bias {a['bias_pct']:+.1f} %")
+            console.print(
+                f"  {method} vs true crown volume: MAPE {a['mape_pct']:.1f} %, "
+                f"bias {a['bias_pct']:+.1f} %"
+            )
     aerial = m.get("aerial") or {}
     for column, a in aerial.items():
         if isinstance(a, dict) and "mape_pct" in a:
-            console.print(f"  {column} vs aerial sphere volume ({a['n']} trees compared): "
-                          f"MAPE {a['mape_pct']:.1f} %, bias {a['bias_pct']:+.1f} %")
+            console.print(
+                f"  {column} vs aerial sphere volume ({a['n']} trees compared): "
+                f"MAPE {a['mape_pct']:.1f} %, bias {a['bias_pct']:+.1f} %"
+            )
     if m.get("flagged_segments"):
-        console.print(f"  [yellow]{m['flagged_segments']} crowns unlike the others[/] (merged trees or "
-                      "fragments?): see segment_flags in trees.csv")
+        console.print(
+            f"  [yellow]{m['flagged_segments']} crowns unlike the others[/] (merged trees or "
+            "fragments?): see segment_flags in trees.csv"
+        )
     if results.cache_hits:
         console.print(f"  reused cached stages: {', '.join(results.cache_hits)}")
     for w in results.warnings:
@@ -99,7 +140,9 @@ def print_results(results) -> None:  # noqa: ANN001
     warned = sum(1 for c in m.get("checks", []) if c["status"] == "warn")
     if bad:
         names = "; ".join(f"{c['name']} ({c['value']})" for c in bad)
-        console.print(f"[bold red]{len(bad)} check{'s' if len(bad) > 1 else ''} failed: do not trust "
-                      f"this run[/]: {names}")
+        console.print(
+            f"[bold red]{len(bad)} check{'s' if len(bad) > 1 else ''} failed: do not trust "
+            f"this run[/]: {names}"
+        )
     elif warned:
         console.print(f"[yellow]{warned} check{'s' if warned > 1 else ''} warned[/], none failed")

@@ -11,15 +11,23 @@ from canopy_kit.cli.common import preset_help
 
 def segment(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map point cloud (LAS/LAZ/PLY/PCD)"),
-    preset: str = typer.Option("adaptive", help=preset_help("; the default is the same as canopy-kit run's")),
+    preset: str = typer.Option(
+        "adaptive", help=preset_help("; the default is the same as canopy-kit run's")
+    ),
     out: Path = typer.Option(..., "--out", help="Output folder"),
     method: str = typer.Option(None, help="Segmenter plugin, overriding the preset's"),
-    trajectory: Path = typer.Option(None, help="CSV with x, y columns (map frame): the drive, "
-                                               "whose first pass orders and labels the trees"),
+    trajectory: Path = typer.Option(
+        None,
+        help="CSV with x, y columns (map frame): the drive, "
+        "whose first pass orders and labels the trees",
+    ),
     set_: list[str] = typer.Option([], "--set", help="Override any setting: section.key=value"),
     no_cloud: bool = typer.Option(False, "--no-cloud", help="Do not write segmented.laz"),
-    export_trees: bool = typer.Option(False, "--export-trees", help="Also write each tree's "
-                                      "points as trees/<tree_id>.laz (for canopy-kit volume)"),
+    export_trees: bool = typer.Option(
+        False,
+        "--export-trees",
+        help="Also write each tree's points as trees/<tree_id>.laz (for canopy-kit volume)",
+    ),
 ) -> None:
     """Remove ground and trunks, segment the trees, find rows and label the trees."""
     import numpy as np
@@ -50,9 +58,16 @@ def segment(
         source = f"trajectory {trajectory.name}"
     segmenter = make_segmenter(config.segment.method, config.segment.params)
     with progress_bar(transient=True) as progress:
-        seg = run_segment(cloud, segmenter, config.preprocess, config.rows,
-                          driving_direction=direction, direction_source=source,
-                          seed=config.seed, progress=progress)
+        seg = run_segment(
+            cloud,
+            segmenter,
+            config.preprocess,
+            config.rows,
+            driving_direction=direction,
+            direction_source=source,
+            seed=config.seed,
+            progress=progress,
+        )
         write_segmentation(out, seg, cloud, with_cloud=not no_cloud)
         if export_trees:
             from canopy_kit.segment.tree_export import export_trees as write_tree_clouds
@@ -62,6 +77,8 @@ def segment(
     for w in seg.warnings:
         console.print(f"[yellow]warning:[/] {w}")
     n_rows = len(seg.rows.lines)
-    console.print(f"[green]segmented[/] {seg.n_trees} trees in {n_rows} rows "
-                  f"({config.segment.method}, {np.sum(seg.labels >= 0):,} of {len(cloud):,} points)"
-                  f"\n  output: {out}")
+    console.print(
+        f"[green]segmented[/] {seg.n_trees} trees in {n_rows} rows "
+        f"({config.segment.method}, {np.sum(seg.labels >= 0):,} of {len(cloud):,} points)"
+        f"\n  output: {out}"
+    )

@@ -10,20 +10,27 @@ import typer
 def simulate(
     out: Path = typer.Argument(..., help="Output folder for the session"),
     orchard: str = typer.Option(
-        "pistachio", help="Orchard preset (pistachio, almond, almond-paper) or a TOML file"),
+        "pistachio", help="Orchard preset (pistachio, almond, almond-paper) or a TOML file"
+    ),
     rows: int = typer.Option(None, help="Number of tree rows"),
     trees_per_row: int = typer.Option(None, "--trees-per-row", help="Trees per row"),
     seed: int = typer.Option(0, help="Random seed (same seed, same session)"),
     fmt: str = typer.Option("ros2-mcap", "--format", help="ros1, ros2-sqlite3 or ros2-mcap"),
     sensor: str = typer.Option(None, help="Sensor model: vlp16, hdl32, os0-32, os1-64, os1-128"),
     drone: bool = typer.Option(False, "--drone", help="Also render a drone photo flight"),
-    no_truth_field: bool = typer.Option(False, "--no-truth-field",
-                                        help="Do not add the per-point tree_id field"),
+    no_truth_field: bool = typer.Option(
+        False, "--no-truth-field", help="Do not add the per-point tree_id field"
+    ),
     gnss_mode: str = typer.Option(None, "--gnss", help="standard or rtk"),
-    rig: str = typer.Option(None, "--rig", help="Sensor rig: identity (one frame, the default), tower, "
-                            "imu-flipped, yawed-lever, side-tilt, or a rig file (TOML)"),
-    no_tf_static: bool = typer.Option(False, "--no-tf-static",
-                                      help="Leave the rig's /tf_static out of the bag"),
+    rig: str = typer.Option(
+        None,
+        "--rig",
+        help="Sensor rig: identity (one frame, the default), tower, "
+        "imu-flipped, yawed-lever, side-tilt, or a rig file (TOML)",
+    ),
+    no_tf_static: bool = typer.Option(
+        False, "--no-tf-static", help="Leave the rig's /tf_static out of the bag"
+    ),
     set_: list[str] = typer.Option([], "--set", help="Override any parameter: section.key=value"),
     overwrite: bool = typer.Option(False, help="Replace a non-empty output folder"),
 ) -> None:
@@ -51,8 +58,14 @@ def simulate(
         overrides.setdefault("rig", {})["write_tf_static"] = False
     config = load_sim_config(orchard, overrides, sensor=sensor)
     with progress_bar() as progress:
-        session = simulate_session(out, config, fmt=fmt, truth_field=not no_truth_field,
-                                   overwrite=overwrite, progress=progress)
+        session = simulate_session(
+            out,
+            config,
+            fmt=fmt,
+            truth_field=not no_truth_field,
+            overwrite=overwrite,
+            progress=progress,
+        )
     console.print(
         f"[green]simulated[/] {len(session.orchard.trees)} trees, {session.n_scans} scans, "
         f"{session.n_points:,} points, {session.trajectory.duration:.0f} s of driving\n"

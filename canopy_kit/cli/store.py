@@ -6,8 +6,10 @@ from pathlib import Path
 
 import typer
 
-app = typer.Typer(help="The orchard store (DuckDB): sessions, trees over time, growth exports.",
-                  no_args_is_help=True)
+app = typer.Typer(
+    help="The orchard store (DuckDB): sessions, trees over time, growth exports.",
+    no_args_is_help=True,
+)
 
 
 @app.command("sessions")
@@ -17,15 +19,19 @@ def sessions(store: Path = typer.Argument(..., help="Store file (orchard.duckdb)
     from canopy_kit.store import OrchardStore
 
     with OrchardStore(store, read_only=True) as db:
-        table = db.query("SELECT session_id, orchard, date, n_trees, n_matched, n_new, n_missing, "
-                         "n_replanted, round(align_rms_m, 3) AS align_rms_m FROM sessions "
-                         "ORDER BY orchard, date")
+        table = db.query(
+            "SELECT session_id, orchard, date, n_trees, n_matched, n_new, n_missing, "
+            "n_replanted, round(align_rms_m, 3) AS align_rms_m FROM sessions "
+            "ORDER BY orchard, date"
+        )
     print_grid(frame_grid(table, keys=1))
 
 
 @app.command("changes")
-def changes(store: Path = typer.Argument(..., help="Store file"),
-            orchard: str = typer.Option(None, help="Only this orchard")) -> None:
+def changes(
+    store: Path = typer.Argument(..., help="Store file"),
+    orchard: str = typer.Option(None, help="Only this orchard"),
+) -> None:
     """New, missing and replanted trees, session by session."""
     from canopy_kit.cli.common import console
     from canopy_kit.cli.tables import frame_grid, print_grid
@@ -41,11 +47,13 @@ def changes(store: Path = typer.Argument(..., help="Store file"),
 
 
 @app.command("growth")
-def growth(store: Path = typer.Argument(..., help="Store file"),
-           orchard: str = typer.Option(None, help="Only this orchard"),
-           method: str = typer.Option(None, help="Volume method (default: alpha_shape)"),
-           tree: int = typer.Option(None, "--tree", help="Only this tree_id"),
-           rows: bool = typer.Option(False, "--rows", help="Per row instead of per tree")) -> None:
+def growth(
+    store: Path = typer.Argument(..., help="Store file"),
+    orchard: str = typer.Option(None, help="Only this orchard"),
+    method: str = typer.Option(None, help="Volume method (default: alpha_shape)"),
+    tree: int = typer.Option(None, "--tree", help="Only this tree_id"),
+    rows: bool = typer.Option(False, "--rows", help="Per row instead of per tree"),
+) -> None:
     """Volume and growth per tree (or per row) over the sessions of a store."""
     from canopy_kit.cli.common import console
     from canopy_kit.cli.tables import frame_grid, print_grid
@@ -55,13 +63,29 @@ def growth(store: Path = typer.Argument(..., help="Store file"),
     with OrchardStore(store, read_only=True) as db:
         table = (row_growth if rows else growth_of)(db, method=method, orchard=orchard)
     if rows:
-        cols = ["orchard", "tree_row", "date", "n_trees", "total_volume_m3", "mean_volume_m3",
-                "median_growth_since_first"]
+        cols = [
+            "orchard",
+            "tree_row",
+            "date",
+            "n_trees",
+            "total_volume_m3",
+            "mean_volume_m3",
+            "median_growth_since_first",
+        ]
     else:
         if tree is not None:
             table = table[table["tree_id"] == tree]
-        cols = ["orchard", "tree_id", "tree_label", "status", "date", "kind", "volume_m3",
-                "growth_since_first", "growth_since_previous"]
+        cols = [
+            "orchard",
+            "tree_id",
+            "tree_label",
+            "status",
+            "date",
+            "kind",
+            "volume_m3",
+            "growth_since_first",
+            "growth_since_previous",
+        ]
     if len(table):
         print_grid(frame_grid(table[cols], keys=2))
     else:
@@ -69,11 +93,13 @@ def growth(store: Path = typer.Argument(..., help="Store file"),
 
 
 @app.command("export")
-def export(store: Path = typer.Argument(..., help="Store file"),
-           out: Path = typer.Argument(..., help="Output .parquet or .csv"),
-           what: str = typer.Option("growth", help="growth, row_growth, changes, trees or sessions"),
-           method: str = typer.Option(None, help="Volume method (default: alpha_shape)"),
-           orchard: str = typer.Option(None, help="Only this orchard")) -> None:
+def export(
+    store: Path = typer.Argument(..., help="Store file"),
+    out: Path = typer.Argument(..., help="Output .parquet or .csv"),
+    what: str = typer.Option("growth", help="growth, row_growth, changes, trees or sessions"),
+    method: str = typer.Option(None, help="Volume method (default: alpha_shape)"),
+    orchard: str = typer.Option(None, help="Only this orchard"),
+) -> None:
     """Export a growth table (per tree or per row) or a store table to Parquet or CSV."""
     from canopy_kit.cli.common import console
     from canopy_kit.store import OrchardStore
@@ -85,12 +111,14 @@ def export(store: Path = typer.Argument(..., help="Store file"),
 
 
 @app.command("add")
-def add(store: Path = typer.Argument(..., help="Store file (created when absent)"),
-        run_dir: Path = typer.Argument(..., help="Output folder of 'canopy-kit run'"),
-        orchard: str = typer.Option(..., help="Orchard name"),
-        date: str = typer.Option(..., help="Session date, YYYY-MM-DD"),
-        session_id: str = typer.Option(None, "--id", help="Session id (default: ORCHARD-DATE)"),
-        gate: float = typer.Option(1.5, help="Largest distance (m) to a tree's earlier position")) -> None:
+def add(
+    store: Path = typer.Argument(..., help="Store file (created when absent)"),
+    run_dir: Path = typer.Argument(..., help="Output folder of 'canopy-kit run'"),
+    orchard: str = typer.Option(..., help="Orchard name"),
+    date: str = typer.Option(..., help="Session date, YYYY-MM-DD"),
+    session_id: str = typer.Option(None, "--id", help="Session id (default: ORCHARD-DATE)"),
+    gate: float = typer.Option(1.5, help="Largest distance (m) to a tree's earlier position"),
+) -> None:
     """Add one run's trees (RUN_DIR/trees.parquet) to the store."""
     import datetime as dt
 
@@ -107,12 +135,15 @@ def add(store: Path = typer.Argument(..., help="Store file (created when absent)
         day = dt.date.fromisoformat(date)
     except ValueError:
         raise InputError(f"--date {date!r}: expected YYYY-MM-DD") from None
-    record = SessionRecord(session_id or f"{orchard}-{day.isoformat()}", orchard, day,
-                           run_dir=str(run_dir))
+    record = SessionRecord(
+        session_id or f"{orchard}-{day.isoformat()}", orchard, day, run_dir=str(run_dir)
+    )
     with OrchardStore(store) as db:
         rep = db.ingest(record, pd.read_parquet(table), MatchSettings(gate_m=gate)).summary()
-    console.print(f"[green]stored[/] {rep['session_id']}: {rep['n_matched']} known trees, "
-                  f"{rep['n_new']} new, {rep['n_missing']} missing, {rep['n_replanted']} replanted")
+    console.print(
+        f"[green]stored[/] {rep['session_id']}: {rep['n_matched']} known trees, "
+        f"{rep['n_new']} new, {rep['n_missing']} missing, {rep['n_replanted']} replanted"
+    )
 
 
 @app.command("check")

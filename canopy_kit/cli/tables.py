@@ -78,14 +78,18 @@ FOLD_WORDS_OVER = 24
 def column_needs(grid: Grid) -> list[int]:
     """Width each column needs: its longest value (longest word for headers and
     ``wrap`` columns, which may wrap; at most :data:`FOLD_WORDS_OVER` for the latter)."""
+
     def longest_word(text: str) -> int:
         return max((len(w) for w in text.split()), default=0)
 
     needs = []
     for i, head in enumerate(grid.columns):
         cells = [plain(row[i]) for row in grid.rows]
-        cell = (min(max(map(longest_word, cells), default=0), FOLD_WORDS_OVER)
-                if i in grid.wrap else max(map(len, cells), default=0))
+        cell = (
+            min(max(map(longest_word, cells), default=0), FOLD_WORDS_OVER)
+            if i in grid.wrap
+            else max(map(len, cells), default=0)
+        )
         needs.append(max(cell, longest_word(head) if grid.header else 0, 1))
     return needs
 
@@ -116,6 +120,7 @@ def plan_parts(needs: Sequence[int], keys: int, width: int) -> list[list[int]] |
 
 def to_tsv(grid: Grid) -> str:
     """The grid as tab-separated lines (no markup; tabs and newlines in cells as spaces)."""
+
     def line(cells: Sequence[str]) -> str:
         return "\t".join(" ".join(plain(c).split()) for c in cells)
 
@@ -126,8 +131,9 @@ def to_tsv(grid: Grid) -> str:
     return "\n".join(lines) + "\n"
 
 
-def widen(needs: Sequence[int], naturals: Sequence[int], width: int,
-          wrap: Sequence[bool] = ()) -> list[int]:
+def widen(
+    needs: Sequence[int], naturals: Sequence[int], width: int, wrap: Sequence[bool] = ()
+) -> list[int]:
     """Column widths from ``needs`` up to ``naturals`` (one line per header and value)
     while the table stays within ``width``: the value columns first, left to right, then
     the ``wrap`` (prose) columns a character at a time in turn."""
@@ -153,18 +159,27 @@ def widen(needs: Sequence[int], naturals: Sequence[int], width: int,
 
 def _rich_table(grid: Grid, columns: Sequence[int], width: int) -> Table:
     needs = column_needs(grid)
-    naturals = [max(needs[i], len(grid.columns[i]) if grid.header else 0,
-                    max((len(plain(row[i])) for row in grid.rows), default=0))
-                for i in columns]
-    widths = widen([needs[i] for i in columns], naturals, width,
-                   [i in grid.wrap for i in columns])
-    table = (Table(show_header=grid.header) if grid.header
-             else Table(show_header=False, box=None))  # key-value lists stay unboxed
+    naturals = [
+        max(
+            needs[i],
+            len(grid.columns[i]) if grid.header else 0,
+            max((len(plain(row[i])) for row in grid.rows), default=0),
+        )
+        for i in columns
+    ]
+    widths = widen([needs[i] for i in columns], naturals, width, [i in grid.wrap for i in columns])
+    table = (
+        Table(show_header=grid.header) if grid.header else Table(show_header=False, box=None)
+    )  # key-value lists stay unboxed
     for i, w in zip(columns, widths):
         # A fixed width keeps rich from squeezing values: headers wrap at words, and only
         # the prose of `wrap` columns wraps.
-        table.add_column(grid.columns[i], justify="right" if i in grid.right else "left",
-                         overflow="fold", width=w)
+        table.add_column(
+            grid.columns[i],
+            justify="right" if i in grid.right else "left",
+            overflow="fold",
+            width=w,
+        )
     for r, row in enumerate(grid.rows):
         style = grid.styles[r] if r < len(grid.styles) else ""
         table.add_row(*(row[i] for i in columns), style=style or None)
@@ -175,9 +190,14 @@ def _records(grid: Grid) -> list[Grid]:
     """One two-column grid (column, value) per row of ``grid``."""
     out = []
     for r, row in enumerate(grid.rows):
-        name = " / ".join(plain(c) for c in row[:grid.keys]) or f"row {r + 1}"
-        record = Grid(["column", "value"], title=f"{plain(grid.title)}: {name}".strip(": "),
-                      keys=1, wrap={0, 1}, header=False)
+        name = " / ".join(plain(c) for c in row[: grid.keys]) or f"row {r + 1}"
+        record = Grid(
+            ["column", "value"],
+            title=f"{plain(grid.title)}: {name}".strip(": "),
+            keys=1,
+            wrap={0, 1},
+            header=False,
+        )
         for head, cell in zip(grid.columns, row):
             record.add_row(head, cell)
         out.append(record)

@@ -8,18 +8,30 @@ from canopy_kit.volume.alpha import PAPER_ALPHA_M
 
 
 def volume(
-    cloud: str = typer.Argument(..., help="LAS/LAZ/PLY/PCD file holding one tree's points "
-                                          "only, in metres"),
-    method: str = typer.Option("alpha_shape", "--method", "-m",
-                               help="volume plugin: convex_hull, alpha_shape, alpha_hull, voxel, "
-                                    "slices, mirror, ... (see 'canopy-kit plugins volumes')"),
-    alpha: float = typer.Option(None, "--alpha", "-a",
-                                help="alpha radius in metres for alpha-based methods "
-                                     f"(default {PAPER_ALPHA_M:g})"),
-    voxel_size: float = typer.Option(0.0, "--voxel-size", min=0.0,
-                                     help="thin the points to this voxel grid first, as a run "
-                                          "measures its trees (volume.voxel_size, 0.1 m); "
-                                          "0: every point"),
+    cloud: str = typer.Argument(
+        ..., help="LAS/LAZ/PLY/PCD file holding one tree's points only, in metres"
+    ),
+    method: str = typer.Option(
+        "alpha_shape",
+        "--method",
+        "-m",
+        help="volume plugin: convex_hull, alpha_shape, alpha_hull, voxel, "
+        "slices, mirror, ... (see 'canopy-kit plugins volumes')",
+    ),
+    alpha: float = typer.Option(
+        None,
+        "--alpha",
+        "-a",
+        help=f"alpha radius in metres for alpha-based methods (default {PAPER_ALPHA_M:g})",
+    ),
+    voxel_size: float = typer.Option(
+        0.0,
+        "--voxel-size",
+        min=0.0,
+        help="thin the points to this voxel grid first, as a run "
+        "measures its trees (volume.voxel_size, 0.1 m); "
+        "0: every point",
+    ),
     json: bool = typer.Option(False, "--json", help="print the result as JSON"),
 ) -> None:
     """Estimate the canopy volume of the points in CLOUD with one volume method.
@@ -49,8 +61,12 @@ def volume(
         print_json({"cloud": str(cloud), **result.as_dict(), "metrics": metrics.as_dict()})
         return
     status = "[green]valid" if result.valid else f"[red]invalid: {result.reason}"
-    console.print(f"{cloud}: {result.volume_m3:.3f} m³ by {result.method} "
-                  f"{result.params} from {result.n_points} points ({status}[/])")
-    console.print(f"height {metrics.height_m:.2f} m, crown diameter max "
-                  f"{metrics.crown_diameter_max_m:.2f} m / mean {metrics.crown_diameter_mean_m:.2f} m, "
-                  f"sphere volume {metrics.sphere_volume_m3:.2f} m³")
+    console.print(
+        f"{cloud}: {result.volume_m3:.3f} m³ by {result.method} "
+        f"{result.params} from {result.n_points} points ({status}[/])"
+    )
+    console.print(
+        f"height {metrics.height_m:.2f} m, crown diameter max "
+        f"{metrics.crown_diameter_max_m:.2f} m / mean {metrics.crown_diameter_mean_m:.2f} m, "
+        f"sphere volume {metrics.sphere_volume_m3:.2f} m³"
+    )

@@ -26,8 +26,13 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
 LIDAR_TYPES = (POINTCLOUD2, VELODYNE_SCAN)  # in order of preference
 KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY, VELODYNE_SCAN)
-TOPIC_ROLES = {POINTCLOUD2: "lidar", VELODYNE_SCAN: "lidar", IMU: "imu", NAVSATFIX: "gnss",
-               ODOMETRY: "odometry"}
+TOPIC_ROLES = {
+    POINTCLOUD2: "lidar",
+    VELODYNE_SCAN: "lidar",
+    IMU: "imu",
+    NAVSATFIX: "gnss",
+    ODOMETRY: "odometry",
+}
 # A point timed this far from the rest of its sweep is corrupt (a sweep lasts 0.05-0.2 s):
 # one such time stretched its sweep's deskew window and moved the pose by metres.
 MAX_POINT_TIME_OFFSET_S = 1.0
@@ -120,10 +125,12 @@ def bag_kind(path: Path) -> str | None:
 
 def stray_times_warning(path: str, topic: str, stray: list[tuple[int, int]]) -> str:
     """The one warning that counts the points dropped for corrupt per-point times."""
-    return (f"{path}: topic {topic!r}: {sum(n for _, n in stray)} points in "
-            f"{len(stray)} scans had per-point times more than {MAX_POINT_TIME_OFFSET_S:g} s "
-            f"from the rest of their scan or not finite (corrupt data) and were dropped (first: scan "
-            f"{min(i for i, _ in stray)})")
+    return (
+        f"{path}: topic {topic!r}: {sum(n for _, n in stray)} points in "
+        f"{len(stray)} scans had per-point times more than {MAX_POINT_TIME_OFFSET_S:g} s "
+        f"from the rest of their scan or not finite (corrupt data) and were dropped (first: scan "
+        f"{min(i for i, _ in stray)})"
+    )
 
 
 class BagSession:
@@ -144,7 +151,7 @@ class BagSession:
         self._stray_warning: int | None = None
         self.log = MessageLog(str(self.path))  # messages met, dropped or trimmed per topic
 
-    def __enter__(self) -> "BagSession":
+    def __enter__(self) -> BagSession:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -178,13 +185,16 @@ class BagSession:
             self._reader = recover_bag(self.path)
         except Exception as exc:  # InputError, or whatever the damaged bytes provoke
             detail = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
-            raise InputError(f"{self.path}: cannot open bag ({reason}); reading it record by "
-                             f"record failed too: {detail}") from None
+            raise InputError(
+                f"{self.path}: cannot open bag ({reason}); reading it record by "
+                f"record failed too: {detail}"
+            ) from None
         self.recovered = True
         self.warnings.append(
             f"{self.path}: damaged or cut short ({reason}); recovered "
             f"{self._reader.message_count} messages up to "
-            f"t={self._reader.end_time * 1e-9:.3f} s, the rest is lost ({self._reader.stopped})")
+            f"t={self._reader.end_time * 1e-9:.3f} s, the rest is lost ({self._reader.stopped})"
+        )
 
     def __exit__(self, *exc: object) -> None:
         if self._reader is not None:
@@ -213,8 +223,9 @@ class BagSession:
     def end_time(self) -> float:
         return self.reader.end_time * 1e-9
 
-    def find_topic(self, msgtype: str | tuple[str, ...], topic: str | None = None,
-                   required: bool = True) -> str | None:
+    def find_topic(
+        self, msgtype: str | tuple[str, ...], topic: str | None = None, required: bool = True
+    ) -> str | None:
         """The topic to read for ``msgtype``: the named one (checked) or the busiest of that type.
 
         ``msgtype`` may list several types in order of preference (e.g. :data:`LIDAR_TYPES`): the
@@ -230,8 +241,10 @@ class BagSession:
                     f"{self.path}: no topic {topic!r} (topics: {', '.join(t.name for t in topics)})"
                 )
             if match[0].msgtype not in types:
-                raise InputError(f"{self.path}: topic {topic!r} carries {match[0].msgtype}, "
-                                 f"expected {types[0]}{others}")
+                raise InputError(
+                    f"{self.path}: topic {topic!r} carries {match[0].msgtype}, "
+                    f"expected {types[0]}{others}"
+                )
             return topic
         candidates: list[TopicInfo] = []
         for wanted in types:
@@ -293,8 +306,11 @@ class BagSession:
                 stamp = pc2.stamp_seconds(msg.header)
                 names = points.dtype.names or ()
                 time_name = pc2.time_field_name(names)
-                times = (pc2.point_times(points[time_name], stamp)
-                         if time_name and points[time_name].ndim == 1 else None)
+                times = (
+                    pc2.point_times(points[time_name], stamp)
+                    if time_name and points[time_name].ndim == 1
+                    else None
+                )
                 fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
         except MessageError as exc:
             log.drop(index, "malformed", str(exc))
@@ -302,15 +318,27 @@ class BagSession:
         log.use(index, stamp, msg.header.frame_id)
         if unused:
             described = int(msg.width) * int(msg.height) * int(msg.point_step)
-            log.trim(index, unused, described, (
-                f"{where}: data holds {len(msg.data)} bytes, {unused} more than the "
-                f"width x height x point_step = {msg.width} x {msg.height} x {msg.point_step} = "
-                f"{described} its points take (row_step {msg.row_step})"))
+            log.trim(
+                index,
+                unused,
+                described,
+                (
+                    f"{where}: data holds {len(msg.data)} bytes, {unused} more than the "
+                    f"width x height x point_step = {msg.width} x {msg.height} x {msg.point_step} = "
+                    f"{described} its points take (row_step {msg.row_step})"
+                ),
+            )
         xyz, fields, times = self.drop_stray_times(topic, index, xyz, fields, times)
         return Scan(stamp, xyz, fields, times, msg.header.frame_id, index)
 
-    def drop_stray_times(self, topic: str, index: int, xyz: np.ndarray, fields: dict[str, np.ndarray],
-                         times: np.ndarray | None) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
+    def drop_stray_times(
+        self,
+        topic: str,
+        index: int,
+        xyz: np.ndarray,
+        fields: dict[str, np.ndarray],
+        times: np.ndarray | None,
+    ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray | None]:
         """A scan without its points of corrupt per-point time (see :func:`_stray_times`);
         one warning in :attr:`warnings` counts them over the bag."""
         stray = _stray_times(times)
@@ -345,28 +373,51 @@ class BagSession:
         log = self.log.topic(name, "IMU samples")
         for index, (_, msg) in enumerate(self._messages(name)):
             w, a = msg.angular_velocity, msg.linear_acceleration
-            if not self.imu_sample_ok(log, index, pc2.stamp_seconds(msg.header), (w.x, w.y, w.z),
-                                      (a.x, a.y, a.z), msg.header.frame_id):
+            if not self.imu_sample_ok(
+                log,
+                index,
+                pc2.stamp_seconds(msg.header),
+                (w.x, w.y, w.z),
+                (a.x, a.y, a.z),
+                msg.header.frame_id,
+            ):
                 continue
             t.append(pc2.stamp_seconds(msg.header))
             gyro.append((w.x, w.y, w.z))
             acc.append((a.x, a.y, a.z))
-            quat.append((msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w))
+            quat.append(
+                (msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w)
+            )
             frame = msg.header.frame_id
         log.check()
-        return ImuSeries(np.array(t), np.array(gyro).reshape(-1, 3), np.array(acc).reshape(-1, 3),
-                         np.array(quat).reshape(-1, 4), frame)
+        return ImuSeries(
+            np.array(t),
+            np.array(gyro).reshape(-1, 3),
+            np.array(acc).reshape(-1, 3),
+            np.array(quat).reshape(-1, 4),
+            frame,
+        )
 
     @staticmethod
-    def imu_sample_ok(log: Any, index: int, stamp: float, gyro: tuple[float, float, float],
-                      acc: tuple[float, float, float], frame_id: str) -> bool:
+    def imu_sample_ok(
+        log: Any,
+        index: int,
+        stamp: float,
+        gyro: tuple[float, float, float],
+        acc: tuple[float, float, float],
+        frame_id: str,
+    ) -> bool:
         """Is IMU message ``index`` usable (finite, possible values)? Counted in ``log`` either way."""
         fault = imu_sample_fault(gyro, acc)
         if fault is None:
             log.use(index, stamp, frame_id)
             return True
-        log.drop(index, fault, f"message {index} at t={stamp:.3f} s: {fault} (angular velocity "
-                               f"{gyro}, linear acceleration {acc})")
+        log.drop(
+            index,
+            fault,
+            f"message {index} at t={stamp:.3f} s: {fault} (angular velocity "
+            f"{gyro}, linear acceleration {acc})",
+        )
         return False
 
     def gnss(self, topic: str | None = None) -> GnssSeries | None:
@@ -376,12 +427,27 @@ class BagSession:
             return None
         rows, cov = [], []
         for _, msg in self._messages(name):
-            rows.append((pc2.stamp_seconds(msg.header), msg.latitude, msg.longitude, msg.altitude,
-                         msg.status.status, msg.position_covariance_type))
+            rows.append(
+                (
+                    pc2.stamp_seconds(msg.header),
+                    msg.latitude,
+                    msg.longitude,
+                    msg.altitude,
+                    msg.status.status,
+                    msg.position_covariance_type,
+                )
+            )
             cov.append(np.asarray(msg.position_covariance, dtype=float))
         a = np.array(rows, dtype=float).reshape(-1, 6)
-        return GnssSeries(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4].astype(int),
-                          np.array(cov).reshape(-1, 9), a[:, 5].astype(int))
+        return GnssSeries(
+            a[:, 0],
+            a[:, 1],
+            a[:, 2],
+            a[:, 3],
+            a[:, 4].astype(int),
+            np.array(cov).reshape(-1, 9),
+            a[:, 5].astype(int),
+        )
 
     def odometry(self, topic: str | None = None) -> OdometrySeries | None:
         """All Odometry poses of ``topic`` (auto-detected), or None when absent."""
@@ -396,8 +462,9 @@ class BagSession:
             pos.append((p.x, p.y, p.z))
             quat.append((q.x, q.y, q.z, q.w))
             frame, child = msg.header.frame_id, msg.child_frame_id
-        return OdometrySeries(np.array(t), np.array(pos).reshape(-1, 3), np.array(quat).reshape(-1, 4),
-                              frame, child)
+        return OdometrySeries(
+            np.array(t), np.array(pos).reshape(-1, 3), np.array(quat).reshape(-1, 4), frame, child
+        )
 
     def _truth_odometry_topic(self) -> str | None:
         odoms = [t for t in self.topics() if t.msgtype == ODOMETRY and t.count > 0]
@@ -421,7 +488,9 @@ def _stray_times(times: np.ndarray | None) -> np.ndarray | None:
     if not finite.any():
         return None
     far = np.zeros(len(times), bool)
-    if np.ptp(times[finite]) > MAX_POINT_TIME_OFFSET_S:  # else no point can be that far from the median
+    if (
+        np.ptp(times[finite]) > MAX_POINT_TIME_OFFSET_S
+    ):  # else no point can be that far from the median
         far[finite] = np.abs(times[finite] - np.median(times[finite])) > MAX_POINT_TIME_OFFSET_S
         if far.sum() > 0.01 * len(times):
             far[:] = False
@@ -469,6 +538,13 @@ class RosbagReader:
                 "duration_s": bag.end_time - bag.start_time,
                 # the LiDAR topic mapping would read (None: no PointCloud2 or VelodyneScan topic)
                 "lidar_topic": bag.find_topic(LIDAR_TYPES, required=False),
-                "topics": [{"name": t.name, "type": t.msgtype, "count": t.count,
-                            "role": TOPIC_ROLES.get(t.msgtype, "")} for t in topics],
+                "topics": [
+                    {
+                        "name": t.name,
+                        "type": t.msgtype,
+                        "count": t.count,
+                        "role": TOPIC_ROLES.get(t.msgtype, ""),
+                    }
+                    for t in topics
+                ],
             }

@@ -57,7 +57,11 @@ def _inflate(compression: str, raw: bytes, complete: bool) -> bytes:
     if compression == "lz4":
         import lz4.frame
 
-        return lz4.frame.decompress(raw) if complete else lz4.frame.LZ4FrameDecompressor().decompress(raw)
+        return (
+            lz4.frame.decompress(raw)
+            if complete
+            else lz4.frame.LZ4FrameDecompressor().decompress(raw)
+        )
     if compression == "zstd":
         try:
             from compression import zstd  # type: ignore[import-not-found]  # Python 3.14
@@ -68,8 +72,9 @@ def _inflate(compression: str, raw: bytes, complete: bool) -> bytes:
     raise ValueError(f"unknown chunk compression {compression!r}")
 
 
-def _block_messages(path: Path, blocks: list[_Block], messages: list[_Message],
-                    wanted: dict[int, Any]) -> Iterator[tuple[Any, int, bytes]]:
+def _block_messages(
+    path: Path, blocks: list[_Block], messages: list[_Message], wanted: dict[int, Any]
+) -> Iterator[tuple[Any, int, bytes]]:
     current, body = -2, b""
     with path.open("rb") as fh:
         for m in messages:
@@ -84,14 +89,22 @@ def _block_messages(path: Path, blocks: list[_Block], messages: list[_Message],
                 fh.seek(block.pos)
                 body = _inflate(block.compression, fh.read(block.size), block.complete)
                 current = m.block
-            yield wanted[m.conn], m.time, body[m.start:m.start + m.size]
+            yield wanted[m.conn], m.time, body[m.start : m.start + m.size]
 
 
 class RecoveredBag:
     """Complete messages of a damaged bag (the reader subset of rosbags' ``AnyReader``)."""
 
-    def __init__(self, path: Path, kind: str, connections: list[Any], times: tuple[int, int, int],
-                 stopped: str, source: Any, messages: list[_Message] | None = None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        kind: str,
+        connections: list[Any],
+        times: tuple[int, int, int],
+        stopped: str,
+        source: Any,
+        messages: list[_Message] | None = None,
+    ) -> None:
         self.path = path
         self.kind = kind
         self.connections = connections
@@ -180,7 +193,7 @@ def _ros1_header(blob: bytes) -> dict[str, bytes]:
         pos += 4
         if pos + size > len(blob):
             raise ValueError("header field runs past the header")
-        name, sep, value = blob[pos:pos + size].partition(b"=")
+        name, sep, value = blob[pos : pos + size].partition(b"=")
         if not sep:
             raise ValueError("header field without '='")
         fields[name.decode(errors="replace")] = value
@@ -195,7 +208,7 @@ def _ros1_records(data: bytes, start: int = 0) -> Iterator[tuple[dict[str, bytes
         (hlen,) = struct.unpack_from("<I", data, pos)
         if pos + 4 + hlen + 4 > len(data):
             return
-        header = _ros1_header(data[pos + 4:pos + 4 + hlen])
+        header = _ros1_header(data[pos + 4 : pos + 4 + hlen])
         (dlen,) = struct.unpack_from("<I", data, pos + 4 + hlen)
         begin = pos + 8 + hlen
         if begin + dlen > len(data):
@@ -205,8 +218,12 @@ def _ros1_records(data: bytes, start: int = 0) -> Iterator[tuple[dict[str, bytes
 
 
 def _recover_ros1(path: Path) -> RecoveredBag:
-    from rosbags.interfaces import (Connection, ConnectionExtRosbag1, MessageDefinition,
-                                    MessageDefinitionFormat)
+    from rosbags.interfaces import (
+        Connection,
+        ConnectionExtRosbag1,
+        MessageDefinition,
+        MessageDefinitionFormat,
+    )
     from rosbags.typesys.msg import normalize_msgtype
 
     conns: dict[int, Any] = {}
@@ -221,9 +238,19 @@ def _recover_ros1(path: Path) -> RecoveredBag:
             return
         info = _ros1_header(body)
         msgtype = normalize_msgtype(info["type"].decode())
-        msgdef = MessageDefinition(MessageDefinitionFormat.MSG, info.get("message_definition", b"").decode())
-        conns[cid] = Connection(cid, header["topic"].decode(), msgtype, msgdef,
-                                info.get("md5sum", b"").decode(), 0, ConnectionExtRosbag1(None, None), None)
+        msgdef = MessageDefinition(
+            MessageDefinitionFormat.MSG, info.get("message_definition", b"").decode()
+        )
+        conns[cid] = Connection(
+            cid,
+            header["topic"].decode(),
+            msgtype,
+            msgdef,
+            info.get("md5sum", b"").decode(),
+            0,
+            ConnectionExtRosbag1(None, None),
+            None,
+        )
 
     with path.open("rb") as fh:
         pos = len(ROS1_MAGIC)
@@ -251,14 +278,24 @@ def _recover_ros1(path: Path) -> RecoveredBag:
                     for inner, begin, length in _ros1_records(body):
                         inner_op = inner["op"][0]
                         if inner_op == _OP_CONNECTION:
-                            add_connection(inner, body[begin:begin + length])
+                            add_connection(inner, body[begin : begin + length])
                         elif inner_op == _OP_MSGDATA:
                             sec, nsec = struct.unpack("<II", inner["time"])
                             cid = struct.unpack("<I", inner["conn"])[0]
-                            messages.append(_Message(cid, sec * 10**9 + nsec, len(chunks) - 1, begin, length))
+                            messages.append(
+                                _Message(cid, sec * 10**9 + nsec, len(chunks) - 1, begin, length)
+                            )
                 elif op == _OP_CONNECTION and present == dlen:
                     add_connection(header, fh.read(dlen))
-            except (ValueError, KeyError, IndexError, struct.error, OSError, EOFError, RuntimeError) as exc:
+            except (
+                ValueError,
+                KeyError,
+                IndexError,
+                struct.error,
+                OSError,
+                EOFError,
+                RuntimeError,
+            ) as exc:
                 stopped = f"damaged record at byte {pos} of {size} ({type(exc).__name__}: {exc})"
                 break
             if present < dlen:
@@ -292,7 +329,7 @@ def _mcap_string(data: bytes, pos: int) -> tuple[str, int]:
     (n,) = struct.unpack_from("<I", data, pos)
     if pos + 4 + n > len(data):
         raise ValueError("string runs past its record")
-    return data[pos + 4:pos + 4 + n].decode(), pos + 4 + n
+    return data[pos + 4 : pos + 4 + n].decode(), pos + 4 + n
 
 
 class _McapScan:
@@ -311,7 +348,7 @@ class _McapScan:
             name, pos = _mcap_string(data, start + 2)
             encoding, pos = _mcap_string(data, pos)
             (n,) = struct.unpack_from("<I", data, pos)
-            self.schemas[sid] = Schema(sid, name, encoding, data[pos + 4:pos + 4 + n].decode())
+            self.schemas[sid] = Schema(sid, name, encoding, data[pos + 4 : pos + 4 + n].decode())
         elif op == 0x04:
             cid, sid = struct.unpack_from("<HH", data, start)
             topic, pos = _mcap_string(data, start + 4)
@@ -376,8 +413,18 @@ def _recover_mcap(path: Path) -> RecoveredBag:
     connections = []
     for cid, (topic, sid, encoding) in scan.channels.items():
         schema = scan.schemas.get(sid)
-        connections.append(Connection(cid, topic, schema.name if schema else "", get_msgdef(schema), "",
-                                      counts.get(cid, 0), ConnectionExtRosbag2(encoding, []), None))
+        connections.append(
+            Connection(
+                cid,
+                topic,
+                schema.name if schema else "",
+                get_msgdef(schema),
+                "",
+                counts.get(cid, 0),
+                ConnectionExtRosbag2(encoding, []),
+                None,
+            )
+        )
     stamps = [m.time for m in messages]
     times = (len(stamps), min(stamps, default=0), max(stamps, default=-1) + 1)
     return RecoveredBag(path, "mcap", connections, times, stopped, blocks, messages)
@@ -423,7 +470,7 @@ def _sqlite_vfs(path: Path, name: str) -> Any:
         def __init__(self, *_: object) -> None:
             self._fh = path.open("rb")
 
-        def xRead(self, amount: int, offset: int) -> bytes:  # noqa: N802
+        def xRead(self, amount: int, offset: int) -> bytes:
             if offset >= length:
                 return b""
             self._fh.seek(offset)
@@ -433,35 +480,35 @@ def _sqlite_vfs(path: Path, name: str) -> Any:
                 data[: end - offset] = header[offset:end]
             return bytes(data)
 
-        def xFileSize(self) -> int:  # noqa: N802
+        def xFileSize(self) -> int:
             return length
 
-        def xClose(self) -> None:  # noqa: N802
+        def xClose(self) -> None:
             self._fh.close()
 
-        def xDeviceCharacteristics(self) -> int:  # noqa: N802
+        def xDeviceCharacteristics(self) -> int:
             return 0
 
-        def xSectorSize(self) -> int:  # noqa: N802
+        def xSectorSize(self) -> int:
             return 0
 
-        def xFileControl(self, op: int, ptr: int) -> bool:  # noqa: N802
+        def xFileControl(self, op: int, ptr: int) -> bool:
             return False
 
-        def xLock(self, level: int) -> None:  # noqa: N802
+        def xLock(self, level: int) -> None:
             return None
 
-        def xUnlock(self, level: int) -> None:  # noqa: N802
+        def xUnlock(self, level: int) -> None:
             return None
 
-        def xCheckReservedLock(self) -> bool:  # noqa: N802
+        def xCheckReservedLock(self) -> bool:
             return False
 
     class Vfs(apsw.VFS):  # type: ignore[misc]
         def __init__(self) -> None:
             super().__init__(name, "")
 
-        def xOpen(self, fname: Any, flags: Any) -> Any:  # noqa: N802
+        def xOpen(self, fname: Any, flags: Any) -> Any:
             return File()
 
     return Vfs()
@@ -473,8 +520,11 @@ class _SqliteSource:
 
         self.name = f"canopy_kit_recover_{os.getpid()}_{id(self)}"
         self.vfs = _sqlite_vfs(path, self.name)
-        self.db = apsw.Connection(f"file:{path}?immutable=1", vfs=self.name,
-                                  flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI)
+        self.db = apsw.Connection(
+            f"file:{path}?immutable=1",
+            vfs=self.name,
+            flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI,
+        )
         self.last_row = 0
         self.conns: dict[int, Any] = {}
 
@@ -483,9 +533,10 @@ class _SqliteSource:
 
         cursor = self.db.cursor()
         try:
-            for rowid, topic_id, timestamp, data in cursor.execute(
-                    "SELECT id, topic_id, timestamp, data FROM messages WHERE id <= ? ORDER BY id",
-                    (self.last_row,)):
+            for _rowid, topic_id, timestamp, data in cursor.execute(
+                "SELECT id, topic_id, timestamp, data FROM messages WHERE id <= ? ORDER BY id",
+                (self.last_row,),
+            ):
                 if topic_id in wanted:
                     yield wanted[topic_id], int(timestamp), bytes(data)
         except apsw.Error:
@@ -498,32 +549,51 @@ class _SqliteSource:
 
 def _recover_sqlite(path: Path) -> RecoveredBag:
     import apsw
-    from rosbags.interfaces import (Connection, ConnectionExtRosbag2, MessageDefinition,
-                                    MessageDefinitionFormat)
+    from rosbags.interfaces import (
+        Connection,
+        ConnectionExtRosbag2,
+        MessageDefinition,
+        MessageDefinitionFormat,
+    )
 
     try:
         source = _SqliteSource(path)
     except (apsw.Error, OSError, struct.error) as exc:
         raise InputError(f"{path}: damaged sqlite3 bag cannot be opened ({exc})") from None
     try:
-        topics = source.db.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
+        topics = source.db.execute(
+            "SELECT id, name, type, serialization_format FROM topics"
+        ).fetchall()
     except apsw.Error as exc:
         source.close()
-        raise InputError(f"{path}: the topics table of the damaged sqlite3 bag is unreadable ({exc})") from None
+        raise InputError(
+            f"{path}: the topics table of the damaged sqlite3 bag is unreadable ({exc})"
+        ) from None
     stopped = "read every row of the messages table"
     counts: dict[int, int] = {}
     first, last = None, -1
     try:  # the data too: a row is usable only when its overflow pages are present
         for rowid, topic_id, timestamp, _ in source.db.execute(
-                "SELECT id, topic_id, timestamp, data FROM messages ORDER BY id"):
+            "SELECT id, topic_id, timestamp, data FROM messages ORDER BY id"
+        ):
             counts[topic_id] = counts.get(topic_id, 0) + 1
             first = timestamp if first is None else min(first, timestamp)
             last = max(last, timestamp)
             source.last_row = rowid
     except apsw.Error as exc:
         stopped = f"rows after message {source.last_row} are unreadable ({exc})"
-    connections = [Connection(tid, name, typ, MessageDefinition(MessageDefinitionFormat.NONE, ""), "",
-                              counts.get(tid, 0), ConnectionExtRosbag2(fmt, []), None)
-                   for tid, name, typ, fmt in topics]
+    connections = [
+        Connection(
+            tid,
+            name,
+            typ,
+            MessageDefinition(MessageDefinitionFormat.NONE, ""),
+            "",
+            counts.get(tid, 0),
+            ConnectionExtRosbag2(fmt, []),
+            None,
+        )
+        for tid, name, typ, fmt in topics
+    ]
     times = (sum(counts.values()), int(first or 0), int(last) + 1)
     return RecoveredBag(path, "sqlite3", connections, times, stopped, source)

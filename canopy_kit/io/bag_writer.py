@@ -48,7 +48,7 @@ class BagWriter:
 
         self.typestore = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
 
-    def __enter__(self) -> "BagWriter":
+    def __enter__(self) -> BagWriter:
         if self.path.exists():
             raise InputError(f"{self.path}: already exists; remove it or choose another name")
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -73,8 +73,9 @@ class BagWriter:
                 self._rename_ros2_storage()
             self._tmp.rename(self.path)
         else:
-            shutil.rmtree(self._tmp, ignore_errors=True) if self._tmp.is_dir() else self._tmp.unlink(
-                missing_ok=True)
+            shutil.rmtree(
+                self._tmp, ignore_errors=True
+            ) if self._tmp.is_dir() else self._tmp.unlink(missing_ok=True)
 
     def _rename_ros2_storage(self) -> None:
         """Storage files inside a ROS2 bag are named after the folder; keep them consistent."""
@@ -96,18 +97,38 @@ class BagWriter:
     def _connect(self, topic: str, msgtype: str, latched: bool = False) -> None:
         """Open a connection; ``latched`` as /tf_static is (ROS1 latching, ROS2 transient local)."""
         if not latched:
-            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
+            self._conns[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self.typestore
+            )
         elif self.ros1:
-            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore, latching=1)
+            self._conns[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self.typestore, latching=1
+            )
         else:
-            from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
-                                            QosTime)
+            from rosbags.interfaces import (
+                Qos,
+                QosDurability,
+                QosHistory,
+                QosLiveliness,
+                QosReliability,
+                QosTime,
+            )
 
             never = QosTime(0x7FFFFFFF, 0xFFFFFFFF)
-            qos = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
-                      never, never, QosLiveliness.AUTOMATIC, never, False)
-            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
-                                                             offered_qos_profiles=[qos])
+            qos = Qos(
+                QosHistory.KEEP_LAST,
+                1,
+                QosReliability.RELIABLE,
+                QosDurability.TRANSIENT_LOCAL,
+                never,
+                never,
+                QosLiveliness.AUTOMATIC,
+                never,
+                False,
+            )
+            self._conns[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self.typestore, offered_qos_profiles=[qos]
+            )
 
     def _write(self, topic: str, msgtype: str, msg: Any, stamp: float) -> None:
         if topic not in self._conns:
@@ -124,22 +145,37 @@ class BagWriter:
         return pc2.make_header(self.typestore, stamp, frame_id, self.ros1, seq)
 
     def _vec3(self, v: Any) -> Any:
-        return self.typestore.types["geometry_msgs/msg/Vector3"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
+        return self.typestore.types["geometry_msgs/msg/Vector3"](
+            x=float(v[0]), y=float(v[1]), z=float(v[2])
+        )
 
     def _quat(self, q: Any) -> Any:
         return self.typestore.types["geometry_msgs/msg/Quaternion"](
-            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+        )
 
-    def write_points(self, topic: str, stamp: float, columns: Mapping[str, np.ndarray],
-                     frame_id: str = "lidar", height: int = 1) -> None:
+    def write_points(
+        self,
+        topic: str,
+        stamp: float,
+        columns: Mapping[str, np.ndarray],
+        frame_id: str = "lidar",
+        height: int = 1,
+    ) -> None:
         """One PointCloud2 from named columns (x, y, z, then any fields)."""
         seq = self._seq.get(topic, 0)
         self._seq[topic] = seq + 1
         msg = pc2.build_message(self.typestore, columns, stamp, frame_id, self.ros1, seq, height)
         self._write(topic, "sensor_msgs/msg/PointCloud2", msg, stamp)
 
-    def write_velodyne_scan(self, topic: str, packet_stamps: Any, packets: Any,
-                            frame_id: str = "velodyne", stamp: float | None = None) -> None:
+    def write_velodyne_scan(
+        self,
+        topic: str,
+        packet_stamps: Any,
+        packets: Any,
+        frame_id: str = "velodyne",
+        stamp: float | None = None,
+    ) -> None:
         """One velodyne_msgs/VelodyneScan: per-packet stamps (s) and the packets, a (P, 1206)
         uint8 array or P byte strings. The header stamp (and the log time) is ``stamp``, by
         default the first packet's.
@@ -156,13 +192,24 @@ class BagWriter:
         header_stamp = stamps[0] if stamp is None else float(stamp)
         msg = t["velodyne_msgs/msg/VelodyneScan"](
             header=self._header(topic, header_stamp, frame_id),
-            packets=[t[VELODYNE_PACKET](stamp=pc2.make_header(self.typestore, s, "", self.ros1).stamp,
-                                        data=row) for s, row in zip(stamps, data, strict=True)],
+            packets=[
+                t[VELODYNE_PACKET](
+                    stamp=pc2.make_header(self.typestore, s, "", self.ros1).stamp, data=row
+                )
+                for s, row in zip(stamps, data, strict=True)
+            ],
         )
         self._write(topic, "velodyne_msgs/msg/VelodyneScan", msg, header_stamp)
 
-    def write_imu(self, topic: str, stamp: float, angular_velocity: Any, linear_acceleration: Any,
-                  orientation: Any | None = None, frame_id: str = "lidar") -> None:
+    def write_imu(
+        self,
+        topic: str,
+        stamp: float,
+        angular_velocity: Any,
+        linear_acceleration: Any,
+        orientation: Any | None = None,
+        frame_id: str = "lidar",
+    ) -> None:
         """One sensor_msgs/Imu; orientation xyzw or None (covariance[0] = -1, per REP-145).
 
         ``frame_id`` defaults to the LiDAR's (``write_points``): without /tf_static a bag
@@ -182,26 +229,44 @@ class BagWriter:
         )
         self._write(topic, "sensor_msgs/msg/Imu", msg, stamp)
 
-    def write_fix(self, topic: str, stamp: float, lat: float, lon: float, alt: float,
-                  sigma_h: float = 1.0, sigma_v: float = 2.0, status: int = 0,
-                  frame_id: str = "lidar", covariance_type: int = 2) -> None:
+    def write_fix(
+        self,
+        topic: str,
+        stamp: float,
+        lat: float,
+        lon: float,
+        alt: float,
+        sigma_h: float = 1.0,
+        sigma_v: float = 2.0,
+        status: int = 0,
+        frame_id: str = "lidar",
+        covariance_type: int = 2,
+    ) -> None:
         """One sensor_msgs/NavSatFix with a diagonal covariance.
 
         ``covariance_type`` 0 (COVARIANCE_TYPE_UNKNOWN) writes an all-zero covariance, as
         receivers that do not know their accuracy do; NaN positions are written as they are."""
         t = self.typestore.types
         status_msg = t["sensor_msgs/msg/NavSatStatus"](status=int(status), service=1)
-        cov = (np.zeros(9) if covariance_type == 0 else
-               np.diag([sigma_h**2, sigma_h**2, sigma_v**2]).ravel().astype(float))
+        cov = (
+            np.zeros(9)
+            if covariance_type == 0
+            else np.diag([sigma_h**2, sigma_h**2, sigma_v**2]).ravel().astype(float)
+        )
         msg = t["sensor_msgs/msg/NavSatFix"](
-            header=self._header(topic, stamp, frame_id), status=status_msg,
-            latitude=float(lat), longitude=float(lon), altitude=float(alt),
-            position_covariance=cov, position_covariance_type=int(covariance_type),
+            header=self._header(topic, stamp, frame_id),
+            status=status_msg,
+            latitude=float(lat),
+            longitude=float(lon),
+            altitude=float(alt),
+            position_covariance=cov,
+            position_covariance_type=int(covariance_type),
         )
         self._write(topic, "sensor_msgs/msg/NavSatFix", msg, stamp)
 
-    def write_tf_static(self, stamp: float, transforms: list[tuple[str, str, np.ndarray]],
-                        topic: str = "/tf_static") -> None:
+    def write_tf_static(
+        self, stamp: float, transforms: list[tuple[str, str, np.ndarray]], topic: str = "/tf_static"
+    ) -> None:
         """One tf2_msgs/TFMessage of ``(parent, child, parent_from_child 4x4)`` transforms
         (latched on a ``*tf_static`` topic, as robots record it)."""
         from scipy.spatial.transform import Rotation
@@ -213,26 +278,43 @@ class BagWriter:
         items = []
         for parent, child, matrix in transforms:
             m = np.asarray(matrix, float)
-            items.append(t["geometry_msgs/msg/TransformStamped"](
-                header=self._header(topic, stamp, parent), child_frame_id=child,
-                transform=t["geometry_msgs/msg/Transform"](
-                    translation=self._vec3(m[:3, 3]), rotation=self._quat(Rotation.from_matrix(m[:3, :3]).as_quat()))))
+            items.append(
+                t["geometry_msgs/msg/TransformStamped"](
+                    header=self._header(topic, stamp, parent),
+                    child_frame_id=child,
+                    transform=t["geometry_msgs/msg/Transform"](
+                        translation=self._vec3(m[:3, 3]),
+                        rotation=self._quat(Rotation.from_matrix(m[:3, :3]).as_quat()),
+                    ),
+                )
+            )
         if topic not in self._conns:
             self._connect(topic, TF_MESSAGE, latched=topic.rstrip("/").endswith("tf_static"))
         self._write(topic, TF_MESSAGE, t[TF_MESSAGE](transforms=items), stamp)
 
-    def write_odometry(self, topic: str, stamp: float, position: Any, orientation: Any,
-                       frame_id: str = "map", child_frame_id: str = "lidar") -> None:
+    def write_odometry(
+        self,
+        topic: str,
+        stamp: float,
+        position: Any,
+        orientation: Any,
+        frame_id: str = "map",
+        child_frame_id: str = "lidar",
+    ) -> None:
         """One nav_msgs/Odometry pose (twist left zero)."""
         t = self.typestore.types
         pose = t["geometry_msgs/msg/Pose"](
-            position=t["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]),
-                                                  z=float(position[2])),
+            position=t["geometry_msgs/msg/Point"](
+                x=float(position[0]), y=float(position[1]), z=float(position[2])
+            ),
             orientation=self._quat(orientation),
         )
-        twist = t["geometry_msgs/msg/Twist"](linear=self._vec3((0, 0, 0)), angular=self._vec3((0, 0, 0)))
+        twist = t["geometry_msgs/msg/Twist"](
+            linear=self._vec3((0, 0, 0)), angular=self._vec3((0, 0, 0))
+        )
         msg = t["nav_msgs/msg/Odometry"](
-            header=self._header(topic, stamp, frame_id), child_frame_id=child_frame_id,
+            header=self._header(topic, stamp, frame_id),
+            child_frame_id=child_frame_id,
             pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
             twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
         )

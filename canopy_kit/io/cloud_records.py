@@ -34,12 +34,15 @@ def header_lines(path: Path, end: bytes, what: str) -> tuple[list[str], int]:
         lines.append(line.decode("ascii", "replace").strip())
         if line.lstrip().startswith(end):
             return lines, pos
-    raise InputError(f"{path}: {what} header is incomplete (no {end.decode()!r} line in the "
-                     f"first {min(len(head), MAX_HEADER_BYTES)} bytes)")
+    raise InputError(
+        f"{path}: {what} header is incomplete (no {end.decode()!r} line in the "
+        f"first {min(len(head), MAX_HEADER_BYTES)} bytes)"
+    )
 
 
-def ascii_rows(path: Path, start: int, skip: int, rows: int, columns: int,
-               what: str) -> tuple[np.ndarray, str | None]:
+def ascii_rows(
+    path: Path, start: int, skip: int, rows: int, columns: int, what: str
+) -> tuple[np.ndarray, str | None]:
     """``rows`` lines of ``columns`` numbers after ``skip`` lines from byte ``start``; fewer
     when the file ends first. A last line without its line end counts only when whole, and
     then with a note (it may be cut inside its last number).
@@ -63,8 +66,10 @@ def ascii_rows(path: Path, start: int, skip: int, rows: int, columns: int,
     tail = text.rsplit("\n", 1)[-1]
     if tail.strip():  # the file ends inside this line
         if len(tail.split()) == columns:
-            note = (f"{path}: the last {what} data line has no line end; the file may be cut "
-                    "short inside it")
+            note = (
+                f"{path}: the last {what} data line has no line end; the file may be cut "
+                "short inside it"
+            )
         else:
             text = text[: len(text) - len(tail)]
     if not text.strip():
@@ -73,11 +78,14 @@ def ascii_rows(path: Path, start: int, skip: int, rows: int, columns: int,
         values = np.loadtxt(io.StringIO(text), dtype=np.float64, comments=None, ndmin=2)
     except ValueError as exc:
         reason = str(exc).split("; use `usecols`")[0]  # numpy's advice does not apply here
-        raise InputError(f"{path}: {what} data (rows counted from 0 at line {skip + 1} of the "
-                         f"data): {reason}") from None
+        raise InputError(
+            f"{path}: {what} data (rows counted from 0 at line {skip + 1} of the data): {reason}"
+        ) from None
     if values.shape[1] != columns:
-        raise InputError(f"{path}: {what} data lines have {values.shape[1]} values, the header "
-                         f"declares {columns}")
+        raise InputError(
+            f"{path}: {what} data lines have {values.shape[1]} values, the header "
+            f"declares {columns}"
+        )
     return values, note
 
 
@@ -95,19 +103,28 @@ def cast_column(path: Path, name: str, values: np.ndarray, dtype: np.dtype) -> n
         flat, bad = values.reshape(len(values), -1), bad.reshape(len(values), -1)
         row = int(np.flatnonzero(bad.any(axis=1))[0])
         value = float(flat[row][np.flatnonzero(bad[row])[0]])
-        raise InputError(f"{path}: field {name!r} ({dtype}) holds {value!r} at point {row}, "
-                         f"not a {dtype} value")
+        raise InputError(
+            f"{path}: field {name!r} ({dtype}) holds {value!r} at point {row}, not a {dtype} value"
+        )
     return values.astype(dtype)
 
 
 def cut_short_warning(path: Path, found: int, declared: int) -> str:
     """The warning for a file holding fewer points than its header declares."""
-    return (f"{path}: only {found} of {declared} points are in the file (cut short, or the "
-            "header's point count is wrong); read those")
+    return (
+        f"{path}: only {found} of {declared} points are in the file (cut short, or the "
+        "header's point count is wrong); read those"
+    )
 
 
-def build_cloud(path: Path, fmt: str, xyz: np.ndarray, fields: dict[str, np.ndarray],
-                declared: int, notes: list[str]) -> PointCloud:
+def build_cloud(
+    path: Path,
+    fmt: str,
+    xyz: np.ndarray,
+    fields: dict[str, np.ndarray],
+    declared: int,
+    notes: list[str],
+) -> PointCloud:
     """The cloud of absolute ``xyz`` with its fields, re-localised; points with a non-finite
     coordinate dropped. Warns with ``notes``, when fewer than ``declared`` points were in the
     file and when some were dropped (only once the cloud is whole); InputError when no point
@@ -116,30 +133,37 @@ def build_cloud(path: Path, fmt: str, xyz: np.ndarray, fields: dict[str, np.ndar
     if len(xyz) < declared:
         notes.insert(0, cut_short_warning(path, len(xyz), declared))
     if len(xyz) == 0:
-        raise InputError(f"{path}: {fmt} file has no points" if declared == 0 else
-                         f"{path}: {fmt} file is truncated: no complete point (header declares "
-                         f"{declared})")
+        raise InputError(
+            f"{path}: {fmt} file has no points"
+            if declared == 0
+            else f"{path}: {fmt} file is truncated: no complete point (header declares {declared})"
+        )
     xyz = np.asarray(xyz, dtype=np.float64)
     finite = np.isfinite(xyz).all(axis=1)
     if not finite.all():
         dropped = int((~finite).sum())
         if dropped == len(xyz):
-            raise InputError(f"{path}: all {dropped} points have non-finite coordinates (NaN or "
-                             "infinite x/y/z)")
-        notes.append(f"{path}: dropped {dropped} of {len(xyz)} points with non-finite "
-                     "coordinates (NaN or infinite x/y/z)")
+            raise InputError(
+                f"{path}: all {dropped} points have non-finite coordinates (NaN or infinite x/y/z)"
+            )
+        notes.append(
+            f"{path}: dropped {dropped} of {len(xyz)} points with non-finite "
+            "coordinates (NaN or infinite x/y/z)"
+        )
         xyz = xyz[finite]
         fields = {k: v[finite] for k, v in fields.items()}
     origin = local_origin(xyz.min(axis=0), xyz.max(axis=0))
-    cloud = PointCloud(xyz - origin, {k: fields[k] for k in sorted(fields)}, crs=None,
-                       origin=origin)
+    cloud = PointCloud(
+        xyz - origin, {k: fields[k] for k in sorted(fields)}, crs=None, origin=origin
+    )
     for note in notes:
         warnings.warn(InputWarning(note), stacklevel=3)
     return cloud
 
 
-def group_columns(columns: dict[str, np.ndarray],
-                  groups: dict[str, tuple[str, str, str]]) -> dict[str, np.ndarray]:
+def group_columns(
+    columns: dict[str, np.ndarray], groups: dict[str, tuple[str, str, str]]
+) -> dict[str, np.ndarray]:
     """Columns with each complete group (e.g. nx, ny, nz) stacked into one (N, 3) field."""
     out = dict(columns)
     for field, names in groups.items():

@@ -19,8 +19,12 @@ from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_path
 
 
-def write_gpkg(path: str | Path, layers: dict[str, tuple[pd.DataFrame, list[Any]]],
-               crs: str | None, metadata: dict[str, Any] | None = None) -> Path:
+def write_gpkg(
+    path: str | Path,
+    layers: dict[str, tuple[pd.DataFrame, list[Any]]],
+    crs: str | None,
+    metadata: dict[str, Any] | None = None,
+) -> Path:
     """Write ``layers`` (name -> (attributes, shapely geometries)) as one GeoPackage, atomically."""
     import geopandas as gpd
     import pyogrio
@@ -30,13 +34,19 @@ def write_gpkg(path: str | Path, layers: dict[str, tuple[pd.DataFrame, list[Any]
     with atomic_path(path) as tmp:
         tmp.unlink()  # GDAL creates the file; an empty one is not a GeoPackage
         for i, (name, (table, geometry)) in enumerate(layers.items()):
-            frame = gpd.GeoDataFrame(table.reset_index(drop=True),
-                                     geometry=gpd.GeoSeries(geometry), crs=crs)
+            frame = gpd.GeoDataFrame(
+                table.reset_index(drop=True), geometry=gpd.GeoSeries(geometry), crs=crs
+            )
             with warnings.catch_warnings():  # no CRS is what a map without GNSS has
                 warnings.filterwarnings("ignore", "'crs' was not provided", UserWarning)
-                pyogrio.write_dataframe(frame, tmp, layer=name, driver="GPKG",
-                                        dataset_metadata=meta if i == 0 and meta else None,
-                                        layer_metadata=meta or None)
+                pyogrio.write_dataframe(
+                    frame,
+                    tmp,
+                    layer=name,
+                    driver="GPKG",
+                    dataset_metadata=meta if i == 0 and meta else None,
+                    layer_metadata=meta or None,
+                )
     return path
 
 
@@ -49,7 +59,9 @@ def read_gpkg_layer(path: str | Path, layer: str) -> Any:
     try:
         return pyogrio.read_dataframe(path, layer=layer)
     except (DataSourceError, DataLayerError) as exc:
-        raise InputError(f"{path}: cannot read layer {layer!r} ({type(exc).__name__}: {exc})") from None
+        raise InputError(
+            f"{path}: cannot read layer {layer!r} ({type(exc).__name__}: {exc})"
+        ) from None
 
 
 def gpkg_metadata(path: str | Path) -> dict[str, str]:

@@ -25,8 +25,15 @@ from canopy_kit.io.clouds import LOCAL_LIMIT_M, check_input_file, local_origin
 from canopy_kit.io.las_header import LAS_MAGIC, LasLayout, read_las_layout
 from canopy_kit.io.las_write import choose_point_format, las_ready, write_las
 
-__all__ = ["LasReader", "choose_point_format", "describe_las", "las_origin", "las_ready",
-           "read_las", "write_las"]
+__all__ = [
+    "LasReader",
+    "choose_point_format",
+    "describe_las",
+    "las_origin",
+    "las_ready",
+    "read_las",
+    "write_las",
+]
 
 READ_CHUNK = 1_000_000  # points per laspy read: memory follows the points really decoded
 # lazrs' parallel reader sizes a buffer by the LASzip chunk size (a damaged one asked for
@@ -92,16 +99,20 @@ def _point_chunks(reader: Any, layout: LasLayout) -> Iterator[Any]:
         n = min(READ_CHUNK, remaining)
         chunk = reader.read_points(n)
         if len(chunk) != n:
-            raise InputError(f"{layout.path}: cannot read the LAS/LAZ data; the file is corrupt or "
-                             f"truncated ({len(chunk)} of {n} points read)")
+            raise InputError(
+                f"{layout.path}: cannot read the LAS/LAZ data; the file is corrupt or "
+                f"truncated ({len(chunk)} of {n} points read)"
+            )
         remaining -= n
         yield chunk
 
 
 def cut_short_warning(layout: LasLayout) -> str:
     """The warning for a LAS file holding fewer point records than its header declares."""
-    return (f"{layout.path}: only {layout.points_in_file} of {layout.point_count} points are in "
-            "the file (cut short, or the header's point count is wrong); read those")
+    return (
+        f"{layout.path}: only {layout.points_in_file} of {layout.point_count} points are in "
+        "the file (cut short, or the header's point count is wrong); read those"
+    )
 
 
 def crs_string(crs: Any) -> str | None:
@@ -172,13 +183,16 @@ def read_las(path: str | Path) -> PointCloud:
         chunks = [c.array for c in _point_chunks(reader, layout)]
         points = laspy.ScaleAwarePointRecord(
             chunks[0] if len(chunks) == 1 else np.concatenate(chunks),
-            header.point_format, header.scales, header.offsets,
+            header.point_format,
+            header.scales,
+            header.offsets,
         )
         crs = _parse_crs(header, layout.path)
         no_data = _no_data_values(header)
     raw = np.column_stack([np.asarray(points[c]) for c in ("X", "Y", "Z")])
-    origin = las_origin(layout.offsets, _scaled(layout, raw.min(axis=0)),
-                        _scaled(layout, raw.max(axis=0)))
+    origin = las_origin(
+        layout.offsets, _scaled(layout, raw.min(axis=0)), _scaled(layout, raw.max(axis=0))
+    )
     xyz = raw * np.asarray(layout.scales) + (np.asarray(layout.offsets) - origin)
     fields: dict[str, np.ndarray] = {}
     for name in points.point_format.dimension_names:
@@ -199,10 +213,14 @@ def _header_bounds_note(layout: LasLayout, lo: np.ndarray, hi: np.ndarray) -> st
     tol = np.asarray(layout.scales) + 1e-9 * np.maximum(np.abs(lo), np.abs(hi))
     if np.all(np.abs(head_lo - lo) <= tol) and np.all(np.abs(head_hi - hi) <= tol):
         return None
+
     def span(a: np.ndarray, b: np.ndarray) -> str:
         return ", ".join(f"{axis} {x:.10g}..{y:.10g}" for axis, x, y in zip("xyz", a, b))
-    return (f"{layout.path}: the header's bounds ({span(head_lo, head_hi)}) disagree with the "
-            f"points' ({span(lo, hi)}); the bounds shown are the points'")
+
+    return (
+        f"{layout.path}: the header's bounds ({span(head_lo, head_hi)}) disagree with the "
+        f"points' ({span(lo, hi)}); the bounds shown are the points'"
+    )
 
 
 def describe_las(path: str | Path) -> dict[str, Any]:

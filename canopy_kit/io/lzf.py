@@ -22,7 +22,7 @@ def _lzf_kernel(src: np.ndarray, dst: np.ndarray) -> int:
             length = ctrl + 1
             if ip + length > n or op + length > m:
                 return -1
-            dst[op:op + length] = src[ip:ip + length]
+            dst[op : op + length] = src[ip : ip + length]
             ip += length
             op += length
             continue

@@ -31,16 +31,22 @@ MAX_GYRO_RAD_S = 50.0  # no robot turns at 8 revolutions per second
 MAX_ACCEL_M_S2 = 500.0  # 50 g: beyond any MEMS IMU's range on a vehicle
 
 
-def imu_sample_fault(angular_velocity: tuple[float, float, float],
-                     linear_acceleration: tuple[float, float, float]) -> str | None:
+def imu_sample_fault(
+    angular_velocity: tuple[float, float, float], linear_acceleration: tuple[float, float, float]
+) -> str | None:
     """Why an IMU sample cannot be used (non-finite or impossible values), None when it can."""
     gx, gy, gz = angular_velocity
     ax, ay, az = linear_acceleration
     # The common case in two comparisons (NaN compares false, an overflow to inf fails too).
-    if gx * gx + gy * gy + gz * gz <= MAX_GYRO_RAD_S**2 and ax * ax + ay * ay + az * az <= MAX_ACCEL_M_S2**2:
+    if (
+        gx * gx + gy * gy + gz * gz <= MAX_GYRO_RAD_S**2
+        and ax * ax + ay * ay + az * az <= MAX_ACCEL_M_S2**2
+    ):
         return None
-    for name, values, limit, unit in (("angular velocity", angular_velocity, MAX_GYRO_RAD_S, "rad/s"),
-                                      ("linear acceleration", linear_acceleration, MAX_ACCEL_M_S2, "m/s²")):
+    for name, values, limit, unit in (
+        ("angular velocity", angular_velocity, MAX_GYRO_RAD_S, "rad/s"),
+        ("linear acceleration", linear_acceleration, MAX_ACCEL_M_S2, "m/s²"),
+    ):
         if not all(math.isfinite(v) for v in values):
             return f"{name} not finite"
         if math.hypot(*values) > limit:
@@ -61,7 +67,9 @@ class TopicLog:
     last_stamp: float = -math.inf
     frame_id: str = ""
     dropped: dict[int, str] = field(default_factory=dict)  # message index -> reason
-    trimmed: dict[int, tuple[int, bool]] = field(default_factory=dict)  # index -> (bytes, undercounts)
+    trimmed: dict[int, tuple[int, bool]] = field(
+        default_factory=dict
+    )  # index -> (bytes, undercounts)
     details: dict[str, str] = field(default_factory=dict)  # reason -> the first such message's text
     index_range: tuple[int, int] = (0, 0)  # [first, last + 1) of the indices seen
     _latest: float = -math.inf  # newest header stamp so far
@@ -78,7 +86,10 @@ class TopicLog:
         elif self.index_range[0] <= index < self.index_range[1]:
             return False
         else:
-            self.index_range = (min(self.index_range[0], index), max(self.index_range[1], index + 1))
+            self.index_range = (
+                min(self.index_range[0], index),
+                max(self.index_range[1], index + 1),
+            )
         self.seen += 1
         return True
 
@@ -131,7 +142,8 @@ class TopicLog:
             f"{self.bag}: topic {self.topic!r}: header stamps jump back {self._latest - at:.3f} s at message "
             f"{first} (t={at:.3f} s after t={self._latest:.3f} s) and stay behind for {n + 1} messages "
             f"over {(log_ns - since) * 1e-9:.1f} s of recording: the sensor clock jumped back, and the "
-            "drive cannot be put in time order; re-stamp the messages or cut the bag at the jump")
+            "drive cannot be put in time order; re-stamp the messages or cut the bag at the jump"
+        )
 
     @property
     def undercounted(self) -> int:
@@ -147,49 +159,73 @@ class TopicLog:
             raise InputError(
                 f"{self.bag}: topic {self.topic!r}: {len(self.dropped)} of {self.seen} {self.what} unusable "
                 f"(more than {100 * MAX_DROPPED_SHARE:.0f} %: {self._reasons()}); first: "
-                f"{self.details[self.dropped[first]]}")
+                f"{self.details[self.dropped[first]]}"
+            )
         if self.undercounted > MAX_DROPPED_SHARE * self.seen:
             raise InputError(
                 f"{self.bag}: topic {self.topic!r}: {self.undercounted} of {self.seen} {self.what} hold more "
                 f"data than their header describes; first: {self.details['trimmed']}: the header "
-                "(width, height, point_step or row_step) cannot be trusted")
+                "(width, height, point_step or row_step) cannot be trusted"
+            )
 
     def _reasons(self) -> str:
         counts: dict[str, int] = {}
         for reason in self.dropped.values():
             counts[reason] = counts.get(reason, 0) + 1
-        return ", ".join(f"{n} {reason}" for reason, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+        return ", ".join(
+            f"{n} {reason}" for reason, n in sorted(counts.items(), key=lambda kv: -kv[1])
+        )
 
     def warnings(self) -> list[str]:
         """One line per kind of fault the reader worked around."""
         out = []
         if self.dropped:
             first = min(self.dropped)
-            out.append(f"{self.bag}: topic {self.topic!r}: {len(self.dropped)} of {self.seen} {self.what} "
-                       f"dropped ({self._reasons()}); first: {self.details[self.dropped[first]]}")
+            out.append(
+                f"{self.bag}: topic {self.topic!r}: {len(self.dropped)} of {self.seen} {self.what} "
+                f"dropped ({self._reasons()}); first: {self.details[self.dropped[first]]}"
+            )
         if self.trimmed:
             extra = sum(n for n, _ in self.trimmed.values())
-            out.append(f"{self.bag}: topic {self.topic!r}: {len(self.trimmed)} of {self.seen} {self.what} "
-                       f"hold more data than their header describes ({extra} bytes ignored); first: "
-                       f"{self.details['trimmed']}")
+            out.append(
+                f"{self.bag}: topic {self.topic!r}: {len(self.trimmed)} of {self.seen} {self.what} "
+                f"hold more data than their header describes ({extra} bytes ignored); first: "
+                f"{self.details['trimmed']}"
+            )
         return out
 
     def summary(self) -> dict:
         """The topic as used, for the diagnostics (``mapping.json`` → ``inputs``)."""
         span = (self.first_stamp, self.last_stamp) if self.used else (None, None)
-        return {"topic": self.topic, "frame_id": self.frame_id, "messages": self.seen, "used": self.used,
-                "dropped": len(self.dropped), "trimmed": len(self.trimmed),
-                "first_stamp": span[0], "last_stamp": span[1],
-                "duration_s": span[1] - span[0] if self.used else 0.0}
+        return {
+            "topic": self.topic,
+            "frame_id": self.frame_id,
+            "messages": self.seen,
+            "used": self.used,
+            "dropped": len(self.dropped),
+            "trimmed": len(self.trimmed),
+            "first_stamp": span[0],
+            "last_stamp": span[1],
+            "duration_s": span[1] - span[0] if self.used else 0.0,
+        }
 
     def restricted(self, lo: int, hi: float) -> TopicLog:
         """The log of messages ``lo <= index < hi`` only (one chunk's own scans)."""
         a, b = max(lo, self.index_range[0]), min(hi, self.index_range[1])
         dropped = {i: r for i, r in self.dropped.items() if lo <= i < hi}
-        out = TopicLog(self.topic, self.what, self.bag, seen=max(0, int(b - a)), frame_id=self.frame_id,
-                       first_stamp=self.first_stamp, last_stamp=self.last_stamp, dropped=dropped,
-                       trimmed={i: t for i, t in self.trimmed.items() if lo <= i < hi},
-                       details=dict(self.details), index_range=(int(a), int(max(a, b))))
+        out = TopicLog(
+            self.topic,
+            self.what,
+            self.bag,
+            seen=max(0, int(b - a)),
+            frame_id=self.frame_id,
+            first_stamp=self.first_stamp,
+            last_stamp=self.last_stamp,
+            dropped=dropped,
+            trimmed={i: t for i, t in self.trimmed.items() if lo <= i < hi},
+            details=dict(self.details),
+            index_range=(int(a), int(max(a, b))),
+        )
         out.used = out.seen - len(dropped)
         return out
 
@@ -211,8 +247,11 @@ def merged(parts: list[TopicLog]) -> TopicLog:
     return out
 
 
-FLAGS = {"scans": ("scans_malformed", "scan_bytes_ignored"), "IMU samples": ("imu_samples_dropped", ""),
-         "GNSS fixes": ("gnss_fixes_dropped", "")}
+FLAGS = {
+    "scans": ("scans_malformed", "scan_bytes_ignored"),
+    "IMU samples": ("imu_samples_dropped", ""),
+    "GNSS fixes": ("gnss_fixes_dropped", ""),
+}
 
 
 class MessageLog:
@@ -250,5 +289,8 @@ class MessageLog:
 
     def summary(self, roles: dict[str, str | None]) -> dict:
         """``{role: topic summary}`` for ``roles`` (role -> topic name or None)."""
-        return {role: self.topics[name].summary() if name in self.topics else None
-                for role, name in roles.items() if name}
+        return {
+            role: self.topics[name].summary() if name in self.topics else None
+            for role, name in roles.items()
+            if name
+        }

@@ -89,8 +89,9 @@ def _write_open3d(path: Path, cloud: PointCloud, fmt: str) -> Path:
         try:
             ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False)
         except RuntimeError as exc:
-            raise InputError(f"{path}: Open3D could not write the {fmt} file: "
-                             f"{foreign_message(str(exc))}") from None
+            raise InputError(
+                f"{path}: Open3D could not write the {fmt} file: {foreign_message(str(exc))}"
+            ) from None
         if not ok:
             raise InputError(f"{path}: Open3D could not write the {fmt} file")
     return path
@@ -116,8 +117,9 @@ def write_pcd(path: str | Path, cloud: PointCloud) -> Path:
     return _write_open3d(Path(path), cloud, "PCD")
 
 
-def _describe(path: Path, cloud: PointCloud, fmt: str, encoding: str,
-              declared: int) -> dict[str, Any]:
+def _describe(
+    path: Path, cloud: PointCloud, fmt: str, encoding: str, declared: int
+) -> dict[str, Any]:
     lo, hi = cloud.bounds()
     return {
         "path": str(path),

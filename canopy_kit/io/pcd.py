@@ -30,8 +30,18 @@ from canopy_kit.io.lzf import lzf_decompress
 
 TYPE_SIZES = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
 ENCODINGS = ("ascii", "binary", "binary_compressed")
-KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS",
-        "DATA")
+KEYS = (
+    "VERSION",
+    "FIELDS",
+    "SIZE",
+    "TYPE",
+    "COUNT",
+    "WIDTH",
+    "HEIGHT",
+    "VIEWPOINT",
+    "POINTS",
+    "DATA",
+)
 GROUPS = {"normals": ("normal_x", "normal_y", "normal_z")}
 PADDING = "_"  # PCL's name for padding bytes
 MAX_POINT_BYTES = 1 << 20  # a point of more than a MiB is a damaged SIZE or COUNT
@@ -64,8 +74,10 @@ class PcdHeader:
 
 def _ints(path: Path, key: str, words: list[str], minimum: int) -> list[int]:
     if not words or not all(w.isdigit() for w in words) or min(int(w) for w in words) < minimum:
-        raise InputError(f"{path}: PCD header field {key} {' '.join(words)!r} is not a list of "
-                         f"integers >= {minimum}")
+        raise InputError(
+            f"{path}: PCD header field {key} {' '.join(words)!r} is not a list of "
+            f"integers >= {minimum}"
+        )
     return [int(w) for w in words]
 
 
@@ -75,14 +87,18 @@ def _fields(path: Path, keys: dict[str, list[str]]) -> tuple[PcdField, ...]:
     types = keys.get("TYPE", [])
     counts = _ints(path, "COUNT", keys["COUNT"], 1) if "COUNT" in keys else [1] * len(names)
     if not names or not len(names) == len(sizes) == len(types) == len(counts):
-        raise InputError(f"{path}: PCD header fields FIELDS ({len(names)}), SIZE ({len(sizes)}), "
-                         f"TYPE ({len(types)}) and COUNT ({len(counts)}) do not list one value "
-                         "per field")
+        raise InputError(
+            f"{path}: PCD header fields FIELDS ({len(names)}), SIZE ({len(sizes)}), "
+            f"TYPE ({len(types)}) and COUNT ({len(counts)}) do not list one value "
+            "per field"
+        )
     out = []
     for name, size, kind, count in zip(names, sizes, types, counts):
         if size not in TYPE_SIZES.get(kind, ()):
-            raise InputError(f"{path}: PCD field {name!r} has TYPE {kind!r} SIZE {size} (types: "
-                             "F 4/8, I and U 1/2/4/8)")
+            raise InputError(
+                f"{path}: PCD field {name!r} has TYPE {kind!r} SIZE {size} (types: "
+                "F 4/8, I and U 1/2/4/8)"
+            )
         out.append(PcdField(name, f"<{kind.lower()}{size}", count))
     real = [f.name for f in out if f.name != PADDING]
     if len(set(real)) != len(real):
@@ -92,11 +108,14 @@ def _fields(path: Path, keys: dict[str, list[str]]) -> tuple[PcdField, ...]:
         raise InputError(f"{path}: PCD file has no {'/'.join(missing)} field")
     point_bytes = sum(size * count for size, count in zip(sizes, counts))
     if point_bytes > MAX_POINT_BYTES:
-        raise InputError(f"{path}: PCD header SIZE x COUNT makes {point_bytes} bytes a point "
-                         f"(more than {MAX_POINT_BYTES}); the header is corrupt")
+        raise InputError(
+            f"{path}: PCD header SIZE x COUNT makes {point_bytes} bytes a point "
+            f"(more than {MAX_POINT_BYTES}); the header is corrupt"
+        )
     if any(f.count != 1 for f in out if f.name in ("x", "y", "z")):
-        raise InputError(f"{path}: PCD fields x, y, z must have COUNT 1 (COUNT "
-                         f"{' '.join(map(str, counts))})")
+        raise InputError(
+            f"{path}: PCD fields x, y, z must have COUNT 1 (COUNT {' '.join(map(str, counts))})"
+        )
     return tuple(out)
 
 
@@ -117,23 +136,32 @@ def read_pcd_header(path: Path) -> PcdHeader:
     height = _ints(path, "HEIGHT", keys.get("HEIGHT", ["1"]), 0)[0]
     points = _ints(path, "POINTS", keys["POINTS"], 0)[0] if "POINTS" in keys else width * height
     if "WIDTH" in keys and width * height != points:
-        raise InputError(f"{path}: PCD header WIDTH x HEIGHT ({width} x {height}) differs from "
-                         f"POINTS ({points})")
+        raise InputError(
+            f"{path}: PCD header WIDTH x HEIGHT ({width} x {height}) differs from POINTS ({points})"
+        )
     encoding = keys["DATA"][0].lower() if keys.get("DATA") else ""
     if encoding not in ENCODINGS:
-        raise InputError(f"{path}: PCD header DATA {encoding!r} is not one of "
-                         f"{', '.join(ENCODINGS)}")
+        raise InputError(
+            f"{path}: PCD header DATA {encoding!r} is not one of {', '.join(ENCODINGS)}"
+        )
     return PcdHeader(fields, points, encoding, data_start)
 
 
 def _binary_columns(path: Path, header: PcdHeader) -> tuple[dict[str, np.ndarray], list[str]]:
     """Columns of the points present in a binary (row-major) body."""
-    dtype = np.dtype([(f"{f.name}{i}" if f.name == PADDING else f.name, f.dtype, (f.count,))
-                      for i, f in enumerate(header.fields)])
+    dtype = np.dtype(
+        [
+            (f"{f.name}{i}" if f.name == PADDING else f.name, f.dtype, (f.count,))
+            for i, f in enumerate(header.fields)
+        ]
+    )
     size = path.stat().st_size - header.data_start
     present = min(header.points, size // dtype.itemsize)
-    rows = np.fromfile(path, dtype=dtype, count=present, offset=header.data_start) if present else (
-        np.zeros(0, dtype))
+    rows = (
+        np.fromfile(path, dtype=dtype, count=present, offset=header.data_start)
+        if present
+        else (np.zeros(0, dtype))
+    )
     return {f.name: rows[f.name] for f in header.fields if f.name != PADDING}, []
 
 
@@ -144,31 +172,41 @@ def _compressed_columns(path: Path, header: PcdHeader) -> tuple[dict[str, np.nda
         fh.seek(header.data_start)
         sizes = fh.read(8)
         if len(sizes) < 8:
-            raise InputError(f"{path}: PCD binary_compressed data is truncated (no compressed and "
-                             "uncompressed sizes after DATA)")
+            raise InputError(
+                f"{path}: PCD binary_compressed data is truncated (no compressed and "
+                "uncompressed sizes after DATA)"
+            )
         compressed, uncompressed = struct.unpack("<II", sizes)
         expected = header.points * header.point_bytes
         if uncompressed != expected:
-            raise InputError(f"{path}: PCD binary_compressed uncompressed size is {uncompressed} "
-                             f"bytes; {header.points} points of {header.point_bytes} bytes make "
-                             f"{expected}")
+            raise InputError(
+                f"{path}: PCD binary_compressed uncompressed size is {uncompressed} "
+                f"bytes; {header.points} points of {header.point_bytes} bytes make "
+                f"{expected}"
+            )
         if not 0 < compressed <= size - 8:
-            raise InputError(f"{path}: PCD binary_compressed compressed size is {compressed} "
-                             f"bytes; the file holds {size - 8} after the sizes; it is "
-                             "corrupt or truncated")
+            raise InputError(
+                f"{path}: PCD binary_compressed compressed size is {compressed} "
+                f"bytes; the file holds {size - 8} after the sizes; it is "
+                "corrupt or truncated"
+            )
         if uncompressed > LZF_MAX_RATIO * compressed + 32:
-            raise InputError(f"{path}: PCD binary_compressed uncompressed size {uncompressed} "
-                             f"bytes cannot come from {compressed} compressed bytes (LZF expands "
-                             f"at most {LZF_MAX_RATIO} times); the file is corrupt")
+            raise InputError(
+                f"{path}: PCD binary_compressed uncompressed size {uncompressed} "
+                f"bytes cannot come from {compressed} compressed bytes (LZF expands "
+                f"at most {LZF_MAX_RATIO} times); the file is corrupt"
+            )
         data = lzf_decompress(fh.read(compressed), uncompressed)
     if data is None:
-        raise InputError(f"{path}: PCD binary_compressed data do not decompress to "
-                         f"{uncompressed} bytes; the file is corrupt")
+        raise InputError(
+            f"{path}: PCD binary_compressed data do not decompress to "
+            f"{uncompressed} bytes; the file is corrupt"
+        )
     out, pos = {}, 0
     for f in header.fields:
         n = header.points * f.count * np.dtype(f.dtype).itemsize
         if f.name != PADDING:
-            out[f.name] = data[pos:pos + n].view(f.dtype).reshape(header.points, f.count)
+            out[f.name] = data[pos : pos + n].view(f.dtype).reshape(header.points, f.count)
         pos += n
     return out, []
 
@@ -179,7 +217,7 @@ def _ascii_columns(path: Path, header: PcdHeader) -> tuple[dict[str, np.ndarray]
     out, col = {}, 0
     for f in header.fields:
         if f.name != PADDING:
-            out[f.name] = cast_column(path, f.name, values[:, col:col + f.count], f.dtype)
+            out[f.name] = cast_column(path, f.name, values[:, col : col + f.count], f.dtype)
         col += f.count
     return out, [note] if note else []
 
@@ -194,14 +232,18 @@ def read_pcd(path: Path) -> PointCloud:
     """Read a checked PCD file: float64 xyz (local, with origin) and every field; fewer points
     than declared or non-finite ones give an InputWarning."""
     header = read_pcd_header(path)
-    read = {"ascii": _ascii_columns, "binary": _binary_columns,
-            "binary_compressed": _compressed_columns}[header.encoding]
+    read = {
+        "ascii": _ascii_columns,
+        "binary": _binary_columns,
+        "binary_compressed": _compressed_columns,
+    }[header.encoding]
     raw, notes = read(path, header)
     columns = {k: v[:, 0] if v.ndim == 2 and v.shape[1] == 1 else v for k, v in raw.items()}
     xyz = np.column_stack([columns.pop(c) for c in "xyz"]).astype(np.float64)
     for name in ("rgb", "rgba"):
         if name in columns and columns[name].ndim == 1 and columns[name].dtype.itemsize == 4:
             columns["colors"] = _colors(columns.pop(name))
-    fields = {k: v.astype(v.dtype.newbyteorder("="))
-              for k, v in group_columns(columns, GROUPS).items()}
+    fields = {
+        k: v.astype(v.dtype.newbyteorder("=")) for k, v in group_columns(columns, GROUPS).items()
+    }
     return build_cloud(path, "PCD", xyz, fields, header.points, notes)

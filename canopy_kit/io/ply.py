@@ -27,10 +27,22 @@ from canopy_kit.io.cloud_records import (
 )
 
 PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 ENCODINGS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 GROUPS = {"normals": ("nx", "ny", "nz"), "colors": ("red", "green", "blue")}
@@ -76,15 +88,19 @@ class PlyHeader:
 def _property(path: Path, words: list[str], number: int) -> PlyProperty:
     def dtype(word: str) -> str:
         if word not in PLY_TYPES:
-            raise InputError(f"{path}: PLY header line {number}: unknown property type {word!r} "
-                             f"(types: {', '.join(PLY_TYPES)})")
+            raise InputError(
+                f"{path}: PLY header line {number}: unknown property type {word!r} "
+                f"(types: {', '.join(PLY_TYPES)})"
+            )
         return PLY_TYPES[word]
 
     if len(words) == 5 and words[1] == "list":
         count = dtype(words[2])
         if count[0] == "f":
-            raise InputError(f"{path}: PLY header line {number}: list length type {words[2]!r} "
-                             "is not an integer type")
+            raise InputError(
+                f"{path}: PLY header line {number}: list length type {words[2]!r} "
+                "is not an integer type"
+            )
         return PlyProperty(words[4], dtype(words[3]), count)
     if len(words) != 3 or words[1] == "list":
         raise InputError(f"{path}: PLY header line {number}: bad property line {' '.join(words)!r}")
@@ -105,21 +121,26 @@ def read_ply_header(path: Path) -> PlyHeader:
             encoding = words[1]
         elif words[0] == "element" and len(words) == 3:
             if not words[2].isdigit():
-                raise InputError(f"{path}: PLY header line {number}: element {words[1]!r} count "
-                                 f"{words[2]!r} is not a non-negative integer")
+                raise InputError(
+                    f"{path}: PLY header line {number}: element {words[1]!r} count "
+                    f"{words[2]!r} is not a non-negative integer"
+                )
             elements.append([words[1], int(words[2]), []])
         elif words[0] == "property" and elements:
             elements[-1][2].append(_property(path, words, number))
         else:
             raise InputError(f"{path}: PLY header line {number}: unexpected {line[:60]!r}")
     if encoding is None:
-        raise InputError(f"{path}: PLY header has no 'format ascii|binary_little_endian|"
-                         "binary_big_endian 1.0' line")
+        raise InputError(
+            f"{path}: PLY header has no 'format ascii|binary_little_endian|"
+            "binary_big_endian 1.0' line"
+        )
     empty = [n for n, _, p in elements if not p]
     if empty:
         raise InputError(f"{path}: PLY element {empty[0]!r} has no properties")
-    header = PlyHeader(encoding, tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements),
-                       data_start)
+    header = PlyHeader(
+        encoding, tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements), data_start
+    )
     _check_vertex(path, header)
     return header
 
@@ -137,8 +158,9 @@ def _check_vertex(path: Path, header: PlyHeader) -> None:
         raise InputError(f"{path}: PLY vertex element has no {'/'.join(missing)} property")
 
 
-def _uniform_rows(buf: np.ndarray, pos: int, element: PlyElement,
-                  order: str) -> tuple[np.ndarray | None, bool]:
+def _uniform_rows(
+    buf: np.ndarray, pos: int, element: PlyElement, order: str
+) -> tuple[np.ndarray | None, bool]:
     """The rows present from ``pos`` as a structured array whose lists have the first row's
     lengths, and whether every row present really has those lengths; None when not even
     the first row is there."""
@@ -150,27 +172,33 @@ def _uniform_rows(buf: np.ndarray, pos: int, element: PlyElement,
             cursor += np.dtype(prop.dtype).itemsize
             continue
         size = np.dtype(prop.count).itemsize
-        head = buf[cursor:cursor + size]
+        head = buf[cursor : cursor + size]
         if len(head) < size:
             return None, True
         length = int(head.view(order + prop.count)[0])
         if length < 0:
             return None, False
-        fields += [(f"{prop.name}__length", order + prop.count),
-                   (prop.name, order + prop.dtype, (length,))]
+        fields += [
+            (f"{prop.name}__length", order + prop.count),
+            (prop.name, order + prop.dtype, (length,)),
+        ]
         cursor += size + length * np.dtype(prop.dtype).itemsize
     if element.rows == 0 or cursor > len(buf):
         return None, True
     dtype = np.dtype(fields)
     present = min(element.rows, (len(buf) - pos) // dtype.itemsize)
-    rows = buf[pos:pos + present * dtype.itemsize].view(dtype)
-    uniform = all(np.all(rows[f"{p.name}__length"] == rows[f"{p.name}__length"][:1])
-                  for p in element.properties if p.count is not None)
+    rows = buf[pos : pos + present * dtype.itemsize].view(dtype)
+    uniform = all(
+        np.all(rows[f"{p.name}__length"] == rows[f"{p.name}__length"][:1])
+        for p in element.properties
+        if p.count is not None
+    )
     return rows, uniform
 
 
-def _walk_rows(path: Path, buf: np.ndarray, pos: int, element: PlyElement,
-               order: str) -> tuple[int, int]:
+def _walk_rows(
+    path: Path, buf: np.ndarray, pos: int, element: PlyElement, order: str
+) -> tuple[int, int]:
     """Row by row through an element whose lists vary in length: (end byte, rows present)."""
     for row in range(element.rows):
         start = pos
@@ -181,10 +209,11 @@ def _walk_rows(path: Path, buf: np.ndarray, pos: int, element: PlyElement,
             size = np.dtype(prop.count).itemsize
             if pos + size > len(buf):
                 return start, row
-            length = int(buf[pos:pos + size].view(order + prop.count)[0])
+            length = int(buf[pos : pos + size].view(order + prop.count)[0])
             if length < 0:
-                raise InputError(f"{path}: PLY {element.name} {row}: list {prop.name!r} has "
-                                 f"length {length}")
+                raise InputError(
+                    f"{path}: PLY {element.name} {row}: list {prop.name!r} has length {length}"
+                )
             pos += size + length * np.dtype(prop.dtype).itemsize
         if pos > len(buf):
             return start, row
@@ -208,8 +237,10 @@ def _binary_vertices(path: Path, header: PlyHeader) -> tuple[np.ndarray | None, 
         rows, uniform = _uniform_rows(buf, pos, element, order)
         if index == header.vertex_index:
             if not uniform:
-                raise InputError(f"{path}: PLY vertex list property changes length from row to "
-                                 "row; only lists of one length are read")
+                raise InputError(
+                    f"{path}: PLY vertex list property changes length from row to "
+                    "row; only lists of one length are read"
+                )
             if rows is None or len(rows) < element.rows:
                 vertices = rows
                 break
@@ -224,11 +255,15 @@ def _binary_vertices(path: Path, header: PlyHeader) -> tuple[np.ndarray | None, 
             end, present = pos, min(element.rows, (len(buf) - pos) // _shortest_row(element))
         if present < element.rows:
             if index < header.vertex_index:
-                raise InputError(f"{path}: PLY file is truncated or corrupt: the {element.name!r} "
-                                 f"element before the vertices holds {present} of its "
-                                 f"{element.rows} rows")
-            notes.append(f"{path}: the {element.name!r} element after the vertices is cut short "
-                         f"({present} of {element.rows} rows); the vertices are complete")
+                raise InputError(
+                    f"{path}: PLY file is truncated or corrupt: the {element.name!r} "
+                    f"element before the vertices holds {present} of its "
+                    f"{element.rows} rows"
+                )
+            notes.append(
+                f"{path}: the {element.name!r} element after the vertices is cut short "
+                f"({present} of {element.rows} rows); the vertices are complete"
+            )
             break
         pos = end
     return vertices, notes
@@ -251,18 +286,23 @@ def _ascii_vertices(path: Path, header: PlyHeader) -> tuple[dict[str, np.ndarray
             continue
         length = int(values[0, col]) if len(values) else 0
         if np.any(values[:, col] != length):
-            raise InputError(f"{path}: PLY vertex list {prop.name!r} changes length from row to "
-                             "row; only lists of one length are read")
-        columns[prop.name] = cast_column(path, prop.name, values[:, col + 1:col + 1 + length],
-                                         prop.dtype)
+            raise InputError(
+                f"{path}: PLY vertex list {prop.name!r} changes length from row to "
+                "row; only lists of one length are read"
+            )
+        columns[prop.name] = cast_column(
+            path, prop.name, values[:, col + 1 : col + 1 + length], prop.dtype
+        )
         col += 1 + length
     notes = [line_note] if line_note else []
     declared = sum(e.rows for e in header.elements)
     if len(values) == vertex.rows and index < len(header.elements) - 1:
         found = _line_count(path, header.data_start)
         if found < declared:
-            notes.append(f"{path}: the elements after the vertices are cut short ({found} of "
-                         f"{declared} data lines); the vertices are complete")
+            notes.append(
+                f"{path}: the elements after the vertices are cut short ({found} of "
+                f"{declared} data lines); the vertices are complete"
+            )
     return columns, notes
 
 
@@ -302,9 +342,12 @@ def read_ply(path: Path) -> PointCloud:
     else:
         vertices, notes = _binary_vertices(path, header)
         if vertices is None:
-            raise InputError(f"{path}: PLY file has no points" if vertex.rows == 0 else
-                             f"{path}: PLY file is truncated: no complete vertex (header "
-                             f"declares {vertex.rows})")
+            raise InputError(
+                f"{path}: PLY file has no points"
+                if vertex.rows == 0
+                else f"{path}: PLY file is truncated: no complete vertex (header "
+                f"declares {vertex.rows})"
+            )
         columns = _columns(vertices, vertex)
     xyz = np.column_stack([columns.pop(c) for c in "xyz"]).astype(np.float64)
     return build_cloud(path, "PLY", xyz, group_columns(columns, GROUPS), header.vertices, notes)

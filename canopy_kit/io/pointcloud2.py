@@ -20,7 +20,14 @@ from canopy_kit.errors import InputError, MessageError
 
 # sensor_msgs/PointField datatype constants
 POINTFIELD_DTYPES: dict[int, str] = {
-    1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8",
+    1: "i1",
+    2: "u1",
+    3: "i2",
+    4: "u2",
+    5: "i4",
+    6: "u4",
+    7: "f4",
+    8: "f8",
 }
 DTYPE_TO_POINTFIELD: dict[str, int] = {v: k for k, v in POINTFIELD_DTYPES.items()}
 
@@ -41,10 +48,17 @@ def structured_dtype(msg: Any, where: str = "PointCloud2") -> np.dtype:
         offsets.append(int(f.offset))
     try:
         return np.dtype(
-            {"names": names, "formats": formats, "offsets": offsets, "itemsize": int(msg.point_step)}
+            {
+                "names": names,
+                "formats": formats,
+                "offsets": offsets,
+                "itemsize": int(msg.point_step),
+            }
         )
     except (ValueError, TypeError) as exc:
-        raise MessageError(f"{where}: field layout does not fit point_step {msg.point_step}: {exc}") from None
+        raise MessageError(
+            f"{where}: field layout does not fit point_step {msg.point_step}: {exc}"
+        ) from None
 
 
 def check_fields(msg: Any, where: str = "PointCloud2") -> None:
@@ -55,15 +69,19 @@ def check_fields(msg: Any, where: str = "PointCloud2") -> None:
     for f in msg.fields:
         code = POINTFIELD_DTYPES.get(int(f.datatype))
         if code is None:
-            raise MessageError(f"{where}: field {f.name!r} has unknown datatype {f.datatype} "
-                               f"(PointField knows 1-8: INT8 ... FLOAT64)")
+            raise MessageError(
+                f"{where}: field {f.name!r} has unknown datatype {f.datatype} "
+                f"(PointField knows 1-8: INT8 ... FLOAT64)"
+            )
         if f.name in spans:
             raise MessageError(f"{where}: field {f.name!r} appears twice")
         count = max(int(f.count), 1)
         offset, size = int(f.offset), np.dtype(code).itemsize * count
         if offset + size > step:
-            raise MessageError(f"{where}: field {f.name!r} (offset {offset}, {count} x {size // count} "
-                               f"bytes) ends at byte {offset + size}, beyond point_step {step}")
+            raise MessageError(
+                f"{where}: field {f.name!r} (offset {offset}, {count} x {size // count} "
+                f"bytes) ends at byte {offset + size}, beyond point_step {step}"
+            )
         spans[f.name] = (offset, offset + size)
 
 
@@ -77,14 +95,17 @@ def unused_bytes(msg: Any, n_data: int, where: str = "PointCloud2") -> int:
     if width * height == 0:
         return n_data
     if row_step < width * step:
-        raise MessageError(f"{where}: row_step {row_step} is shorter than width x point_step = "
-                           f"{width} x {step} = {width * step} bytes")
+        raise MessageError(
+            f"{where}: row_step {row_step} is shorter than width x point_step = "
+            f"{width} x {step} = {width * step} bytes"
+        )
     needed = row_step * (height - 1) + width * step
     if n_data < needed:
         raise MessageError(
             f"{where}: data has {n_data} bytes, too few for {height}x{width} points of {step} bytes "
             f"(row_step {row_step}: {needed} bytes needed); width, height or point_step is wrong "
-            "or the data is cut")
+            "or the data is cut"
+        )
     padding = row_step - width * step
     return max(0, n_data - row_step * height) + (height * padding if padding >= max(step, 1) else 0)
 
@@ -93,7 +114,9 @@ def decode_checked(msg: Any, where: str = "PointCloud2") -> tuple[np.ndarray, in
     """The points of a PointCloud2 (1-D structured array, rows flattened) and the number of
     data bytes no point covers. A malformed message raises a :class:`MessageError` naming
     the field that does not fit (see :func:`check_fields`, :func:`unused_bytes`)."""
-    data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), np.uint8)
+    data = (
+        msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(bytes(msg.data), np.uint8)
+    )
     data = data.reshape(-1).view(np.uint8)
     unused = unused_bytes(msg, len(data), where)  # the sizes first: they need no allocation
     dtype = structured_dtype(msg, where)
@@ -106,8 +129,9 @@ def decode_checked(msg: Any, where: str = "PointCloud2") -> tuple[np.ndarray, in
         flat = np.ascontiguousarray(data[: n * step])
     else:  # rows with padding: one strided view, no Python loop over rows
         data = np.ascontiguousarray(data)
-        rows = np.lib.stride_tricks.as_strided(data, shape=(height, width * step), strides=(row_step, 1),
-                                               writeable=False)
+        rows = np.lib.stride_tricks.as_strided(
+            data, shape=(height, width * step), strides=(row_step, 1), writeable=False
+        )
         flat = np.ascontiguousarray(rows).reshape(-1)
     return np.frombuffer(flat, dtype=dtype, count=n), unused
 
@@ -123,7 +147,9 @@ def xyz_from(points: np.ndarray, where: str = "PointCloud2") -> np.ndarray:
     fields = points.dtype.fields or {}
     missing = [c for c in ("x", "y", "z") if c not in fields]
     if missing:
-        raise MessageError(f"{where}: no {'/'.join(missing)} field (fields: {', '.join(fields) or 'none'})")
+        raise MessageError(
+            f"{where}: no {'/'.join(missing)} field (fields: {', '.join(fields) or 'none'})"
+        )
     spans = {}
     for c in ("x", "y", "z"):
         dtype, offset = fields[c][0], fields[c][1]
@@ -133,7 +159,9 @@ def xyz_from(points: np.ndarray, where: str = "PointCloud2") -> np.ndarray:
     for a, b in (("x", "y"), ("x", "z"), ("y", "z")):
         (a0, a1), (b0, b1) = spans[a], spans[b]
         if a0 < b1 and b0 < a1:
-            raise MessageError(f"{where}: fields {a!r} and {b!r} overlap (bytes {a0}-{a1} and {b0}-{b1})")
+            raise MessageError(
+                f"{where}: fields {a!r} and {b!r} overlap (bytes {a0}-{a1} and {b0}-{b1})"
+            )
     with np.errstate(invalid="ignore"):  # a signalling NaN among corrupt bytes raises the flag
         return np.column_stack([points[c].astype(np.float64) for c in ("x", "y", "z")])
 
@@ -192,7 +220,12 @@ def build_message(
     width = n // height
     pf = typestore.types["sensor_msgs/msg/PointField"]
     fields = [
-        pf(name=k, offset=int(dt.fields[k][1]), datatype=DTYPE_TO_POINTFIELD[dt.fields[k][0].str[1:]], count=1)
+        pf(
+            name=k,
+            offset=int(dt.fields[k][1]),
+            datatype=DTYPE_TO_POINTFIELD[dt.fields[k][0].str[1:]],
+            count=1,
+        )
         for k in names
     ]
     return typestore.types["sensor_msgs/msg/PointCloud2"](

@@ -70,7 +70,7 @@ def read_transforms(bag: Any, dynamic_window: float = DYNAMIC_WINDOW_S) -> Recor
     dynamic = [c for c in tf_conns if c not in static]
     out.topics = sorted({c.topic for c in tf_conns})
     found: dict[str, FrameTransform] = {}
-    for conn, msg in _read(bag, static):
+    for _conn, msg in _read(bag, static):
         for parent, child, matrix in _edges(msg):
             found[child] = FrameTransform(parent, child, matrix, "tf_static")
     if dynamic:
@@ -84,14 +84,19 @@ def read_transforms(bag: Any, dynamic_window: float = DYNAMIC_WINDOW_S) -> Recor
             if child in found or parent in WORLD_FRAMES or child in WORLD_FRAMES:
                 continue
             first = mats[0]
-            still = all(np.linalg.norm(m[:3, 3] - first[:3, 3]) <= STATIC_TOLERANCE_M
-                        and rotation_angle_deg(m, first) <= STATIC_TOLERANCE_DEG for m in mats)
+            still = all(
+                np.linalg.norm(m[:3, 3] - first[:3, 3]) <= STATIC_TOLERANCE_M
+                and rotation_angle_deg(m, first) <= STATIC_TOLERANCE_DEG
+                for m in mats
+            )
             if still:
                 found[child] = FrameTransform(parent, child, first, "tf")
             else:
                 moving.append(f"{parent} -> {child}")
         if moving:
-            out.notes.append(f"/tf transforms that move were not used as mounts: {', '.join(sorted(moving))}")
+            out.notes.append(
+                f"/tf transforms that move were not used as mounts: {', '.join(sorted(moving))}"
+            )
     out.transforms = [found[k] for k in sorted(found)]
     return out
 
@@ -107,13 +112,17 @@ def _read(bag: Any, conns: list, stop_ns: int | None = None):
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception as exc:  # rosbags raises several unrelated types
-                raise InputError(f"{bag.path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} "
-                                 f"message at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})") from None
+                raise InputError(
+                    f"{bag.path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} "
+                    f"message at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})"
+                ) from None
             yield conn, msg
     except InputError:
         raise
     except Exception as exc:
-        raise InputError(f"{bag.path}: reading the tf topics failed ({type(exc).__name__}: {exc})") from None
+        raise InputError(
+            f"{bag.path}: reading the tf topics failed ({type(exc).__name__}: {exc})"
+        ) from None
 
 
 def first_frame_id(bag: Any, topic: str | None) -> str | None:
@@ -122,6 +131,6 @@ def first_frame_id(bag: Any, topic: str | None) -> str | None:
         return None
     reader = bag.reader
     conns = [c for c in reader.connections if c.topic == topic]
-    for conn, msg in _read(bag, conns):
+    for _conn, msg in _read(bag, conns):
         return _strip(str(msg.header.frame_id))
     return None

@@ -63,7 +63,9 @@ class VelodyneModel:
     name: str
     product: int
     elevation_deg: tuple[float, ...]  # by laser id
-    azimuth_offset_deg: tuple[float, ...]  # by laser id: where the laser points off the block azimuth
+    azimuth_offset_deg: tuple[
+        float, ...
+    ]  # by laser id: where the laser points off the block azimuth
     distance_unit_m: float
     block_us: float  # time from one block to the next
     slot_laser: tuple[int, ...]  # laser id of each of a block's 32 returns
@@ -76,41 +78,132 @@ class VelodyneModel:
     @property
     def ring_of_laser(self) -> np.ndarray:
         """Ring number by laser id: 0 for the lowest beam, as the ROS driver numbers them."""
-        return np.argsort(np.argsort(self.elevation_deg, kind="stable"), kind="stable").astype(np.uint16)
+        return np.argsort(np.argsort(self.elevation_deg, kind="stable"), kind="stable").astype(
+            np.uint16
+        )
 
     def slot_offsets_us(self) -> np.ndarray:
         """(12, 32) firing time of every return of a packet after the packet's timestamp."""
         return np.arange(BLOCKS)[:, None] * self.block_us + np.asarray(self.slot_us)[None, :]
 
 
-_VLP16_ELEVATION = (-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15)  # manual table 9-1
+_VLP16_ELEVATION = (
+    -15,
+    1,
+    -13,
+    3,
+    -11,
+    5,
+    -9,
+    7,
+    -7,
+    9,
+    -5,
+    11,
+    -3,
+    13,
+    -1,
+    15,
+)  # manual table 9-1
 VLP16 = VelodyneModel(
-    "VLP-16", 0x22, tuple(float(e) for e in _VLP16_ELEVATION), (0.0,) * 16, 0.002, 110.592,
+    "VLP-16",
+    0x22,
+    tuple(float(e) for e in _VLP16_ELEVATION),
+    (0.0,) * 16,
+    0.002,
+    110.592,
     tuple(list(range(16)) * 2),
     tuple(f * 55.296 + laser * 2.304 for f in range(2) for laser in range(16)),
 )
 # VLP-32C manual, vertical angle and azimuth offset by laser id (VeloView's VLP-32c.xml has the same,
 # its rotCorrection being minus the offset).
 _VLP32C = (
-    (-25, 1.4), (-1, -4.2), (-1.667, 1.4), (-15.639, -1.4), (-11.31, 1.4), (0, -1.4),
-    (-0.667, 4.2), (-8.843, -1.4), (-7.254, 1.4), (0.333, -4.2), (-0.333, 1.4), (-6.148, -1.4),
-    (-5.333, 4.2), (1.333, -1.4), (0.667, 4.2), (-4, -1.4), (-4.667, 1.4), (1.667, -4.2),
-    (1, 1.4), (-3.667, -4.2), (-3.333, 4.2), (3.333, -1.4), (2.333, 1.4), (-2.667, -1.4),
-    (-3, 1.4), (7, -1.4), (4.667, 1.4), (-2.333, -4.2), (-2, 4.2), (15, -1.4), (10.333, 1.4),
+    (-25, 1.4),
+    (-1, -4.2),
+    (-1.667, 1.4),
+    (-15.639, -1.4),
+    (-11.31, 1.4),
+    (0, -1.4),
+    (-0.667, 4.2),
+    (-8.843, -1.4),
+    (-7.254, 1.4),
+    (0.333, -4.2),
+    (-0.333, 1.4),
+    (-6.148, -1.4),
+    (-5.333, 4.2),
+    (1.333, -1.4),
+    (0.667, 4.2),
+    (-4, -1.4),
+    (-4.667, 1.4),
+    (1.667, -4.2),
+    (1, 1.4),
+    (-3.667, -4.2),
+    (-3.333, 4.2),
+    (3.333, -1.4),
+    (2.333, 1.4),
+    (-2.667, -1.4),
+    (-3, 1.4),
+    (7, -1.4),
+    (4.667, 1.4),
+    (-2.333, -4.2),
+    (-2, 4.2),
+    (15, -1.4),
+    (10.333, 1.4),
     (-1.333, -1.4),
 )
 VLP32C = VelodyneModel(
-    "VLP-32C", 0x28, tuple(float(e) for e, _ in _VLP32C), tuple(float(a) for _, a in _VLP32C),
-    0.004, 55.296, tuple(range(32)), tuple((c // 2) * 2.304 for c in range(32)),
+    "VLP-32C",
+    0x28,
+    tuple(float(e) for e, _ in _VLP32C),
+    tuple(float(a) for _, a in _VLP32C),
+    0.004,
+    55.296,
+    tuple(range(32)),
+    tuple((c // 2) * 2.304 for c in range(32)),
 )
 # HDL-32E manual: lasers 0..31 alternate between the lower and the upper half of the fan.
 _HDL32E_ELEVATION = (
-    -30.67, -9.33, -29.33, -8.0, -28.0, -6.67, -26.67, -5.33, -25.33, -4.0, -24.0, -2.67,
-    -22.67, -1.33, -21.33, 0.0, -20.0, 1.33, -18.67, 2.67, -17.33, 4.0, -16.0, 5.33,
-    -14.67, 6.67, -13.33, 8.0, -12.0, 9.33, -10.67, 10.67,
+    -30.67,
+    -9.33,
+    -29.33,
+    -8.0,
+    -28.0,
+    -6.67,
+    -26.67,
+    -5.33,
+    -25.33,
+    -4.0,
+    -24.0,
+    -2.67,
+    -22.67,
+    -1.33,
+    -21.33,
+    0.0,
+    -20.0,
+    1.33,
+    -18.67,
+    2.67,
+    -17.33,
+    4.0,
+    -16.0,
+    5.33,
+    -14.67,
+    6.67,
+    -13.33,
+    8.0,
+    -12.0,
+    9.33,
+    -10.67,
+    10.67,
 )
 HDL32E = VelodyneModel(
-    "HDL-32E", 0x21, _HDL32E_ELEVATION, (0.0,) * 32, 0.002, 46.08, tuple(range(32)),
+    "HDL-32E",
+    0x21,
+    _HDL32E_ELEVATION,
+    (0.0,) * 32,
+    0.002,
+    46.08,
+    tuple(range(32)),
     tuple(c * 1.152 for c in range(32)),
 )
 MODELS: dict[int, VelodyneModel] = {m.product: m for m in (VLP16, VLP32C, HDL32E)}
@@ -124,8 +217,10 @@ def packet_array(data: bytes, where: str = "Velodyne", first_packet: int = 0) ->
     """Data packets as a structured array, checked: whole packets, FF EE block flags, one known
     sensor, single return. ``first_packet`` numbers the packets in error messages."""
     if len(data) % DATA_PACKET_BYTES:
-        raise InputError(f"{where}: {len(data)} bytes are not whole {DATA_PACKET_BYTES}-byte "
-                         "Velodyne data packets")
+        raise InputError(
+            f"{where}: {len(data)} bytes are not whole {DATA_PACKET_BYTES}-byte "
+            "Velodyne data packets"
+        )
     packets = np.frombuffer(data, dtype=PACKET_DTYPE)
     if not len(packets):
         return packets
@@ -137,20 +232,27 @@ def packet_array(data: bytes, where: str = "Velodyne", first_packet: int = 0) ->
         raise InputError(
             f"{where}: packet {first_packet + p}, block {b} starts with bytes "
             f"{flag & 0xFF:02X} {flag >> 8:02X}, not the block flag FF EE (not a Velodyne data "
-            "packet, or a corrupt one)")
+            "packet, or a corrupt one)"
+        )
     products = packets["product"]
     unknown = np.flatnonzero(~np.isin(products, list(MODELS)))
     if len(unknown):
         p = int(unknown[0])
-        raise InputError(f"{where}: packet {first_packet + p}: product byte 0x{int(products[p]):02X} "
-                         f"is not a sensor this decoder knows ({_known_products()})")
+        raise InputError(
+            f"{where}: packet {first_packet + p}: product byte 0x{int(products[p]):02X} "
+            f"is not a sensor this decoder knows ({_known_products()})"
+        )
     if np.any(products != products[0]):
         names = sorted({MODELS[int(v)].name for v in products})
-        raise InputError(f"{where}: packets of different sensors ({', '.join(names)}) in one stream")
+        raise InputError(
+            f"{where}: packets of different sensors ({', '.join(names)}) in one stream"
+        )
     dual = np.flatnonzero(packets["return_mode"] == DUAL_RETURN)
     if len(dual):
-        raise InputError(f"{where}: packet {first_packet + int(dual[0])}: dual-return packets "
-                         f"(return mode 0x{DUAL_RETURN:02X}) are not decoded yet")
+        raise InputError(
+            f"{where}: packet {first_packet + int(dual[0])}: dual-return packets "
+            f"(return mode 0x{DUAL_RETURN:02X}) are not decoded yet"
+        )
     return packets
 
 
@@ -159,8 +261,12 @@ def packet_model(packets: np.ndarray) -> VelodyneModel:
     return MODELS[int(packets["product"][0])] if len(packets) else VLP16
 
 
-def firing_azimuths(block_azimuth: np.ndarray, model: VelodyneModel,
-                    returns: np.ndarray | None = None, next_azimuth: float | None = None) -> np.ndarray:
+def firing_azimuths(
+    block_azimuth: np.ndarray,
+    model: VelodyneModel,
+    returns: np.ndarray | None = None,
+    next_azimuth: float | None = None,
+) -> np.ndarray:
     """Azimuth (0.01°, in [0, 36000)) of every return, (P, 12, 32), from the (P, 12) blocks'
     azimuths; or of the returns at the flat indices ``returns`` only.
 
@@ -187,16 +293,21 @@ def firing_azimuths(block_azimuth: np.ndarray, model: VelodyneModel,
     return azimuth.reshape(-1, BLOCKS, CHANNELS) if returns is None else azimuth
 
 
-def decode_packets(payloads: bytes | Sequence[bytes], where: str = "Velodyne",
-                   first_packet: int = 0, next_azimuth: float | None = None) -> dict[str, np.ndarray]:
+def decode_packets(
+    payloads: bytes | Sequence[bytes],
+    where: str = "Velodyne",
+    first_packet: int = 0,
+    next_azimuth: float | None = None,
+) -> dict[str, np.ndarray]:
     """Per-return arrays of Velodyne data packets in firing order, zero ranges (no return)
     kept; see :func:`decode_array` (packets checked by :func:`packet_array`)."""
     data = payloads if isinstance(payloads, bytes | bytearray) else b"".join(payloads)
     return decode_array(packet_array(bytes(data), where, first_packet), next_azimuth=next_azimuth)
 
 
-def decode_array(packets: np.ndarray, returns_only: bool = False,
-                 next_azimuth: float | None = None) -> dict[str, np.ndarray]:
+def decode_array(
+    packets: np.ndarray, returns_only: bool = False, next_azimuth: float | None = None
+) -> dict[str, np.ndarray]:
     """Per-return arrays of checked packets in firing order: ``time_us`` (µs past the hour,
     sensor clock), ``azimuth`` (0.01°), ``distance`` (m), ``laser`` (id), ``ring`` (by
     elevation), ``elevation`` (°), ``intensity`` (reflectivity) and ``packet`` (index of its
@@ -208,8 +319,10 @@ def decode_array(packets: np.ndarray, returns_only: bool = False,
     index = np.flatnonzero(raw) if returns_only else np.arange(len(raw))
     packet, slot = index // SLOTS, index % CHANNELS
     laser = np.asarray(model.slot_laser, np.uint8)[slot]
-    time_us = packets["timestamp"].astype(np.float64)[packet] + model.slot_offsets_us().reshape(-1)[
-        index % SLOTS]
+    time_us = (
+        packets["timestamp"].astype(np.float64)[packet]
+        + model.slot_offsets_us().reshape(-1)[index % SLOTS]
+    )
     return {
         "time_us": time_us,
         "azimuth": firing_azimuths(packets["blocks"]["azimuth"], model, index, next_azimuth),
@@ -222,8 +335,12 @@ def decode_array(packets: np.ndarray, returns_only: bool = False,
     }
 
 
-def xyz_from(azimuth_cdeg: np.ndarray, elevation_deg: np.ndarray, distance: np.ndarray,
-             frame: Literal["velodyne", "ros"] = "velodyne") -> np.ndarray:
+def xyz_from(
+    azimuth_cdeg: np.ndarray,
+    elevation_deg: np.ndarray,
+    distance: np.ndarray,
+    frame: Literal["velodyne", "ros"] = "velodyne",
+) -> np.ndarray:
     """(N, 3) float64 coordinates of returns: ``velodyne`` is the manual's and VeloView's frame
     (azimuth 0 along +y), ``ros`` the ROS driver's REP 103 frame (azimuth 0 along +x)."""
     omega = np.deg2rad(elevation_deg)
@@ -246,9 +363,14 @@ def hour_base(reference_time: float, us_past_hour: float) -> float:
     return float(base)
 
 
-def encode_packets(timestamp_us: np.ndarray, block_azimuth: np.ndarray, distance_m: np.ndarray,
-                   reflectivity: np.ndarray, model: VelodyneModel = VLP16,
-                   return_mode: int = 0x37) -> np.ndarray:
+def encode_packets(
+    timestamp_us: np.ndarray,
+    block_azimuth: np.ndarray,
+    distance_m: np.ndarray,
+    reflectivity: np.ndarray,
+    model: VelodyneModel = VLP16,
+    return_mode: int = 0x37,
+) -> np.ndarray:
     """(P, 1206) uint8 data packets from per-packet timestamps (µs past the hour), (P, 12)
     block azimuths (0.01°) and (P, 12, 32) distances (m, 0 = no return; rounded to the
     sensor's unit) and reflectivities (0-255)."""
@@ -259,8 +381,10 @@ def encode_packets(timestamp_us: np.ndarray, block_azimuth: np.ndarray, distance
     blocks["azimuth"] = np.mod(np.asarray(block_azimuth, np.int64), 36000)
     raw = np.rint(np.asarray(distance_m, np.float64) / model.distance_unit_m)
     if np.any(raw > 0xFFFF):
-        raise ValueError(f"encode_packets: distances beyond the {model.name}'s "
-                         f"{0xFFFF * model.distance_unit_m:.1f} m cannot be encoded")
+        raise ValueError(
+            f"encode_packets: distances beyond the {model.name}'s "
+            f"{0xFFFF * model.distance_unit_m:.1f} m cannot be encoded"
+        )
     blocks["returns"]["distance"] = raw.astype(np.uint16)
     blocks["returns"]["reflectivity"] = np.clip(np.rint(reflectivity), 0, 255).astype(np.uint8)
     packets["timestamp"] = np.mod(np.asarray(timestamp_us, np.int64), HOUR_US)

@@ -65,25 +65,37 @@ def scan_from_message(msg: Any, where: str, index: int) -> Scan:
     packets = list(msg.packets)
     for k, packet in enumerate(packets):
         if len(packet.data) != DATA_PACKET_BYTES:
-            raise MessageError(f"{where}: packet {k} has {len(packet.data)} bytes; a Velodyne data "
-                             f"packet has {DATA_PACKET_BYTES}")
+            raise MessageError(
+                f"{where}: packet {k} has {len(packet.data)} bytes; a Velodyne data "
+                f"packet has {DATA_PACKET_BYTES}"
+            )
     stamps = np.array([_seconds(p.stamp) for p in packets], np.float64)
     data = b"".join(np.asarray(p.data, np.uint8).tobytes() for p in packets)
     try:
-        return scan_from_packets(stamps, data, msg.header.frame_id, where, index,
-                                 header_stamp=_seconds(msg.header.stamp))
+        return scan_from_packets(
+            stamps, data, msg.header.frame_id, where, index, header_stamp=_seconds(msg.header.stamp)
+        )
     except InputError as exc:  # a packet that is not a Velodyne data packet: this message only
         raise MessageError(str(exc)) from None
 
 
-def scan_from_packets(stamps: np.ndarray, data: bytes, frame_id: str, where: str, index: int,
-                      header_stamp: float | None = None) -> Scan:
+def scan_from_packets(
+    stamps: np.ndarray,
+    data: bytes,
+    frame_id: str,
+    where: str,
+    index: int,
+    header_stamp: float | None = None,
+) -> Scan:
     """A Scan from packet stamps (s, bag clock) and the packets' bytes (see the module notes)."""
     packets = packet_array(data, where)
     if len(packets) == 0:
         stamp = header_stamp if header_stamp is not None else 0.0
-        empty = {"intensity": np.zeros(0, np.float32), "ring": np.zeros(0, np.uint16),
-                 "time": np.zeros(0, np.float32)}
+        empty = {
+            "intensity": np.zeros(0, np.float32),
+            "ring": np.zeros(0, np.uint16),
+            "time": np.zeros(0, np.float32),
+        }
         return Scan(stamp, np.zeros((0, 3)), empty, np.zeros(0), frame_id, index)
     points = decode_array(packets, returns_only=True)
     counter = packets["timestamp"].astype(np.float64)  # µs past the hour
@@ -93,7 +105,9 @@ def scan_from_packets(stamps: np.ndarray, data: bytes, frame_id: str, where: str
     clock_offset = float(np.median(stamps - (base + (counter + hours) * 1e-6)))
     times = base + clock_offset + (points["time_us"] + hours[points["packet"]]) * 1e-6
     xyz = xyz_from(points["azimuth"], points["elevation"], points["distance"], "ros")
-    stamp = float(times[0]) if len(times) else base + clock_offset + float(counter[0] + hours[0]) * 1e-6
+    stamp = (
+        float(times[0]) if len(times) else base + clock_offset + float(counter[0] + hours[0]) * 1e-6
+    )
     fields = {
         "intensity": points["intensity"].astype(np.float32),
         "ring": points["ring"],

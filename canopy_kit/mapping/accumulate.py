@@ -21,10 +21,14 @@ _OFFSET = 1 << (_BITS - 1)
 
 def voxel_hash(xyz: np.ndarray, size: float) -> np.ndarray:
     """One int64 per point naming its voxel of edge ``size`` (±52 km at 5 cm voxels)."""
-    keys, fits = voxel_keys(np.ascontiguousarray(xyz, np.float64).reshape(-1, 3), float(size), _BITS)
+    keys, fits = voxel_keys(
+        np.ascontiguousarray(xyz, np.float64).reshape(-1, 3), float(size), _BITS
+    )
     if not fits:
-        raise InputError(f"map extends beyond the voxel grid range for voxel size {size} m "
-                         f"(±{_OFFSET * size / 1000:.0f} km from the origin)")
+        raise InputError(
+            f"map extends beyond the voxel grid range for voxel size {size} m "
+            f"(±{_OFFSET * size / 1000:.0f} km from the origin)"
+        )
     return keys
 
 
@@ -92,7 +96,9 @@ class MapAccumulator:
 
     def add_many(self, parts: list[tuple[np.ndarray, dict[str, np.ndarray]]]) -> None:
         """Add several sweeps in order, as one :meth:`add` when their fields agree (cheaper)."""
-        layouts = {tuple((k, np.asarray(v).dtype.str) for k, v in fields.items()) for _, fields in parts}
+        layouts = {
+            tuple((k, np.asarray(v).dtype.str) for k, v in fields.items()) for _, fields in parts
+        }
         if len(parts) > 1 and len(layouts) == 1:
             xyz = np.concatenate([p[0] for p in parts])
             names = list(parts[0][1])
@@ -104,6 +110,8 @@ class MapAccumulator:
     def cloud(self, crs: str | None = None, origin: np.ndarray | None = None) -> PointCloud:
         """The map so far as a PointCloud (local coordinates, ``origin`` and ``crs`` attached)."""
         xyz = np.concatenate(self._xyz) if self._xyz else np.zeros((0, 3))
-        fields = {k: (np.concatenate(v) if v else np.zeros(0, self._dtypes[k]))
-                  for k, v in self._fields.items()}
+        fields = {
+            k: (np.concatenate(v) if v else np.zeros(0, self._dtypes[k]))
+            for k, v in self._fields.items()
+        }
         return PointCloud(xyz, fields, crs=crs, origin=np.zeros(3) if origin is None else origin)

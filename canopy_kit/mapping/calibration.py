@@ -30,7 +30,9 @@ def _registered(one: OdometryPass) -> tuple[np.ndarray, np.ndarray]:
     return np.array([r.t_ref for r in recs]), np.array([r.pose for r in recs]).reshape(-1, 4, 4)
 
 
-def _tilt(rig: SensorRig, one: OdometryPass, lidar_from_imu: np.ndarray | None = None) -> dict[str, float]:
+def _tilt(
+    rig: SensorRig, one: OdometryPass, lidar_from_imu: np.ndarray | None = None
+) -> dict[str, float]:
     """The LiDAR's tilt from the vertical: by the IMU's gravity at standstill, and by the rig's base."""
     out: dict[str, float] = {}
     still = one.state.standstill
@@ -46,9 +48,14 @@ def _tilt(rig: SensorRig, one: OdometryPass, lidar_from_imu: np.ndarray | None =
     return out
 
 
-def check_rig(one: OdometryPass, rig: SensorRig, config: MappingConfig) -> tuple[dict[str, Any], list[str]]:
+def check_rig(
+    one: OdometryPass, rig: SensorRig, config: MappingConfig
+) -> tuple[dict[str, Any], list[str]]:
     """How far the drive puts the IMU from where the rig says; a warning past the tolerance."""
-    diag: dict[str, Any] = {"mode": config.extrinsics, "tolerance_deg": config.extrinsic_tolerance_deg}
+    diag: dict[str, Any] = {
+        "mode": config.extrinsics,
+        "tolerance_deg": config.extrinsic_tolerance_deg,
+    }
     if one.imu is None or rig.imu_frame is None:
         return diag, []
     times, poses = _registered(one)
@@ -69,7 +76,8 @@ def check_rig(one: OdometryPass, rig: SensorRig, config: MappingConfig) -> tuple
             f"extrinsics: the drive puts the IMU (frame {rig.imu_frame!r}) {angle:.1f} deg from where "
             f"{rig.sources.get('imu', 'the rig')} puts it in the LiDAR frame {rig.lidar_frame!r} "
             f"(roll/pitch/yaw given {_rpy(rig.lidar_from_imu)}, estimated {_rpy(estimated)} deg); "
-            "check /tf_static or the rig file, or map with --calibrate-extrinsics")
+            "check /tf_static or the rig file, or map with --calibrate-extrinsics"
+        )
     return diag, warnings
 
 
@@ -77,8 +85,9 @@ def _rpy(m: np.ndarray) -> str:
     return "[" + ", ".join(f"{v:.1f}" for v in rpy_deg(m)) + "]"
 
 
-def calibrate_rig(bag: Any, config: MappingConfig, rig: SensorRig, progress: Progress | None = None
-                  ) -> tuple[SensorRig, dict[str, Any], list[str]]:
+def calibrate_rig(
+    bag: Any, config: MappingConfig, rig: SensorRig, progress: Progress | None = None
+) -> tuple[SensorRig, dict[str, Any], list[str]]:
     """The rig with the IMU rotation (and clock offset) estimated from a LiDAR-only pass."""
     from canopy_kit.mapping.chunks import run_odometry
 
@@ -92,23 +101,31 @@ def calibrate_rig(bag: Any, config: MappingConfig, rig: SensorRig, progress: Pro
     probe = run_odometry(bag, config, relabel, rig, lidar_only=True)
     times, poses = _registered(probe)
     if probe.imu is None:
-        raise InputError(f"{bag.path}: topic {probe.topics.imu!r}: too few IMU samples to calibrate "
-                         "the IMU mount (--calibrate-extrinsics)")
+        raise InputError(
+            f"{bag.path}: topic {probe.topics.imu!r}: too few IMU samples to calibrate "
+            "the IMU mount (--calibrate-extrinsics)"
+        )
     est = estimate_imu_rotation(times, poses, probe.imu, MAX_CLOCK_OFFSET_S) if len(times) else None
     if est is None:
-        raise InputError(f"{bag.path}: the drive has too few LiDAR rotation increments overlapping the IMU "
-                         "to estimate the IMU mount (--calibrate-extrinsics); give it with --rig FILE")
+        raise InputError(
+            f"{bag.path}: the drive has too few LiDAR rotation increments overlapping the IMU "
+            "to estimate the IMU mount (--calibrate-extrinsics); give it with --rig FILE"
+        )
     diag = _calibration_diagnostics(rig, est, probe)
     warnings = []
     if not est.observable:
         axes = ", ".join(f"{n} {s:.2f}" for n, s in zip("xyz", est.sigma_deg))
-        warnings.append(f"extrinsics: the drive turned too little about some axes to fix the IMU mount well "
-                        f"(1-sigma per LiDAR axis: {axes} deg); prefer a measured rig (--rig FILE)")
+        warnings.append(
+            f"extrinsics: the drive turned too little about some axes to fix the IMU mount well "
+            f"(1-sigma per LiDAR axis: {axes} deg); prefer a measured rig (--rig FILE)"
+        )
     offset = rig.imu_time_offset + est.time_offset_s
     return rig.with_imu_rotation(est.rotation, ESTIMATED, offset), diag, warnings
 
 
-def _calibration_diagnostics(rig: SensorRig, est: RotationEstimate, probe: OdometryPass) -> dict[str, Any]:
+def _calibration_diagnostics(
+    rig: SensorRig, est: RotationEstimate, probe: OdometryPass
+) -> dict[str, Any]:
     diag: dict[str, Any] = {"mode": "calibrate", "estimated": est.to_dict()}
     diag.update(_tilt(rig, probe, est.rotation))
     if rig.sources.get("imu") not in (ESTIMATED, None):  # the bag or rig file gave one too

@@ -56,8 +56,13 @@ class Chunk:
     lidar_only: bool = False
 
 
-def chunk_plan(bag_path: str, n_scans: int, config: MappingConfig, rig: SensorRig | None = None,
-               lidar_only: bool = False) -> list[Chunk]:
+def chunk_plan(
+    bag_path: str,
+    n_scans: int,
+    config: MappingConfig,
+    rig: SensorRig | None = None,
+    lidar_only: bool = False,
+) -> list[Chunk]:
     """The chunks for ``n_scans`` scans: one per worker (``mapping.workers``, 0: every core)."""
     workers = worker_count(config.workers, n_scans // max(config.odometry_chunk_sweeps, 1))
     bounds = balanced_bounds(n_scans, workers)
@@ -66,9 +71,18 @@ def chunk_plan(bag_path: str, n_scans: int, config: MappingConfig, rig: SensorRi
     def start(own: int) -> int:  # early enough for the overlap, in step with the chunk before
         return max(0, (own - OVERLAP_SWEEPS) // step * step)
 
-    return [Chunk(bag_path, config, start(int(a)) if k else 0, int(a), int(b) if k < workers - 1 else None,
-                  rig, lidar_only)
-            for k, (a, b) in enumerate(itertools.pairwise(bounds))]
+    return [
+        Chunk(
+            bag_path,
+            config,
+            start(int(a)) if k else 0,
+            int(a),
+            int(b) if k < workers - 1 else None,
+            rig,
+            lidar_only,
+        )
+        for k, (a, b) in enumerate(itertools.pairwise(bounds))
+    ]
 
 
 def balanced_bounds(n_scans: int, n_chunks: int) -> np.ndarray:
@@ -78,6 +92,7 @@ def balanced_bounds(n_scans: int, n_chunks: int) -> np.ndarray:
     reads every scan before that undecoded (``SKIP_COST`` of a processed scan each), so
     later chunks own fewer scans.
     """
+
     def extra(own: float) -> float:  # work of a chunk owning scans from ``own`` on, besides them
         return 0.0 if own == 0 else OVERLAP_SWEEPS + SKIP_COST * max(own - OVERLAP_SWEEPS, 0.0)
 
@@ -105,15 +120,22 @@ def _run_chunk(chunk: Chunk, tick: Tick) -> OdometryPass:
             tick()
 
     with open_bag(chunk.bag_path) as bag:
-        return odometry_pass(bag, chunk.config, progress, (chunk.first, chunk.end), count_from=chunk.own,
-                             rig=chunk.rig, lidar_only=chunk.lidar_only)
+        return odometry_pass(
+            bag,
+            chunk.config,
+            progress,
+            (chunk.first, chunk.end),
+            count_from=chunk.own,
+            rig=chunk.rig,
+            lidar_only=chunk.lidar_only,
+        )
 
 
 def tie(previous: list[SweepRecord], current: list[SweepRecord], own: int) -> np.ndarray | None:
     """``A`` with ``A · T_current ≈ T_previous`` on the overlap, or None when too few sweeps tie."""
     before = {r.index: r for r in previous if r.registered}
     overlap = [r for r in current if r.index < own and r.index in before]
-    overlap = overlap[len(overlap) // 2:]
+    overlap = overlap[len(overlap) // 2 :]
     # Sweeps both registered; else the current chunk's predictions (a gyro-and-velocity
     # extrapolation over one sweep: millimetres off) stand in.
     pairs = [(before[r.index].pose, r.pose) for r in overlap if r.registered]
@@ -139,32 +161,50 @@ def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | Non
             return None
         to_first = to_first @ a
         end = chunks[k + 1].own if k + 1 < len(chunks) else np.inf
-        records += [r._replace(pose=to_first @ r.pose) for r in parts[k].records if chunks[k].own <= r.index < end]
+        records += [
+            r._replace(pose=to_first @ r.pose)
+            for r in parts[k].records
+            if chunks[k].own <= r.index < end
+        ]
     states = [p.state for p in parts]
     origin = records[0].pose[:2, 3]
     state = replace(
         first.state,
         rotations=last.state.rotations,  # the last worker integrated the gyro over the whole drive
         sweeps=len(records),
-        skipped_sparse=sorted({i for s, c in zip(states, chunks) for i in s.skipped_sparse if i >= c.own}),
+        skipped_sparse=sorted(
+            {i for s, c in zip(states, chunks) for i in s.skipped_sparse if i >= c.own}
+        ),
         not_deskewed=sum(not r.deskewed for r in records),
         ground_fallbacks=sum(s.ground_fallbacks for s in states),
         ground_corrections=sum(s.ground_corrections for s in states),
-        out_of_order=sorted({i for s, c in zip(states, chunks) for i in s.out_of_order if i >= c.own}),
+        out_of_order=sorted(
+            {i for s, c in zip(states, chunks) for i in s.out_of_order if i >= c.own}
+        ),
         gaps=sorted({g for s in states for g in s.gaps}),
         max_displacement=float(max(np.hypot(*(r.pose[:2, 3] - origin)) for r in records)),
         rejected_registrations=sum(s.rejected_registrations for s in states),
         warnings=list(dict.fromkeys(w for s in states for w in s.warnings)),
     )
     return OdometryPass(
-        first.bag_path, first.topics, records, state, last.imu, last.gnss,
-        n_scans=sum(p.n_scans for p in parts), n_without_time=sum(p.n_without_time for p in parts),
-        first_stamp=min(p.first_stamp for p in parts), last_stamp=max(p.last_stamp for p in parts),
+        first.bag_path,
+        first.topics,
+        records,
+        state,
+        last.imu,
+        last.gnss,
+        n_scans=sum(p.n_scans for p in parts),
+        n_without_time=sum(p.n_without_time for p in parts),
+        first_stamp=min(p.first_stamp for p in parts),
+        last_stamp=max(p.last_stamp for p in parts),
         bag_warnings=list(dict.fromkeys(w for p in parts for w in p.bag_warnings)),
-        recovered=first.recovered, workers=len(parts),
+        recovered=first.recovered,
+        workers=len(parts),
         stray=sorted({(i, n) for p, c in zip(parts, chunks) for i, n in p.stray if i >= c.own}),
         scan_log_ns=last.scan_log_ns,  # the last chunk read every scan message from the start
-        rig=first.rig, log=_stitched_log(chunks, parts))
+        rig=first.rig,
+        log=_stitched_log(chunks, parts),
+    )
 
 
 def _stitched_log(chunks: list[Chunk], parts: list[OdometryPass]) -> MessageLog | None:
@@ -176,8 +216,12 @@ def _stitched_log(chunks: list[Chunk], parts: list[OdometryPass]) -> MessageLog 
     log = MessageLog(parts[0].bag_path)
     log.topics = dict(parts[-1].log.topics)  # type: ignore[union-attr]
     ends = [c.own for c in chunks[1:]] + [np.inf]
-    log.topics[topic] = merged([p.log.topic(topic, "scans").restricted(c.own, end)  # type: ignore[union-attr]
-                                for p, c, end in zip(parts, chunks, ends, strict=True)])
+    log.topics[topic] = merged(
+        [
+            p.log.topic(topic, "scans").restricted(c.own, end)  # type: ignore[union-attr]
+            for p, c, end in zip(parts, chunks, ends, strict=True)
+        ]
+    )
     return log
 
 
@@ -188,14 +232,25 @@ def lidar_tilt_deg(rig: SensorRig | None) -> float:
     return float(np.degrees(np.arccos(np.clip(abs(rig.lidar_from_base[2, 2]), 0.0, 1.0))))
 
 
-def run_odometry(bag: BagSession, config: MappingConfig, progress: Progress | None = None,
-                 rig: SensorRig | None = None, lidar_only: bool = False) -> OdometryPass:
+def run_odometry(
+    bag: BagSession,
+    config: MappingConfig,
+    progress: Progress | None = None,
+    rig: SensorRig | None = None,
+    lidar_only: bool = False,
+) -> OdometryPass:
     """Pass 1 over the whole bag: in chunks on several cores when the drive is long enough.
 
     ``rig`` (resolved from the bag when None) says how the IMU sits in the LiDAR frame;
     ``lidar_only`` collects the IMU without using it (to estimate that mounting)."""
-    topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
-                            config.use_imu, config.use_gnss)
+    topics = resolve_topics(
+        bag,
+        config.pointcloud_topic,
+        config.imu_topic,
+        config.gnss_topic,
+        config.use_imu,
+        config.use_gnss,
+    )
     if rig is None:
         rig = resolve_rig(bag, topics, config)
     n_scans = scan_count(bag, topics.scans)
@@ -210,6 +265,7 @@ def run_odometry(bag: BagSession, config: MappingConfig, progress: Progress | No
         single = odometry_pass(bag, config, progress, rig=rig, lidar_only=lidar_only)
         single.state.warnings.append(
             f"odometry: the {len(chunks)} parallel chunks of the drive could not be tied together "
-            f"(fewer than {MIN_TIE_SWEEPS} sweeps registered in an overlap); ran in one process")
+            f"(fewer than {MIN_TIE_SWEEPS} sweeps registered in an overlap); ran in one process"
+        )
         return single
     return odometry_pass(bag, config, progress, rig=rig, lidar_only=lidar_only)

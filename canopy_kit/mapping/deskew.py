@@ -21,9 +21,15 @@ def reference_time(times: np.ndarray | None, stamp: float) -> float:
     return 0.5 * (float(times.min()) + float(times.max()))
 
 
-def deskew_points(xyz: np.ndarray, times: np.ndarray, t_ref: float,
-                  velocity: np.ndarray, angular_velocity: np.ndarray | None = None,
-                  rotations: RotationTrack | None = None, n_bins: int = 256) -> np.ndarray:
+def deskew_points(
+    xyz: np.ndarray,
+    times: np.ndarray,
+    t_ref: float,
+    velocity: np.ndarray,
+    angular_velocity: np.ndarray | None = None,
+    rotations: RotationTrack | None = None,
+    n_bins: int = 256,
+) -> np.ndarray:
     """Points moved to the sensor frame at ``t_ref``.
 
     Rotation comes from ``rotations`` (the gyro track) when given, else from the constant
@@ -46,6 +52,10 @@ def deskew_points(xyz: np.ndarray, times: np.ndarray, t_ref: float,
     else:
         w = np.zeros(3) if angular_velocity is None else np.asarray(angular_velocity, float)
         rotvecs = bin_dt[:, None] * w[None, :]
-    return rotate_and_shift(np.ascontiguousarray(xyz, np.float64), bins, np.ascontiguousarray(rotvecs, np.float64),
-                            np.ascontiguousarray(dt, np.float64), np.asarray(velocity, np.float64).reshape(3))
-
+    return rotate_and_shift(
+        np.ascontiguousarray(xyz, np.float64),
+        bins,
+        np.ascontiguousarray(rotvecs, np.float64),
+        np.ascontiguousarray(dt, np.float64),
+        np.asarray(velocity, np.float64).reshape(3),
+    )

@@ -32,7 +32,9 @@ def _poses(table: pd.DataFrame) -> np.ndarray:
     return out
 
 
-def interpolate_reference(reference: pd.DataFrame, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_reference(
+    reference: pd.DataFrame, times: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Reference poses (N, 4, 4) at ``times`` (inside its span) and the mask of those times."""
     t = reference["time"].to_numpy()
     inside = (times >= t[0]) & (times <= t[-1])
@@ -60,8 +62,12 @@ def se3_alignment(estimated: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return a
 
 
-def segment_drift(estimated: np.ndarray, reference: np.ndarray,
-                  lengths: tuple[float, ...] = SEGMENT_LENGTHS, step: float = 1.0) -> dict[str, float]:
+def segment_drift(
+    estimated: np.ndarray,
+    reference: np.ndarray,
+    lengths: tuple[float, ...] = SEGMENT_LENGTHS,
+    step: float = 1.0,
+) -> dict[str, float]:
     """Mean relative translation error (% of length) over segments of each length."""
     dist = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(reference[:, :3, 3], axis=0), axis=1))]
     out: dict[str, float] = {}
@@ -81,8 +87,9 @@ def segment_drift(estimated: np.ndarray, reference: np.ndarray,
     return out
 
 
-def trajectory_errors(trajectory: pd.DataFrame, reference: pd.DataFrame,
-                      start_window: float = 2.0) -> dict[str, Any]:
+def trajectory_errors(
+    trajectory: pd.DataFrame, reference: pd.DataFrame, start_window: float = 2.0
+) -> dict[str, Any]:
     """ATE (SE(3)-aligned), per-axis ATE, segment drift and end drift against ``reference``."""
     times = trajectory["time"].to_numpy()
     ref, inside = interpolate_reference(reference, times)
@@ -114,15 +121,19 @@ def trajectory_errors(trajectory: pd.DataFrame, reference: pd.DataFrame,
     }
 
 
-def absolute_errors(trajectory: pd.DataFrame, reference: pd.DataFrame, offset: np.ndarray) -> dict[str, float]:
+def absolute_errors(
+    trajectory: pd.DataFrame, reference: pd.DataFrame, offset: np.ndarray
+) -> dict[str, float]:
     """Position error with no alignment (georeferencing), after adding ``offset`` to the estimate."""
     times = trajectory["time"].to_numpy()
     ref, inside = interpolate_reference(reference, times)
     est = trajectory[["x", "y", "z"]].to_numpy()[inside] + offset
     err = est - ref[:, :3, 3]
-    return {"rmse_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))),
-            "horizontal_rmse_m": float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1)))),
-            "vertical_rmse_m": float(np.sqrt(np.mean(err[:, 2] ** 2)))}
+    return {
+        "rmse_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))),
+        "horizontal_rmse_m": float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1)))),
+        "vertical_rmse_m": float(np.sqrt(np.mean(err[:, 2] ** 2))),
+    }
 
 
 def surface_distances(points: np.ndarray, raycasting_scene: Any) -> np.ndarray:
@@ -135,13 +146,23 @@ def surface_distances(points: np.ndarray, raycasting_scene: Any) -> np.ndarray:
 
 def distance_summary(d: np.ndarray) -> dict[str, float]:
     """Mean, median, 90th percentile, RMS and the shares within 5 and 10 cm."""
-    return {"mean_m": float(d.mean()), "median_m": float(np.median(d)),
-            "p90_m": float(np.percentile(d, 90)), "rms_m": float(np.sqrt(np.mean(d**2))),
-            "within_5cm": float(np.mean(d <= 0.05)), "within_10cm": float(np.mean(d <= 0.10))}
+    return {
+        "mean_m": float(d.mean()),
+        "median_m": float(np.median(d)),
+        "p90_m": float(np.percentile(d, 90)),
+        "rms_m": float(np.sqrt(np.mean(d**2))),
+        "within_5cm": float(np.mean(d <= 0.05)),
+        "within_10cm": float(np.mean(d <= 0.10)),
+    }
 
 
-def map_accuracy(cloud: PointCloud, raycasting_scene: Any, to_scene: np.ndarray | None = None,
-                 sample: int = 200_000, seed: int = 0) -> dict[str, float]:
+def map_accuracy(
+    cloud: PointCloud,
+    raycasting_scene: Any,
+    to_scene: np.ndarray | None = None,
+    sample: int = 200_000,
+    seed: int = 0,
+) -> dict[str, float]:
     """Distances from (a seeded sample of) map points to the scene; ``to_scene`` maps local xyz."""
     rng = np.random.default_rng(seed)
     idx = rng.choice(len(cloud), size=min(sample, len(cloud)), replace=False)
@@ -162,8 +183,12 @@ def estimate_in_frame(result: Any, frame: str | None) -> pd.DataFrame:
     return result.trajectory
 
 
-def evaluate_against_simulation(result: Any, sim_dir: str | Path, reference: pd.DataFrame | None = None,
-                                truth_map_sample: bool = True) -> dict[str, Any]:
+def evaluate_against_simulation(
+    result: Any,
+    sim_dir: str | Path,
+    reference: pd.DataFrame | None = None,
+    truth_map_sample: bool = True,
+) -> dict[str, Any]:
     """Trajectory and map errors of a :class:`MappingResult` on a simulated session."""
     from canopy_kit.truth import load_truth
 
@@ -196,12 +221,22 @@ def reference_from_bag(bag_path: str | Path, topic: str | None = None) -> pd.Dat
     with open_bag(bag_path) as bag:
         odo = bag.odometry(topic)
     if odo is None or len(odo.t) < 2:
-        raise InputError(f"{bag_path}: no ground-truth odometry topic (nav_msgs/msg/Odometry) to "
-                         "evaluate against")
+        raise InputError(
+            f"{bag_path}: no ground-truth odometry topic (nav_msgs/msg/Odometry) to "
+            "evaluate against"
+        )
     order = np.argsort(odo.t)
-    table = pd.DataFrame({"time": odo.t[order], "x": odo.position[order, 0], "y": odo.position[order, 1],
-                          "z": odo.position[order, 2], "qx": odo.orientation[order, 0],
-                          "qy": odo.orientation[order, 1], "qz": odo.orientation[order, 2],
-                          "qw": odo.orientation[order, 3]})
+    table = pd.DataFrame(
+        {
+            "time": odo.t[order],
+            "x": odo.position[order, 0],
+            "y": odo.position[order, 1],
+            "z": odo.position[order, 2],
+            "qx": odo.orientation[order, 0],
+            "qy": odo.orientation[order, 1],
+            "qz": odo.orientation[order, 2],
+            "qw": odo.orientation[order, 3],
+        }
+    )
     table.attrs["frame"] = odo.child_frame_id  # the frame whose poses these are
     return table

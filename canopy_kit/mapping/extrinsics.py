@@ -68,28 +68,42 @@ class SensorRig:
         if self.calibrate:
             m = ImuMounting(np.eye(3), np.zeros(3), self.imu_time_offset)
         else:
-            m = ImuMounting(self.lidar_from_imu[:3, :3].copy(), self.lidar_from_imu[:3, 3].copy(),
-                            self.imu_time_offset)
+            m = ImuMounting(
+                self.lidar_from_imu[:3, :3].copy(),
+                self.lidar_from_imu[:3, 3].copy(),
+                self.imu_time_offset,
+            )
         return None if m.is_identity else m
 
-    def with_imu_rotation(self, rotation: np.ndarray, source: str = ESTIMATED,
-                          time_offset: float | None = None) -> SensorRig:
+    def with_imu_rotation(
+        self, rotation: np.ndarray, source: str = ESTIMATED, time_offset: float | None = None
+    ) -> SensorRig:
         """The same rig with the IMU turned by ``rotation`` (lidar_from_imu, 3x3)."""
         t = self.lidar_from_imu.copy()
         t[:3, :3] = rotation
         sources = dict(self.sources, imu=source)
         offset = self.imu_time_offset if time_offset is None else time_offset
-        return replace(self, lidar_from_imu=t, sources=sources, calibrate=False, imu_time_offset=offset)
+        return replace(
+            self, lidar_from_imu=t, sources=sources, calibrate=False, imu_time_offset=offset
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Frames, the IMU/antenna/base transforms and their sources (mapping.json, report)."""
-        def pose(m: np.ndarray) -> dict[str, list[float]]:
-            return {"translation": [round(float(v), 4) for v in m[:3, 3]],
-                    "rpy_deg": [round(v, 3) for v in rpy_deg(m)]}
 
-        out: dict[str, Any] = {"lidar_frame": self.lidar_frame, "imu_frame": self.imu_frame,
-                               "gnss_frame": self.gnss_frame, "base_frame": self.base_name,
-                               "tf_topics": self.tf_topics, "sources": dict(self.sources)}
+        def pose(m: np.ndarray) -> dict[str, list[float]]:
+            return {
+                "translation": [round(float(v), 4) for v in m[:3, 3]],
+                "rpy_deg": [round(v, 3) for v in rpy_deg(m)],
+            }
+
+        out: dict[str, Any] = {
+            "lidar_frame": self.lidar_frame,
+            "imu_frame": self.imu_frame,
+            "gnss_frame": self.gnss_frame,
+            "base_frame": self.base_name,
+            "tf_topics": self.tf_topics,
+            "sources": dict(self.sources),
+        }
         if self.imu_frame is not None:
             out["lidar_from_imu"] = pose(self.lidar_from_imu)
             out["imu_time_offset_s"] = self.imu_time_offset
@@ -113,17 +127,28 @@ class SensorRig:
         edges = list(self.transforms)
         # Mounts the run knows only relative to the LiDAR (estimated, assumed, the lever-arm setting).
         base_from_lidar = invert(self.lidar_from_base)
-        for key, frame, lidar_from in (("imu", self.imu_frame, self.lidar_from_imu),
-                                       ("gnss", self.gnss_frame, self.lidar_from_gnss)):
-            if frame and frame != self.lidar_frame and (
+        for key, frame, lidar_from in (
+            ("imu", self.imu_frame, self.lidar_from_imu),
+            ("gnss", self.gnss_frame, self.lidar_from_gnss),
+        ):
+            if (
+                frame
+                and frame != self.lidar_frame
+                and (
                     graph.try_transform(self.lidar_frame, frame) is None
-                    or self.sources.get(key) in (ESTIMATED, ASSUMED)):
+                    or self.sources.get(key) in (ESTIMATED, ASSUMED)
+                )
+            ):
                 edges = [e for e in edges if e.child != frame]
                 parent = base if base != frame else self.lidar_frame
                 matrix = base_from_lidar @ lidar_from if parent == base else lidar_from
                 edges.append(FrameTransform(parent, frame, matrix, self.sources.get(key, "")))
-        names = {"lidar_frame": self.lidar_frame, "imu_frame": self.imu_frame or "",
-                 "gnss_frame": self.gnss_frame or "", "imu_time_offset_s": self.imu_time_offset or None}
+        names = {
+            "lidar_frame": self.lidar_frame,
+            "imu_frame": self.imu_frame or "",
+            "gnss_frame": self.gnss_frame or "",
+            "imu_time_offset_s": self.imu_time_offset or None,
+        }
         return rig_tables(base, edges, **names)  # type: ignore[arg-type]
 
 
@@ -150,18 +175,38 @@ def resolve_rig(bag: Any, topics: Any, config: MappingConfig) -> SensorRig:
     lidar = _sensor_frame(rig_file, "lidar_frame", first_frame_id(bag, topics.scans))
     if not lidar:
         lidar = "lidar"
-        warnings.append(f"{bag.path}: topic {topics.scans!r}: the scans stamp no frame_id; "
-                        "taken as the frame 'lidar'")
-    imu = _sensor_frame(rig_file, "imu_frame", first_frame_id(bag, topics.imu)) if topics.imu else None
-    gnss = _sensor_frame(rig_file, "gnss_frame", first_frame_id(bag, topics.gnss)) if topics.gnss else None
-    out = SensorRig(lidar, imu, gnss, tf_topics=recorded.topics, warnings=warnings,
-                    imu_time_offset=rig_file.imu_time_offset_s if rig_file is not None else 0.0)
+        warnings.append(
+            f"{bag.path}: topic {topics.scans!r}: the scans stamp no frame_id; "
+            "taken as the frame 'lidar'"
+        )
+    imu = (
+        _sensor_frame(rig_file, "imu_frame", first_frame_id(bag, topics.imu))
+        if topics.imu
+        else None
+    )
+    gnss = (
+        _sensor_frame(rig_file, "gnss_frame", first_frame_id(bag, topics.gnss))
+        if topics.gnss
+        else None
+    )
+    out = SensorRig(
+        lidar,
+        imu,
+        gnss,
+        tf_topics=recorded.topics,
+        warnings=warnings,
+        imu_time_offset=rig_file.imu_time_offset_s if rig_file is not None else 0.0,
+    )
     out.base_frame = _base_frame(config, rig_file, graph, lidar)
-    out.lidar_from_base = graph.try_transform(lidar, out.base_frame) if out.base_frame != lidar else np.eye(4)
+    out.lidar_from_base = (
+        graph.try_transform(lidar, out.base_frame) if out.base_frame != lidar else np.eye(4)
+    )
     if out.lidar_from_base is None:
-        raise InputError(f"{bag.path}: base frame {out.base_frame!r} (mapping.base_frame) is not connected "
-                         f"to the LiDAR's frame {lidar!r} by /tf_static or the rig "
-                         f"(frames known: {', '.join(sorted(graph.frames)) or 'none'})")
+        raise InputError(
+            f"{bag.path}: base frame {out.base_frame!r} (mapping.base_frame) is not connected "
+            f"to the LiDAR's frame {lidar!r} by /tf_static or the rig "
+            f"(frames known: {', '.join(sorted(graph.frames)) or 'none'})"
+        )
     out.sources["base"] = _source(graph, lidar, out.base_frame)
     if imu is not None:
         _resolve_imu(out, graph, config, bag, topics)
@@ -171,12 +216,17 @@ def resolve_rig(bag: Any, topics: Any, config: MappingConfig) -> SensorRig:
     return out
 
 
-def _base_frame(config: MappingConfig, rig_file: RigSpec | None, graph: FrameGraph, lidar: str) -> str:
+def _base_frame(
+    config: MappingConfig, rig_file: RigSpec | None, graph: FrameGraph, lidar: str
+) -> str:
     if config.base_frame:
         return config.base_frame
     if rig_file is not None and rig_file.base_frame in graph.frames:
         return rig_file.base_frame
-    if DEFAULT_BASE_FRAME in graph.frames and graph.try_transform(lidar, DEFAULT_BASE_FRAME) is not None:
+    if (
+        DEFAULT_BASE_FRAME in graph.frames
+        and graph.try_transform(lidar, DEFAULT_BASE_FRAME) is not None
+    ):
         return DEFAULT_BASE_FRAME
     return lidar
 
@@ -185,7 +235,9 @@ def _source(graph: FrameGraph, target: str, source: str) -> str:
     return " + ".join(graph.sources(target, source)) or SAME_FRAME
 
 
-def _resolve_imu(out: SensorRig, graph: FrameGraph, config: MappingConfig, bag: Any, topics: Any) -> None:
+def _resolve_imu(
+    out: SensorRig, graph: FrameGraph, config: MappingConfig, bag: Any, topics: Any
+) -> None:
     imu = out.imu_frame
     assert imu is not None
     if not imu or imu == out.lidar_frame:
@@ -206,18 +258,23 @@ def _resolve_imu(out: SensorRig, graph: FrameGraph, config: MappingConfig, bag: 
         return
     if config.extrinsics == "identity":
         out.sources["imu"] = ASSUMED
-        out.warnings.append(f"the LiDAR's frame {out.lidar_frame!r} and the IMU's frame {imu!r} differ and "
-                            "nothing relates them; mapped as if they were one frame (as asked)")
+        out.warnings.append(
+            f"the LiDAR's frame {out.lidar_frame!r} and the IMU's frame {imu!r} differ and "
+            "nothing relates them; mapped as if they were one frame (as asked)"
+        )
         return
     raise InputError(
         f"{bag.path}: the LiDAR (topic {topics.scans!r}, frame {out.lidar_frame!r}) and the IMU (topic "
         f"{topics.imu!r}, frame {imu!r}) stamp different frames, and neither the bag's /tf_static "
         f"{'nor ' + repr(config.rig_name or 'the rig') if config.rig else 'nor a rig file'} relates them. "
         "Give the mounting with --rig FILE (docs/MAPPING.md, 'Sensor rigs'), estimate the rotation from the "
-        "drive with --calibrate-extrinsics, or, if the two frames really are one, --assume-identity-extrinsics")
+        "drive with --calibrate-extrinsics, or, if the two frames really are one, --assume-identity-extrinsics"
+    )
 
 
-def _resolve_gnss(out: SensorRig, graph: FrameGraph, config: MappingConfig, bag: Any, topics: Any) -> None:
+def _resolve_gnss(
+    out: SensorRig, graph: FrameGraph, config: MappingConfig, bag: Any, topics: Any
+) -> None:
     gnss = out.gnss_frame
     assert gnss is not None
     setting = rigid(translation=[float(v) for v in config.gnss_lever_arm])
@@ -233,8 +290,8 @@ def _resolve_gnss(out: SensorRig, graph: FrameGraph, config: MappingConfig, bag:
         return
     out.lidar_from_gnss = setting
     out.sources["gnss"] = LEVER_ARM_SETTING
-    out.warnings.append(f"{bag.path}: topic {topics.gnss!r}: no transform from the GNSS frame {gnss!r} to "
-                        f"the LiDAR's {out.lidar_frame!r}; the antenna lever arm is {LEVER_ARM_SETTING} "
-                        f"= {[float(v) for v in config.gnss_lever_arm]} m (give the antenna in a rig file)")
-
-
+    out.warnings.append(
+        f"{bag.path}: topic {topics.gnss!r}: no transform from the GNSS frame {gnss!r} to "
+        f"the LiDAR's {out.lidar_frame!r}; the antenna lever arm is {LEVER_ARM_SETTING} "
+        f"= {[float(v) for v in config.gnss_lever_arm]} m (give the antenna in a rig file)"
+    )

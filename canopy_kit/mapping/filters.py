@@ -28,9 +28,15 @@ def check_point_count(n_points: int, minimum: int, where: str) -> None:
         )
 
 
-def fit_ground_plane(xyz: np.ndarray, cell_size: float = 2.0, fit_radius: float = 25.0,
-                     up: np.ndarray | None = None, iterations: int = 3,
-                     inlier_band: float = 0.25, max_points: int = 4000) -> np.ndarray | None:
+def fit_ground_plane(
+    xyz: np.ndarray,
+    cell_size: float = 2.0,
+    fit_radius: float = 25.0,
+    up: np.ndarray | None = None,
+    iterations: int = 3,
+    inlier_band: float = 0.25,
+    max_points: int = 4000,
+) -> np.ndarray | None:
     """Plane ``(n, d)`` with ``n·p + d = 0`` (``n`` pointing up) through the scan's ground.
 
     The lowest point of each ``cell_size`` cell (along ``up``, default the sensor z axis)
@@ -82,8 +88,9 @@ def fit_ground_plane(xyz: np.ndarray, cell_size: float = 2.0, fit_radius: float 
     return np.concatenate([basis @ (n_local / scale), [-coef[2] / scale]])
 
 
-def ground_mask(xyz: np.ndarray, band: float, plane: np.ndarray | None = None,
-                up: np.ndarray | None = None) -> np.ndarray:
+def ground_mask(
+    xyz: np.ndarray, band: float, plane: np.ndarray | None = None, up: np.ndarray | None = None
+) -> np.ndarray:
     """Points within ``band`` metres above (or anywhere below) the scan's ground plane.
 
     ``plane`` is fitted with :func:`fit_ground_plane` when not given; with no plane found

@@ -32,7 +32,9 @@ VELOCITY_BASELINE_S = 0.3  # s of registered poses the velocity is measured over
 STANDSTILL_M = 1.0  # a drive whose sweeps all stay this close to the first one stood still
 STRUCTURE_POINTS = 800  # fewer odometry points than this inflate the sweep's uncertainty
 WEAK_REGISTRATION_MAX = 10.0  # uncertainty of a sweep placed by the motion prediction
-MAX_REJECTED_RUN = 3  # implausible ICP results replaced by the prediction before ICP is trusted again
+MAX_REJECTED_RUN = (
+    3  # implausible ICP results replaced by the prediction before ICP is trusted again
+)
 # A sweep is left unregistered (``mapping.odometry_every``) only while the predicted motion
 # since the last registered sweep stays below these: tight turns are registered densely.
 SKIP_MAX_SHIFT_M = 0.6
@@ -70,7 +72,9 @@ class FrontendState:
     ground_fallbacks: int = 0
     ground_corrections: int = 0
     out_of_order: list[int] = field(default_factory=list)  # scans stamped at or before the previous
-    gaps: list[tuple[float, float]] = field(default_factory=list)  # (last stamp, seconds) of dropouts
+    gaps: list[tuple[float, float]] = field(
+        default_factory=list
+    )  # (last stamp, seconds) of dropouts
     max_displacement: float = 0.0  # m, horizontal, of any sweep from the first
     rejected_registrations: int = 0
     warnings: list[str] = field(default_factory=list)
@@ -79,12 +83,20 @@ class FrontendState:
 class LidarFrontend:
     """Feed scans in time order; get registered sweeps back (possibly a few scans later)."""
 
-    def __init__(self, config: MappingConfig, imu: ImuBuffer | None, where: str = "bag",
-                 keep_all_points: bool = True, lidar_from_base: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        config: MappingConfig,
+        imu: ImuBuffer | None,
+        where: str = "bag",
+        keep_all_points: bool = True,
+        lidar_from_base: np.ndarray | None = None,
+    ) -> None:
         self.config = config
         # The vehicle's axes in the LiDAR frame: the first sweep's heading is the vehicle's,
         # and without an IMU the vehicle's z is the first guess of "up" (a tilted LiDAR).
-        self.lidar_from_base = np.eye(4) if lidar_from_base is None else np.asarray(lidar_from_base, float)
+        self.lidar_from_base = (
+            np.eye(4) if lidar_from_base is None else np.asarray(lidar_from_base, float)
+        )
         self.keep_all_points = keep_all_points
         # Register every sweep when the caller needs every sweep's points (streaming).
         self.register_every = 1 if keep_all_points else max(1, config.odometry_every)
@@ -128,7 +140,9 @@ class LidarFrontend:
             try:
                 st.initial_rotation = st.standstill.level_rotation().as_matrix()
             except InputError as exc:
-                raise InputError(f"{self.imu.source or 'IMU'}: {exc}".replace(": IMU: ", ": ")) from None
+                raise InputError(
+                    f"{self.imu.source or 'IMU'}: {exc}".replace(": IMU: ", ": ")
+                ) from None
             t_first = reference_time(first.times, first.stamp)
             if st.standstill.found and st.rotations.covers(st.standstill.end, t_first):
                 # The first sweep comes after the standstill (a late LiDAR, or a later part of
@@ -137,8 +151,10 @@ class LidarFrontend:
                 st.initial_rotation = st.initial_rotation @ turn
             st.up_source = "imu"
             if not st.standstill.found:
-                st.warnings.append("IMU: no standstill at the start; gravity taken from the mean of the "
-                                   "first second of data and the gyro bias assumed zero")
+                st.warnings.append(
+                    "IMU: no standstill at the start; gravity taken from the mean of the "
+                    "first second of data and the gyro bias assumed zero"
+                )
         else:
             if self.imu is not None:
                 st.warnings.append("IMU topic has fewer than 20 samples; mapping with LiDAR only")
@@ -150,19 +166,34 @@ class LidarFrontend:
                 st.up_source = "ground plane of the first scan"
             else:
                 st.up_source = "sensor z axis"
-            st.warnings.append(f"no IMU: 'up' taken from the {st.up_source}; map tilt follows any "
-                               "terrain slope under the first scan")
-        st.initial_rotation = _vehicle_heading_zero(st.initial_rotation, self.lidar_from_base[:3, :3])
+            st.warnings.append(
+                f"no IMU: 'up' taken from the {st.up_source}; map tilt follows any "
+                "terrain slope under the first scan"
+            )
+        st.initial_rotation = _vehicle_heading_zero(
+            st.initial_rotation, self.lidar_from_base[:3, :3]
+        )
         t0 = np.eye(4)
         t0[:3, :3] = st.initial_rotation
-        self._odometry = LidarOdometry(OdometrySettings(
-            voxel_size=self.config.kiss_voxel_size, max_range=self.config.max_range,
-            min_range=self.config.min_range, max_points_per_voxel=self.config.kiss_max_points_per_voxel,
-            max_threads=self.config.threads, convergence_criterion=self.config.kiss_convergence), t0)
+        self._odometry = LidarOdometry(
+            OdometrySettings(
+                voxel_size=self.config.kiss_voxel_size,
+                max_range=self.config.max_range,
+                min_range=self.config.min_range,
+                max_points_per_voxel=self.config.kiss_max_points_per_voxel,
+                max_threads=self.config.threads,
+                convergence_criterion=self.config.kiss_convergence,
+            ),
+            t0,
+        )
 
     # -- per sweep -------------------------------------------------------------------------
     def _sync_imu(self) -> None:
-        if self.imu is not None and self.state.rotations is not None and len(self.imu) > self._imu_used:
+        if (
+            self.imu is not None
+            and self.state.rotations is not None
+            and len(self.imu) > self._imu_used
+        ):
             new = self.imu.series(self._imu_used)
             self.state.rotations.extend(new.t, new.angular_velocity)
             self._imu_used = len(self.imu)
@@ -198,8 +229,9 @@ class LidarFrontend:
             if not self._queue or not self._ready_to_start(final):
                 return out
             self._start(self._queue[0])
-        while self._queue and (final or self._imu_covers(self._queue[0])
-                               or len(self._queue) > IMU_WAIT_SCANS):
+        while self._queue and (
+            final or self._imu_covers(self._queue[0]) or len(self._queue) > IMU_WAIT_SCANS
+        ):
             sweep = self._process(self._queue.popleft())
             if sweep is not None:
                 out.append(sweep)
@@ -215,8 +247,11 @@ class LidarFrontend:
             self._sparse_run += 1
             st.skipped_sparse.append(scan.index)
             if self._sparse_run >= 5 and st.sweeps == 0:
-                check_point_count(n_kept, cfg.min_points_per_scan,
-                                  f"{self.where}: scans {st.skipped_sparse[0]}..{scan.index}")
+                check_point_count(
+                    n_kept,
+                    cfg.min_points_per_scan,
+                    f"{self.where}: scans {st.skipped_sparse[0]}..{scan.index}",
+                )
             return None
         self._sparse_run = 0
         if self._prev_t is not None and self._unregistered_run + 1 < self.register_every:
@@ -233,9 +268,12 @@ class LidarFrontend:
         times, t_ref, deskewed = self._sweep_times(scan, keep)
         if deskewed:
             assert times is not None
-            use_gyro = st.rotations is not None and st.rotations.covers(float(times.min()), float(times.max()))
-            xyz = deskew_points(xyz, times, t_ref, self._velocity, self._omega,
-                                st.rotations if use_gyro else None)
+            use_gyro = st.rotations is not None and st.rotations.covers(
+                float(times.min()), float(times.max())
+            )
+            xyz = deskew_points(
+                xyz, times, t_ref, self._velocity, self._omega, st.rotations if use_gyro else None
+            )
         guess = self._predict(t_ref)
         # "Up" in the sensor frame from the predicted attitude (gravity-aligned odometry frame),
         # never the sensor's own z axis: a tilted LiDAR keeps its ground filter right.
@@ -247,7 +285,9 @@ class LidarFrontend:
         if self.keep_all_points and cfg.odometry_point_stride > 1:
             odo_points = odo_points[:: cfg.odometry_point_stride]
         # Few points above the ground (an open headland) make ICP weak: say so to the graph.
-        uncertainty = float(np.clip(STRUCTURE_POINTS / max(len(odo_points), 1), 1.0, WEAK_REGISTRATION_MAX))
+        uncertainty = float(
+            np.clip(STRUCTURE_POINTS / max(len(odo_points), 1), 1.0, WEAK_REGISTRATION_MAX)
+        )
         pose = self._odometry.align(odo_points, guess)
         if self._odometry.failed:  # no valid pose from ICP (non-finite): the prediction stands in
             st.rejected_registrations += 1
@@ -263,7 +303,9 @@ class LidarFrontend:
             # Only a gyro-based prediction is good enough to overrule ICP, and only once the
             # velocity is known (not at the first sweeps of a chunk that starts while driving).
             gyro = st.rotations is not None and self._motion_known
-            if gyro and (shift > cfg.odometry_max_correction or turn > cfg.odometry_max_correction_deg):
+            if gyro and (
+                shift > cfg.odometry_max_correction or turn > cfg.odometry_max_correction_deg
+            ):
                 # ICP jumped further from the prediction than a vehicle moves in one sweep (e.g.
                 # a U-turn on an open headland). After a few in a row the prediction itself is
                 # suspect and ICP is trusted again.
@@ -308,8 +350,9 @@ class LidarFrontend:
         self._omega = Rotation.from_matrix(p0[:3, :3].T @ pose[:3, :3]).as_rotvec() / dt
         self._motion_known = True
 
-    def _sweep_times(self, scan: Scan, keep: np.ndarray, count: bool = True
-                     ) -> tuple[np.ndarray | None, float, bool]:
+    def _sweep_times(
+        self, scan: Scan, keep: np.ndarray, count: bool = True
+    ) -> tuple[np.ndarray | None, float, bool]:
         """The kept points' times (None when missing, constant or non-finite), the sweep's
         reference time and whether it is deskewed (counted in the state when not, if ``count``)."""
         times = scan.times[keep] if scan.times is not None else None
@@ -337,7 +380,9 @@ class LidarFrontend:
         self._unregistered_run += 1
         self.state.sweeps += 1
         empty = np.zeros((0, 3))
-        return FrontendSweep(scan, t_ref, guess, keep, empty, np.zeros(0, bool), deskewed, registered=False)
+        return FrontendSweep(
+            scan, t_ref, guess, keep, empty, np.zeros(0, bool), deskewed, registered=False
+        )
 
     def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """Height and tilt from the ground grid (see :mod:`.ground`); the grid grows with the sweep."""

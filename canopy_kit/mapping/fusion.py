@@ -80,8 +80,9 @@ def keyframe_indices(n_sweeps: int, every: int) -> np.ndarray:
     return idx
 
 
-def heading_alignment(positions: np.ndarray, targets: np.ndarray,
-                      weights: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+def heading_alignment(
+    positions: np.ndarray, targets: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
     """Yaw and translation that best map ``positions`` onto ``targets`` in the horizontal plane."""
     w = np.ones(len(positions)) if weights is None else np.asarray(weights, float)
     w = w / w.sum()
@@ -95,11 +96,11 @@ def heading_alignment(positions: np.ndarray, targets: np.ndarray,
     return yaw, tc - rz @ pc
 
 
-def _gnss_error(lever: np.ndarray, z: np.ndarray):  # noqa: ANN202
+def _gnss_error(lever: np.ndarray, z: np.ndarray):
     """Error ``p + R l + g - z`` of a pose X and a GNSS bias G, for a gtsam CustomFactor."""
     skew = np.array([[0, -lever[2], lever[1]], [lever[2], 0, -lever[0]], [-lever[1], lever[0], 0]])
 
-    def error(this, values, jacobians):  # noqa: ANN001, ANN202
+    def error(this, values, jacobians):
         pose = values.atPose3(this.keys()[0])
         g = values.atPoint3(this.keys()[1])
         r = pose.rotation().matrix()
@@ -111,8 +112,15 @@ def _gnss_error(lever: np.ndarray, z: np.ndarray):  # noqa: ANN202
     return error
 
 
-def _add_gnss_factors(graph, values, gnss: GnssEpochs, kt: np.ndarray, init: np.ndarray,  # noqa: ANN001
-                      vel_init: np.ndarray, settings: FusionSettings) -> dict:
+def _add_gnss_factors(
+    graph,
+    values,
+    gnss: GnssEpochs,
+    kt: np.ndarray,
+    init: np.ndarray,
+    vel_init: np.ndarray,
+    settings: FusionSettings,
+) -> dict:
     """One position factor per GNSS epoch on its nearest keyframe, with a Gauss-Markov bias
     state per epoch; a change of receiver mode starts the bias afresh. Returns diagnostics."""
     with needs_extra("mapping"):
@@ -139,17 +147,29 @@ def _add_gnss_factors(graph, values, gnss: GnssEpochs, kt: np.ndarray, init: np.
         s_white, s_corr = gnss_noise(settings, gnss.sigma[m], int(gnss.count[m]), scatter)
         # The bias starts as what the initial trajectory leaves unexplained.
         values.insert(G(m), z - init[j, :3, 3] - init[j, :3, :3] @ lever)
-        graph.add(gtsam.CustomFactor(gtsam.noiseModel.Robust.Create(
-            kernel, gtsam.noiseModel.Diagonal.Sigmas(s_white)), [X(j), G(m)], _gnss_error(lever, z)))
+        graph.add(
+            gtsam.CustomFactor(
+                gtsam.noiseModel.Robust.Create(kernel, gtsam.noiseModel.Diagonal.Sigmas(s_white)),
+                [X(j), G(m)],
+                _gnss_error(lever, z),
+            )
+        )
         if prev is None or _mode_changed(gnss, prev, m):
             # The first epoch, or a new receiver mode (RTK lost or regained) with its own
             # offset: the bias starts afresh instead of bending the trajectory.
-            graph.add(gtsam.PriorFactorPoint3(G(m), np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(s_corr)))
+            graph.add(
+                gtsam.PriorFactorPoint3(G(m), np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(s_corr))
+            )
             n_modes += prev is not None
         else:
             phi = float(np.exp(-(tm - gnss.t[prev]) / settings.gnss_correlation_time))
-            graph.add(gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(
-                s_corr * np.sqrt(max(1.0 - phi**2, 1e-6))), [G(prev), G(m)], _gauss_markov_error(phi)))
+            graph.add(
+                gtsam.CustomFactor(
+                    gtsam.noiseModel.Diagonal.Sigmas(s_corr * np.sqrt(max(1.0 - phi**2, 1e-6))),
+                    [G(prev), G(m)],
+                    _gauss_markov_error(phi),
+                )
+            )
         prev = m
         n_gnss += 1
     return {"gnss_factors": n_gnss, "gnss_mode_changes": n_modes}
@@ -159,15 +179,16 @@ def _mode_changed(gnss: GnssEpochs, a: int, b: int) -> bool:
     """Did the receiver change mode between epochs ``a`` and ``b`` (see ``quality_changed``)?"""
     if len(gnss.status) != len(gnss.t):
         return False
-    return quality_changed(int(gnss.status[a]), float(gnss.sigma[a, 0]), int(gnss.status[b]),
-                           float(gnss.sigma[b, 0]))
+    return quality_changed(
+        int(gnss.status[a]), float(gnss.sigma[a, 0]), int(gnss.status[b]), float(gnss.sigma[b, 0])
+    )
 
 
-def _gauss_markov_error(phi: float):  # noqa: ANN202
+def _gauss_markov_error(phi: float):
     """Error ``g1 - phi g0`` of two consecutive GNSS bias states."""
     eye = np.eye(3)
 
-    def error(this, values, jacobians):  # noqa: ANN001, ANN202
+    def error(this, values, jacobians):
         g0 = values.atPoint3(this.keys()[0])
         g1 = values.atPoint3(this.keys()[1])
         if jacobians is not None:
@@ -178,7 +199,7 @@ def _gauss_markov_error(phi: float):  # noqa: ANN202
     return error
 
 
-def preintegrate(imu: ImuSeries, t0: float, t1: float, pim) -> int:  # noqa: ANN001
+def preintegrate(imu: ImuSeries, t0: float, t1: float, pim) -> int:
     """Integrate the IMU samples covering ``[t0, t1]`` into ``pim`` (zero-order hold); samples used."""
     t = imu.t
     i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
@@ -197,7 +218,7 @@ def preintegrate(imu: ImuSeries, t0: float, t1: float, pim) -> int:  # noqa: ANN
     return used
 
 
-def imu_params(settings: FusionSettings):  # noqa: ANN202
+def imu_params(settings: FusionSettings):
     """gtsam preintegration parameters (z up, standard gravity) from the settings."""
     with needs_extra("mapping"):
         import gtsam
@@ -211,24 +232,29 @@ def imu_params(settings: FusionSettings):  # noqa: ANN202
     return p
 
 
-def odometry_noise(settings: FusionSettings, distance: float, scale: float = 1.0):  # noqa: ANN202
+def odometry_noise(settings: FusionSettings, distance: float, scale: float = 1.0):
     """Robust noise of an odometry factor spanning ``distance`` metres (jitter plus drift).
 
     ``scale`` inflates it for spans containing weak registrations."""
     with needs_extra("mapping"):
         import gtsam
 
-    s_rot = np.hypot(np.sqrt(2) * settings.odometry_jitter_rotation,
-                     settings.odometry_drift_rotation * distance)
-    s_tr = np.hypot(np.sqrt(2) * settings.odometry_jitter_translation,
-                    settings.odometry_drift_translation * distance)
+    s_rot = np.hypot(
+        np.sqrt(2) * settings.odometry_jitter_rotation, settings.odometry_drift_rotation * distance
+    )
+    s_tr = np.hypot(
+        np.sqrt(2) * settings.odometry_jitter_translation,
+        settings.odometry_drift_translation * distance,
+    )
     return gtsam.noiseModel.Robust.Create(
         gtsam.noiseModel.mEstimator.Huber.Create(1.345),
-        gtsam.noiseModel.Diagonal.Sigmas(scale * np.r_[np.full(3, s_rot), np.full(3, s_tr)]))
+        gtsam.noiseModel.Diagonal.Sigmas(scale * np.r_[np.full(3, s_rot), np.full(3, s_tr)]),
+    )
 
 
-def gnss_noise(settings: FusionSettings, sigma: np.ndarray, count: int,
-               scatter: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def gnss_noise(
+    settings: FusionSettings, sigma: np.ndarray, count: int, scatter: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """White (per epoch) and correlated 1-sigma per axis from the reported sigma.
 
     The white part is the configured share of the sigma, or the fix-to-fix ``scatter``
@@ -239,7 +265,9 @@ def gnss_noise(settings: FusionSettings, sigma: np.ndarray, count: int,
     return white / np.sqrt(max(count, 1)), sigma * np.sqrt(max(1.0 - f**2, 1e-4))
 
 
-def initial_alignment(times: np.ndarray, odometry: np.ndarray, gnss: GnssEpochs) -> np.ndarray | None:
+def initial_alignment(
+    times: np.ndarray, odometry: np.ndarray, gnss: GnssEpochs
+) -> np.ndarray | None:
     """The yaw + translation (4x4) taking the odometry frame onto the GNSS positions, or None."""
     inside = (gnss.t >= times[0]) & (gnss.t <= times[-1])
     if inside.sum() < 3:
@@ -254,7 +282,7 @@ def initial_alignment(times: np.ndarray, odometry: np.ndarray, gnss: GnssEpochs)
     return a
 
 
-def optimize(graph, values, max_iterations: int = 50, tolerance: float = 1e-4):  # noqa: ANN001, ANN201
+def optimize(graph, values, max_iterations: int = 50, tolerance: float = 1e-4):
     """Gauss-Newton steps while they lower the error, Levenberg-Marquardt if one does not.
 
     The graphs here start close to their optimum (odometry plus a heading fit), where
@@ -290,10 +318,15 @@ def optimize(graph, values, max_iterations: int = 50, tolerance: float = 1e-4): 
     return result, int(optimizer.iterations()), "levenberg-marquardt"
 
 
-def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSettings,
-                    imu: ImuSeries | None = None, standstill: Standstill | None = None,
-                    gnss: GnssEpochs | None = None,
-                    uncertainty: np.ndarray | None = None) -> FusionResult:
+def fuse_trajectory(
+    times: np.ndarray,
+    odometry: np.ndarray,
+    settings: FusionSettings,
+    imu: ImuSeries | None = None,
+    standstill: Standstill | None = None,
+    gnss: GnssEpochs | None = None,
+    uncertainty: np.ndarray | None = None,
+) -> FusionResult:
     """Batch fusion of a whole drive into keyframe states.
 
     ``odometry`` holds the LiDAR odometry poses (K, 4, 4) at sweep ``times``, in a
@@ -316,9 +349,11 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
     align = initial_alignment(times, odometry, gnss) if gnss is not None else None
     if align is None and gnss is not None:
         extent = float(np.ptp(odometry[:, :2, 3], axis=0).max())
-        diag["no_heading"] = (f"the robot moved {extent:.1f} m, too little for a heading from GNSS"
-                              if extent < MIN_HEADING_BASELINE else
-                              "GNSS fixes do not overlap the LiDAR sweeps")
+        diag["no_heading"] = (
+            f"the robot moved {extent:.1f} m, too little for a heading from GNSS"
+            if extent < MIN_HEADING_BASELINE
+            else "GNSS fixes do not overlap the LiDAR sweeps"
+        )
     if align is None:
         gnss = None
         align = np.eye(4)
@@ -329,8 +364,14 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
         values.insert(X(j), gtsam.Pose3(init[j]))
 
     tilt = settings.initial_tilt_sigma
-    sig0 = np.r_[tilt, tilt, 1e-4, np.full(3, 1e-4)] if gnss is None else np.r_[tilt, tilt, 3.0, np.full(3, 50.0)]
-    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(init[0]), gtsam.noiseModel.Diagonal.Sigmas(sig0)))
+    sig0 = (
+        np.r_[tilt, tilt, 1e-4, np.full(3, 1e-4)]
+        if gnss is None
+        else np.r_[tilt, tilt, 3.0, np.full(3, 50.0)]
+    )
+    graph.add(
+        gtsam.PriorFactorPose3(X(0), gtsam.Pose3(init[0]), gtsam.noiseModel.Diagonal.Sigmas(sig0))
+    )
 
     steps = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odometry[kidx, :3, 3], axis=0), axis=1))]
     weak = np.ones(len(times)) if uncertainty is None else np.asarray(uncertainty, float)
@@ -341,21 +382,41 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
         for j in range(lag, n):
             delta = np.linalg.inv(odometry[kidx[j - lag]]) @ odometry[kidx[j]]
             scale = float(seg_weak[j - lag : j].max())
-            graph.add(gtsam.BetweenFactorPose3(X(j - lag), X(j), gtsam.Pose3(delta),
-                                               odometry_noise(settings, steps[j] - steps[j - lag], scale)))
+            graph.add(
+                gtsam.BetweenFactorPose3(
+                    X(j - lag),
+                    X(j),
+                    gtsam.Pose3(delta),
+                    odometry_noise(settings, steps[j] - steps[j - lag], scale),
+                )
+            )
             n_odo += 1
     diag["weak_spans"] = int((seg_weak > 1.5).sum())
     diag["odometry_factors"] = n_odo
 
     use_imu = imu is not None and len(imu.t) > 10
-    vel_init = np.gradient(init[:, :3, 3], axis=0) / np.gradient(kt)[:, None] if n > 1 else np.zeros((n, 3))
+    vel_init = (
+        np.gradient(init[:, :3, 3], axis=0) / np.gradient(kt)[:, None]
+        if n > 1
+        else np.zeros((n, 3))
+    )
     if use_imu:
         assert imu is not None
         params = imu_params(settings)
         gyro_bias0 = standstill.gyro_bias if standstill is not None else np.zeros(3)
         bias0 = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_bias0)
-        graph.add(gtsam.PriorFactorConstantBias(B(0), bias0, gtsam.noiseModel.Diagonal.Sigmas(
-            np.r_[np.full(3, settings.initial_accel_bias_sigma), np.full(3, settings.initial_gyro_bias_sigma)])))
+        graph.add(
+            gtsam.PriorFactorConstantBias(
+                B(0),
+                bias0,
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[
+                        np.full(3, settings.initial_accel_bias_sigma),
+                        np.full(3, settings.initial_gyro_bias_sigma),
+                    ]
+                ),
+            )
+        )
         still_end = standstill.end if standstill is not None and standstill.found else -np.inf
         zero_v = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
         n_imu = 0
@@ -367,16 +428,33 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
             if j == 0:
                 continue
             pim = gtsam.PreintegratedCombinedMeasurements(params, bias0)
-            if kt[j - 1] >= imu.t[0] and kt[j] <= imu.t[-1] and preintegrate(imu, kt[j - 1], kt[j], pim):
-                graph.add(gtsam.CombinedImuFactor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
+            if (
+                kt[j - 1] >= imu.t[0]
+                and kt[j] <= imu.t[-1]
+                and preintegrate(imu, kt[j - 1], kt[j], pim)
+            ):
+                graph.add(
+                    gtsam.CombinedImuFactor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim)
+                )
                 n_imu += 1
             else:  # a gap in the IMU data: keep the bias chain and velocity defined
                 dt = kt[j] - kt[j - 1]
-                walk = np.r_[np.full(3, settings.accel_bias_walk), np.full(3, settings.gyro_bias_walk)]
-                graph.add(gtsam.BetweenFactorConstantBias(
-                    B(j - 1), B(j), gtsam.imuBias.ConstantBias(),
-                    gtsam.noiseModel.Diagonal.Sigmas(walk * np.sqrt(dt) + 1e-6)))
-                graph.add(gtsam.PriorFactorVector(V(j), vel_init[j], gtsam.noiseModel.Isotropic.Sigma(3, 2.0)))
+                walk = np.r_[
+                    np.full(3, settings.accel_bias_walk), np.full(3, settings.gyro_bias_walk)
+                ]
+                graph.add(
+                    gtsam.BetweenFactorConstantBias(
+                        B(j - 1),
+                        B(j),
+                        gtsam.imuBias.ConstantBias(),
+                        gtsam.noiseModel.Diagonal.Sigmas(walk * np.sqrt(dt) + 1e-6),
+                    )
+                )
+                graph.add(
+                    gtsam.PriorFactorVector(
+                        V(j), vel_init[j], gtsam.noiseModel.Isotropic.Sigma(3, 2.0)
+                    )
+                )
         diag["imu_factors"] = n_imu
 
     n_gnss = 0
@@ -390,8 +468,9 @@ def fuse_trajectory(times: np.ndarray, odometry: np.ndarray, settings: FusionSet
     diag["iterations"] = iterations
     diag["optimizer"] = method
 
-    out = FusionResult(kidx, kt, np.array([result.atPose3(X(j)).matrix() for j in range(n)]),
-                       diagnostics=diag)
+    out = FusionResult(
+        kidx, kt, np.array([result.atPose3(X(j)).matrix() for j in range(n)]), diagnostics=diag
+    )
     if use_imu:
         out.velocities = np.array([result.atVector(V(j)) for j in range(n)])
         biases = [result.atConstantBias(B(j)) for j in range(n)]

@@ -75,16 +75,25 @@ def rejection_reasons(gnss: GnssSeries) -> np.ndarray:
     lat, lon, alt = (np.asarray(a, float) for a in (gnss.latitude, gnss.longitude, gnss.altitude))
     finite = np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
     with np.errstate(invalid="ignore"):
-        in_range = ((np.abs(lat) <= 90) & (np.abs(lon) <= 180) & (alt >= ALTITUDE_RANGE[0])
-                    & (alt <= ALTITUDE_RANGE[1]) & ~((lat == 0) & (lon == 0)))
+        in_range = (
+            (np.abs(lat) <= 90)
+            & (np.abs(lon) <= 180)
+            & (alt >= ALTITUDE_RANGE[0])
+            & (alt <= ALTITUDE_RANGE[1])
+            & ~((lat == 0) & (lon == 0))
+        )
     no_fix = np.asarray(gnss.status) <= NO_FIX
-    return np.where(no_fix, "no_fix", np.where(~finite, "non_finite",
-                                               np.where(~in_range, "out_of_range", ""))).astype("<U12")
+    return np.where(
+        no_fix, "no_fix", np.where(~finite, "non_finite", np.where(~in_range, "out_of_range", ""))
+    ).astype("<U12")
 
 
 def _no_fix_message(reasons: np.ndarray) -> str:
-    counts = ", ".join(f"{int((reasons == r).sum())} {r.replace('_', ' ')}" for r in REJECT_REASONS
-                       if (reasons == r).any())
+    counts = ", ".join(
+        f"{int((reasons == r).sum())} {r.replace('_', ' ')}"
+        for r in REJECT_REASONS
+        if (reasons == r).any()
+    )
     return f"no usable fix among {len(reasons)} ({counts})"
 
 
@@ -97,8 +106,12 @@ def local_frame_for(gnss: GnssSeries) -> LocalFrame:
     i = int(np.flatnonzero(ok)[0])
     lat, lon, alt = float(gnss.latitude[i]), float(gnss.longitude[i]), float(gnss.altitude[i])
     exact = LocalFrame.at(lat, lon, alt)
-    return LocalFrame(utm_epsg(lat, lon), float(np.round(exact.origin_easting)),
-                      float(np.round(exact.origin_northing)), float(np.round(alt)))
+    return LocalFrame(
+        utm_epsg(lat, lon),
+        float(np.round(exact.origin_easting)),
+        float(np.round(exact.origin_northing)),
+        float(np.round(alt)),
+    )
 
 
 def covariance_used(gnss: GnssSeries) -> np.ndarray:
@@ -113,7 +126,9 @@ def covariance_used(gnss: GnssSeries) -> np.ndarray:
     return meaningful & np.isin(covariance_types(gnss), (1, 2, 3))
 
 
-def reported_sigmas(gnss: GnssSeries, default_horizontal: float, default_vertical: float) -> np.ndarray:
+def reported_sigmas(
+    gnss: GnssSeries, default_horizontal: float, default_vertical: float
+) -> np.ndarray:
     """Per-fix 1-sigma (east, north, up): the covariance's diagonal where it is meaningful
     (:func:`covariance_used`), the defaults elsewhere (type 0 unknown, zeros, NaN)."""
     n = len(gnss.t)
@@ -123,8 +138,9 @@ def reported_sigmas(gnss: GnssSeries, default_horizontal: float, default_vertica
     return out
 
 
-def best_quality(t: np.ndarray, sigma_h: np.ndarray, status: np.ndarray,
-                 epoch: float) -> tuple[np.ndarray, np.ndarray]:
+def best_quality(
+    t: np.ndarray, sigma_h: np.ndarray, status: np.ndarray, epoch: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Which fixes an epoch averages: those of the status of its best (smallest sigma) fix,
     within ``QUALITY_RATIO`` of that sigma. Returns (keep mask, epoch index per fix)."""
     bins = np.floor((t - t[0]) / epoch).astype(np.int64)
@@ -137,9 +153,14 @@ def best_quality(t: np.ndarray, sigma_h: np.ndarray, status: np.ndarray,
     return keep, bins
 
 
-def gnss_epochs(gnss: GnssSeries, frame: LocalFrame, epoch: float = 1.0,
-                default_horizontal: float = 1.0, default_vertical: float = 2.0,
-                exclude: np.ndarray | None = None) -> GnssEpochs:
+def gnss_epochs(
+    gnss: GnssSeries,
+    frame: LocalFrame,
+    epoch: float = 1.0,
+    default_horizontal: float = 1.0,
+    default_vertical: float = 2.0,
+    exclude: np.ndarray | None = None,
+) -> GnssEpochs:
     """Valid fixes (less ``exclude``, e.g. jumps) converted to ``frame`` and averaged over
     ``epoch``-second bins, each bin from fixes of one quality (:func:`best_quality`)."""
     reasons = rejection_reasons(gnss)
@@ -159,8 +180,18 @@ def gnss_epochs(gnss: GnssSeries, frame: LocalFrame, epoch: float = 1.0,
     columns = np.column_stack([t[keep], xyz[keep], sigma[keep], scatter[keep]])
     sums = np.add.reduceat(columns, start, axis=0)
     mean = sums / count[:, None]
-    return GnssEpochs(mean[:, 0], mean[:, 1:4], mean[:, 4:7], count, frame, int(keep.sum()), n_rejected,
-                      status[keep][start], int((~keep).sum()), mean[:, 7:10])
+    return GnssEpochs(
+        mean[:, 0],
+        mean[:, 1:4],
+        mean[:, 4:7],
+        count,
+        frame,
+        int(keep.sum()),
+        n_rejected,
+        status[keep][start],
+        int((~keep).sum()),
+        mean[:, 7:10],
+    )
 
 
 def quality_changed(status_a: int, sigma_a: float, status_b: int, sigma_b: float) -> bool:
@@ -171,8 +202,9 @@ def quality_changed(status_a: int, sigma_a: float, status_b: int, sigma_b: float
     return bool(status_a != status_b or ratio > QUALITY_RATIO)
 
 
-def white_scatter(t: np.ndarray, xyz: np.ndarray, status: np.ndarray,
-                  min_triples: int = 20) -> np.ndarray:
+def white_scatter(
+    t: np.ndarray, xyz: np.ndarray, status: np.ndarray, min_triples: int = 20
+) -> np.ndarray:
     """The white noise of the fixes per axis and receiver status, from the robust spread of
     second differences of consecutive fixes (the motion's share is millimetres at 10 Hz).
 
@@ -194,8 +226,9 @@ def white_scatter(t: np.ndarray, xyz: np.ndarray, status: np.ndarray,
     return out
 
 
-def gaps(t: np.ndarray, span: tuple[float, float] | None = None,
-         min_gap: float = OUTAGE_MIN_S) -> list[tuple[float, float]]:
+def gaps(
+    t: np.ndarray, span: tuple[float, float] | None = None, min_gap: float = OUTAGE_MIN_S
+) -> list[tuple[float, float]]:
     """(start, duration) of every stretch longer than ``min_gap`` (and 3 fix periods)
     without a time in ``t``, including before the first and after the last within ``span``."""
     t = np.sort(np.asarray(t, float))
@@ -224,7 +257,9 @@ OUTAGE_WARN_S = 3.0  # or when the longest outage is longer than this
 LISTED = 20  # intervals listed in the diagnostics
 
 
-def fix_report(gnss: GnssSeries, reasons: np.ndarray, span: tuple[float, float] | None = None) -> dict:
+def fix_report(
+    gnss: GnssSeries, reasons: np.ndarray, span: tuple[float, float] | None = None
+) -> dict:
     """What the receiver sent and what was rejected: counts by status, by reason and by
     covariance type, the outages (no usable fix) and jumps, times in s from ``span[0]``
     (the first LiDAR sweep) or from the first fix."""
@@ -238,8 +273,9 @@ def fix_report(gnss: GnssSeries, reasons: np.ndarray, span: tuple[float, float] 
     return {
         "messages": n,
         "by_status": _counts([STATUS_NAMES.get(int(s), "other") for s in status]),
-        "covariance_types": _counts([COVARIANCE_TYPES.get(int(c), "other")
-                                     for c in covariance_types(gnss)]),
+        "covariance_types": _counts(
+            [COVARIANCE_TYPES.get(int(c), "other") for c in covariance_types(gnss)]
+        ),
         "sigma_from_covariance": int((covariance_used(gnss) & usable).sum()),
         "sigma_default": int((~covariance_used(gnss) & usable).sum()),
         "rejected": rejected,
@@ -257,11 +293,13 @@ def _counts(names: list[str]) -> dict[str, int]:
 
 def _intervals(items: list[tuple[float, float]], origin: float) -> dict:
     longest = max(items, key=lambda x: x[1]) if items else None
-    return {"count": len(items),
-            "longest_s": round(longest[1], 3) if longest else 0.0,
-            "longest_at_s": round(longest[0] - origin, 3) if longest else None,
-            "total_s": round(float(sum(d for _, d in items)), 3),
-            "intervals": [[round(s - origin, 3), round(d, 3)] for s, d in items[:LISTED]]}
+    return {
+        "count": len(items),
+        "longest_s": round(longest[1], 3) if longest else 0.0,
+        "longest_at_s": round(longest[0] - origin, 3) if longest else None,
+        "total_s": round(float(sum(d for _, d in items)), 3),
+        "intervals": [[round(s - origin, 3), round(d, 3)] for s, d in items[:LISTED]],
+    }
 
 
 def report_warning(topic: str, report: dict) -> str | None:
@@ -270,11 +308,14 @@ def report_warning(topic: str, report: dict) -> str | None:
     if share <= REJECTED_SHARE_WARN and outages["longest_s"] <= OUTAGE_WARN_S:
         return None
     reasons = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in report["rejected"].items() if v)
-    text = (f"GNSS topic {topic!r}: {100 * share:.0f} % of {report['messages']} fixes rejected"
-            + (f" ({reasons})" if reasons else ""))
+    text = f"GNSS topic {topic!r}: {100 * share:.0f} % of {report['messages']} fixes rejected" + (
+        f" ({reasons})" if reasons else ""
+    )
     if outages["count"]:
-        text += (f"; {outages['count']} outage(s), the longest {outages['longest_s']:.1f} s at "
-                 f"{outages['longest_at_s']:.1f} s after the {report['time_origin']}")
+        text += (
+            f"; {outages['count']} outage(s), the longest {outages['longest_s']:.1f} s at "
+            f"{outages['longest_at_s']:.1f} s after the {report['time_origin']}"
+        )
     return text + "; the trajectory there rests on the LiDAR/IMU odometry alone"
 
 
@@ -287,10 +328,14 @@ def invalid_fix_warning(topic: str, gnss: GnssSeries, reasons: np.ndarray) -> st
     broken_cov = int((claimed & ~covariance_used(gnss)).sum())
     parts = []
     if len(bad):
-        parts.append(f"{len(bad)} of {len(reasons)} fixes had a non-finite or impossible latitude, "
-                     f"longitude or altitude and were dropped (first: fix {int(bad[0])} at "
-                     f"t={float(gnss.t[bad[0]]):.3f} s)")
+        parts.append(
+            f"{len(bad)} of {len(reasons)} fixes had a non-finite or impossible latitude, "
+            f"longitude or altitude and were dropped (first: fix {int(bad[0])} at "
+            f"t={float(gnss.t[bad[0]]):.3f} s)"
+        )
     if broken_cov:
-        parts.append(f"{broken_cov} fixes claimed a covariance whose diagonal is not finite and positive; "
-                     "the default sigmas stood in")
+        parts.append(
+            f"{broken_cov} fixes claimed a covariance whose diagonal is not finite and positive; "
+            "the default sigmas stood in"
+        )
     return f"GNSS topic {topic!r}: " + "; ".join(parts) if parts else None

@@ -29,10 +29,18 @@ MAX_JUMP_S = 10.0
 JUMP_LAG_S = 1.0  # a fix is tested against the filter as it stood this long before
 
 
-def odometry_outliers(t: np.ndarray, xyz: np.ndarray, sigma: np.ndarray, status: np.ndarray,
-                      odo_t: np.ndarray, odo_xyz: np.ndarray, correlation_time: float,
-                      white_fraction: float, odometry_sigma: float = 0.015,
-                      odometry_drift: float = 0.01) -> np.ndarray:
+def odometry_outliers(
+    t: np.ndarray,
+    xyz: np.ndarray,
+    sigma: np.ndarray,
+    status: np.ndarray,
+    odo_t: np.ndarray,
+    odo_xyz: np.ndarray,
+    correlation_time: float,
+    white_fraction: float,
+    odometry_sigma: float = 0.015,
+    odometry_drift: float = 0.01,
+) -> np.ndarray:
     """Fixes the odometry contradicts (jumps): True where a fix is rejected.
 
     ``xyz`` are local fix positions at ``t`` with their sigma and status, ``odo_xyz``
@@ -54,8 +62,18 @@ def odometry_outliers(t: np.ndarray, xyz: np.ndarray, sigma: np.ndarray, status:
     travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pred, axis=0), axis=1))]
     f = float(np.clip(white_fraction, 0.01, 1.0))
     scatter = white_scatter(t, xyz, status)[inside]
-    flagged[inside] = _innovation_test(t[inside], residual, sigma[inside], scatter, status[inside], travelled,
-                                       correlation_time, f, odometry_sigma, odometry_drift)
+    flagged[inside] = _innovation_test(
+        t[inside],
+        residual,
+        sigma[inside],
+        scatter,
+        status[inside],
+        travelled,
+        correlation_time,
+        f,
+        odometry_sigma,
+        odometry_drift,
+    )
     return flagged
 
 
@@ -64,8 +82,9 @@ def _rotation_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _robust_fit(pred: np.ndarray, fixes: np.ndarray, sigma: np.ndarray,
-                yaw: float | None = None) -> tuple[float, np.ndarray]:
+def _robust_fit(
+    pred: np.ndarray, fixes: np.ndarray, sigma: np.ndarray, yaw: float | None = None
+) -> tuple[float, np.ndarray]:
     """Yaw + shift placing ``pred`` on ``fixes`` (weights 1/sigma²), trimmed: refitted to the
     ``TRIM`` share of fixes that fit best, a few times (jumps stay out of the fit even when
     they are a fifth of the fixes); with ``yaw`` given only the shift is fitted."""
@@ -76,7 +95,9 @@ def _robust_fit(pred: np.ndarray, fixes: np.ndarray, sigma: np.ndarray,
         if yaw is None:
             fit_yaw, shift = heading_alignment(pred[keep], fixes[keep], w[keep])
         else:
-            shift = np.average(fixes[keep] - pred[keep] @ _rotation_z(yaw).T, axis=0, weights=w[keep])
+            shift = np.average(
+                fixes[keep] - pred[keep] @ _rotation_z(yaw).T, axis=0, weights=w[keep]
+            )
         placed = pred @ _rotation_z(float(fit_yaw)).T + shift
         norm = np.linalg.norm((fixes - placed)[:, :2], axis=1) / np.maximum(sigma[:, 0], 1e-3)
         cut = int(TRIM * (len(norm) - 1))
@@ -84,8 +105,14 @@ def _robust_fit(pred: np.ndarray, fixes: np.ndarray, sigma: np.ndarray,
     return float(fit_yaw), shift
 
 
-def _local_alignment(t: np.ndarray, pred: np.ndarray, fixes: np.ndarray, sigma: np.ndarray,
-                     status: np.ndarray, half_window: float = LOCAL_WINDOW_S) -> np.ndarray | None:
+def _local_alignment(
+    t: np.ndarray,
+    pred: np.ndarray,
+    fixes: np.ndarray,
+    sigma: np.ndarray,
+    status: np.ndarray,
+    half_window: float = LOCAL_WINDOW_S,
+) -> np.ndarray | None:
     """``pred`` placed on ``fixes`` by a fit over the ``half_window`` seconds around each
     second of the drive, to the fixes of the same receiver status only (an RTK fix would
     outweigh every standalone one beside it): a drifting odometry heading stays out of the
@@ -99,18 +126,29 @@ def _local_alignment(t: np.ndarray, pred: np.ndarray, fixes: np.ndarray, sigma: 
     for k in np.unique(second):
         centre = t[0] + k + 0.5
         lo, hi = np.searchsorted(t, [centre - half_window, centre + half_window])
-        for code in np.unique(status[starts[k]:starts[k + 1]]):
+        for code in np.unique(status[starts[k] : starts[k + 1]]):
             near = lo + np.flatnonzero(status[lo:hi] == code)
             turns = np.ptp(pred[near, :2], axis=0).max() >= MIN_HEADING_BASELINE
-            yaw, shift = _robust_fit(pred[near], fixes[near], sigma[near], None if turns else global_yaw)
-            here = starts[k] + np.flatnonzero(status[starts[k]:starts[k + 1]] == code)
+            yaw, shift = _robust_fit(
+                pred[near], fixes[near], sigma[near], None if turns else global_yaw
+            )
+            here = starts[k] + np.flatnonzero(status[starts[k] : starts[k + 1]] == code)
             placed[here] = pred[here] @ _rotation_z(yaw).T + shift
     return placed
 
 
-def _innovation_test(t: np.ndarray, r: np.ndarray, sigma: np.ndarray, scatter: np.ndarray,
-                     status: np.ndarray, travelled: np.ndarray, tau: float, f: float, s_odo: float,
-                     drift: float) -> np.ndarray:
+def _innovation_test(
+    t: np.ndarray,
+    r: np.ndarray,
+    sigma: np.ndarray,
+    scatter: np.ndarray,
+    status: np.ndarray,
+    travelled: np.ndarray,
+    tau: float,
+    f: float,
+    s_odo: float,
+    drift: float,
+) -> np.ndarray:
     """Kalman filter on the residual ``r`` (per axis); True where a fix is rejected.
 
     Each fix is tested against the filter as it stood ``JUMP_LAG_S`` earlier: a filter

@@ -38,14 +38,18 @@ class GroundHeightGrid:
         if self._sum.size and np.all(lo >= self._origin) and np.all(hi < self._origin + shape):
             return
         new_lo = np.minimum(lo, self._origin) - self.margin if self._sum.size else lo - self.margin
-        new_hi = np.maximum(hi, self._origin + shape - 1) + self.margin if self._sum.size else hi + self.margin
+        new_hi = (
+            np.maximum(hi, self._origin + shape - 1) + self.margin
+            if self._sum.size
+            else hi + self.margin
+        )
         size = new_hi - new_lo + 1
         total = np.zeros(size)
         count = np.zeros(size, np.int64)
         if self._sum.size:
             off = self._origin - new_lo
-            total[off[0]:off[0] + shape[0], off[1]:off[1] + shape[1]] = self._sum
-            count[off[0]:off[0] + shape[0], off[1]:off[1] + shape[1]] = self._count
+            total[off[0] : off[0] + shape[0], off[1] : off[1] + shape[1]] = self._sum
+            count[off[0] : off[0] + shape[0], off[1] : off[1] + shape[1]] = self._count
         self._origin, self._sum, self._count = new_lo, total, count
 
     def heights(self, xy: np.ndarray, min_count: int = 3) -> np.ndarray:
@@ -74,9 +78,15 @@ class GroundHeightGrid:
         self._count.flat[uniq] += np.bincount(inverse.ravel())
 
 
-def ground_correction(ground_world: np.ndarray, sensor_xy: np.ndarray, grid: GroundHeightGrid,
-                      min_points: int = 100, trim: float = 0.1,
-                      max_tilt: float = 0.01, max_shift: float = 0.2) -> np.ndarray | None:
+def ground_correction(
+    ground_world: np.ndarray,
+    sensor_xy: np.ndarray,
+    grid: GroundHeightGrid,
+    min_points: int = 100,
+    trim: float = 0.1,
+    max_tilt: float = 0.01,
+    max_shift: float = 0.2,
+) -> np.ndarray | None:
     """Least-squares ``(dz, a, b)`` with ``z - h(cell) ≈ dz + a·dx + b·dy``, or None.
 
     ``dx, dy`` are offsets from the sensor; residuals beyond ``trim`` of the first fit are

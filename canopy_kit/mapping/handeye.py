@@ -25,7 +25,9 @@ from canopy_kit.mapping.imu import RotationTrack, detect_standstill
 SPANS_S = (0.3, 1.0)  # increments between registered sweeps about this far apart
 MAX_SPAN_S = 2.5  # longer increments (a gap in the registrations) are left out
 MIN_INCREMENTS = 30
-OBSERVABLE_SIGMA_DEG = 0.5  # an axis known better than this is well determined (within 1 deg at 2 sigma)
+OBSERVABLE_SIGMA_DEG = (
+    0.5  # an axis known better than this is well determined (within 1 deg at 2 sigma)
+)
 JITTER_RAD = 0.002  # the odometry's rotation error per increment that does not grow with the turn
 PROPORTIONAL_ERROR = 0.02  # and the part that does (a share of the increment's rotation)
 OFFSET_COARSE_S = 0.01
@@ -40,7 +42,9 @@ class RotationEstimate:
     sigma_deg: np.ndarray  # (3,) 1-sigma of the rotation about the LiDAR's x, y and z axes
     residual_deg: float  # robust RMS of the increments' misfit
     increments: int  # increments used (after the robust re-weighting)
-    time_offset_s: float = 0.0  # IMU clock minus LiDAR clock, beyond what the series was corrected by
+    time_offset_s: float = (
+        0.0  # IMU clock minus LiDAR clock, beyond what the series was corrected by
+    )
 
     @property
     def observable(self) -> bool:
@@ -51,13 +55,19 @@ class RotationEstimate:
         """Figures for mapping.json."""
         from canopy_kit.frames import rpy_deg
 
-        return {"rpy_deg": [round(v, 3) for v in rpy_deg(self.rotation)],
-                "sigma_deg": [round(float(v), 4) for v in self.sigma_deg],
-                "residual_deg": round(self.residual_deg, 4), "increments": self.increments,
-                "time_offset_s": round(self.time_offset_s, 4), "observable": self.observable}
+        return {
+            "rpy_deg": [round(v, 3) for v in rpy_deg(self.rotation)],
+            "sigma_deg": [round(float(v), 4) for v in self.sigma_deg],
+            "residual_deg": round(self.residual_deg, 4),
+            "increments": self.increments,
+            "time_offset_s": round(self.time_offset_s, 4),
+            "observable": self.observable,
+        }
 
 
-def increment_pairs(times: np.ndarray, spans: tuple[float, ...] = SPANS_S) -> tuple[np.ndarray, np.ndarray]:
+def increment_pairs(
+    times: np.ndarray, spans: tuple[float, ...] = SPANS_S
+) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)``, ``times[j] - times[i]`` about each span, consecutive within a span."""
     t = np.asarray(times, float)
     first, last = [], []
@@ -81,7 +91,9 @@ def lidar_increments(poses: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndar
 
 def gyro_increments(track: RotationTrack, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
     """Rotation vectors of the integrated gyro from ``t0`` to ``t1`` (the gyro's frame at ``t0``)."""
-    return quat.to_rotvec(quat.multiply(quat.conjugate(track.quaternions(t0)), track.quaternions(t1)))
+    return quat.to_rotvec(
+        quat.multiply(quat.conjugate(track.quaternions(t0)), track.quaternions(t1))
+    )
 
 
 def kabsch(a: np.ndarray, b: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
@@ -100,13 +112,17 @@ def increment_weights(b: np.ndarray) -> np.ndarray:
     return 1.0 / (JITTER_RAD**2 + (PROPORTIONAL_ERROR * np.linalg.norm(b, axis=1)) ** 2)
 
 
-def fit_rotation(a: np.ndarray, b: np.ndarray, rounds: int = 4) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+def fit_rotation(
+    a: np.ndarray, b: np.ndarray, rounds: int = 4
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Robust weighted Kabsch: rotation, 1-sigma per axis (deg), RMS misfit (deg), inlier mask."""
     w = increment_weights(b)
     keep = np.ones(len(a), bool)
     r = kabsch(a, b, w)
     for _ in range(rounds):
-        res = np.linalg.norm(a - b @ r.T, axis=1) * np.sqrt(w / w.mean())  # in units of a typical sigma
+        res = np.linalg.norm(a - b @ r.T, axis=1) * np.sqrt(
+            w / w.mean()
+        )  # in units of a typical sigma
         scale = 1.4826 * float(np.median(res[keep])) + 1e-9
         new = res <= max(3.0 * scale, np.radians(0.02))
         if new.sum() < 3:
@@ -118,8 +134,10 @@ def fit_rotation(a: np.ndarray, b: np.ndarray, rounds: int = 4) -> tuple[np.ndar
     dof = max(3 * len(a) - 3, 1)
     s2 = float(np.sum(w * res**2)) / dof  # unit-weight variance of one component
     c = b @ r.T
-    info = (w[:, None, None] * (np.einsum("ij,ij->i", c, c)[:, None, None] * np.eye(3)
-                                - c[:, :, None] * c[:, None, :])).sum(axis=0)
+    info = (
+        w[:, None, None]
+        * (np.einsum("ij,ij->i", c, c)[:, None, None] * np.eye(3) - c[:, :, None] * c[:, None, :])
+    ).sum(axis=0)
     try:
         cov = s2 * np.linalg.inv(info)
         sigma = np.degrees(np.sqrt(np.clip(np.diag(cov), 0.0, None)))
@@ -128,8 +146,9 @@ def fit_rotation(a: np.ndarray, b: np.ndarray, rounds: int = 4) -> tuple[np.ndar
     return r, sigma, float(np.degrees(np.sqrt(np.mean(res**2)))), keep
 
 
-def estimate_imu_rotation(times: np.ndarray, poses: np.ndarray, imu: ImuSeries,
-                          max_time_offset: float = 0.0) -> RotationEstimate | None:
+def estimate_imu_rotation(
+    times: np.ndarray, poses: np.ndarray, imu: ImuSeries, max_time_offset: float = 0.0
+) -> RotationEstimate | None:
     """The rotation taking the IMU's axes (as in ``imu``) into the LiDAR's, from the drive.
 
     ``times``/``poses`` are the registered LiDAR odometry sweeps (any gravity-aligned or not
@@ -154,6 +173,7 @@ def estimate_imu_rotation(times: np.ndarray, poses: np.ndarray, imu: ImuSeries,
 
     offset = 0.0
     if max_time_offset > 0:
+
         def cost(o: float) -> float:
             r = fit(o)[0]
             res = np.linalg.norm(a - gyro_increments(track, t0 + o, t1 + o) @ r.T, axis=1)

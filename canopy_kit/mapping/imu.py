@@ -47,9 +47,11 @@ def level_rotation(specific_force: np.ndarray) -> Rotation:
     f = np.asarray(specific_force, float)
     norm = float(np.linalg.norm(f))
     if not np.isfinite(norm) or norm < 1e-3:  # no direction: the rotation would be NaN
-        raise InputError(f"IMU: the specific force averages {norm:.3g} m/s² where the robot stands "
-                         "still, so it gives no direction of gravity (a dead accelerometer, or "
-                         "linear_acceleration not filled in?); map without it: --set mapping.use_imu=false")
+        raise InputError(
+            f"IMU: the specific force averages {norm:.3g} m/s² where the robot stands "
+            "still, so it gives no direction of gravity (a dead accelerometer, or "
+            "linear_acceleration not filled in?); map without it: --set mapping.use_imu=false"
+        )
     f = f / norm
     roll = np.arctan2(f[1], f[2])
     pitch = np.arctan2(-f[0], np.hypot(f[1], f[2]))
@@ -64,9 +66,14 @@ def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
     return np.vstack([pad, out])
 
 
-def detect_standstill(imu: ImuSeries, window: float = 0.5, gyro_threshold: float = 0.03,
-                      accel_threshold: float = 0.25, max_duration: float = 30.0,
-                      min_duration: float = 0.5) -> Standstill:
+def detect_standstill(
+    imu: ImuSeries,
+    window: float = 0.5,
+    gyro_threshold: float = 0.03,
+    accel_threshold: float = 0.25,
+    max_duration: float = 30.0,
+    min_duration: float = 0.5,
+) -> Standstill:
     """The initial standstill: smoothed gyro rate and specific force stay near their start values.
 
     Per-sample IMU noise is large (0.4 m/s² on a typical MEMS unit at 200 Hz), so the
@@ -82,8 +89,11 @@ def detect_standstill(imu: ImuSeries, window: float = 0.5, gyro_threshold: float
     first = min(len(t), 2 * n)
     acc0 = acc_m[first - 1]
     gyro0 = gyro_m[first - 1]
-    still = (np.linalg.norm(gyro_m - gyro0, axis=1) < gyro_threshold) & (
-        np.linalg.norm(acc_m - acc0, axis=1) < accel_threshold) & (t - t[0] <= max_duration)
+    still = (
+        (np.linalg.norm(gyro_m - gyro0, axis=1) < gyro_threshold)
+        & (np.linalg.norm(acc_m - acc0, axis=1) < accel_threshold)
+        & (t - t[0] <= max_duration)
+    )
     end = len(t) if still.all() else int(np.argmin(still))
     end = max(end - n, 0)  # the moving mean lags by one window
     found = end > 0 and t[end - 1] - t[0] >= min_duration
@@ -92,9 +102,14 @@ def detect_standstill(imu: ImuSeries, window: float = 0.5, gyro_threshold: float
     acc = imu.linear_acceleration[:end]
     gyro = imu.angular_velocity[:end]
     gravity = acc.mean(axis=0)
-    return Standstill(float(t[0]), float(t[end - 1]), gravity,
-                      gyro.mean(axis=0) if found else np.zeros(3),
-                      float(np.linalg.norm(gravity)), bool(found))
+    return Standstill(
+        float(t[0]),
+        float(t[end - 1]),
+        gravity,
+        gyro.mean(axis=0) if found else np.zeros(3),
+        float(np.linalg.norm(gravity)),
+        bool(found),
+    )
 
 
 class RotationTrack:
@@ -146,9 +161,16 @@ class RotationTrack:
             if len(t) == 0:
                 return
         # Midpoint rule between samples, chained sample by sample (a compiled loop).
-        self._append(t, integrate_gyro(self._q[self._n - 1], float(self._t[self._n - 1]),
-                                       np.ascontiguousarray(self._omega_last, np.float64),
-                                       np.ascontiguousarray(t), np.ascontiguousarray(omega)))
+        self._append(
+            t,
+            integrate_gyro(
+                self._q[self._n - 1],
+                float(self._t[self._n - 1]),
+                np.ascontiguousarray(self._omega_last, np.float64),
+                np.ascontiguousarray(t),
+                np.ascontiguousarray(omega),
+            ),
+        )
         self._omega_last = omega[-1]
 
     @property

@@ -29,11 +29,15 @@ class ImuMounting:
     @property
     def is_identity(self) -> bool:
         """True when the samples need no change."""
-        return (np.allclose(self.rotation, np.eye(3), atol=1e-12) and not np.any(self.imu_position)
-                and self.time_offset == 0.0)
+        return (
+            np.allclose(self.rotation, np.eye(3), atol=1e-12)
+            and not np.any(self.imu_position)
+            and self.time_offset == 0.0
+        )
 
-    def apply(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def apply(
+        self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Times on the LiDAR clock, angular rate and specific force at the LiDAR origin, LiDAR axes."""
         t = np.asarray(t, float) - self.time_offset
         w = np.asarray(gyro, float) @ self.rotation.T
@@ -45,8 +49,9 @@ class ImuMounting:
         return t, w, f
 
 
-def angular_acceleration(t: np.ndarray, omega: np.ndarray,
-                         window_s: float = DERIVATIVE_WINDOW_S) -> np.ndarray:
+def angular_acceleration(
+    t: np.ndarray, omega: np.ndarray, window_s: float = DERIVATIVE_WINDOW_S
+) -> np.ndarray:
     """Time derivative of sampled angular rates (rad/s²), smoothed over ``window_s``."""
     from scipy.signal import savgol_filter
 

@@ -44,16 +44,21 @@ def insert_keys(keys: np.ndarray, table: np.ndarray, bits: int) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def transform_by_bin(xyz: np.ndarray, bins: np.ndarray, rotations: np.ndarray,
-                     translations: np.ndarray) -> np.ndarray:
+def transform_by_bin(
+    xyz: np.ndarray, bins: np.ndarray, rotations: np.ndarray, translations: np.ndarray
+) -> np.ndarray:
     """``rotations[b] @ p + translations[b]`` for each point ``p`` of bin ``b`` (float64)."""
     out = np.empty((xyz.shape[0], 3), np.float64)
     for i in range(xyz.shape[0]):
         b = bins[i]
         x, y, z = np.float64(xyz[i, 0]), np.float64(xyz[i, 1]), np.float64(xyz[i, 2])
         for r in range(3):
-            out[i, r] = (rotations[b, r, 0] * x + rotations[b, r, 1] * y + rotations[b, r, 2] * z
-                         + translations[b, r])
+            out[i, r] = (
+                rotations[b, r, 0] * x
+                + rotations[b, r, 1] * y
+                + rotations[b, r, 2] * z
+                + translations[b, r]
+            )
     return out
 
 
@@ -80,8 +85,9 @@ def voxel_keys(xyz: np.ndarray, size: float, bits: int) -> tuple[np.ndarray, boo
 
 
 @numba.njit(cache=True, nogil=True)
-def rotate_and_shift(xyz: np.ndarray, bins: np.ndarray, rotvecs: np.ndarray, dt: np.ndarray,
-                     velocity: np.ndarray) -> np.ndarray:
+def rotate_and_shift(
+    xyz: np.ndarray, bins: np.ndarray, rotvecs: np.ndarray, dt: np.ndarray, velocity: np.ndarray
+) -> np.ndarray:
     """``p + w×p + ½ w×(w×p) + dt·v`` per point, ``w = rotvecs[bin]`` (second-order Rodrigues)."""
     out = np.empty((xyz.shape[0], 3), np.float64)
     for i in range(xyz.shape[0]):
@@ -95,8 +101,9 @@ def rotate_and_shift(xyz: np.ndarray, bins: np.ndarray, rotvecs: np.ndarray, dt:
 
 
 @numba.njit(cache=True, nogil=True)
-def integrate_gyro(q: np.ndarray, t_last: float, omega_last: np.ndarray, t: np.ndarray,
-                   omega: np.ndarray) -> np.ndarray:
+def integrate_gyro(
+    q: np.ndarray, t_last: float, omega_last: np.ndarray, t: np.ndarray, omega: np.ndarray
+) -> np.ndarray:
     """Orientations (xyzw) at ``t`` from ``q`` at ``t_last``: body-frame gyro increments by the
     midpoint rule, chained one after the other and normalised."""
     out = np.empty((t.shape[0], 4), np.float64)
@@ -104,12 +111,20 @@ def integrate_gyro(q: np.ndarray, t_last: float, omega_last: np.ndarray, t: np.n
     t_prev, wx0, wy0, wz0 = t_last, omega_last[0], omega_last[1], omega_last[2]
     for i in range(t.shape[0]):
         dt = t[i] - t_prev
-        vx, vy, vz = 0.5 * (wx0 + omega[i, 0]) * dt, 0.5 * (wy0 + omega[i, 1]) * dt, 0.5 * (wz0 + omega[i, 2]) * dt
+        vx, vy, vz = (
+            0.5 * (wx0 + omega[i, 0]) * dt,
+            0.5 * (wy0 + omega[i, 1]) * dt,
+            0.5 * (wz0 + omega[i, 2]) * dt,
+        )
         angle = np.sqrt(vx * vx + vy * vy + vz * vz)
         k = np.sin(0.5 * angle) / angle if angle > 1e-12 else 0.5 - angle * angle / 48.0
         sx, sy, sz, sw = vx * k, vy * k, vz * k, np.cos(0.5 * angle)
-        qx, qy, qz, qw = (qw * sx + qx * sw + qy * sz - qz * sy, qw * sy - qx * sz + qy * sw + qz * sx,
-                          qw * sz + qx * sy - qy * sx + qz * sw, qw * sw - qx * sx - qy * sy - qz * sz)
+        qx, qy, qz, qw = (
+            qw * sx + qx * sw + qy * sz - qz * sy,
+            qw * sy - qx * sz + qy * sw + qz * sx,
+            qw * sz + qx * sy - qy * sx + qz * sw,
+            qw * sw - qx * sx - qy * sy - qz * sz,
+        )
         norm = np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
         qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
         out[i, 0], out[i, 1], out[i, 2], out[i, 3] = qx, qy, qz, qw

@@ -60,7 +60,9 @@ class LidarOdometry:
         """ICP of ``points`` against the local map (no state change until :meth:`commit`)."""
         kiss = self._kiss
         points = np.asarray(points, np.float64)
-        self._source, self._frame_downsample = kiss.voxelize(points[np.isfinite(points).all(axis=1)])
+        self._source, self._frame_downsample = kiss.voxelize(
+            points[np.isfinite(points).all(axis=1)]
+        )
         self._guess = checked_pose(initial_guess, "the initial guess")
         self.failed = False
         if self.n_frames == 0 or kiss.local_map.empty():
@@ -70,8 +72,12 @@ class LidarOdometry:
             self.failed = True
             return self._guess.copy()
         pose = kiss.registration.align_points_to_map(
-            points=self._source, voxel_map=kiss.local_map, initial_guess=self._guess,
-            max_correspondance_distance=3 * sigma, kernel=sigma)
+            points=self._source,
+            voxel_map=kiss.local_map,
+            initial_guess=self._guess,
+            max_correspondance_distance=3 * sigma,
+            kernel=sigma,
+        )
         if not np.isfinite(pose).all():  # a failed registration: the prediction stands in
             self.failed = True
             return self._guess.copy()
@@ -96,7 +102,9 @@ def checked_pose(pose: np.ndarray, what: str) -> np.ndarray:
     :class:`ProcessingError` for a non-finite one."""
     pose = np.array(pose, np.float64)
     if pose.shape != (4, 4) or not np.isfinite(pose).all():
-        raise ProcessingError(f"odometry: {what} is not a finite 4x4 pose; registration cannot go on")
+        raise ProcessingError(
+            f"odometry: {what} is not a finite 4x4 pose; registration cannot go on"
+        )
     r = pose[:3, :3]
     if np.abs(r.T @ r - np.eye(3)).max() > 1e-9 or np.linalg.det(r) < 0:
         u, _, vt = np.linalg.svd(r)

@@ -30,8 +30,7 @@ def tum_text(trajectory: pd.DataFrame) -> str:
     """TUM format: ``timestamp tx ty tz qx qy qz qw`` per line."""
     cols = ["time", "x", "y", "z", "qx", "qy", "qz", "qw"]
     rows = trajectory[cols].to_numpy()
-    return "".join(
-        f"{r[0]:.6f} " + " ".join(f"{v:.6f}" for v in r[1:]) + "\n" for r in rows)
+    return "".join(f"{r[0]:.6f} " + " ".join(f"{v:.6f}" for v in r[1:]) + "\n" for r in rows)
 
 
 def read_tum(path: str | Path) -> pd.DataFrame:
@@ -40,13 +39,16 @@ def read_tum(path: str | Path) -> pd.DataFrame:
     return pd.DataFrame(a[:, :8], columns=["time", "x", "y", "z", "qx", "qy", "qz", "qw"])
 
 
-
 def write_rig(rig: Any, path: str | Path) -> Path:
     """The rig a run used (frames, mounts, their sources as comments) as a rig file."""
     import tomlkit
 
     doc = tomlkit.document()
-    doc.add(tomlkit.comment(f"The sensor rig a canopy-kit mapping run used (trajectory frame {rig.base_name!r})."))
+    doc.add(
+        tomlkit.comment(
+            f"The sensor rig a canopy-kit mapping run used (trajectory frame {rig.base_name!r})."
+        )
+    )
     for key, source in sorted(rig.sources.items()):
         doc.add(tomlkit.comment(f"{key}: {source}"))
     tables = rig.rig_file_tables()
@@ -55,8 +57,9 @@ def write_rig(rig: Any, path: str | Path) -> Path:
     return atomic_write_text(path, tomlkit.dumps(doc))
 
 
-def write_mapping_outputs(result: Any, out_dir: str | Path,
-                          evaluation: dict[str, Any] | None = None) -> dict[str, Path]:
+def write_mapping_outputs(
+    result: Any, out_dir: str | Path, evaluation: dict[str, Any] | None = None
+) -> dict[str, Path]:
     """Write a :class:`~canopy_kit.mapping.MappingResult` into ``out_dir``; the written paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -64,7 +67,8 @@ def write_mapping_outputs(result: Any, out_dir: str | Path,
         "map": write_las(out / MAP_NAME, las_ready(result.map)),
         "trajectory_csv": atomic_write_text(
             out / TRAJECTORY_CSV,
-            result.trajectory.to_csv(index=False, float_format="%.6f", lineterminator="\n")),
+            result.trajectory.to_csv(index=False, float_format="%.6f", lineterminator="\n"),
+        ),
         "trajectory_tum": atomic_write_text(out / TRAJECTORY_TUM, tum_text(result.trajectory)),
         "config": write_config(result.config, out / CONFIG_TOML),
     }
@@ -72,8 +76,12 @@ def write_mapping_outputs(result: Any, out_dir: str | Path,
         paths["rig"] = write_rig(result.rig, out / RIG_TOML)
     report = {
         "frame": result.frame.to_dict() if result.frame is not None else None,
-        "map": {"points": len(result.map), "crs": result.map.crs,
-                "origin": result.map.origin.tolist(), "fields": sorted(result.map.fields)},
+        "map": {
+            "points": len(result.map),
+            "crs": result.map.crs,
+            "origin": result.map.origin.tolist(),
+            "fields": sorted(result.map.fields),
+        },
         "warnings": list(result.warnings),
         "diagnostics": result.diagnostics,
     }

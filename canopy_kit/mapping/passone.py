@@ -88,23 +88,45 @@ class PassOne:
     the counts (a chunk's overlap with the chunk before it).
     """
 
-    def __init__(self, bag: BagSession, config: MappingConfig, progress: Progress | None,
-                 keep_all_points: bool, scan_range: tuple[int, int | None] = (0, None),
-                 count_from: int = 0, rig: SensorRig | None = None, lidar_only: bool = False) -> None:
+    def __init__(
+        self,
+        bag: BagSession,
+        config: MappingConfig,
+        progress: Progress | None,
+        keep_all_points: bool,
+        scan_range: tuple[int, int | None] = (0, None),
+        count_from: int = 0,
+        rig: SensorRig | None = None,
+        lidar_only: bool = False,
+    ) -> None:
         self.bag = bag
         self.config = config
-        self.topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
-                                     config.use_imu, config.use_gnss)
+        self.topics = resolve_topics(
+            bag,
+            config.pointcloud_topic,
+            config.imu_topic,
+            config.gnss_topic,
+            config.use_imu,
+            config.use_gnss,
+        )
         self.rig = rig if rig is not None else resolve_rig(bag, self.topics, config)
         # ``lidar_only``: the IMU is collected (as recorded) but the front end does not use it.
         self.lidar_only = lidar_only
-        self.imu = (ImuBuffer(mounting=self.rig.imu_mounting(), source=f"{bag.path}: topic {self.topics.imu!r}")
-                    if self.topics.imu else None)
+        self.imu = (
+            ImuBuffer(
+                mounting=self.rig.imu_mounting(), source=f"{bag.path}: topic {self.topics.imu!r}"
+            )
+            if self.topics.imu
+            else None
+        )
         self.gnss = GnssBuffer() if self.topics.gnss else None
-        self.frontend = LidarFrontend(config, None if lidar_only else self.imu,
-                                      where=f"{bag.path}: topic {self.topics.scans!r}",
-                                      keep_all_points=keep_all_points,
-                                      lidar_from_base=self.rig.lidar_from_base)
+        self.frontend = LidarFrontend(
+            config,
+            None if lidar_only else self.imu,
+            where=f"{bag.path}: topic {self.topics.scans!r}",
+            keep_all_points=keep_all_points,
+            lidar_from_base=self.rig.lidar_from_base,
+        )
         self.total = scan_count(bag, self.topics.scans)
         self.progress = progress
         self.scan_range = scan_range
@@ -117,8 +139,9 @@ class PassOne:
 
     def sweeps(self) -> Iterator[FrontendSweep]:
         """Registered (and, with ``odometry_every`` > 1, predicted) sweeps in bag order."""
-        for scan in sensor_messages(self.bag, self.topics, self.imu, self.gnss, *self.scan_range,
-                                    log_times=self.scan_log_ns):
+        for scan in sensor_messages(
+            self.bag, self.topics, self.imu, self.gnss, *self.scan_range, log_times=self.scan_log_ns
+        ):
             if scan.index >= self.count_from:
                 self.n_scans += 1
                 self.first_stamp = min(self.first_stamp, scan.stamp)
@@ -138,42 +161,81 @@ class PassOne:
         skip = self.bag.stray_warning_index
         bag_warnings = [w for i, w in enumerate(self.bag.warnings) if i != skip]
         stray = [(i, n) for i, n in self.bag.stray_time_scans if i >= self.count_from]
-        return OdometryPass(str(self.bag.path), self.topics, records, self.frontend.state, imu, self.gnss,
-                            self.n_scans, self.n_without_time, self.first_stamp, self.last_stamp,
-                            bag_warnings, self.bag.recovered, stray=stray,
-                            scan_log_ns=np.asarray(self.scan_log_ns, np.int64), rig=self.rig,
-                            log=self.bag.log)
+        return OdometryPass(
+            str(self.bag.path),
+            self.topics,
+            records,
+            self.frontend.state,
+            imu,
+            self.gnss,
+            self.n_scans,
+            self.n_without_time,
+            self.first_stamp,
+            self.last_stamp,
+            bag_warnings,
+            self.bag.recovered,
+            stray=stray,
+            scan_log_ns=np.asarray(self.scan_log_ns, np.int64),
+            rig=self.rig,
+            log=self.bag.log,
+        )
 
 
 def record(sweep: FrontendSweep) -> SweepRecord:
     """The :class:`SweepRecord` of a front-end sweep."""
-    return SweepRecord(sweep.scan.index, sweep.t_ref, sweep.pose, sweep.uncertainty, sweep.deskewed,
-                       sweep.registered)
+    return SweepRecord(
+        sweep.scan.index,
+        sweep.t_ref,
+        sweep.pose,
+        sweep.uncertainty,
+        sweep.deskewed,
+        sweep.registered,
+    )
 
 
-def odometry_pass(bag: BagSession, config: MappingConfig, progress: Progress | None = None,
-                  scan_range: tuple[int, int | None] = (0, None), count_from: int = 0,
-                  rig: SensorRig | None = None, lidar_only: bool = False) -> OdometryPass:
+def odometry_pass(
+    bag: BagSession,
+    config: MappingConfig,
+    progress: Progress | None = None,
+    scan_range: tuple[int, int | None] = (0, None),
+    count_from: int = 0,
+    rig: SensorRig | None = None,
+    lidar_only: bool = False,
+) -> OdometryPass:
     """Run the front end over the bag (or a range of its scans) in this process."""
-    one = PassOne(bag, config, progress, keep_all_points=False, scan_range=scan_range,
-                  count_from=count_from, rig=rig, lidar_only=lidar_only)
+    one = PassOne(
+        bag,
+        config,
+        progress,
+        keep_all_points=False,
+        scan_range=scan_range,
+        count_from=count_from,
+        rig=rig,
+        lidar_only=lidar_only,
+    )
     return one.result([record(s) for s in one.sweeps()])
 
 
 def _input_warnings(topics: SensorTopics, config: MappingConfig, bag_path: str) -> list[str]:
     out = []
     if config.use_imu and topics.imu is None:
-        out.append(f"{bag_path}: no IMU topic (sensor_msgs/msg/Imu): mapped with LiDAR only "
-                   "(no gravity alignment, no gyro deskew or rotation prior)")
+        out.append(
+            f"{bag_path}: no IMU topic (sensor_msgs/msg/Imu): mapped with LiDAR only "
+            "(no gravity alignment, no gyro deskew or rotation prior)"
+        )
     if config.use_gnss and topics.gnss is None:
-        out.append(f"{bag_path}: no GNSS topic (sensor_msgs/msg/NavSatFix): the map is not "
-                   "georeferenced (local frame at the first sweep) and drift is not bounded")
+        out.append(
+            f"{bag_path}: no GNSS topic (sensor_msgs/msg/NavSatFix): the map is not "
+            "georeferenced (local frame at the first sweep) and drift is not bounded"
+        )
     return out
 
 
 def pass_warnings(p: OdometryPass, config: MappingConfig) -> list[str]:
     """Everything about the input and the odometry a user should hear of, one line each."""
-    out = list(p.bag_warnings) + list(p.topics.notes) + _input_warnings(p.topics, config, p.bag_path)
+    out = (
+        list(p.bag_warnings) + list(p.topics.notes) + _input_warnings(p.topics, config, p.bag_path)
+    )
     if p.log is not None:
         out += p.log.warnings()
     if p.stray:
@@ -181,45 +243,68 @@ def pass_warnings(p: OdometryPass, config: MappingConfig) -> list[str]:
     st = p.state
     scans = p.topics.scans
     if p.n_without_time:
-        out.append(f"{p.bag_path}: topic {scans!r}: {p.n_without_time} of "
-                   f"{p.n_scans} scans have no per-point time field (t, time, timestamp...); "
-                   "those were mapped without deskew")
+        out.append(
+            f"{p.bag_path}: topic {scans!r}: {p.n_without_time} of "
+            f"{p.n_scans} scans have no per-point time field (t, time, timestamp...); "
+            "those were mapped without deskew"
+        )
     elif st.not_deskewed and config.deskew:
-        out.append(f"{st.not_deskewed} sweeps had unusable per-point times (constant or "
-                   "non-finite) and were mapped without deskew")
+        out.append(
+            f"{st.not_deskewed} sweeps had unusable per-point times (constant or "
+            "non-finite) and were mapped without deskew"
+        )
     if st.skipped_sparse:
-        out.append(f"{len(st.skipped_sparse)} scans had fewer than "
-                   f"{config.min_points_per_scan} points in range and were skipped "
-                   f"(first: scan {st.skipped_sparse[0]})")
+        out.append(
+            f"{len(st.skipped_sparse)} scans had fewer than "
+            f"{config.min_points_per_scan} points in range and were skipped "
+            f"(first: scan {st.skipped_sparse[0]})"
+        )
     if st.rejected_registrations:
-        out.append(f"{st.rejected_registrations} of {st.sweeps} sweeps: ICP moved the motion "
-                   f"prediction by more than {config.odometry_max_correction} m or "
-                   f"{config.odometry_max_correction_deg} deg; the prediction was kept "
-                   "(little structure in view?)")
+        out.append(
+            f"{st.rejected_registrations} of {st.sweeps} sweeps: ICP moved the motion "
+            f"prediction by more than {config.odometry_max_correction} m or "
+            f"{config.odometry_max_correction_deg} deg; the prediction was kept "
+            "(little structure in view?)"
+        )
     if st.out_of_order:
-        out.append(f"{p.bag_path}: topic {scans!r}: {len(st.out_of_order)} scans "
-                   "stamped at or before the scan before them (repeated or backwards time) were "
-                   f"skipped (first: scan {st.out_of_order[0]})")
+        out.append(
+            f"{p.bag_path}: topic {scans!r}: {len(st.out_of_order)} scans "
+            "stamped at or before the scan before them (repeated or backwards time) were "
+            f"skipped (first: scan {st.out_of_order[0]})"
+        )
     if st.gaps:
         start, length = max(st.gaps, key=lambda g: g[1])
-        out.append(f"{p.bag_path}: topic {scans!r}: no scan for {length:.1f} s "
-                   f"after t={start:.3f} s ({len(st.gaps)} gap(s) over {DROPOUT_S:.0f} s): sensor "
-                   "dropout, the map has a hole there")
+        out.append(
+            f"{p.bag_path}: topic {scans!r}: no scan for {length:.1f} s "
+            f"after t={start:.3f} s ({len(st.gaps)} gap(s) over {DROPOUT_S:.0f} s): sensor "
+            "dropout, the map has a hole there"
+        )
     if st.sweeps >= 2 and st.max_displacement < STANDSTILL_M:
-        out.append(f"the robot moved at most {st.max_displacement:.2f} m from its start: the map "
-                   "shows what one spot sees (one-sided crowns, trees out of range missing)")
+        out.append(
+            f"the robot moved at most {st.max_displacement:.2f} m from its start: the map "
+            "shows what one spot sees (one-sided crowns, trees out of range missing)"
+        )
     if st.ground_fallbacks:
-        out.append(f"{st.ground_fallbacks} sweeps had almost no points above the ground; their "
-                   "odometry used the ground points (flat-ground trap possible)")
+        out.append(
+            f"{st.ground_fallbacks} sweeps had almost no points above the ground; their "
+            "odometry used the ground points (flat-ground trap possible)"
+        )
     return out + list(st.warnings)
 
 
 def quality_flags(p: OdometryPass, frame: LocalFrame | None, imu: object) -> list[str]:
     """Short names of what makes the map less trustworthy than a clean drive's (metrics.json)."""
     st = p.state
-    flags = {"bag_recovered": p.recovered, "scan_gaps": bool(st.gaps),
-             "scans_out_of_order": bool(st.out_of_order), "scans_skipped": bool(st.skipped_sparse),
-             "point_times_dropped": bool(p.stray),
-             "standing_still": st.max_displacement < STANDSTILL_M, "no_imu": imu is None,
-             "not_georeferenced": frame is None}
-    return [name for name, raised in flags.items() if raised] + (p.log.flags() if p.log is not None else [])
+    flags = {
+        "bag_recovered": p.recovered,
+        "scan_gaps": bool(st.gaps),
+        "scans_out_of_order": bool(st.out_of_order),
+        "scans_skipped": bool(st.skipped_sparse),
+        "point_times_dropped": bool(p.stray),
+        "standing_still": st.max_displacement < STANDSTILL_M,
+        "no_imu": imu is None,
+        "not_georeferenced": frame is None,
+    }
+    return [name for name, raised in flags.items() if raised] + (
+        p.log.flags() if p.log is not None else []
+    )

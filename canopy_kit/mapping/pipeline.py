@@ -107,28 +107,46 @@ def _check_config(config: MappingConfig) -> None:
     from canopy_kit.errors import ConfigError
 
     if not 0 <= config.min_range < config.max_range:
-        raise ConfigError(f"mapping.min_range/max_range: need 0 <= min_range < max_range, got "
-                          f"{config.min_range}, {config.max_range}")
-    for name in ("map_voxel_size", "kiss_voxel_size", "kiss_convergence", "gnss_epoch", "gnss_correlation_time"):
+        raise ConfigError(
+            f"mapping.min_range/max_range: need 0 <= min_range < max_range, got "
+            f"{config.min_range}, {config.max_range}"
+        )
+    for name in (
+        "map_voxel_size",
+        "kiss_voxel_size",
+        "kiss_convergence",
+        "gnss_epoch",
+        "gnss_correlation_time",
+    ):
         if not getattr(config, name) > 0:
             raise ConfigError(f"mapping.{name}: must be positive, got {getattr(config, name)}")
     if len(config.gnss_lever_arm) != 3:
-        raise ConfigError(f"mapping.gnss_lever_arm: expected [x, y, z], got {config.gnss_lever_arm}")
+        raise ConfigError(
+            f"mapping.gnss_lever_arm: expected [x, y, z], got {config.gnss_lever_arm}"
+        )
     if not config.extrinsic_tolerance_deg > 0:
-        raise ConfigError(f"mapping.extrinsic_tolerance_deg: must be positive, got {config.extrinsic_tolerance_deg}")
+        raise ConfigError(
+            f"mapping.extrinsic_tolerance_deg: must be positive, got {config.extrinsic_tolerance_deg}"
+        )
     if config.rig:
         from canopy_kit.rig import parse_rig
 
         parse_rig(config.rig, config.rig_name or "mapping.rig")
-    for name in ("keyframe_every", "odometry_point_stride", "odometry_every", "odometry_chunk_sweeps"):
+    for name in (
+        "keyframe_every",
+        "odometry_point_stride",
+        "odometry_every",
+        "odometry_chunk_sweeps",
+    ):
         if getattr(config, name) < 1:
             raise ConfigError(f"mapping.{name}: must be >= 1, got {getattr(config, name)}")
     if config.workers < 0:
         raise ConfigError(f"mapping.workers: must be >= 0 (0: one per core), got {config.workers}")
 
 
-def build_map(bag_path: str | Path, config: MappingConfig | None = None,
-              progress: Progress | None = None) -> MappingResult:
+def build_map(
+    bag_path: str | Path, config: MappingConfig | None = None, progress: Progress | None = None
+) -> MappingResult:
     """Map a bag: odometry, pose-graph fusion (IMU, GNSS), deskewed voxel-thinned map."""
     config = config or MappingConfig()
     _check_config(config)
@@ -137,8 +155,14 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     warm_up()  # before the workers fork: they inherit the loaded kernels
     extrinsics: dict = {}
     with open_bag(bag_path) as bag:
-        topics = resolve_topics(bag, config.pointcloud_topic, config.imu_topic, config.gnss_topic,
-                                config.use_imu, config.use_gnss)
+        topics = resolve_topics(
+            bag,
+            config.pointcloud_topic,
+            config.imu_topic,
+            config.gnss_topic,
+            config.use_imu,
+            config.use_gnss,
+        )
         rig = resolve_rig(bag, topics, config)
         rig_warnings = list(rig.warnings)
         if rig.calibrate:
@@ -162,12 +186,27 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         warnings += more
     imu = one.imu
     st = one.state
-    antenna = odometry[:, :3, 3] + odometry[:, :3, :3] @ rig.gnss_lever_arm  # where the fixes are taken
-    frame, epochs, gnss_diag = _gnss_inputs(one.gnss, config, warnings, one.topics.gnss or "",
-                                            (odo_times, antenna), (one.first_stamp, one.last_stamp))
+    antenna = (
+        odometry[:, :3, 3] + odometry[:, :3, :3] @ rig.gnss_lever_arm
+    )  # where the fixes are taken
+    frame, epochs, gnss_diag = _gnss_inputs(
+        one.gnss,
+        config,
+        warnings,
+        one.topics.gnss or "",
+        (odo_times, antenna),
+        (one.first_stamp, one.last_stamp),
+    )
     cpu1 = cpu_seconds()
-    fused = fuse_trajectory(odo_times, odometry, fusion_settings(config, rig), imu=imu,
-                            standstill=st.standstill, gnss=epochs, uncertainty=uncertainty)
+    fused = fuse_trajectory(
+        odo_times,
+        odometry,
+        fusion_settings(config, rig),
+        imu=imu,
+        standstill=st.standstill,
+        gnss=epochs,
+        uncertainty=uncertainty,
+    )
     if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
         why = fused.diagnostics.get("no_heading", "GNSS fixes do not overlap the LiDAR sweeps")
         warnings.append(f"{why}; the map is not georeferenced")
@@ -176,13 +215,24 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     timing["fusion_cpu_s"] = cpu_seconds() - cpu1
 
     cpu2, wall2 = cpu_seconds(), time.perf_counter()
-    xyz, fields, offered = assemble_map(str(bag_path), one.topics.scans, deskewed, trajectory, config,
-                                        progress, None if one.recovered else one.scan_log_ns)
+    xyz, fields, offered = assemble_map(
+        str(bag_path),
+        one.topics.scans,
+        deskewed,
+        trajectory,
+        config,
+        progress,
+        None if one.recovered else one.scan_log_ns,
+    )
     timing["map_cpu_s"] = cpu_seconds() - cpu2
     timing["map_wall_s"] = time.perf_counter() - wall2
 
-    cloud = PointCloud(xyz, fields, crs=frame.crs if frame is not None else None,
-                       origin=frame.origin if frame is not None else np.zeros(3))
+    cloud = PointCloud(
+        xyz,
+        fields,
+        crs=frame.crs if frame is not None else None,
+        origin=frame.origin if frame is not None else np.zeros(3),
+    )
     poses = trajectory.matrices(t_ref)  # the LiDAR's
     base_poses = poses @ rig.lidar_from_base
     table = pose_table(t_ref, base_poses)
@@ -191,8 +241,11 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
     duration = float(one.last_stamp - one.first_stamp + 0.1) if one.n_scans else 0.0
     diagnostics = {
         "bag": str(bag_path),
-        "topics": {"pointcloud": one.topics.scans, "imu": one.topics.imu if imu is not None else None,
-                   "gnss": one.topics.gnss if frame is not None else None},
+        "topics": {
+            "pointcloud": one.topics.scans,
+            "imu": one.topics.imu if imu is not None else None,
+            "gnss": one.topics.gnss if frame is not None else None,
+        },
         "inputs": input_summary(one),
         "scans": one.n_scans,
         "sweeps_mapped": len(records),
@@ -201,7 +254,9 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "scans_without_point_time": one.n_without_time,
         "sweeps_deskewed": int(sum(deskewed.values())),
         "duration_s": duration,
-        "path_length_m": float(np.sum(np.linalg.norm(np.diff(base_poses[:, :3, 3], axis=0), axis=1))),
+        "path_length_m": float(
+            np.sum(np.linalg.norm(np.diff(base_poses[:, :3, 3], axis=0), axis=1))
+        ),
         "trajectory_frame": rig.base_name,
         "rig": rig.to_dict(),
         "extrinsics": extrinsics,
@@ -215,12 +270,19 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         "odometry_workers": one.workers,
         "fusion": fused.diagnostics,
         "timing": timing,
-        "real_time_factor": duration / timing["total_wall_s"] if timing["total_wall_s"] > 0 else None,
-        "real_time_factor_cpu": duration / timing["total_cpu_s"] if timing["total_cpu_s"] > 0 else None,
+        "real_time_factor": duration / timing["total_wall_s"]
+        if timing["total_wall_s"] > 0
+        else None,
+        "real_time_factor_cpu": duration / timing["total_cpu_s"]
+        if timing["total_cpu_s"] > 0
+        else None,
     }
     if st.standstill is not None:
-        diagnostics["imu"] = {"standstill_s": st.standstill.duration, "standstill_found": st.standstill.found,
-                              "gyro_bias_start": st.standstill.gyro_bias.tolist()}
+        diagnostics["imu"] = {
+            "standstill_s": st.standstill.duration,
+            "standstill_found": st.standstill.found,
+            "gyro_bias_start": st.standstill.gyro_bias.tolist(),
+        }
         if fused.accel_bias is not None:
             diagnostics["imu"]["accel_bias_end"] = fused.accel_bias[-1].tolist()
             diagnostics["imu"]["gyro_bias_end"] = fused.gyro_bias[-1].tolist()
@@ -229,14 +291,26 @@ def build_map(bag_path: str | Path, config: MappingConfig | None = None,
         if fused.gnss_bias is not None:
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
         diagnostics["gnss"] = gnss_diag
-    return MappingResult(cloud, table, frame, diagnostics, warnings, config_used(config, one.topics), rig,
-                         pose_table(t_ref, poses))
+    return MappingResult(
+        cloud,
+        table,
+        frame,
+        diagnostics,
+        warnings,
+        config_used(config, one.topics),
+        rig,
+        pose_table(t_ref, poses),
+    )
 
 
 def gnss_flags(gnss_diag: dict) -> list[str]:
     """``gnss_fixes_dropped`` when fixes carried non-finite or impossible positions."""
     rejected = gnss_diag.get("rejected", {})
-    return ["gnss_fixes_dropped"] if rejected.get("non_finite", 0) + rejected.get("out_of_range", 0) else []
+    return (
+        ["gnss_fixes_dropped"]
+        if rejected.get("non_finite", 0) + rejected.get("out_of_range", 0)
+        else []
+    )
 
 
 def config_used(config: MappingConfig, topics: SensorTopics) -> MappingConfig:
@@ -244,8 +318,12 @@ def config_used(config: MappingConfig, topics: SensorTopics) -> MappingConfig:
     run with that config reads the same topics even when the bag offers several)."""
     from dataclasses import replace
 
-    return replace(config, pointcloud_topic=topics.scans, imu_topic=topics.imu or config.imu_topic,
-                   gnss_topic=topics.gnss or config.gnss_topic)
+    return replace(
+        config,
+        pointcloud_topic=topics.scans,
+        imu_topic=topics.imu or config.imu_topic,
+        gnss_topic=topics.gnss or config.gnss_topic,
+    )
 
 
 def input_summary(one: OdometryPass) -> dict:
@@ -253,13 +331,19 @@ def input_summary(one: OdometryPass) -> dict:
     and the time span of the used ones (``mapping.json`` → ``diagnostics.inputs``)."""
     if one.log is None:
         return {}
-    return one.log.summary({"pointcloud": one.topics.scans, "imu": one.topics.imu, "gnss": one.topics.gnss})
+    return one.log.summary(
+        {"pointcloud": one.topics.scans, "imu": one.topics.imu, "gnss": one.topics.gnss}
+    )
 
 
-def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig, warnings: list[str],
-                 topic: str = "", odometry: tuple[np.ndarray, np.ndarray] | None = None,
-                 span: tuple[float, float] | None = None,
-                 ) -> tuple[LocalFrame | None, GnssEpochs | None, dict]:
+def _gnss_inputs(
+    buffer: GnssBuffer | None,
+    config: MappingConfig,
+    warnings: list[str],
+    topic: str = "",
+    odometry: tuple[np.ndarray, np.ndarray] | None = None,
+    span: tuple[float, float] | None = None,
+) -> tuple[LocalFrame | None, GnssEpochs | None, dict]:
     """The local frame, the epochs for the graph and the GNSS diagnostics of a drive.
 
     ``odometry`` (times, positions) lets the fixes it contradicts be rejected as jumps;
@@ -273,36 +357,68 @@ def _gnss_inputs(buffer: GnssBuffer | None, config: MappingConfig, warnings: lis
         frame = local_frame_for(series)
         if odometry is not None:
             reasons[_jumps(series, frame, reasons == "", odometry, config)] = "jump"
-        epochs = gnss_epochs(series, frame, config.gnss_epoch, config.gnss_default_sigma_horizontal,
-                             config.gnss_default_sigma_vertical, exclude=reasons == "jump")
+        epochs = gnss_epochs(
+            series,
+            frame,
+            config.gnss_epoch,
+            config.gnss_default_sigma_horizontal,
+            config.gnss_default_sigma_vertical,
+            exclude=reasons == "jump",
+        )
     except InputError as exc:
         warnings.append(f"GNSS topic {topic!r} not used: {exc}")
         return None, None, {}
     diag = fix_report(series, reasons, span)
-    diag.update({"fixes": epochs.n_fixes, "epochs": len(epochs.t), "superseded": epochs.n_superseded,
-                 "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])), "crs": frame.crs})
-    warnings += [line for line in (report_warning(topic, diag), invalid_fix_warning(topic, series, reasons)) if line]
+    diag.update(
+        {
+            "fixes": epochs.n_fixes,
+            "epochs": len(epochs.t),
+            "superseded": epochs.n_superseded,
+            "sigma_horizontal_median_m": float(np.median(epochs.sigma[:, 0])),
+            "crs": frame.crs,
+        }
+    )
+    warnings += [
+        line
+        for line in (report_warning(topic, diag), invalid_fix_warning(topic, series, reasons))
+        if line
+    ]
     return frame, epochs, diag
 
 
-def _jumps(series: GnssSeries, frame: LocalFrame, usable: np.ndarray,
-           odometry: tuple[np.ndarray, np.ndarray], config: MappingConfig) -> np.ndarray:
+def _jumps(
+    series: GnssSeries,
+    frame: LocalFrame,
+    usable: np.ndarray,
+    odometry: tuple[np.ndarray, np.ndarray],
+    config: MappingConfig,
+) -> np.ndarray:
     """Usable fixes the odometry contradicts (see :func:`odometry_outliers`)."""
     out = np.zeros(len(series.t), bool)
     idx = np.flatnonzero(usable)
     if len(idx) < 3:
         return out
     xyz = frame.to_local(series.latitude[idx], series.longitude[idx], series.altitude[idx])
-    sigma = reported_sigmas(series, config.gnss_default_sigma_horizontal,
-                            config.gnss_default_sigma_vertical)[idx]
-    out[idx] = odometry_outliers(series.t[idx], xyz, sigma, series.status[idx], odometry[0], odometry[1],
-                                 config.gnss_correlation_time, config.gnss_white_fraction,
-                                 config.odometry_jitter_translation)
+    sigma = reported_sigmas(
+        series, config.gnss_default_sigma_horizontal, config.gnss_default_sigma_vertical
+    )[idx]
+    out[idx] = odometry_outliers(
+        series.t[idx],
+        xyz,
+        sigma,
+        series.status[idx],
+        odometry[0],
+        odometry[1],
+        config.gnss_correlation_time,
+        config.gnss_white_fraction,
+        config.odometry_jitter_translation,
+    )
     return out
 
 
-def stream_map(bag_path: str | Path, config: MappingConfig | None = None,
-               progress: Progress | None = None) -> Iterator[RegisteredScan]:
+def stream_map(
+    bag_path: str | Path, config: MappingConfig | None = None, progress: Progress | None = None
+) -> Iterator[RegisteredScan]:
     """Yield each sweep registered in the map frame as the drive is processed (causal).
 
     With GNSS the map frame is the odometry frame placed in the local UTM frame of
@@ -375,7 +491,10 @@ class _RunningGeoreference:
         if self.alignment is None:
             if span < self.MIN_BASELINE:
                 return
-        elif span < self.REFIT_GROWTH * self._fitted_span and elapsed < self.REFIT_GROWTH * self._fitted_time:
+        elif (
+            span < self.REFIT_GROWTH * self._fitted_span
+            and elapsed < self.REFIT_GROWTH * self._fitted_time
+        ):
             return
         series = buffer.series()
         try:
@@ -393,7 +512,9 @@ class _RunningGeoreference:
             return
         yaw, shift = heading_alignment(p_odo, epochs.xyz[inside])
         a = np.eye(4)
-        a[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        a[:3, :3] = np.array(
+            [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]
+        )
         a[:3, 3] = shift
         if self.alignment is not None:
             a[2, 3] = self.alignment[2, 3]
@@ -403,14 +524,26 @@ class _RunningGeoreference:
         self._fitted_span, self._fitted_time = span, elapsed
 
 
-def _registered(sweep: FrontendSweep, alignment: np.ndarray, georeferenced: bool,
-                update: np.ndarray | None = None) -> RegisteredScan:
+def _registered(
+    sweep: FrontendSweep,
+    alignment: np.ndarray,
+    georeferenced: bool,
+    update: np.ndarray | None = None,
+) -> RegisteredScan:
     pose = alignment @ sweep.pose
     scan = sweep.scan
     world = sweep.xyz @ pose[:3, :3].T + pose[:3, 3]
     fields = point_fields(scan.fields, sweep.keep, scan.times, scan.stamp, len(world))
-    return RegisteredScan(scan.index, scan.stamp, sweep.t_ref, pose, PointCloud(world, fields),
-                          sweep.ground, georeferenced, np.eye(4) if update is None else update)
+    return RegisteredScan(
+        scan.index,
+        scan.stamp,
+        sweep.t_ref,
+        pose,
+        PointCloud(world, fields),
+        sweep.ground,
+        georeferenced,
+        np.eye(4) if update is None else update,
+    )
 
 
 __all__ = [

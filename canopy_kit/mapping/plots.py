@@ -20,8 +20,13 @@ def _figure(ax: Any, size: tuple[float, float]) -> tuple[Any, Any]:
     return fig, ax
 
 
-def plot_trajectories(estimated: pd.DataFrame, reference: pd.DataFrame | None = None,
-                      alignment: np.ndarray | None = None, title: str = "", ax: Any = None) -> Any:
+def plot_trajectories(
+    estimated: pd.DataFrame,
+    reference: pd.DataFrame | None = None,
+    alignment: np.ndarray | None = None,
+    title: str = "",
+    ax: Any = None,
+) -> Any:
     """Top view of the estimated trajectory and, when given, the reference (SE(3)-aligned).
 
     ``alignment`` (4x4, e.g. from :func:`canopy_kit.mapping.evaluate.trajectory_errors`) maps
@@ -45,8 +50,9 @@ def plot_trajectories(estimated: pd.DataFrame, reference: pd.DataFrame | None = 
     return fig
 
 
-def plot_trajectory_errors(estimated: pd.DataFrame, reference: pd.DataFrame,
-                           alignment: np.ndarray, ax: Any = None) -> Any:
+def plot_trajectory_errors(
+    estimated: pd.DataFrame, reference: pd.DataFrame, alignment: np.ndarray, ax: Any = None
+) -> Any:
     """Position error (x, y, z and norm) over time after the SE(3) alignment; the Figure."""
     from canopy_kit.mapping.evaluate import interpolate_reference
 
@@ -67,7 +73,9 @@ def plot_trajectory_errors(estimated: pd.DataFrame, reference: pd.DataFrame,
     return fig
 
 
-def height_raster(cloud: PointCloud, cell: float = 0.1) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+def height_raster(
+    cloud: PointCloud, cell: float = 0.1
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
     """Highest point per ``cell`` (NaN where empty) and its extent (xmin, xmax, ymin, ymax)."""
     xyz = cloud.xyz
     lo = xyz[:, :2].min(axis=0)
@@ -81,8 +89,12 @@ def height_raster(cloud: PointCloud, cell: float = 0.1) -> tuple[np.ndarray, tup
     return top.reshape(shape[1], shape[0]), extent
 
 
-def above_ground(raster: np.ndarray, extent: tuple[float, float, float, float], cell: float,
-                 ground_height: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+def above_ground(
+    raster: np.ndarray,
+    extent: tuple[float, float, float, float],
+    cell: float,
+    ground_height: Callable[[np.ndarray], np.ndarray],
+) -> np.ndarray:
     """A :func:`height_raster` less the ground height ``ground_height(xy)`` at each cell centre."""
     rows, cols = np.nonzero(np.isfinite(raster))
     xy = np.column_stack([extent[0] + (cols + 0.5) * cell, extent[2] + (rows + 0.5) * cell])
@@ -91,9 +103,14 @@ def above_ground(raster: np.ndarray, extent: tuple[float, float, float, float], 
     return out
 
 
-def plot_map_top_view(cloud: PointCloud, trajectory: pd.DataFrame | None = None, cell: float = 0.1,
-                      title: str = "", ax: Any = None,
-                      ground_height: Callable[[np.ndarray], np.ndarray] | None = None) -> Any:
+def plot_map_top_view(
+    cloud: PointCloud,
+    trajectory: pd.DataFrame | None = None,
+    cell: float = 0.1,
+    title: str = "",
+    ax: Any = None,
+    ground_height: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> Any:
     """Top view of a map: highest point per cell coloured by its height above the ground
     (``ground_height(xy) -> z``, e.g. a segmentation's ground model) or, without one, by the
     map's z, labelled so; trajectory on top."""
@@ -103,9 +120,18 @@ def plot_map_top_view(cloud: PointCloud, trajectory: pd.DataFrame | None = None,
         raster = above_ground(raster, extent, cell, ground_height)
     z0 = np.nanpercentile(raster, 2)
     z1 = np.nanpercentile(raster, 99.5)
-    im = ax.imshow(raster, origin="lower", extent=extent, cmap="viridis", vmin=z0, vmax=z1,
-                   interpolation="nearest")
-    label = "height above ground [m]" if ground_height is not None else "map z (not above ground) [m]"
+    im = ax.imshow(
+        raster,
+        origin="lower",
+        extent=extent,
+        cmap="viridis",
+        vmin=z0,
+        vmax=z1,
+        interpolation="nearest",
+    )
+    label = (
+        "height above ground [m]" if ground_height is not None else "map z (not above ground) [m]"
+    )
     fig.colorbar(im, ax=ax, shrink=0.7, label=label)
     if trajectory is not None:
         ax.plot(trajectory["x"], trajectory["y"], color="w", lw=0.8, alpha=0.9)
@@ -116,20 +142,30 @@ def plot_map_top_view(cloud: PointCloud, trajectory: pd.DataFrame | None = None,
     return fig
 
 
-def mapping_figures(result: Any, reference: pd.DataFrame | None = None,
-                    evaluation: dict | None = None,
-                    ground_height: Callable[[np.ndarray], np.ndarray] | None = None) -> dict[str, Any]:
+def mapping_figures(
+    result: Any,
+    reference: pd.DataFrame | None = None,
+    evaluation: dict | None = None,
+    ground_height: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> dict[str, Any]:
     """The standard figures of a run: ``trajectory`` (with errors when a reference is given) and
     ``map`` (coloured by height above ``ground_height`` when given, else by map z)."""
     import matplotlib.pyplot as plt
 
     figs: dict[str, Any] = {}
     if reference is not None and evaluation is not None:
-        fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 9), height_ratios=[3, 1], constrained_layout=True)
+        fig, (a1, a2) = plt.subplots(
+            2, 1, figsize=(8, 9), height_ratios=[3, 1], constrained_layout=True
+        )
         align = np.asarray(evaluation["alignment"])
-        plot_trajectories(result.trajectory, reference, align,
-                          title=f"estimated vs true (ATE {100 * evaluation['ate_rmse_m']:.1f} cm, "
-                                f"drift {evaluation['drift_percent']:.2f} %)", ax=a1)
+        plot_trajectories(
+            result.trajectory,
+            reference,
+            align,
+            title=f"estimated vs true (ATE {100 * evaluation['ate_rmse_m']:.1f} cm, "
+            f"drift {evaluation['drift_percent']:.2f} %)",
+            ax=a1,
+        )
         plot_trajectory_errors(result.trajectory, reference, align, ax=a2)
         figs["trajectory"] = fig
     else:

@@ -38,8 +38,14 @@ class SensorTopics:
     notes: list[str] = field(default_factory=list)  # topics chosen among several, one line each
 
 
-def resolve_topics(bag: BagSession, scans: str = "", imu: str = "", gnss: str = "",
-                   use_imu: bool = True, use_gnss: bool = True) -> SensorTopics:
+def resolve_topics(
+    bag: BagSession,
+    scans: str = "",
+    imu: str = "",
+    gnss: str = "",
+    use_imu: bool = True,
+    use_gnss: bool = True,
+) -> SensorTopics:
     """Named topics (checked) or the busiest topic of each message type; the scans are a
     PointCloud2 topic or, when the bag has none (or it is named), a VelodyneScan topic.
     A topic chosen among several of its type is named in ``notes``."""
@@ -47,9 +53,14 @@ def resolve_topics(bag: BagSession, scans: str = "", imu: str = "", gnss: str = 
     assert scan_topic is not None
     imu_topic = bag.find_topic(IMU, imu or None, required=bool(imu)) if use_imu else None
     gnss_topic = bag.find_topic(NAVSATFIX, gnss or None, required=bool(gnss)) if use_gnss else None
-    chosen = [(scan_topic, scans, "pointcloud_topic"), (imu_topic, imu, "imu_topic"),
-              (gnss_topic, gnss, "gnss_topic")]
-    notes = [_choice_note(bag, topic, setting) for topic, named, setting in chosen if topic and not named]
+    chosen = [
+        (scan_topic, scans, "pointcloud_topic"),
+        (imu_topic, imu, "imu_topic"),
+        (gnss_topic, gnss, "gnss_topic"),
+    ]
+    notes = [
+        _choice_note(bag, topic, setting) for topic, named, setting in chosen if topic and not named
+    ]
     return SensorTopics(scan_topic, imu_topic, gnss_topic, [n for n in notes if n])
 
 
@@ -61,9 +72,11 @@ def _choice_note(bag: BagSession, topic: str, setting: str) -> str | None:
     if len(same) < 2:
         return None
     listed = ", ".join(f"{t.name!r} ({t.count} messages)" for t in same)
-    return (f"{bag.path}: {len(same)} {msgtype} topics: {listed}; read {topic!r} (the busiest, the "
-            f"first by name among equals; mapping.{setting} chooses another) and wrote it to the "
-            "config saved with the results")
+    return (
+        f"{bag.path}: {len(same)} {msgtype} topics: {listed}; read {topic!r} (the busiest, the "
+        f"first by name among equals; mapping.{setting} chooses another) and wrote it to the "
+        "config saved with the results"
+    )
 
 
 class _Growable:
@@ -91,7 +104,9 @@ class ImuBuffer:
     the LiDAR clock (see :mod:`.imu_mounting`); :attr:`last_time` is on that clock too.
     """
 
-    def __init__(self, frame_id: str = "", mounting: ImuMounting | None = None, source: str = "") -> None:
+    def __init__(
+        self, frame_id: str = "", mounting: ImuMounting | None = None, source: str = ""
+    ) -> None:
         self._rows = _Growable(7)
         self.frame_id = frame_id
         self.source = source  # "<bag>: topic '<imu topic>'", to start errors about these samples
@@ -100,7 +115,9 @@ class ImuBuffer:
     def __len__(self) -> int:
         return self._rows.n
 
-    def append(self, t: float, gyro: tuple[float, float, float], acc: tuple[float, float, float]) -> None:
+    def append(
+        self, t: float, gyro: tuple[float, float, float], acc: tuple[float, float, float]
+    ) -> None:
         self._rows.append((t, *gyro, *acc))
 
     @property
@@ -132,8 +149,16 @@ class GnssBuffer:
     def __len__(self) -> int:
         return self._rows.n
 
-    def append(self, t: float, lat: float, lon: float, alt: float, status: int,
-               covariance: np.ndarray, covariance_type: int = 2) -> None:
+    def append(
+        self,
+        t: float,
+        lat: float,
+        lon: float,
+        alt: float,
+        status: int,
+        covariance: np.ndarray,
+        covariance_type: int = 2,
+    ) -> None:
         """One fix; ``covariance_type`` is the message's ``position_covariance_type``."""
         cov = np.full(9, np.nan)
         given = np.asarray(covariance, float).ravel()[:9]
@@ -144,8 +169,15 @@ class GnssBuffer:
         """Every fix so far, sorted by time (NO_FIX and non-finite ones included)."""
         r = self._rows.rows
         r = r[np.argsort(r[:, 0], kind="stable")]
-        return GnssSeries(r[:, 0].copy(), r[:, 1].copy(), r[:, 2].copy(), r[:, 3].copy(),
-                          r[:, 4].astype(int), r[:, 5:14].copy(), r[:, 14].astype(int))
+        return GnssSeries(
+            r[:, 0].copy(),
+            r[:, 1].copy(),
+            r[:, 2].copy(),
+            r[:, 3].copy(),
+            r[:, 4].astype(int),
+            r[:, 5:14].copy(),
+            r[:, 14].astype(int),
+        )
 
 
 _IMU_SIZE_AFTER_HEADER = 296  # orientation, 3 vectors and 3 covariances: 37 float64
@@ -167,14 +199,14 @@ def imu_fields(raw: bytes | memoryview, ros2: bool) -> tuple[float, str, tuple, 
         sec, nsec, n = struct.unpack_from("<iII", raw, 0)
         if n == 0 or start + n > len(raw) or raw[start + n - 1] != 0:
             return None
-        frame = raw[start:start + n - 1]
+        frame = raw[start : start + n - 1]
         body = (start + n + 7) & ~7
     else:
         if len(raw) < 16:
             return None
         _, sec, nsec, n = struct.unpack_from("<IIII", raw, 0)
         start = 16
-        frame = raw[start:start + n]
+        frame = raw[start : start + n]
         body = start + n
     if len(raw) < body + _IMU_SIZE_AFTER_HEADER:
         return None
@@ -182,13 +214,23 @@ def imu_fields(raw: bytes | memoryview, ros2: bool) -> tuple[float, str, tuple, 
         frame_id = frame.decode()
     except UnicodeDecodeError:
         return None
-    return (float(sec) + float(nsec) * 1e-9, frame_id, struct.unpack_from("<3d", raw, body + _GYRO),
-            struct.unpack_from("<3d", raw, body + _ACCEL))
+    return (
+        float(sec) + float(nsec) * 1e-9,
+        frame_id,
+        struct.unpack_from("<3d", raw, body + _GYRO),
+        struct.unpack_from("<3d", raw, body + _ACCEL),
+    )
 
 
-def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None = None,
-                    gnss: GnssBuffer | None = None, first_scan: int = 0,
-                    end_scan: int | None = None, log_times: list[int] | None = None) -> Iterator[Scan]:
+def sensor_messages(
+    bag: BagSession,
+    topics: SensorTopics,
+    imu: ImuBuffer | None = None,
+    gnss: GnssBuffer | None = None,
+    first_scan: int = 0,
+    end_scan: int | None = None,
+    log_times: list[int] | None = None,
+) -> Iterator[Scan]:
     """Stream the scans; IMU and GNSS messages met on the way are appended to the buffers.
 
     Only scans ``first_scan <= index < end_scan`` are decoded and yielded (the ones before
@@ -197,13 +239,18 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
     skipped ones included (the map pass seeks to a scan with it).
     """
     reader = bag.reader
-    wanted = {topics.scans} | ({topics.imu} if topics.imu and imu is not None else set()) | (
-        {topics.gnss} if topics.gnss and gnss is not None else set())
+    wanted = (
+        {topics.scans}
+        | ({topics.imu} if topics.imu and imu is not None else set())
+        | ({topics.gnss} if topics.gnss and gnss is not None else set())
+    )
     conns = [c for c in reader.connections if c.topic in wanted]
     ros2 = getattr(reader, "is2", None)  # None: a recovered bag's reader; decode fully
     scan_log = bag.log.topic(topics.scans, "scans")
     imu_log = bag.log.topic(topics.imu, "IMU samples") if topics.imu and imu is not None else None
-    gnss_log = bag.log.topic(topics.gnss, "GNSS fixes") if topics.gnss and gnss is not None else None
+    gnss_log = (
+        bag.log.topic(topics.gnss, "GNSS fixes") if topics.gnss and gnss is not None else None
+    )
     index = n_imu = n_gnss = 0
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
@@ -223,7 +270,8 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
             except Exception as exc:  # rosbags raises several unrelated types
                 raise InputError(
                     f"{bag.path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} message "
-                    f"at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})") from None
+                    f"at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})"
+                ) from None
             if conn.topic == topics.scans:
                 scan_log.watch_clock(index, pc2.stamp_seconds(msg.header), timestamp)
                 scan = bag.decode_scan(conn.topic, msg, index)
@@ -234,17 +282,32 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
                     break
             elif imu_log is not None and conn.topic == topics.imu:
                 w, a = msg.angular_velocity, msg.linear_acceleration
-                _add_imu(bag, imu, imu_log, n_imu, timestamp, pc2.stamp_seconds(msg.header),  # type: ignore[arg-type]
-                         msg.header.frame_id, (w.x, w.y, w.z), (a.x, a.y, a.z))
+                _add_imu(
+                    bag,
+                    imu,
+                    imu_log,
+                    n_imu,
+                    timestamp,
+                    pc2.stamp_seconds(msg.header),  # type: ignore[arg-type]
+                    msg.header.frame_id,
+                    (w.x, w.y, w.z),
+                    (a.x, a.y, a.z),
+                )
                 n_imu += 1
             elif gnss_log is not None and conn.topic == topics.gnss:
                 stamp = pc2.stamp_seconds(msg.header)
                 gnss_log.watch_clock(n_gnss, stamp, timestamp)
                 gnss_log.use(n_gnss, stamp, msg.header.frame_id)
                 n_gnss += 1
-                gnss.append(stamp, msg.latitude, msg.longitude, msg.altitude,  # type: ignore[union-attr]
-                            int(msg.status.status), np.asarray(msg.position_covariance, float),
-                            int(msg.position_covariance_type))
+                gnss.append(
+                    stamp,
+                    msg.latitude,
+                    msg.longitude,
+                    msg.altitude,  # type: ignore[union-attr]
+                    int(msg.status.status),
+                    np.asarray(msg.position_covariance, float),
+                    int(msg.position_covariance_type),
+                )
     except InputError:
         raise
     except Exception as exc:
@@ -252,8 +315,17 @@ def sensor_messages(bag: BagSession, topics: SensorTopics, imu: ImuBuffer | None
     bag.log.check()
 
 
-def _add_imu(bag: BagSession, imu: ImuBuffer, log: TopicLog, index: int, log_ns: int, stamp: float,
-             frame_id: str, gyro: tuple[float, float, float], acc: tuple[float, float, float]) -> None:
+def _add_imu(
+    bag: BagSession,
+    imu: ImuBuffer,
+    log: TopicLog,
+    index: int,
+    log_ns: int,
+    stamp: float,
+    frame_id: str,
+    gyro: tuple[float, float, float],
+    acc: tuple[float, float, float],
+) -> None:
     """One IMU sample into the buffer, unless it is unusable (then dropped and counted)."""
     log.watch_clock(index, stamp, log_ns)
     if bag.imu_sample_ok(log, index, stamp, gyro, acc, frame_id):

@@ -20,8 +20,14 @@ from canopy_kit.mapping.imu import RotationTrack
 class ContinuousTrajectory:
     """Poses at any time from keyframes plus a dense reference motion (see module doc)."""
 
-    def __init__(self, key_times: np.ndarray, key_poses: np.ndarray, sweep_times: np.ndarray,
-                 sweep_odometry: np.ndarray, rotations: RotationTrack | None = None) -> None:
+    def __init__(
+        self,
+        key_times: np.ndarray,
+        key_poses: np.ndarray,
+        sweep_times: np.ndarray,
+        sweep_odometry: np.ndarray,
+        rotations: RotationTrack | None = None,
+    ) -> None:
         self.key_times = np.asarray(key_times, float)
         self.key_poses = np.asarray(key_poses, float)
         self._key_p = self.key_poses[:, :3, 3]
@@ -62,8 +68,9 @@ class ContinuousTrajectory:
         qa_inv = quat.conjugate(qa)
         trans = quat.rotate(qa_inv, pt - pa)
         if self.rotations is not None:
-            rot = quat.multiply(quat.conjugate(self.rotations.quaternions(ta)),
-                                self.rotations.quaternions(times))
+            rot = quat.multiply(
+                quat.conjugate(self.rotations.quaternions(ta)), self.rotations.quaternions(times)
+            )
         else:
             rot = quat.multiply(qa_inv, qt)
         return rot, trans
@@ -107,5 +114,15 @@ class ContinuousTrajectory:
 def pose_table(times: np.ndarray, poses: np.ndarray) -> pd.DataFrame:
     """time, x, y, z, qx, qy, qz, qw columns from (N, 4, 4) poses."""
     q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
-    return pd.DataFrame({"time": times, "x": poses[:, 0, 3], "y": poses[:, 1, 3], "z": poses[:, 2, 3],
-                         "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
+    return pd.DataFrame(
+        {
+            "time": times,
+            "x": poses[:, 0, 3],
+            "y": poses[:, 1, 3],
+            "z": poses[:, 2, 3],
+            "qx": q[:, 0],
+            "qy": q[:, 1],
+            "qz": q[:, 2],
+            "qw": q[:, 3],
+        }
+    )

@@ -20,8 +20,13 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
-from canopy_kit.paper.table1 import (HEADER_OF, VALUE_COLUMNS, default_table1_path,
-                                     printed_half_units, read_table1_text)
+from canopy_kit.paper.table1 import (
+    HEADER_OF,
+    VALUE_COLUMNS,
+    default_table1_path,
+    printed_half_units,
+    read_table1_text,
+)
 
 #: Per method: (volume column, error column).
 METHODS: dict[str, tuple[str, str]] = {
@@ -61,8 +66,11 @@ class RowCheck:
 
     def moved_columns(self) -> list[tuple[str, str]]:
         """(header of the printed column, header of what it actually holds) for moved columns."""
-        return [(HEADER_OF[printed], HEADER_OF[actual])
-                for printed, actual in zip(VALUE_COLUMNS, self.chosen.order) if printed != actual]
+        return [
+            (HEADER_OF[printed], HEADER_OF[actual])
+            for printed, actual in zip(VALUE_COLUMNS, self.chosen.order)
+            if printed != actual
+        ]
 
 
 @dataclass(frozen=True)
@@ -91,8 +99,13 @@ def _error_interval(volume: float, hv: float, gt: float, hg: float) -> tuple[flo
     return 100.0 * low, 100.0 * max(ends)
 
 
-def assess_order(values: dict[str, float], half: dict[str, float], order: tuple[str, ...],
-                 *, tolerance_pp: float = 0.0) -> Assignment:
+def assess_order(
+    values: dict[str, float],
+    half: dict[str, float],
+    order: tuple[str, ...],
+    *,
+    tolerance_pp: float = 0.0,
+) -> Assignment:
     """Judge one reading of a row (``values``/``half`` keyed by column name, incl. ``gt_m3``)."""
     role = {quantity: column for column, quantity in zip(VALUE_COLUMNS, order)}
     gt, hg = values["gt_m3"], half["gt_m3"]
@@ -107,18 +120,24 @@ def assess_order(values: dict[str, float], half: dict[str, float], order: tuple[
     hull = values[role["hull_m3"]] + half[role["hull_m3"]]
     alpha = values[role["alpha_m3"]] - half[role["alpha_m3"]]
     return Assignment(
-        order=order, recomputed=recomputed, residual=residual, slack=slack,
+        order=order,
+        recomputed=recomputed,
+        residual=residual,
+        slack=slack,
         consistent=all(s <= tolerance_pp + 1e-12 for s in slack.values()),
         hull_not_below_alpha=bool(hull >= alpha),
         moved=sum(a != b for a, b in zip(order, VALUE_COLUMNS)),
     )
 
 
-def check_row(tree: int, values: dict[str, float], half: dict[str, float],
-              *, tolerance_pp: float = 0.0) -> RowCheck:
+def check_row(
+    tree: int, values: dict[str, float], half: dict[str, float], *, tolerance_pp: float = 0.0
+) -> RowCheck:
     """Try every order of the four value columns of one row and pick the one the numbers support."""
-    readings = [assess_order(values, half, order, tolerance_pp=tolerance_pp)
-                for order in itertools.permutations(VALUE_COLUMNS)]
+    readings = [
+        assess_order(values, half, order, tolerance_pp=tolerance_pp)
+        for order in itertools.permutations(VALUE_COLUMNS)
+    ]
     as_printed = readings[0]  # permutations() yields the identity first
     candidates = [a for a in readings if a.consistent]
     if not candidates:
@@ -156,8 +175,9 @@ def _with_diagnostics(table: pd.DataFrame, rows: list[RowCheck], pick: str) -> p
     return out
 
 
-def check_table1(path: str | Path | None = None, *, rounding: bool = True,
-                 tolerance_pp: float = 0.0) -> Table1Check:
+def check_table1(
+    path: str | Path | None = None, *, rounding: bool = True, tolerance_pp: float = 0.0
+) -> Table1Check:
     """Check every row of Table I and build the corrected table.
 
     ``rounding`` accounts for each printed value being rounded to its last digit;
@@ -168,8 +188,15 @@ def check_table1(path: str | Path | None = None, *, rounding: bool = True,
     text = read_table1_text(source)
     values = text.astype(float)
     half = printed_half_units(text) if rounding else text.map(lambda _: 0.0)
-    rows = [check_row(int(tree), values.loc[tree].to_dict(), half.loc[tree].to_dict(),
-                      tolerance_pp=tolerance_pp) for tree in values.index]
+    rows = [
+        check_row(
+            int(tree),
+            values.loc[tree].to_dict(),
+            half.loc[tree].to_dict(),
+            tolerance_pp=tolerance_pp,
+        )
+        for tree in values.index
+    ]
     orders = {r.tree: r.chosen.order for r in rows}
     return Table1Check(
         source=source,

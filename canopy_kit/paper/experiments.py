@@ -43,17 +43,36 @@ ORCHARDS = ("pistachio", "almond")
 KNOWN_ORCHARDS = (*ORCHARDS, "almond-paper")
 #: Method -> the preset that runs it (presets are in canopy_kit/presets);
 #: ``dbscan_spectral_scaled`` is the paper's almond method at our map's scale, on request.
-METHOD_PRESETS = {"dbscan": "pistachio", "dbscan_spectral": "almond", "adaptive": "adaptive",
-                  "dbscan_spectral_scaled": "almond-scaled"}
+METHOD_PRESETS = {
+    "dbscan": "pistachio",
+    "dbscan_spectral": "almond",
+    "adaptive": "adaptive",
+    "dbscan_spectral_scaled": "almond-scaled",
+}
 #: The methods run unless others are asked for: the paper's two and ours.
 DEFAULT_METHODS = ("dbscan", "dbscan_spectral", "adaptive")
 MAPPINGS = ("pipeline", "true_poses")
-RESULT_FILES = {"runs": "experiments_runs.csv", "trees": "experiments_trees.csv",
-                "comparison": "experiments_comparison.csv", "summary": "experiments.json"}
-TREE_COLUMNS = ["tree_id", "label", "segment", "n_points", "crown_diameter_m",
-                "truth_tree_id", "truth_label", "true_crown_diameter_m", "true_crown_volume_m3",
-                "true_sphere_volume_m3", "aerial_sphere_volume_m3", "aerial_diameter_m",
-                "volume_flags"]
+RESULT_FILES = {
+    "runs": "experiments_runs.csv",
+    "trees": "experiments_trees.csv",
+    "comparison": "experiments_comparison.csv",
+    "summary": "experiments.json",
+}
+TREE_COLUMNS = [
+    "tree_id",
+    "label",
+    "segment",
+    "n_points",
+    "crown_diameter_m",
+    "truth_tree_id",
+    "truth_label",
+    "true_crown_diameter_m",
+    "true_crown_volume_m3",
+    "true_sphere_volume_m3",
+    "aerial_sphere_volume_m3",
+    "aerial_diameter_m",
+    "volume_flags",
+]
 
 
 #: The settings the committed results (``data/paper/experiments*``) were made with, which
@@ -85,13 +104,17 @@ def check_results_dir(out_dir: str | Path, overwrite: bool = False) -> Path:
         return out
     data = default_results_dir().parent
     if out.resolve().is_relative_to(data):
-        raise InputError(f"{out}: refusing to write into the committed data folder {data} "
-                         f"(give another --out, or --overwrite to replace the committed "
-                         f"results)")
+        raise InputError(
+            f"{out}: refusing to write into the committed data folder {data} "
+            f"(give another --out, or --overwrite to replace the committed "
+            f"results)"
+        )
     held = [name for name in RESULT_FILES.values() if (out / name).exists()]
     if held:
-        raise InputError(f"{out}: already holds experiment results ({', '.join(held)}); "
-                         f"give another --out, or --overwrite to replace them")
+        raise InputError(
+            f"{out}: already holds experiment results ({', '.join(held)}); "
+            f"give another --out, or --overwrite to replace them"
+        )
     return out
 
 
@@ -121,17 +144,22 @@ class ExperimentConfig:
         if len(set(self.seeds)) != len(self.seeds):
             raise InputError(f"experiments: seeds repeat ({list(self.seeds)})")
         if self.rows < 1 or self.trees_per_row < 2:
-            raise InputError(f"experiments: need rows >= 1 and trees per row >= 2, got "
-                             f"{self.rows} x {self.trees_per_row}")
-        for name, given, known in (("orchard", self.orchards, KNOWN_ORCHARDS),
-                                   ("method", self.methods, tuple(METHOD_PRESETS)),
-                                   ("mapping", self.mappings, MAPPINGS)):
+            raise InputError(
+                f"experiments: need rows >= 1 and trees per row >= 2, got "
+                f"{self.rows} x {self.trees_per_row}"
+            )
+        for name, given, known in (
+            ("orchard", self.orchards, KNOWN_ORCHARDS),
+            ("method", self.methods, tuple(METHOD_PRESETS)),
+            ("mapping", self.mappings, MAPPINGS),
+        ):
             if not given:
                 raise InputError(f"experiments: no {name} given")
             bad = [g for g in given if g not in known]
             if bad:
-                raise InputError(f"experiments: unknown {name} {bad[0]!r} "
-                                 f"(known: {', '.join(known)})")
+                raise InputError(
+                    f"experiments: unknown {name} {bad[0]!r} (known: {', '.join(known)})"
+                )
 
     def n_runs(self) -> int:
         return len(self.orchards) * len(self.seeds) * len(self.mappings) * len(self.methods)
@@ -150,8 +178,13 @@ class ExperimentResults:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: settings, paper figures, the comparison table and every run."""
-        return {"config": asdict(self.config), "paper": self.paper, "seconds": self.seconds,
-                "comparison": _records(self.comparison), "runs": _records(self.runs)}
+        return {
+            "config": asdict(self.config),
+            "paper": self.paper,
+            "seconds": self.seconds,
+            "comparison": _records(self.comparison),
+            "runs": _records(self.runs),
+        }
 
 
 # -- the paper's figures -----------------------------------------------------------------
@@ -166,12 +199,18 @@ def paper_figures(table1: str | Path | None = None) -> dict[str, Any]:
     return {
         "segmentation_success": {f"{o}/{m}": v for (o, m), v in PAPER_SEGMENTATION.items()},
         "volume_source": "Table I (17 pistachio trees, DBSCAN), columns corrected",
-        "mape_vs_sphere_pct": {"convex_hull": summary.agreement["hull"].mape_pct,
-                               "alpha_shape": summary.agreement["alpha"].mape_pct},
-        "bias_vs_sphere_pct": {"convex_hull": summary.agreement["hull"].bias_pct,
-                               "alpha_shape": summary.agreement["alpha"].bias_pct},
-        "max_error_vs_sphere_pct": {"convex_hull": float(t["hull_err_pct"].max()),
-                                    "alpha_shape": float(t["alpha_err_pct"].max())},
+        "mape_vs_sphere_pct": {
+            "convex_hull": summary.agreement["hull"].mape_pct,
+            "alpha_shape": summary.agreement["alpha"].mape_pct,
+        },
+        "bias_vs_sphere_pct": {
+            "convex_hull": summary.agreement["hull"].bias_pct,
+            "alpha_shape": summary.agreement["alpha"].bias_pct,
+        },
+        "max_error_vs_sphere_pct": {
+            "convex_hull": float(t["hull_err_pct"].max()),
+            "alpha_shape": float(t["alpha_err_pct"].max()),
+        },
         "alpha_better_trees": len(summary.claim.alpha_better),
         "n_trees": summary.claim.n_trees,
     }
@@ -199,22 +238,25 @@ def session_config(orchard: str, seed: int, config: ExperimentConfig) -> Any:
     from canopy_kit.config import merge
     from canopy_kit.sim import load_sim_config
 
-    base: dict[str, Any] = {"seed": seed, "orchard": {"rows": config.rows,
-                                                      "trees_per_row": config.trees_per_row}}
+    base: dict[str, Any] = {
+        "seed": seed,
+        "orchard": {"rows": config.rows, "trees_per_row": config.trees_per_row},
+    }
     if config.drone:
         base["drone"] = {"enabled": True}
     return load_sim_config(orchard, merge(base, config.sim_overrides), sensor=config.sensor)
 
 
-def simulate(orchard: str, seed: int, config: ExperimentConfig, root: Path,
-             progress: Progress | None = None) -> Path:
+def simulate(
+    orchard: str, seed: int, config: ExperimentConfig, root: Path, progress: Progress | None = None
+) -> Path:
     """Simulate one session into ``root``, or reuse the complete one with the same config there.
 
     Returns the bag path. A ``.complete`` file marks a finished simulation.
     """
     from canopy_kit.config import to_dict
-    from canopy_kit.sim import simulate_session
     from canopy_kit.session_layout import find_bag
+    from canopy_kit.sim import simulate_session
     from canopy_kit.sim.session import load_sim_config_of
 
     sim_cfg = session_config(orchard, seed, config)
@@ -230,8 +272,14 @@ def simulate(orchard: str, seed: int, config: ExperimentConfig, root: Path,
     return session.bag
 
 
-def compute_on_map(pipeline_config: Any, mapping: Any, sim_dir: Path,
-                   drone_images: Path | None, out: Path, progress: Progress) -> Any:
+def compute_on_map(
+    pipeline_config: Any,
+    mapping: Any,
+    sim_dir: Path,
+    drone_images: Path | None,
+    out: Path,
+    progress: Progress,
+) -> Any:
     """The pipeline's stages after mapping, on a given map, scored against the truth."""
     from canopy_kit.pipeline import RunContext, aerial_stage, segment_stage, volume_stage
     from canopy_kit.tree_table import tree_table
@@ -252,9 +300,22 @@ def compute_on_map(pipeline_config: Any, mapping: Any, sim_dir: Path,
 def run_record(ctx: Any, mapping_scores: dict[str, Any]) -> dict[str, Any]:
     """The per-run numbers: segmentation score, mapping error, map density."""
     score = ctx.evaluation["segmentation"]
-    rec = {k: score[k] for k in ("n_truth", "n_predicted", "n_correct", "success_rate",
-                                 "n_merged", "n_split", "n_missed", "n_other",
-                                 "n_false_segments", "label_accuracy", "mode")}
+    rec = {
+        k: score[k]
+        for k in (
+            "n_truth",
+            "n_predicted",
+            "n_correct",
+            "success_rate",
+            "n_merged",
+            "n_split",
+            "n_missed",
+            "n_other",
+            "n_false_segments",
+            "label_accuracy",
+            "mode",
+        )
+    }
     rec["ate_rmse_m"] = mapping_scores.get("ate_rmse_m", np.nan)
     rec["drift_percent"] = mapping_scores.get("drift_percent", np.nan)
     cloud = ctx.mapping.map
@@ -266,9 +327,16 @@ def run_record(ctx: Any, mapping_scores: dict[str, Any]) -> dict[str, Any]:
     return rec
 
 
-def run_mapping(orchard: str, seed: int, mapping: str, config: ExperimentConfig, root: Path,
-                bag: Path, progress: Progress, done: list[int]
-                ) -> tuple[list[dict[str, Any]], list[pd.DataFrame]]:
+def run_mapping(
+    orchard: str,
+    seed: int,
+    mapping: str,
+    config: ExperimentConfig,
+    root: Path,
+    bag: Path,
+    progress: Progress,
+    done: list[int],
+) -> tuple[list[dict[str, Any]], list[pd.DataFrame]]:
     """Every method on one simulated session, on one kind of map.
 
     ``pipeline``: the first method runs :func:`canopy_kit.pipeline.compute` (mapping and its
@@ -286,27 +354,45 @@ def run_mapping(orchard: str, seed: int, mapping: str, config: ExperimentConfig,
     tables: list[pd.DataFrame] = []
     for method in config.methods:
         preset = METHOD_PRESETS[method]
-        rec: dict[str, Any] = {"orchard": orchard, "seed": seed, "session": root.name,
-                               "mapping": mapping, "method": method, "preset": preset}
+        rec: dict[str, Any] = {
+            "orchard": orchard,
+            "seed": seed,
+            "session": root.name,
+            "mapping": mapping,
+            "method": method,
+            "preset": preset,
+        }
         t0 = time.perf_counter()
         try:
             if shared is None:
-                ctx, _ = compute(load_preset(preset), bag, root / "run", drone, root,
-                                 progress=progress)
+                ctx, _ = compute(
+                    load_preset(preset), bag, root / "run", drone, root, progress=progress
+                )
                 mapping_scores = ctx.evaluation.get("mapping", {})
                 m = ctx.mapping
-                shared = SharedMap(m.map, m.trajectory, getattr(m, "frame", None),
-                                   dict(getattr(m, "diagnostics", {})),
-                                   list(getattr(m, "warnings", [])))
+                shared = SharedMap(
+                    m.map,
+                    m.trajectory,
+                    getattr(m, "frame", None),
+                    dict(getattr(m, "diagnostics", {})),
+                    list(getattr(m, "warnings", [])),
+                )
             else:
-                ctx = compute_on_map(load_preset(preset), shared, root, drone,
-                                     root / f"run_{mapping}_{method}", progress)
+                ctx = compute_on_map(
+                    load_preset(preset),
+                    shared,
+                    root,
+                    drone,
+                    root / f"run_{mapping}_{method}",
+                    progress,
+                )
             rec.update(run_record(ctx, mapping_scores))
             columns = [c for c in TREE_COLUMNS if config.drone or not c.startswith("aerial_")]
-            table = ctx.table.reindex(columns=columns + [
-                c for c in ctx.table.columns if c.startswith("volume_") and c != "volume_flags"])
-            tables.append(table.assign(orchard=orchard, seed=seed, mapping=mapping,
-                                       method=method))
+            table = ctx.table.reindex(
+                columns=columns
+                + [c for c in ctx.table.columns if c.startswith("volume_") and c != "volume_flags"]
+            )
+            tables.append(table.assign(orchard=orchard, seed=seed, mapping=mapping, method=method))
             rec["error"] = ""
         except CanopyKitError as exc:  # one failed run must not lose the others
             rec["error"] = f"{type(exc).__name__}: {exc}"
@@ -317,10 +403,14 @@ def run_mapping(orchard: str, seed: int, mapping: str, config: ExperimentConfig,
     return records, tables
 
 
-def run_experiments(config: ExperimentConfig, work_dir: str | Path,
-                    progress: Progress | None = None, keep_sessions: bool = False,
-                    table1: str | Path | None = None, saved_only: bool = False
-                    ) -> ExperimentResults:
+def run_experiments(
+    config: ExperimentConfig,
+    work_dir: str | Path,
+    progress: Progress | None = None,
+    keep_sessions: bool = False,
+    table1: str | Path | None = None,
+    saved_only: bool = False,
+) -> ExperimentResults:
     """Simulate every session in ``work_dir``, run and score everything.
 
     Mappings come outermost, so the pipeline's results of every session are in before the
@@ -351,8 +441,9 @@ def run_experiments(config: ExperimentConfig, work_dir: str | Path,
                     continue
                 if saved is None:
                     bag = simulate(orchard, seed, config, root, report)
-                    recs, tabs = run_mapping(orchard, seed, mapping, config, root, bag,
-                                             report, done)
+                    recs, tabs = run_mapping(
+                        orchard, seed, mapping, config, root, bag, report, done
+                    )
                     save_checkpoint(work, orchard, seed, mapping, config, recs, tabs)
                 else:
                     recs, tabs = saved
@@ -363,31 +454,42 @@ def run_experiments(config: ExperimentConfig, work_dir: str | Path,
                 records += recs
                 tables += tabs
     if saved_only and not records:
-        raise InputError(f"{work}: no finished sessions of this configuration "
-                         f"({config.rows} rows x {config.trees_per_row} trees, same settings)")
+        raise InputError(
+            f"{work}: no finished sessions of this configuration "
+            f"({config.rows} rows x {config.trees_per_row} trees, same settings)"
+        )
     runs = pd.DataFrame(records)
     trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     if len(trees):
         first = ["orchard", "seed", "mapping", "method"]
         trees = trees[first + [c for c in trees.columns if c not in first]]
     comparison = compare(runs, trees, paper, config)
-    return ExperimentResults(config, runs, trees, comparison, paper,
-                             round(time.perf_counter() - t0, 1))
+    return ExperimentResults(
+        config, runs, trees, comparison, paper, round(time.perf_counter() - t0, 1)
+    )
 
 
-def _checkpoint_paths(work: Path, orchard: str, seed: int, mapping: str,
-                      config: ExperimentConfig) -> tuple[Path, Path]:
+def _checkpoint_paths(
+    work: Path, orchard: str, seed: int, mapping: str, config: ExperimentConfig
+) -> tuple[Path, Path]:
     """Files of one finished session x mapping, named by every setting that matters."""
-    settings = {k: v for k, v in asdict(config).items()
-                if k not in ("seeds", "orchards", "mappings")}
+    settings = {
+        k: v for k, v in asdict(config).items() if k not in ("seeds", "orchards", "mappings")
+    }
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
     stem = f"{session_name(orchard, seed, config)}_{mapping}_{digest.hexdigest()[:10]}"
     return work / f"{stem}.runs.json", work / f"{stem}.trees.csv"
 
 
-def save_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
-                    config: ExperimentConfig, records: list[dict[str, Any]],
-                    tables: list[pd.DataFrame]) -> None:
+def save_checkpoint(
+    work: Path,
+    orchard: str,
+    seed: int,
+    mapping: str,
+    config: ExperimentConfig,
+    records: list[dict[str, Any]],
+    tables: list[pd.DataFrame],
+) -> None:
     """Keep a finished session x mapping's results in ``work`` for a rerun to resume after."""
     from canopy_kit.io.atomic import atomic_write_text, json_default
 
@@ -397,9 +499,9 @@ def save_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
     atomic_write_text(runs_path, json.dumps(records, default=json_default))
 
 
-def load_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
-                    config: ExperimentConfig
-                    ) -> tuple[list[dict[str, Any]], list[pd.DataFrame]] | None:
+def load_checkpoint(
+    work: Path, orchard: str, seed: int, mapping: str, config: ExperimentConfig
+) -> tuple[list[dict[str, Any]], list[pd.DataFrame]] | None:
     """A finished session x mapping's results from ``work``, or None when not run there."""
     runs_path, trees_path = _checkpoint_paths(work, orchard, seed, mapping, config)
     if not (runs_path.is_file() and trees_path.is_file()):
@@ -415,8 +517,9 @@ def load_checkpoint(work: Path, orchard: str, seed: int, mapping: str,
 
 
 # -- files ---------------------------------------------------------------------------------
-def write_results(results: ExperimentResults, out_dir: str | Path, overwrite: bool = False
-                  ) -> dict[str, Path]:
+def write_results(
+    results: ExperimentResults, out_dir: str | Path, overwrite: bool = False
+) -> dict[str, Path]:
     """Runs, trees and comparison as CSV, everything as JSON, each written atomically.
 
     Refuses (:func:`check_results_dir`) committed data and earlier results unless
@@ -427,13 +530,18 @@ def write_results(results: ExperimentResults, out_dir: str | Path, overwrite: bo
     out = check_results_dir(out_dir, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     files = {}
-    for key, frame in (("runs", results.runs), ("trees", results.trees),
-                       ("comparison", results.comparison)):
-        files[key] = atomic_write_text(out / RESULT_FILES[key],
-                                       frame.to_csv(index=False, float_format="%.4f"))
+    for key, frame in (
+        ("runs", results.runs),
+        ("trees", results.trees),
+        ("comparison", results.comparison),
+    ):
+        files[key] = atomic_write_text(
+            out / RESULT_FILES[key], frame.to_csv(index=False, float_format="%.4f")
+        )
     files["summary"] = atomic_write_text(
         out / RESULT_FILES["summary"],
-        json.dumps(results.to_dict(), indent=1, default=json_default) + "\n")
+        json.dumps(results.to_dict(), indent=1, default=json_default) + "\n",
+    )
     return files
 
 
@@ -445,12 +553,17 @@ def load_results(out_dir: str | Path | None = None) -> ExperimentResults:
         raise InputError(f"{path}: no experiment results (run 'canopy-kit paper experiments')")
     data = json.loads(path.read_text())
     cfg = data["config"]
-    config = ExperimentConfig(**{k: tuple(v) if isinstance(v, list) else v
-                                 for k, v in cfg.items()})
+    config = ExperimentConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items()})
     trees_csv = out / RESULT_FILES["trees"]
     trees = pd.read_csv(trees_csv) if trees_csv.is_file() else pd.DataFrame()
-    return ExperimentResults(config, _frame(data["runs"]), trees, _frame(data["comparison"]),
-                             data["paper"], data.get("seconds", 0.0))
+    return ExperimentResults(
+        config,
+        _frame(data["runs"]),
+        trees,
+        _frame(data["comparison"]),
+        data["paper"],
+        data.get("seconds", 0.0),
+    )
 
 
 def _frame(records: list[dict[str, Any]]) -> pd.DataFrame:

@@ -21,8 +21,10 @@ from canopy_kit.stats import Agreement, agreement
 
 def method_agreement(table: pd.DataFrame) -> dict[str, Agreement]:
     """Agreement of each method's volume (``hull_m3``, ``alpha_m3``) with ``gt_m3``."""
-    return {m: agreement(table[vol].to_numpy(), table["gt_m3"].to_numpy())
-            for m, (vol, _) in METHODS.items()}
+    return {
+        m: agreement(table[vol].to_numpy(), table["gt_m3"].to_numpy())
+        for m, (vol, _) in METHODS.items()
+    }
 
 
 def printed_error_means(table: pd.DataFrame) -> dict[str, float]:
@@ -67,7 +69,8 @@ def check_alpha_claim(table: pd.DataFrame) -> ClaimCheck:
         hull_over_gt=[int(t) for t in trees[over.to_numpy()]],
         alpha_better_when_hull_over=int(sum(t in alpha_better for t in trees[over.to_numpy()])),
         alpha_better_when_hull_not_over=int(
-            sum(t in alpha_better for t in trees[(~over).to_numpy()])),
+            sum(t in alpha_better for t in trees[(~over).to_numpy()])
+        ),
         sign_test_p=float(p),
     )
 
@@ -94,14 +97,17 @@ def implied_diameters(gt_text: pd.Series, resolution_m: float = 0.01) -> pd.Data
     decimals = gt_text.map(lambda s: len(s.split(".", 1)[1]) if "." in s else 0)
     rounded = np.round(sphere_diameter(gt) / resolution_m) * resolution_m
     back = [round(float(v), int(k)) for v, k in zip(sphere_volume(rounded), decimals)]
-    return pd.DataFrame({
-        "gt_m3": gt,
-        "diameter_m": sphere_diameter(gt),
-        "diameter_min_m": sphere_diameter(gt - half),
-        "diameter_max_m": sphere_diameter(gt + half),
-        "diameter_rounded_m": rounded,
-        "rounded_reproduces_gt": np.isclose(back, gt.to_numpy(), rtol=0, atol=1e-9),
-    }, index=gt_text.index)
+    return pd.DataFrame(
+        {
+            "gt_m3": gt,
+            "diameter_m": sphere_diameter(gt),
+            "diameter_min_m": sphere_diameter(gt - half),
+            "diameter_max_m": sphere_diameter(gt + half),
+            "diameter_rounded_m": rounded,
+            "rounded_reproduces_gt": np.isclose(back, gt.to_numpy(), rtol=0, atol=1e-9),
+        },
+        index=gt_text.index,
+    )
 
 
 @dataclass(frozen=True)
@@ -115,8 +121,9 @@ class Table1Summary:
     diameters: pd.DataFrame
 
 
-def summarise_table1(check: Table1Check, reading: str = "corrected",
-                     resolution_m: float = 0.01) -> Table1Summary:
+def summarise_table1(
+    check: Table1Check, reading: str = "corrected", resolution_m: float = 0.01
+) -> Table1Summary:
     """Statistics, claim check and implied diameters for the corrected or as-printed table."""
     if reading not in ("corrected", "as_printed"):
         raise InputError(f"reading: expected 'corrected' or 'as_printed', got {reading!r}")
@@ -131,9 +138,13 @@ def summarise_table1(check: Table1Check, reading: str = "corrected",
 
 
 def _records(frame: pd.DataFrame) -> list[dict[str, Any]]:
-    return [{"tree": int(tree), **{k: (v.item() if isinstance(v, np.generic) else v)
-                                   for k, v in row.items()}}
-            for tree, row in frame.iterrows()]
+    return [
+        {
+            "tree": int(tree),
+            **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()},
+        }
+        for tree, row in frame.iterrows()
+    ]
 
 
 def table1_result(check: Table1Check, summary: Table1Summary) -> dict[str, Any]:
@@ -145,16 +156,21 @@ def table1_result(check: Table1Check, summary: Table1Summary) -> dict[str, Any]:
         "rounding_aware": check.rounding,
         "tolerance_pp": check.tolerance_pp,
         "table": _records(table),
-        "findings": [{
-            "tree": r.tree,
-            "status": r.status,
-            "printed_order": list(VALUE_COLUMNS),
-            "order_from_numbers": list(r.chosen.order),
-            "moved_columns": [{"header_says": h, "numbers_say": a} for h, a in r.moved_columns()],
-            "residual_as_printed_pp": r.as_printed.residual,
-            "residual_corrected_pp": r.chosen.residual,
-            "n_consistent_orders": len(r.candidates),
-        } for r in check.findings],
+        "findings": [
+            {
+                "tree": r.tree,
+                "status": r.status,
+                "printed_order": list(VALUE_COLUMNS),
+                "order_from_numbers": list(r.chosen.order),
+                "moved_columns": [
+                    {"header_says": h, "numbers_say": a} for h, a in r.moved_columns()
+                ],
+                "residual_as_printed_pp": r.as_printed.residual,
+                "residual_corrected_pp": r.chosen.residual,
+                "n_consistent_orders": len(r.candidates),
+            }
+            for r in check.findings
+        ],
         "max_abs_residual_pp": max_abs_residual(check),
         "agreement": {m: a.as_dict() for m, a in summary.agreement.items()},
         "printed_error_means_pct": summary.printed_error_means,

@@ -109,6 +109,7 @@ def load_table1(path: str | Path | None = None) -> pd.DataFrame:
 
 def printed_half_units(text: pd.DataFrame) -> pd.DataFrame:
     """Half of the last printed digit of each cell: ``"0.21"`` -> 0.005, ``"10.8"`` -> 0.05."""
+
     def half_unit(cell: str) -> float:
         decimals = len(cell.split(".", 1)[1]) if "." in cell else 0
         return 0.5 * 10.0 ** (-decimals)

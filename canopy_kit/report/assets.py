@@ -11,7 +11,9 @@ from typing import Any
 @cache
 def plotly_js() -> str:
     """plotly.js-dist-min as vendored into ``canopy_kit/report/vendor`` (safe to inline)."""
-    text = files("canopy_kit.report").joinpath("vendor", "plotly.min.js").read_text(encoding="utf-8")
+    text = (
+        files("canopy_kit.report").joinpath("vendor", "plotly.min.js").read_text(encoding="utf-8")
+    )
     return text.replace("</script", "<\\/script")
 
 

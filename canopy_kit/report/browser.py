@@ -8,8 +8,16 @@ from pathlib import Path
 
 from canopy_kit.errors import ProcessingError
 
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--no-first-run", "--disable-sync", "--disable-quic"]
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--no-first-run",
+    "--disable-sync",
+    "--disable-quic",
+]
 
 
 @dataclass
@@ -36,8 +44,9 @@ def find_chromium() -> str:
     raise ProcessingError("no Chromium found; install Debian's chromium (make setup does)")
 
 
-def render_page(path: str | Path, screenshot: str | Path | None = None,
-                sort_column: int | None = None) -> RenderedPage:
+def render_page(
+    path: str | Path, screenshot: str | Path | None = None, sort_column: int | None = None
+) -> RenderedPage:
     """Load ``path`` offline in headless Chromium; optionally click a column header to sort."""
     from playwright.sync_api import sync_playwright
 
@@ -46,11 +55,12 @@ def render_page(path: str | Path, screenshot: str | Path | None = None,
     errors: list[str] = []
     # Playwright gives every launch a fresh, temporary profile (user data dir).
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS,
-                                     headless=True)
+        browser = pw.chromium.launch(
+            executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True
+        )
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
 
-        def route(r):  # noqa: ANN001, ANN202
+        def route(r):
             if r.request.url.startswith(("file:", "data:")):
                 return r.continue_()
             blocked.append(r.request.url)
@@ -63,14 +73,18 @@ def render_page(path: str | Path, screenshot: str | Path | None = None,
         tree_rows = page.locator("#trees tbody tr").count()
         check_rows = page.locator("#checks-table tbody tr").count()
         loaded = page.evaluate(
-            "Array.from(document.images).filter(i => i.complete && i.naturalWidth > 0).length")
+            "Array.from(document.images).filter(i => i.complete && i.naturalWidth > 0).length"
+        )
         broken = page.evaluate(
-            "Array.from(document.images).filter(i => !(i.complete && i.naturalWidth > 0)).length")
+            "Array.from(document.images).filter(i => !(i.complete && i.naturalWidth > 0)).length"
+        )
         first_cells: list[str] = []
         if sort_column is not None and tree_rows:
             page.locator(f"#trees th[data-col='{sort_column}']").click()
             first_cells = page.eval_on_selector_all(
-                f"#trees tbody tr td:nth-child({sort_column + 1})", "els => els.map(e => e.textContent)")
+                f"#trees tbody tr td:nth-child({sort_column + 1})",
+                "els => els.map(e => e.textContent)",
+            )
         if screenshot is not None:
             Path(screenshot).parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(screenshot), full_page=True)
@@ -78,5 +92,6 @@ def render_page(path: str | Path, screenshot: str | Path | None = None,
         banner = page.locator("#verdict h2")
         headline = banner.inner_text() if banner.count() else ""
         browser.close()
-    return RenderedPage(title, tree_rows, loaded, broken, check_rows, blocked, errors, first_cells,
-                        headline)
+    return RenderedPage(
+        title, tree_rows, loaded, broken, check_rows, blocked, errors, first_cells, headline
+    )

@@ -41,10 +41,15 @@ def encode_surface(surface: Surface, centre: np.ndarray) -> dict[str, Any]:
     """A surface as the drill-down reads it: vertices (int16 cm) and faces (uint16 indices,
     uint32 from 65536 vertices on, as ``index_bytes`` says)."""
     wide = len(surface.vertices) > np.iinfo(np.uint16).max
-    return {"name": surface.name, "volume_m3": surface.volume_m3,
-            "n_vertices": len(surface.vertices), "n_faces": len(surface.faces),
-            "vertices": encode_xyz(surface.vertices, centre), "index_bytes": 4 if wide else 2,
-            "faces": _b64(surface.faces, "<u4" if wide else "<u2")}
+    return {
+        "name": surface.name,
+        "volume_m3": surface.volume_m3,
+        "n_vertices": len(surface.vertices),
+        "n_faces": len(surface.faces),
+        "vertices": encode_xyz(surface.vertices, centre),
+        "index_bytes": 4 if wide else 2,
+        "faces": _b64(surface.faces, "<u4" if wide else "<u2"),
+    }
 
 
 def json_records(table: pd.DataFrame) -> list[dict[str, Any]]:
@@ -56,10 +61,18 @@ def column_specs(table: pd.DataFrame) -> list[dict[str, Any]]:
     """Per column: key, human label with units, whether it is numeric and its decimals."""
     specs = []
     for col in table.columns:
-        numeric = pd.api.types.is_numeric_dtype(table[col]) and not pd.api.types.is_bool_dtype(table[col])
+        numeric = pd.api.types.is_numeric_dtype(table[col]) and not pd.api.types.is_bool_dtype(
+            table[col]
+        )
         integer = pd.api.types.is_integer_dtype(table[col])
-        specs.append({"key": col, "label": column_label(col), "numeric": bool(numeric),
-                      "digits": 0 if integer else COLUMN_DIGITS.get(col, 3)})
+        specs.append(
+            {
+                "key": col,
+                "label": column_label(col),
+                "numeric": bool(numeric),
+                "digits": 0 if integer else COLUMN_DIGITS.get(col, 3),
+            }
+        )
     return specs
 
 
@@ -89,13 +102,19 @@ def ortho_crop(mosaic: Any, x: float, y: float, half: float) -> dict[str, Any] |
     image = Image.fromarray(rgb, "RGB")
     scale = ORTHO_PIXELS / max(image.size)
     if scale < 1:
-        image = image.resize((max(1, round(image.width * scale)), max(1, round(image.height * scale))))
+        image = image.resize(
+            (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
+        )
     buf = io.BytesIO()
     image.save(buf, format="JPEG", quality=ORTHO_QUALITY, optimize=True)
     g = mosaic.grid
-    return {"uri": "data:image/jpeg;base64," + base64.b64encode(buf.getvalue()).decode(),
-            "x0": g.x0 + left * g.resolution, "x1": g.x0 + right * g.resolution,
-            "y0": g.y0 - bottom * g.resolution, "y1": g.y0 - top * g.resolution}
+    return {
+        "uri": "data:image/jpeg;base64," + base64.b64encode(buf.getvalue()).decode(),
+        "x0": g.x0 + left * g.resolution,
+        "x1": g.x0 + right * g.resolution,
+        "y0": g.y0 - bottom * g.resolution,
+        "y1": g.y0 - top * g.resolution,
+    }
 
 
 def tree_surfaces(xyz: np.ndarray, volume: Any) -> list[Surface]:
@@ -111,9 +130,13 @@ def tree_surfaces(xyz: np.ndarray, volume: Any) -> list[Surface]:
     if "alpha_shape" in volume.methods:
         alpha = float(volume.params.get("alpha_shape", {}).get("alpha", PAPER_ALPHA_M))
         surface = alpha_surface(measured, alpha)
-        out.append(None if surface is None else
-                   Surface(f"alpha shape (α = {alpha:g} m)", surface.vertices, surface.faces,
-                           surface.volume_m3))
+        out.append(
+            None
+            if surface is None
+            else Surface(
+                f"alpha shape (α = {alpha:g} m)", surface.vertices, surface.faces, surface.volume_m3
+            )
+        )
     return [s for s in out if s is not None]
 
 
@@ -141,7 +164,9 @@ def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) ->
         centre = np.array([rec.x, rec.y, float(xyz[:, 2].min())])
         shown = xyz[downsample(len(xyz), max_points, seed=int(rec.segment))]
         item: dict[str, Any] = {
-            "centre": centre.tolist(), "n_points": len(xyz), "n_shown": len(shown),
+            "centre": centre.tolist(),
+            "n_points": len(xyz),
+            "n_shown": len(shown),
             "points": encode_xyz(shown, centre),
             "surfaces": [encode_surface(s, centre) for s in tree_surfaces(xyz, ctx.config.volume)],
         }
@@ -149,8 +174,12 @@ def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) ->
             radius = max(float(getattr(rec, "crown_diameter_m", 0) or 0) / 2, 1.0) + 1.5
             crop = ortho_crop(aerial.ortho, rec.x + shift[0], rec.y + shift[1], radius)
             if crop is not None:  # back in the map's frame
-                crop.update(x0=crop["x0"] - shift[0], x1=crop["x1"] - shift[0],
-                            y0=crop["y0"] - shift[1], y1=crop["y1"] - shift[1])
+                crop.update(
+                    x0=crop["x0"] - shift[0],
+                    x1=crop["x1"] - shift[0],
+                    y0=crop["y0"] - shift[1],
+                    y1=crop["y1"] - shift[1],
+                )
                 item["ortho"] = crop
         details[str(rec.tree_id)] = item
     return details
@@ -160,10 +189,15 @@ def map_layers(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
     """Crown footprints per tree_id, row lines and the drive, in the map's frame."""
     seg = ctx.segmentation
     ids = dict(zip(trees["segment"].astype(int), trees["tree_id"].astype(str), strict=True))
-    footprints = {ids[sid]: np.round(np.asarray(hull, float), 3).tolist()
-                  for sid, hull in seg.footprints.items() if sid in ids and len(hull) >= 3}
-    rows = [{"row": int(line.row), "xy": np.round(line.polyline(), 3).tolist()}
-            for line in seg.rows.lines]
+    footprints = {
+        ids[sid]: np.round(np.asarray(hull, float), 3).tolist()
+        for sid, hull in seg.footprints.items()
+        if sid in ids and len(hull) >= 3
+    }
+    rows = [
+        {"row": int(line.row), "xy": np.round(line.polyline(), 3).tolist()}
+        for line in seg.rows.lines
+    ]
     traj = ctx.mapping.trajectory
     step = max(1, len(traj) // 1500)
     drive = np.round(np.column_stack([traj["x"], traj["y"]])[::step], 2).tolist()
@@ -177,9 +211,14 @@ def row_summary(trees: pd.DataFrame, volume: str = ALPHA_COLUMN) -> pd.DataFrame
     if "row" not in trees or volume not in trees or not len(trees):
         return pd.DataFrame(columns=columns)
     grouped = trees.assign(_flag=_flagged(trees)).groupby("row", sort=True)
-    out = pd.DataFrame({"trees": grouped.size(), "median_m3": grouped[volume].median(),
-                        "total_m3": grouped[volume].sum(min_count=1),
-                        "flagged": grouped["_flag"].sum().astype(int)})
+    out = pd.DataFrame(
+        {
+            "trees": grouped.size(),
+            "median_m3": grouped[volume].median(),
+            "total_m3": grouped[volume].sum(min_count=1),
+            "flagged": grouped["_flag"].sum().astype(int),
+        }
+    )
     return out.reset_index()[columns]
 
 
@@ -187,14 +226,22 @@ def _flagged(trees: pd.DataFrame) -> pd.Series:
     """Trees with a volume, segment or drone-crown flag."""
     from canopy_kit.tree_table import flagged
 
-    return (flagged(trees, "volume_flags") | flagged(trees, "segment_flags")
-            | flagged(trees, "aerial_flag"))
+    return (
+        flagged(trees, "volume_flags")
+        | flagged(trees, "segment_flags")
+        | flagged(trees, "aerial_flag")
+    )
 
 
-def explorer_data(ctx: Any, trees: pd.DataFrame, downloads: list[dict[str, str]],
-                  max_points: int = MAX_POINTS) -> dict[str, Any]:
+def explorer_data(
+    ctx: Any, trees: pd.DataFrame, downloads: list[dict[str, str]], max_points: int = MAX_POINTS
+) -> dict[str, Any]:
     """Everything the page's script draws, as one JSON-ready dict."""
-    return {"trees": json_records(trees), "columns": column_specs(trees),
-            "flagged": [bool(f) for f in _flagged(trees)],
-            "map": map_layers(ctx, trees),
-            "details": tree_details(ctx, trees, max_points), "downloads": downloads}
+    return {
+        "trees": json_records(trees),
+        "columns": column_specs(trees),
+        "flagged": [bool(f) for f in _flagged(trees)],
+        "map": map_layers(ctx, trees),
+        "details": tree_details(ctx, trees, max_points),
+        "downloads": downloads,
+    }

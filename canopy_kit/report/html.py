@@ -13,8 +13,15 @@ import pandas as pd
 from canopy_kit.checks import Check, failed
 from canopy_kit.io.atomic import atomic_write_text
 
-__all__ = ["Check", "ReportSection", "render_report", "script_json", "table_html", "verdict",
-           "write_report"]
+__all__ = [
+    "Check",
+    "ReportSection",
+    "render_report",
+    "script_json",
+    "table_html",
+    "verdict",
+    "write_report",
+]
 
 
 @dataclass
@@ -31,8 +38,13 @@ class ReportSection:
 COLUMN_DIGITS = {"lat": 6, "lon": 6, "latitude": 6, "longitude": 6}
 
 
-def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3,
-               labels: dict[str, str] | None = None, row_key: str | None = None) -> str:
+def table_html(
+    df: pd.DataFrame,
+    table_id: str,
+    float_digits: int = 3,
+    labels: dict[str, str] | None = None,
+    row_key: str | None = None,
+) -> str:
     """A sortable HTML table (click a header) with numbers right-aligned.
 
     Floats get ``float_digits`` decimals, geographic coordinates those of ``COLUMN_DIGITS``.
@@ -43,7 +55,9 @@ def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3,
     digits = [COLUMN_DIGITS.get(str(c).lower(), float_digits) for c in df.columns]
     head = "".join(
         f'<th data-col="{i}" data-key="{html.escape(str(c))}" title="{html.escape(str(c))}">'
-        f'{html.escape(labels.get(str(c), str(c)))}</th>' for i, c in enumerate(df.columns))
+        f"{html.escape(labels.get(str(c), str(c)))}</th>"
+        for i, c in enumerate(df.columns)
+    )
     ids = df[row_key].astype(str).tolist() if row_key is not None else None
     rows = []
     for k, values in enumerate(df.itertuples(index=False, name=None)):  # keeps each column's type
@@ -60,8 +74,10 @@ def table_html(df: pd.DataFrame, table_id: str, float_digits: int = 3,
                 cells.append(f"<td>{html.escape(str(v))}</td>")
         attr = f' data-id="{html.escape(ids[k])}"' if ids is not None else ""
         rows.append(f"<tr{attr}>" + "".join(cells) + "</tr>")
-    return (f'<table class="sortable" id="{table_id}"><thead><tr>{head}</tr></thead>'
-            f'<tbody>{"".join(rows)}</tbody></table>')
+    return (
+        f'<table class="sortable" id="{table_id}"><thead><tr>{head}</tr></thead>'
+        f"<tbody>{''.join(rows)}</tbody></table>"
+    )
 
 
 def verdict(checks: list[Check]) -> dict[str, Any]:
@@ -69,14 +85,21 @@ def verdict(checks: list[Check]) -> dict[str, Any]:
     bad = failed(checks)
     warned = [c for c in checks if c.status == "warn"]
     if bad:
-        return {"level": "fail", "title": f"Do not trust this run: {len(bad)} "
-                f"check{'s' if len(bad) > 1 else ''} failed",
-                "lines": [f"{c.name}: {c.value} ({c.threshold})" for c in bad]}
+        return {
+            "level": "fail",
+            "title": f"Do not trust this run: {len(bad)} check{'s' if len(bad) > 1 else ''} failed",
+            "lines": [f"{c.name}: {c.value} ({c.threshold})" for c in bad],
+        }
     if warned:
-        return {"level": "warn", "title": f"Use with care: {len(warned)} "
-                f"check{'s' if len(warned) > 1 else ''} warned, none failed",
-                "lines": [f"{c.name}: {c.value}" + (f" ({c.threshold})" if c.threshold else "")
-                          for c in warned]}
+        return {
+            "level": "warn",
+            "title": f"Use with care: {len(warned)} "
+            f"check{'s' if len(warned) > 1 else ''} warned, none failed",
+            "lines": [
+                f"{c.name}: {c.value}" + (f" ({c.threshold})" if c.threshold else "")
+                for c in warned
+            ],
+        }
     return {"level": "pass", "title": "Every check passed", "lines": []}
 
 
@@ -86,11 +109,18 @@ def script_json(data: Any) -> str:
     return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
 
 
-def render_report(title: str, summary: dict[str, Any], trees: pd.DataFrame,
-                  sections: list[ReportSection], checks: list[Check], config_toml: str,
-                  subtitle: str = "", provenance: dict[str, Any] | None = None,
-                  explorer: dict[str, Any] | None = None,
-                  row_table: pd.DataFrame | None = None) -> str:
+def render_report(
+    title: str,
+    summary: dict[str, Any],
+    trees: pd.DataFrame,
+    sections: list[ReportSection],
+    checks: list[Check],
+    config_toml: str,
+    subtitle: str = "",
+    provenance: dict[str, Any] | None = None,
+    explorer: dict[str, Any] | None = None,
+    row_table: pd.DataFrame | None = None,
+) -> str:
     """The complete report page as one HTML string (CSS and JS inlined, images as data URIs).
 
     ``explorer`` (:func:`canopy_kit.report.explorer.explorer_data`) adds the interactive map,
@@ -109,17 +139,27 @@ def render_report(title: str, summary: dict[str, Any], trees: pd.DataFrame,
     markup = jinja2.utils.markupsafe.Markup
     template = env.get_template("report.html.j2")
     section_ctx = [
-        {"title": s.title, "figures": s.figures, "text": s.text,
-         "table": markup(table_html(s.table, f"t{i}")) if s.table is not None else None}
+        {
+            "title": s.title,
+            "figures": s.figures,
+            "text": s.text,
+            "table": markup(table_html(s.table, f"t{i}")) if s.table is not None else None,
+        }
         for i, s in enumerate(sections)
     ]
     labels = {str(c): column_label(str(c)) for c in trees.columns}
     row_key = "tree_id" if "tree_id" in trees else None
     return template.render(
-        title=title, subtitle=subtitle, summary=summary, provenance=provenance or {},
+        title=title,
+        subtitle=subtitle,
+        summary=summary,
+        provenance=provenance or {},
         trees_table=markup(table_html(trees, "trees", labels=labels, row_key=row_key)),
         rows_table=markup(table_html(row_table, "rows-table")) if row_table is not None else None,
-        n_trees=len(trees), sections=section_ctx, checks=checks, verdict=verdict(checks),
+        n_trees=len(trees),
+        sections=section_ctx,
+        checks=checks,
+        verdict=verdict(checks),
         n_passed=sum(1 for c in checks if c.status == "pass"),
         n_checks=sum(1 for c in checks if c.status in ("pass", "fail")),
         n_warned=sum(1 for c in checks if c.status == "warn"),

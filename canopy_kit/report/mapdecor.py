@@ -25,12 +25,30 @@ def add_north_arrow_and_scale(ax: Any) -> Any:
     x0, x1 = ax.get_xlim()
     length = nice_length(abs(x1 - x0))
     label = f"{length:g} m" if length >= 1 else f"{100 * length:g} cm"
-    bar = AnchoredSizeBar(ax.transData, length, label, "lower right", pad=0.4, sep=3,
-                          borderpad=0.6, frameon=True, size_vertical=0, color="black")
+    bar = AnchoredSizeBar(
+        ax.transData,
+        length,
+        label,
+        "lower right",
+        pad=0.4,
+        sep=3,
+        borderpad=0.6,
+        frameon=True,
+        size_vertical=0,
+        color="black",
+    )
     bar.patch.set_alpha(0.8)
     ax.add_artist(bar)
-    ax.annotate("N", xy=(0.95, 0.95), xytext=(0.95, 0.83), xycoords="axes fraction",
-                ha="center", va="center", fontsize=11, weight="bold",
-                arrowprops={"arrowstyle": "-|>", "color": "black", "lw": 1.5},
-                bbox={"boxstyle": "circle,pad=0.2", "fc": "white", "ec": "none", "alpha": 0.8})
+    ax.annotate(
+        "N",
+        xy=(0.95, 0.95),
+        xytext=(0.95, 0.83),
+        xycoords="axes fraction",
+        ha="center",
+        va="center",
+        fontsize=11,
+        weight="bold",
+        arrowprops={"arrowstyle": "-|>", "color": "black", "lw": 1.5},
+        bbox={"boxstyle": "circle,pad=0.2", "fc": "white", "ec": "none", "alpha": 0.8},
+    )
     return ax

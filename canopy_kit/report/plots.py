@@ -26,16 +26,21 @@ def plot_volumes(trees: pd.DataFrame, columns: dict[str, str], ax: Any = None) -
     for i, (name, col) in enumerate(cols.items()):
         ax.bar(x + (i - (len(cols) - 1) / 2) * width, trees[col], width, label=name)
     ax.set_xticks(x)
-    ax.set_xticklabels([f"{r}:{lab}" for r, lab in zip(trees["row"], trees["label"])], rotation=90,
-                       fontsize=7)
+    ax.set_xticklabels(
+        [f"{r}:{lab}" for r, lab in zip(trees["row"], trees["label"])], rotation=90, fontsize=7
+    )
     ax.set_ylabel("volume (m³)")
     ax.legend(fontsize=8)
     ax.set_title("canopy volume per tree")
     return fig
 
 
-def plot_agreement(estimate: np.ndarray, reference: np.ndarray, names: tuple[str, str],
-                   labels: list[str] | None = None) -> Any:
+def plot_agreement(
+    estimate: np.ndarray,
+    reference: np.ndarray,
+    names: tuple[str, str],
+    labels: list[str] | None = None,
+) -> Any:
     """Scatter against the 1:1 line and a Bland-Altman plot, side by side."""
     import matplotlib.pyplot as plt
 

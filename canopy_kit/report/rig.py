@@ -14,6 +14,7 @@ from canopy_kit.report.html import ReportSection
 def _pose(entry: dict[str, Any] | None) -> tuple[str, str]:
     if not entry:
         return "", ""
+
     def text(values: list[float], digits: int) -> str:  # no "-0.000"
         return ", ".join(f"{round(v, digits) + 0.0:.{digits}f}" for v in values)
 
@@ -36,8 +37,14 @@ def rig_table(rig: dict[str, Any], inputs: dict[str, Any] | None = None) -> pd.D
         row = {"sensor": sensor}
         if inputs:
             row.update(_topic_columns((inputs or {}).get(role)))
-        row.update({"frame": frame, f"position in {rig.get('base_frame', 'base')} [m]": position,
-                    "roll, pitch, yaw [deg]": rpy if key != "gnss" else "", "source": source})
+        row.update(
+            {
+                "frame": frame,
+                f"position in {rig.get('base_frame', 'base')} [m]": position,
+                "roll, pitch, yaw [deg]": rpy if key != "gnss" else "",
+                "source": source,
+            }
+        )
         out.append(row)
     return pd.DataFrame(out)
 
@@ -61,14 +68,18 @@ def rig_section(mapping: dict[str, Any]) -> ReportSection | None:
     if not rig:
         return None
     ext = mapping.get("extrinsics", {})
-    text = (f"Trajectory reported for the frame '{rig.get('base_frame', '')}'. "
-            f"Transforms read from {', '.join(rig.get('tf_topics') or []) or 'no tf topic'}"
-            f"{' and a rig file' if 'rig file' in str(rig.get('sources')) else ''}.")
+    text = (
+        f"Trajectory reported for the frame '{rig.get('base_frame', '')}'. "
+        f"Transforms read from {', '.join(rig.get('tf_topics') or []) or 'no tf topic'}"
+        f"{' and a rig file' if 'rig file' in str(rig.get('sources')) else ''}."
+    )
     est = ext.get("estimated")
     if est:
         verb = "Estimated" if ext.get("mode") == "calibrate" else "Checked against the drive"
-        text += (f" {verb}: IMU mount roll/pitch/yaw {', '.join(f'{v:.2f}' for v in est['rpy_deg'])} deg "
-                 f"(1-sigma {', '.join(f'{v:.2f}' for v in est['sigma_deg'])} deg about the LiDAR's x, y, z)")
+        text += (
+            f" {verb}: IMU mount roll/pitch/yaw {', '.join(f'{v:.2f}' for v in est['rpy_deg'])} deg "
+            f"(1-sigma {', '.join(f'{v:.2f}' for v in est['sigma_deg'])} deg about the LiDAR's x, y, z)"
+        )
         if "difference_deg" in ext:
             text += f", {ext['difference_deg']:.2f} deg from the given mount"
         text += "."
@@ -76,4 +87,6 @@ def rig_section(mapping: dict[str, Any]) -> ReportSection | None:
         text += f" LiDAR tilted {ext['lidar_tilt_from_gravity_deg']:.1f} deg from the vertical at the start."
     if mapping.get("bag"):
         text = f"Read from {mapping['bag']}. " + text
-    return ReportSection("Sensor rig and topics", text=text, table=rig_table(rig, mapping.get("inputs")))
+    return ReportSection(
+        "Sensor rig and topics", text=text, table=rig_table(rig, mapping.get("inputs"))
+    )

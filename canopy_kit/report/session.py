@@ -13,12 +13,29 @@ from canopy_kit.report.html import ReportSection, render_report
 from canopy_kit.report.mapdecor import add_north_arrow_and_scale
 from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN
 
-TABLE_COLUMNS = ["tree_id", "row", "label", "x", "y", "lat", "lon", "n_points", "height_m",
-                 "crown_diameter_m", CONVEX_HULL_COLUMN, ALPHA_COLUMN,
-                 "aerial_diameter_m", "aerial_sphere_volume_m3", "error_alpha_vs_aerial_pct",
-                 "aerial_flag", "n_trunks",
-                 "true_crown_volume_m3", "error_alpha_shape_vs_true_pct", "volume_flags",
-                 "segment_flags"]
+TABLE_COLUMNS = [
+    "tree_id",
+    "row",
+    "label",
+    "x",
+    "y",
+    "lat",
+    "lon",
+    "n_points",
+    "height_m",
+    "crown_diameter_m",
+    CONVEX_HULL_COLUMN,
+    ALPHA_COLUMN,
+    "aerial_diameter_m",
+    "aerial_sphere_volume_m3",
+    "error_alpha_vs_aerial_pct",
+    "aerial_flag",
+    "n_trunks",
+    "true_crown_volume_m3",
+    "error_alpha_shape_vs_true_pct",
+    "volume_flags",
+    "segment_flags",
+]
 
 
 def report_checks(metrics: dict[str, Any], trees: pd.DataFrame, config: Any) -> list[Check]:
@@ -34,8 +51,8 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     """The report of a run as one self-contained HTML page."""
     from canopy_kit.config import config_toml
     from canopy_kit.outputs import config_used
-    from canopy_kit.tree_table import comparable_aerial_sphere
     from canopy_kit.report import plots
+    from canopy_kit.tree_table import comparable_aerial_sphere
 
     cloud, seg = ctx.mapping.map, ctx.segmentation
     traj = ctx.mapping.trajectory
@@ -45,8 +62,13 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     map_fig = plot_top_view(cloud, seg)
     map_fig.axes[0].plot(traj["x"], traj["y"], "-", color="0.4", lw=0.7)
     add_north_arrow_and_scale(map_fig.axes[0])
-    figs = [("Map from above, each segmented tree in its own colour, labelled with its tree ID; "
-             "dashed: fitted rows; grey: the estimated drive.", figure_to_data_uri(map_fig))]
+    figs = [
+        (
+            "Map from above, each segmented tree in its own colour, labelled with its tree ID; "
+            "dashed: fitted rows; grey: the estimated drive.",
+            figure_to_data_uri(map_fig),
+        )
+    ]
     volume_columns = {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN}
     if "aerial_sphere_volume_m3" in trees:
         volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
@@ -55,14 +77,19 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
     shown = trees
     if "aerial_sphere_volume_m3" in trees:  # a merged crown's sphere would dwarf every other bar
         shown = trees.assign(aerial_sphere_volume_m3=comparable_aerial_sphere(trees))
-    figs.append(("Canopy volume per tree by method (aerial spheres of flagged crowns left out).",
-                 figure_to_data_uri(plots.plot_volumes(shown, volume_columns))))
+    figs.append(
+        (
+            "Canopy volume per tree by method (aerial spheres of flagged crowns left out).",
+            figure_to_data_uri(plots.plot_volumes(shown, volume_columns)),
+        )
+    )
     sections.append(ReportSection("Map and trees", figs))
     from canopy_kit.report.volumes import accuracy_section
 
     volume_cfg = ctx.config.volume
-    sections.append(accuracy_section(volume_cfg.recommended,
-                                     volume_cfg.params.get(volume_cfg.recommended, {})))
+    sections.append(
+        accuracy_section(volume_cfg.recommended, volume_cfg.params.get(volume_cfg.recommended, {}))
+    )
     mapping_eval = metrics.get("evaluation", {}).get("mapping")
     if mapping_eval and ctx.truth_dir is not None:
         from canopy_kit.mapping.plots import mapping_figures
@@ -70,15 +97,30 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
 
         truth = load_truth(ctx.truth_dir)
         reference = truth.trajectory_of(getattr(ctx.mapping, "trajectory_frame", ""))
-        mfigs = mapping_figures(ctx.mapping, truth.trajectory if reference is None else reference,
-                                mapping_eval, ground_height=seg.ground.height)
+        mfigs = mapping_figures(
+            ctx.mapping,
+            truth.trajectory if reference is None else reference,
+            mapping_eval,
+            ground_height=seg.ground.height,
+        )
         add_north_arrow_and_scale(mfigs["map"].axes[0])
-        sections.append(ReportSection("Mapping", [
-            ("Estimated trajectory (SE(3)-aligned) against the true one, and the position error "
-             "over time.", figure_to_data_uri(mfigs["trajectory"])),
-            ("The map from above: highest point per cell, coloured by its height above the "
-             "segmentation's ground surface.",
-             figure_to_data_uri(mfigs["map"]))]))
+        sections.append(
+            ReportSection(
+                "Mapping",
+                [
+                    (
+                        "Estimated trajectory (SE(3)-aligned) against the true one, and the position error "
+                        "over time.",
+                        figure_to_data_uri(mfigs["trajectory"]),
+                    ),
+                    (
+                        "The map from above: highest point per cell, coloured by its height above the "
+                        "segmentation's ground surface.",
+                        figure_to_data_uri(mfigs["map"]),
+                    ),
+                ],
+            )
+        )
     from canopy_kit.report.rig import rig_section
 
     rig = rig_section(metrics.get("mapping", {}))
@@ -89,37 +131,73 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         figs = []
         if ok.sum() >= 2:
             sub = trees[ok]
-            figs.append(("Alpha-shape volume against the aerial sphere volume (paper §III.A); "
-                         "trees with a flagged aerial crown left out.",
-                         figure_to_data_uri(plots.plot_agreement(
-                             sub[ALPHA_COLUMN].to_numpy(), sub["aerial_sphere_volume_m3"].to_numpy(),
-                             ("LiDAR alpha shape", "aerial sphere"), list(sub["tree_id"])))))
+            figs.append(
+                (
+                    "Alpha-shape volume against the aerial sphere volume (paper §III.A); "
+                    "trees with a flagged aerial crown left out.",
+                    figure_to_data_uri(
+                        plots.plot_agreement(
+                            sub[ALPHA_COLUMN].to_numpy(),
+                            sub["aerial_sphere_volume_m3"].to_numpy(),
+                            ("LiDAR alpha shape", "aerial sphere"),
+                            list(sub["tree_id"]),
+                        )
+                    ),
+                )
+            )
         from ground_truth.plots import plot_crowns
 
         ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation, ctx.aerial.crowns)
         add_north_arrow_and_scale(ax)
-        figs.append(("Orthomosaic from the drone photos with the delineated crowns (red), each "
-                     "labelled with the ID of the LiDAR tree it was matched to ('aerial n': "
-                     "crown n, matched to none).", figure_to_data_uri(ax.figure)))
+        figs.append(
+            (
+                "Orthomosaic from the drone photos with the delineated crowns (red), each "
+                "labelled with the ID of the LiDAR tree it was matched to ('aerial n': "
+                "crown n, matched to none).",
+                figure_to_data_uri(ax.figure),
+            )
+        )
         sections.append(ReportSection("LiDAR against drone photogrammetry", figs))
     if "true_crown_volume_m3" in trees:
         ok = trees["true_crown_volume_m3"].notna() & trees[ALPHA_COLUMN].notna()
         if ok.sum() >= 2:
             sub = trees[ok]
-            sections.append(ReportSection("Against the simulator's truth", [
-                ("Alpha-shape volume against the exact crown volume.",
-                 figure_to_data_uri(plots.plot_agreement(
-                     sub[ALPHA_COLUMN].to_numpy(), sub["true_crown_volume_m3"].to_numpy(),
-                     ("LiDAR alpha shape", "true crown"), list(sub["tree_id"]))))]))
+            sections.append(
+                ReportSection(
+                    "Against the simulator's truth",
+                    [
+                        (
+                            "Alpha-shape volume against the exact crown volume.",
+                            figure_to_data_uri(
+                                plots.plot_agreement(
+                                    sub[ALPHA_COLUMN].to_numpy(),
+                                    sub["true_crown_volume_m3"].to_numpy(),
+                                    ("LiDAR alpha shape", "true crown"),
+                                    list(sub["tree_id"]),
+                                )
+                            ),
+                        )
+                    ],
+                )
+            )
     if ctx.truth_matches is not None and "tree_id" in cloud.fields:
         from canopy_kit.evaluate import score_point_labels
 
         score = score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
         gallery = plot_failure_gallery(cloud, seg, score, np.asarray(cloud.fields["tree_id"]))
         if gallery is not None:
-            sections.append(ReportSection("Segmentation failures", [
-                ("Side views around each true tree that was not segmented one-to-one: truth "
-                 "(left) and segmentation (right).", figure_to_data_uri(gallery))]))
+            sections.append(
+                ReportSection(
+                    "Segmentation failures",
+                    [
+                        (
+                            "Side views around each true tree that was not segmented one-to-one: truth "
+                            "(left) and segmentation (right).",
+                            figure_to_data_uri(gallery),
+                        )
+                    ],
+                )
+            )
     seg_m = metrics.get("segmentation", {})
     summary = {
         "trees": len(trees),
@@ -129,7 +207,9 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         "drive": format_value(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
         "median alpha volume": format_value(
             float(trees[ALPHA_COLUMN].median()) if len(trees) and ALPHA_COLUMN in trees else None,
-            " m³", 1),
+            " m³",
+            1,
+        ),
         "CRS": cloud.crs or "none",
     }
     table = trees[[c for c in table_columns(volume_cfg.recommended) if c in trees]]
@@ -138,11 +218,18 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
 
     title, subtitle = report_title(provenance, ctx.config.name)
     downloads = report_downloads(ctx, trees, metrics.get("provenance"))
-    return render_report(title, summary, table, sections,
-                         report_checks(metrics, trees, ctx.config), config_toml(config_used(ctx)),
-                         subtitle=subtitle, provenance=provenance,
-                         explorer=explorer_data(ctx, trees, downloads),
-                         row_table=row_table(row_summary(trees)))
+    return render_report(
+        title,
+        summary,
+        table,
+        sections,
+        report_checks(metrics, trees, ctx.config),
+        config_toml(config_used(ctx)),
+        subtitle=subtitle,
+        provenance=provenance,
+        explorer=explorer_data(ctx, trees, downloads),
+        row_table=row_table(row_summary(trees)),
+    )
 
 
 def table_columns(recommended: str) -> list[str]:
@@ -166,20 +253,24 @@ def report_title(provenance: dict[str, Any], preset: str) -> tuple[str, str]:
     return f"canopy-kit report: {preset}", subtitle
 
 
-def report_downloads(ctx: Any, trees: pd.DataFrame,
-                     provenance: dict[str, Any] | None = None) -> list[dict[str, str]]:
+def report_downloads(
+    ctx: Any, trees: pd.DataFrame, provenance: dict[str, Any] | None = None
+) -> list[dict[str, str]]:
     """The files the page offers for download, made by the functions that write them beside
     it (with the run's ``provenance``); a GeoJSON the run does not write (no CRS) is left out."""
     from canopy_kit.outputs import trees_geojson
     from canopy_kit.segment.export import crowns_geojson, rows_geojson
 
     geo = "application/geo+json"
-    files = [("trees.csv", "text/csv", trees.to_csv(index=False)),
-             ("trees.geojson", geo, trees_geojson(trees, provenance)),
-             ("crowns.geojson", geo, crowns_geojson(ctx.segmentation, provenance)),
-             ("rows.geojson", geo, rows_geojson(ctx.segmentation, provenance))]
-    return [{"name": name, "mime": mime, "text": text} for name, mime, text in files
-            if text is not None]
+    files = [
+        ("trees.csv", "text/csv", trees.to_csv(index=False)),
+        ("trees.geojson", geo, trees_geojson(trees, provenance)),
+        ("crowns.geojson", geo, crowns_geojson(ctx.segmentation, provenance)),
+        ("rows.geojson", geo, rows_geojson(ctx.segmentation, provenance)),
+    ]
+    return [
+        {"name": name, "mime": mime, "text": text} for name, mime, text in files if text is not None
+    ]
 
 
 def row_table(rows: pd.DataFrame) -> pd.DataFrame | None:
@@ -187,6 +278,12 @@ def row_table(rows: pd.DataFrame) -> pd.DataFrame | None:
     headers; None without rows."""
     if not len(rows):
         return None
-    return rows.rename(columns={
-        "row": "Row", "trees": "Trees", "median_m3": "Median alpha-shape volume [m³]",
-        "total_m3": "Total alpha-shape volume [m³]", "flagged": "Flagged trees"})
+    return rows.rename(
+        columns={
+            "row": "Row",
+            "trees": "Trees",
+            "median_m3": "Median alpha-shape volume [m³]",
+            "total_m3": "Total alpha-shape volume [m³]",
+            "flagged": "Flagged trees",
+        }
+    )

@@ -56,8 +56,9 @@ def alpha_surface(xyz: np.ndarray, alpha: float) -> Surface | None:
     kept = tetra.simplices[tetra.circumradius < alpha]
     if not len(kept):
         return None
-    faces = np.concatenate([kept[:, [0, 1, 2]], kept[:, [0, 1, 3]],
-                            kept[:, [0, 2, 3]], kept[:, [1, 2, 3]]])
+    faces = np.concatenate(
+        [kept[:, [0, 1, 2]], kept[:, [0, 1, 3]], kept[:, [0, 2, 3]], kept[:, [1, 2, 3]]]
+    )
     boundary = faces[_once(np.sort(faces, axis=1).astype(np.int64), len(xyz))]
     volume = float(tetra.volume[tetra.circumradius < alpha].sum())
     return _compact("alpha shape", xyz, boundary, volume)

@@ -12,8 +12,12 @@ from importlib import import_module
 from typing import Any
 
 #: Public names, loaded on first use: importing a submodule (a plugin) loads nothing more.
-_EXPORTS = {"segment": "canopy_kit.segment.verb", "make_segmenter": "canopy_kit.segment.verb",
-            "Segmentation": "canopy_kit.segment.result", "TreeRecord": "canopy_kit.segment.result"}
+_EXPORTS = {
+    "segment": "canopy_kit.segment.verb",
+    "make_segmenter": "canopy_kit.segment.verb",
+    "Segmentation": "canopy_kit.segment.result",
+    "TreeRecord": "canopy_kit.segment.result",
+}
 __all__ = ["Segmentation", "TreeRecord", "make_segmenter", "segment"]
 
 

@@ -93,10 +93,16 @@ class AdaptiveSegmenter(Segmenter):
         Seed of the point-spacing sample.
     """
 
-    def __init__(self, link_factor: float = 2.0, crumb_fraction: float = 0.1,
-                 crumb_reach: float = 0.25, use_stems: bool = True,
-                 stem_search_radius: float = 1.0, crown_split: bool = True,
-                 random_state: int = 0) -> None:
+    def __init__(
+        self,
+        link_factor: float = 2.0,
+        crumb_fraction: float = 0.1,
+        crumb_reach: float = 0.25,
+        use_stems: bool = True,
+        stem_search_radius: float = 1.0,
+        crown_split: bool = True,
+        random_state: int = 0,
+    ) -> None:
         self.link_factor = link_factor
         self.crown_split = crown_split
         self.crumb_fraction = crumb_fraction
@@ -112,8 +118,13 @@ class AdaptiveSegmenter(Segmenter):
             check_positive(getattr(self, name), name, owner)
         super().validate_params()
 
-    def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None,  # noqa: N803
-            stem_xyz: np.ndarray | None = None) -> "AdaptiveSegmenter":
+    def fit(
+        self,
+        X: np.ndarray,
+        y: None = None,
+        sample_weight: np.ndarray | None = None,
+        stem_xyz: np.ndarray | None = None,
+    ) -> AdaptiveSegmenter:
         """Segment canopy points ``X`` (x, y, height above ground); sets ``labels_`` etc.
 
         Fitted: ``labels_``, ``n_clusters_``, ``stems_`` (trunks used), ``markers_``
@@ -135,8 +146,9 @@ class AdaptiveSegmenter(Segmenter):
         stems = detect_stems(stem_xyz) if (self.use_stems and stem_xyz is not None) else no_stems()
         stem_part = self._stems_to_parts(xyz, w, parts, stems)
         keep = stem_part >= 0
-        stems = StemDetections(stems.xy[keep], stems.n_points[keep], stems.radius[keep],
-                               stems.coverage[keep])
+        stems = StemDetections(
+            stems.xy[keep], stems.n_points[keep], stems.radius[keep], stems.coverage[keep]
+        )
         stem_part = stem_part[keep]
         n_parts = int(parts.max()) + 1
         part_weight = np.bincount(parts[parts >= 0], weights=w[parts >= 0], minlength=n_parts)
@@ -172,8 +184,9 @@ class AdaptiveSegmenter(Segmenter):
         return self
 
     # ------------------------------------------------------------------------------------
-    def _stems_to_parts(self, xyz: np.ndarray, w: np.ndarray, parts: np.ndarray,
-                        stems: StemDetections) -> np.ndarray:
+    def _stems_to_parts(
+        self, xyz: np.ndarray, w: np.ndarray, parts: np.ndarray, stems: StemDetections
+    ) -> np.ndarray:
         """The canopy part above each trunk (-1: no canopy above it, not a tree's trunk)."""
         out = np.full(len(stems), -1, dtype=np.int64)
         valid = parts >= 0
@@ -186,9 +199,15 @@ class AdaptiveSegmenter(Segmenter):
                 out[i] = np.bincount(vparts[near], weights=vw[near]).argmax()
         return out
 
-    def _tree_scale(self, xyz: np.ndarray, w: np.ndarray, parts: np.ndarray,
-                    part_weight: np.ndarray, stems: StemDetections,
-                    stems_per_part: np.ndarray) -> TreeScale:
+    def _tree_scale(
+        self,
+        xyz: np.ndarray,
+        w: np.ndarray,
+        parts: np.ndarray,
+        part_weight: np.ndarray,
+        stems: StemDetections,
+        stems_per_part: np.ndarray,
+    ) -> TreeScale:
         """Spacing, crown length and weight of one tree, from trunks or isolated crowns."""
         heavy = part_weight >= 0.05 * part_weight.max()
         geometry = {}
@@ -226,16 +245,26 @@ class AdaptiveSegmenter(Segmenter):
             cell = max(self.point_spacing_, 0.25)
             spacing = chm_spacing(xyz[m], cell)
             if np.isfinite(spacing):
-                return TreeScale(spacing, spacing, float(part_weight[heaviest]) * (spacing / max(ln, 1e-9)) ** 2,
-                                 "canopy height rhythm")
+                return TreeScale(
+                    spacing,
+                    spacing,
+                    float(part_weight[heaviest]) * (spacing / max(ln, 1e-9)) ** 2,
+                    "canopy height rhythm",
+                )
         # Crowns merged into rows and no trunks: a crown is about as long as the row is wide.
         widths = [wd for (_, wd, _) in geometry.values()]
         width = float(np.median(widths)) if widths else 3.0
         n_trees = max(1.0, round(geometry[heaviest][0] / width))
         return TreeScale(width, width, float(part_weight[heaviest] / n_trees), "row width")
 
-    def _merge_crumbs(self, xyz: np.ndarray, parts: np.ndarray, part_weight: np.ndarray,
-                      stems_per_part: np.ndarray, scale: TreeScale) -> np.ndarray:
+    def _merge_crumbs(
+        self,
+        xyz: np.ndarray,
+        parts: np.ndarray,
+        part_weight: np.ndarray,
+        stems_per_part: np.ndarray,
+        scale: TreeScale,
+    ) -> np.ndarray:
         """Parts far lighter than a tree join the nearest real part, or become noise."""
         crumbs = (part_weight < self.crumb_fraction * scale.weight) & (stems_per_part == 0)
         if not crumbs.any():
@@ -249,7 +278,8 @@ class AdaptiveSegmenter(Segmenter):
         crumb_idx = np.flatnonzero(is_crumb)
         solid_idx = np.flatnonzero(solid)
         dist, nearest = cKDTree(xyz[solid]).query(
-            xyz[crumb_idx], distance_upper_bound=self.crumb_reach * scale.spacing)
+            xyz[crumb_idx], distance_upper_bound=self.crumb_reach * scale.spacing
+        )
         # A crumb joins the part its closest point is nearest to (the whole crumb moves).
         cp = parts[crumb_idx]
         best = np.full(len(part_weight), np.inf)
@@ -262,8 +292,9 @@ class AdaptiveSegmenter(Segmenter):
         out[crumb_idx] = target[cp]
         return out
 
-    def _markers(self, xyz: np.ndarray, w: np.ndarray, stems: np.ndarray,
-                 scale: TreeScale) -> tuple[np.ndarray, bool]:
+    def _markers(
+        self, xyz: np.ndarray, w: np.ndarray, stems: np.ndarray, scale: TreeScale
+    ) -> tuple[np.ndarray, bool]:
         """Tree positions (x, y) in one canopy part: its trunks plus trees without one;
         and whether they are crown tops of a patch that is not a row."""
         centre, axis = principal_axis(xyz[:, :2], w)
@@ -288,7 +319,10 @@ class AdaptiveSegmenter(Segmenter):
             k = int(round((b - a) / s)) - 1
             spots.extend(np.linspace(a, b, k + 2)[1:-1].tolist() if k > 0 else [])
         # Beyond the end trunks a part reaches half a crown; more than that holds trees.
-        for end, reach in ((stem_along[0], stem_along[0] - lo), (stem_along[-1], hi - stem_along[-1])):
+        for end, reach in (
+            (stem_along[0], stem_along[0] - lo),
+            (stem_along[-1], hi - stem_along[-1]),
+        ):
             k = int(round((reach - half) / s))
             sign = -1.0 if end == stem_along[0] and reach == stem_along[0] - lo else 1.0
             spots.extend((end + sign * s * np.arange(1, k + 1)).tolist() if k > 0 else [])
@@ -297,8 +331,9 @@ class AdaptiveSegmenter(Segmenter):
         return np.concatenate([stems, self._on_canopy(xyz, w, along, np.array(spots), s)]), False
 
     @staticmethod
-    def _on_canopy(xyz: np.ndarray, w: np.ndarray, along: np.ndarray, spots: np.ndarray,
-                   spacing: float) -> np.ndarray:
+    def _on_canopy(
+        xyz: np.ndarray, w: np.ndarray, along: np.ndarray, spots: np.ndarray, spacing: float
+    ) -> np.ndarray:
         """Positions at along-axis ``spots``: the centroid of the canopy within half a spacing
         (follows a curved row), or the nearest canopy point when the slice is empty."""
         out = []

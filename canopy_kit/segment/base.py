@@ -34,7 +34,7 @@ class Segmenter(ClusterMixin, BaseEstimator):
         """
         validate_types(self, type(self).__name__)
 
-    def fit_predict(self, X: np.ndarray, y: None = None, **fit_params: object) -> np.ndarray:  # noqa: N803
+    def fit_predict(self, X: np.ndarray, y: None = None, **fit_params: object) -> np.ndarray:
         """Fit and return one label per point (-1 for noise)."""
         return self.fit(X, **fit_params).labels_
 

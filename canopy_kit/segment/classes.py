@@ -14,8 +14,9 @@ import numpy as np
 UNCLASSIFIED, GROUND, MEDIUM_VEGETATION, HIGH_VEGETATION = 1, 2, 4, 5
 
 
-def classify_points(labels: np.ndarray, height: np.ndarray, ground_threshold: float,
-                    min_canopy_height: float) -> np.ndarray:
+def classify_points(
+    labels: np.ndarray, height: np.ndarray, ground_threshold: float, min_canopy_height: float
+) -> np.ndarray:
     """LAS class per point from its segment label and height above the ground model."""
     labels = np.asarray(labels)
     height = np.asarray(height, dtype=np.float64)

@@ -30,21 +30,27 @@ def point_normals(xyz: np.ndarray, k: int = 24) -> np.ndarray:
     nb = nb.reshape(len(xyz), k)
     out = np.empty((len(xyz), 3))
     for a in range(0, len(xyz), 200_000):  # bounded memory on big parts
-        p = xyz[nb[a:a + 200_000]]
+        p = xyz[nb[a : a + 200_000]]
         p = p - p.mean(axis=1, keepdims=True)
         _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", p, p))
-        out[a:a + 200_000] = vecs[:, :, 0]
+        out[a : a + 200_000] = vecs[:, :, 0]
     return out
 
 
 def _groups(labels: np.ndarray, n: int) -> list[np.ndarray]:
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], np.arange(n + 1))
-    return [order[bounds[k]:bounds[k + 1]] for k in range(n)]
+    return [order[bounds[k] : bounds[k + 1]] for k in range(n)]
 
 
-def fit_crowns(xyz: np.ndarray, normals: np.ndarray, labels: np.ndarray, n_trees: int,
-               positions: np.ndarray, min_points: int = 30) -> tuple[np.ndarray, np.ndarray]:
+def fit_crowns(
+    xyz: np.ndarray,
+    normals: np.ndarray,
+    labels: np.ndarray,
+    n_trees: int,
+    positions: np.ndarray,
+    min_points: int = 30,
+) -> tuple[np.ndarray, np.ndarray]:
     """Per tree: crown centre (x, y, z) and semi-axes (horizontal, vertical).
 
     Centre: the least-squares meeting point of the normal lines of its points; semi-axes:
@@ -61,25 +67,38 @@ def fit_crowns(xyz: np.ndarray, normals: np.ndarray, labels: np.ndarray, n_trees
         p, n = xyz[m], normals[m]
         proj = eye[None] - n[:, :, None] * n[:, None, :]
         a = proj.sum(axis=0)
-        c = (np.linalg.solve(a, np.einsum("nij,nj->i", proj, p)) if np.linalg.cond(a) < 1e4
-             else np.array([*positions[k], np.median(p[:, 2])]))
+        c = (
+            np.linalg.solve(a, np.einsum("nij,nj->i", proj, p))
+            if np.linalg.cond(a) < 1e4
+            else np.array([*positions[k], np.median(p[:, 2])])
+        )
         d = p - c
-        sol, *_ = np.linalg.lstsq(np.column_stack([d[:, 0] ** 2 + d[:, 1] ** 2, d[:, 2] ** 2]),
-                                  np.ones(len(d)), rcond=None)
+        sol, *_ = np.linalg.lstsq(
+            np.column_stack([d[:, 0] ** 2 + d[:, 1] ** 2, d[:, 2] ** 2]),
+            np.ones(len(d)),
+            rcond=None,
+        )
         if np.all(sol > 0):
             centre[k], semi[k] = c, 1.0 / np.sqrt(sol)
     ok = np.isfinite(semi[:, 0])
     if not ok.any():
-        return np.column_stack([positions, np.full(n_trees, np.median(xyz[:, 2]))]), np.ones((n_trees, 2))
+        return np.column_stack([positions, np.full(n_trees, np.median(xyz[:, 2]))]), np.ones(
+            (n_trees, 2)
+        )
     semi[~ok] = np.median(semi[ok], axis=0)
     centre[~ok, :2] = positions[~ok]
     centre[~ok, 2] = np.median(centre[ok, 2])
     return centre, semi
 
 
-def crown_split(xyz: np.ndarray, positions: np.ndarray, n_iter: int = 5,
-                tolerance: float = 1.02, n_candidates: int = 4,
-                normal_neighbours: int = 24) -> np.ndarray:
+def crown_split(
+    xyz: np.ndarray,
+    positions: np.ndarray,
+    n_iter: int = 5,
+    tolerance: float = 1.02,
+    n_candidates: int = 4,
+    normal_neighbours: int = 24,
+) -> np.ndarray:
     """Labels (index into ``positions``) of points ``xyz`` (x, y, height) split between the
     trees at ``positions`` (x, y) by fitted crowns (module docstring).
 
@@ -98,8 +117,10 @@ def crown_split(xyz: np.ndarray, positions: np.ndarray, n_iter: int = 5,
         _, cand = cKDTree(centre[:, :2]).query(xyz[:, :2], k=kc)
         cand = cand.reshape(len(xyz), kc)
         d = xyz[:, None, :] - centre[cand]
-        depth = np.sqrt((d[..., 0] ** 2 + d[..., 1] ** 2) / semi[cand, 0] ** 2
-                        + d[..., 2] ** 2 / semi[cand, 1] ** 2)
+        depth = np.sqrt(
+            (d[..., 0] ** 2 + d[..., 1] ** 2) / semi[cand, 0] ** 2
+            + d[..., 2] ** 2 / semi[cand, 1] ** 2
+        )
         new = cand[np.arange(len(xyz)), _assign(depth, tolerance)]
         if np.array_equal(new, labels):
             break

@@ -23,8 +23,9 @@ def lattice_is_cheaper(xyz: np.ndarray, eps: float) -> bool:
     return bool(cells <= 200.0 * len(xyz))
 
 
-def run_dbscan(xyz: np.ndarray, eps: float, min_samples: float, weight: np.ndarray,
-               algorithm: str) -> tuple[np.ndarray, np.ndarray]:
+def run_dbscan(
+    xyz: np.ndarray, eps: float, min_samples: float, weight: np.ndarray, algorithm: str
+) -> tuple[np.ndarray, np.ndarray]:
     """DBSCAN labels and core mask: ``grid``, ``exact`` or ``auto`` (the cheaper one)."""
     if algorithm == "auto":
         algorithm = "grid" if lattice_is_cheaper(xyz, eps) else "exact"
@@ -57,8 +58,9 @@ class DBSCANSegmenter(Segmenter):
         scikit-learn's result) or ``auto`` (the cheaper one for the data).
     """
 
-    def __init__(self, eps: float = 0.8, min_samples: float = 1300,
-                 algorithm: str = "auto") -> None:
+    def __init__(
+        self, eps: float = 0.8, min_samples: float = 1300, algorithm: str = "auto"
+    ) -> None:
         self.eps = eps
         self.min_samples = min_samples
         self.algorithm = algorithm
@@ -71,13 +73,18 @@ class DBSCANSegmenter(Segmenter):
         check_choice(self.algorithm, "algorithm", owner, ALGORITHMS)
         super().validate_params()
 
-    def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None  # noqa: N803
-            ) -> "DBSCANSegmenter":
+    def fit(
+        self,
+        X: np.ndarray,
+        y: None = None,
+        sample_weight: np.ndarray | None = None,
+    ) -> DBSCANSegmenter:
         """Cluster points ``X`` (N, 3); sets ``labels_``, ``core_sample_mask_``, ``n_clusters_``."""
         self.validate_params()
         xyz = check_points(X)
         w = check_weight(sample_weight, len(xyz))
-        self.labels_, self.core_sample_mask_ = run_dbscan(xyz, self.eps, self.min_samples, w,
-                                                          self.algorithm)
+        self.labels_, self.core_sample_mask_ = run_dbscan(
+            xyz, self.eps, self.min_samples, w, self.algorithm
+        )
         self.n_clusters_ = int(self.labels_.max()) + 1 if len(self.labels_) else 0
         return self

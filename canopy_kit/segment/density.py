@@ -24,8 +24,9 @@ from canopy_kit.errors import InputError
 Progress = Callable[[str, float, float], None]
 
 
-def spatial_tiles(xy: np.ndarray, margin: float, target_points: int = 40000
-                  ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def spatial_tiles(
+    xy: np.ndarray, margin: float, target_points: int = 40000
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Square xy tiles of about ``target_points`` each: (owned points, owned + margin).
 
     Every point is owned by exactly one tile; the second array adds the points of other
@@ -47,12 +48,16 @@ def spatial_tiles(xy: np.ndarray, margin: float, target_points: int = 40000
     for tx in range(span[0]):
         for ty in range(span[1]):
             t = tx * span[1] + ty
-            own = order[bounds[t]:bounds[t + 1]]
+            own = order[bounds[t] : bounds[t + 1]]
             if len(own) == 0:
                 continue
-            near = np.concatenate([order[bounds[a * span[1] + b]:bounds[a * span[1] + b + 1]]
-                                   for a in range(max(tx - 1, 0), min(tx + 2, span[0]))
-                                   for b in range(max(ty - 1, 0), min(ty + 2, span[1]))])
+            near = np.concatenate(
+                [
+                    order[bounds[a * span[1] + b] : bounds[a * span[1] + b + 1]]
+                    for a in range(max(tx - 1, 0), min(tx + 2, span[0]))
+                    for b in range(max(ty - 1, 0), min(ty + 2, span[1]))
+                ]
+            )
             box_lo = lo + np.array([tx, ty]) * size - margin
             box_hi = box_lo + size + 2 * margin
             inside = np.all((xy[near] >= box_lo) & (xy[near] <= box_hi), axis=1)
@@ -67,8 +72,9 @@ def _pairs(xyz: np.ndarray, members: np.ndarray, eps: float) -> tuple[np.ndarray
     return members[pairs[:, 0]], members[pairs[:, 1]]
 
 
-def neighbour_weight(xyz: np.ndarray, eps: float, sample_weight: np.ndarray | None = None,
-                     target_points: int = 40000) -> np.ndarray:
+def neighbour_weight(
+    xyz: np.ndarray, eps: float, sample_weight: np.ndarray | None = None, target_points: int = 40000
+) -> np.ndarray:
     """Sum of the weights of the points within ``eps`` of every point (itself included)."""
     xyz = np.asarray(xyz, dtype=np.float64)
     if sample_weight is None:
@@ -87,9 +93,14 @@ def neighbour_weight(xyz: np.ndarray, eps: float, sample_weight: np.ndarray | No
     return out
 
 
-def weighted_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
-                    sample_weight: np.ndarray | None = None, target_points: int = 40000,
-                    progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
+def weighted_dbscan(
+    xyz: np.ndarray,
+    eps: float,
+    min_samples: float,
+    sample_weight: np.ndarray | None = None,
+    target_points: int = 40000,
+    progress: Progress | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """DBSCAN labels (-1 noise) and the core-point mask, in memory linear in the points.
 
     ``min_samples`` is compared with the summed ``sample_weight`` of the neighbours within
@@ -114,8 +125,9 @@ def weighted_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
     cell = eps / np.sqrt(3.0) * (1 - 1e-9)
     keys = np.floor((cp - cp.min(axis=0)) / cell).astype(np.int64)
     span = keys.max(axis=0) + 1
-    _, cell_of = np.unique((keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2],
-                           return_inverse=True)
+    _, cell_of = np.unique(
+        (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2], return_inverse=True
+    )
     cell_of = cell_of.ravel()
     n_cells = int(cell_of.max()) + 1
     links = []
@@ -124,11 +136,13 @@ def weighted_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
         a, b = cell_of[i], cell_of[j]
         keep = a != b
         if keep.any():
-            links.append(np.unique(np.minimum(a[keep], b[keep]) * n_cells
-                                   + np.maximum(a[keep], b[keep])))
+            links.append(
+                np.unique(np.minimum(a[keep], b[keep]) * n_cells + np.maximum(a[keep], b[keep]))
+            )
     ab = np.unique(np.concatenate(links)) if links else np.zeros(0, np.int64)
-    graph = sparse.coo_matrix((np.ones(len(ab), np.int8), (ab // n_cells, ab % n_cells)),
-                              shape=(n_cells, n_cells))
+    graph = sparse.coo_matrix(
+        (np.ones(len(ab), np.int8), (ab // n_cells, ab % n_cells)), shape=(n_cells, n_cells)
+    )
     _, comp = connected_components(graph, directed=False)
     labels[core_idx] = comp[cell_of]
     border = np.flatnonzero(~core)
@@ -165,10 +179,15 @@ def _ball_kernel(radius_cells: float) -> np.ndarray:
     return (d2 <= best).astype(np.float64)
 
 
-def grid_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
-                sample_weight: np.ndarray | None = None, cell: float | None = None,
-                tile_size: float | None = None,
-                progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
+def grid_dbscan(
+    xyz: np.ndarray,
+    eps: float,
+    min_samples: float,
+    sample_weight: np.ndarray | None = None,
+    cell: float | None = None,
+    tile_size: float | None = None,
+    progress: Progress | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """DBSCAN on a lattice of edge ``cell`` (default ``eps / 8``), tile by tile.
 
     Points are binned into cells; a cell is core when the summed weight of the cells whose
@@ -200,7 +219,9 @@ def grid_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
     cells, point_cell = np.unique(lin, return_inverse=True)
     point_cell = point_cell.ravel()
     cw = np.bincount(point_cell, weights=w)
-    ck = np.column_stack([cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]])
+    ck = np.column_stack(
+        [cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]]
+    )
     m = int(np.ceil(eps / h))
     kernel = _ball_kernel(eps / h)
     volume_ratio = 4.0 / 3.0 * np.pi * (eps / h) ** 3 / kernel.sum()  # lattice ball -> ball
@@ -210,10 +231,18 @@ def grid_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
     owned_in = []
     # Pass 1: core cells (the owned cells of each tile, with an eps margin for the sums).
     for k, (tx, ty) in enumerate(tiles):
-        sel = np.flatnonzero((ck[:, 0] >= tx - m) & (ck[:, 0] < tx + tile + m)
-                             & (ck[:, 1] >= ty - m) & (ck[:, 1] < ty + tile + m))
-        own = sel[(ck[sel, 0] >= tx) & (ck[sel, 0] < tx + tile)
-                  & (ck[sel, 1] >= ty) & (ck[sel, 1] < ty + tile)]
+        sel = np.flatnonzero(
+            (ck[:, 0] >= tx - m)
+            & (ck[:, 0] < tx + tile + m)
+            & (ck[:, 1] >= ty - m)
+            & (ck[:, 1] < ty + tile + m)
+        )
+        own = sel[
+            (ck[sel, 0] >= tx)
+            & (ck[sel, 0] < tx + tile)
+            & (ck[sel, 1] >= ty)
+            & (ck[sel, 1] < ty + tile)
+        ]
         owned_in.append(len(own))
         if len(own) == 0:
             continue
@@ -234,8 +263,12 @@ def grid_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
     for k, (tx, ty) in enumerate(tiles):
         if owned_in[k] == 0:
             continue
-        sel = np.flatnonzero((ck[:, 0] >= tx - m) & (ck[:, 0] < tx + tile + m)
-                             & (ck[:, 1] >= ty - m) & (ck[:, 1] < ty + tile + m))
+        sel = np.flatnonzero(
+            (ck[:, 0] >= tx - m)
+            & (ck[:, 0] < tx + tile + m)
+            & (ck[:, 1] >= ty - m)
+            & (ck[:, 1] < ty + tile + m)
+        )
         csel = sel[core[sel]]
         if len(csel) == 0:
             continue
@@ -249,13 +282,19 @@ def grid_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
         comp_of_core = blobs[loc[:, 0], loc[:, 1], loc[:, 2]] + next_comp
         next_comp += int(blobs.max()) + 1
         core_pairs.append(np.column_stack([comp_of_core, csel]))
-        own = sel[(ck[sel, 0] >= tx) & (ck[sel, 0] < tx + tile)
-                  & (ck[sel, 1] >= ty) & (ck[sel, 1] < ty + tile)]
+        own = sel[
+            (ck[sel, 0] >= tx)
+            & (ck[sel, 0] < tx + tile)
+            & (ck[sel, 1] >= ty)
+            & (ck[sel, 1] < ty + tile)
+        ]
         lo_own = ck[own] - base
         near = dist[lo_own[:, 0], lo_own[:, 1], lo_own[:, 2]] <= eps / h + 1e-9
-        src = (ii[lo_own[near, 0], lo_own[near, 1], lo_own[near, 2]],
-               jj[lo_own[near, 0], lo_own[near, 1], lo_own[near, 2]],
-               kk[lo_own[near, 0], lo_own[near, 1], lo_own[near, 2]])
+        src = (
+            ii[lo_own[near, 0], lo_own[near, 1], lo_own[near, 2]],
+            jj[lo_own[near, 0], lo_own[near, 1], lo_own[near, 2]],
+            kk[lo_own[near, 0], lo_own[near, 1], lo_own[near, 2]],
+        )
         cell_label[own[near]] = blobs[src] + next_comp - int(blobs.max()) - 1
         if progress:
             progress("DBSCAN", len(tiles) + k + 1, 2 * len(tiles))
@@ -263,8 +302,10 @@ def grid_dbscan(xyz: np.ndarray, eps: float, min_samples: float,
         return labels, core[point_cell]
     pairs = np.concatenate(core_pairs)
     # Components seen through the same core cell in two tiles are one cluster.
-    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1] + next_comp)),
-                              shape=(next_comp + len(cells), next_comp + len(cells)))
+    graph = sparse.coo_matrix(
+        (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1] + next_comp)),
+        shape=(next_comp + len(cells), next_comp + len(cells)),
+    )
     _, joined = connected_components(graph, directed=False)
     ok = cell_label >= 0
     cell_label[ok] = joined[cell_label[ok]]

@@ -32,11 +32,19 @@ from canopy_kit.io.atomic import atomic_write_text
 from canopy_kit.io.gpkg import read_gpkg_layer, write_gpkg
 from canopy_kit.segment.result import Segmentation
 
-FILES = {"cloud": "segmented.laz", "trees": "trees.csv", "positions": "trees.geojson",
-         "crowns": "crowns.geojson", "rows": "rows.geojson", "gis": "trees.gpkg",
-         "summary": "segmentation.json"}
-NO_CRS_NOTE = ("no GeoJSON written: the map has no CRS (no GNSS fix georeferenced it), and "
-               "RFC 7946 GeoJSON is WGS84 only; trees.gpkg holds the layers in the local frame")
+FILES = {
+    "cloud": "segmented.laz",
+    "trees": "trees.csv",
+    "positions": "trees.geojson",
+    "crowns": "crowns.geojson",
+    "rows": "rows.geojson",
+    "gis": "trees.gpkg",
+    "summary": "segmentation.json",
+}
+NO_CRS_NOTE = (
+    "no GeoJSON written: the map has no CRS (no GNSS fix georeferenced it), and "
+    "RFC 7946 GeoJSON is WGS84 only; trees.gpkg holds the layers in the local frame"
+)
 RUN_CLOUD = "map.laz"  # the cloud of a ``canopy-kit run`` folder
 
 
@@ -58,9 +66,13 @@ def positions_geojson(seg: Segmentation, provenance: dict[str, Any] | None = Non
         return None
     table = seg.table()
     lon, lat = lonlat_of(table[["x", "y"]].to_numpy(), seg.crs, seg.origin)
-    feats = [geojson.feature(geojson.point(lo, la, rec["z"] + seg.origin[2]),
-                             {k: v for k, v in rec.items() if k not in ("x", "y", "z")})
-             for lo, la, rec in zip(lon, lat, table.to_dict(orient="records"))]
+    feats = [
+        geojson.feature(
+            geojson.point(lo, la, rec["z"] + seg.origin[2]),
+            {k: v for k, v in rec.items() if k not in ("x", "y", "z")},
+        )
+        for lo, la, rec in zip(lon, lat, table.to_dict(orient="records"))
+    ]
     return geojson.feature_collection(feats, provenance)
 
 
@@ -82,8 +94,11 @@ def rows_geojson(seg: Segmentation, provenance: dict[str, Any] | None = None) ->
     feats = []
     for line in seg.rows.lines:
         lon, lat = lonlat_of(line.polyline(), seg.crs, seg.origin)
-        feats.append(geojson.feature(geojson.line_string(lon, lat),
-                                     {"row": line.row, "n_trees": line.n_trees}))
+        feats.append(
+            geojson.feature(
+                geojson.line_string(lon, lat), {"row": line.row, "n_trees": line.n_trees}
+            )
+        )
     return geojson.feature_collection(feats, provenance)
 
 
@@ -101,8 +116,9 @@ def _crown_properties(t: Any) -> dict[str, Any]:
     return {"segment_id": t.segment_id, "tree_id": t.tree_id, "row": t.row, "label": t.label}
 
 
-def gis_layers(seg: Segmentation, trees: pd.DataFrame | None = None
-               ) -> dict[str, tuple[pd.DataFrame, list[Any]]]:
+def gis_layers(
+    seg: Segmentation, trees: pd.DataFrame | None = None
+) -> dict[str, tuple[pd.DataFrame, list[Any]]]:
     """The GeoPackage layers in the map's projected CRS (``local + origin``): ``trees``
     (points of ``trees``, default the segmentation's table), ``crowns``, ``rows``."""
     from shapely.geometry import LineString, Point, Polygon
@@ -111,18 +127,25 @@ def gis_layers(seg: Segmentation, trees: pd.DataFrame | None = None
     table = seg.table() if trees is None else trees
     points = [Point(x + ox, y + oy) for x, y in table[["x", "y"]].to_numpy()]
     crowns = _crowns(seg)
-    crown_rows = pd.DataFrame([_crown_properties(t) for t, _ in crowns],
-                              columns=["segment_id", "tree_id", "row", "label"])
+    crown_rows = pd.DataFrame(
+        [_crown_properties(t) for t, _ in crowns], columns=["segment_id", "tree_id", "row", "label"]
+    )
     polygons = [Polygon(hull + seg.origin[:2]) for _, hull in crowns]
     lines = seg.rows.lines
-    row_rows = pd.DataFrame({"row": [ln.row for ln in lines], "n_trees": [ln.n_trees for ln in lines]})
+    row_rows = pd.DataFrame(
+        {"row": [ln.row for ln in lines], "n_trees": [ln.n_trees for ln in lines]}
+    )
     strings = [LineString(ln.polyline() + seg.origin[:2]) for ln in lines]
     return {"trees": (table, points), "crowns": (crown_rows, polygons), "rows": (row_rows, strings)}
 
 
-def write_segmentation(out_dir: str | Path, seg: Segmentation, cloud: PointCloud,
-                       with_cloud: bool = True,
-                       provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+def write_segmentation(
+    out_dir: str | Path,
+    seg: Segmentation,
+    cloud: PointCloud,
+    with_cloud: bool = True,
+    provenance: dict[str, Any] | None = None,
+) -> dict[str, Path]:
     """Write a run folder (see module docstring); returns the paths written."""
     from canopy_kit.io.clouds import write_cloud
     from canopy_kit.segment.labelled import labelled_map
@@ -152,19 +175,24 @@ def write_geojson(out_dir: Path, texts: dict[str, str | None]) -> dict[str, Path
     return paths
 
 
-def write_segmentation_summary(out_dir: str | Path, seg: Segmentation,
-                               trees: pd.DataFrame | None = None,
-                               provenance: dict[str, Any] | None = None) -> dict[str, Path]:
+def write_segmentation_summary(
+    out_dir: str | Path,
+    seg: Segmentation,
+    trees: pd.DataFrame | None = None,
+    provenance: dict[str, Any] | None = None,
+) -> dict[str, Path]:
     """``crowns.geojson``, ``rows.geojson``, ``trees.gpkg`` and ``segmentation.json``: what
     scoring a run needs besides its tree table and labelled cloud (``trees``: the table of
     the GeoPackage's trees layer, default the segmentation's)."""
     out = Path(out_dir)
-    paths = write_geojson(out, {"crowns": crowns_geojson(seg, provenance),
-                                "rows": rows_geojson(seg, provenance)})
+    paths = write_geojson(
+        out, {"crowns": crowns_geojson(seg, provenance), "rows": rows_geojson(seg, provenance)}
+    )
     paths["gis"] = write_gpkg(out / FILES["gis"], gis_layers(seg, trees), seg.crs, provenance)
     summary = seg.summary() | ({} if seg.crs else {"geojson": NO_CRS_NOTE})
-    paths["summary"] = atomic_write_text(out / FILES["summary"],
-                                         json.dumps(summary, indent=2, default=_plain) + "\n")
+    paths["summary"] = atomic_write_text(
+        out / FILES["summary"], json.dumps(summary, indent=2, default=_plain) + "\n"
+    )
     return paths
 
 
@@ -196,22 +224,30 @@ def read_footprints(root: Path, summary: dict[str, Any]) -> dict[int, np.ndarray
     origin = np.asarray(summary.get("origin", [0, 0, 0]), float)
     if (root / FILES["gis"]).exists():
         crowns = read_gpkg_layer(root / FILES["gis"], "crowns")
-        return {int(sid): np.asarray(poly.exterior.coords, float)[:-1] - origin[:2]
-                for sid, poly in zip(crowns["segment_id"], crowns.geometry)}
+        return {
+            int(sid): np.asarray(poly.exterior.coords, float)[:-1] - origin[:2]
+            for sid, poly in zip(crowns["segment_id"], crowns.geometry)
+        }
     path = root / FILES["crowns"]
     if not path.exists():
         return {}
     try:
         data = json.loads(path.read_text())
-        features = [(int(f["properties"]["segment_id"]),
-                     np.asarray(f["geometry"]["coordinates"][0], float)[:-1, :2])
-                    for f in data["features"]]
+        features = [
+            (
+                int(f["properties"]["segment_id"]),
+                np.asarray(f["geometry"]["coordinates"][0], float)[:-1, :2],
+            )
+            for f in data["features"]
+        ]
     except (ValueError, KeyError, TypeError, IndexError) as exc:
         raise InputError(f"{path}: not a crowns GeoJSON ({type(exc).__name__}: {exc})") from None
     if "crs" in data:  # projected, the deprecated member of older runs
         return {sid: ring - origin[:2] for sid, ring in features}
     if not summary.get("crs"):
-        raise InputError(f"{path}: WGS84 crowns but {FILES['summary']} names no CRS to project them")
+        raise InputError(
+            f"{path}: WGS84 crowns but {FILES['summary']} names no CRS to project them"
+        )
     return {sid: local_of(ring[:, 0], ring[:, 1], summary["crs"], origin) for sid, ring in features}
 
 

@@ -50,8 +50,13 @@ def lowest_per_cell(xyz: np.ndarray, cell: float) -> np.ndarray:
     return xyz[first_minimum(lin, xyz[:, 2])]
 
 
-def ransac_plane(points: np.ndarray, threshold: float, rng: np.random.Generator,
-                 iterations: int = 64, max_slope: float = 0.6) -> tuple[np.ndarray, np.ndarray] | None:
+def ransac_plane(
+    points: np.ndarray,
+    threshold: float,
+    rng: np.random.Generator,
+    iterations: int = 64,
+    max_slope: float = 0.6,
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Plane ``z = a x + b y + c`` with most inliers within ``threshold``; (coef, inliers).
 
     Candidate planes steeper than ``max_slope`` (rise over run) are rejected: ground in an
@@ -90,8 +95,14 @@ def ransac_plane(points: np.ndarray, threshold: float, rng: np.random.Generator,
     return refined, inliers
 
 
-def fit_ground(xyz: np.ndarray, cell_size: float = 4.0, threshold: float = 0.15,
-               candidate_cell: float = 0.5, min_candidates: int = 8, seed: int = 0) -> GroundModel:
+def fit_ground(
+    xyz: np.ndarray,
+    cell_size: float = 4.0,
+    threshold: float = 0.15,
+    candidate_cell: float = 0.5,
+    min_candidates: int = 8,
+    seed: int = 0,
+) -> GroundModel:
     """Fit the piecewise RANSAC ground model to a map's points (local metric frame)."""
     xyz = np.asarray(xyz, dtype=np.float64)
     if len(xyz) == 0:
@@ -99,7 +110,8 @@ def fit_ground(xyz: np.ndarray, cell_size: float = 4.0, threshold: float = 0.15,
     if not cell_size > 0 or not threshold > 0 or not candidate_cell > 0:
         raise InputError(
             f"ground model: cell_size ({cell_size}), ground_ransac_threshold ({threshold}) and "
-            f"candidate cell ({candidate_cell}) must be positive")
+            f"candidate cell ({candidate_cell}) must be positive"
+        )
     rng = np.random.default_rng(seed)
     cand = lowest_per_cell(xyz, candidate_cell)
     lo = xyz[:, :2].min(axis=0)
@@ -115,9 +127,11 @@ def fit_ground(xyz: np.ndarray, cell_size: float = 4.0, threshold: float = 0.15,
     bounds = np.searchsorted(lin[order], np.arange(shape[0] * shape[1] + 1))
     for i in range(shape[0]):
         for j in range(shape[1]):
-            block = [order[bounds[a * shape[1] + b]: bounds[a * shape[1] + b + 1]]
-                     for a in range(max(i - 1, 0), min(i + 2, shape[0]))
-                     for b in range(max(j - 1, 0), min(j + 2, shape[1]))]
+            block = [
+                order[bounds[a * shape[1] + b] : bounds[a * shape[1] + b + 1]]
+                for a in range(max(i - 1, 0), min(i + 2, shape[0]))
+                for b in range(max(j - 1, 0), min(j + 2, shape[1]))
+            ]
             members = np.concatenate(block) if block else np.zeros(0, int)
             centre = origin + np.array([i, j]) * cell_size
             near = np.all(np.abs(cand[members, :2] - centre) <= 0.75 * cell_size, axis=1)
@@ -133,15 +147,21 @@ def fit_ground(xyz: np.ndarray, cell_size: float = 4.0, threshold: float = 0.15,
     if not fitted.any():
         raise ProcessingError(
             f"ground model: no {cell_size} m cell had {min_candidates} ground candidates on a "
-            "plane; is there ground in the map?")
+            "plane; is there ground in the map?"
+        )
     if not fitted.all():
         _, (ii, jj) = ndimage.distance_transform_edt(~fitted, return_indices=True)
         heights = heights[ii, jj]
     return GroundModel(origin, float(cell_size), heights, fitted)
 
 
-def _raised_cells(heights: np.ndarray, fitted: np.ndarray, cell_size: float,
-                  max_step: float = 0.5, max_slope: float = 0.3) -> np.ndarray:
+def _raised_cells(
+    heights: np.ndarray,
+    fitted: np.ndarray,
+    cell_size: float,
+    max_step: float = 0.5,
+    max_slope: float = 0.3,
+) -> np.ndarray:
     """Cells whose plane sits far above all fitted neighbours: a crown bottom taken for ground."""
     h = np.where(fitted, heights, np.inf)
     padded = np.pad(h, 1, constant_values=np.inf)
@@ -150,7 +170,7 @@ def _raised_cells(heights: np.ndarray, fitted: np.ndarray, cell_size: float,
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
             if di or dj:
-                lowest = np.minimum(lowest, padded[1 + di: 1 + di + nx, 1 + dj: 1 + dj + ny])
+                lowest = np.minimum(lowest, padded[1 + di : 1 + di + nx, 1 + dj : 1 + dj + ny])
     allowed = max_step + max_slope * cell_size * np.sqrt(2)
     ok = fitted & np.isfinite(lowest)
     raised = np.zeros_like(fitted)

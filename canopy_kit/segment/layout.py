@@ -40,12 +40,17 @@ class Layout:
 
     def as_dict(self) -> dict[str, Any]:
         """Plain data for metrics.json."""
+
         def num(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
 
-        return {"row_spacing_m": num(self.row_spacing_m), "tree_spacing_m": num(self.tree_spacing_m),
-                "tree_spacing_source": self.tree_spacing_source, "trunks": len(self.stems),
-                "trunks_under_a_segment": int((self.stem_segment >= 0).sum())}
+        return {
+            "row_spacing_m": num(self.row_spacing_m),
+            "tree_spacing_m": num(self.tree_spacing_m),
+            "tree_spacing_source": self.tree_spacing_source,
+            "trunks": len(self.stems),
+            "trunks_under_a_segment": int((self.stem_segment >= 0).sum()),
+        }
 
 
 def row_spacing(rows: RowAssignment) -> float:
@@ -74,8 +79,9 @@ def spacing_along_rows(xy: np.ndarray, rows: RowAssignment, max_offset: float = 
     return float(np.median(gaps_all)) if len(gaps_all) else float("nan")
 
 
-def stems_under_segments(stems: StemDetections, footprints: dict[int, np.ndarray],
-                         centres: dict[int, np.ndarray]) -> np.ndarray:
+def stems_under_segments(
+    stems: StemDetections, footprints: dict[int, np.ndarray], centres: dict[int, np.ndarray]
+) -> np.ndarray:
     """The segment whose footprint (convex hull) holds each trunk, the nearest centre of
     those when several overlap; -1 under none."""
     from matplotlib.path import Path
@@ -84,8 +90,14 @@ def stems_under_segments(stems: StemDetections, footprints: dict[int, np.ndarray
     if not len(stems) or not footprints:
         return out
     ids = np.array(sorted(footprints))
-    inside = np.array([Path(footprints[s]).contains_points(stems.xy) if len(footprints[s]) >= 3
-                       else np.zeros(len(stems), bool) for s in ids])  # (segments, trunks)
+    inside = np.array(
+        [
+            Path(footprints[s]).contains_points(stems.xy)
+            if len(footprints[s]) >= 3
+            else np.zeros(len(stems), bool)
+            for s in ids
+        ]
+    )  # (segments, trunks)
     centre = np.array([centres[s] for s in ids])
     dist = np.linalg.norm(stems.xy[None, :, :] - centre[:, None, :], axis=2)
     dist[~inside] = np.inf
@@ -95,8 +107,12 @@ def stems_under_segments(stems: StemDetections, footprints: dict[int, np.ndarray
     return out
 
 
-def measure_layout(xyz: np.ndarray, height: np.ndarray, segmentation: Any,
-                   stem_band: tuple[float, float] = (0.3, 0.8)) -> Layout:
+def measure_layout(
+    xyz: np.ndarray,
+    height: np.ndarray,
+    segmentation: Any,
+    stem_band: tuple[float, float] = (0.3, 0.8),
+) -> Layout:
     """The layout of a segmented map: map points ``xyz`` with their ``height`` above ground."""
     band = (height >= stem_band[0]) & (height < stem_band[1])
     stem_xyz = np.column_stack([xyz[band, :2], height[band]])

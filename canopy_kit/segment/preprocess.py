@@ -54,15 +54,18 @@ def check_preprocess_config(config: PreprocessConfig) -> None:
     if not 0 <= config.min_canopy_height < config.max_canopy_height:
         raise ConfigError(
             "preprocess.min_canopy_height must be >= 0 and below max_canopy_height, got "
-            f"{config.min_canopy_height} and {config.max_canopy_height}")
+            f"{config.min_canopy_height} and {config.max_canopy_height}"
+        )
     lo, hi = config.stem_band
     if not 0 <= lo < hi:
-        raise ConfigError(f"preprocess.stem_band must be [low, high] with 0 <= low < high, "
-                          f"got {config.stem_band}")
+        raise ConfigError(
+            f"preprocess.stem_band must be [low, high] with 0 <= low < high, got {config.stem_band}"
+        )
 
 
-def prepare(cloud: PointCloud, config: PreprocessConfig, seed: int = 0,
-            progress: Progress | None = None) -> PreparedMap:
+def prepare(
+    cloud: PointCloud, config: PreprocessConfig, seed: int = 0, progress: Progress | None = None
+) -> PreparedMap:
     """Fit the ground, band the points by height and build the voxel grid the segmenter sees."""
     check_preprocess_config(config)
     if len(cloud) == 0:
@@ -71,8 +74,13 @@ def prepare(cloud: PointCloud, config: PreprocessConfig, seed: int = 0,
         raise InputError("map has points with NaN or infinite coordinates")
     report = progress or (lambda *_: None)
     report("ground", 0, 2)
-    ground = fit_ground(cloud.xyz, config.ground_cell_size, config.ground_ransac_threshold,
-                        config.ground_candidate_cell, seed=seed)
+    ground = fit_ground(
+        cloud.xyz,
+        config.ground_cell_size,
+        config.ground_ransac_threshold,
+        config.ground_candidate_cell,
+        seed=seed,
+    )
     height = ground.above(cloud.xyz)
     report("ground", 1, 2)
     canopy = (height >= config.min_canopy_height) & (height <= config.max_canopy_height)
@@ -89,5 +97,4 @@ def prepare(cloud: PointCloud, config: PreprocessConfig, seed: int = 0,
         weight = np.ones(len(canopy_index))
         canopy_to_seen = np.arange(len(canopy_index))
     report("ground", 2, 2)
-    return PreparedMap(ground, height, canopy_index, stem_index, seen_index, weight,
-                       canopy_to_seen)
+    return PreparedMap(ground, height, canopy_index, stem_index, seen_index, weight, canopy_to_seen)

@@ -26,7 +26,6 @@ def along_axis(xy: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray,
     return d @ v, d @ np.array([-v[1], v[0]])
 
 
-
 def canopy_height_model(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Highest point per ``cell`` square (0 where empty) and the grid's lower-left corner."""
     lo = xyz[:, :2].min(axis=0)
@@ -82,7 +81,7 @@ def chm_peaks(xyz: np.ndarray, cell: float, min_distance: float) -> np.ndarray:
     chm, lo = canopy_height_model(xyz, cell)
     smooth = gaussian_filter(chm, 1.0)
     r = max(int(round(min_distance / cell)), 1)
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     disc = (yy**2 + xx**2) <= r * r
     peak = (smooth == maximum_filter(smooth, footprint=disc)) & (chm > 0)
     ij = np.argwhere(peak)

@@ -20,8 +20,9 @@ MIN_TREES = 4  # fewer trees give no typical crown to compare with
 ROW_TREES = 6  # a row of at least this many trees is its own reference
 
 
-def crown_outliers(trees: pd.DataFrame, wide: float = WIDE, small: float = SMALL,
-                   min_trees: int = MIN_TREES) -> pd.Series:
+def crown_outliers(
+    trees: pd.DataFrame, wide: float = WIDE, small: float = SMALL, min_trees: int = MIN_TREES
+) -> pd.Series:
     """A note per tree ("" when none) for crowns ``wide`` or ``small`` times the median crown
     diameter (column ``crown_diameter_m``) of its row, or of all trees (see module docstring)."""
     notes = pd.Series([""] * len(trees), index=trees.index, dtype=object)
@@ -40,9 +41,13 @@ def crown_outliers(trees: pd.DataFrame, wide: float = WIDE, small: float = SMALL
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = diameter / typical
     for i in np.flatnonzero(ratio > wide):
-        notes.iloc[i] = (f"crown {diameter[i]:.1f} m wide, {ratio[i]:.1f}x the median crown of "
-                         f"{where[i]} ({typical[i]:.1f} m): two or more trees in one segment?")
+        notes.iloc[i] = (
+            f"crown {diameter[i]:.1f} m wide, {ratio[i]:.1f}x the median crown of "
+            f"{where[i]} ({typical[i]:.1f} m): two or more trees in one segment?"
+        )
     for i in np.flatnonzero(ratio < small):
-        notes.iloc[i] = (f"crown {diameter[i]:.1f} m wide, {ratio[i]:.1f}x the median crown of "
-                         f"{where[i]} ({typical[i]:.1f} m): a fragment of a tree?")
+        notes.iloc[i] = (
+            f"crown {diameter[i]:.1f} m wide, {ratio[i]:.1f}x the median crown of "
+            f"{where[i]} ({typical[i]:.1f} m): a fragment of a tree?"
+        )
     return notes

@@ -61,11 +61,16 @@ class Segmentation:
     def summary(self) -> dict[str, Any]:
         """Counts, settings, warnings and timings as plain data (for JSON)."""
         return {
-            "method": self.method, "params": self.params, "n_trees": self.n_trees,
-            "n_rows": len(self.rows.lines), "n_points": int(len(self.labels)),
+            "method": self.method,
+            "params": self.params,
+            "n_trees": self.n_trees,
+            "n_rows": len(self.rows.lines),
+            "n_points": int(len(self.labels)),
             "n_tree_points": int((self.labels >= 0).sum()),
             "driving_direction": [float(v) for v in self.rows.direction],
             "driving_direction_source": self.rows.direction_source,
-            "crs": self.crs, "origin": [float(v) for v in self.origin],
-            "warnings": list(self.warnings), "timings_s": dict(self.timings),
+            "crs": self.crs,
+            "origin": [float(v) for v in self.origin],
+            "warnings": list(self.warnings),
+            "timings_s": dict(self.timings),
         }

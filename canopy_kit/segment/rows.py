@@ -160,9 +160,13 @@ def _fit_row(along: np.ndarray, across: np.ndarray, curved: bool) -> np.ndarray:
     coef = np.concatenate([coef, np.zeros(3 - len(coef))])
     # Back to polynomials in ``along`` itself.
     c0, c1, c2 = coef
-    return np.array([c0 - c1 * a0 / scale + c2 * a0**2 / scale**2,
-                     c1 / scale - 2 * c2 * a0 / scale**2,
-                     c2 / scale**2])
+    return np.array(
+        [
+            c0 - c1 * a0 / scale + c2 * a0**2 / scale**2,
+            c1 / scale - 2 * c2 * a0 / scale**2,
+            c2 / scale**2,
+        ]
+    )
 
 
 def _group_by_offset(across: np.ndarray, gap: float) -> np.ndarray:
@@ -171,7 +175,7 @@ def _group_by_offset(across: np.ndarray, gap: float) -> np.ndarray:
     grid = np.arange(across.min() - 3 * sigma, across.max() + 3 * sigma + 0.05, 0.05)
     dens = np.zeros(len(grid))
     for start in range(0, len(across), 2000):
-        c = across[start:start + 2000]
+        c = across[start : start + 2000]
         dens += np.exp(-0.5 * ((grid[:, None] - c[None, :]) / sigma) ** 2).sum(axis=1)
     is_peak = np.r_[False, (dens[1:-1] >= dens[:-2]) & (dens[1:-1] > dens[2:]), False]
     peaks: list[float] = []
@@ -217,22 +221,30 @@ def _stray_groups(groups: np.ndarray, offset: dict[int, float], min_trees: int) 
     return strays
 
 
-def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
-                driving_direction: np.ndarray | None = None,
-                direction_source: str | None = None) -> RowAssignment:
+def assign_rows(
+    xy: np.ndarray,
+    config: RowsConfig | None = None,
+    driving_direction: np.ndarray | None = None,
+    direction_source: str | None = None,
+) -> RowAssignment:
     """Group tree positions ``xy`` (N, 2) into rows and label them (see module docstring)."""
     config = config or RowsConfig()
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     n = len(xy)
     if not config.max_distance_to_row > 0:
-        raise InputError(f"rows.max_distance_to_row must be positive, got {config.max_distance_to_row}")
+        raise InputError(
+            f"rows.max_distance_to_row must be positive, got {config.max_distance_to_row}"
+        )
     if driving_direction is None and config.driving_direction is not None:
         driving_direction = bearing_to_vector(config.driving_direction)
         direction_source = "rows.driving_direction"
     if n == 0:
-        d = default_direction(np.array([0.0, 1.0]) if driving_direction is None else driving_direction)
-        return RowAssignment(np.zeros(0, int), np.zeros(0, int), [], [], d, "none",
-                             ["no trees: no rows to label"])
+        d = default_direction(
+            np.array([0.0, 1.0]) if driving_direction is None else driving_direction
+        )
+        return RowAssignment(
+            np.zeros(0, int), np.zeros(0, int), [], [], d, "none", ["no trees: no rows to label"]
+        )
     # Links between two or three trees may cross an alley (a streamed drive emits the trees
     # on both sides of the first alley first): with so few, a known driving direction is the
     # better guess of the row axis.
@@ -240,7 +252,11 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
     if n >= 2 and not trust_direction:
         axis = row_axis(xy)
     else:
-        axis = np.asarray(driving_direction, float)[:2] if driving_direction is not None else np.array([0.0, 1.0])
+        axis = (
+            np.asarray(driving_direction, float)[:2]
+            if driving_direction is not None
+            else np.array([0.0, 1.0])
+        )
         axis = axis / np.linalg.norm(axis)
     if driving_direction is not None:
         dd = np.asarray(driving_direction, float)[:2]
@@ -260,8 +276,10 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
             m = groups == g
             coefs[g] = _fit_row(along[m], across[m], config.curved_rows)
         keys = list(coefs)
-        resid = np.stack([across - (coefs[g][0] + coefs[g][1] * along + coefs[g][2] * along**2)
-                          for g in keys], axis=1)
+        resid = np.stack(
+            [across - (coefs[g][0] + coefs[g][1] * along + coefs[g][2] * along**2) for g in keys],
+            axis=1,
+        )
         nearest = np.argmin(np.abs(resid), axis=1)
         new = np.array(keys)[nearest]
         far = np.abs(resid[np.arange(n), nearest]) > gap
@@ -271,8 +289,10 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         if np.array_equal(new, groups):
             break
         groups = new
-    coefs = {g: _fit_row(along[groups == g], across[groups == g], config.curved_rows)
-             for g in np.unique(groups)}
+    coefs = {
+        g: _fit_row(along[groups == g], across[groups == g], config.curved_rows)
+        for g in np.unique(groups)
+    }
     mean_offset = {g: np.median(across[groups == g]) for g in coefs}
     # Where rows exist, trees in an alley between two of them (stray segments) are in no
     # row: numbering them as a row would shift the numbers, L/R sides and spacing of the
@@ -291,8 +311,15 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
         index[m] = np.arange(len(m))
         c = coefs[g]
         resid[m] = across[m] - (c[0] + c[1] * along[m] + c[2] * along[m] ** 2)
-        lines.append(RowLine(row_of_group[g], d, tuple(map(float, c)),
-                             (float(along[m].min()), float(along[m].max())), len(m)))
+        lines.append(
+            RowLine(
+                row_of_group[g],
+                d,
+                tuple(map(float, c)),
+                (float(along[m].min()), float(along[m].max())),
+                len(m),
+            )
+        )
     off_rows = np.flatnonzero(row < 0)
     index[off_rows[np.argsort(along[off_rows], kind="stable")]] = np.arange(len(off_rows))
     warnings: list[str] = []
@@ -303,13 +330,21 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
     steps = [np.diff(np.sort(along[row == ln.row])) for ln in lines if ln.n_trees >= 2]
     in_row = np.median(np.concatenate(steps)) if steps else np.inf
     # In an orchard, trees in a row stand closer together than the rows do.
-    if n >= 3 and not trust_direction and (in_rows.mean() < 0.8 or spread > min(gap / 3, 0.15 * spacing)
-                   or (len(lines) > 1 and in_row >= spacing)):
+    if (
+        n >= 3
+        and not trust_direction
+        and (
+            in_rows.mean() < 0.8
+            or spread > min(gap / 3, 0.15 * spacing)
+            or (len(lines) > 1 and in_row >= spacing)
+        )
+    ):
         warnings.append(
             f"no rows detected: {in_rows.sum()} of {n} trees lie in rows of at least "
             f"{config.min_trees_per_row} trees, median distance to the row line {spread:.2f} m "
             f"(rows.max_distance_to_row = {gap} m), spacing {in_row:.1f} m in rows and "
-            f"{spacing:.1f} m between rows; trees are labelled T0, T1, ... instead")
+            f"{spacing:.1f} m between rows; trees are labelled T0, T1, ... instead"
+        )
         order_xy = np.lexsort((xy[:, 0], xy[:, 1]))
         idx = np.empty(n, dtype=np.int64)
         idx[order_xy] = np.arange(n)
@@ -319,6 +354,7 @@ def assign_rows(xy: np.ndarray, config: RowsConfig | None = None,
             f"{len(off_rows)} of {n} trees stand in the alleys between the {len(lines)} rows "
             f"(groups of fewer than rows.min_trees_per_row = {config.min_trees_per_row} or half a "
             "row's trees, where the rows on both sides stand no further apart than rows do "
-            "elsewhere): labelled T0, T1, ... along the driving direction, in no row")
+            "elsewhere): labelled T0, T1, ... along the driving direction, in no row"
+        )
     labels = [row_label(int(r), int(i)) if r >= 0 else f"T{i}" for r, i in zip(row, index)]
     return RowAssignment(row, index, labels, lines, d, source, warnings)

@@ -18,8 +18,8 @@ import warnings
 import numpy as np
 
 from canopy_kit.errors import ConfigError
-from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
 from canopy_kit.params import check_choice
+from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
 from canopy_kit.segment.dbscan import ALGORITHMS, run_dbscan
 from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.voxel import voxel_centroids
@@ -31,9 +31,14 @@ def check_graph_cell(graph_cell: float) -> None:
         raise ConfigError(f"graph_cell must be >= 0 m (0 = a node per point), got {graph_cell!r}")
 
 
-def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
-                   eigen_solver: str = "amg", random_state: int = 0,
-                   graph_cell: float = 0.0) -> np.ndarray:
+def spectral_split(
+    xyz: np.ndarray,
+    n_parts: int,
+    n_neighbors: int = 10,
+    eigen_solver: str = "amg",
+    random_state: int = 0,
+    graph_cell: float = 0.0,
+) -> np.ndarray:
     """Split points into ``n_parts`` by spectral clustering on their kNN graph (labels 0..n-1).
 
     With ``graph_cell > 0`` the graph joins the centroids of cells of that size instead of
@@ -69,8 +74,13 @@ def spectral_split(xyz: np.ndarray, n_parts: int, n_neighbors: int = 10,
     sub = graph[main][:, main]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # amg/arpack convergence chatter
-        emb = spectral_embedding(sub, n_components=n_parts, eigen_solver=eigen_solver,
-                                 random_state=random_state, drop_first=False)
+        emb = spectral_embedding(
+            sub,
+            n_components=n_parts,
+            eigen_solver=eigen_solver,
+            random_state=random_state,
+            drop_first=False,
+        )
     parts = np.zeros(n, dtype=np.int64)
     parts[main] = KMeans(n_parts, n_init=4, random_state=random_state).fit_predict(emb)
     rest = np.setdiff1d(np.arange(n), main)
@@ -107,10 +117,17 @@ class DBSCANSpectralSegmenter(Segmenter):
         node (the paper's literal reading).
     """
 
-    def __init__(self, eps: float = 0.8, min_samples: float = 1300,
-                 max_cluster_size: float = 45000, n_neighbors: int = 10,
-                 eigen_solver: str = "amg", random_state: int = 0,
-                 algorithm: str = "auto", graph_cell: float = 0.0) -> None:
+    def __init__(
+        self,
+        eps: float = 0.8,
+        min_samples: float = 1300,
+        max_cluster_size: float = 45000,
+        n_neighbors: int = 10,
+        eigen_solver: str = "amg",
+        random_state: int = 0,
+        algorithm: str = "auto",
+        graph_cell: float = 0.0,
+    ) -> None:
         self.eps = eps
         self.min_samples = min_samples
         self.max_cluster_size = max_cluster_size
@@ -129,8 +146,12 @@ class DBSCANSpectralSegmenter(Segmenter):
         check_choice(self.algorithm, "algorithm", owner, ALGORITHMS)
         super().validate_params()
 
-    def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None  # noqa: N803
-            ) -> "DBSCANSpectralSegmenter":
+    def fit(
+        self,
+        X: np.ndarray,
+        y: None = None,
+        sample_weight: np.ndarray | None = None,
+    ) -> DBSCANSpectralSegmenter:
         """Cluster ``X`` (N, 3); sets ``labels_``, ``n_clusters_`` and ``splits_``."""
         self.validate_params()
         xyz = check_points(X)
@@ -145,8 +166,14 @@ class DBSCANSpectralSegmenter(Segmenter):
             n_parts = int(round(size / self.max_cluster_size))
             if n_parts < 2:
                 continue
-            parts = spectral_split(xyz[members], n_parts, self.n_neighbors, self.eigen_solver,
-                                   self.random_state, self.graph_cell)
+            parts = spectral_split(
+                xyz[members],
+                n_parts,
+                self.n_neighbors,
+                self.eigen_solver,
+                self.random_state,
+                self.graph_cell,
+            )
             self.splits_[cluster] = n_parts
             out[members[parts > 0]] = next_label + parts[parts > 0] - 1
             next_label += n_parts - 1

@@ -39,11 +39,18 @@ def no_stems() -> StemDetections:
     return StemDetections(np.zeros((0, 2)), np.zeros(0, int), np.zeros(0), np.zeros(0))
 
 
-def detect_stems(stem_xyz: np.ndarray | None, slice_height: float = 0.3, cell: float = 0.05,
-                 max_radius: float = 0.3, min_coverage: float = 0.6,
-                 merge_distance: float = 0.8, foot_height: float = 0.1,
-                 min_share: float = 0.4, ring_radius: float = 0.7,
-                 max_clutter: float = 0.1) -> StemDetections:
+def detect_stems(
+    stem_xyz: np.ndarray | None,
+    slice_height: float = 0.3,
+    cell: float = 0.05,
+    max_radius: float = 0.3,
+    min_coverage: float = 0.6,
+    merge_distance: float = 0.8,
+    foot_height: float = 0.1,
+    min_share: float = 0.4,
+    ring_radius: float = 0.7,
+    max_clutter: float = 0.1,
+) -> StemDetections:
     """Trunks among height-normalised stem-band points ``(x, y, height above ground)``.
 
     Candidates are compact groups of points in the lowest ``foot_height`` of the slice
@@ -66,8 +73,9 @@ def detect_stems(stem_xyz: np.ndarray | None, slice_height: float = 0.3, cell: f
     occ = np.zeros(tuple(keys.max(axis=0) + 3), bool)
     occ[keys[:, 0], keys[:, 1]] = True
     # Cells one apart belong together (a sparse trunk seen from two sides).
-    blobs, n = ndimage.label(ndimage.binary_dilation(occ, np.ones((3, 3), bool)),
-                             np.ones((3, 3), bool))
+    blobs, n = ndimage.label(
+        ndimage.binary_dilation(occ, np.ones((3, 3), bool)), np.ones((3, 3), bool)
+    )
     lab = blobs[keys[:, 0], keys[:, 1]] - 1
     n_layers = max(int(round(slice_height / 0.05)), 1)
     layer = np.minimum(((p[:, 2] - z0) / 0.05).astype(int), n_layers - 1)
@@ -98,8 +106,9 @@ def detect_stems(stem_xyz: np.ndarray | None, slice_height: float = 0.3, cell: f
     solid = np.ones(len(npts_a), bool)
     if len(npts_a) >= 3:
         solid = (npts_a >= min_share * np.median(npts_a)) & (rad_a >= min_share * np.median(rad_a))
-    return _merge_close(np.array(xy)[solid], npts_a[solid], rad_a[solid],
-                        np.array(cov)[solid], merge_distance)
+    return _merge_close(
+        np.array(xy)[solid], npts_a[solid], rad_a[solid], np.array(cov)[solid], merge_distance
+    )
 
 
 def _clutter(foot_tree: cKDTree, centre: np.ndarray, reach: float, ring_radius: float) -> float:
@@ -113,19 +122,24 @@ def _clutter(foot_tree: cKDTree, centre: np.ndarray, reach: float, ring_radius: 
     return float((n_ring / ring_area) / max(n_foot / (np.pi * reach**2), 1e-12))
 
 
-def _merge_close(xy: np.ndarray, npts: np.ndarray, rad: np.ndarray, cov: np.ndarray,
-                 distance: float) -> StemDetections:
+def _merge_close(
+    xy: np.ndarray, npts: np.ndarray, rad: np.ndarray, cov: np.ndarray, distance: float
+) -> StemDetections:
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(xy).query_pairs(distance, output_type="ndarray")
     from scipy import sparse
 
-    g = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                          shape=(len(xy), len(xy)))
+    g = sparse.coo_matrix(
+        (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(xy), len(xy))
+    )
     n, comp = connected_components(g, directed=False)
     w = npts.astype(float)
     out_xy = np.array([np.average(xy[comp == k], axis=0, weights=w[comp == k]) for k in range(n)])
-    return StemDetections(out_xy, np.bincount(comp, weights=w).astype(int),
-                          np.array([rad[comp == k].max() for k in range(n)]),
-                          np.array([cov[comp == k].max() for k in range(n)]))
+    return StemDetections(
+        out_xy,
+        np.bincount(comp, weights=w).astype(int),
+        np.array([rad[comp == k].max() for k in range(n)]),
+        np.array([cov[comp == k].max() for k in range(n)]),
+    )

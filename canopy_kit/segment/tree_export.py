@@ -33,12 +33,13 @@ def export_trees(folder: str | Path, cloud: PointCloud, seg: Segmentation) -> di
     folder.mkdir(parents=True, exist_ok=True)
     labelled = las_ready(labelled_map(cloud, seg))
     order = np.argsort(seg.labels, kind="stable")
-    bounds = np.searchsorted(seg.labels[order], [t.segment_id for t in seg.trees] +
-                             [t.segment_id + 1 for t in seg.trees])
+    bounds = np.searchsorted(
+        seg.labels[order], [t.segment_id for t in seg.trees] + [t.segment_id + 1 for t in seg.trees]
+    )
     n = len(seg.trees)
     paths = {}
     for k, tree in enumerate(seg.trees):
-        members = np.sort(order[bounds[k]:bounds[n + k]])
+        members = np.sort(order[bounds[k] : bounds[n + k]])
         if len(members) == 0:
             continue
         path = folder / tree_file_name(tree.tree_id)

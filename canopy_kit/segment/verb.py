@@ -43,10 +43,16 @@ def _fit_params(segmenter: Any) -> set[str]:
     return set(sig.parameters) & {"sample_weight", "stem_xyz"}
 
 
-def segment(cloud: PointCloud, segmenter: Any, preprocess_config: PreprocessConfig | None = None,
-            rows_config: RowsConfig | None = None, driving_direction: np.ndarray | None = None,
-            direction_source: str | None = None, seed: int = 0,
-            progress: Progress | None = None) -> Segmentation:
+def segment(
+    cloud: PointCloud,
+    segmenter: Any,
+    preprocess_config: PreprocessConfig | None = None,
+    rows_config: RowsConfig | None = None,
+    driving_direction: np.ndarray | None = None,
+    direction_source: str | None = None,
+    seed: int = 0,
+    progress: Progress | None = None,
+) -> Segmentation:
     """Segment a map into trees; labels per point of ``cloud`` plus per-tree records.
 
     ``segmenter`` is a segmenter object (``DBSCANSegmenter(...)``) or a plugin name.
@@ -65,7 +71,8 @@ def segment(cloud: PointCloud, segmenter: Any, preprocess_config: PreprocessConf
     if len(prepared.canopy_index) == 0:
         raise InputError(
             f"map has no points {pre.min_canopy_height}-{pre.max_canopy_height} m above the "
-            "ground (preprocess.min_canopy_height/max_canopy_height): is it all ground?")
+            "ground (preprocess.min_canopy_height/max_canopy_height): is it all ground?"
+        )
     xyz = prepared.normalized(cloud, prepared.seen_index)
     kwargs: dict[str, Any] = {}
     accepted = _fit_params(segmenter)
@@ -79,36 +86,54 @@ def segment(cloud: PointCloud, segmenter: Any, preprocess_config: PreprocessConf
     timings["segmenter"] = time.perf_counter() - t0
     report("segment", 1, 1)
     if seen_labels.shape != (len(xyz),):
-        raise ProcessingError(f"segmenter {type(segmenter).__name__} returned "
-                              f"{seen_labels.shape} labels for {len(xyz)} points")
+        raise ProcessingError(
+            f"segmenter {type(segmenter).__name__} returned "
+            f"{seen_labels.shape} labels for {len(xyz)} points"
+        )
     labels = np.full(len(cloud), -1, dtype=np.int64)
     labels[prepared.canopy_index] = seen_labels[prepared.canopy_to_seen]
     labels = first_appearance_order(labels)
     t0 = time.perf_counter()
-    seg = _describe(cloud, labels, prepared, segmenter, rows_config, driving_direction,
-                    direction_source)
+    seg = _describe(
+        cloud, labels, prepared, segmenter, rows_config, driving_direction, direction_source
+    )
     timings["rows"] = time.perf_counter() - t0
     seg.timings = timings
-    seg.classification = classify_points(seg.labels, seg.height, pre.ground_ransac_threshold,
-                                         pre.min_canopy_height)
+    seg.classification = classify_points(
+        seg.labels, seg.height, pre.ground_ransac_threshold, pre.min_canopy_height
+    )
     return seg
 
 
-def _describe(cloud: PointCloud, labels: np.ndarray, prepared: Any, segmenter: Any,
-              rows_config: RowsConfig | None, driving_direction: np.ndarray | None,
-              direction_source: str | None) -> Segmentation:
+def _describe(
+    cloud: PointCloud,
+    labels: np.ndarray,
+    prepared: Any,
+    segmenter: Any,
+    rows_config: RowsConfig | None,
+    driving_direction: np.ndarray | None,
+    direction_source: str | None,
+) -> Segmentation:
     n_seg = int(labels.max()) + 1 if len(labels) else 0
     idx = np.flatnonzero(labels >= 0)
     order = idx[np.argsort(labels[idx], kind="stable")]
     bounds = np.searchsorted(labels[order], np.arange(n_seg + 1))
     stats, hulls = [], []
     for s in range(n_seg):
-        members = order[bounds[s]:bounds[s + 1]]
+        members = order[bounds[s] : bounds[s + 1]]
         xyz = cloud.xyz[members]
         h = prepared.height[members]
         hull = horizontal_hull(xyz[:, :2])
-        stats.append((xyz.mean(axis=0), len(members), float(h.max()), float(np.percentile(h, 1)),
-                      widest_extents(hull)[0], polygon_area(hull)))
+        stats.append(
+            (
+                xyz.mean(axis=0),
+                len(members),
+                float(h.max()),
+                float(np.percentile(h, 1)),
+                widest_extents(hull)[0],
+                polygon_area(hull),
+            )
+        )
         hulls.append(hull)
     centroids = np.array([s[0][:2] for s in stats]).reshape(-1, 2)
     rows = assign_rows(centroids, rows_config, driving_direction, direction_source)
@@ -122,15 +147,41 @@ def _describe(cloud: PointCloud, labels: np.ndarray, prepared: Any, segmenter: A
     for old in rank:
         c, n, top, base, diam, area = stats[old]
         sid = int(new_id[old])
-        trees.append(TreeRecord(sid, tree_ids[old], int(rows.row[old]), rows.labels[old],
-                                int(rows.index_in_row[old]), float(c[0]), float(c[1]), float(c[2]),
-                                int(n), top, base, diam, area))
+        trees.append(
+            TreeRecord(
+                sid,
+                tree_ids[old],
+                int(rows.row[old]),
+                rows.labels[old],
+                int(rows.index_in_row[old]),
+                float(c[0]),
+                float(c[1]),
+                float(c[2]),
+                int(n),
+                top,
+                base,
+                diam,
+                area,
+            )
+        )
         footprints[sid] = hulls[old]
     params = segmenter.get_params() if hasattr(segmenter, "get_params") else {}
     warnings = list(rows.warnings)
     if n_seg == 0:
-        warnings = [f"no trees found: the segmenter {type(segmenter).__name__} labelled all "
-                    f"{len(prepared.seen_index)} canopy points as noise"]
-    return Segmentation(out, trees, footprints, rows, prepared.ground, prepared.height,
-                        type(segmenter).__name__, params, cloud.crs, cloud.origin.copy(),
-                        warnings)
+        warnings = [
+            f"no trees found: the segmenter {type(segmenter).__name__} labelled all "
+            f"{len(prepared.seen_index)} canopy points as noise"
+        ]
+    return Segmentation(
+        out,
+        trees,
+        footprints,
+        rows,
+        prepared.ground,
+        prepared.height,
+        type(segmenter).__name__,
+        params,
+        cloud.crs,
+        cloud.origin.copy(),
+        warnings,
+    )

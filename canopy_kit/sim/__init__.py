@@ -9,5 +9,12 @@ from canopy_kit.sim.config import SimConfig, load_sim_config, sim_preset_names
 from canopy_kit.sim.session import build_world, find_bag, simulate_session
 from canopy_kit.sim.truth import load_truth
 
-__all__ = ["SimConfig", "build_world", "find_bag", "load_sim_config", "load_truth",
-           "sim_preset_names", "simulate_session"]
+__all__ = [
+    "SimConfig",
+    "build_world",
+    "find_bag",
+    "load_sim_config",
+    "load_truth",
+    "sim_preset_names",
+    "simulate_session",
+]

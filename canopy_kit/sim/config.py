@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, Mapping
-import tomllib
+from typing import Any, Literal
 
 from canopy_kit.config import from_dict, merge, read_toml
 from canopy_kit.errors import ConfigError
@@ -38,7 +39,9 @@ class OrchardSpec:
     # Crown forms (canopy_kit.sim.crown_forms): ellipsoid (the superellipsoid above), lobed,
     # vase (open centre), hedged (flat pruned sides and top), sparse (young), or mix (per tree).
     crown_form: str = "ellipsoid"
-    lobe_hollow_range: list[float] = field(default_factory=lambda: [0.45, 0.6])  # radius between lobes
+    lobe_hollow_range: list[float] = field(
+        default_factory=lambda: [0.45, 0.6]
+    )  # radius between lobes
     hedge_cut: float = 0.75  # pruning planes at this fraction of the across and upper semi-axes
     sparse_crown_scale: float = 0.45
     sparse_foliage_scale: float = 0.3
@@ -243,16 +246,41 @@ class SimConfig:
 
 
 SENSOR_MODELS: dict[str, dict[str, Any]] = {
-    "vlp16": {"rings": 16, "vertical_fov": [-15.0, 15.0], "columns": 1800, "time_field": "time",
-              "max_range": 100.0},
-    "hdl32": {"rings": 32, "vertical_fov": [-30.67, 10.67], "columns": 1800, "time_field": "time",
-              "max_range": 100.0},
-    "os0-32": {"rings": 32, "vertical_fov": [-45.0, 45.0], "columns": 1024, "time_field": "t",
-               "max_range": 50.0},
-    "os1-64": {"rings": 64, "vertical_fov": [-22.5, 22.5], "columns": 1024, "time_field": "t",
-               "max_range": 120.0},
-    "os1-128": {"rings": 128, "vertical_fov": [-22.5, 22.5], "columns": 1024, "time_field": "t",
-                "max_range": 120.0},
+    "vlp16": {
+        "rings": 16,
+        "vertical_fov": [-15.0, 15.0],
+        "columns": 1800,
+        "time_field": "time",
+        "max_range": 100.0,
+    },
+    "hdl32": {
+        "rings": 32,
+        "vertical_fov": [-30.67, 10.67],
+        "columns": 1800,
+        "time_field": "time",
+        "max_range": 100.0,
+    },
+    "os0-32": {
+        "rings": 32,
+        "vertical_fov": [-45.0, 45.0],
+        "columns": 1024,
+        "time_field": "t",
+        "max_range": 50.0,
+    },
+    "os1-64": {
+        "rings": 64,
+        "vertical_fov": [-22.5, 22.5],
+        "columns": 1024,
+        "time_field": "t",
+        "max_range": 120.0,
+    },
+    "os1-128": {
+        "rings": 128,
+        "vertical_fov": [-22.5, 22.5],
+        "columns": 1024,
+        "time_field": "t",
+        "max_range": 120.0,
+    },
 }
 
 
@@ -262,8 +290,11 @@ def sim_preset_names() -> list[str]:
     return sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".toml"))
 
 
-def load_sim_config(orchard: str | Path = "pistachio", overrides: Mapping[str, Any] | None = None,
-                    sensor: str | None = None) -> SimConfig:
+def load_sim_config(
+    orchard: str | Path = "pistachio",
+    overrides: Mapping[str, Any] | None = None,
+    sensor: str | None = None,
+) -> SimConfig:
     """Simulator config from a shipped orchard preset (or TOML path), a sensor model and overrides.
 
     A preset or TOML file may start from another preset with ``extends = "<preset>"`` and
@@ -303,8 +334,10 @@ def _resolve_extends(data: dict[str, Any], where: str) -> dict[str, Any]:
     data = dict(data)
     base = data.pop("extends")
     if base not in sim_preset_names():
-        raise ConfigError(f"{where}: extends {base!r}, which is not a simulator preset "
-                          f"({', '.join(sim_preset_names())})")
+        raise ConfigError(
+            f"{where}: extends {base!r}, which is not a simulator preset "
+            f"({', '.join(sim_preset_names())})"
+        )
     return merge(_preset_data(base), data)
 
 
@@ -316,15 +349,20 @@ def _check(ok: bool, name: str, message: str) -> None:
 def _check_range(values: list[float], name: str, low: float = 0.0, strict: bool = True) -> None:
     _check(len(values) == 2, name, f"expected [min, max], got {values}")
     _check(values[0] <= values[1], name, f"min {values[0]} is larger than max {values[1]}")
-    _check(values[0] > low if strict else values[0] >= low, name,
-           f"values must be {'>' if strict else '>='} {low}, got {values}")
+    _check(
+        values[0] > low if strict else values[0] >= low,
+        name,
+        f"values must be {'>' if strict else '>='} {low}, got {values}",
+    )
 
 
 def validate(c: SimConfig) -> None:
     """Reject impossible parameters with an error naming the parameter."""
     o, li, d = c.orchard, c.lidar, c.drive
     _check(o.rows >= 1, "orchard.rows", f"must be at least 1, got {o.rows}")
-    _check(o.trees_per_row >= 1, "orchard.trees_per_row", f"must be at least 1, got {o.trees_per_row}")
+    _check(
+        o.trees_per_row >= 1, "orchard.trees_per_row", f"must be at least 1, got {o.trees_per_row}"
+    )
     _check_range(o.spacing_range, "orchard.spacing_range")
     _check(o.row_spacing > 0, "orchard.row_spacing", f"must be positive, got {o.row_spacing}")
     _check_range(o.crown_diameter_range, "orchard.crown_diameter_range")
@@ -341,90 +379,181 @@ def validate(c: SimConfig) -> None:
         _check(0.0 <= p < 1.0, f"orchard.{name}", f"must be in [0, 1), got {p}")
     for name in ("crown_scale", "replanted_crown_scale"):
         _check(getattr(o, name) > 0, f"orchard.{name}", f"must be positive, got {getattr(o, name)}")
-    _check(0 <= o.crown_irregularity < 0.5, "orchard.crown_irregularity",
-           f"must be in [0, 0.5), got {o.crown_irregularity}")
+    _check(
+        0 <= o.crown_irregularity < 0.5,
+        "orchard.crown_irregularity",
+        f"must be in [0, 0.5), got {o.crown_irregularity}",
+    )
     from canopy_kit.sim.crown_forms import CROWN_FORMS
 
-    _check(o.crown_form in CROWN_FORMS, "orchard.crown_form",
-           f"must be one of {', '.join(CROWN_FORMS)}, got {o.crown_form!r}")
+    _check(
+        o.crown_form in CROWN_FORMS,
+        "orchard.crown_form",
+        f"must be one of {', '.join(CROWN_FORMS)}, got {o.crown_form!r}",
+    )
     _check_range(o.lobe_hollow_range, "orchard.lobe_hollow_range")
-    _check(o.lobe_hollow_range[1] < 1.0, "orchard.lobe_hollow_range",
-           f"the radius between lobes must be below the lobes' (1), got {o.lobe_hollow_range}")
-    _check(0.2 <= o.hedge_cut <= 1.0, "orchard.hedge_cut", f"must be in [0.2, 1], got {o.hedge_cut}")
+    _check(
+        o.lobe_hollow_range[1] < 1.0,
+        "orchard.lobe_hollow_range",
+        f"the radius between lobes must be below the lobes' (1), got {o.lobe_hollow_range}",
+    )
+    _check(
+        0.2 <= o.hedge_cut <= 1.0, "orchard.hedge_cut", f"must be in [0.2, 1], got {o.hedge_cut}"
+    )
     for name in ("sparse_crown_scale", "sparse_foliage_scale"):
-        _check(0 < getattr(o, name) <= 1, f"orchard.{name}", f"must be in (0, 1], got {getattr(o, name)}")
-    _check(o.leaf_penetration_m > 0, "orchard.leaf_penetration_m",
-           f"must be positive (inf: leaves through the whole crown), got {o.leaf_penetration_m}")
-    _check(o.foliage_density_shell > 0 and o.foliage_density_core >= 0, "orchard.foliage_density_*",
-           "densities must be positive")
+        _check(
+            0 < getattr(o, name) <= 1,
+            f"orchard.{name}",
+            f"must be in (0, 1], got {getattr(o, name)}",
+        )
+    _check(
+        o.leaf_penetration_m > 0,
+        "orchard.leaf_penetration_m",
+        f"must be positive (inf: leaves through the whole crown), got {o.leaf_penetration_m}",
+    )
+    _check(
+        o.foliage_density_shell > 0 and o.foliage_density_core >= 0,
+        "orchard.foliage_density_*",
+        "densities must be positive",
+    )
     _check(o.headland >= 0 and o.margin >= 0, "orchard.headland/margin", "must not be negative")
     lane = o.row_spacing - 2 * o.alley_clearance
-    _check(lane > 0.5, "orchard.alley_clearance",
-           f"a {o.alley_clearance} m half-corridor leaves no room for crowns between rows "
-           f"{o.row_spacing} m apart")
+    _check(
+        lane > 0.5,
+        "orchard.alley_clearance",
+        f"a {o.alley_clearance} m half-corridor leaves no room for crowns between rows "
+        f"{o.row_spacing} m apart",
+    )
     max_extent = max(o.rows * o.row_spacing, o.trees_per_row * o.spacing_range[1])
-    _check(o.crown_diameter_range[1] * o.crown_across_ratio_range[0] <= max_extent + lane,
-           "orchard.crown_diameter_range",
-           f"crowns up to {o.crown_diameter_range[1]} m are larger than the orchard")
+    _check(
+        o.crown_diameter_range[1] * o.crown_across_ratio_range[0] <= max_extent + lane,
+        "orchard.crown_diameter_range",
+        f"crowns up to {o.crown_diameter_range[1]} m are larger than the orchard",
+    )
     _check(li.rings >= 1, "lidar.rings", f"must be at least 1, got {li.rings}")
     _check(li.columns >= 16, "lidar.columns", f"must be at least 16, got {li.columns}")
-    _check(li.vertical_fov[0] < li.vertical_fov[1] or li.rings == 1, "lidar.vertical_fov",
-           f"lowest beam {li.vertical_fov[0]} must be below highest {li.vertical_fov[1]}")
-    _check(-90 <= li.vertical_fov[0] and li.vertical_fov[1] <= 90, "lidar.vertical_fov",
-           "elevations must be within [-90, 90] degrees")
+    _check(
+        li.vertical_fov[0] < li.vertical_fov[1] or li.rings == 1,
+        "lidar.vertical_fov",
+        f"lowest beam {li.vertical_fov[0]} must be below highest {li.vertical_fov[1]}",
+    )
+    _check(
+        -90 <= li.vertical_fov[0] and li.vertical_fov[1] <= 90,
+        "lidar.vertical_fov",
+        "elevations must be within [-90, 90] degrees",
+    )
     _check(li.rate_hz > 0, "lidar.rate_hz", f"must be positive, got {li.rate_hz}")
-    _check(0 < li.min_range < li.max_range, "lidar.min_range/max_range",
-           f"need 0 < min_range < max_range, got {li.min_range}, {li.max_range}")
+    _check(
+        0 < li.min_range < li.max_range,
+        "lidar.min_range/max_range",
+        f"need 0 < min_range < max_range, got {li.min_range}, {li.max_range}",
+    )
     _check(li.range_noise >= 0 and 0 <= li.dropout < 1, "lidar.range_noise/dropout", "out of range")
     _check(li.mount_height > 0, "lidar.mount_height", f"must be positive, got {li.mount_height}")
     if li.firing == "vlp16" or li.output == "velodyne_packets":  # canopy_kit.sim.velodyne
-        _check(5.0 <= li.rate_hz <= 20.0, "lidar.rate_hz",
-               f"a VLP-16 turns at 5-20 Hz (300-1200 rpm), got {li.rate_hz}")
-        _check(li.max_range <= 131.07, "lidar.max_range",
-               f"a VLP-16 packet holds ranges up to 131.07 m, got {li.max_range}")
-    _check(d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive")
+        _check(
+            5.0 <= li.rate_hz <= 20.0,
+            "lidar.rate_hz",
+            f"a VLP-16 turns at 5-20 Hz (300-1200 rpm), got {li.rate_hz}",
+        )
+        _check(
+            li.max_range <= 131.07,
+            "lidar.max_range",
+            f"a VLP-16 packet holds ranges up to 131.07 m, got {li.max_range}",
+        )
+    _check(
+        d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive"
+    )
     _check(d.lead_in >= 0, "drive.lead_in", f"must not be negative, got {d.lead_in}")
     _check(d.acceleration > 0, "drive.acceleration", f"must be positive, got {d.acceleration}")
-    _check(0 <= d.speed_variation < d.cruise_speed, "drive.speed_variation", "must be below cruise_speed")
+    _check(
+        0 <= d.speed_variation < d.cruise_speed,
+        "drive.speed_variation",
+        "must be below cruise_speed",
+    )
     _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")
     _validate_gnss(c.gnss)
-    _check(len(c.rig.tf_imu_error_rpy_deg) == 3, "rig.tf_imu_error_rpy_deg",
-           f"expected [roll, pitch, yaw], got {c.rig.tf_imu_error_rpy_deg}")
-    _check(abs(c.rig.imu_time_offset) < 1.0, "rig.imu_time_offset",
-           f"must be below 1 s in magnitude, got {c.rig.imu_time_offset}")
+    _check(
+        len(c.rig.tf_imu_error_rpy_deg) == 3,
+        "rig.tf_imu_error_rpy_deg",
+        f"expected [roll, pitch, yaw], got {c.rig.tf_imu_error_rpy_deg}",
+    )
+    _check(
+        abs(c.rig.imu_time_offset) < 1.0,
+        "rig.imu_time_offset",
+        f"must be below 1 s in magnitude, got {c.rig.imu_time_offset}",
+    )
     if c.rig.name != "identity":
         from canopy_kit.sim.rig import sensor_mounts
 
         sensor_mounts(c)  # the rig exists and names its frames
-    _check(0 < c.drone.forward_overlap < 1 and 0 < c.drone.side_overlap < 1, "drone.*_overlap",
-           "must be in (0, 1)")
+    _check(
+        0 < c.drone.forward_overlap < 1 and 0 < c.drone.side_overlap < 1,
+        "drone.*_overlap",
+        "must be in (0, 1)",
+    )
     _check(c.drone.altitude > 0, "drone.altitude", f"must be positive, got {c.drone.altitude}")
-    _check(c.drone.image_width >= 64 and c.drone.image_height >= 64, "drone.image_width/image_height",
-           f"must be at least 64 px, got {c.drone.image_width}x{c.drone.image_height}")
-    _check(c.drone.focal_length_mm > 0 and c.drone.sensor_width_mm > 0,
-           "drone.focal_length_mm/sensor_width_mm", "must be positive")
-    _check(1 <= c.drone.jpeg_quality <= 100, "drone.jpeg_quality",
-           f"must be in [1, 100], got {c.drone.jpeg_quality}")
-    _check(c.drone.flight_speed > 0, "drone.flight_speed", f"must be positive, got {c.drone.flight_speed}")
+    _check(
+        c.drone.image_width >= 64 and c.drone.image_height >= 64,
+        "drone.image_width/image_height",
+        f"must be at least 64 px, got {c.drone.image_width}x{c.drone.image_height}",
+    )
+    _check(
+        c.drone.focal_length_mm > 0 and c.drone.sensor_width_mm > 0,
+        "drone.focal_length_mm/sensor_width_mm",
+        "must be positive",
+    )
+    _check(
+        1 <= c.drone.jpeg_quality <= 100,
+        "drone.jpeg_quality",
+        f"must be in [1, 100], got {c.drone.jpeg_quality}",
+    )
+    _check(
+        c.drone.flight_speed > 0,
+        "drone.flight_speed",
+        f"must be positive, got {c.drone.flight_speed}",
+    )
 
 
 def _validate_gnss(g: GnssSpec) -> None:
     """The receiver-behaviour settings of ``[gnss]``."""
     for name, width in (("outages", 2), ("jumps", 3), ("rtk_intervals", 2)):
         for i, item in enumerate(getattr(g, name)):
-            _check(len(item) == width, f"gnss.{name}[{i}]",
-                   f"expected [{'start_s, duration_s' + (', offset_m' if width == 3 else '')}], got {item}")
-            _check(item[0] >= 0 and item[1] > 0, f"gnss.{name}[{i}]",
-                   f"start must be >= 0 and duration positive, got {item}")
-    _check(g.outage_count >= 0 and g.jump_count >= 0, "gnss.outage_count/jump_count", "must not be negative")
+            _check(
+                len(item) == width,
+                f"gnss.{name}[{i}]",
+                f"expected [{'start_s, duration_s' + (', offset_m' if width == 3 else '')}], got {item}",
+            )
+            _check(
+                item[0] >= 0 and item[1] > 0,
+                f"gnss.{name}[{i}]",
+                f"start must be >= 0 and duration positive, got {item}",
+            )
+    _check(
+        g.outage_count >= 0 and g.jump_count >= 0,
+        "gnss.outage_count/jump_count",
+        "must not be negative",
+    )
     _check_range(g.outage_duration_range, "gnss.outage_duration_range")
     _check_range(g.jump_duration_range, "gnss.jump_duration_range")
     _check_range(g.jump_offset_range, "gnss.jump_offset_range", strict=False)
-    _check(g.outage_status in (-1, 0, 1, 2), "gnss.outage_status",
-           f"must be -1, 0, 1 or 2, got {g.outage_status}")
-    _check(g.standalone_status in (0, 1), "gnss.standalone_status", f"must be 0 (FIX) or 1 (SBAS), got "
-           f"{g.standalone_status}")
-    _check(g.covariance_type in (0, 1, 2, 3), "gnss.covariance_type",
-           f"must be 0, 1, 2 or 3 (NavSatFix COVARIANCE_TYPE_*), got {g.covariance_type}")
-    _check(not (g.rtk_intervals and g.mode == "rtk"), "gnss.rtk_intervals",
-           "mode 'rtk' is RTK for the whole drive; rtk_intervals need mode 'standard'")
+    _check(
+        g.outage_status in (-1, 0, 1, 2),
+        "gnss.outage_status",
+        f"must be -1, 0, 1 or 2, got {g.outage_status}",
+    )
+    _check(
+        g.standalone_status in (0, 1),
+        "gnss.standalone_status",
+        f"must be 0 (FIX) or 1 (SBAS), got {g.standalone_status}",
+    )
+    _check(
+        g.covariance_type in (0, 1, 2, 3),
+        "gnss.covariance_type",
+        f"must be 0, 1, 2 or 3 (NavSatFix COVARIANCE_TYPE_*), got {g.covariance_type}",
+    )
+    _check(
+        not (g.rtk_intervals and g.mode == "rtk"),
+        "gnss.rtk_intervals",
+        "mode 'rtk' is RTK for the whole drive; rtk_intervals need mode 'standard'",
+    )

@@ -31,33 +31,57 @@ class CrownEnvelope:
     lobe_directions: tuple[tuple[float, float, float], ...] = ()
     lobe_amplitudes: tuple[float, ...] = ()
     lobe_sharpness: float = 4.0
-    form: "CrownForm | None" = None
+    form: CrownForm | None = None
 
     @property
     def form_name(self) -> str:
         """The crown form's name (``ellipsoid`` without a form)."""
         return "ellipsoid" if self.form is None else self.form.name
 
-    def scaled(self, factor: float) -> "CrownEnvelope":
+    def scaled(self, factor: float) -> CrownEnvelope:
         """The same shape scaled about its centre."""
         a, b, cu, cd = self.semi_axes
-        return CrownEnvelope(self.center, (a * factor, b * factor, cu * factor, cd * factor),
-                             self.yaw, self.exponent, self.lobe_directions, self.lobe_amplitudes,
-                             self.lobe_sharpness,
-                             None if self.form is None else self.form.scaled(factor))
+        return CrownEnvelope(
+            self.center,
+            (a * factor, b * factor, cu * factor, cd * factor),
+            self.yaw,
+            self.exponent,
+            self.lobe_directions,
+            self.lobe_amplitudes,
+            self.lobe_sharpness,
+            None if self.form is None else self.form.scaled(factor),
+        )
 
-    def moved(self, center: tuple[float, float, float]) -> "CrownEnvelope":
+    def moved(self, center: tuple[float, float, float]) -> CrownEnvelope:
         """The same shape around another centre."""
-        return CrownEnvelope(tuple(map(float, center)), self.semi_axes, self.yaw, self.exponent,
-                             self.lobe_directions, self.lobe_amplitudes, self.lobe_sharpness, self.form)
+        return CrownEnvelope(
+            tuple(map(float, center)),
+            self.semi_axes,
+            self.yaw,
+            self.exponent,
+            self.lobe_directions,
+            self.lobe_amplitudes,
+            self.lobe_sharpness,
+            self.form,
+        )
 
-    def with_semi_axes(self, semi_axes: tuple[float, float, float, float]) -> "CrownEnvelope":
+    def with_semi_axes(self, semi_axes: tuple[float, float, float, float]) -> CrownEnvelope:
         """The same lobes, orientation and form with other semi-axes."""
         form = self.form
         if form is not None:
-            form = form.with_axis_ratios(semi_axes[1] / self.semi_axes[1], semi_axes[2] / self.semi_axes[2])
-        return CrownEnvelope(self.center, tuple(map(float, semi_axes)), self.yaw, self.exponent,
-                             self.lobe_directions, self.lobe_amplitudes, self.lobe_sharpness, form)
+            form = form.with_axis_ratios(
+                semi_axes[1] / self.semi_axes[1], semi_axes[2] / self.semi_axes[2]
+            )
+        return CrownEnvelope(
+            self.center,
+            tuple(map(float, semi_axes)),
+            self.yaw,
+            self.exponent,
+            self.lobe_directions,
+            self.lobe_amplitudes,
+            self.lobe_sharpness,
+            form,
+        )
 
     def radius(self, u: np.ndarray) -> np.ndarray:
         """Envelope radius along unit directions ``u`` (N, 3) given in the world frame."""
@@ -153,8 +177,9 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
-def volume_by_quadrature(envelope: CrownEnvelope, n_mu: int | None = None,
-                         n_phi: int | None = None) -> float:
+def volume_by_quadrature(
+    envelope: CrownEnvelope, n_mu: int | None = None, n_phi: int | None = None
+) -> float:
     """``1/3 ∮ r³ dΩ`` with Gauss-Legendre in cos θ per hemisphere and a uniform φ rule.
 
     Node counts default to 96 × 384, or to the crown form's ``quadrature_nodes``.

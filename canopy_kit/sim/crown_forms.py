@@ -32,21 +32,21 @@ class CrownForm(Protocol):
     def shape(self, u: np.ndarray, base: np.ndarray) -> np.ndarray:
         """The form's radius along unit directions ``u`` (N, 3) from the base radius (N,)."""
 
-    def scaled(self, factor: float) -> "CrownForm":
+    def scaled(self, factor: float) -> CrownForm:
         """The form of the envelope scaled by ``factor`` about its centre."""
 
-    def with_axis_ratios(self, across: float, up: float) -> "CrownForm":
+    def with_axis_ratios(self, across: float, up: float) -> CrownForm:
         """The form after the across-row and upper semi-axes changed by these ratios."""
 
 
 class RelativeForm:
     """A form defined relative to the base radius: scaling or stretching the base keeps it."""
 
-    def scaled(self, factor: float) -> "RelativeForm":
+    def scaled(self, factor: float) -> RelativeForm:
         """Scale-free: the same form."""
         return self
 
-    def with_axis_ratios(self, across: float, up: float) -> "RelativeForm":
+    def with_axis_ratios(self, across: float, up: float) -> RelativeForm:
         """Relative to the base: the same form."""
         return self
 
@@ -73,7 +73,6 @@ class LobedForm(RelativeForm):
         return base * (self.hollow + (1.0 - self.hollow) * np.minimum(peak, 1.0))
 
 
-
 @dataclass(frozen=True)
 class VaseForm(RelativeForm):
     """``r = base · (1 - depth · t²)``, ``t = clip((u_z - opening) / (1 - opening), 0, 1)``.
@@ -92,7 +91,6 @@ class VaseForm(RelativeForm):
         """Vase radius along ``u`` from the base radius."""
         t = np.clip((u[:, 2] - self.opening) / (1.0 - self.opening), 0.0, 1.0)
         return base * (1.0 - self.depth * t * t)
-
 
 
 @dataclass(frozen=True)
@@ -120,18 +118,25 @@ class HedgedForm:
             r = np.minimum(r, dist)
         return r
 
-    def scaled(self, factor: float) -> "HedgedForm":
+    def scaled(self, factor: float) -> HedgedForm:
         """The planes' offsets scaled with the crown."""
         return HedgedForm(self.normals, tuple(o * factor for o in self.offsets))
 
-    def with_axis_ratios(self, across: float, up: float) -> "HedgedForm":
+    def with_axis_ratios(self, across: float, up: float) -> HedgedForm:
         """Side planes follow the across semi-axis, the top plane the upper one."""
-        offsets = tuple(o * (up if n[2] > 0.5 else across) for n, o in zip(self.normals, self.offsets))
+        offsets = tuple(
+            o * (up if n[2] > 0.5 else across) for n, o in zip(self.normals, self.offsets)
+        )
         return HedgedForm(self.normals, offsets)
 
 
-def hedge_planes(right: np.ndarray, center: tuple[float, float, float], row_line: float,
-                 half_width: float, top: float) -> HedgedForm:
+def hedge_planes(
+    right: np.ndarray,
+    center: tuple[float, float, float],
+    row_line: float,
+    half_width: float,
+    top: float,
+) -> HedgedForm:
     """Pruning planes ``half_width`` either side of the row line and ``top`` above the centre.
 
     ``right`` is the horizontal unit vector across the rows, ``row_line`` the row's offset
@@ -142,5 +147,7 @@ def hedge_planes(right: np.ndarray, center: tuple[float, float, float], row_line
     r = np.array([right[0], right[1], 0.0])
     off = float(np.dot(np.asarray(center[:2]), right[:2])) - row_line
     floor = 0.25 * half_width
-    return HedgedForm((tuple(r.tolist()), tuple((-r).tolist()), (0.0, 0.0, 1.0)),
-                      (max(half_width - off, floor), max(half_width + off, floor), top))
+    return HedgedForm(
+        (tuple(r.tolist()), tuple((-r).tolist()), (0.0, 0.0, 1.0)),
+        (max(half_width - off, floor), max(half_width + off, floor), top),
+    )

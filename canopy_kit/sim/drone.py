@@ -102,17 +102,23 @@ def plan_flight(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> 
         y_cam = -heading  # image down: backwards, so the image top looks ahead
         z_cam = np.array([0.0, 0.0, -1.0])
         nominal = np.column_stack([x_cam, y_cam, z_cam])
-        for along in (stations if forward > 0 else stations[::-1]):
+        for along in stations if forward > 0 else stations[::-1]:
             xy = orchard.to_local(np.array(along), np.array(across))
             pos = np.array([xy[0], xy[1], z_fly])
             pos[:2] += rng.normal(0.0, spec.position_jitter_horizontal, 2)
             pos[2] += rng.normal(0.0, spec.position_jitter_vertical)
-            tilt = np.radians([rng.normal(0.0, spec.attitude_sigma_deg),
-                               rng.normal(0.0, spec.attitude_sigma_deg),
-                               rng.normal(0.0, spec.yaw_sigma_deg)])
+            tilt = np.radians(
+                [
+                    rng.normal(0.0, spec.attitude_sigma_deg),
+                    rng.normal(0.0, spec.attitude_sigma_deg),
+                    rng.normal(0.0, spec.yaw_sigma_deg),
+                ]
+            )
             rotation = nominal @ Rotation.from_rotvec(tilt).as_matrix()
             if prev is not None:  # cruise between photos, plus a few seconds to turn
-                t += float(np.linalg.norm(pos - prev[0])) / spec.flight_speed + (4.0 if prev[1] != k else 0.0)
+                t += float(np.linalg.norm(pos - prev[0])) / spec.flight_speed + (
+                    4.0 if prev[1] != k else 0.0
+                )
             prev = (pos, k)
             view = PinholeView(pos, rotation, f, spec.image_width, spec.image_height)
             shots.append(DroneShot(f"IMG_{len(shots) + 1:04d}.jpg", k, t, view))
@@ -138,12 +144,18 @@ def exif_bytes(spec: DroneSpec, lat: float, lon: float, altitude: float, when: d
 
     stamp = when.strftime("%Y:%m:%d %H:%M:%S").encode()
     px_per_cm = spec.image_width / (spec.sensor_width_mm / 10.0)
-    zeroth = {piexif.ImageIFD.Make: CAMERA_MAKE.encode(), piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
-              piexif.ImageIFD.DateTime: stamp, piexif.ImageIFD.Orientation: 1}
+    zeroth = {
+        piexif.ImageIFD.Make: CAMERA_MAKE.encode(),
+        piexif.ImageIFD.Model: CAMERA_MODEL.encode(),
+        piexif.ImageIFD.DateTime: stamp,
+        piexif.ImageIFD.Orientation: 1,
+    }
     exif = {
         piexif.ExifIFD.DateTimeOriginal: stamp,
         piexif.ExifIFD.FocalLength: _rational(spec.focal_length_mm, 1000),
-        piexif.ExifIFD.FocalLengthIn35mmFilm: int(round(spec.focal_length_mm * 36.0 / spec.sensor_width_mm)),
+        piexif.ExifIFD.FocalLengthIn35mmFilm: int(
+            round(spec.focal_length_mm * 36.0 / spec.sensor_width_mm)
+        ),
         piexif.ExifIFD.FocalPlaneXResolution: _rational(px_per_cm, 1000),
         piexif.ExifIFD.FocalPlaneYResolution: _rational(px_per_cm, 1000),
         piexif.ExifIFD.FocalPlaneResolutionUnit: 3,  # centimetres
@@ -172,9 +184,15 @@ def encode_jpeg(image: np.ndarray, exif: bytes, quality: int) -> bytes:
     return buf.getvalue()
 
 
-def simulate_drone_flight(orchard: Orchard, scene: Scene, spec: DroneSpec, drone_dir: str | Path,
-                          truth_dir: str | Path, rng: np.random.Generator,
-                          progress: Progress | None = None) -> DroneFlight:
+def simulate_drone_flight(
+    orchard: Orchard,
+    scene: Scene,
+    spec: DroneSpec,
+    drone_dir: str | Path,
+    truth_dir: str | Path,
+    rng: np.random.Generator,
+    progress: Progress | None = None,
+) -> DroneFlight:
     """Fly, render and write the photos to ``drone_dir`` and the true cameras to ``truth_dir``."""
     from scipy.spatial.transform import Rotation
 
@@ -182,50 +200,95 @@ def simulate_drone_flight(orchard: Orchard, scene: Scene, spec: DroneSpec, drone
     drone_dir, truth_dir = Path(drone_dir), Path(truth_dir)
     drone_dir.mkdir(parents=True, exist_ok=True)
     shots = plan_flight(orchard, spec, rng)
-    renderer = DroneRenderer(scene, orchard.terrain, (orchard.right_direction, orchard.row_offsets),
-                             spec.sun_elevation_deg, spec.sun_azimuth_deg)
-    offset = np.array([*rng.normal(0.0, spec.gps_offset_sigma_horizontal, 2),
-                       rng.normal(0.0, spec.gps_offset_sigma_vertical)])
+    renderer = DroneRenderer(
+        scene,
+        orchard.terrain,
+        (orchard.right_direction, orchard.row_offsets),
+        spec.sun_elevation_deg,
+        spec.sun_azimuth_deg,
+    )
+    offset = np.array(
+        [
+            *rng.normal(0.0, spec.gps_offset_sigma_horizontal, 2),
+            rng.normal(0.0, spec.gps_offset_sigma_vertical),
+        ]
+    )
     rows = []
     report("Drone photos", 0, len(shots))
     for k, shot in enumerate(shots):
         view = shot.view
-        gps = view.position + offset + np.array([*rng.normal(0.0, spec.gps_sigma_horizontal, 2),
-                                                 rng.normal(0.0, spec.gps_sigma_vertical)])
+        gps = (
+            view.position
+            + offset
+            + np.array(
+                [
+                    *rng.normal(0.0, spec.gps_sigma_horizontal, 2),
+                    rng.normal(0.0, spec.gps_sigma_vertical),
+                ]
+            )
+        )
         lat, lon, alt = (float(v[0]) for v in orchard.frame.to_wgs84(gps[None, :]))
         image = renderer.render(view, rng)
         when = FLIGHT_START + timedelta(seconds=round(shot.time_s))
-        atomic_write_bytes(drone_dir / shot.name,
-                           encode_jpeg(image, exif_bytes(spec, lat, lon, alt, when), spec.jpeg_quality))
+        atomic_write_bytes(
+            drone_dir / shot.name,
+            encode_jpeg(image, exif_bytes(spec, lat, lon, alt, when), spec.jpeg_quality),
+        )
         q = Rotation.from_matrix(view.rotation).as_quat()
-        rows.append({"image": shot.name, "line": shot.line, "time_s": shot.time_s,
-                     "x": view.position[0], "y": view.position[1], "z": view.position[2],
-                     "qw": q[3], "qx": q[0], "qy": q[1], "qz": q[2],
-                     "gps_x": gps[0], "gps_y": gps[1], "gps_z": gps[2],
-                     "lat": lat, "lon": lon, "altitude": alt, "focal_px": view.focal_px,
-                     "cx": view.width / 2.0, "cy": view.height / 2.0,
-                     "width": view.width, "height": view.height})
+        rows.append(
+            {
+                "image": shot.name,
+                "line": shot.line,
+                "time_s": shot.time_s,
+                "x": view.position[0],
+                "y": view.position[1],
+                "z": view.position[2],
+                "qw": q[3],
+                "qx": q[0],
+                "qy": q[1],
+                "qz": q[2],
+                "gps_x": gps[0],
+                "gps_y": gps[1],
+                "gps_z": gps[2],
+                "lat": lat,
+                "lon": lon,
+                "altitude": alt,
+                "focal_px": view.focal_px,
+                "cx": view.width / 2.0,
+                "cy": view.height / 2.0,
+                "width": view.width,
+                "height": view.height,
+            }
+        )
         report("Drone photos", k + 1, len(shots))
     cameras = pd.DataFrame(rows)
     truth_dir.mkdir(parents=True, exist_ok=True)
     write_csv(cameras, truth_dir / "drone_cameras.csv", float_format="%.9f")
     across, along = ground_footprint(spec)
     summary = {
-        "images": len(shots), "lines": int(cameras["line"].max()) + 1 if len(cameras) else 0,
-        "altitude_m": spec.altitude, "gsd_m": spec.altitude / focal_px(spec),
-        "footprint_m": [across, along], "forward_overlap": spec.forward_overlap,
-        "side_overlap": spec.side_overlap, "focal_px": focal_px(spec),
+        "images": len(shots),
+        "lines": int(cameras["line"].max()) + 1 if len(cameras) else 0,
+        "altitude_m": spec.altitude,
+        "gsd_m": spec.altitude / focal_px(spec),
+        "footprint_m": [across, along],
+        "forward_overlap": spec.forward_overlap,
+        "side_overlap": spec.side_overlap,
+        "focal_px": focal_px(spec),
         "image_size": [spec.image_width, spec.image_height],
         "camera_convention": "x right, y down, z viewing direction; quaternion camera-to-world",
         "gps_offset_m": offset.tolist(),
-        "sun_elevation_deg": spec.sun_elevation_deg, "sun_azimuth_deg": spec.sun_azimuth_deg,
+        "sun_elevation_deg": spec.sun_elevation_deg,
+        "sun_azimuth_deg": spec.sun_azimuth_deg,
     }
     atomic_write_text(truth_dir / "drone_flight.json", json.dumps(summary, indent=2) + "\n")
     return DroneFlight(drone_dir, cameras, summary)
 
 
-def simulate_drone_session(out: str | Path, config, progress: Progress | None = None  # noqa: ANN001
-                           ) -> DroneFlight:
+def simulate_drone_session(
+    out: str | Path,
+    config,
+    progress: Progress | None = None,
+) -> DroneFlight:
     """A drone-only session, no LiDAR bag: ``out/drone/`` photos and ``out/truth/`` tables.
 
     The orchard, scene and random streams are those ``simulate_session`` would use for the
@@ -240,8 +303,11 @@ def simulate_drone_session(out: str | Path, config, progress: Progress | None = 
     truth = truth_dir(root)
     truth.mkdir(parents=True, exist_ok=True)
     write_csv(tree_table(orchard), truth / "trees.csv")
-    atomic_write_text(truth / "frame.json",
-                      json.dumps({"frame": orchard.frame.to_dict()}, indent=2, sort_keys=True) + "\n")
+    atomic_write_text(
+        truth / "frame.json",
+        json.dumps({"frame": orchard.frame.to_dict()}, indent=2, sort_keys=True) + "\n",
+    )
     write_config(config, truth / SIM_CONFIG)
-    return simulate_drone_flight(orchard, scene, config.drone, drone_dir(root), truth, rngs["drone"],
-                                 progress=progress)
+    return simulate_drone_flight(
+        orchard, scene, config.drone, drone_dir(root), truth, rngs["drone"], progress=progress
+    )

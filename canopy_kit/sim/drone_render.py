@@ -16,8 +16,17 @@ import numpy as np
 from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, WOOD, Scene
 from canopy_kit.sim.terrain import Terrain
 
-_SEEDS = {"soil": 11, "grain": 12, "pebble": 13, "cover": 14, "weed": 15, "grass": 16,
-          "bark": 17, "leaf": 18, "leaf_fine": 19}
+_SEEDS = {
+    "soil": 11,
+    "grain": 12,
+    "pebble": 13,
+    "cover": 14,
+    "weed": 15,
+    "grass": 16,
+    "bark": 17,
+    "leaf": 18,
+    "leaf_fine": 19,
+}
 
 
 @dataclass(frozen=True)
@@ -121,15 +130,18 @@ def soil_albedo(p: np.ndarray, across: np.ndarray) -> np.ndarray:
     cover = fbm2(x, y, 5.0, 3, _SEEDS["cover"]) * alley
     clumps = fbm2(x, y, 0.3, 3, _SEEDS["weed"])
     cover = np.clip((cover + 0.45 * clumps - 0.72) * 5.0, 0, 1)
-    weed = _mix(_rgb(0.30, 0.27, 0.13), _rgb(0.08, 0.15, 0.04), fbm2(x, y, 2.0, 2, _SEEDS["weed"] + 7))
+    weed = _mix(
+        _rgb(0.30, 0.27, 0.13), _rgb(0.08, 0.15, 0.04), fbm2(x, y, 2.0, 2, _SEEDS["weed"] + 7)
+    )
     weed *= (0.6 + 0.8 * clumps)[:, None]
     return _mix(col, weed, cover)
 
 
 def grass_albedo(p: np.ndarray, shade: np.ndarray, height_above: np.ndarray) -> np.ndarray:
     """Blades between straw and green, darker towards the base."""
-    t = np.clip((shade - 0.7) / 0.6 + 0.3 * (value_noise2(p[:, 0], p[:, 1], _SEEDS["grass"]) - 0.5),
-                0, 1)
+    t = np.clip(
+        (shade - 0.7) / 0.6 + 0.3 * (value_noise2(p[:, 0], p[:, 1], _SEEDS["grass"]) - 0.5), 0, 1
+    )
     col = _mix(_rgb(0.42, 0.38, 0.20), _rgb(0.14, 0.24, 0.07), t)
     return col * np.clip(0.7 + 1.5 * height_above, 0.7, 1.1)[:, None]
 
@@ -174,8 +186,14 @@ def sun_direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
 class DroneRenderer:
     """Ray-casts colour images of a scene; build once, render many views."""
 
-    def __init__(self, scene: Scene, terrain: Terrain, row_lines: tuple[np.ndarray, np.ndarray],
-                 sun_elevation_deg: float, sun_azimuth_deg: float) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        terrain: Terrain,
+        row_lines: tuple[np.ndarray, np.ndarray],
+        sun_elevation_deg: float,
+        sun_azimuth_deg: float,
+    ) -> None:
         self.scene = scene
         self.terrain = terrain
         self._raycaster = scene.raycasting_scene()
@@ -188,8 +206,14 @@ class DroneRenderer:
         k = np.abs(c[:, None] - self._row_offsets[None, :]).argmin(axis=1)
         return c - self._row_offsets[k]
 
-    def render(self, view: PinholeView, rng: np.random.Generator, exposure: float = 1.25,
-               noise: float = 0.008, vignetting: float = 0.22) -> np.ndarray:
+    def render(
+        self,
+        view: PinholeView,
+        rng: np.random.Generator,
+        exposure: float = 1.25,
+        noise: float = 0.008,
+        vignetting: float = 0.22,
+    ) -> np.ndarray:
         """An (H, W, 3) uint8 sRGB image seen from ``view``."""
         import open3d as o3d
 

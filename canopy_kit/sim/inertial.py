@@ -37,9 +37,11 @@ def simulate_imu(trajectory: Trajectory, spec: ImuSpec, rng: np.random.Generator
     n = len(t)
     sqrt_rate = np.sqrt(spec.rate_hz)
     gyro_bias = rng.normal(0, spec.gyro_bias_sigma, 3) + np.cumsum(
-        rng.normal(0, spec.gyro_bias_sigma * 1e-3, (n, 3)), axis=0)
+        rng.normal(0, spec.gyro_bias_sigma * 1e-3, (n, 3)), axis=0
+    )
     accel_bias = rng.normal(0, spec.accel_bias_sigma, 3) + np.cumsum(
-        rng.normal(0, spec.accel_bias_sigma * 1e-3, (n, 3)), axis=0)
+        rng.normal(0, spec.accel_bias_sigma * 1e-3, (n, 3)), axis=0
+    )
     gyro = omega + gyro_bias + rng.normal(0, spec.gyro_noise * sqrt_rate, (n, 3))
     accel = force + accel_bias + rng.normal(0, spec.accel_noise * sqrt_rate, (n, 3))
     return ImuSamples(t, gyro, accel)
@@ -56,7 +58,9 @@ def simulate_gnss(trajectory: Trajectory, spec: GnssSpec, rng: np.random.Generat
     else:
         err = _standalone_error(n, spec, rng)
         rtk = _inside(t - trajectory.start_time, spec.rtk_intervals)
-        if rtk.any():  # drawn after the standalone error: sessions without RTK intervals are unchanged
+        if (
+            rtk.any()
+        ):  # drawn after the standalone error: sessions without RTK intervals are unchanged
             err[rtk] = _rtk_error(n, spec, rng)[rtk]
         fixes = _fixes(t, pos + err, spec, rtk)
     return _receiver_events(fixes, spec, rng, trajectory.start_time, trajectory.duration)
@@ -96,8 +100,13 @@ def _inside(rel: np.ndarray, intervals: list[list[float]]) -> np.ndarray:
     return out
 
 
-def _random_intervals(rng: np.random.Generator, count: int, durations: list[float], drive: float,
-                      taken: list[list[float]]) -> list[list[float]]:
+def _random_intervals(
+    rng: np.random.Generator,
+    count: int,
+    durations: list[float],
+    drive: float,
+    taken: list[list[float]],
+) -> list[list[float]]:
     """``count`` intervals in the middle 70 % of the drive, clear of ``taken`` and of each other."""
     out: list[list[float]] = []
     for _ in range(count):
@@ -110,15 +119,20 @@ def _random_intervals(rng: np.random.Generator, count: int, durations: list[floa
     return out
 
 
-def _receiver_events(fixes: GnssFixes, spec: GnssSpec, rng: np.random.Generator, t0: float,
-                     drive: float) -> GnssFixes:
+def _receiver_events(
+    fixes: GnssFixes, spec: GnssSpec, rng: np.random.Generator, t0: float, drive: float
+) -> GnssFixes:
     """Jumps, then outages applied to ``fixes``; what happened where goes to ``fixes.events``."""
     rel = fixes.t - t0
     outages = [list(o) for o in spec.outages]
     jumps = [list(j) for j in spec.jumps]
-    for s, d in _random_intervals(rng, spec.jump_count, spec.jump_duration_range, drive, outages + jumps):
+    for s, d in _random_intervals(
+        rng, spec.jump_count, spec.jump_duration_range, drive, outages + jumps
+    ):
         jumps.append([s, d, round(float(rng.uniform(*spec.jump_offset_range)), 3)])
-    outages += _random_intervals(rng, spec.outage_count, spec.outage_duration_range, drive, outages + jumps)
+    outages += _random_intervals(
+        rng, spec.outage_count, spec.outage_duration_range, drive, outages + jumps
+    )
     jump_table = []
     for s, d, offset in jumps:
         angle = rng.uniform(0, 2 * np.pi)
@@ -134,12 +148,20 @@ def _receiver_events(fixes: GnssFixes, spec: GnssSpec, rng: np.random.Generator,
         _hold_last(fixes.local_xyz, out)
     else:
         _drop(fixes, ~out)
-    rtk_intervals = [[0.0, float(drive)]] if spec.mode == "rtk" else [list(r) for r in spec.rtk_intervals]
+    rtk_intervals = (
+        [[0.0, float(drive)]] if spec.mode == "rtk" else [list(r) for r in spec.rtk_intervals]
+    )
     fixes.events = {
-        "time_origin": "s from the drive start (frame.json start_time)", "start_time": float(t0),
-        "outages": outages, "outage_fill": spec.outage_fill, "outage_status": spec.outage_status,
-        "outage_fixes": int(out.sum()), "jumps": jump_table, "jump_fixes": int(jumped.sum()),
-        "rtk_intervals": rtk_intervals, "covariance_type": spec.covariance_type,
+        "time_origin": "s from the drive start (frame.json start_time)",
+        "start_time": float(t0),
+        "outages": outages,
+        "outage_fill": spec.outage_fill,
+        "outage_status": spec.outage_status,
+        "outage_fixes": int(out.sum()),
+        "jumps": jump_table,
+        "jump_fixes": int(jumped.sum()),
+        "rtk_intervals": rtk_intervals,
+        "covariance_type": spec.covariance_type,
         "fixes_written": len(fixes.t),
     }
     return fixes
@@ -153,5 +175,12 @@ def _hold_last(xyz: np.ndarray, out: np.ndarray) -> None:
 
 def _drop(fixes: GnssFixes, keep: np.ndarray) -> None:
     """Keep only the fixes ``keep`` (a receiver that sends nothing during an outage)."""
-    fixes.t, fixes.local_xyz, fixes.status = fixes.t[keep], fixes.local_xyz[keep], fixes.status[keep]
-    fixes.sigma_horizontal, fixes.sigma_vertical = fixes.sigma_horizontal[keep], fixes.sigma_vertical[keep]
+    fixes.t, fixes.local_xyz, fixes.status = (
+        fixes.t[keep],
+        fixes.local_xyz[keep],
+        fixes.status[keep],
+    )
+    fixes.sigma_horizontal, fixes.sigma_vertical = (
+        fixes.sigma_horizontal[keep],
+        fixes.sigma_vertical[keep],
+    )

@@ -48,8 +48,14 @@ class SimulatedScan:
 class SpinningLidar:
     """Ray-casts sweeps of a spinning LiDAR moving along a trajectory."""
 
-    def __init__(self, spec: LidarSpec, scene: Scene, trajectory: Trajectory,
-                 rng: np.random.Generator, truth_field: bool = True) -> None:
+    def __init__(
+        self,
+        spec: LidarSpec,
+        scene: Scene,
+        trajectory: Trajectory,
+        rng: np.random.Generator,
+        truth_field: bool = True,
+    ) -> None:
         self.spec = spec
         self.scene = scene
         self.trajectory = trajectory
@@ -62,8 +68,13 @@ class SpinningLidar:
         ce = np.cos(self.elevations)
         # (columns, rings, 3) unit directions in the sensor frame.
         self.directions = np.stack(
-            [np.cos(az)[:, None] * ce[None, :], np.sin(az)[:, None] * ce[None, :],
-             np.broadcast_to(np.sin(self.elevations), (spec.columns, spec.rings))], axis=-1)
+            [
+                np.cos(az)[:, None] * ce[None, :],
+                np.sin(az)[:, None] * ce[None, :],
+                np.broadcast_to(np.sin(self.elevations), (spec.columns, spec.rings)),
+            ],
+            axis=-1,
+        )
         self._reflectivity = np.array([REFLECTIVITY[m] for m in range(4)], np.float32)
         self._vlp16 = None  # fires like a VLP-16 (canopy_kit.sim.velodyne) instead of in columns
         if spec.firing == "vlp16" or spec.output == "velodyne_packets":
@@ -95,8 +106,9 @@ class SpinningLidar:
         """Sensor positions and rotation matrices at sorted firing ``times`` (as for columns)."""
         return interpolated_poses(self.trajectory, times, knots)
 
-    def cast(self, rays: np.ndarray, world_dirs: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def cast(
+        self, rays: np.ndarray, world_dirs: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Cast (N, 6) float32 rays (origin, unit direction; ``world_dirs`` the directions in
         float64): indices of the rays that return, their noisy ranges, scene primitives and
         intensities (0-255). Range noise, range limits and dropouts are applied here."""
@@ -140,8 +152,12 @@ class SpinningLidar:
         col = idx // n_ring
         ring = (idx % n_ring).astype(np.uint16)
         dt = col * (self.sweep_period / n_col)
-        columns: dict[str, np.ndarray] = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
-                                          "intensity": intensity}
+        columns: dict[str, np.ndarray] = {
+            "x": xyz[:, 0],
+            "y": xyz[:, 1],
+            "z": xyz[:, 2],
+            "intensity": intensity,
+        }
         if sp.time_field == "t":
             columns["t"] = np.round(dt * 1e9).astype(np.uint32)
         elif sp.time_field == "time":
@@ -154,8 +170,9 @@ class SpinningLidar:
         return SimulatedScan(stamp, columns)
 
 
-def interpolated_poses(trajectory: Trajectory, times: np.ndarray, knots: int = 33
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def interpolated_poses(
+    trajectory: Trajectory, times: np.ndarray, knots: int = 33
+) -> tuple[np.ndarray, np.ndarray]:
     """Positions (N, 3) and rotation matrices (N, 3, 3) at sorted ``times``: exact at ``knots``
     times spread over them, linear in between (see ``SpinningLidar._column_poses``)."""
     knot_t = np.linspace(times[0], times[-1], knots)

@@ -88,8 +88,14 @@ def generate_orchard(spec: OrchardSpec, rng: np.random.Generator) -> Orchard:
     d = np.array([np.sin(bearing), np.cos(bearing)])
     right = np.array([d[1], -d[0]])
     frame = LocalFrame.at(spec.origin_lat, spec.origin_lon, spec.origin_height)
-    terrain = Terrain.random(rng, d, spec.terrain_slope_deg, spec.terrain_cross_slope_deg,
-                             spec.terrain_bump_amplitude, spec.terrain_bump_wavelength)
+    terrain = Terrain.random(
+        rng,
+        d,
+        spec.terrain_slope_deg,
+        spec.terrain_cross_slope_deg,
+        spec.terrain_bump_amplitude,
+        spec.terrain_bump_wavelength,
+    )
     row_offsets = np.arange(spec.rows) * spec.row_spacing
     trees: list[Tree] = []
     along_max = 0.0
@@ -103,8 +109,9 @@ def generate_orchard(spec: OrchardSpec, rng: np.random.Generator) -> Orchard:
             jitter = rng.normal(0.0, spec.position_jitter, 2)
             a, c = along + jitter[0], row_offsets[row] + bow + jitter[1]
             xy = a * d + c * right
-            tree = _grow_tree(spec, rng, len(trees) + len(row_trees), row, index, xy, d, terrain,
-                              doubled)
+            tree = _grow_tree(
+                spec, rng, len(trees) + len(row_trees), row, index, xy, d, terrain, doubled
+            )
             row_trees.append(tree)
         row_trees = _fit_crowns(spec, row_trees, d, right, row_offsets[row])
         trees.extend(row_trees)
@@ -131,8 +138,17 @@ def _row_stations(spec: OrchardSpec, rng: np.random.Generator) -> list[tuple[flo
     return stations
 
 
-def _grow_tree(spec: OrchardSpec, rng: np.random.Generator, tree_id: int, row: int, index: int,
-               xy: np.ndarray, d: np.ndarray, terrain: Terrain, doubled: bool) -> Tree:
+def _grow_tree(
+    spec: OrchardSpec,
+    rng: np.random.Generator,
+    tree_id: int,
+    row: int,
+    index: int,
+    xy: np.ndarray,
+    d: np.ndarray,
+    terrain: Terrain,
+    doubled: bool,
+) -> Tree:
     form = spec.crown_form
     if form == "mix":  # drawn only for mixed orchards: the other forms keep their draws
         form = FORM_NAMES[int(rng.integers(len(FORM_NAMES)))]
@@ -158,20 +174,46 @@ def _grow_tree(spec: OrchardSpec, rng: np.random.Generator, tree_id: int, row: i
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     amps = rng.uniform(-1.0, 1.0, n_lobes) * spec.crown_irregularity * 2.0
     yaw = float(np.arctan2(d[1], d[0]) + rng.normal(0.0, 0.15))
-    crown = CrownEnvelope(tuple(map(float, center)), (a, b, c_up, c_down), yaw,
-                          float(rng.uniform(*spec.crown_squareness_range)),
-                          tuple(map(tuple, dirs.tolist())), tuple(amps.tolist()),
-                          float(rng.uniform(2.5, 5.0)))
+    crown = CrownEnvelope(
+        tuple(map(float, center)),
+        (a, b, c_up, c_down),
+        yaw,
+        float(rng.uniform(*spec.crown_squareness_range)),
+        tuple(map(tuple, dirs.tolist())),
+        tuple(amps.tolist()),
+        float(rng.uniform(2.5, 5.0)),
+    )
     if form != "ellipsoid":
         crown = _shape_crown(spec, rng, crown, form, xy, d)
     foliage = spec.sparse_foliage_scale if form == "sparse" else 1.0
-    return _attach_wood(spec, rng, Tree(tree_id, row, index, row_label(row, index),
-                                        (float(xy[0]), float(xy[1]), base_z), crown, center, 0.1,
-                                        (), doubled, form, foliage))
+    return _attach_wood(
+        spec,
+        rng,
+        Tree(
+            tree_id,
+            row,
+            index,
+            row_label(row, index),
+            (float(xy[0]), float(xy[1]), base_z),
+            crown,
+            center,
+            0.1,
+            (),
+            doubled,
+            form,
+            foliage,
+        ),
+    )
 
 
-def _shape_crown(spec: OrchardSpec, rng: np.random.Generator, crown: CrownEnvelope, form: str,
-                 xy: np.ndarray, d: np.ndarray) -> CrownEnvelope:
+def _shape_crown(
+    spec: OrchardSpec,
+    rng: np.random.Generator,
+    crown: CrownEnvelope,
+    form: str,
+    xy: np.ndarray,
+    d: np.ndarray,
+) -> CrownEnvelope:
     """Give a drawn crown its form (``crown_forms``); ``sparse`` keeps the ellipsoid."""
     a, b, c_up, _ = crown.semi_axes
     if form == "lobed":  # one lobe per scaffold limb, azimuths spread round the tree
@@ -179,16 +221,27 @@ def _shape_crown(spec: OrchardSpec, rng: np.random.Generator, crown: CrownEnvelo
         az = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n) / n + rng.normal(0, 0.25, n)
         el = np.radians(rng.uniform(20.0, 55.0, n))
         dirs = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        return replace(crown, form=LobedForm(tuple(map(tuple, dirs.tolist())),
-                                             float(rng.uniform(*spec.lobe_hollow_range)),
-                                             float(rng.uniform(4.0, 7.0))))
+        return replace(
+            crown,
+            form=LobedForm(
+                tuple(map(tuple, dirs.tolist())),
+                float(rng.uniform(*spec.lobe_hollow_range)),
+                float(rng.uniform(4.0, 7.0)),
+            ),
+        )
     if form == "vase":
-        return replace(crown, form=VaseForm(float(rng.uniform(0.88, 0.95)), float(rng.uniform(0.55, 0.75))))
+        return replace(
+            crown, form=VaseForm(float(rng.uniform(0.88, 0.95)), float(rng.uniform(0.55, 0.75)))
+        )
     if form == "hedged":
         right = np.array([d[1], -d[0]])
         half_width = spec.hedge_cut * b
-        return replace(crown, form=hedge_planes(right, crown.center, float(xy @ right), half_width,
-                                                spec.hedge_cut * c_up))
+        return replace(
+            crown,
+            form=hedge_planes(
+                right, crown.center, float(xy @ right), half_width, spec.hedge_cut * c_up
+            ),
+        )
     return crown
 
 
@@ -209,8 +262,12 @@ def _attach_wood(spec: OrchardSpec, rng: np.random.Generator, tree: Tree) -> Tre
         u = np.asarray(tree.crown.form.directions)
         r = tree.crown.radius(u) * rng.uniform(0.55, 0.8, len(u))
         tips = [tuple(p) for p in (np.asarray(tree.crown.center) + u * r[:, None]).tolist()]
-    return replace(tree, trunk_top=tuple(map(float, top)),
-                   trunk_radius=float(rng.uniform(*spec.trunk_radius_range)), branch_tips=tuple(tips))
+    return replace(
+        tree,
+        trunk_top=tuple(map(float, top)),
+        trunk_radius=float(rng.uniform(*spec.trunk_radius_range)),
+        branch_tips=tuple(tips),
+    )
 
 
 def _extent_along(crown: CrownEnvelope, direction: np.ndarray) -> float:
@@ -219,8 +276,9 @@ def _extent_along(crown: CrownEnvelope, direction: np.ndarray) -> float:
     return float((s @ direction).max())
 
 
-def _fit_crowns(spec: OrchardSpec, trees: list[Tree], d: np.ndarray, right: np.ndarray,
-                row_offset: float) -> list[Tree]:
+def _fit_crowns(
+    spec: OrchardSpec, trees: list[Tree], d: np.ndarray, right: np.ndarray, row_offset: float
+) -> list[Tree]:
     """Keep the alleys drivable and, for structured orchards, crowns apart by a gap."""
     limit = spec.row_spacing / 2.0 - spec.alley_clearance
     fitted: list[Tree] = []
@@ -233,7 +291,9 @@ def _fit_crowns(spec: OrchardSpec, trees: list[Tree], d: np.ndarray, right: np.n
             # Shrink across the row (growers hedge their rows), keeping the along-row size.
             crown = crown.with_semi_axes((a, b * limit / reach, cu, cd))
             for _ in range(5):
-                reach = max(_extent_along(crown, right) + offset, _extent_along(crown, -right) - offset)
+                reach = max(
+                    _extent_along(crown, right) + offset, _extent_along(crown, -right) - offset
+                )
                 if reach <= limit:
                     break
                 crown = crown.scaled(limit / reach * 0.999)
@@ -274,5 +334,11 @@ def _replace_crown(tree: Tree, crown: CrownEnvelope) -> Tree:
         u = np.asarray(tip) - old
         r = np.linalg.norm(u)
         frac = r / tree.crown.radius((u / r)[None, :])[0]
-        tips.append(tuple((np.asarray(crown.center) + u / r * crown.radius((u / r)[None, :])[0] * frac).tolist()))
+        tips.append(
+            tuple(
+                (
+                    np.asarray(crown.center) + u / r * crown.radius((u / r)[None, :])[0] * frac
+                ).tolist()
+            )
+        )
     return replace(tree, crown=crown, trunk_top=tuple(map(float, top)), branch_tips=tuple(tips))

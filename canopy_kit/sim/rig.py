@@ -43,14 +43,27 @@ class SensorMounts:
 
     def to_dict(self) -> dict:
         """For truth/frame.json."""
-        def pose(m: np.ndarray) -> dict:
-            return {"translation": m[:3, 3].round(6).tolist(),
-                    "rpy_deg": Rotation.from_matrix(m[:3, :3]).as_euler("xyz", degrees=True).round(6).tolist()}
 
-        return {"base_frame": self.base_frame, "lidar_frame": self.lidar_frame, "imu_frame": self.imu_frame,
-                "gnss_frame": self.gnss_frame, "base_from_lidar": pose(self.base_from_lidar),
-                "base_from_imu": pose(self.base_from_imu), "base_from_antenna": pose(self.base_from_antenna),
-                "tf_static_written": bool(self.tf_static), "imu_time_offset_s": self.imu_time_offset}
+        def pose(m: np.ndarray) -> dict:
+            return {
+                "translation": m[:3, 3].round(6).tolist(),
+                "rpy_deg": Rotation.from_matrix(m[:3, :3])
+                .as_euler("xyz", degrees=True)
+                .round(6)
+                .tolist(),
+            }
+
+        return {
+            "base_frame": self.base_frame,
+            "lidar_frame": self.lidar_frame,
+            "imu_frame": self.imu_frame,
+            "gnss_frame": self.gnss_frame,
+            "base_from_lidar": pose(self.base_from_lidar),
+            "base_from_imu": pose(self.base_from_imu),
+            "base_from_antenna": pose(self.base_from_antenna),
+            "tf_static_written": bool(self.tf_static),
+            "imu_time_offset_s": self.imu_time_offset,
+        }
 
 
 def legacy_lidar_mount(mount_height: float, mount_pitch_deg: float) -> np.ndarray:
@@ -64,8 +77,16 @@ def sensor_mounts(config) -> SensorMounts:
     if spec.name == IDENTITY:
         lidar = legacy_lidar_mount(config.lidar.mount_height, config.lidar.mount_pitch_deg)
         frame = config.lidar.frame_id
-        return SensorMounts(lidar, lidar.copy(), lidar.copy(), "base_link", frame, frame, frame,
-                            imu_time_offset=spec.imu_time_offset)
+        return SensorMounts(
+            lidar,
+            lidar.copy(),
+            lidar.copy(),
+            "base_link",
+            frame,
+            frame,
+            frame,
+            imu_time_offset=spec.imu_time_offset,
+        )
     data, where = rig_data(spec.name)
     rig = parse_rig(data, where)
     for key in ("lidar_frame", "imu_frame", "gnss_frame"):
@@ -76,17 +97,29 @@ def sensor_mounts(config) -> SensorMounts:
     def mount(frame: str) -> np.ndarray:
         out = graph.try_transform(rig.base_frame, frame)
         if out is None:
-            raise ConfigError(f"{where}: frame {frame!r} is not connected to the base frame {rig.base_frame!r}")
+            raise ConfigError(
+                f"{where}: frame {frame!r} is not connected to the base frame {rig.base_frame!r}"
+            )
         return out
 
-    mounts = SensorMounts(mount(rig.lidar_frame), mount(rig.imu_frame), mount(rig.gnss_frame), rig.base_frame,
-                          rig.lidar_frame, rig.imu_frame, rig.gnss_frame, imu_time_offset=spec.imu_time_offset)
+    mounts = SensorMounts(
+        mount(rig.lidar_frame),
+        mount(rig.imu_frame),
+        mount(rig.gnss_frame),
+        rig.base_frame,
+        rig.lidar_frame,
+        rig.imu_frame,
+        rig.gnss_frame,
+        imu_time_offset=spec.imu_time_offset,
+    )
     if spec.write_tf_static:
         mounts.tf_static = _recorded(rig.transforms, rig.imu_frame, spec.tf_imu_error_rpy_deg)
     return mounts
 
 
-def _recorded(transforms: list[FrameTransform], imu_frame: str, error_rpy_deg: list[float]) -> list[FrameTransform]:
+def _recorded(
+    transforms: list[FrameTransform], imu_frame: str, error_rpy_deg: list[float]
+) -> list[FrameTransform]:
     """The rig's transforms as /tf_static records them, the IMU's turned by ``error_rpy_deg``."""
     out = []
     for t in transforms:

@@ -17,9 +17,12 @@ from canopy_kit.sim.orchard import Orchard, Tree
 GROUND, GRASS, WOOD, FOLIAGE = 0, 1, 2, 3
 MATERIAL_NAMES = {GROUND: "ground", GRASS: "grass", WOOD: "wood", FOLIAGE: "foliage"}
 
-_OCTAHEDRON_V = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
-_OCTAHEDRON_F = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
-                          [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+_OCTAHEDRON_V = np.array(
+    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float
+)
+_OCTAHEDRON_F = np.array(
+    [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+)
 
 
 @dataclass
@@ -33,13 +36,15 @@ class Scene:
     shade: np.ndarray  # (T,) float32, per-triangle colour variation in [0.6, 1.4]
     bounds: tuple[np.ndarray, np.ndarray]
 
-    def raycasting_scene(self):  # noqa: ANN201
+    def raycasting_scene(self):
         """An Open3D RaycastingScene holding the triangles (geometry id 0)."""
         import open3d as o3d
 
         scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
-                            o3d.core.Tensor(self.triangles.astype(np.uint32)))
+        scene.add_triangles(
+            o3d.core.Tensor(self.vertices.astype(np.float32)),
+            o3d.core.Tensor(self.triangles.astype(np.uint32)),
+        )
         return scene
 
 
@@ -52,8 +57,14 @@ class _Builder:
         self.shade: list[np.ndarray] = []
         self.n = 0
 
-    def add(self, verts: np.ndarray, faces: np.ndarray, material: int, tree: np.ndarray | int,
-            shade: np.ndarray | float = 1.0) -> None:
+    def add(
+        self,
+        verts: np.ndarray,
+        faces: np.ndarray,
+        material: int,
+        tree: np.ndarray | int,
+        shade: np.ndarray | float = 1.0,
+    ) -> None:
         self.v.append(verts)
         self.f.append(faces + self.n)
         self.n += len(verts)
@@ -63,13 +74,22 @@ class _Builder:
         self.shade.append(np.broadcast_to(np.asarray(shade, np.float32), (m,)).copy())
 
     def build(self, bounds: tuple[np.ndarray, np.ndarray]) -> Scene:
-        return Scene(np.concatenate(self.v), np.concatenate(self.f), np.concatenate(self.mat),
-                     np.concatenate(self.tid), np.concatenate(self.shade), bounds)
+        return Scene(
+            np.concatenate(self.v),
+            np.concatenate(self.f),
+            np.concatenate(self.mat),
+            np.concatenate(self.tid),
+            np.concatenate(self.shade),
+            bounds,
+        )
 
 
-def build_scene(orchard: Orchard, rng: np.random.Generator,
-                extra_bounds: tuple[np.ndarray, np.ndarray] | None = None,
-                ground_step: float = 0.5) -> Scene:
+def build_scene(
+    orchard: Orchard,
+    rng: np.random.Generator,
+    extra_bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    ground_step: float = 0.5,
+) -> Scene:
     """Mesh the whole orchard; ``extra_bounds`` widens the ground (e.g. to the drive path)."""
     spec = orchard.spec
     lo, hi = _ground_bounds(orchard, extra_bounds)
@@ -81,19 +101,23 @@ def build_scene(orchard: Orchard, rng: np.random.Generator,
         shell, core = spec.foliage_density_shell, spec.foliage_density_core
         if tree.foliage_scale != 1.0:
             shell, core = shell * tree.foliage_scale, core * tree.foliage_scale
-        _add_foliage(b, tree, rng, shell, core, spec.leaf_cluster_size_range, spec.leaf_penetration_m)
+        _add_foliage(
+            b, tree, rng, shell, core, spec.leaf_cluster_size_range, spec.leaf_penetration_m
+        )
     top = max((t.crown.z_range[1] for t in orchard.trees), default=5.0)
     return b.build((np.array([lo[0], lo[1], -50.0]), np.array([hi[0], hi[1], top + 1.0])))
 
 
-def _ground_bounds(orchard: Orchard, extra: tuple[np.ndarray, np.ndarray] | None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def _ground_bounds(
+    orchard: Orchard, extra: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray]:
     spec = orchard.spec
     pts = [np.asarray(t.base[:2]) for t in orchard.trees]
     a0, a1 = orchard.along_range
-    corners = orchard.to_local(np.array([a0 - spec.headland, a0 - spec.headland, a1 + spec.headland,
-                                         a1 + spec.headland]),
-                               np.array([-spec.row_spacing, orchard.row_offsets[-1] + spec.row_spacing] * 2))
+    corners = orchard.to_local(
+        np.array([a0 - spec.headland, a0 - spec.headland, a1 + spec.headland, a1 + spec.headland]),
+        np.array([-spec.row_spacing, orchard.row_offsets[-1] + spec.row_spacing] * 2),
+    )
     pts.extend(corners)
     pts = np.asarray(pts)
     lo, hi = pts.min(axis=0) - spec.margin, pts.max(axis=0) + spec.margin
@@ -117,8 +141,9 @@ def _add_ground(b: _Builder, orchard: Orchard, lo: np.ndarray, hi: np.ndarray, s
     b.add(verts, faces, GROUND, -1)
 
 
-def _add_grass(b: _Builder, orchard: Orchard, rng: np.random.Generator, lo: np.ndarray,
-               hi: np.ndarray) -> None:
+def _add_grass(
+    b: _Builder, orchard: Orchard, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray
+) -> None:
     spec = orchard.spec
     if spec.grass_height <= 0 or spec.grass_density <= 0:
         return
@@ -131,7 +156,9 @@ def _add_grass(b: _Builder, orchard: Orchard, rng: np.random.Generator, lo: np.n
     verts, faces = [], []
     for k, extra in enumerate((0.0, np.pi / 2)):
         dx, dy = np.cos(ang + extra) * w, np.sin(ang + extra) * w
-        tip = np.column_stack([xy[:, 0] + rng.normal(0, 0.03, n), xy[:, 1] + rng.normal(0, 0.03, n), z + h])
+        tip = np.column_stack(
+            [xy[:, 0] + rng.normal(0, 0.03, n), xy[:, 1] + rng.normal(0, 0.03, n), z + h]
+        )
         left = np.column_stack([xy[:, 0] - dx, xy[:, 1] - dy, z - 0.02])
         rightp = np.column_stack([xy[:, 0] + dx, xy[:, 1] + dy, z - 0.02])
         v = np.stack([left, rightp, tip], axis=1).reshape(-1, 3)
@@ -140,8 +167,9 @@ def _add_grass(b: _Builder, orchard: Orchard, rng: np.random.Generator, lo: np.n
     b.add(np.concatenate(verts), np.concatenate(faces), GRASS, -1, rng.uniform(0.7, 1.3, 2 * n))
 
 
-def cylinder(p0: np.ndarray, p1: np.ndarray, r0: float, r1: float, sides: int = 8
-             ) -> tuple[np.ndarray, np.ndarray]:
+def cylinder(
+    p0: np.ndarray, p1: np.ndarray, r0: float, r1: float, sides: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
     """An open tapered cylinder between two points."""
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     axis = p1 - p0
@@ -155,7 +183,9 @@ def cylinder(p0: np.ndarray, p1: np.ndarray, r0: float, r1: float, sides: int = 
     verts = np.concatenate([p0 + r0 * ring, p1 + r1 * ring])
     i = np.arange(sides)
     j = (i + 1) % sides
-    faces = np.concatenate([np.column_stack([i, j, j + sides]), np.column_stack([i, j + sides, i + sides])])
+    faces = np.concatenate(
+        [np.column_stack([i, j, j + sides]), np.column_stack([i, j + sides, i + sides])]
+    )
     return verts, faces
 
 
@@ -180,8 +210,15 @@ def _add_wood(b: _Builder, tree: Tree) -> None:
         b.add(v, fc, WOOD, tree.tree_id)
 
 
-def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float, core: float,
-                 size_range: list[float], penetration: float = float("inf")) -> None:
+def _add_foliage(
+    b: _Builder,
+    tree: Tree,
+    rng: np.random.Generator,
+    shell: float,
+    core: float,
+    size_range: list[float],
+    penetration: float = float("inf"),
+) -> None:
     """Leaf clusters inside the envelope, denser towards it by relative depth (from the
     envelope's centre, which for a vase is the trunk top), and at most ``penetration`` metres
     below the envelope along the ray from the centre."""
@@ -201,7 +238,9 @@ def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float
     from scipy.spatial.transform import Rotation
 
     rot = Rotation.random(m, random_state=rng).as_matrix()
-    scale = np.column_stack([size, size * rng.uniform(0.6, 1.0, m), size * rng.uniform(0.25, 0.5, m)])
+    scale = np.column_stack(
+        [size, size * rng.uniform(0.6, 1.0, m), size * rng.uniform(0.25, 0.5, m)]
+    )
     local = _OCTAHEDRON_V[None, :, :] * scale[:, None, :]
     verts = (p[:, None, :] + np.einsum("mij,mkj->mki", rot, local)).reshape(-1, 3)
     # Clip leaf vertices that stick out radially back onto the envelope, so the foliage
@@ -212,8 +251,11 @@ def _add_foliage(b: _Builder, tree: Tree, rng: np.random.Generator, shell: float
     b.add(verts, faces, FOLIAGE, tree.tree_id, shade)
 
 
-def depth_below_envelope(crown, points: np.ndarray,  # noqa: ANN001
-                         relative: np.ndarray | None = None) -> np.ndarray:
+def depth_below_envelope(
+    crown,
+    points: np.ndarray,
+    relative: np.ndarray | None = None,
+) -> np.ndarray:
     """``r(u) - |p - c|``: metres below the envelope along the ray from its centre (<0 outside)."""
     rho = np.linalg.norm(np.asarray(points, float) - np.asarray(crown.center), axis=1)
     rel = crown.relative_depth(points) if relative is None else relative
@@ -223,7 +265,7 @@ def depth_below_envelope(crown, points: np.ndarray,  # noqa: ANN001
     return out
 
 
-def _clip_to_envelope(crown, verts: np.ndarray) -> np.ndarray:  # noqa: ANN001
+def _clip_to_envelope(crown, verts: np.ndarray) -> np.ndarray:
     """Move vertices outside the envelope radially onto it."""
     depth = crown.relative_depth(verts)
     out = depth > 1.0

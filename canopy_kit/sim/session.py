@@ -27,8 +27,15 @@ from canopy_kit.sim.trajectory import Trajectory
 from canopy_kit.sim.truth import tree_table
 from canopy_kit.truth import write_csv
 
-__all__ = ["BAG_NAME", "SimulatedSession", "build_world", "find_bag", "load_sim_config_of",
-           "regenerate_orchard", "simulate_session"]
+__all__ = [
+    "BAG_NAME",
+    "SimulatedSession",
+    "build_world",
+    "find_bag",
+    "load_sim_config_of",
+    "regenerate_orchard",
+    "simulate_session",
+]
 
 Progress = Callable[[str, float, float], None]
 SESSION_EPOCH = 1_700_000_000.0
@@ -54,28 +61,46 @@ def _streams(seed: int, session_seed: int | None = None) -> dict[str, np.random.
     rngs = {n: np.random.default_rng(c) for n, c in zip(names, children)}
     if session_seed is not None:  # another visit of the same orchard: new drive and noise
         visit = np.random.SeedSequence([seed, session_seed]).spawn(len(names))
-        rngs.update({n: np.random.default_rng(c) for n, c in zip(names, visit)
-                     if n not in ("orchard", "scene")})
+        rngs.update(
+            {
+                n: np.random.default_rng(c)
+                for n, c in zip(names, visit)
+                if n not in ("orchard", "scene")
+            }
+        )
     return rngs
 
 
-def build_world(config: SimConfig) -> tuple[Orchard, Trajectory, Scene, dict[str, np.random.Generator]]:
+def build_world(
+    config: SimConfig,
+) -> tuple[Orchard, Trajectory, Scene, dict[str, np.random.Generator]]:
     """The orchard, the drive and the scene mesh for a config (deterministic in its seed)."""
     validate(config)
     rngs = _streams(config.seed, config.session_seed)
     orchard = generate_orchard(config.orchard, rngs["orchard"])
-    trajectory = Trajectory(orchard, config.drive, config.lidar.mount_height, rngs["drive"],
-                            t0=SESSION_EPOCH, mount_pitch_deg=config.lidar.mount_pitch_deg,
-                            mounts=sensor_mounts(config))
+    trajectory = Trajectory(
+        orchard,
+        config.drive,
+        config.lidar.mount_height,
+        rngs["drive"],
+        t0=SESSION_EPOCH,
+        mount_pitch_deg=config.lidar.mount_pitch_deg,
+        mounts=sensor_mounts(config),
+    )
     t = np.linspace(trajectory.start_time, trajectory.end_time, 2000)
     path, _ = trajectory.poses(t)
     scene = build_scene(orchard, rngs["scene"], (path.min(axis=0), path.max(axis=0)))
     return orchard, trajectory, scene, rngs
 
 
-def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
-                     truth_field: bool = True, overwrite: bool = False,
-                     progress: Progress | None = None) -> SimulatedSession:
+def simulate_session(
+    out: str | Path,
+    config: SimConfig,
+    fmt: str = "ros2-mcap",
+    truth_field: bool = True,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+) -> SimulatedSession:
     """Write a complete simulated session into folder ``out``.
 
     Layout: ``session.bag`` (ROS1) or ``session/`` (ROS2), ``truth/`` (trees.csv,
@@ -86,7 +111,9 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     bag_path = bag_path_for(root / BAG_NAME, fmt)
     if root.exists() and any(root.iterdir()):
         if not overwrite:
-            raise InputError(f"{root}: output folder is not empty (--overwrite, or overwrite=True from Python, replaces it)")
+            raise InputError(
+                f"{root}: output folder is not empty (--overwrite, or overwrite=True from Python, replaces it)"
+            )
         shutil.rmtree(root)
     root.mkdir(parents=True, exist_ok=True)
     report = progress or (lambda *_: None)
@@ -99,29 +126,50 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
     imu = simulate_imu(trajectory, config.imu, rngs["imu"]) if config.imu.enabled else None
     gnss = simulate_gnss(trajectory, config.gnss, rngs["gnss"]) if config.gnss.enabled else None
     if gnss is not None:  # where the receiver lost its fix or jumped
-        atomic_write_text(truth_folder / "gnss_events.json", json.dumps(gnss.events, indent=2) + "\n")
-    odo_t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
+        atomic_write_text(
+            truth_folder / "gnss_events.json", json.dumps(gnss.events, indent=2) + "\n"
+        )
+    odo_t = np.arange(
+        trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz
+    )
     n_points = 0
     with BagWriter(bag_path, fmt) as writer:
         if mounts.tf_static:
-            writer.write_tf_static(trajectory.start_time, [(t.parent, t.child, t.matrix) for t in mounts.tf_static])
+            writer.write_tf_static(
+                trajectory.start_time, [(t.parent, t.child, t.matrix) for t in mounts.tf_static]
+            )
         cursors = {"imu": 0, "gnss": 0, "odom": 0}
 
         def flush(until: float) -> None:
             if imu is not None:
                 i = cursors["imu"]
                 while i < len(imu.t) and imu.t[i] < until:
-                    writer.write_imu(config.imu.topic, imu.t[i] + mounts.imu_time_offset, imu.angular_velocity[i],
-                                     imu.linear_acceleration[i], None, mounts.imu_frame)
+                    writer.write_imu(
+                        config.imu.topic,
+                        imu.t[i] + mounts.imu_time_offset,
+                        imu.angular_velocity[i],
+                        imu.linear_acceleration[i],
+                        None,
+                        mounts.imu_frame,
+                    )
                     i += 1
                 cursors["imu"] = i
             if gnss is not None:
                 i = cursors["gnss"]
                 while i < len(gnss.t) and gnss.t[i] < until:
                     lat, lon, h = orchard.frame.to_wgs84(gnss.local_xyz[i : i + 1])
-                    writer.write_fix(config.gnss.topic, gnss.t[i], lat[0], lon[0], h[0],
-                                     gnss.sigma_horizontal[i], gnss.sigma_vertical[i], gnss.status[i],
-                                     mounts.gnss_frame, gnss.covariance_type)
+                    writer.write_fix(
+                        config.gnss.topic,
+                        gnss.t[i],
+                        lat[0],
+                        lon[0],
+                        h[0],
+                        gnss.sigma_horizontal[i],
+                        gnss.sigma_vertical[i],
+                        gnss.status[i],
+                        mounts.gnss_frame,
+                        gnss.covariance_type,
+                    )
                     i += 1
                 cursors["gnss"] = i
             i = cursors["odom"]
@@ -132,8 +180,14 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
                 pos, rot = trajectory.poses(odo_t[i:j])
                 quat = rot.as_quat()
                 for k in range(j - i):
-                    writer.write_odometry(config.drive.odometry_topic, odo_t[i + k], pos[k], quat[k],
-                                          "map", mounts.lidar_frame)
+                    writer.write_odometry(
+                        config.drive.odometry_topic,
+                        odo_t[i + k],
+                        pos[k],
+                        quat[k],
+                        "map",
+                        mounts.lidar_frame,
+                    )
             cursors["odom"] = j
 
         for k, stamp in enumerate(sweeps):
@@ -149,24 +203,45 @@ def simulate_session(out: str | Path, config: SimConfig, fmt: str = "ros2-mcap",
         from canopy_kit.sim.drone import simulate_drone_flight
 
         drone_dir = drone_folder(root)
-        simulate_drone_flight(orchard, scene, config.drone, drone_dir, truth_folder, rngs["drone"],
-                              progress=report)
-    return SimulatedSession(root, bag_path, truth_folder, orchard, trajectory, len(sweeps), n_points,
-                            drone_dir)
+        simulate_drone_flight(
+            orchard, scene, config.drone, drone_dir, truth_folder, rngs["drone"], progress=report
+        )
+    return SimulatedSession(
+        root, bag_path, truth_folder, orchard, trajectory, len(sweeps), n_points, drone_dir
+    )
 
 
 def _pose_frame(t: np.ndarray, pos: np.ndarray, rot: object) -> pd.DataFrame:
     q = rot.as_quat()  # type: ignore[attr-defined]
-    return pd.DataFrame({"time": t, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
-                         "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
+    return pd.DataFrame(
+        {
+            "time": t,
+            "x": pos[:, 0],
+            "y": pos[:, 1],
+            "z": pos[:, 2],
+            "qx": q[:, 0],
+            "qy": q[:, 1],
+            "qz": q[:, 2],
+            "qw": q[:, 3],
+        }
+    )
 
 
-def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajectory: Trajectory,
-                 fmt: str, truth_field: bool, mounts: SensorMounts) -> None:
+def _write_truth(
+    truth_dir: Path,
+    config: SimConfig,
+    orchard: Orchard,
+    trajectory: Trajectory,
+    fmt: str,
+    truth_field: bool,
+    mounts: SensorMounts,
+) -> None:
     truth_dir.mkdir(parents=True, exist_ok=True)
     write_csv(tree_table(orchard), truth_dir / "trees.csv")
     t = np.arange(trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz)
-    write_csv(_pose_frame(t, *trajectory.poses(t)), truth_dir / "trajectory.csv", float_format="%.9f")
+    write_csv(
+        _pose_frame(t, *trajectory.poses(t)), truth_dir / "trajectory.csv", float_format="%.9f"
+    )
     if not mounts.identity:  # the vehicle frame's poses, which a rig-aware mapping reports
         base = trajectory.mounted_poses(t, np.eye(4))
         write_csv(_pose_frame(t, *base), truth_dir / "base_trajectory.csv", float_format="%.9f")
@@ -182,7 +257,7 @@ def _write_truth(truth_dir: Path, config: SimConfig, orchard: Orchard, trajector
         "base_frame": mounts.base_frame if not mounts.identity else mounts.lidar_frame,
         "rig": dict(mounts.to_dict(), name=config.rig.name),
         "label_convention": "rows numbered left to right along the first pass; "
-                            "even rows L, odd rows R; index along the row direction",
+        "even rows L, odd rows R; index along the row direction",
     }
     atomic_write_text(truth_dir / "frame.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
     recording = {"bag_format": fmt, "truth_field": truth_field}

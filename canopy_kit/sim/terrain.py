@@ -19,8 +19,16 @@ class Terrain:
     bump_phases: tuple[float, ...] = ()
 
     @classmethod
-    def random(cls, rng: np.random.Generator, row_direction: np.ndarray, slope_deg: float,
-               cross_slope_deg: float, amplitude: float, wavelength: float, n_waves: int = 4) -> "Terrain":
+    def random(
+        cls,
+        rng: np.random.Generator,
+        row_direction: np.ndarray,
+        slope_deg: float,
+        cross_slope_deg: float,
+        amplitude: float,
+        wavelength: float,
+        n_waves: int = 4,
+    ) -> Terrain:
         """Plane plus ``n_waves`` random sinusoids of about ``wavelength`` metres."""
         amps, kvecs, phases = [], [], []
         for _ in range(n_waves):
@@ -30,8 +38,14 @@ class Terrain:
             amps.append(amplitude * rng.uniform(0.4, 1.0) / np.sqrt(n_waves))
             phases.append(rng.uniform(0, 2 * np.pi))
         d = np.asarray(row_direction, float)
-        return cls((float(d[0]), float(d[1])), float(np.tan(np.radians(slope_deg))),
-                   float(np.tan(np.radians(cross_slope_deg))), tuple(amps), tuple(kvecs), tuple(phases))
+        return cls(
+            (float(d[0]), float(d[1])),
+            float(np.tan(np.radians(slope_deg))),
+            float(np.tan(np.radians(cross_slope_deg))),
+            tuple(amps),
+            tuple(kvecs),
+            tuple(phases),
+        )
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Ground height at local (x, y)."""

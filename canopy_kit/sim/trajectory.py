@@ -64,9 +64,16 @@ class Trajectory:
     the LiDAR's poses, :meth:`imu` what the IMU measures in its own frame.
     """
 
-    def __init__(self, orchard: Orchard, spec: DriveSpec, mount_height: float,
-                 rng: np.random.Generator, t0: float = 1.7e9, mount_pitch_deg: float = 0.0,
-                 mounts: SensorMounts | None = None) -> None:
+    def __init__(
+        self,
+        orchard: Orchard,
+        spec: DriveSpec,
+        mount_height: float,
+        rng: np.random.Generator,
+        t0: float = 1.7e9,
+        mount_pitch_deg: float = 0.0,
+        mounts: SensorMounts | None = None,
+    ) -> None:
         self.orchard = orchard
         self.spec = spec
         self.mount_height = mount_height
@@ -83,7 +90,9 @@ class Trajectory:
         self._seg_start = starts
         self.length = float(starts[-1])
         self._build_timing(rng)
-        self._vib = [(rng.uniform(1.0, 4.0), rng.uniform(0, 2 * np.pi), rng.normal(0, 1)) for _ in range(12)]
+        self._vib = [
+            (rng.uniform(1.0, 4.0), rng.uniform(0, 2 * np.pi), rng.normal(0, 1)) for _ in range(12)
+        ]
 
     # -- timing ---------------------------------------------------------------------------
     def _speed_profile(self, s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -99,7 +108,9 @@ class Trajectory:
         # Smooth the targets so speed changes ramp instead of stepping.
         from scipy.ndimage import gaussian_filter1d
 
-        v = gaussian_filter1d(np.where(on_turn, sp.turn_speed, cruise), sigma=1.5 / ds, mode="nearest")
+        v = gaussian_filter1d(
+            np.where(on_turn, sp.turn_speed, cruise), sigma=1.5 / ds, mode="nearest"
+        )
         # Acceleration limits: forward and backward passes on v² (v dv/ds <= a).
         v[0] = 0.0
         for i in range(1, len(v)):
@@ -134,15 +145,23 @@ class Trajectory:
     def arc_length(self, t: np.ndarray) -> np.ndarray:
         """Distance travelled along the path at times ``t``."""
         t = np.asarray(t, float)
-        return np.where(t <= self.move_start, 0.0,
-                        np.where(t >= self.move_end, self.length,
-                                 self._s_of_t(np.clip(t, self.move_start, self.move_end))))
+        return np.where(
+            t <= self.move_start,
+            0.0,
+            np.where(
+                t >= self.move_end,
+                self.length,
+                self._s_of_t(np.clip(t, self.move_start, self.move_end)),
+            ),
+        )
 
     # -- geometry -------------------------------------------------------------------------
     def _xy_heading(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         xy = np.zeros((len(s), 2))
         heading = np.zeros(len(s))
-        k = np.clip(np.searchsorted(self._seg_start, s, side="right") - 1, 0, len(self.segments) - 1)
+        k = np.clip(
+            np.searchsorted(self._seg_start, s, side="right") - 1, 0, len(self.segments) - 1
+        )
         for j in np.unique(k):
             m = k == j
             xy[m], heading[m] = self.segments[j].at(s[m] - self._seg_start[j])
@@ -151,7 +170,9 @@ class Trajectory:
     def _vibration(self, t: np.ndarray) -> np.ndarray:
         out = np.zeros((len(t), 3))
         amp = np.radians(self.spec.vibration_deg)
-        moving = np.clip((t - self.move_start) / 1.0, 0, 1) * np.clip((self.move_end - t) / 1.0, 0, 1)
+        moving = np.clip((t - self.move_start) / 1.0, 0, 1) * np.clip(
+            (self.move_end - t) / 1.0, 0, 1
+        )
         for i, (f, ph, a) in enumerate(self._vib):
             out[:, i % 3] += amp * a * np.sin(2 * np.pi * f * (t - self.t0) + ph) / 2.0
         return out * moving[:, None]
@@ -160,7 +181,9 @@ class Trajectory:
         """LiDAR positions (N, 3) and orientations at times ``t`` (seconds, absolute)."""
         return self.mounted_poses(t, self.base_from_lidar)
 
-    def mounted_poses(self, t: np.ndarray, base_from_sensor: np.ndarray) -> tuple[np.ndarray, Rotation]:
+    def mounted_poses(
+        self, t: np.ndarray, base_from_sensor: np.ndarray
+    ) -> tuple[np.ndarray, Rotation]:
         """Positions and orientations of a frame mounted on the vehicle at ``base_from_sensor``."""
         position, body = self.vehicle_poses(t)
         mount = np.asarray(base_from_sensor, float)
@@ -185,8 +208,9 @@ class Trajectory:
         pitch = -np.arctan2(z_front - z_rear, self.spec.wheelbase)
         roll = np.arctan2(z_left - z_right, self.spec.track)
         vib = self._vibration(t)
-        body = Rotation.from_euler("ZYX", np.column_stack([heading + vib[:, 2], pitch + vib[:, 1],
-                                                           roll + vib[:, 0]]))
+        body = Rotation.from_euler(
+            "ZYX", np.column_stack([heading + vib[:, 2], pitch + vib[:, 1], roll + vib[:, 0]])
+        )
         return np.column_stack([xy, 0.25 * (z_front + z_rear + z_left + z_right)]), body
 
     def imu(self, t: np.ndarray, h: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
@@ -236,6 +260,9 @@ def _plan_segments(orchard: Orchard, spec: DriveSpec) -> tuple[list, list[bool]]
         segments, flags = [seg.reversed() for seg in reversed(segments)], flags[::-1]
     if spec.lead_in > 0:  # start farther out, driving straight into the first alley
         first = segments[0]
-        segments[0] = _Line(first.start - spec.lead_in * first.direction, first.direction,
-                            first.length + spec.lead_in)
+        segments[0] = _Line(
+            first.start - spec.lead_in * first.direction,
+            first.direction,
+            first.length + spec.lead_in,
+        )
     return segments, flags

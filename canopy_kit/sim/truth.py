@@ -23,18 +23,29 @@ def tree_table(orchard: Orchard) -> pd.DataFrame:
         lat, lon, _ = orchard.frame.to_wgs84(np.array([t.base]))
         z_lo, z_hi = t.crown.z_range
         widest, perpendicular = t.crown.horizontal_extents
-        rows.append({
-            "tree_id": t.tree_id, "row": t.row, "index_in_row": t.index_in_row, "label": t.label,
-            "x": t.base[0], "y": t.base[1], "z_ground": t.base[2], "lat": lat[0], "lon": lon[0],
-            "crown_x": t.crown.center[0], "crown_y": t.crown.center[1], "crown_z": t.crown.center[2],
-            "trunk_height_m": t.crown_base_height,
-            "crown_base_height_m": t.crown_base_height,
-            "crown_height_m": z_hi - z_lo,
-            "tree_height_m": t.height,
-            "crown_diameter_m": widest,
-            "crown_diameter_mean_m": 0.5 * (widest + perpendicular),
-            "crown_volume_m3": t.crown.volume,
-            "sphere_volume_m3": np.pi * widest**3 / 6.0,
-            "doubled": bool(t.doubled),
-        })
+        rows.append(
+            {
+                "tree_id": t.tree_id,
+                "row": t.row,
+                "index_in_row": t.index_in_row,
+                "label": t.label,
+                "x": t.base[0],
+                "y": t.base[1],
+                "z_ground": t.base[2],
+                "lat": lat[0],
+                "lon": lon[0],
+                "crown_x": t.crown.center[0],
+                "crown_y": t.crown.center[1],
+                "crown_z": t.crown.center[2],
+                "trunk_height_m": t.crown_base_height,
+                "crown_base_height_m": t.crown_base_height,
+                "crown_height_m": z_hi - z_lo,
+                "tree_height_m": t.height,
+                "crown_diameter_m": widest,
+                "crown_diameter_mean_m": 0.5 * (widest + perpendicular),
+                "crown_volume_m3": t.crown.volume,
+                "sphere_volume_m3": np.pi * widest**3 / 6.0,
+                "doubled": bool(t.doubled),
+            }
+        )
     return pd.DataFrame(rows, columns=TREE_COLUMNS)

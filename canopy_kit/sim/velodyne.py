@@ -56,6 +56,7 @@ class Vlp16Firing:
 
     def packets_in(self, stamp: float, period: float) -> tuple[int, int]:
         """First and end index of the packets whose first firing lies in [stamp, stamp + period)."""
+
         def first_at(t: float) -> int:  # the first packet p with floor(p × 1327.104 µs) ≥ t
             elapsed_ns = round((t - self.start) * 1e6) * 1000
             return -(-elapsed_ns // PACKET_NS)
@@ -74,12 +75,22 @@ class Vlp16Firing:
         counter = self.counters(*self.packets_in(stamp, lidar.sweep_period))
         n_packets = len(counter)
         elapsed_us = (counter - self._start_us)[:, None] + np.arange(BLOCKS) * VLP16.block_us
-        block_azimuth = np.mod(np.rint(elapsed_us * 1e-6 * sp.rate_hz * 36000.0), 36000).astype(np.int64)
+        block_azimuth = np.mod(np.rint(elapsed_us * 1e-6 * sp.rate_hz * 36000.0), 36000).astype(
+            np.int64
+        )
         alpha = np.deg2rad(firing_azimuths(block_azimuth, VLP16) * 0.01).reshape(-1, 32)
-        times = self._hour + (counter[:, None, None] + VLP16.slot_offsets_us()[None]).reshape(-1) * 1e-6
+        times = (
+            self._hour + (counter[:, None, None] + VLP16.slot_offsets_us()[None]).reshape(-1) * 1e-6
+        )
         flat = self._cos_el[None, :]
-        dirs = np.stack([flat * np.cos(alpha), -flat * np.sin(alpha),
-                         np.broadcast_to(self._sin_el, alpha.shape)], axis=-1).reshape(-1, 3)
+        dirs = np.stack(
+            [
+                flat * np.cos(alpha),
+                -flat * np.sin(alpha),
+                np.broadcast_to(self._sin_el, alpha.shape),
+            ],
+            axis=-1,
+        ).reshape(-1, 3)
         pos, mats = lidar.poses_at(times)
         world_dirs = np.einsum("nij,nj->ni", mats, dirs)
         rays = np.empty((len(dirs), 6), np.float32)
@@ -91,14 +102,19 @@ class Vlp16Firing:
         reflectivity = np.zeros(len(dirs))
         reflectivity[idx] = intensity
         shape = (n_packets, BLOCKS, 32)
-        data = encode_packets(counter, block_azimuth, distance.reshape(shape), reflectivity.reshape(shape))
+        data = encode_packets(
+            counter, block_azimuth, distance.reshape(shape), reflectivity.reshape(shape)
+        )
         stamps = self._hour + counter * 1e-6
         if sp.output == "velodyne_packets":
             return SimulatedScan(float(stamps[0]), {}, VelodynePackets(stamps, data, len(idx)))
         scan = scan_from_packets(stamps, data.tobytes(), sp.frame_id, "simulated VLP-16", 0)
         columns: dict[str, np.ndarray] = {
-            "x": scan.xyz[:, 0].astype(np.float32), "y": scan.xyz[:, 1].astype(np.float32),
-            "z": scan.xyz[:, 2].astype(np.float32), **scan.fields}
+            "x": scan.xyz[:, 0].astype(np.float32),
+            "y": scan.xyz[:, 1].astype(np.float32),
+            "z": scan.xyz[:, 2].astype(np.float32),
+            **scan.fields,
+        }
         if lidar.truth_field:  # the decoder keeps the returns in firing order, as idx lists them
             columns["tree_id"] = lidar.scene.tree_id[prim].astype(np.int32)
         return SimulatedScan(scan.stamp, columns)

@@ -13,6 +13,18 @@ from canopy_kit.store.db import IngestReport, OrchardStore, SessionRecord, volum
 from canopy_kit.store.identity import Alignment, MatchSettings, TreeMatch, match_trees
 from canopy_kit.store.queries import changes, consistency_problems, export, growth, row_growth
 
-__all__ = ["Alignment", "IngestReport", "MatchSettings", "OrchardStore", "SessionRecord",
-           "TreeMatch", "changes", "consistency_problems", "export", "growth", "match_trees",
-           "row_growth", "volume_methods"]
+__all__ = [
+    "Alignment",
+    "IngestReport",
+    "MatchSettings",
+    "OrchardStore",
+    "SessionRecord",
+    "TreeMatch",
+    "changes",
+    "consistency_problems",
+    "export",
+    "growth",
+    "match_trees",
+    "row_growth",
+    "volume_methods",
+]

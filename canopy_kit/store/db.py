@@ -54,10 +54,18 @@ class IngestReport:
 
     def summary(self) -> dict[str, Any]:
         """Counts and the alignment as plain data."""
-        return {"session_id": self.session_id, "orchard": self.orchard, "n_trees": self.n_trees,
-                "n_matched": len(self.matched), "n_new": len(self.new),
-                "n_missing": len(self.missing), "n_replanted": len(self.replanted),
-                "missing": self.missing, "replanted": self.replanted, "alignment": self.alignment}
+        return {
+            "session_id": self.session_id,
+            "orchard": self.orchard,
+            "n_trees": self.n_trees,
+            "n_matched": len(self.matched),
+            "n_new": len(self.new),
+            "n_missing": len(self.missing),
+            "n_replanted": len(self.replanted),
+            "missing": self.missing,
+            "replanted": self.replanted,
+            "alignment": self.alignment,
+        }
 
 
 def volume_methods(trees: pd.DataFrame) -> dict[str, str]:
@@ -65,15 +73,22 @@ def volume_methods(trees: pd.DataFrame) -> dict[str, str]:
     from canopy_kit.volume.verb import VOLUME_COLUMN
 
     reverse = {v: k for k, v in VOLUME_COLUMN.items()}
-    return {c: reverse.get(c, c[len("volume_"):-len("_m3")]) for c in trees.columns
-            if c.startswith("volume_") and c.endswith("_m3")}
+    return {
+        c: reverse.get(c, c[len("volume_") : -len("_m3")])
+        for c in trees.columns
+        if c.startswith("volume_") and c.endswith("_m3")
+    }
 
 
 class OrchardStore:
     """A DuckDB file (``orchard.duckdb``) holding every session of one or more orchards."""
 
-    def __init__(self, path: str | Path = "orchard.duckdb", read_only: bool = False,
-                 volume_method: str = "alpha_shape") -> None:
+    def __init__(
+        self,
+        path: str | Path = "orchard.duckdb",
+        read_only: bool = False,
+        volume_method: str = "alpha_shape",
+    ) -> None:
         with needs_extra("batch"):
             import duckdb
 
@@ -101,8 +116,10 @@ class OrchardStore:
             if found is None:
                 self.run("INSERT INTO meta VALUES ('schema_version', ?)", [SCHEMA_VERSION])
             elif found[0] != SCHEMA_VERSION:
-                raise InputError(f"{self.path}: store schema version {found[0]}, this canopy-kit "
-                                 f"reads version {SCHEMA_VERSION}")
+                raise InputError(
+                    f"{self.path}: store schema version {found[0]}, this canopy-kit "
+                    f"reads version {SCHEMA_VERSION}"
+                )
 
     def close(self) -> None:
         """Close the file (committed data is already on disk)."""
@@ -111,8 +128,9 @@ class OrchardStore:
     def __enter__(self) -> OrchardStore:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: object) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object
+    ) -> None:
         self.close()
         damaged = damaged_store_error(self.path, exc) if exc is not None else None
         if damaged is not None:
@@ -128,7 +146,7 @@ class OrchardStore:
             damaged = damaged_store_error(self.path, exc)
             try:
                 self.run("ROLLBACK")
-            except Exception:  # noqa: BLE001 - the file itself failed: report the first fault
+            except Exception:
                 if damaged is None:
                     raise exc from None
             if damaged is not None:
@@ -154,8 +172,9 @@ class OrchardStore:
         return self.one("SELECT count(*) FROM sessions WHERE session_id = ?", [session_id])[0] > 0
 
     # -- ingest ------------------------------------------------------------------------------
-    def ingest(self, record: SessionRecord, trees: pd.DataFrame,
-               settings: MatchSettings | None = None) -> IngestReport:
+    def ingest(
+        self, record: SessionRecord, trees: pd.DataFrame, settings: MatchSettings | None = None
+    ) -> IngestReport:
         """Add one session's per-tree table: match its trees to the orchard's, write it all."""
         settings = settings or MatchSettings()
         settings.check()
@@ -167,15 +186,22 @@ class OrchardStore:
             raise InputError(f"{where}: per-tree table has no {sorted(missing_cols)[0]!r} column")
         trees = trees.reset_index(drop=True)
         if len(trees) and not np.isfinite(trees[["lat", "lon"]].to_numpy(float)).all():
-            raise InputError(f"{where}: trees without latitude/longitude (a map without GNSS) "
-                             "cannot be placed in the orchard")
+            raise InputError(
+                f"{where}: trees without latitude/longitude (a map without GNSS) "
+                "cannot be placed in the orchard"
+            )
         with self.transaction():
             frame = self._orchard_frame(record.orchard, trees)
-            xy = frame.to_local(trees["lat"].to_numpy(float), trees["lon"].to_numpy(float))[:, :2] \
-                if len(trees) else np.zeros((0, 2))
+            xy = (
+                frame.to_local(trees["lat"].to_numpy(float), trees["lon"].to_numpy(float))[:, :2]
+                if len(trees)
+                else np.zeros((0, 2))
+            )
             known = self.con.execute(
                 "SELECT tree_id, x, y, status FROM trees WHERE orchard = ? AND status <> 'removed' "
-                "ORDER BY tree_id", [record.orchard]).df()
+                "ORDER BY tree_id",
+                [record.orchard],
+            ).df()
             match = match_trees(xy, known[["x", "y"]].to_numpy(float), settings)
             report = self._write(record, trees, xy, known, match)
         return report
@@ -183,22 +209,37 @@ class OrchardStore:
     def _orchard_frame(self, orchard: str, trees: pd.DataFrame) -> Any:
         from canopy_kit.geo import LocalFrame
 
-        row = self.one("SELECT epsg, origin_easting, origin_northing FROM orchards WHERE orchard = ?",
-                       [orchard])
+        row = self.one(
+            "SELECT epsg, origin_easting, origin_northing FROM orchards WHERE orchard = ?",
+            [orchard],
+        )
         if row is not None:
             return LocalFrame(int(row[0]), float(row[1]), float(row[2]))
         if len(trees) == 0:
-            raise InputError(f"{self.path}: orchard {orchard!r} is new and its first session has "
-                             "no trees to place it")
+            raise InputError(
+                f"{self.path}: orchard {orchard!r} is new and its first session has "
+                "no trees to place it"
+            )
         exact = LocalFrame.at(float(trees["lat"].mean()), float(trees["lon"].mean()))
-        frame = LocalFrame(exact.epsg, float(np.round(exact.origin_easting)),
-                           float(np.round(exact.origin_northing)))
-        self.run("INSERT INTO orchards VALUES (?, ?, ?, ?, now())",
-                         [orchard, frame.epsg, frame.origin_easting, frame.origin_northing])
+        frame = LocalFrame(
+            exact.epsg,
+            float(np.round(exact.origin_easting)),
+            float(np.round(exact.origin_northing)),
+        )
+        self.run(
+            "INSERT INTO orchards VALUES (?, ?, ?, ?, now())",
+            [orchard, frame.epsg, frame.origin_easting, frame.origin_northing],
+        )
         return frame
 
-    def _write(self, record: SessionRecord, trees: pd.DataFrame, xy: np.ndarray,
-               known: pd.DataFrame, match: TreeMatch) -> IngestReport:
+    def _write(
+        self,
+        record: SessionRecord,
+        trees: pd.DataFrame,
+        xy: np.ndarray,
+        known: pd.DataFrame,
+        match: TreeMatch,
+    ) -> IngestReport:
         sid = record.session_id
         methods = volume_methods(trees)
         primary = self._primary_column(methods)
@@ -206,7 +247,9 @@ class OrchardStore:
         ids = np.full(len(trees), -1, dtype=np.int64)
         kind = np.full(len(trees), "new", dtype=object)
         dist = np.full(len(trees), np.nan)
-        report = IngestReport(sid, record.orchard, len(trees), {}, [], [], [], [], asdict(match.alignment))
+        report = IngestReport(
+            sid, record.orchard, len(trees), {}, [], [], [], [], asdict(match.alignment)
+        )
         last_volume = self._last_volumes(known["tree_id"].tolist(), primary, methods)
         for (si, kj), d in zip(match.pairs, match.distances):
             tid, status = int(known["tree_id"].iat[kj]), known["status"].iat[kj]
@@ -230,42 +273,85 @@ class OrchardStore:
             next_id += 1
         report.missing = [int(known["tree_id"].iat[k]) for k in match.missing]
         aligned = match.aligned
-        obs = pd.DataFrame({
-            "session_id": sid, "tree_id": ids, "kind": kind,
-            "segment": trees.get("segment", pd.Series(np.arange(len(trees)))).to_numpy(),
-            "label": trees.get("label", pd.Series([""] * len(trees))).astype(str).to_numpy(),
-            "row": trees.get("row", pd.Series(np.full(len(trees), -1))).to_numpy(),
-            "x": aligned[:, 0], "y": aligned[:, 1], "x_session": xy[:, 0], "y_session": xy[:, 1],
-            "lat": trees["lat"].to_numpy(float), "lon": trees["lon"].to_numpy(float),
-            "match_distance_m": dist, "n_points": trees["n_points"].to_numpy(),
-            "height_m": trees.get("height_m", pd.Series(np.full(len(trees), np.nan))).to_numpy(),
-            "crown_diameter_m": trees.get("crown_diameter_m",
-                                          pd.Series(np.full(len(trees), np.nan))).to_numpy(),
-            "flags": trees.get("volume_flags", pd.Series([""] * len(trees))).fillna("").astype(str).to_numpy(),
-        })
+        obs = pd.DataFrame(
+            {
+                "session_id": sid,
+                "tree_id": ids,
+                "kind": kind,
+                "segment": trees.get("segment", pd.Series(np.arange(len(trees)))).to_numpy(),
+                "label": trees.get("label", pd.Series([""] * len(trees))).astype(str).to_numpy(),
+                "row": trees.get("row", pd.Series(np.full(len(trees), -1))).to_numpy(),
+                "x": aligned[:, 0],
+                "y": aligned[:, 1],
+                "x_session": xy[:, 0],
+                "y_session": xy[:, 1],
+                "lat": trees["lat"].to_numpy(float),
+                "lon": trees["lon"].to_numpy(float),
+                "match_distance_m": dist,
+                "n_points": trees["n_points"].to_numpy(),
+                "height_m": trees.get(
+                    "height_m", pd.Series(np.full(len(trees), np.nan))
+                ).to_numpy(),
+                "crown_diameter_m": trees.get(
+                    "crown_diameter_m", pd.Series(np.full(len(trees), np.nan))
+                ).to_numpy(),
+                "flags": trees.get("volume_flags", pd.Series([""] * len(trees)))
+                .fillna("")
+                .astype(str)
+                .to_numpy(),
+            }
+        )
         self._insert("observations", obs)
         _fault("observations")
-        vols = [pd.DataFrame({"session_id": sid, "tree_id": ids, "method": m,
-                              "volume_m3": trees[c].to_numpy(float)}) for c, m in methods.items()]
+        vols = [
+            pd.DataFrame(
+                {
+                    "session_id": sid,
+                    "tree_id": ids,
+                    "method": m,
+                    "volume_m3": trees[c].to_numpy(float),
+                }
+            )
+            for c, m in methods.items()
+        ]
         if vols:
             self._insert("volumes", pd.concat(vols, ignore_index=True))
         self._write_aerial(sid, trees, ids)
         _fault("volumes")
         self._update_trees(record, obs, report)
-        events = ([(sid, t, "new", "") for t in report.new]
-                  + [(sid, t, "missing", "") for t in report.missing]
-                  + [(sid, new, "replanted", f"replaces tree {old}") for new, old in report.replanted]
-                  + [(sid, t, "found_again", "") for t in report.found_again])
+        events = (
+            [(sid, t, "new", "") for t in report.new]
+            + [(sid, t, "missing", "") for t in report.missing]
+            + [(sid, new, "replanted", f"replaces tree {old}") for new, old in report.replanted]
+            + [(sid, t, "found_again", "") for t in report.found_again]
+        )
         if events:
-            self._insert("events", pd.DataFrame(events, columns=["session_id", "tree_id", "kind", "detail"]))
+            self._insert(
+                "events", pd.DataFrame(events, columns=["session_id", "tree_id", "kind", "detail"])
+            )
         a = match.alignment
         self.run(
             "INSERT INTO sessions VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, now(), ?)",
-            [sid, record.orchard, record.date, record.bag, record.preset, record.run_dir,
-             len(trees), len(report.matched), len(report.new), len(report.missing),
-             len(report.replanted), a.method, a.dx, a.dy, a.rotation_deg,
-             None if not np.isfinite(a.rms_m) else a.rms_m,
-             json.dumps(record.metrics, default=str)])
+            [
+                sid,
+                record.orchard,
+                record.date,
+                record.bag,
+                record.preset,
+                record.run_dir,
+                len(trees),
+                len(report.matched),
+                len(report.new),
+                len(report.missing),
+                len(report.replanted),
+                a.method,
+                a.dx,
+                a.dy,
+                a.rotation_deg,
+                None if not np.isfinite(a.rms_m) else a.rms_m,
+                json.dumps(record.metrics, default=str),
+            ],
+        )
         _fault("sessions")
         return report
 
@@ -273,15 +359,17 @@ class OrchardStore:
         by_method = {m: c for c, m in methods.items()}
         return by_method.get(self.volume_method) or next(iter(methods), None)
 
-    def _last_volumes(self, tree_ids: list[int], column: str | None,
-                      methods: dict[str, str]) -> dict[int, float]:
+    def _last_volumes(
+        self, tree_ids: list[int], column: str | None, methods: dict[str, str]
+    ) -> dict[int, float]:
         if column is None or not tree_ids:
             return {}
         rows = self.con.execute(
             "SELECT v.tree_id, v.volume_m3 FROM volumes v JOIN sessions s USING (session_id) "
             "WHERE v.method = ? AND v.tree_id IN (SELECT unnest(?)) "
             "QUALIFY row_number() OVER (PARTITION BY v.tree_id ORDER BY s.date DESC) = 1",
-            [methods[column], tree_ids]).fetchall()
+            [methods[column], tree_ids],
+        ).fetchall()
         return {int(t): float(v) for t, v in rows if v is not None}
 
     def _write_aerial(self, sid: str, trees: pd.DataFrame, ids: np.ndarray) -> None:
@@ -301,13 +389,22 @@ class OrchardStore:
         fresh = obs[obs["kind"].isin(["new", "replanted"])]
         if len(fresh):
             replaces = dict(report.replanted)
-            table = pd.DataFrame({
-                "tree_id": fresh["tree_id"].to_numpy(), "orchard": record.orchard,
-                "x": fresh["x"].to_numpy(), "y": fresh["y"].to_numpy(),
-                "lat": fresh["lat"].to_numpy(), "lon": fresh["lon"].to_numpy(),
-                "row": fresh["row"].to_numpy(), "label": fresh["label"].to_numpy(),
-                "first_session": sid, "last_seen": sid, "status": "present",
-                "replaces": [replaces.get(int(t)) for t in fresh["tree_id"]]})
+            table = pd.DataFrame(
+                {
+                    "tree_id": fresh["tree_id"].to_numpy(),
+                    "orchard": record.orchard,
+                    "x": fresh["x"].to_numpy(),
+                    "y": fresh["y"].to_numpy(),
+                    "lat": fresh["lat"].to_numpy(),
+                    "lon": fresh["lon"].to_numpy(),
+                    "row": fresh["row"].to_numpy(),
+                    "label": fresh["label"].to_numpy(),
+                    "first_session": sid,
+                    "last_seen": sid,
+                    "status": "present",
+                    "replaces": [replaces.get(int(t)) for t in fresh["tree_id"]],
+                }
+            )
             self._insert("trees", table)
         seen = obs[obs["kind"].isin(["matched", "found_again"])]["tree_id"].tolist()
         if seen:
@@ -316,13 +413,19 @@ class OrchardStore:
                 "UPDATE trees SET status = 'present', last_seen = ?, x = o.mx, y = o.my "
                 "FROM (SELECT tree_id, avg(x) AS mx, avg(y) AS my FROM observations "
                 "      WHERE tree_id IN (SELECT unnest(?)) GROUP BY tree_id) o "
-                "WHERE trees.tree_id = o.tree_id", [sid, seen])
+                "WHERE trees.tree_id = o.tree_id",
+                [sid, seen],
+            )
         if report.missing:
-            self.run("UPDATE trees SET status = 'missing' WHERE tree_id IN (SELECT unnest(?))",
-                             [report.missing])
+            self.run(
+                "UPDATE trees SET status = 'missing' WHERE tree_id IN (SELECT unnest(?))",
+                [report.missing],
+            )
         if report.replanted:
-            self.run("UPDATE trees SET status = 'removed' WHERE tree_id IN (SELECT unnest(?))",
-                             [[old for _, old in report.replanted]])
+            self.run(
+                "UPDATE trees SET status = 'removed' WHERE tree_id IN (SELECT unnest(?))",
+                [[old for _, old in report.replanted]],
+            )
 
     def _insert(self, table: str, frame: pd.DataFrame) -> None:
         self.con.register("_incoming", frame)
@@ -342,7 +445,10 @@ def damaged_store_error(path: Path, exc: BaseException) -> InputError | None:
         import duckdb
 
     text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    if isinstance(exc, (duckdb.IOException, duckdb.SerializationException)) or "corrupt" in text.lower():
+    if (
+        isinstance(exc, (duckdb.IOException, duckdb.SerializationException))
+        or "corrupt" in text.lower()
+    ):
         return InputError(f"{path}: the store is damaged or cut short ({text})")
     return None
 

@@ -34,7 +34,9 @@ class MatchSettings:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"match.{name} must be positive, got {getattr(self, name)}")
         if self.refine not in ("rigid", "translation", "none"):
-            raise ConfigError(f"match.refine: {self.refine!r} is not one of rigid, translation, none")
+            raise ConfigError(
+                f"match.refine: {self.refine!r} is not one of rigid, translation, none"
+            )
 
 
 @dataclass
@@ -67,8 +69,9 @@ class TreeMatch:
     aligned: np.ndarray  # (N, 2) session positions in the orchard frame
 
 
-def assign(session_xy: np.ndarray, known_xy: np.ndarray, gate: float
-           ) -> tuple[np.ndarray, np.ndarray]:
+def assign(
+    session_xy: np.ndarray, known_xy: np.ndarray, gate: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Minimum-total-distance one-to-one pairs within ``gate``: (K, 2) indices and distances."""
     from scipy.optimize import linear_sum_assignment
     from scipy.sparse import coo_matrix
@@ -78,7 +81,9 @@ def assign(session_xy: np.ndarray, known_xy: np.ndarray, gate: float
     n, m = len(session_xy), len(known_xy)
     if n == 0 or m == 0:
         return np.zeros((0, 2), int), np.zeros(0)
-    dist = cKDTree(known_xy).sparse_distance_matrix(cKDTree(session_xy), gate, output_type="coo_matrix")
+    dist = cKDTree(known_xy).sparse_distance_matrix(
+        cKDTree(session_xy), gate, output_type="coo_matrix"
+    )
     kj, si, d = dist.row, dist.col, dist.data
     if len(d) == 0:
         return np.zeros((0, 2), int), np.zeros(0)
@@ -104,8 +109,9 @@ def assign(session_xy: np.ndarray, known_xy: np.ndarray, gate: float
     return np.concatenate(pairs).astype(int).reshape(-1, 2), np.concatenate(dists)
 
 
-def coarse_offset(session_xy: np.ndarray, known_xy: np.ndarray, search: float, gate: float,
-                  seed: int = 0) -> tuple[np.ndarray, int]:
+def coarse_offset(
+    session_xy: np.ndarray, known_xy: np.ndarray, search: float, gate: float, seed: int = 0
+) -> tuple[np.ndarray, int]:
     """The shift most tree pairs agree on (a vote over offsets within ``search``) and its support."""
     from scipy.spatial import cKDTree
 
@@ -117,7 +123,9 @@ def coarse_offset(session_xy: np.ndarray, known_xy: np.ndarray, search: float, g
     s = np.repeat(np.arange(len(session_xy)), counts)
     deltas = known_xy[k] - session_xy[s]
     rng = np.random.default_rng(seed)
-    candidates = deltas if len(deltas) <= 4000 else deltas[rng.choice(len(deltas), 4000, replace=False)]
+    candidates = (
+        deltas if len(deltas) <= 4000 else deltas[rng.choice(len(deltas), 4000, replace=False)]
+    )
     tree = cKDTree(deltas)
     support = tree.query_ball_point(candidates, gate / 2, return_length=True).astype(float)
     # Ties (a regular pattern shifted by one tree) go to the smaller shift: GNSS is unbiased.
@@ -138,8 +146,9 @@ def rigid_fit(a: np.ndarray, b: np.ndarray, rotate: bool = True) -> tuple[float,
     return angle, cb - r @ ca
 
 
-def match_trees(session_xy: np.ndarray, known_xy: np.ndarray,
-                settings: MatchSettings | None = None) -> TreeMatch:
+def match_trees(
+    session_xy: np.ndarray, known_xy: np.ndarray, settings: MatchSettings | None = None
+) -> TreeMatch:
     """Align a session's tree positions to the known trees and pair them up."""
     st = settings or MatchSettings()
     st.check()
@@ -156,8 +165,11 @@ def match_trees(session_xy: np.ndarray, known_xy: np.ndarray,
             if len(pairs) == 0 or (previous is not None and np.array_equal(pairs, previous)):
                 break
             previous = pairs
-            angle, t = rigid_fit(session_xy[pairs[:, 0]], known_xy[pairs[:, 1]],
-                                 rotate=st.refine == "rigid" and len(pairs) >= 3)
+            angle, t = rigid_fit(
+                session_xy[pairs[:, 0]],
+                known_xy[pairs[:, 1]],
+                rotate=st.refine == "rigid" and len(pairs) >= 3,
+            )
         alignment = Alignment(float(np.degrees(angle)), float(t[0]), float(t[1]), method=st.refine)
     aligned = alignment.apply(session_xy)
     pairs, dist = assign(aligned, known_xy, st.gate_m)

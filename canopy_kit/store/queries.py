@@ -47,14 +47,16 @@ ORDER BY s.date, e.kind, e.tree_id
 
 def growth(store: Any, method: str | None = None, orchard: str | None = None) -> pd.DataFrame:
     """Volume per tree and session with growth since the first and the previous visit."""
-    return store.con.execute(GROWTH_SQL, {"method": method or store.volume_method,
-                                          "orchard": orchard}).df()
+    return store.con.execute(
+        GROWTH_SQL, {"method": method or store.volume_method, "orchard": orchard}
+    ).df()
 
 
 def row_growth(store: Any, method: str | None = None, orchard: str | None = None) -> pd.DataFrame:
     """Per row (the row a tree had when first seen) and session: count, total, median growth."""
-    return store.con.execute(ROW_GROWTH_SQL, {"method": method or store.volume_method,
-                                              "orchard": orchard}).df()
+    return store.con.execute(
+        ROW_GROWTH_SQL, {"method": method or store.volume_method, "orchard": orchard}
+    ).df()
 
 
 def changes(store: Any, orchard: str | None = None) -> pd.DataFrame:
@@ -62,8 +64,9 @@ def changes(store: Any, orchard: str | None = None) -> pd.DataFrame:
     return store.con.execute(CHANGES_SQL, {"orchard": orchard}).df()
 
 
-def export(store: Any, what: str, path: str | Path, method: str | None = None,
-           orchard: str | None = None) -> Path:
+def export(
+    store: Any, what: str, path: str | Path, method: str | None = None, orchard: str | None = None
+) -> Path:
     """Write ``growth``, ``row_growth``, ``changes``, ``trees`` or ``sessions`` to Parquet or CSV.
 
     The format follows the suffix (``.parquet`` or ``.csv``); written under a temporary
@@ -84,7 +87,9 @@ def export(store: Any, what: str, path: str | Path, method: str | None = None,
     elif what in ("trees", "sessions"):
         sql = f"SELECT * FROM {what} ORDER BY 1"
     else:
-        raise InputError(f"export: {what!r} is not one of growth, row_growth, changes, trees, sessions")
+        raise InputError(
+            f"export: {what!r} is not one of growth, row_growth, changes, trees, sessions"
+        )
     with atomic_path(path) as tmp:
         literal = str(tmp).replace("'", "''")
         options = "FORMAT PARQUET" if fmt == "PARQUET" else "FORMAT CSV, HEADER"
@@ -95,23 +100,22 @@ def export(store: Any, what: str, path: str | Path, method: str | None = None,
 def consistency_problems(store: Any) -> list[str]:
     """What is wrong in the store's references and counts (empty when consistent)."""
     checks = {
-        "observations of unknown sessions":
-            "SELECT count(*) FROM observations WHERE session_id NOT IN (SELECT session_id FROM sessions)",
-        "observations of unknown trees":
-            "SELECT count(*) FROM observations WHERE tree_id NOT IN (SELECT tree_id FROM trees)",
-        "volumes without an observation":
-            "SELECT count(*) FROM volumes v ANTI JOIN observations o USING (session_id, tree_id)",
-        "events of unknown sessions":
-            "SELECT count(*) FROM events WHERE session_id NOT IN (SELECT session_id FROM sessions)",
-        "trees never observed":
-            "SELECT count(*) FROM trees WHERE tree_id NOT IN (SELECT tree_id FROM observations)",
-        "sessions whose tree count differs from their observations":
-            "SELECT count(*) FROM sessions s LEFT JOIN (SELECT session_id, count(*) AS n "
-            "FROM observations GROUP BY session_id) o USING (session_id) "
-            "WHERE s.n_trees <> coalesce(o.n, 0)",
-        "trees seen twice in one session":
-            "SELECT count(*) FROM (SELECT session_id, tree_id FROM observations "
-            "GROUP BY ALL HAVING count(*) > 1)",
+        "observations of unknown sessions": "SELECT count(*) FROM observations "
+        "WHERE session_id NOT IN (SELECT session_id FROM sessions)",
+        "observations of unknown trees": "SELECT count(*) FROM observations "
+        "WHERE tree_id NOT IN (SELECT tree_id FROM trees)",
+        "volumes without an observation": "SELECT count(*) FROM volumes v "
+        "ANTI JOIN observations o USING (session_id, tree_id)",
+        "events of unknown sessions": "SELECT count(*) FROM events "
+        "WHERE session_id NOT IN (SELECT session_id FROM sessions)",
+        "trees never observed": "SELECT count(*) FROM trees "
+        "WHERE tree_id NOT IN (SELECT tree_id FROM observations)",
+        "sessions whose tree count differs from their observations": "SELECT count(*) "
+        "FROM sessions s LEFT JOIN (SELECT session_id, count(*) AS n "
+        "FROM observations GROUP BY session_id) o USING (session_id) "
+        "WHERE s.n_trees <> coalesce(o.n, 0)",
+        "trees seen twice in one session": "SELECT count(*) FROM (SELECT session_id, tree_id FROM observations "
+        "GROUP BY ALL HAVING count(*) > 1)",
     }
     out = []
     for name, sql in checks.items():

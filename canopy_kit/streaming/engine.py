@@ -42,7 +42,9 @@ class StreamSettings:
         """Reject settings that cannot work, naming the setting."""
         for name in ("lag_m", "step_m", "min_pass_m", "same_line_m"):
             if not getattr(self, name) > 0:
-                raise InputError(f"stream setting {name} must be positive, got {getattr(self, name)}")
+                raise InputError(
+                    f"stream setting {name} must be positive, got {getattr(self, name)}"
+                )
         if self.context_m < 0 or self.edge_m < 0 or self.check_every < 1:
             raise InputError("stream settings context_m and edge_m must be >= 0, check_every >= 1")
 
@@ -67,23 +69,35 @@ class StreamedTree:
 class TreeStream:
     """Iterate to get :class:`StreamedTree` objects; diagnostics are filled on the way."""
 
-    def __init__(self, config: PipelineConfig, bag: str | Path,
-                 settings: StreamSettings | None = None, progress: Progress | None = None) -> None:
+    def __init__(
+        self,
+        config: PipelineConfig,
+        bag: str | Path,
+        settings: StreamSettings | None = None,
+        progress: Progress | None = None,
+    ) -> None:
         self.config = config
         self.settings = settings or StreamSettings()
         self.settings.check()
         self.progress = progress
         self.source = SweepSource(Path(bag), config.mapping, progress)
-        self.layout = DriveLayout(min_pass_m=self.settings.min_pass_m,
-                                  same_line_m=self.settings.same_line_m)
+        self.layout = DriveLayout(
+            min_pass_m=self.settings.min_pass_m, same_line_m=self.settings.same_line_m
+        )
         self.window = PointWindow(config.mapping.map_voxel_size)
         self.georef = RunningGeoreference(config.mapping.gnss_epoch)
         self.trees: list[StreamedTree] = []
         self.closed: dict[tuple[float, float, int], float] = {}
         self.done_strips: dict[tuple, float] = {}  # partial strips: last processed frontier
         self.warnings: list[str] = []
-        self.stats = {"regions_processed": 0, "duplicates_dropped": 0, "points_rejected": 0,
-                      "peak_window_points": 0, "peak_window_mb": 0.0, "segment_calls": 0}
+        self.stats = {
+            "regions_processed": 0,
+            "duplicates_dropped": 0,
+            "points_rejected": 0,
+            "peak_window_points": 0,
+            "peak_window_mb": 0.0,
+            "segment_calls": 0,
+        }
         self._hulls: dict[tuple, list[np.ndarray]] = {}
         self._finished: set[tuple] = set()
         self.now = np.nan
@@ -93,7 +107,9 @@ class TreeStream:
         s = self.settings
         for k, sweep in enumerate(self.source):
             self.now = sweep.time
-            lever = getattr(self.source, "gnss_lever_arm", np.zeros(3))  # the fixes are the antenna's
+            lever = getattr(
+                self.source, "gnss_lever_arm", np.zeros(3)
+            )  # the fixes are the antenna's
             self.georef.add_pose(sweep.time, sweep.pose[:3, 3] + sweep.pose[:3, :3] @ lever)
             changed = self.layout.update(sweep.pose[:2, 3])
             self._add(sweep.points)
@@ -116,7 +132,9 @@ class TreeStream:
             self.stats["points_rejected"] += int(finished.sum())
             points = points.select(np.flatnonzero(~finished))
         self.window.add(points)
-        self.stats["peak_window_points"] = max(self.stats["peak_window_points"], self.window.n_points)
+        self.stats["peak_window_points"] = max(
+            self.stats["peak_window_points"], self.window.n_points
+        )
         self.stats["peak_window_mb"] = max(self.stats["peak_window_mb"], self.window.nbytes / 2**20)
 
     # -- regions -------------------------------------------------------------------------
@@ -183,8 +201,9 @@ class TreeStream:
             self._finished.add(state.key)
 
     # -- trees ---------------------------------------------------------------------------
-    def _trees_in(self, sub: PointCloud, state: RegionState, progress: np.ndarray
-                  ) -> tuple[list[tuple[StreamedTree, np.ndarray]], float]:
+    def _trees_in(
+        self, sub: PointCloud, state: RegionState, progress: np.ndarray
+    ) -> tuple[list[tuple[StreamedTree, np.ndarray]], float]:
         """Segment a finished stretch; the trees to emit and where the waiting ones begin."""
         from canopy_kit.segment.verb import make_segmenter, segment
         from canopy_kit.volume.verb import build_estimators, measure_trees
@@ -193,10 +212,15 @@ class TreeStream:
         direction = self._driving_direction()
         self.stats["segment_calls"] += 1
         try:
-            seg = segment(sub, make_segmenter(cfg.segment.method, cfg.segment.params),
-                          cfg.preprocess, cfg.rows, driving_direction=direction,
-                          direction_source="trajectory" if direction is not None else None,
-                          seed=cfg.seed)
+            seg = segment(
+                sub,
+                make_segmenter(cfg.segment.method, cfg.segment.params),
+                cfg.preprocess,
+                cfg.rows,
+                driving_direction=direction,
+                direction_source="trajectory" if direction is not None else None,
+                seed=cfg.seed,
+            )
         except InputError as exc:  # e.g. a region of bare ground: no canopy at all
             if "no points" not in str(exc):
                 self.warnings.append(f"region {state.key}: {exc}")
@@ -219,13 +243,19 @@ class TreeStream:
         only = np.where(np.isin(labels, chosen), labels, -1)
         if self._estimators is None:
             self._estimators = build_estimators(cfg.volume)
-        table = measure_trees(sub, only, cfg.volume, ground_height=seg.ground.height,
-                              estimators=self._estimators)
+        table = measure_trees(
+            sub, only, cfg.volume, ground_height=seg.ground.height, estimators=self._estimators
+        )
         out = []
         for rec in table.to_dict("records"):
             sid = int(rec["segment"])
-            tree = StreamedTree(len(self.trees), rec, self.now, self._passed_at(rec),
-                                hull=np.asarray(seg.footprints.get(sid, np.zeros((0, 2)))))
+            tree = StreamedTree(
+                len(self.trees),
+                rec,
+                self.now,
+                self._passed_at(rec),
+                hull=np.asarray(seg.footprints.get(sid, np.zeros((0, 2)))),
+            )
             self.trees.append(tree)
             out.append((tree, np.flatnonzero(labels == sid)))
         self._place([t for t, _ in out])

@@ -130,7 +130,12 @@ class DriveLayout:
             self.active = None
         run = self._run
         if run is None or run["sigma"] != sigma:
-            self._run = {"sigma": sigma, "s": self._s, "along": float(along), "across": [float(across)]}
+            self._run = {
+                "sigma": sigma,
+                "s": self._s,
+                "along": float(along),
+                "across": [float(across)],
+            }
             return True
         run["across"].append(float(across))
         if self._s - run["s"] < self.min_pass_m:
@@ -138,8 +143,14 @@ class DriveLayout:
         offset = float(np.median(run["across"]))
         line = self._line_at(offset)
         line.n_passes += 1
-        self.active = ActivePass(line.line_id, sigma, float(along), run["along"],
-                                 float(np.sum(run["across"])), len(run["across"]))
+        self.active = ActivePass(
+            line.line_id,
+            sigma,
+            float(along),
+            run["along"],
+            float(np.sum(run["across"])),
+            len(run["across"]),
+        )
         self.last_line = line.line_id
         self._run = None
         return True
@@ -173,16 +184,30 @@ class DriveLayout:
             out.append(self._state(key, lo, hi, left, right, lag))
         return out
 
-    def _state(self, key: tuple[int | None, int | None], lo: float, hi: float,
-               left: AlleyLine | None, right: AlleyLine | None, lag: float) -> RegionState:
+    def _state(
+        self,
+        key: tuple[int | None, int | None],
+        lo: float,
+        hi: float,
+        left: AlleyLine | None,
+        right: AlleyLine | None,
+        lag: float,
+    ) -> RegionState:
         if self.ended:
             return RegionState(key, lo, hi, complete=True)
         ids = {ln.line_id for ln in (left, right) if ln is not None}
         active = self.active
         if left is not None and right is not None:  # a strip between two alleys
             if active is not None and active.line_id in ids:
-                return RegionState(key, lo, hi, complete=False, partial=True, sigma=active.sigma,
-                                   frontier=active.sigma * active.along - lag)
+                return RegionState(
+                    key,
+                    lo,
+                    hi,
+                    complete=False,
+                    partial=True,
+                    sigma=active.sigma,
+                    frontier=active.sigma * active.along - lag,
+                )
             return RegionState(key, lo, hi, complete=True)
         # An outer side: finished once the drive has gone on along another line.
         return RegionState(key, lo, hi, complete=self.last_line not in ids)

@@ -24,14 +24,31 @@ from canopy_kit.io.atomic import atomic_write_json
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
 
 Progress = Callable[[str, float, float], None]
-LIVE_COLUMNS = ["index", "provisional_label", "provisional_row", "x", "y", "lat", "lon", "n_points", "height_m",
-                "crown_diameter_m", "emitted_at_s", "emission_delay_s"]
+LIVE_COLUMNS = [
+    "index",
+    "provisional_label",
+    "provisional_row",
+    "x",
+    "y",
+    "lat",
+    "lon",
+    "n_points",
+    "height_m",
+    "crown_diameter_m",
+    "emitted_at_s",
+    "emission_delay_s",
+]
 
 
-def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
-               settings: StreamSettings | None = None, progress: Progress | None = None,
-               on_tree: Callable[[StreamedTree], None] | None = None,
-               orchard: str | None = None) -> Any:
+def run_stream(
+    config: PipelineConfig,
+    bag: str | Path,
+    out: str | Path,
+    settings: StreamSettings | None = None,
+    progress: Progress | None = None,
+    on_tree: Callable[[StreamedTree], None] | None = None,
+    orchard: str | None = None,
+) -> Any:
     """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.pipeline.Results`
     (``orchard`` names the orchard in the provenance, default the bag's stem)."""
     from canopy_kit.outputs import Results, write_trees
@@ -56,10 +73,14 @@ def run_stream(config: PipelineConfig, bag: str | Path, out: str | Path,
     trees = final_table(stream)
     metrics = stream_metrics(stream, trees)
     metrics["timing"] = {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
-    metrics["provenance"] = provenance(bag, config.name, started, metrics["timing"]["wall_s"], orchard)
+    metrics["provenance"] = provenance(
+        bag, config.name, started, metrics["timing"]["wall_s"], orchard
+    )
     files = {"trees.live.csv": live}
     files.update(write_trees(trees, out, metrics["provenance"]))
-    files["config.toml"] = write_config(_config_used(config, stream.source.topics), out / "config.toml")
+    files["config.toml"] = write_config(
+        _config_used(config, stream.source.topics), out / "config.toml"
+    )
     files["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
     return Results(out, trees, metrics, files, list(metrics["warnings"]))
 
@@ -70,22 +91,39 @@ def _config_used(config: PipelineConfig, topics: object | None) -> PipelineConfi
 
     from canopy_kit.mapping.pipeline import config_used
 
-    return config if topics is None else replace(config, mapping=config_used(config.mapping, topics))  # type: ignore[arg-type]
+    return (
+        config if topics is None else replace(config, mapping=config_used(config.mapping, topics))
+    )  # type: ignore[arg-type]
 
 
 def _live_cells(tree: StreamedTree, t0: float) -> list[str]:
     v = tree.values
-    cells = [tree.index, tree.label, tree.row, tree.x, tree.y, tree.lat, tree.lon, v["n_points"],
-             v["height_m"], v["crown_diameter_m"], tree.emitted_at - t0,
-             tree.emitted_at - tree.passed_at]
-    return ["" if isinstance(c, float) and not np.isfinite(c) else
-            (f"{c:.8f}" if isinstance(c, float) else str(c)) for c in cells]
+    cells = [
+        tree.index,
+        tree.label,
+        tree.row,
+        tree.x,
+        tree.y,
+        tree.lat,
+        tree.lon,
+        v["n_points"],
+        v["height_m"],
+        v["crown_diameter_m"],
+        tree.emitted_at - t0,
+        tree.emitted_at - tree.passed_at,
+    ]
+    return [
+        ""
+        if isinstance(c, float) and not np.isfinite(c)
+        else (f"{c:.8f}" if isinstance(c, float) else str(c))
+        for c in cells
+    ]
 
 
 def final_table(stream: TreeStream) -> pd.DataFrame:
     """Every emitted tree placed with the whole drive's GNSS fit and labelled as in batch."""
-    from canopy_kit.tree_table import FIRST_COLUMNS
     from canopy_kit.segment.rows import assign_rows, driving_direction_from_trajectory
+    from canopy_kit.tree_table import FIRST_COLUMNS
 
     if not stream.trees:
         return pd.DataFrame(columns=FIRST_COLUMNS)
@@ -123,15 +161,21 @@ def stream_metrics(stream: TreeStream, trees: pd.DataFrame) -> dict[str, Any]:
     delay = trees["emission_delay_s"].to_numpy(float) if len(trees) else np.zeros(0)
     frame = stream.georef.frame
     return {
-        "n_trees": int(len(trees)), "preset": stream.config.name,
-        "segmenter": stream.config.segment.method, "mode": "stream",
+        "n_trees": int(len(trees)),
+        "preset": stream.config.name,
+        "segmenter": stream.config.segment.method,
+        "mode": "stream",
         "scans": stream.source.n_scans,
-        "streaming": {**stream.stats, "settings": asdict(stream.settings),
-                      "points_offered": stream.window.n_offered,
-                      "alley_lines": len(stream.layout.lines),
-                      "emission_delay_s": {"median": float(np.median(delay)) if len(delay) else None,
-                                           "max": float(delay.max()) if len(delay) else None}},
+        "streaming": {
+            **stream.stats,
+            "settings": asdict(stream.settings),
+            "points_offered": stream.window.n_offered,
+            "alley_lines": len(stream.layout.lines),
+            "emission_delay_s": {
+                "median": float(np.median(delay)) if len(delay) else None,
+                "max": float(delay.max()) if len(delay) else None,
+            },
+        },
         "frame": frame.to_dict() if frame is not None else None,
         "warnings": list(stream.warnings),
     }
-

@@ -42,7 +42,9 @@ class SweepSource:
     config: MappingConfig
     progress: Progress | None = None
     gnss: object | None = None  # mapping.sensors.GnssBuffer once reading has started
-    gnss_lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # antenna in the LiDAR frame
+    gnss_lever_arm: np.ndarray = field(
+        default_factory=lambda: np.zeros(3)
+    )  # antenna in the LiDAR frame
     n_scans: int = 0
     warnings: list[str] = field(default_factory=list)
     topics: object | None = None  # mapping.sensors.SensorTopics once the bag is open
@@ -53,31 +55,45 @@ class SweepSource:
         from canopy_kit.mapping.assemble import point_fields
         from canopy_kit.mapping.extrinsics import resolve_rig
         from canopy_kit.mapping.frontend import LidarFrontend, require_sweeps
-        from canopy_kit.mapping.sensors import GnssBuffer, ImuBuffer, resolve_topics, sensor_messages
+        from canopy_kit.mapping.sensors import (
+            GnssBuffer,
+            ImuBuffer,
+            resolve_topics,
+            sensor_messages,
+        )
 
         cfg = self.config
         n_sweeps = 0
         with open_bag(self.bag) as bag:
-            topics = resolve_topics(bag, cfg.pointcloud_topic, cfg.imu_topic, cfg.gnss_topic,
-                                    cfg.use_imu, cfg.use_gnss)
+            topics = resolve_topics(
+                bag, cfg.pointcloud_topic, cfg.imu_topic, cfg.gnss_topic, cfg.use_imu, cfg.use_gnss
+            )
             rig = resolve_rig(bag, topics, cfg)
             if rig.calibrate:
-                raise InputError(f"{self.bag}: --calibrate-extrinsics (mapping.extrinsics = 'calibrate') needs "
-                                 "the whole drive before the first sweep; it does not stream. Estimate the mount "
-                                 "with `canopy-kit map BAG --calibrate-extrinsics` and stream with the rig.toml it "
-                                 "writes (--rig)")
+                raise InputError(
+                    f"{self.bag}: --calibrate-extrinsics (mapping.extrinsics = 'calibrate') needs "
+                    "the whole drive before the first sweep; it does not stream. Estimate the mount "
+                    "with `canopy-kit map BAG --calibrate-extrinsics` and stream with the rig.toml it "
+                    "writes (--rig)"
+                )
             self.topics = topics
             self.warnings.extend(rig.warnings + topics.notes)
             self.gnss_lever_arm = rig.gnss_lever_arm
-            imu = (ImuBuffer(mounting=rig.imu_mounting(), source=f"{bag.path}: topic {topics.imu!r}")
-                   if topics.imu else None)
+            imu = (
+                ImuBuffer(mounting=rig.imu_mounting(), source=f"{bag.path}: topic {topics.imu!r}")
+                if topics.imu
+                else None
+            )
             self.gnss = GnssBuffer() if topics.gnss else None
             if topics.gnss is None:
-                self.warnings.append(f"{self.bag}: no GNSS topic: tree positions stay in the "
-                                     "odometry frame (no latitude/longitude)")
+                self.warnings.append(
+                    f"{self.bag}: no GNSS topic: tree positions stay in the "
+                    "odometry frame (no latitude/longitude)"
+                )
             where = f"{bag.path}: topic {topics.scans!r}"
-            frontend = LidarFrontend(cfg, imu, where=where, keep_all_points=True,
-                                     lidar_from_base=rig.lidar_from_base)
+            frontend = LidarFrontend(
+                cfg, imu, where=where, keep_all_points=True, lidar_from_base=rig.lidar_from_base
+            )
             total = next((t.count for t in bag.topics() if t.name == topics.scans), 0)
 
             def sweeps() -> Iterator:

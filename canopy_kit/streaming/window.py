@@ -86,5 +86,6 @@ class PointWindow:
     def nbytes(self) -> int:
         """Memory held by the points and their fields."""
         clouds = ([self._merged] if self._merged is not None else []) + self._chunks
-        return int(sum(c.xyz.nbytes + sum(np.asarray(v).nbytes for v in c.fields.values())
-                       for c in clouds))
+        return int(
+            sum(c.xyz.nbytes + sum(np.asarray(v).nbytes for v in c.fields.values()) for c in clouds)
+        )

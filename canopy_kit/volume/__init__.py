@@ -15,8 +15,19 @@ from canopy_kit.volume.base import VolumeEstimator, VolumeResult
 from canopy_kit.volume.metrics import TreeMetrics, sphere_volume, tree_metrics
 from canopy_kit.volume.sensitivity import AlphaCurve, AutoAlpha, alpha_curve, auto_alpha
 
-__all__ = ["AlphaCurve", "AutoAlpha", "TreeMetrics", "VolumeEstimator", "VolumeResult", "alpha_curve",
-           "auto_alpha", "estimate_volume", "estimator", "sphere_volume", "tree_metrics"]
+__all__ = [
+    "AlphaCurve",
+    "AutoAlpha",
+    "TreeMetrics",
+    "VolumeEstimator",
+    "VolumeResult",
+    "alpha_curve",
+    "auto_alpha",
+    "estimate_volume",
+    "estimator",
+    "sphere_volume",
+    "tree_metrics",
+]
 
 
 def estimator(method: str = "alpha_shape", **params: Any) -> Any:

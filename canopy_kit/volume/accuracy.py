@@ -38,8 +38,9 @@ def accuracy_table() -> pd.DataFrame:
         return pd.read_csv(file)
 
 
-def measured_accuracy(method: str, scan: str = "both", form: str = "all"
-                      ) -> MeasuredAccuracy | None:
+def measured_accuracy(
+    method: str, scan: str = "both", form: str = "all"
+) -> MeasuredAccuracy | None:
     """The measured accuracy of ``method`` (``None`` when it was not in the matrix)."""
     table = accuracy_table()
     hit = table[(table["method"] == method) & (table["scan"] == scan) & (table["form"] == form)]
@@ -47,5 +48,14 @@ def measured_accuracy(method: str, scan: str = "both", form: str = "all"
         return None
     r = hit.iloc[0]
     covers = float(r["interval_covers"]) if pd.notna(r["interval_covers"]) else None
-    return MeasuredAccuracy(method, scan, int(r["n"]), float(r["bias"]), float(r["mape"]),
-                            float(r["p90"]), covers, str(r["sensors"]), str(r["seeds"]))
+    return MeasuredAccuracy(
+        method,
+        scan,
+        int(r["n"]),
+        float(r["bias"]),
+        float(r["mape"]),
+        float(r["p90"]),
+        covers,
+        str(r["sensors"]),
+        str(r["seeds"]),
+    )

@@ -74,9 +74,15 @@ class AdaptiveAlphaVolume(VolumeEstimator):
 
     name = "adaptive_alpha"
 
-    def __init__(self, alpha_factor: float = ALPHA_FACTOR, offset_factor: float = OFFSET_FACTOR,
-                 alpha_min: float = 0.3, alpha_max: float = 1.5,
-                 grid_step: float | None = None, fill_voids: bool = True) -> None:
+    def __init__(
+        self,
+        alpha_factor: float = ALPHA_FACTOR,
+        offset_factor: float = OFFSET_FACTOR,
+        alpha_min: float = 0.3,
+        alpha_max: float = 1.5,
+        grid_step: float | None = None,
+        fill_voids: bool = True,
+    ) -> None:
         self.alpha_factor = alpha_factor
         self.offset_factor = offset_factor
         self.alpha_min = alpha_min
@@ -90,12 +96,18 @@ class AdaptiveAlphaVolume(VolumeEstimator):
             check_positive(getattr(self, name), name, self.name)
         check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
         off = self.offset_factor
-        if (not isinstance(off, int | float) or isinstance(off, bool) or not np.isfinite(off)
-                or off < 0):
+        if (
+            not isinstance(off, int | float)
+            or isinstance(off, bool)
+            or not np.isfinite(off)
+            or off < 0
+        ):
             raise ConfigError(f"{self.name}: offset_factor must be a number >= 0, got {off!r}")
         if self.alpha_min > self.alpha_max:
-            raise ConfigError(f"{self.name}: alpha_min ({self.alpha_min}) must not exceed "
-                              f"alpha_max ({self.alpha_max})")
+            raise ConfigError(
+                f"{self.name}: alpha_min ({self.alpha_min}) must not exceed "
+                f"alpha_max ({self.alpha_max})"
+            )
         super().validate_params()
 
     def choose(self, xyz: np.ndarray, tree: object = None) -> tuple[float, float, float]:
@@ -111,8 +123,9 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
         alpha, offset, s = self.choose(xyz, tree)
         h = grid_step(xyz, alpha, self.grid_step)
-        volume, extra = alpha_hull_volume(xyz, alpha, h, offset=offset, tree=tree,
-                                          fill_voids=self.fill_voids)
+        volume, extra = alpha_hull_volume(
+            xyz, alpha, h, offset=offset, tree=tree, fill_voids=self.fill_voids
+        )
         extra.update({"alpha": alpha, "offset": offset, "spacing": s})
         if volume <= 0.0:
             extra["reason"] = f"the adaptive alpha hull is empty (alpha = {alpha:.2f} m)"

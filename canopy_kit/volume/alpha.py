@@ -43,8 +43,9 @@ class Tetrahedra:
     circumradius: np.ndarray  # (M,) m; inf for flat (zero-volume) tetrahedra
 
 
-def circumradii_and_signed_volumes(a: np.ndarray, b: np.ndarray, c: np.ndarray,
-                                   d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def circumradii_and_signed_volumes(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Circumradius and signed volume of tetrahedra with vertex arrays (M, 3) each, vectorised
     (the volume is positive when ``d`` sees ``a, b, c`` counter-clockwise).
 
@@ -54,9 +55,11 @@ def circumradii_and_signed_volumes(a: np.ndarray, b: np.ndarray, c: np.ndarray,
     u, v, w = b - a, c - a, d - a
     vw = np.cross(v, w)
     det = np.einsum("ij,ij->i", u, vw)
-    num = (np.einsum("ij,ij->i", u, u)[:, None] * vw
-           + np.einsum("ij,ij->i", v, v)[:, None] * np.cross(w, u)
-           + np.einsum("ij,ij->i", w, w)[:, None] * np.cross(u, v))
+    num = (
+        np.einsum("ij,ij->i", u, u)[:, None] * vw
+        + np.einsum("ij,ij->i", v, v)[:, None] * np.cross(w, u)
+        + np.einsum("ij,ij->i", w, w)[:, None] * np.cross(u, v)
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
         radius = np.linalg.norm(num, axis=1) / np.abs(2.0 * det)
     radius = np.where(np.isfinite(radius), radius, np.inf)
@@ -144,17 +147,19 @@ def _vtk_simplices(centred: np.ndarray) -> np.ndarray | None:
     return simplices
 
 
-def _measured(centred: np.ndarray, simplices: np.ndarray, positive: bool = False) -> Tetrahedra | None:
+def _measured(
+    centred: np.ndarray, simplices: np.ndarray, positive: bool = False
+) -> Tetrahedra | None:
     """Volumes and circumradii of the tetrahedra; None if ``positive`` and one is not."""
     radius = np.empty(len(simplices))
     volume = np.empty(len(simplices))
     for start in range(0, len(simplices), _CHUNK):
-        s = simplices[start:start + _CHUNK]
+        s = simplices[start : start + _CHUNK]
         r, v = circumradii_and_signed_volumes(*(centred[s[:, k]] for k in range(4)))
         if positive and not np.all(v > 0):
             return None
-        radius[start:start + _CHUNK] = r
-        volume[start:start + _CHUNK] = np.abs(v)
+        radius[start : start + _CHUNK] = r
+        volume[start : start + _CHUNK] = np.abs(v)
     return Tetrahedra(simplices, volume, radius)
 
 
@@ -200,6 +205,8 @@ class AlphaShapeVolume(VolumeEstimator):
         kept = tetra.circumradius < self.alpha
         extra: dict = {"n_tetrahedra": int(kept.sum())}
         if not kept.any():
-            extra["reason"] = (f"alpha = {self.alpha} m is below the point spacing: "
-                               f"no tetrahedron has a smaller circumradius")
+            extra["reason"] = (
+                f"alpha = {self.alpha} m is below the point spacing: "
+                f"no tetrahedron has a smaller circumradius"
+            )
         return float(tetra.volume[kept].sum()), extra

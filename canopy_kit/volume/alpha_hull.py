@@ -39,14 +39,18 @@ MAX_CELLS = 8_000_000
 MAX_SPACING_RATIO = 0.2  # α/5
 
 
-def grid_step(xyz: np.ndarray, alpha: float, step: float | None = None,
-              max_cells: int = MAX_CELLS) -> float:
+def grid_step(
+    xyz: np.ndarray, alpha: float, step: float | None = None, max_cells: int = MAX_CELLS
+) -> float:
     """The grid step used for ``alpha``: ``step`` if given, else the smallest of α/4, the
     largest extent/12 and the smallest extent/6, enlarged if the padded grid would exceed
     ``max_cells`` cells."""
     extent = np.ptp(xyz, axis=0)
-    h = step if step is not None else min(alpha / DEFAULT_CELLS_PER_ALPHA,
-                                          float(extent.max()) / 12, float(extent.min()) / 6)
+    h = (
+        step
+        if step is not None
+        else min(alpha / DEFAULT_CELLS_PER_ALPHA, float(extent.max()) / 12, float(extent.min()) / 6)
+    )
     for _ in range(20):
         cells = np.prod(np.ceil((extent + 2 * alpha + 4 * h) / h) + 1)
         if cells <= max_cells:
@@ -87,13 +91,20 @@ def _crossing_ends(inside: np.ndarray) -> np.ndarray:
     return ends
 
 
-def _node_centres(flat: np.ndarray, shape: tuple[int, ...], origin: np.ndarray, h: float) -> np.ndarray:
+def _node_centres(
+    flat: np.ndarray, shape: tuple[int, ...], origin: np.ndarray, h: float
+) -> np.ndarray:
     return origin + (np.column_stack(np.unravel_index(flat, shape)) + 0.5) * h
 
 
-def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
-                      offset: float = 0.0, tree: object = None,
-                      fill_voids: bool = False) -> tuple[float, dict]:
+def alpha_hull_volume(
+    xyz: np.ndarray,
+    alpha: float,
+    step: float,
+    offset: float = 0.0,
+    tree: object = None,
+    fill_voids: bool = False,
+) -> tuple[float, dict]:
     """Volume of the α-hull (closing of the points by a ball of radius ``alpha``) on a grid.
 
     ``offset`` (0 <= offset < α) grows the hull outwards by that distance: the solid is
@@ -126,7 +137,9 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
     # every node queried below is within α + 2·snap + h of a point: the bound only prunes
     bound = alpha + 2.0 * snap + h
     near = np.flatnonzero(np.abs(dist_p - alpha) <= snap)
-    dist_p.flat[near] = tree.query(_node_centres(near, shape, origin, h), distance_upper_bound=bound)[0]
+    dist_p.flat[near] = tree.query(
+        _node_centres(near, shape, origin, h), distance_upper_bound=bound
+    )[0]
     exact = np.zeros(shape, bool)
     exact.flat[near] = True
     empty = dist_p >= alpha  # E: centres of empty α-balls
@@ -137,7 +150,9 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
             empty &= ~voids
             dist_p[voids] = 0.0  # no α-level crossing on a void's wall
     ends = np.flatnonzero(_crossing_ends(empty) & ~exact)
-    dist_p.flat[ends] = tree.query(_node_centres(ends, shape, origin, h), distance_upper_bound=bound)[0]
+    dist_p.flat[ends] = tree.query(
+        _node_centres(ends, shape, origin, h), distance_upper_bound=bound
+    )[0]
     boundary = _crossing_points(dist_p, alpha, origin, h)
     if len(boundary) == 0:
         return 0.0, info
@@ -148,8 +163,12 @@ def alpha_hull_volume(xyz: np.ndarray, alpha: float, step: float,
     top = level + h + 2.0 * snap
     band = np.flatnonzero((dist_e >= level - h) & (dist_e < top))
     # depths beyond h count whole under any ±h/2 shift: no need to find them exactly (inf)
-    depth = cKDTree(boundary, leafsize=32).query(_node_centres(band, shape, origin, h),
-                                                 distance_upper_bound=level + h)[0] - level
+    depth = (
+        cKDTree(boundary, leafsize=32).query(
+            _node_centres(band, shape, origin, h), distance_upper_bound=level + h
+        )[0]
+        - level
+    )
 
     # 3. whole voxels inside, partial voxels along the boundary; the ramp is exact for a
     # plane and over-counts a curved boundary by M h²/12 (M: integrated mean curvature),
@@ -197,11 +216,14 @@ class AlphaHullVolume(VolumeEstimator):
         h = grid_step(xyz, float(self.alpha), self.grid_step)
         volume, extra = alpha_hull_volume(xyz, float(self.alpha), h)
         if volume <= 0.0:
-            extra["reason"] = (f"alpha = {self.alpha} m is below the point spacing: "
-                               f"the alpha hull is empty")
+            extra["reason"] = (
+                f"alpha = {self.alpha} m is below the point spacing: the alpha hull is empty"
+            )
         elif extra["spacing_ratio"] > MAX_SPACING_RATIO:
-            extra["reason"] = (f"points too sparse for the alpha hull: median spacing "
-                               f"{extra['spacing_ratio'] * self.alpha:.2f} m exceeds alpha/5 = "
-                               f"{self.alpha / 5:.2f} m, where the hull falls more than ~5 % "
-                               f"below the alpha shape; use alpha_shape")
+            extra["reason"] = (
+                f"points too sparse for the alpha hull: median spacing "
+                f"{extra['spacing_ratio'] * self.alpha:.2f} m exceeds alpha/5 = "
+                f"{self.alpha / 5:.2f} m, where the hull falls more than ~5 % "
+                f"below the alpha shape; use alpha_shape"
+            )
         return volume, extra

@@ -29,8 +29,15 @@ from sklearn.base import BaseEstimator
 from canopy_kit.errors import InputError
 from canopy_kit.params import check_choice, check_positive, validate_types
 
-__all__ = ["MIN_POINTS", "VolumeEstimator", "VolumeResult", "as_points", "check_choice",
-           "check_positive", "degeneracy"]
+__all__ = [
+    "MIN_POINTS",
+    "VolumeEstimator",
+    "VolumeResult",
+    "as_points",
+    "check_choice",
+    "check_positive",
+    "degeneracy",
+]
 
 MIN_POINTS = 4
 # Relative singular-value threshold below which the cloud is treated as flat or a line.
@@ -51,9 +58,15 @@ class VolumeResult:
 
     def as_dict(self) -> dict[str, Any]:
         """Plain dict (for JSON and tables)."""
-        return {"volume_m3": self.volume_m3, "method": self.method, "params": dict(self.params),
-                "valid": self.valid, "reason": self.reason, "n_points": self.n_points,
-                **({"extra": dict(self.extra)} if self.extra else {})}
+        return {
+            "volume_m3": self.volume_m3,
+            "method": self.method,
+            "params": dict(self.params),
+            "valid": self.valid,
+            "reason": self.reason,
+            "n_points": self.n_points,
+            **({"extra": dict(self.extra)} if self.extra else {}),
+        }
 
 
 def as_points(xyz: Any, name: str = "xyz") -> np.ndarray:
@@ -63,16 +76,19 @@ def as_points(xyz: Any, name: str = "xyz") -> np.ndarray:
     try:
         arr = np.asarray(xyz, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: expected an (N, 3) array of coordinates, got "
-                         f"{type(xyz).__name__} ({exc})") from None
+        raise InputError(
+            f"{name}: expected an (N, 3) array of coordinates, got {type(xyz).__name__} ({exc})"
+        ) from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError(f"{name}: expected an (N, 3) array of coordinates, got shape {arr.shape}")
     finite = np.isfinite(arr).all(axis=1)
     if not finite.all():
         bad = np.flatnonzero(~finite)
-        raise InputError(f"{name}: {len(bad)} of {len(arr)} points have NaN or infinite "
-                         f"coordinates (first at row {bad[0]}); remove them before estimating a "
-                         f"volume")
+        raise InputError(
+            f"{name}: {len(bad)} of {len(arr)} points have NaN or infinite "
+            f"coordinates (first at row {bad[0]}); remove them before estimating a "
+            f"volume"
+        )
     return arr
 
 
@@ -127,7 +143,16 @@ class VolumeEstimator(BaseEstimator):
         out = self._volume(pts)
         volume, extra = out if isinstance(out, tuple) else (out, {})
         if not np.isfinite(volume) or volume < 0:
-            return VolumeResult(0.0, self.name, params, False,
-                                f"estimator produced an unusable volume ({volume!r})", len(pts), extra)
+            return VolumeResult(
+                0.0,
+                self.name,
+                params,
+                False,
+                f"estimator produced an unusable volume ({volume!r})",
+                len(pts),
+                extra,
+            )
         reason = extra.pop("reason", None)
-        return VolumeResult(float(volume), self.name, params, reason is None, reason, len(pts), extra)
+        return VolumeResult(
+            float(volume), self.name, params, reason is None, reason, len(pts), extra
+        )

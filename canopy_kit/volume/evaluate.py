@@ -50,9 +50,13 @@ def row_directions(trees: Any) -> dict[int, np.ndarray]:
     return out
 
 
-def simulated_trees(sim_dir: str | Path, voxel_size: float = 0.1, map_voxel_size: float = 0.05,
-                    reference_map: Any = None,
-                    progress: ProgressCallback | None = None) -> list[SimulatedTree]:
+def simulated_trees(
+    sim_dir: str | Path,
+    voxel_size: float = 0.1,
+    map_voxel_size: float = 0.05,
+    reference_map: Any = None,
+    progress: ProgressCallback | None = None,
+) -> list[SimulatedTree]:
     """Per-tree clouds of a simulated session, voxel-thinned to ``voxel_size`` (paper: 0.1 m).
 
     ``reference_map`` (a PointCloud with ``tree_id`` and ``time`` fields) is built from the
@@ -64,8 +68,11 @@ def simulated_trees(sim_dir: str | Path, voxel_size: float = 0.1, map_voxel_size
     from canopy_kit.voxel import voxel_downsample
 
     truth = load_truth(sim_dir)
-    cloud = reference_map if reference_map is not None else truth_map(
-        sim_dir, voxel_size=map_voxel_size, progress=progress)
+    cloud = (
+        reference_map
+        if reference_map is not None
+        else truth_map(sim_dir, voxel_size=map_voxel_size, progress=progress)
+    )
     pose_at = true_pose_interpolator(sim_dir)
     directions = row_directions(truth.trees)
     tree_ids = np.asarray(cloud.fields["tree_id"])
@@ -83,9 +90,17 @@ def simulated_trees(sim_dir: str | Path, voxel_size: float = 0.1, map_voxel_size
         trunk = np.array([tree.x, tree.y])
         sensor_xy = pose_at(times[mask])[0][:, :2]
         side = (sensor_xy - trunk) @ across
-        out.append(SimulatedTree(int(tree.tree_id), str(tree.label), float(tree.crown_volume_m3),
-                                 trunk, across, thin(xyz),
-                                 {"left": thin(xyz[side > 0]), "right": thin(xyz[side < 0])}))
+        out.append(
+            SimulatedTree(
+                int(tree.tree_id),
+                str(tree.label),
+                float(tree.crown_volume_m3),
+                trunk,
+                across,
+                thin(xyz),
+                {"left": thin(xyz[side > 0]), "right": thin(xyz[side < 0])},
+            )
+        )
     return out
 
 
@@ -109,8 +124,9 @@ class MethodSpec:
         return estimate_volume(xyz, self.method, **params)
 
 
-def volume_errors(trees: list[SimulatedTree], specs: list[MethodSpec],
-                  progress: ProgressCallback | None = None) -> Any:
+def volume_errors(
+    trees: list[SimulatedTree], specs: list[MethodSpec], progress: ProgressCallback | None = None
+) -> Any:
     """One row per tree, scan (complete, left, right) and method: volume, truth, error."""
     import pandas as pd
 
@@ -121,10 +137,18 @@ def volume_errors(trees: list[SimulatedTree], specs: list[MethodSpec],
         for scan, xyz in scans.items():
             for spec in specs:
                 result = spec.run(tree, xyz)
-                rows.append({"tree": tree.label, "scan": scan, "method": spec.label,
-                             "n_points": len(xyz), "volume_m3": result.volume_m3,
-                             "true_volume_m3": tree.true_volume_m3, "valid": result.valid,
-                             "error": result.volume_m3 / tree.true_volume_m3 - 1})
+                rows.append(
+                    {
+                        "tree": tree.label,
+                        "scan": scan,
+                        "method": spec.label,
+                        "n_points": len(xyz),
+                        "volume_m3": result.volume_m3,
+                        "true_volume_m3": tree.true_volume_m3,
+                        "valid": result.valid,
+                        "error": result.volume_m3 / tree.true_volume_m3 - 1,
+                    }
+                )
         if progress:
             progress("volumes", i + 1, total)
     return pd.DataFrame(rows)
@@ -132,8 +156,14 @@ def volume_errors(trees: list[SimulatedTree], specs: list[MethodSpec],
 
 def error_table(errors: Any) -> Any:
     """MAPE and bias (mean signed error) per scan kind (complete / one-sided) and method."""
-    df = errors.assign(scan=np.where(errors["scan"] == "complete", "complete", "one-sided"),
-                       abs_error=errors["error"].abs())
+    df = errors.assign(
+        scan=np.where(errors["scan"] == "complete", "complete", "one-sided"),
+        abs_error=errors["error"].abs(),
+    )
     grouped = df.groupby(["scan", "method"], sort=False)
-    return grouped.agg(n=("error", "size"), mape=("abs_error", "mean"), bias=("error", "mean"),
-                       invalid=("valid", lambda v: int((~v).sum()))).reset_index()
+    return grouped.agg(
+        n=("error", "size"),
+        mape=("abs_error", "mean"),
+        bias=("error", "mean"),
+        invalid=("valid", lambda v: int((~v).sum())),
+    ).reset_index()

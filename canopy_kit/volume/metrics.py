@@ -129,7 +129,9 @@ def polygon_area(vertices: np.ndarray) -> float:
     return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
-def crown_base_z(xyz: np.ndarray, slice_thickness: float = 0.1, crown_fraction: float = 0.25) -> float:
+def crown_base_z(
+    xyz: np.ndarray, slice_thickness: float = 0.1, crown_fraction: float = 0.25
+) -> float:
     """Height of the lowest slice whose horizontal extent reaches ``crown_fraction`` of the widest."""
     z0 = xyz[:, 2].min()
     k = np.floor((xyz[:, 2] - z0) / slice_thickness).astype(np.intp)
@@ -143,8 +145,13 @@ def crown_base_z(xyz: np.ndarray, slice_thickness: float = 0.1, crown_fraction: 
     return float(z0 + first * slice_thickness)
 
 
-def tree_metrics(xyz: Any, ground_z: float | None = None, volume_m3: float | None = None,
-                 slice_thickness: float = 0.1, crown_fraction: float = 0.25) -> TreeMetrics:
+def tree_metrics(
+    xyz: Any,
+    ground_z: float | None = None,
+    volume_m3: float | None = None,
+    slice_thickness: float = 0.1,
+    crown_fraction: float = 0.25,
+) -> TreeMetrics:
     """Height, crown base, diameters, projected area, count, density and sphere volume of a tree."""
     pts = as_points(xyz)
     if len(pts) == 0:

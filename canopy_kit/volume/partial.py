@@ -58,8 +58,9 @@ def horizontal_axes(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v[:, 1], v[:, 0]
 
 
-def estimate_mirror_plane(xyz: np.ndarray, across_ratio: float = 1.0,
-                          normal: np.ndarray | None = None) -> MirrorPlane:
+def estimate_mirror_plane(
+    xyz: np.ndarray, across_ratio: float = 1.0, normal: np.ndarray | None = None
+) -> MirrorPlane:
     """The mirror plane by the round-crown rule (module docstring); ``normal`` if known."""
     major, minor = horizontal_axes(xyz)
     if normal is not None:
@@ -116,9 +117,14 @@ class MirrorVolume(VolumeEstimator):
 
     name = "mirror"
 
-    def __init__(self, plane_point: tuple[float, float] | None = None,
-                 plane_normal: tuple[float, float] | None = None, base: str = "convex_hull",
-                 alpha: float = PAPER_ALPHA_M, across_ratio: float = 1.0) -> None:
+    def __init__(
+        self,
+        plane_point: tuple[float, float] | None = None,
+        plane_normal: tuple[float, float] | None = None,
+        base: str = "convex_hull",
+        alpha: float = PAPER_ALPHA_M,
+        across_ratio: float = 1.0,
+    ) -> None:
         self.plane_point = plane_point
         self.plane_normal = plane_normal
         self.base = base

@@ -26,8 +26,11 @@ class AlphaCurve:
 
     def as_dict(self) -> dict[str, Any]:
         """Plain dict (for JSON and tables)."""
-        return {"alphas": self.alphas.tolist(), "volumes": self.volumes.tolist(),
-                "hull_volume": self.hull_volume}
+        return {
+            "alphas": self.alphas.tolist(),
+            "volumes": self.volumes.tolist(),
+            "hull_volume": self.hull_volume,
+        }
 
 
 class _Cumulative:
@@ -58,7 +61,6 @@ def alpha_curve(xyz: Any, alphas: Any) -> AlphaCurve:
     tetra = _tetrahedra(xyz)
     step = _Cumulative(tetra)
     return AlphaCurve(a, step(a), float(step.cumulative[-1]))
-
 
 
 @dataclass(frozen=True)
@@ -100,7 +102,6 @@ def auto_alpha(xyz: Any, tolerance: float = 0.02, n: int = 64) -> AutoAlpha:
     k = int(np.argmax(plateau)) if plateau.any() else n - 1
     curve = AlphaCurve(alphas, volumes, float(step.cumulative[-1]))
     return AutoAlpha(float(alphas[k]), float(volumes[k]), curve)
-
 
 
 class AutoAlphaVolume(VolumeEstimator):

@@ -50,8 +50,9 @@ def alpha_area(xy: np.ndarray, alpha: float) -> float:
     return float(area[np.isfinite(radius) & (radius < alpha)].sum())
 
 
-def slice_areas(xyz: np.ndarray, thickness: float, area: str = "hull",
-                alpha: float = PAPER_ALPHA_M) -> tuple[np.ndarray, np.ndarray]:
+def slice_areas(
+    xyz: np.ndarray, thickness: float, area: str = "hull", alpha: float = PAPER_ALPHA_M
+) -> tuple[np.ndarray, np.ndarray]:
     """Bottom height and area of each horizontal slice of ``thickness`` metres, from min z."""
     z0 = xyz[:, 2].min()
     k = np.floor((xyz[:, 2] - z0) / thickness).astype(np.intp)
@@ -61,7 +62,7 @@ def slice_areas(xyz: np.ndarray, thickness: float, area: str = "hull",
     starts = np.searchsorted(k_sorted, np.arange(n + 1))
     areas = np.zeros(n)
     for i in range(n):
-        xy = xyz[order[starts[i]:starts[i + 1]], :2]
+        xy = xyz[order[starts[i] : starts[i + 1]], :2]
         areas[i] = hull_area(xy) if area == "hull" else alpha_area(xy, alpha)
     return z0 + thickness * np.arange(n), areas
 
@@ -81,7 +82,9 @@ class SliceVolume(VolumeEstimator):
 
     name = "slices"
 
-    def __init__(self, thickness: float = 0.2, area: str = "hull", alpha: float = PAPER_ALPHA_M) -> None:
+    def __init__(
+        self, thickness: float = 0.2, area: str = "hull", alpha: float = PAPER_ALPHA_M
+    ) -> None:
         self.thickness = thickness
         self.area = area
         self.alpha = alpha

@@ -9,11 +9,11 @@ properties of the tree's points pick the ratios and widen them:
   convex hull): 2.2-4.4 on simulated crowns whose foliage outlines the envelope, 0.9-1.5 on sparse
   young trees whose few leaves do not (every estimator is then 40-60 % low). Below
   ``MIN_FILL`` = 1.8 (between the two, on the calibration seeds) the sparse ratios apply.
-- ``scan_coverage``: the share of 16 azimuth sectors around the trunk (the median x, y of the
-  lowest 10 % of the tree) that hold points (outer 70 % of its radius). Below ``min_coverage`` the crown was seen from one side:
-  the upper bound is divided by the coverage (the unseen sectors may hold as much crown as
-  the seen ones). This rule is not calibrated: the simulated one-sided scans see the crown all
-  round (coverage ≥ 0.9).
+- ``scan_coverage``: the share of 16 azimuth sectors around the trunk (the median x, y of
+  the lowest 10 % of the tree) that hold points (outer 70 % of its radius). Below
+  ``min_coverage`` the crown was seen from one side: the upper bound is divided by the
+  coverage (the unseen sectors may hold as much crown as the seen ones). This rule is not
+  calibrated: the simulated one-sided scans see the crown all round (coverage ≥ 0.9).
 """
 
 from __future__ import annotations
@@ -23,8 +23,13 @@ from dataclasses import dataclass
 import numpy as np
 
 # The per-tree table's interval columns (trees.csv), for the recommended estimator.
-INTERVAL_COLUMNS = {"method": "volume_method", "low": "volume_low_m3", "high": "volume_high_m3",
-                    "coverage": "scan_coverage", "flags": "volume_interval_flags"}
+INTERVAL_COLUMNS = {
+    "method": "volume_method",
+    "low": "volume_low_m3",
+    "high": "volume_high_m3",
+    "coverage": "scan_coverage",
+    "flags": "volume_interval_flags",
+}
 SECTORS = 16
 MIN_COVERAGE = 0.75
 MIN_FILL = 1.8
@@ -70,7 +75,9 @@ def trunk_centre(xyz: np.ndarray) -> np.ndarray:
     return np.median(xyz[low, :2], axis=0)
 
 
-def scan_coverage(xyz: np.ndarray, centre: np.ndarray | None = None, sectors: int = SECTORS) -> float:
+def scan_coverage(
+    xyz: np.ndarray, centre: np.ndarray | None = None, sectors: int = SECTORS
+) -> float:
     """Share of ``sectors`` azimuth sectors around ``centre`` (default :func:`trunk_centre`)
     that hold points of the crown's outer part (at least 2, and 10 % of an even share)."""
     c = trunk_centre(xyz) if centre is None else np.asarray(centre, float)
@@ -95,8 +102,9 @@ def surface_fill(xyz: np.ndarray, spacing: float | None = None) -> float:
     return float(len(xyz) * s**2 / ConvexHull(xyz).area)
 
 
-def volume_interval(xyz: np.ndarray, volume_m3: float, method: str,
-                    centre: np.ndarray | None = None) -> Interval | None:
+def volume_interval(
+    xyz: np.ndarray, volume_m3: float, method: str, centre: np.ndarray | None = None
+) -> Interval | None:
     """The interval for ``method``'s ``volume_m3`` of the points ``xyz``; None when ``method``
     has no calibration (or the volume is not a positive number)."""
     cal = CALIBRATIONS.get(method)
@@ -108,9 +116,11 @@ def volume_interval(xyz: np.ndarray, volume_m3: float, method: str,
     lo, hi = cal.dense
     if fill < MIN_FILL:
         lo, hi = cal.sparse
-        flags.append(f"sparse crown (surface fill {fill:.2f} < {MIN_FILL}): the points do not "
-                     f"outline the envelope, volume likely {100 * (1 - 1 / lo):.0f}-"
-                     f"{100 * (1 - 1 / hi):.0f} % low")
+        flags.append(
+            f"sparse crown (surface fill {fill:.2f} < {MIN_FILL}): the points do not "
+            f"outline the envelope, volume likely {100 * (1 - 1 / lo):.0f}-"
+            f"{100 * (1 - 1 / hi):.0f} % low"
+        )
     if coverage < MIN_COVERAGE:
         hi = hi / max(coverage, 1.0 / SECTORS)
         flags.append(f"one-sided scan: points in {coverage:.0%} of the azimuth sectors")

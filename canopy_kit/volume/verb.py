@@ -49,9 +49,12 @@ def build_estimators(volume: VolumeConfig) -> Estimators:
     checked: a bad parameter raises ``ConfigError`` here, before any stage runs."""
     from canopy_kit import plugins
 
-    return {method: plugins.create("volumes", method, volume.params.get(method, {}),
-                                   where=f"volume.params.{method}")
-            for method in volume_methods(volume)}
+    return {
+        method: plugins.create(
+            "volumes", method, volume.params.get(method, {}), where=f"volume.params.{method}"
+        )
+        for method in volume_methods(volume)
+    }
 
 
 def measured_points(xyz: np.ndarray, volume: VolumeConfig) -> np.ndarray:
@@ -68,8 +71,9 @@ def tree_points(cloud: PointCloud, labels: np.ndarray, segment: int) -> np.ndarr
     return np.round(cloud.xyz[labels == segment] / LAS_SCALE) * LAS_SCALE
 
 
-def interval_columns(xyz: np.ndarray, volume_m3: float, method: str,
-                     centre: np.ndarray | None = None) -> dict:
+def interval_columns(
+    xyz: np.ndarray, volume_m3: float, method: str, centre: np.ndarray | None = None
+) -> dict:
     """The table's interval columns (``INTERVAL_COLUMNS``) for ``method``'s volume of ``xyz``;
     NaN bounds when the method has no calibration or no valid volume."""
     from scipy.spatial import QhullError
@@ -82,18 +86,36 @@ def interval_columns(xyz: np.ndarray, volume_m3: float, method: str,
         try:
             interval = volume_interval(xyz, volume_m3, method, centre)
         except QhullError as exc:  # qhull on points that are nearly flat: no interval
-            return {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan,
-                    col["coverage"]: np.nan, col["flags"]: f"no interval: {type(exc).__name__}"}
+            return {
+                col["method"]: method,
+                col["low"]: np.nan,
+                col["high"]: np.nan,
+                col["coverage"]: np.nan,
+                col["flags"]: f"no interval: {type(exc).__name__}",
+            }
     if interval is None:
-        return {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan,
-                col["coverage"]: np.nan, col["flags"]: ""}
-    return {col["method"]: method, col["low"]: interval.low_m3, col["high"]: interval.high_m3,
-            col["coverage"]: interval.coverage, col["flags"]: "; ".join(interval.flags)}
+        return {
+            col["method"]: method,
+            col["low"]: np.nan,
+            col["high"]: np.nan,
+            col["coverage"]: np.nan,
+            col["flags"]: "",
+        }
+    return {
+        col["method"]: method,
+        col["low"]: interval.low_m3,
+        col["high"]: interval.high_m3,
+        col["coverage"]: interval.coverage,
+        col["flags"]: "; ".join(interval.flags),
+    }
 
 
-def measure_tree(xyz: np.ndarray, volume: VolumeConfig,
-                 ground_height: GroundHeight | None = None,
-                 estimators: Estimators | None = None) -> dict[str, Any]:
+def measure_tree(
+    xyz: np.ndarray,
+    volume: VolumeConfig,
+    ground_height: GroundHeight | None = None,
+    estimators: Estimators | None = None,
+) -> dict[str, Any]:
     """One tree's row of the per-tree table (all but ``segment``): position, metrics, each
     estimator's volume (:func:`volume_column`, NaN when invalid), ``volume_flags`` and the
     recommended estimator's interval.
@@ -106,12 +128,17 @@ def measure_tree(xyz: np.ndarray, volume: VolumeConfig,
     ground = float(ground_height(centre[None, :])[0]) if ground_height is not None else None
     row: dict[str, Any] = {"x": float(centre[0]), "y": float(centre[1])}
     metrics = tree_metrics(xyz, ground_z=ground)
-    row.update({"n_points": metrics.n_points, "height_m": metrics.height_m,
-                "crown_base_height_m": metrics.crown_base_height_m,
-                "crown_diameter_m": metrics.crown_diameter_max_m,
-                "crown_diameter_mean_m": metrics.crown_diameter_mean_m,
-                "projected_area_m2": metrics.projected_area_m2,
-                "sphere_volume_m3": metrics.sphere_volume_m3})
+    row.update(
+        {
+            "n_points": metrics.n_points,
+            "height_m": metrics.height_m,
+            "crown_base_height_m": metrics.crown_base_height_m,
+            "crown_diameter_m": metrics.crown_diameter_max_m,
+            "crown_diameter_mean_m": metrics.crown_diameter_mean_m,
+            "projected_area_m2": metrics.projected_area_m2,
+            "sphere_volume_m3": metrics.sphere_volume_m3,
+        }
+    )
     flags = []
     measured = measured_points(xyz, volume)
     for method, est in estimators.items():
@@ -120,15 +147,20 @@ def measure_tree(xyz: np.ndarray, volume: VolumeConfig,
         if not result.valid:
             flags.append(f"{method}: {result.reason}")
     row["volume_flags"] = "; ".join(flags)
-    row.update(interval_columns(measured, row[volume_column(volume.recommended)],
-                                volume.recommended))
+    row.update(
+        interval_columns(measured, row[volume_column(volume.recommended)], volume.recommended)
+    )
     return row
 
 
-def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
-                  ground_height: GroundHeight | None = None,
-                  progress: Progress | None = None,
-                  estimators: Estimators | None = None) -> pd.DataFrame:
+def measure_trees(
+    cloud: PointCloud,
+    labels: np.ndarray,
+    volume: VolumeConfig,
+    ground_height: GroundHeight | None = None,
+    progress: Progress | None = None,
+    estimators: Estimators | None = None,
+) -> pd.DataFrame:
     """One row per segment label ≥ 0: ``segment`` and :func:`measure_tree`'s columns.
 
     ``estimators`` (from :func:`build_estimators`) are built from ``volume`` when not given.
@@ -154,7 +186,12 @@ def measure_trees(cloud: PointCloud, labels: np.ndarray, volume: VolumeConfig,
         return rows
 
     n_workers = worker_count(volume.workers, len(ids) // MIN_TREES_PER_WORKER)
-    parts = run_jobs(measure_all, [ids[k::n_workers] for k in range(n_workers)], "tree volumes",
-                     len(ids), progress)
+    parts = run_jobs(
+        measure_all,
+        [ids[k::n_workers] for k in range(n_workers)],
+        "tree volumes",
+        len(ids),
+        progress,
+    )
     rows = [row for part in parts for row in part]
     return pd.DataFrame(sorted(rows, key=lambda r: r["segment"]))

@@ -60,8 +60,10 @@ class VoxelVolume(VolumeEstimator):
         size = float(self.voxel_size)
         cells = np.prod(np.floor(np.ptp(xyz, axis=0) / size) + 1)
         if cells > MAX_VOXELS:
-            return 0.0, {"reason": f"voxel_size = {size} m makes {cells:.3g} voxels for this "
-                                   f"extent (limit {MAX_VOXELS:.0e}); use a larger voxel_size"}
+            return 0.0, {
+                "reason": f"voxel_size = {size} m makes {cells:.3g} voxels for this "
+                f"extent (limit {MAX_VOXELS:.0e}); use a larger voxel_size"
+            }
         grid = occupancy_grid(xyz, size)
         occupied = int(grid.sum())
         if self.fill_holes:

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 
 
-def write_raw_las(path: Path, n_points: int = 200, scale: float = 0.001, offset: float = 0.0,
-                  seed: int = 0) -> Path:
+def write_raw_las(
+    path: Path, n_points: int = 200, scale: float = 0.001, offset: float = 0.0, seed: int = 0
+) -> Path:
     """A LAS 1.2 file whose header holds ``scale`` and ``offset`` as given, however wrong."""
     import laspy
 
@@ -42,13 +43,14 @@ def write_truncated_laz(path: Path, fraction: float = 0.6) -> Path:
 
 # --- hand-built files: every byte written here, so the numbers in them are the truth ---------
 
-import struct
+import struct  # noqa: E402 (the hand-built files start here)
 
 LAS_RECORD = {0: 20, 1: 28, 6: 30}  # point formats the builder writes
 
 
-def las_record_bytes(ints: np.ndarray, point_format: int, intensity: np.ndarray,
-                     extra: int = 0) -> bytes:
+def las_record_bytes(
+    ints: np.ndarray, point_format: int, intensity: np.ndarray, extra: int = 0
+) -> bytes:
     """Point records of format 0, 1 or 6: X, Y, Z, intensity; every other attribute 0; then
     ``extra`` bytes per point holding the point's index (little-endian)."""
     n = len(ints)
@@ -63,8 +65,9 @@ def las_record_bytes(ints: np.ndarray, point_format: int, intensity: np.ndarray,
     rec["intensity"] = intensity
     if extra:
         index = np.arange(n, dtype="<u8").view(np.uint8).reshape(n, 8)
-        rec["extra"] = np.ascontiguousarray(np.pad(index, ((0, 0), (0, max(0, extra - 8))))[:, :extra]
-                                            ).view(f"V{extra}")[:, 0]
+        rec["extra"] = np.ascontiguousarray(
+            np.pad(index, ((0, 0), (0, max(0, extra - 8))))[:, :extra]
+        ).view(f"V{extra}")[:, 0]
     assert dtype.itemsize == LAS_RECORD[point_format] + extra
     return rec.tobytes()
 
@@ -73,7 +76,7 @@ def extra_bytes_vlr(name: bytes, data_type: int) -> bytes:
     """An Extra Bytes VLR (LASF_Spec 4) describing one extra dimension."""
     descriptor = bytearray(192)
     descriptor[2], descriptor[3] = data_type, 0
-    descriptor[4:4 + len(name)] = name
+    descriptor[4 : 4 + len(name)] = name
     return vlr_bytes(b"LASF_Spec", 4, bytes(descriptor))
 
 
@@ -82,10 +85,19 @@ def vlr_bytes(user: bytes, record: int, payload: bytes) -> bytes:
     return struct.pack("<H16sHH32s", 0, user, record, len(payload), b"") + payload
 
 
-def las_bytes(ints: np.ndarray, *, scale: float = 0.01, offset: tuple[float, float, float] = (0, 0, 0),
-              point_format: int = 0, minor: int = 2, vlrs: tuple[bytes, ...] = (),
-              header_bounds: tuple[tuple, tuple] | None = None, extra: int = 0,
-              evlrs: tuple[bytes, ...] = (), **fields: int) -> bytes:
+def las_bytes(
+    ints: np.ndarray,
+    *,
+    scale: float = 0.01,
+    offset: tuple[float, float, float] = (0, 0, 0),
+    point_format: int = 0,
+    minor: int = 2,
+    vlrs: tuple[bytes, ...] = (),
+    header_bounds: tuple[tuple, tuple] | None = None,
+    extra: int = 0,
+    evlrs: tuple[bytes, ...] = (),
+    **fields: int,
+) -> bytes:
     """A LAS 1.2 (or 1.4) file of the integer coordinates ``ints``; ``fields`` overwrite what
     the header declares (``point_count``, ``record_length``, ``n_vlrs``, ``offset_to_points``,
     ``header_size``, ``evlr_start``, ``n_evlrs``) however wrong. ``extra`` bytes follow each
@@ -101,23 +113,45 @@ def las_bytes(ints: np.ndarray, *, scale: float = 0.01, offset: tuple[float, flo
     lo, hi = header_bounds or (absolute.min(axis=0), absolute.max(axis=0))
     record_length = LAS_RECORD[point_format] + extra
     evlr_start = offset_to_points + n * record_length if evlrs else 0
-    decl = {"point_count": n, "record_length": record_length, "n_vlrs": len(vlrs),
-            "offset_to_points": offset_to_points, "header_size": header_size,
-            "evlr_start": evlr_start, "n_evlrs": len(evlrs), **fields}
+    decl = {
+        "point_count": n,
+        "record_length": record_length,
+        "n_vlrs": len(vlrs),
+        "offset_to_points": offset_to_points,
+        "header_size": header_size,
+        "evlr_start": evlr_start,
+        "n_evlrs": len(evlrs),
+        **fields,
+    }
     head = bytearray(header_size)
     head[0:4] = b"LASF"
     head[24], head[25] = 1, minor
     head[26:58] = b"canopy-kit test".ljust(32, b"\0")
     legacy = decl["point_count"] if point_format < 6 and decl["point_count"] < 2**32 else 0
-    struct.pack_into("<HIIBHI", head, 94, decl["header_size"], decl["offset_to_points"],
-                     decl["n_vlrs"], point_format, decl["record_length"], legacy)
+    struct.pack_into(
+        "<HIIBHI",
+        head,
+        94,
+        decl["header_size"],
+        decl["offset_to_points"],
+        decl["n_vlrs"],
+        point_format,
+        decl["record_length"],
+        legacy,
+    )
     struct.pack_into("<3d3d", head, 131, *scales, *offset)
     struct.pack_into("<6d", head, 179, hi[0], lo[0], hi[1], lo[1], hi[2], lo[2])
     if minor == 4:
-        struct.pack_into("<QIQ", head, 235, decl["evlr_start"], decl["n_evlrs"], decl["point_count"])
+        struct.pack_into(
+            "<QIQ", head, 235, decl["evlr_start"], decl["n_evlrs"], decl["point_count"]
+        )
     intensity = np.arange(n) % 65536
-    return (bytes(head) + vlr_data + las_record_bytes(ints, point_format, intensity, extra)
-            + b"".join(evlrs))
+    return (
+        bytes(head)
+        + vlr_data
+        + las_record_bytes(ints, point_format, intensity, extra)
+        + b"".join(evlrs)
+    )
 
 
 def evlr_bytes(user: bytes, record: int, payload: bytes) -> bytes:
@@ -131,10 +165,15 @@ def grid_points(n: int = 1000, seed: int = 0) -> np.ndarray:
     return rng.integers([0, 0, 0], [1000, 1000, 800], (n, 3)).astype(np.int32)
 
 
-def ply_bytes(xyz: np.ndarray, encoding: str = "binary_little_endian", *,
-              before: tuple[tuple[str, int, str, bytes], ...] = (),
-              after: tuple[tuple[str, int, str, bytes], ...] = (),
-              vertices: int | None = None, extra: dict[str, np.ndarray] | None = None) -> bytes:
+def ply_bytes(
+    xyz: np.ndarray,
+    encoding: str = "binary_little_endian",
+    *,
+    before: tuple[tuple[str, int, str, bytes], ...] = (),
+    after: tuple[tuple[str, int, str, bytes], ...] = (),
+    vertices: int | None = None,
+    extra: dict[str, np.ndarray] | None = None,
+) -> bytes:
     """A PLY file: float64 x, y, z (+ ``extra`` float32 properties) per vertex; elements
     ``before``/``after`` the vertices as (name, count, property lines, data bytes)."""
     extra = extra or {}
@@ -142,8 +181,12 @@ def ply_bytes(xyz: np.ndarray, encoding: str = "binary_little_endian", *,
     lines = [b"ply", f"format {encoding} 1.0".encode(), b"comment hand-built"]
     for name, count, props, _ in before:
         lines += [f"element {name} {count}".encode(), props.encode()]
-    lines += [f"element vertex {n}".encode(), b"property double x", b"property double y",
-              b"property double z"] + [f"property float {k}".encode() for k in extra]
+    lines += [
+        f"element vertex {n}".encode(),
+        b"property double x",
+        b"property double y",
+        b"property double z",
+    ] + [f"property float {k}".encode() for k in extra]
     for name, count, props, _ in after:
         lines += [f"element {name} {count}".encode(), props.encode()]
     lines.append(b"end_header")
@@ -169,27 +212,36 @@ def lzf_literals(data: bytes) -> bytes:
     """``data`` as a valid LZF stream of literal runs only (an independent encoder)."""
     out = bytearray()
     for i in range(0, len(data), 32):
-        chunk = data[i:i + 32]
+        chunk = data[i : i + 32]
         out.append(len(chunk) - 1)
         out += chunk
     return bytes(out)
 
 
-def pcd_bytes(xyz: np.ndarray, encoding: str = "binary", *, intensity: np.ndarray | None = None,
-              points: int | None = None, width: int | None = None,
-              sizes: tuple[int, int] | None = None) -> bytes:
+def pcd_bytes(
+    xyz: np.ndarray,
+    encoding: str = "binary",
+    *,
+    intensity: np.ndarray | None = None,
+    points: int | None = None,
+    width: int | None = None,
+    sizes: tuple[int, int] | None = None,
+) -> bytes:
     """A PCD v0.7 file of float32 x, y, z and intensity; ``points``/``width`` overwrite what
     the header declares, ``sizes`` the binary_compressed (compressed, uncompressed) sizes."""
     n = len(xyz)
     intensity = np.arange(n, dtype=np.float32) if intensity is None else intensity
     declared = n if points is None else points
-    head = (f"# .PCD v0.7 - hand-built\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\n"
-            f"TYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {declared if width is None else width}\n"
-            f"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {declared}\nDATA {encoding}\n").encode()
+    head = (
+        f"# .PCD v0.7 - hand-built\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\n"
+        f"TYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {declared if width is None else width}\n"
+        f"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {declared}\nDATA {encoding}\n"
+    ).encode()
     table = np.column_stack([np.asarray(xyz, np.float32), intensity]).astype("<f4")
     if encoding == "ascii":
-        return head + b"".join((" ".join(repr(float(v)) for v in row) + "\n").encode()
-                               for row in table)
+        return head + b"".join(
+            (" ".join(repr(float(v)) for v in row) + "\n").encode() for row in table
+        )
     if encoding == "binary":
         return head + table.tobytes()
     columns = np.ascontiguousarray(table.T).tobytes()  # field by field
@@ -234,8 +286,11 @@ def write_las_cut(path: Path, n: int, kept: int) -> Path:
 
 def write_las_zero_bounds(path: Path) -> Path:
     """A LAS whose header min/max are all 0 (like the real pointcloudset_test_tree.las)."""
-    path.write_bytes(las_bytes(catalogue_points(2000), offset=CATALOGUE_OFFSET,
-                               header_bounds=((0, 0, 0), (0, 0, 0))))
+    path.write_bytes(
+        las_bytes(
+            catalogue_points(2000), offset=CATALOGUE_OFFSET, header_bounds=((0, 0, 0), (0, 0, 0))
+        )
+    )
     return path
 
 

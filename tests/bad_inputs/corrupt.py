@@ -34,7 +34,7 @@ def overwrite(path: Path, offsets: np.ndarray, rng: np.random.Generator, length:
     data = bytearray(path.read_bytes())
     for offset in offsets:
         end = min(int(offset) + length, len(data))
-        data[int(offset):end] = rng.integers(0, 256, end - int(offset), dtype=np.uint8).tobytes()
+        data[int(offset) : end] = rng.integers(0, 256, end - int(offset), dtype=np.uint8).tobytes()
     path.write_bytes(bytes(data))
     return path
 

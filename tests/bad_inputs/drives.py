@@ -50,13 +50,22 @@ def orchard_points(trees_per_row: int = 4, seed: int = 0) -> tuple[np.ndarray, n
     """Ground, trunks and crown shells of two rows (x = 0 and 6 m, trees 5 m apart along y)."""
     from fixtures_sim import synthetic_orchard
 
-    orch = synthetic_orchard(rows=2, trees_per_row=trees_per_row, spacing=5.0, row_spacing=6.0,
-                             crown_radius=1.6, density=120.0, seed=seed, ground_extent=9.0)
+    orch = synthetic_orchard(
+        rows=2,
+        trees_per_row=trees_per_row,
+        spacing=5.0,
+        row_spacing=6.0,
+        crown_radius=1.6,
+        density=120.0,
+        seed=seed,
+        ground_extent=9.0,
+    )
     return orch.cloud.xyz, orch.centres
 
 
-def _position(t: np.ndarray, start_y: float, speed: float, standstill: float,
-              accel: float = 1.0) -> np.ndarray:
+def _position(
+    t: np.ndarray, start_y: float, speed: float, standstill: float, accel: float = 1.0
+) -> np.ndarray:
     """Sensor position at ``t`` s after the start: at rest, then accelerating along +y."""
     tau = np.clip(t - standstill, 0.0, None)
     ramp = speed / accel if speed > 0 else 0.0
@@ -70,10 +79,22 @@ def _acceleration(t: np.ndarray, speed: float, standstill: float, accel: float =
     return np.where(moving, accel, 0.0)
 
 
-def write_drive(path: str | Path, fmt: str = "ros2-mcap", *, duration: float = 12.0,
-                speed: float = 1.5, standstill: float = 1.5, imu: bool = True, gnss: bool = True,
-                points_per_scan: int = 2500, view_range: float = 9.0, trees_per_row: int = 4,
-                fault: Fault | None = None, seed: int = 0, imu_frame: str = "lidar") -> Drive:
+def write_drive(
+    path: str | Path,
+    fmt: str = "ros2-mcap",
+    *,
+    duration: float = 12.0,
+    speed: float = 1.5,
+    standstill: float = 1.5,
+    imu: bool = True,
+    gnss: bool = True,
+    points_per_scan: int = 2500,
+    view_range: float = 9.0,
+    trees_per_row: int = 4,
+    fault: Fault | None = None,
+    seed: int = 0,
+    imu_frame: str = "lidar",
+) -> Drive:
     """Write a drive of ``duration`` s (``standstill`` s at rest first) and return it."""
     rng = np.random.default_rng(seed)
     world, centres = orchard_points(trees_per_row, seed)
@@ -87,25 +108,41 @@ def write_drive(path: str | Path, fmt: str = "ros2-mcap", *, duration: float = 1
             noise = rng.normal(0.0, 0.002, (len(t_imu), 6))
         if gnss:
             t_fix = np.arange(0.0, duration + SWEEP, 0.2)
-            fixes = _position(t_fix, start_y, speed, standstill) + rng.normal(0, 0.02, (len(t_fix), 3))
+            fixes = _position(t_fix, start_y, speed, standstill) + rng.normal(
+                0, 0.02, (len(t_fix), 3)
+            )
             lat, lon, alt = FRAME.to_wgs84(fixes)
         k_imu = k_fix = 0
         for i, stamp in enumerate(stamps):
             rel = stamp - T0
             # IMU and GNSS up to the end of this sweep first (log-time order, as drivers do).
             while imu and k_imu < len(t_imu) and t_imu[k_imu] < rel + SWEEP:
-                w.write_imu(IMU_TOPIC, T0 + t_imu[k_imu], noise[k_imu, :3],
-                            (noise[k_imu, 3], acc[k_imu] + noise[k_imu, 4], 9.81 + noise[k_imu, 5]),
-                            frame_id=imu_frame)
+                w.write_imu(
+                    IMU_TOPIC,
+                    T0 + t_imu[k_imu],
+                    noise[k_imu, :3],
+                    (noise[k_imu, 3], acc[k_imu] + noise[k_imu, 4], 9.81 + noise[k_imu, 5]),
+                    frame_id=imu_frame,
+                )
                 k_imu += 1
             while gnss and k_fix < len(t_fix) and t_fix[k_fix] < rel + SWEEP:
-                w.write_fix(GNSS_TOPIC, T0 + t_fix[k_fix], lat[k_fix], lon[k_fix], alt[k_fix],
-                            sigma_h=0.05, sigma_v=0.1, status=2)
+                w.write_fix(
+                    GNSS_TOPIC,
+                    T0 + t_fix[k_fix],
+                    lat[k_fix],
+                    lon[k_fix],
+                    alt[k_fix],
+                    sigma_h=0.05,
+                    sigma_v=0.1,
+                    status=2,
+                )
                 k_fix += 1
-            columns = sweep_columns(world, rel, start_y, speed, standstill, points_per_scan,
-                                    view_range, rng)
-            for header_stamp, cols, log_time in ([(stamp, columns, stamp)] if fault is None
-                                                 else fault(i, stamp, columns)):
+            columns = sweep_columns(
+                world, rel, start_y, speed, standstill, points_per_scan, view_range, rng
+            )
+            for header_stamp, cols, log_time in (
+                [(stamp, columns, stamp)] if fault is None else fault(i, stamp, columns)
+            ):
                 write_points_logged(w, header_stamp, cols, log_time)
                 written.append(header_stamp)
     return Drive(w.path, fmt, len(written), np.array(written), centres, start_y, speed, standstill)
@@ -119,8 +156,16 @@ def write_points_logged(writer: BagWriter, stamp: float, columns: Columns, log_t
     writer._write(POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", msg, log_time)
 
 
-def sweep_columns(world: np.ndarray, rel: float, start_y: float, speed: float, standstill: float,
-                  n: int, view_range: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def sweep_columns(
+    world: np.ndarray,
+    rel: float,
+    start_y: float,
+    speed: float,
+    standstill: float,
+    n: int,
+    view_range: float,
+    rng: np.random.Generator,
+) -> dict[str, np.ndarray]:
     """One sweep starting ``rel`` s into the drive: x, y, z, intensity and Ouster-style ``t``."""
     centre = _position(np.array([rel]), start_y, speed, standstill)[0]
     near = np.flatnonzero(np.sum((world - centre) ** 2, axis=1) <= view_range**2)
@@ -132,10 +177,13 @@ def sweep_columns(world: np.ndarray, rel: float, start_y: float, speed: float, s
     offset = (azimuth + np.pi) / (2 * np.pi) * SWEEP * 0.999
     # Each point as seen from where the sensor was when it fired.
     xyz = world[pick] - _position(rel + offset, start_y, speed, standstill)
-    return {"x": xyz[:, 0].astype(np.float32), "y": xyz[:, 1].astype(np.float32),
-            "z": xyz[:, 2].astype(np.float32),
-            "intensity": rng.uniform(0, 255, len(pick)).astype(np.float32),
-            "t": np.round(offset * 1e9).astype(np.uint32)}
+    return {
+        "x": xyz[:, 0].astype(np.float32),
+        "y": xyz[:, 1].astype(np.float32),
+        "z": xyz[:, 2].astype(np.float32),
+        "intensity": rng.uniform(0, 255, len(pick)).astype(np.float32),
+        "t": np.round(offset * 1e9).astype(np.uint32),
+    }
 
 
 # -- faults: each returns a ``fault`` hook for :func:`write_drive` -----------------------------
@@ -150,8 +198,9 @@ def dropout(first: int, last: int) -> Fault:
 
 def repeated(*indices: int) -> Fault:
     """Sweeps published twice (same header stamp, logged 1 ms apart), as a restarted driver does."""
-    return lambda i, stamp, cols: ([(stamp, cols, stamp), (stamp, cols, stamp + 0.001)]
-                                   if i in indices else _same(stamp, cols))
+    return lambda i, stamp, cols: (
+        [(stamp, cols, stamp), (stamp, cols, stamp + 0.001)] if i in indices else _same(stamp, cols)
+    )
 
 
 def stamped_back(index: int, by: float) -> Fault:
@@ -173,6 +222,7 @@ def emptied(indices: Iterable[int] | None = None) -> Fault:
 
 def nonfinite(every: int = 7, all_nan_sweep: int = 40) -> Fault:
     """NaN and +Inf coordinates in every ``every``-th point, and one sweep that is all NaN."""
+
     def fault(i: int, stamp: float, cols: Columns) -> list[tuple[float, Columns, float]]:
         cols = dict(cols)
         x, y = cols["x"].copy(), cols["y"].copy()
@@ -205,12 +255,22 @@ def write_wrong_payload(path: str | Path, fmt: str = "ros2-mcap") -> Path:
         t = w.typestore.types
         imu = t["sensor_msgs/msg/Imu"](
             header=pc2.make_header(w.typestore, T0, "imu", w.ros1, 0),
-            orientation=w._quat((0, 0, 0, 1)), orientation_covariance=np.zeros(9),
-            angular_velocity=w._vec3((0, 0, 0)), angular_velocity_covariance=np.zeros(9),
-            linear_acceleration=w._vec3((0, 0, 9.81)), linear_acceleration_covariance=np.zeros(9))
+            orientation=w._quat((0, 0, 0, 1)),
+            orientation_covariance=np.zeros(9),
+            angular_velocity=w._vec3((0, 0, 0)),
+            angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=w._vec3((0, 0, 9.81)),
+            linear_acceleration_covariance=np.zeros(9),
+        )
         msgtype = "sensor_msgs/msg/Imu"
-        raw = w.typestore.serialize_ros1(imu, msgtype) if w.ros1 else w.typestore.serialize_cdr(imu, msgtype)
-        conn = w._writer.add_connection(POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", typestore=w.typestore)
+        raw = (
+            w.typestore.serialize_ros1(imu, msgtype)
+            if w.ros1
+            else w.typestore.serialize_cdr(imu, msgtype)
+        )
+        conn = w._writer.add_connection(
+            POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", typestore=w.typestore
+        )
         for k in range(3):
             w._writer.write(conn, int((T0 + 0.1 * k) * 1e9), raw)
     return w.path

@@ -11,8 +11,15 @@ import numpy as np
 WHEN = datetime(2024, 6, 18, 11, 0, 0)
 
 
-def photo(path: Path, lat: float = 38.54, lon: float = -121.75, alt: float = 60.0,
-          size: tuple[int, int] = (160, 120), seed: int = 0, gps: bool = True) -> Path:
+def photo(
+    path: Path,
+    lat: float = 38.54,
+    lon: float = -121.75,
+    alt: float = 60.0,
+    size: tuple[int, int] = (160, 120),
+    seed: int = 0,
+    gps: bool = True,
+) -> Path:
     """One small JPEG with camera and (optionally) GPS EXIF, as the simulator writes them."""
     import piexif
 

@@ -51,18 +51,24 @@ class Case:
 
 # -- seed files ---------------------------------------------------------------------------------
 
+
 def las12() -> bytes:
     """LAS 1.2, point format 1, an extra-bytes dimension and a second VLR: 400 points."""
     vlrs = (vlr_bytes(b"canopy", 1, b"z" * 20), extra_bytes_vlr(b"h", 3))
-    return las_bytes(grid_points(400, 1), offset=(300000.0, 4100000.0, 50.0), point_format=1,
-                     extra=2, vlrs=vlrs)
+    return las_bytes(
+        grid_points(400, 1), offset=(300000.0, 4100000.0, 50.0), point_format=1, extra=2, vlrs=vlrs
+    )
 
 
 def las14() -> bytes:
     """LAS 1.4, point format 6, one VLR and one EVLR after the points: 400 points."""
-    return las_bytes(grid_points(400, 2), minor=4, point_format=6,
-                     vlrs=(vlr_bytes(b"canopy", 1, b"z" * 20),),
-                     evlrs=(evlr_bytes(b"canopy", 2, b"e" * 30),))
+    return las_bytes(
+        grid_points(400, 2),
+        minor=4,
+        point_format=6,
+        vlrs=(vlr_bytes(b"canopy", 1, b"z" * 20),),
+        evlrs=(evlr_bytes(b"canopy", 2, b"e" * 30),),
+    )
 
 
 def laz12() -> bytes:
@@ -78,11 +84,16 @@ def laz12() -> bytes:
 def ply_binary() -> bytes:
     """Binary PLY: triangles before the 300 vertices (float64 x, y, z, float32 q), more after."""
     xyz = grid_points(300, 3) * 0.01
-    tris = ("face", 4, "property list uchar int vertex_indices",
-            struct.pack("<B3i", 3, 0, 1, 2) * 4)
+    tris = (
+        "face",
+        4,
+        "property list uchar int vertex_indices",
+        struct.pack("<B3i", 3, 0, 1, 2) * 4,
+    )
     edges = ("edge", 3, "property int vertex1\nproperty int vertex2", struct.pack("<2i", 0, 1) * 3)
-    return ply_bytes(xyz, before=(tris,), after=(edges,),
-                     extra={"q": np.arange(300, dtype=np.float32)})
+    return ply_bytes(
+        xyz, before=(tris,), after=(edges,), extra={"q": np.arange(300, dtype=np.float32)}
+    )
 
 
 def ply_ascii() -> bytes:
@@ -113,20 +124,34 @@ def pcd_open3d_compressed() -> bytes:
 
 # -- damage -------------------------------------------------------------------------------------
 
-FORMAT_MAX = {"B": 0xFF, "H": 0xFFFF, "I": 0xFFFFFFFF, "Q": 2**64 - 1, "q": 2**63 - 1,
-              "d": float("inf")}
+FORMAT_MAX = {
+    "B": 0xFF,
+    "H": 0xFFFF,
+    "I": 0xFFFFFFFF,
+    "Q": 2**64 - 1,
+    "q": 2**63 - 1,
+    "d": float("inf"),
+}
 
 
 def _values(fmt: str, rng: np.random.Generator) -> list:
     if fmt == "d":
         return [0.0, 1e308, float("nan"), float(rng.normal() * 10.0 ** rng.integers(-320, 300))]
-    random = int(rng.integers(0, FORMAT_MAX[fmt], dtype=np.uint64)) if fmt != "q" else int(
-        rng.integers(-2**62, 2**62))
+    random = (
+        int(rng.integers(0, FORMAT_MAX[fmt], dtype=np.uint64))
+        if fmt != "q"
+        else int(rng.integers(-(2**62), 2**62))
+    )
     return [0, FORMAT_MAX[fmt], random]
 
 
-def field_cases(name: str, data: bytes, fields: dict[str, tuple[int, str]], suffix: str,
-                rng: np.random.Generator) -> list[Case]:
+def field_cases(
+    name: str,
+    data: bytes,
+    fields: dict[str, tuple[int, str]],
+    suffix: str,
+    rng: np.random.Generator,
+) -> list[Case]:
     """Each binary header field set to 0, its type's maximum and a random value."""
     out = []
     for field, (offset, fmt) in fields.items():
@@ -143,8 +168,9 @@ def cut_cases(name: str, data: bytes, positions: list[int], suffix: str) -> list
     return [Case(f"{name}-cut-{p}", data[:p], suffix, cut=True) for p in keep]
 
 
-def flip_cases(name: str, data: bytes, suffix: str, rng: np.random.Generator, n: int = 40,
-               head: int = 400) -> list[Case]:
+def flip_cases(
+    name: str, data: bytes, suffix: str, rng: np.random.Generator, n: int = 40, head: int = 400
+) -> list[Case]:
     """Up to 8 random bytes overwritten; half the cases only in the first ``head`` bytes."""
     out = []
     for i in range(n):
@@ -156,8 +182,9 @@ def flip_cases(name: str, data: bytes, suffix: str, rng: np.random.Generator, n:
     return out
 
 
-def token_cases(name: str, data: bytes, end: bytes, suffix: str, rng: np.random.Generator,
-                most: int = 24) -> list[Case]:
+def token_cases(
+    name: str, data: bytes, end: bytes, suffix: str, rng: np.random.Generator, most: int = 24
+) -> list[Case]:
     """Up to ``most`` words of a text header (before the ``end`` line; numbers always) each
     replaced by 0, a huge number and, for a number, a random one, else a type name."""
     head_end = data.index(end)
@@ -165,12 +192,18 @@ def token_cases(name: str, data: bytes, end: bytes, suffix: str, rng: np.random.
     words = [(i, pos, w) for i, (pos, w) in enumerate(_words(head)) if i > 0]  # not the magic
     numbers = [w for w in words if w[2].lstrip(b"-").isdigit()]
     others = [w for w in words if w not in numbers]
-    picked = numbers + [others[i] for i in rng.permutation(len(others))[: max(0, most - len(numbers))]]
+    picked = numbers + [
+        others[i] for i in rng.permutation(len(others))[: max(0, most - len(numbers))]
+    ]
     out = []
     for index, pos, word in sorted(picked):
-        last = str(int(rng.integers(0, 10**6))).encode() if word in (w for *_, w in numbers) else b"uchar"
+        last = (
+            str(int(rng.integers(0, 10**6))).encode()
+            if word in (w for *_, w in numbers)
+            else b"uchar"
+        )
         for j, new in enumerate([b"0", b"18446744073709551616", last]):
-            raw = head[:pos] + new + head[pos + len(word):] + body
+            raw = head[:pos] + new + head[pos + len(word) :] + body
             out.append(Case(f"{name}-token-{index}-{j}", raw, suffix))
     return out
 
@@ -187,33 +220,81 @@ def _words(head: bytes) -> list[tuple[int, bytes]]:
 def las_cases(rng: np.random.Generator) -> list[Case]:
     """LAS 1.2 and 1.4 seeds: every header field, the VLRs, cuts and flips."""
     out = []
-    header = {"file_source": (4, "H"), "global_encoding": (6, "H"), "guid": (8, "I"),
-              "version_major": (24, "B"), "version_minor": (25, "B"), "system": (26, "Q"),
-              "creation_day": (90, "H"), "creation_year": (92, "H"), "header_size": (94, "H"),
-              "offset_to_points": (96, "I"), "n_vlrs": (100, "I"), "point_format": (104, "B"),
-              "record_length": (105, "H"), "legacy_count": (107, "I"), "by_return": (111, "I"),
-              **{f"scale_{a}": (131 + 8 * i, "d") for i, a in enumerate("xyz")},
-              **{f"offset_{a}": (155 + 8 * i, "d") for i, a in enumerate("xyz")},
-              **{f"bound_{i}": (179 + 8 * i, "d") for i in range(6)}}
+    header = {
+        "file_source": (4, "H"),
+        "global_encoding": (6, "H"),
+        "guid": (8, "I"),
+        "version_major": (24, "B"),
+        "version_minor": (25, "B"),
+        "system": (26, "Q"),
+        "creation_day": (90, "H"),
+        "creation_year": (92, "H"),
+        "header_size": (94, "H"),
+        "offset_to_points": (96, "I"),
+        "n_vlrs": (100, "I"),
+        "point_format": (104, "B"),
+        "record_length": (105, "H"),
+        "legacy_count": (107, "I"),
+        "by_return": (111, "I"),
+        **{f"scale_{a}": (131 + 8 * i, "d") for i, a in enumerate("xyz")},
+        **{f"offset_{a}": (155 + 8 * i, "d") for i, a in enumerate("xyz")},
+        **{f"bound_{i}": (179 + 8 * i, "d") for i in range(6)},
+    }
     data = las12()
     vlr0, vlr1 = 227, 227 + 54 + 20
-    fields = {**header, "vlr0_record": (vlr0 + 18, "H"), "vlr0_length": (vlr0 + 20, "H"),
-              "vlr1_length": (vlr1 + 20, "H"), "extra_type": (vlr1 + 54 + 2, "B"),
-              "extra_options": (vlr1 + 54 + 3, "B")}
+    fields = {
+        **header,
+        "vlr0_record": (vlr0 + 18, "H"),
+        "vlr0_length": (vlr0 + 20, "H"),
+        "vlr1_length": (vlr1 + 20, "H"),
+        "extra_type": (vlr1 + 54 + 2, "B"),
+        "extra_options": (vlr1 + 54 + 3, "B"),
+    }
     out += field_cases("las12", data, fields, ".las", rng)
     offset, record = struct.unpack_from("<I", data, 96)[0], 30
-    cuts = [1, 4, 100, 226, 227, vlr0 + 10, vlr0 + 54, vlr1 + 100, offset, offset + 1,
-            offset + record, offset + record // 2, offset + 200 * record, offset + 200 * record + 7,
-            offset + 399 * record, len(data) - 1, *rng.integers(offset, len(data), 8).tolist()]
+    cuts = [
+        1,
+        4,
+        100,
+        226,
+        227,
+        vlr0 + 10,
+        vlr0 + 54,
+        vlr1 + 100,
+        offset,
+        offset + 1,
+        offset + record,
+        offset + record // 2,
+        offset + 200 * record,
+        offset + 200 * record + 7,
+        offset + 399 * record,
+        len(data) - 1,
+        *rng.integers(offset, len(data), 8).tolist(),
+    ]
     out += cut_cases("las12", data, cuts, ".las")
     out += flip_cases("las12", data, ".las", rng)
     data = las14()
-    fields = {**header, "evlr_start": (235, "Q"), "n_evlrs": (243, "I"), "count": (247, "Q"),
-              "vlr0_length": (375 + 20, "H")}
+    fields = {
+        **header,
+        "evlr_start": (235, "Q"),
+        "n_evlrs": (243, "I"),
+        "count": (247, "Q"),
+        "vlr0_length": (375 + 20, "H"),
+    }
     out += field_cases("las14", data, fields, ".las", rng)
     evlr = len(data) - 90
-    cuts = [300, 374, 375 + 30, 449, 449 + 30 * 100, 449 + 30 * 100 + 3, evlr, evlr + 20,
-            len(data) - 1, *rng.integers(449, len(data), 6).tolist()]
+    cuts = [
+        300,
+        374,
+        375 + 30,
+        449,
+        449 + 30 * 100,
+        449 + 30 * 100 + 3,
+        evlr,
+        evlr + 20,
+        len(data) - 1,
+        *rng.integers(449, len(data), 6).tolist(),
+    ]
     out += cut_cases("las14", data, cuts, ".las")
     out += flip_cases("las14", data, ".las", rng)
     return out
@@ -226,34 +307,66 @@ def laz_cases(rng: np.random.Generator) -> list[Case]:
     n_vlrs = struct.unpack_from("<I", data, 100)[0]
     pos, laszip = 227, None
     for _ in range(n_vlrs):
-        if data[pos + 2:pos + 16].startswith(b"laszip encoded"):
+        if data[pos + 2 : pos + 16].startswith(b"laszip encoded"):
             laszip = pos + 54
         pos += 54 + struct.unpack_from("<H", data, pos + 20)[0]
     table = struct.unpack_from("<q", data, offset)[0]
-    fields = {"offset_to_points": (96, "I"), "n_vlrs": (100, "I"), "point_format": (104, "B"),
-              "record_length": (105, "H"), "count": (107, "I"), "scale_y": (139, "d"),
-              "laszip_compressor": (laszip, "H"), "laszip_chunk_size": (laszip + 12, "I"),
-              "laszip_items": (laszip + 32, "H"), "laszip_item0_size": (laszip + 36, "H"),
-              "chunk_table_offset": (offset, "q"), "chunk_table_version": (table, "I"),
-              "chunk_count": (table + 4, "I")}
+    fields = {
+        "offset_to_points": (96, "I"),
+        "n_vlrs": (100, "I"),
+        "point_format": (104, "B"),
+        "record_length": (105, "H"),
+        "count": (107, "I"),
+        "scale_y": (139, "d"),
+        "laszip_compressor": (laszip, "H"),
+        "laszip_chunk_size": (laszip + 12, "I"),
+        "laszip_items": (laszip + 32, "H"),
+        "laszip_item0_size": (laszip + 36, "H"),
+        "chunk_table_offset": (offset, "q"),
+        "chunk_table_version": (table, "I"),
+        "chunk_count": (table + 4, "I"),
+    }
     out = field_cases("laz", data, fields, ".laz", rng)
-    cuts = [200, offset, offset + 4, offset + 8, offset + 100, (offset + table) // 2, table,
-            table + 4, table + 8, len(data) - 1, *rng.integers(offset, len(data), 6).tolist()]
+    cuts = [
+        200,
+        offset,
+        offset + 4,
+        offset + 8,
+        offset + 100,
+        (offset + table) // 2,
+        table,
+        table + 4,
+        table + 8,
+        len(data) - 1,
+        *rng.integers(offset, len(data), 6).tolist(),
+    ]
     out += cut_cases("laz", data, cuts, ".laz")
     out += flip_cases("laz", data, ".laz", rng)
     return out
 
 
-def text_cases(name: str, data: bytes, end: bytes, suffix: str, rng: np.random.Generator,
-               record: int | None) -> list[Case]:
+def text_cases(
+    name: str, data: bytes, end: bytes, suffix: str, rng: np.random.Generator, record: int | None
+) -> list[Case]:
     """Header words, cuts (header, data start, record boundaries and inside) and flips."""
-    start = data.index(end) + data[data.index(end):].index(b"\n") + 1
-    cuts = [10, start - 5, start - 1, start, start + 1, len(data) - 1, len(data) - 2,
-            *rng.integers(start, len(data), 8).tolist()]
+    start = data.index(end) + data[data.index(end) :].index(b"\n") + 1
+    cuts = [
+        10,
+        start - 5,
+        start - 1,
+        start,
+        start + 1,
+        len(data) - 1,
+        len(data) - 2,
+        *rng.integers(start, len(data), 8).tolist(),
+    ]
     if record:
         cuts += [start + record * k for k in (1, 50, 100)] + [start + record * 50 + 3]
-    return (token_cases(name, data, end, suffix, rng) + cut_cases(name, data, cuts, suffix)
-            + flip_cases(name, data, suffix, rng, head=start))
+    return (
+        token_cases(name, data, end, suffix, rng)
+        + cut_cases(name, data, cuts, suffix)
+        + flip_cases(name, data, suffix, rng, head=start)
+    )
 
 
 def ply_pcd_cases(rng: np.random.Generator, with_open3d: bool = True) -> list[Case]:
@@ -261,8 +374,14 @@ def ply_pcd_cases(rng: np.random.Generator, with_open3d: bool = True) -> list[Ca
     out = text_cases("ply-binary", ply_binary(), b"end_header", ".ply", rng, None)
     out += text_cases("ply-ascii", ply_ascii(), b"end_header", ".ply", rng, None)
     for encoding in ("ascii", "binary", "binary_compressed"):
-        out += text_cases(f"pcd-{encoding}", pcd(encoding), b"DATA", ".pcd", rng,
-                          16 if encoding == "binary" else None)
+        out += text_cases(
+            f"pcd-{encoding}",
+            pcd(encoding),
+            b"DATA",
+            ".pcd",
+            rng,
+            16 if encoding == "binary" else None,
+        )
     if with_open3d:
         data = pcd_open3d_compressed()
         out += cut_cases("pcd-open3d", data, rng.integers(0, len(data), 6).tolist(), ".pcd")
@@ -271,6 +390,7 @@ def ply_pcd_cases(rng: np.random.Generator, with_open3d: bool = True) -> list[Ca
 
 
 # -- the worker ---------------------------------------------------------------------------------
+
 
 def _outcome(call, path: Path) -> dict:
     """What one read gives: 'ok' with finite bounds and warnings, 'input_error' with its
@@ -283,7 +403,7 @@ def _outcome(call, path: Path) -> dict:
             lo, hi, notes = call(path)
         except InputError as exc:
             return {"outcome": "input_error", "message": str(exc)}
-        except Exception as exc:  # noqa: BLE001 - the property under test
+        except Exception as exc:
             return {"outcome": "other", "message": f"{type(exc).__name__}: {exc}"[:500]}
     notes = list(notes) + [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
     finite = bool(all(math.isfinite(v) for v in [*lo, *hi]))
@@ -343,8 +463,7 @@ def main(folder: Path) -> None:
             result = {"describe": {"outcome": "other", "message": str(exc)}, "read": {}}
         finally:
             signal.alarm(0)
-        result.update(id=entry["id"], seconds=time.perf_counter() - start,
-                      peak_kib=_peak_rss_kib())
+        result.update(id=entry["id"], seconds=time.perf_counter() - start, peak_kib=_peak_rss_kib())
         print(json.dumps(result), flush=True)
 
 

@@ -13,8 +13,13 @@ def toml_manifest(root: Path, *ids: str) -> Path:
     import json
 
     path = root / "sessions.toml"
-    path.write_text("".join(f'[[session]]\nid = {json.dumps(i)}\nbag = "b.mcap"\norchard = "o"\n'
-                            f"date = 2025-04-0{n + 1}\n" for n, i in enumerate(ids)))
+    path.write_text(
+        "".join(
+            f'[[session]]\nid = {json.dumps(i)}\nbag = "b.mcap"\norchard = "o"\n'
+            f"date = 2025-04-0{n + 1}\n"
+            for n, i in enumerate(ids)
+        )
+    )
     return path
 
 
@@ -35,14 +40,24 @@ def store_cut_short(root: Path, fraction: float = 0.4) -> Path:
     full = root / "full.duckdb"
     with OrchardStore(full) as store:
         for month in (4, 6):
-            trees = {"segment": np.arange(12), "label": [f"L{i}" for i in range(12)],
-                     "row": np.repeat([0, 1], 6), "lat": lat, "lon": lon, "n_points": 1000,
-                     "height_m": 3.0, "crown_diameter_m": 3.5, "volume_alpha_m3": 20.0 + month,
-                     "volume_flags": ""}
+            trees = {
+                "segment": np.arange(12),
+                "label": [f"L{i}" for i in range(12)],
+                "row": np.repeat([0, 1], 6),
+                "lat": lat,
+                "lon": lon,
+                "n_points": 1000,
+                "height_m": 3.0,
+                "crown_diameter_m": 3.5,
+                "volume_alpha_m3": 20.0 + month,
+                "volume_flags": "",
+            }
             import pandas as pd
 
-            store.ingest(SessionRecord(f"v{month}", "block-a", dt.date(2025, month, 1), bag="b"),
-                         pd.DataFrame(trees))
+            store.ingest(
+                SessionRecord(f"v{month}", "block-a", dt.date(2025, month, 1), bag="b"),
+                pd.DataFrame(trees),
+            )
     data = full.read_bytes()
     cut = root / "orchard.duckdb"
     cut.write_bytes(data[: int(fraction * len(data))])
