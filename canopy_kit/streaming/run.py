@@ -49,7 +49,7 @@ def run_stream(
     on_tree: Callable[[StreamedTree], None] | None = None,
     orchard: str | None = None,
 ) -> Any:
-    """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.pipeline.Results`
+    """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.outputs.Results`
     (``orchard`` names the orchard in the provenance, default the bag's stem)."""
     from canopy_kit.outputs import Results, write_trees
     from canopy_kit.provenance import provenance

@@ -12,7 +12,10 @@ measures). The estimator is
   :func:`~canopy_kit.volume.alpha_hull.alpha_hull_volume`), grown outwards by
   ``offset = offset_factor · s``: LiDAR returns lie inside the crown envelope, the outermost
   leaves are sparse, and the closing's boundary bites between boundary points by an amount
-  that also scales with ``s``.
+  that also scales with ``s``;
+- closed voids (empty space inside the crown no α-ball from outside reaches, e.g. the
+  leafless inside of a crown whose leaves form a shell) count as crown (``fill_voids``): the
+  volume is the outer envelope's. An open hollow, such as a vase's centre, stays empty.
 
 The two factors were calibrated on simulated crowns of every form (docs/VOLUMES.md,
 "Adaptive alpha"). One k-d tree query, two distance transforms: about 0.1-0.2 s for a
