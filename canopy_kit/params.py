@@ -22,6 +22,10 @@ from typing import Any, Literal, get_args, get_origin
 from canopy_kit.errors import ConfigError
 
 #: Marks a parameter without a default in :attr:`ParamInfo.default`.
+#: The paper's alpha radius (m): the default of every alpha-based estimator. Here, not in
+#: canopy_kit.volume, so that the command line's help can show it without loading sklearn.
+PAPER_ALPHA_M = 0.9
+
 REQUIRED = inspect.Parameter.empty
 
 _SECTION = re.compile(r"^\s*(\w[\w ]*)\n\s*-{3,}\s*$", re.MULTILINE)

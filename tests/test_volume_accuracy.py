@@ -47,6 +47,18 @@ def test_the_statement_quotes_the_table() -> None:
     assert set(section.table["crowns"]) == {"dense (4 forms)", "sparse"}
 
 
+@pytest.mark.parametrize("recommended", ["alpha_shape", "convex_hull", "adaptive_alpha"])
+def test_the_per_tree_table_shows_the_recommended_volume_and_its_interval(recommended) -> None:
+    from canopy_kit.report.session import TABLE_COLUMNS, table_columns
+    from canopy_kit.volume.verb import volume_column
+
+    cols = table_columns(recommended)
+    rec = volume_column(recommended)
+    assert len(cols) == len(set(cols)) and set(TABLE_COLUMNS) <= set(cols)
+    assert cols[cols.index(rec) + 1 : cols.index(rec) + 3] == ["volume_low_m3", "volume_high_m3"]
+    assert cols.index("volume_convex_hull_m3") < cols.index("volume_alpha_m3")  # paper's order
+
+
 def test_the_report_names_the_estimator_and_shows_its_interval(tiny_pistachio_run) -> None:
     page = (tiny_pistachio_run.out_dir / "report.html").read_text()
     plain = re.sub(r"<[^>]+>", " ", page)

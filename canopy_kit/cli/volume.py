@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from canopy_kit.volume.alpha import PAPER_ALPHA_M
+from canopy_kit.params import PAPER_ALPHA_M
 
 
 def volume(

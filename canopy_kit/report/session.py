@@ -237,10 +237,12 @@ def table_columns(recommended: str) -> list[str]:
     and interval after the paper's alpha-shape volume."""
     from canopy_kit.volume.verb import volume_column
 
-    extra = [volume_column(recommended), "volume_low_m3", "volume_high_m3"]
-    cols = [c for c in TABLE_COLUMNS if c not in extra]
-    at = cols.index(ALPHA_COLUMN) + 1
-    return cols[:at] + list(dict.fromkeys(extra)) + cols[at:]
+    cols = list(TABLE_COLUMNS)
+    rec = volume_column(recommended)
+    if rec not in cols:
+        cols.insert(cols.index(ALPHA_COLUMN) + 1, rec)
+    at = cols.index(rec) + 1
+    return [*cols[:at], "volume_low_m3", "volume_high_m3", *cols[at:]]
 
 
 def report_title(provenance: dict[str, Any], preset: str) -> tuple[str, str]:

@@ -16,10 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from canopy_kit.params import PAPER_ALPHA_M
 from canopy_kit.volume.base import VolumeEstimator, check_positive
-
-#: The paper's alpha radius (m): the default of every alpha-based estimator.
-PAPER_ALPHA_M = 0.9
 
 # Tetrahedra are processed in chunks to bound temporary memory (~100 MB per chunk).
 _CHUNK = 1_000_000
