@@ -32,7 +32,7 @@ def trees_of(cache: Path, form: str, seed: int) -> list:
     """The session's SimulatedTree list (complete and one-sided clouds, 0.1 m voxels), cached."""
     from canopy_kit.sim import load_sim_config, simulate_session
     from canopy_kit.sim.truth_map import truth_map
-    from canopy_kit.volume.evaluate import simulated_trees
+    from canopy_kit.volume.truth_errors import simulated_trees
 
     root = cache / f"{form}_s{seed}"
     done = root / "trees.pkl"

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.sim.crown_forms import FORM_NAMES
-from canopy_kit.volume.evaluate import MethodSpec, error_table, simulated_trees, volume_errors
+from canopy_kit.volume.truth_errors import MethodSpec, error_table, simulated_trees, volume_errors
 
 SPECS = [
     MethodSpec("convex_hull", "convex_hull"),

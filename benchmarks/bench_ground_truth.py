@@ -61,7 +61,7 @@ def frame_of(root: Path):
 
 def accuracy(work: Path, orchards: list[str] | None = None) -> None:
     from ground_truth import process_flight
-    from ground_truth.evaluate import camera_errors, crown_agreement
+    from ground_truth.flight_accuracy import camera_errors, crown_agreement
 
     print("## accuracy against simulator truth")
     for kind, rows, trees, seed in ACCURACY_FLIGHTS:

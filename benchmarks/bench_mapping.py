@@ -105,7 +105,7 @@ def _result(
 def run_canopy_kit(session: Path, overrides: dict) -> dict:
     from canopy_kit.config import MappingConfig
     from canopy_kit.mapping import build_map
-    from canopy_kit.mapping.evaluate import evaluate_against_simulation
+    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
     from canopy_kit.sim.session import find_bag
 
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
@@ -136,8 +136,8 @@ def run_kiss_icp(session: Path) -> dict:
     from kiss_icp.kiss_icp import KissICP
 
     from canopy_kit.io.bag import open_bag
-    from canopy_kit.mapping.evaluate import trajectory_errors
     from canopy_kit.mapping.trajectory import pose_table
+    from canopy_kit.mapping.trajectory_error import trajectory_errors
     from canopy_kit.sim.session import find_bag
     from canopy_kit.sim.truth import load_truth
 
@@ -165,7 +165,7 @@ def run_rko_lio(session: Path, exe: Path) -> dict:
     """rko_lio's command on the session's bag; wall, CPU and max RSS of its process."""
     import pandas as pd
 
-    from canopy_kit.mapping.evaluate import trajectory_errors
+    from canopy_kit.mapping.trajectory_error import trajectory_errors
     from canopy_kit.sim.session import find_bag
     from canopy_kit.sim.truth import load_truth
 

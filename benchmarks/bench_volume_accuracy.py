@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.volume.evaluate import MethodSpec, error_table, simulated_trees, volume_errors
+from canopy_kit.volume.truth_errors import MethodSpec, error_table, simulated_trees, volume_errors
 
 SPECS = [
     MethodSpec("convex_hull", "convex_hull"),

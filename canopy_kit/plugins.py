@@ -27,6 +27,7 @@ GROUPS: dict[str, str] = {
     "segmenters": "canopy_kit.segmenters",
     "volumes": "canopy_kit.volumes",
     "commands": "canopy_kit.commands",
+    "worlds": "canopy_kit.worlds",  # exact world models of session generators (truth.load_world)
 }
 
 

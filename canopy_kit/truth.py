@@ -15,7 +15,6 @@ the way plugin entry points are.
 
 from __future__ import annotations
 
-import importlib
 import json
 import tomllib
 from collections.abc import Callable
@@ -30,7 +29,7 @@ import pandas as pd
 from canopy_kit.errors import InputError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.atomic import atomic_write_text
-from canopy_kit.session_layout import SIM_CONFIG, TRUTH_DIR
+from canopy_kit.session_layout import TRUTH_DIR
 
 TREE_COLUMNS = [
     "tree_id",
@@ -73,10 +72,11 @@ class WorldModel(Protocol):
     def scene(self) -> Any: ...
 
 
-#: World models by the file that marks the folders their generator writes: a
-#: ``module:attribute`` reference, called with the session folder, imported only when a
-#: stage asks for exact geometry (as entry points are).
-WORLD_MODELS: dict[str, str] = {SIM_CONFIG: "canopy_kit.sim.world:SimulatedWorld"}
+#: World models are plugins (entry-point group ``canopy_kit.worlds``), each registered under
+#: the name of the file that marks the truth folders its generator writes (the simulator's:
+#: ``sim_config.toml``), called with the session folder and imported only when a stage asks
+#: for exact geometry.
+WORLD_GROUP = "worlds"
 
 
 @dataclass
@@ -131,13 +131,16 @@ def load_truth(session_dir: str | Path) -> SessionTruth:
 
 def load_world(session_dir: str | Path) -> WorldModel:
     """The world model of a session, from the generator whose files its truth folder holds."""
+    from canopy_kit import plugins
+
     truth = Path(session_dir) / TRUTH_DIR
-    for marker, ref in WORLD_MODELS.items():
+    markers = plugins.names(WORLD_GROUP)
+    for marker in markers:
         if (truth / marker).exists():
-            module, _, attr = ref.partition(":")
-            return getattr(importlib.import_module(module), attr)(Path(session_dir))
+            return plugins.load(WORLD_GROUP, marker)(Path(session_dir))
     raise InputError(
-        f"{truth}: no generator's files ({', '.join(WORLD_MODELS)}) to rebuild the exact world from"
+        f"{truth}: no generator's files ({', '.join(markers) or 'no world plugin installed'}) "
+        "to rebuild the exact world from"
     )
 
 

@@ -28,7 +28,7 @@ def truth_offset(
 
 def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
     """Segmentation score: per-point truth labels when the map carries them, else footprints."""
-    from canopy_kit.evaluate import score_footprints, score_point_labels, truth_footprints
+    from canopy_kit.segmentation_score import score_footprints, score_point_labels, truth_footprints
     from canopy_kit.truth import load_truth
 
     truth = load_truth(sim_dir)
@@ -119,7 +119,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
 
 def _mapping_evaluation(ctx: Any, sim_dir: Path) -> dict[str, Any]:
     """ATE, drift and map-to-surface distances of the mapping result against the truth."""
-    from canopy_kit.mapping.evaluate import evaluate_against_simulation
+    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 
     if not hasattr(ctx.mapping, "config"):  # a map made from the true poses: nothing to score
         return {}

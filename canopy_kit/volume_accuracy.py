@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.volume.evaluate import row_directions
+from canopy_kit.volume.truth_errors import row_directions
 
 
 def alley_sides(sim_dir: str | Path, cloud: Any, trees: Any) -> np.ndarray:
@@ -49,9 +49,9 @@ def segmented_volume_errors(
     """
     import pandas as pd
 
-    from canopy_kit.evaluate import score_point_labels
     from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.segment.verb import make_segmenter, segment
+    from canopy_kit.segmentation_score import score_point_labels
     from canopy_kit.truth import load_truth
     from canopy_kit.truth_map import truth_map
     from canopy_kit.volume.verb import measure_trees, volume_column

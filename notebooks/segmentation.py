@@ -13,10 +13,10 @@ def _():
     import numpy as np
 
     from canopy_kit import plugins
-    from canopy_kit.evaluate import score_point_labels
     from canopy_kit.explore import load_context
     from canopy_kit.segment.plots import plot_failure_gallery, plot_top_view
     from canopy_kit.segment.verb import make_segmenter, segment
+    from canopy_kit.segmentation_score import score_point_labels
 
     return (load_context, make_segmenter, mo, np, plot_failure_gallery, plot_top_view, plugins,
             score_point_labels, segment)

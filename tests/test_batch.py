@@ -265,7 +265,7 @@ def test_unreachable_scheduler_is_bad_input(tmp_path):
 def test_a_batch_session_without_report_can_be_scored_by_footprints(orchard_batch):
     """`canopy-kit evaluate SESSION_DIR --truth SIM --mode footprints` on a batch session
     folder (no map, no report): the crowns written beside its table are scored."""
-    from canopy_kit.evaluate import evaluate_run
+    from canopy_kit.segmentation_score import evaluate_run
 
     report, sims, _, _ = orchard_batch
     outcome = report.outcomes["spring"]

@@ -302,7 +302,7 @@ def test_trees_csv_keeps_full_precision(gis_run) -> None:
 
 
 def test_evaluate_reads_the_renamed_truth_field(gis_run) -> None:
-    from canopy_kit.evaluate import evaluate_run
+    from canopy_kit.segmentation_score import evaluate_run
 
     sim, out, _ = gis_run
     points = evaluate_run(out, sim.root, mode="points")

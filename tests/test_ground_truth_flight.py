@@ -14,7 +14,7 @@ import pytest
 
 from canopy_kit.sim import load_sim_config
 from canopy_kit.sim.drone import simulate_drone_session
-from ground_truth.evaluate import crown_agreement
+from ground_truth.flight_accuracy import crown_agreement
 from ground_truth.raster import read_geotiff
 
 pytestmark = pytest.mark.slow

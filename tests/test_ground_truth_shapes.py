@@ -145,7 +145,7 @@ def test_envelope_column_stops_at_the_ground():
 def test_crown_agreement_scores_the_envelope_when_measured():
     import pandas as pd
 
-    from ground_truth.evaluate import crown_agreement
+    from ground_truth.flight_accuracy import crown_agreement
 
     truth = pd.DataFrame(
         {

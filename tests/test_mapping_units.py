@@ -17,7 +17,6 @@ from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
 from canopy_kit.mapping.assemble import merge_partial_maps, stretches, transform_binned
 from canopy_kit.mapping.deskew import deskew_points, reference_time
-from canopy_kit.mapping.evaluate import segment_drift, trajectory_errors
 from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
 from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
 from canopy_kit.mapping.gnss import gnss_epochs, local_frame_for
@@ -26,6 +25,7 @@ from canopy_kit.mapping.imu import GRAVITY, RotationTrack, detect_standstill, le
 from canopy_kit.mapping.kernels import rotate_and_shift
 from canopy_kit.mapping.outputs import read_tum, tum_text
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
+from canopy_kit.mapping.trajectory_error import segment_drift, trajectory_errors
 
 RNG = np.random.default_rng(7)
 

@@ -86,7 +86,7 @@ def test_nonfinite_imu_sample_is_dropped_and_the_trajectory_unchanged(
 ) -> None:
     """Library: one (1e308, inf, 0) gyro sample is dropped and counted; the ATE is the clean drive's."""
     from canopy_kit.mapping import build_map
-    from canopy_kit.mapping.evaluate import evaluate_against_simulation
+    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 
     bag = messages.rewrite_bag(session.bag, tmp_path / "nan", messages.imu_sample(4000, NAN_GYRO))
     res = build_map(bag, MappingConfig())

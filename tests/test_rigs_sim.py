@@ -16,7 +16,7 @@ from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 from canopy_kit.frames import from_rpy, invert, rotation_angle_deg
 from canopy_kit.mapping import build_map
-from canopy_kit.mapping.evaluate import evaluate_against_simulation
+from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 from canopy_kit.sim.truth import load_truth
 
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}

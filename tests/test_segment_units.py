@@ -16,7 +16,6 @@ from canopy_kit import plugins
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import PreprocessConfig, RowsConfig
 from canopy_kit.errors import ConfigError, InputError, PluginError
-from canopy_kit.evaluate import score_footprints, score_point_labels
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan, weighted_dbscan
 from canopy_kit.segment.ground import fit_ground, ransac_plane
 from canopy_kit.segment.preprocess import prepare
@@ -29,6 +28,7 @@ from canopy_kit.segment.rows import (
 from canopy_kit.segment.spectral import spectral_split
 from canopy_kit.segment.stems import detect_stems
 from canopy_kit.segment.verb import make_segmenter, segment
+from canopy_kit.segmentation_score import score_footprints, score_point_labels
 from canopy_kit.voxel import voxel_centroids
 
 

@@ -527,7 +527,7 @@ def twin_maps(tmp_path_factory) -> dict:
     """One row of three pistachio trees seen by a simulated VLP-16, written as raw packets and as
     the PointCloud2 of the same packets (same seed), each mapped."""
     from canopy_kit.mapping import build_map
-    from canopy_kit.mapping.evaluate import evaluate_against_simulation
+    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 
     out = {}
     for output in ("velodyne_packets", "points"):

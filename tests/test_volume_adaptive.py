@@ -144,7 +144,7 @@ def test_interval_covers_the_true_volume_on_two_crown_forms(sim_factory) -> None
     every estimate within 6 % and their mean |error| under 3 %."""
     from canopy_kit.config import merge
     from canopy_kit.sim.truth_map import truth_map
-    from canopy_kit.volume.evaluate import simulated_trees
+    from canopy_kit.volume.truth_errors import simulated_trees
     from canopy_kit.volume.uncertainty import volume_interval
 
     inside, errors = [], []

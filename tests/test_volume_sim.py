@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canopy_kit.volume.evaluate import MethodSpec, error_table, simulated_trees, volume_errors
+from canopy_kit.volume.truth_errors import MethodSpec, error_table, simulated_trees, volume_errors
 
 SPECS = [
     MethodSpec("hull", "convex_hull"),

@@ -61,7 +61,7 @@ def map_bag(
 
 
 def _evaluate(result, bag: Path, truth: Path | None, progress):
-    from canopy_kit.mapping.evaluate import (
+    from canopy_kit.mapping.trajectory_error import (
         estimate_in_frame,
         evaluate_against_simulation,
         reference_from_bag,

@@ -29,7 +29,7 @@ def plot_trajectories(
 ) -> Any:
     """Top view of the estimated trajectory and, when given, the reference (SE(3)-aligned).
 
-    ``alignment`` (4x4, e.g. from :func:`canopy_kit.mapping.evaluate.trajectory_errors`) maps
+    ``alignment`` (4x4, e.g. from :func:`canopy_kit.mapping.trajectory_error.trajectory_errors`) maps
     the estimate onto the reference frame; without it the estimate is drawn as is.
     Returns the matplotlib Figure.
     """
@@ -54,7 +54,7 @@ def plot_trajectory_errors(
     estimated: pd.DataFrame, reference: pd.DataFrame, alignment: np.ndarray, ax: Any = None
 ) -> Any:
     """Position error (x, y, z and norm) over time after the SE(3) alignment; the Figure."""
-    from canopy_kit.mapping.evaluate import interpolate_reference
+    from canopy_kit.mapping.trajectory_error import interpolate_reference
 
     fig, ax = _figure(ax, (8, 3))
     t = estimated["time"].to_numpy()

@@ -10,7 +10,7 @@ preset measures convex hull and alpha shape (alpha = 0.9 m). Optionally the same
 on a map built from the true poses separate mapping error from segmentation and volume
 error.
 
-Scored against the simulator's truth: segmentation success (:mod:`canopy_kit.evaluate`,
+Scored against the simulator's truth: segmentation success (:mod:`canopy_kit.segmentation_score`,
 one-to-one point IoU >= 0.5), and, on the correctly segmented trees, volume errors against
 the aerial sphere ground truth as the paper computes it (``pi d^3 / 6`` of the widest true
 crown diameter: what a perfect aerial survey gives) and against the true crown volume,

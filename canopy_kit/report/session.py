@@ -181,7 +181,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                 )
             )
     if ctx.truth_matches is not None and "tree_id" in cloud.fields:
-        from canopy_kit.evaluate import score_point_labels
+        from canopy_kit.segmentation_score import score_point_labels
 
         score = score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
         gallery = plot_failure_gallery(cloud, seg, score, np.asarray(cloud.fields["tree_id"]))

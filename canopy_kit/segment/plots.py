@@ -93,7 +93,7 @@ def plot_failure_gallery(
 ) -> Any:
     """Side-by-side truth and segmentation around each tree that was not segmented correctly.
 
-    ``score`` is a point-mode :class:`canopy_kit.evaluate.SegmentationScore` of ``seg``
+    ``score`` is a point-mode :class:`canopy_kit.segmentation_score.SegmentationScore` of ``seg``
     against the per-point true tree ids ``truth``. Returns the Figure (``None`` if every
     tree was correct).
     """
