@@ -439,11 +439,17 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
                 "fail < 95 % of matched trees",
             )
         )
+    recommended = evaluation.get("recommended_volume")
     for method, v in evaluation.get("volumes", {}).items():
-        if isinstance(v, dict) and "mape_pct" in v and method in ("alpha_shape", "convex_hull"):
+        if (
+            isinstance(v, dict)
+            and "mape_pct" in v
+            and method in ("alpha_shape", "convex_hull", recommended)
+        ):
             out.append(
                 Check(
-                    f"{method} volume vs true crown volume (MAPE)",
+                    f"{method}{' (recommended)' if method == recommended else ''} volume vs true "
+                    "crown volume (MAPE)",
                     None,
                     format_value(v["mape_pct"], " %", 1),
                     "",

@@ -51,7 +51,7 @@ def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
 def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict[str, Any]:
     """Scores of a run against simulator truth, and the tree table with truth columns added."""
     from canopy_kit.truth import load_truth
-    from canopy_kit.volume.verb import volume_column
+    from canopy_kit.volume.verb import volume_column, volume_methods
 
     truth = load_truth(sim_dir)
     score = score_segmentation(ctx, sim_dir)
@@ -85,7 +85,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
     out = trees.merge(matched, on="segment", how="left")
     volumes: dict[str, Any] = {}
     ok = out["true_crown_volume_m3"].notna()
-    for method in ctx.config.volume.methods:
+    for method in volume_methods(ctx.config.volume):
         col = volume_column(method)
         if col not in out:
             continue
@@ -108,6 +108,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
     result: dict[str, Any] = {
         "segmentation": score.to_dict(),
         "volumes": volumes,
+        "recommended_volume": ctx.config.volume.recommended,
         "segmentation_trees": score.trees,
         "trees": out,
     }

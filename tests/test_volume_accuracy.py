@@ -67,6 +67,9 @@ def test_the_report_names_the_estimator_and_shows_its_interval(tiny_pistachio_ru
     assert f"mean signed error {acc.bias:+.1%}" in plain
     for column in ("volume_adaptive_alpha_m3", "volume_low_m3", "volume_high_m3"):
         assert f'data-key="{column}"' in page
+    # the checks hold the recommended estimator against the truth beside the paper's two
+    assert "adaptive_alpha (recommended) volume vs true crown volume (MAPE)" in plain
+    assert "alpha_shape volume vs true crown volume (MAPE)" in plain
     trees = pd.read_csv(tiny_pistachio_run.out_dir / "trees.csv")
     assert (trees["volume_method"] == "adaptive_alpha").all()
     assert np.all(trees["volume_low_m3"] <= trees["volume_adaptive_alpha_m3"])

@@ -11,7 +11,7 @@ from canopy_kit.checks import Check, format_value
 from canopy_kit.report.figures import figure_to_data_uri
 from canopy_kit.report.html import ReportSection, render_report
 from canopy_kit.report.mapdecor import add_north_arrow_and_scale
-from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN
+from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN, volume_column
 
 TABLE_COLUMNS = [
     "tree_id",
@@ -70,6 +70,9 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         )
     ]
     volume_columns = {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN}
+    recommended = ctx.config.volume.recommended
+    if volume_column(recommended) not in volume_columns.values():
+        volume_columns[f"{recommended} (recommended)"] = volume_column(recommended)
     if "aerial_sphere_volume_m3" in trees:
         volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
     if "true_crown_volume_m3" in trees:
@@ -235,7 +238,6 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
 def table_columns(recommended: str) -> list[str]:
     """The per-tree table's columns: ``TABLE_COLUMNS`` with the recommended estimator's volume
     and interval after the paper's alpha-shape volume."""
-    from canopy_kit.volume.verb import volume_column
 
     cols = list(TABLE_COLUMNS)
     rec = volume_column(recommended)
