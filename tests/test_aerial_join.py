@@ -2,31 +2,12 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pandas as pd
+from fixtures_aerial import aerial_result
 
 from canopy_kit.config import GroundTruthConfig
 from canopy_kit.tree_table import join_aerial
-
-
-def _aerial(diameters: list[float]) -> SimpleNamespace:
-    d = np.asarray(diameters, float)
-    trees = pd.DataFrame(
-        {
-            "segment": np.arange(len(d)),
-            "matched": True,
-            "aerial_diameter_max_m": d,
-            "aerial_diameter_mean_m": d,
-            "aerial_sphere_volume_m3": np.pi * d**3 / 6,
-            "aerial_ellipsoid_volume_m3": np.nan,
-            "aerial_chm_volume_m3": np.nan,
-            "aerial_height_m": 4.0,
-            "aerial_distance_m": 0.2,
-        }
-    )
-    return SimpleNamespace(trees=trees)
 
 
 def test_errors_against_the_sphere_and_flags_for_fragments_and_merges() -> None:
@@ -38,7 +19,7 @@ def test_errors_against_the_sphere_and_flags_for_fragments_and_merges() -> None:
             "volume_alpha_m3": [20.0, 20.0, 20.0],
         }
     )
-    out = join_aerial(lidar, _aerial([4.0, 0.4, 8.0]), GroundTruthConfig())
+    out = join_aerial(lidar, aerial_result([4.0, 0.4, 8.0]), GroundTruthConfig())
     sphere = np.pi * 4.0**3 / 6  # hand-computed: 33.51 m³
     assert np.isclose(out.loc[0, "aerial_sphere_volume_m3"], sphere)
     assert np.isclose(out.loc[0, "error_alpha_vs_aerial_pct"], 100 * (20 - sphere) / sphere)
@@ -60,8 +41,8 @@ def test_ratio_bounds_come_from_the_config() -> None:
         }
     )
     loose = GroundTruthConfig(min_diameter_ratio=0.05, max_diameter_ratio=3.0)
-    assert join_aerial(lidar, _aerial([0.4]), loose).loc[0, "aerial_flag"] == ""
-    assert join_aerial(lidar, _aerial([0.4])).loc[0, "aerial_flag"] != ""
+    assert join_aerial(lidar, aerial_result([0.4]), loose).loc[0, "aerial_flag"] == ""
+    assert join_aerial(lidar, aerial_result([0.4])).loc[0, "aerial_flag"] != ""
 
 
 def test_inverted_ratio_bounds_are_a_config_error() -> None:
@@ -84,7 +65,7 @@ def test_row_extents_and_envelope_reach_the_per_tree_table() -> None:
             "volume_alpha_m3": [20.0],
         }
     )
-    aerial = _aerial([4.0])
+    aerial = aerial_result([4.0])
     aerial.trees["aerial_diameter_across_row_m"] = 3.1
     aerial.trees["aerial_diameter_along_row_m"] = 4.0
     aerial.trees["aerial_envelope_volume_m3"] = 21.0
@@ -97,7 +78,7 @@ def test_row_extents_and_envelope_reach_the_per_tree_table() -> None:
             "aerial_envelope_volume_m3",
         ],
     ].tolist() == [3.1, 4.0, 21.0]
-    old = join_aerial(lidar, _aerial([4.0]))
+    old = join_aerial(lidar, aerial_result([4.0]))
     assert "aerial_diameter_across_row_m" not in old and old.loc[0, "aerial_flag"] == ""
 
 

@@ -17,12 +17,12 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures_aerial import NADIR, aerial_result, two_photos_of_a_block
 
 from canopy_kit.config import GroundTruthConfig, PipelineConfig, load_preset
 from canopy_kit.errors import ConfigError, ProcessingError
 from canopy_kit.geo import LocalFrame
 
-NADIR = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # camera x east, y south, z down
 FIELDS = [f.name for f in dataclasses.fields(GroundTruthConfig)]
 
 
@@ -86,35 +86,12 @@ def _work_pixels(config: GroundTruthConfig, flight_dir: Path, tmp_path: Path) ->
     return float(sum(rgb.shape[0] * rgb.shape[1] for rgb in rgbs))
 
 
-def _two_photos_of_a_block():
-    """Two nadir photos (30 m up) of textured ground with a 3 m block, as in test_ground_truth_units."""
-    from canopy_kit.sim.drone_render import PinholeView, fbm2
-    from ground_truth.camera import camera_from_pose
-
-    cams, images = [], []
-    for k, cx in enumerate((-4.0, 4.0)):
-        view = PinholeView(np.array([cx, 0.0, 30.0]), NADIR, 400.0, 300, 300)
-        d = view.ray_directions().reshape(-1, 3)
-        t_top = (3.0 - 30.0) / d[:, 2]
-        p = view.position + d * t_top[:, None]
-        on_block = (np.abs(p[:, 0]) < 3) & (np.abs(p[:, 1]) < 3)
-        t = np.where(on_block, t_top, (0.0 - 30.0) / d[:, 2])
-        p = view.position + d * t[:, None]
-        images.append(fbm2(p[:, 0], p[:, 1], 0.6, 3, 5).reshape(300, 300).astype(np.float32))
-        cams.append(
-            camera_from_pose(
-                f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300, view.position, NADIR
-            )
-        )
-    return cams, images
-
-
 def _canopy_search_height(config: GroundTruthConfig, *_) -> float:
     """The height above ground the fine surface matching searches up to."""
     from ground_truth.dsm import SurfaceOptions, canopy_top
     from ground_truth.raster import Grid
 
-    cams, images = _two_photos_of_a_block()
+    cams, images = two_photos_of_a_block(3.0)
     grid = Grid(-6.0, 6.0, 0.1, 120, 120)
     return canopy_top(
         cams, images, grid, np.zeros(grid.shape), config.max_canopy_height, SurfaceOptions()
@@ -127,7 +104,7 @@ def _mosaic_pixels(config: GroundTruthConfig, *_) -> float:
     from ground_truth.pipeline import ortho_resolution
     from ground_truth.raster import Grid
 
-    cams, images = _two_photos_of_a_block()
+    cams, images = two_photos_of_a_block(3.0)
     rgbs = [
         np.repeat((255 * np.clip(g, 0, 1)).astype(np.uint8)[..., None], 3, axis=2) for g in images
     ]
@@ -185,21 +162,7 @@ def _flagged_crowns(config: GroundTruthConfig, *_) -> float:
     from canopy_kit.tree_table import join_aerial
 
     d = np.array([2.0, 2.6, 3.2, 4.0, 4.8, 5.6, 6.4, 8.0])
-    aerial = SimpleNamespace(
-        trees=pd.DataFrame(
-            {
-                "segment": np.arange(len(d)),
-                "matched": True,
-                "aerial_diameter_max_m": d,
-                "aerial_diameter_mean_m": d,
-                "aerial_sphere_volume_m3": np.pi * d**3 / 6,
-                "aerial_ellipsoid_volume_m3": np.nan,
-                "aerial_chm_volume_m3": np.nan,
-                "aerial_height_m": 4.0,
-                "aerial_distance_m": 0.2,
-            }
-        )
-    )
+    aerial = aerial_result(d)
     lidar = pd.DataFrame(
         {"segment": np.arange(len(d)), "crown_diameter_m": 4.0, "volume_alpha_m3": 20.0}
     )

@@ -5,16 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures_aerial import NADIR, two_photos_of_a_block
 
 from canopy_kit.geo import LocalFrame
-from canopy_kit.sim.drone_render import PinholeView, fbm2
+from canopy_kit.sim.drone_render import PinholeView
 from ground_truth.camera import PosedCamera, camera_from_pose
 from ground_truth.crowns import CrownOptions, delineate_crowns, feret_extents, measure_crowns
 from ground_truth.dsm import SurfaceOptions, dense_surface, ground_model, reliable_points
 from ground_truth.match import assign, match_crowns, tree_positions
 from ground_truth.raster import Grid, read_geotiff, write_geotiff
-
-NADIR = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # camera x east, y south, z down
 
 
 def test_projection_inverts_the_renderer_rays():
@@ -162,21 +161,7 @@ def test_ground_model_ignores_crowns_and_outliers():
 def test_dense_surface_recovers_a_raised_block():
     """Two nadir photos of a textured ground with a 2 m block: the matched height is right."""
     res = 0.1
-    cams, images = [], []
-    for k, cx in enumerate((-4.0, 4.0)):
-        view = PinholeView(np.array([cx, 0.0, 30.0]), NADIR, 400.0, 300, 300)
-        d = view.ray_directions().reshape(-1, 3)
-        t_top = (2.0 - 30.0) / d[:, 2]
-        p = view.position + d * t_top[:, None]
-        on_block = (np.abs(p[:, 0]) < 3) & (np.abs(p[:, 1]) < 3)
-        t = np.where(on_block, t_top, (0.0 - 30.0) / d[:, 2])
-        p = view.position + d * t[:, None]
-        images.append(fbm2(p[:, 0], p[:, 1], 0.6, 3, 5).reshape(300, 300).astype(np.float32))
-        cams.append(
-            camera_from_pose(
-                f"c{k}", "SIMPLE_PINHOLE", (400.0, 150.0, 150.0), 300, 300, view.position, NADIR
-            )
-        )
+    cams, images = two_photos_of_a_block(2.0)
     grid = Grid(-6.0, 6.0, res, 120, 120)
     surface = dense_surface(
         cams,
