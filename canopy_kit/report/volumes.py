@@ -24,9 +24,10 @@ def _scan_phrase(r: pd.Series, name: str) -> str:
     )
 
 
-def estimator_text(recommended: str, params: dict) -> str:
-    """One paragraph: the recommended estimator, its measured bias and where it comes from."""
-    table = accuracy_table()
+def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = None) -> str:
+    """One paragraph: the recommended estimator, its measured bias and where it comes from
+    (``table``: :func:`accuracy_table`, read when not given)."""
+    table = accuracy_table() if table is None else table
     mine = table[table["method"] == recommended]
     shown = (
         f"{recommended} ({', '.join(f'{k} = {v}' for k, v in params.items())})"
@@ -86,6 +87,6 @@ def accuracy_section(recommended: str, params: dict) -> ReportSection:
     )
     return ReportSection(
         "Volume estimator and its measured accuracy",
-        text=estimator_text(recommended, params),
+        text=estimator_text(recommended, params, table),
         table=shown if len(shown) else None,
     )
