@@ -13,26 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.volume.truth_errors import row_directions
-
-
-def alley_sides(sim_dir: str | Path, cloud: Any, trees: Any) -> np.ndarray:
-    """Per map point: +1 / -1 for the side of its tree's row the sensor was on when the point
-    was measured (true poses, row line fitted through the trunks), 0 for points of no tree."""
-    from canopy_kit.truth import true_pose_interpolator
-
-    pose_at = true_pose_interpolator(sim_dir)
-    tree_id = np.asarray(cloud.fields["tree_id"])
-    side = np.zeros(len(cloud), dtype=np.int8)
-    directions = row_directions(trees)
-    for row, group in trees.groupby("row"):
-        along = directions[int(row)]
-        across = np.array([-along[1], along[0]])
-        on_row = np.isin(tree_id, group["tree_id"].to_numpy())
-        sensor_xy = pose_at(np.asarray(cloud.fields["time"])[on_row])[0][:, :2]
-        centre = group[["x", "y"]].to_numpy().mean(axis=0)
-        side[on_row] = np.sign((sensor_xy - centre) @ across).astype(np.int8)
-    return side
+from canopy_kit.volume.truth_errors import alley_sides
 
 
 def segmented_volume_errors(

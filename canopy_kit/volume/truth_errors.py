@@ -50,6 +50,26 @@ def row_directions(trees: Any) -> dict[int, np.ndarray]:
     return out
 
 
+def alley_sides(sim_dir: str | Path, cloud: Any, trees: Any) -> np.ndarray:
+    """Per map point of ``cloud`` (``tree_id`` and ``time`` fields): +1 / -1 for the side of
+    its tree's row line (fitted through the trunks, measured from the tree's trunk) the sensor
+    was on when the point was measured (true poses), 0 for points of no tree."""
+    from canopy_kit.truth import true_pose_interpolator
+
+    pose_at = true_pose_interpolator(sim_dir)
+    tree_ids = np.asarray(cloud.fields["tree_id"])
+    times = np.asarray(cloud.fields["time"])
+    directions = row_directions(trees)
+    side = np.zeros(len(cloud), dtype=np.int8)
+    for _, tree in trees.iterrows():
+        mask = tree_ids == tree.tree_id
+        along = directions[int(tree.row)]
+        across = np.array([-along[1], along[0]])
+        sensor_xy = pose_at(times[mask])[0][:, :2]
+        side[mask] = np.sign((sensor_xy - np.array([tree.x, tree.y])) @ across).astype(np.int8)
+    return side
+
+
 def simulated_trees(
     sim_dir: str | Path,
     voxel_size: float = 0.1,
@@ -63,7 +83,7 @@ def simulated_trees(
     session with the true poses when not given.
     """
     from canopy_kit.cloud import PointCloud
-    from canopy_kit.truth import load_truth, true_pose_interpolator
+    from canopy_kit.truth import load_truth
     from canopy_kit.truth_map import truth_map
     from canopy_kit.voxel import voxel_downsample
 
@@ -73,10 +93,9 @@ def simulated_trees(
         if reference_map is not None
         else truth_map(sim_dir, voxel_size=map_voxel_size, progress=progress)
     )
-    pose_at = true_pose_interpolator(sim_dir)
     directions = row_directions(truth.trees)
     tree_ids = np.asarray(cloud.fields["tree_id"])
-    times = np.asarray(cloud.fields["time"])
+    sides = alley_sides(sim_dir, cloud, truth.trees)
 
     def thin(xyz: np.ndarray) -> np.ndarray:
         return voxel_downsample(PointCloud(xyz), voxel_size).xyz if voxel_size else xyz
@@ -88,8 +107,7 @@ def simulated_trees(
         along = directions[int(tree.row)]
         across = np.array([-along[1], along[0]])
         trunk = np.array([tree.x, tree.y])
-        sensor_xy = pose_at(times[mask])[0][:, :2]
-        side = (sensor_xy - trunk) @ across
+        side = sides[mask]
         out.append(
             SimulatedTree(
                 int(tree.tree_id),
