@@ -194,6 +194,11 @@ class GroundTruthConfig:
     max_canopy_height: float = 8.0
     # A crown farther than this from a tree is not that tree's crown (seeded or not).
     match_distance_m: float = 1.5
+    # Crowns without seed trees: "rows" (one seed per tree along the rows seen in the
+    # canopy, for touching crowns) or "chm_maxima" (local maxima of the canopy height model).
+    crown_seeds: str = "rows"
+    # Planting distance along the row (m) for "rows"; unset: measured from the canopy.
+    tree_spacing_m: float | None = None
     # Move the seed trees by their measured offset from the crowns and delineate again.
     register_seeds: bool = True
     # An aerial crown whose diameter is outside this ratio of the LiDAR crown diameter is a
@@ -212,6 +217,19 @@ class GroundTruthConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
                 raise ConfigError(f"ground_truth.{name}: expected a number > 0, got {value!r}")
+        if self.crown_seeds not in ("rows", "chm_maxima"):
+            raise ConfigError(
+                "ground_truth.crown_seeds: expected 'rows' or 'chm_maxima', "
+                f"got {self.crown_seeds!r}"
+            )
+        spacing = self.tree_spacing_m
+        if spacing is not None and (
+            isinstance(spacing, bool) or not isinstance(spacing, int | float) or spacing <= 0
+        ):
+            raise ConfigError(
+                "ground_truth.tree_spacing_m: expected a number > 0 (m) or no value "
+                f"(measured from the canopy), got {spacing!r}"
+            )
         res = self.ortho_resolution
         if res is not None and (
             isinstance(res, bool) or not isinstance(res, int | float) or res <= 0

@@ -25,6 +25,7 @@ import pandas as pd
 from canopy_kit.errors import ProcessingError
 from ground_truth.envelope import envelope_volume
 from ground_truth.raster import Grid
+from ground_truth.row_seeds import RowLayout, row_seeds
 from ground_truth.rows import (
     RowDirection,
     directional_extents,
@@ -78,6 +79,10 @@ class CrownOptions:
     )
     seed_disc_max_m: float = 1.5
     use_color: bool = True
+    # Without seed trees: "rows" (one seed per tree along rows found in the canopy,
+    # ``ground_truth.row_seeds``) or "chm_maxima" (local maxima of the smoothed CHM).
+    unseeded: str = "rows"
+    tree_spacing_m: float | None = None  # planting distance along the row; unset: measured
 
 
 @dataclass
@@ -90,7 +95,9 @@ class CrownSegmentation:
     vegetation: np.ndarray
     exg_threshold: float
     markers: np.ndarray  # (M, 2) marker positions x, y
-    marker_seed_ids: np.ndarray  # (M,) seed index per marker, -1 for CHM maxima
+    marker_seed_ids: np.ndarray  # (M,) seed index per marker, -1 for seeds from the imagery
+    seeding: str = "tree_positions"  # "tree_positions", "rows" or "chm_maxima"
+    row_layout: RowLayout | None = None  # the rows the seeds were placed along ("rows")
 
 
 def excess_green(rgb: np.ndarray) -> np.ndarray:
@@ -302,18 +309,28 @@ def delineate_crowns(
     chm_smooth = gaussian_filter(
         np.nan_to_num(chm, nan=0.0), opts.chm_smoothing_m / grid.resolution
     )
+    if opts.unseeded not in ("rows", "chm_maxima"):
+        raise ValueError(f"unseeded: expected 'rows' or 'chm_maxima', got {opts.unseeded!r}")
+    seeding, layout = "tree_positions", None
     if seeds_xy is not None and len(seeds_xy):
         cells, seed_ids = _markers_from_seeds(
             np.asarray(seeds_xy, float), canopy, grid, opts.seed_snap_m
         )
     else:
-        cells = _markers_from_maxima(chm_smooth, canopy, grid, opts)
+        if opts.unseeded == "rows":
+            layout = row_seeds(canopy, chm_smooth, grid, opts.tree_spacing_m)
+        if layout is not None:
+            seeding = "rows"
+            cells, _ = _markers_from_seeds(layout.seeds_xy, canopy, grid, opts.seed_snap_m)
+        else:
+            seeding = "chm_maxima"
+            cells = _markers_from_maxima(chm_smooth, canopy, grid, opts)
         seed_ids = np.full(len(cells), -1)
     markers = np.zeros(grid.shape, np.int32)
     for k, (r, c) in enumerate(cells):
         if markers[r, c] == 0:
             markers[r, c] = k + 1
-    if seeds_xy is not None and len(cells) > 1 and opts.seed_disc_fraction > 0:
+    if seeding != "chm_maxima" and len(cells) > 1 and opts.seed_disc_fraction > 0:
         markers = _seed_discs(markers, cells, canopy, grid, opts)
     labels = (
         watershed(-chm_smooth, markers, mask=canopy)
@@ -325,7 +342,15 @@ def delineate_crowns(
         np.column_stack([x[tuple(cells.T)], y[tuple(cells.T)]]) if len(cells) else np.zeros((0, 2))
     )
     return CrownSegmentation(
-        grid, labels.astype(np.int32), canopy, vegetation, threshold, pos, np.asarray(seed_ids, int)
+        grid,
+        labels.astype(np.int32),
+        canopy,
+        vegetation,
+        threshold,
+        pos,
+        np.asarray(seed_ids, int),
+        seeding,
+        layout,
     )
 
 

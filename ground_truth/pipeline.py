@@ -18,6 +18,7 @@ from canopy_kit.geo import LocalFrame
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
 from ground_truth.camera import PosedCamera
 from ground_truth.crowns import (
+    CrownOptions,
     CrownSegmentation,
     delineate_crowns,
     measure_crowns,
@@ -255,6 +256,9 @@ def process_flight(
         "sphere_diameter": "diameter_max_m (widest extent)",
         "timings_s": timings,
     }
+    summary["crown_seeding"] = seg.seeding
+    if seg.row_layout is not None:
+        summary["crown_rows"] = seg.row_layout.to_dict()
     row_dir = crowns.attrs.get("row_direction")
     if row_dir is not None:
         summary["row_direction"] = row_dir.to_dict()
@@ -284,9 +288,10 @@ def crowns_stage(
     ox, oy = mosaic.grid.centers()
     chm = sample_bilinear(surface.grid, surface.chm, ox, oy)
     seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if trees is not None else None
+    crown_opts = CrownOptions(unseeded=opts.crown_seeds, tree_spacing_m=opts.tree_spacing_m)
     offset = None
     for attempt in range(2):
-        seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy)
+        seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy, crown_opts)
         crowns = measure_crowns(seg, chm)
         lat, lon, _ = frame.to_wgs84(crowns[["x", "y"]].to_numpy()) if len(crowns) else ([], [], [])
         crowns.insert(3, "lat", lat)
@@ -449,6 +454,7 @@ def load_result(out_dir: str | Path) -> GroundTruthResult:
         threshold,
         crowns[["x", "y"]].to_numpy(),
         crowns["seed_id"].to_numpy(),
+        report.get("crown_seeding", "tree_positions"),
     )
     trees = pd.read_csv(out / "trees.csv") if (out / "trees.csv").exists() else None
     paths = {p.stem + "_" + p.suffix[1:]: p for p in out.iterdir() if p.is_file()}

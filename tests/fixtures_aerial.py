@@ -52,3 +52,50 @@ def aerial_result(diameters: list[float] | np.ndarray) -> SimpleNamespace:
         }
     )
     return SimpleNamespace(trees=trees)
+
+
+def synthetic_hedgerows(
+    bearing_deg: float = 20.0,
+    rows: int = 3,
+    trees_per_row: int = 7,
+    row_spacing: float = 7.5,
+    bow_m: float = 0.0,
+    seed: int = 0,
+    res: float = 0.1,
+):
+    """An 'orthomosaic' and CHM of hedgerows: crowns 5.2-6.4 m wide on 4.2-5.2 m spacing, so
+    neighbours overlap by 0.5-2 m; boxy domes (the CHM dips little between two trees),
+    a random lean of the crown off its trunk up to 0.4 m; rows along ``bearing_deg`` from
+    north, bowed by ``bow_m`` in the middle. Returns (grid, rgb, chm, crown centres (N, 2),
+    row index per crown)."""
+    from ground_truth.raster import Grid
+
+    rng = np.random.default_rng(seed)
+    a = np.radians(90.0 - bearing_deg)
+    u, v = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+    centres, row_of, sizes = [], [], []
+    for r in range(rows):
+        along = np.cumsum(np.r_[0.0, rng.uniform(4.2, 5.2, trees_per_row - 1)])
+        length = along[-1]
+        for s in along:
+            bow = bow_m * (1.0 - (2.0 * s / length - 1.0) ** 2)
+            lean = rng.uniform(0.0, 0.4) * np.array([np.cos(t := rng.uniform(0, 6.3)), np.sin(t)])
+            centres.append(s * u + (r * row_spacing + bow) * v + lean)
+            row_of.append(r)
+            sizes.append((rng.uniform(5.2, 6.4), rng.uniform(4.4, 5.0), rng.uniform(3.5, 4.5)))
+    centres = np.array(centres)
+    lo, hi = centres.min(axis=0) - 6.0, centres.max(axis=0) + 6.0
+    grid = Grid.covering(lo, hi, res)
+    x, y = grid.centers()
+    chm = np.zeros(grid.shape)
+    for (cx, cy), (d_along, d_across, h) in zip(centres, sizes):
+        p, q = (x - cx) * u[0] + (y - cy) * u[1], (x - cx) * v[0] + (y - cy) * v[1]
+        r4 = (np.abs(p) / (d_along / 2)) ** 2.5 + (np.abs(q) / (d_across / 2)) ** 2.5
+        inside = r4 < 1
+        chm[inside] = np.maximum(chm[inside], h * (1 - r4[inside]) ** 0.4)
+    rgb = np.empty(grid.shape + (3,), np.uint8)
+    rgb[...] = (150, 120, 90)
+    rgb[chm > 0.3] = (60, 110, 40)
+    rgb = np.clip(rgb + rng.normal(0, 6, rgb.shape), 0, 255).astype(np.uint8)
+    chm = chm + rng.normal(0, 0.05, chm.shape) * (chm > 0)
+    return grid, rgb, chm, centres, np.array(row_of)

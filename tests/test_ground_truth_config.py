@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 import pytest
-from fixtures_aerial import NADIR, aerial_result, two_photos_of_a_block
+from fixtures_aerial import NADIR, aerial_result, synthetic_hedgerows, two_photos_of_a_block
 
 from canopy_kit.config import GroundTruthConfig, PipelineConfig, load_preset
 from canopy_kit.errors import ConfigError, ProcessingError
@@ -169,6 +169,36 @@ def _flagged_crowns(config: GroundTruthConfig, *_) -> float:
     return float((join_aerial(lidar, aerial, config)["aerial_flag"] != "").sum())
 
 
+def _hedgerow_crowns(config: GroundTruthConfig):
+    """Crowns the crowns stage finds, without seed trees, on synthetic touching hedgerows."""
+    from ground_truth.dsm import SurfaceModel
+    from ground_truth.match import assign
+    from ground_truth.ortho import Orthomosaic
+    from ground_truth.pipeline import crowns_stage
+
+    grid, rgb, chm, centres, _ = synthetic_hedgerows()
+    rgba = np.dstack([rgb, np.full(grid.shape, 255, np.uint8)])
+    mosaic = Orthomosaic(grid, rgba, np.zeros(grid.shape, np.int32), ["a"])
+    surface = SurfaceModel(
+        grid, chm, np.zeros(grid.shape), np.ones(grid.shape), np.zeros(grid.shape + (0,), int), []
+    )
+    _, crowns, _, _ = crowns_stage(
+        mosaic, surface, None, LocalFrame.at(37.281, -120.42, 50.0), config
+    )
+    ia, _, _ = assign(centres, crowns[["x", "y"]].to_numpy(), 1.5)
+    return crowns, len(ia)
+
+
+def _hedgerow_one_to_one(config: GroundTruthConfig, *_) -> float:
+    """Hedgerow trees with a crown of their own within 1.5 m, found from the imagery alone."""
+    return float(_hedgerow_crowns(config)[1])
+
+
+def _hedgerow_crown_count(config: GroundTruthConfig, *_) -> float:
+    """Crowns found on the hedgerows from the imagery alone."""
+    return float(len(_hedgerow_crowns(config)[0]))
+
+
 Measure = Callable[[GroundTruthConfig, Path, Path], float]
 # key -> (changed value, what it changes, expected sign of changed minus default: -1, +1, 0 any)
 CASES: dict[str, tuple[object, Measure, int]] = {
@@ -177,6 +207,8 @@ CASES: dict[str, tuple[object, Measure, int]] = {
     "ortho_resolution": (0.2, _mosaic_pixels, -1),
     "max_canopy_height": (2.5, _canopy_search_height, -1),
     "match_distance_m": (0.3, _matched_trees, -1),
+    "crown_seeds": ("chm_maxima", _hedgerow_one_to_one, -1),
+    "tree_spacing_m": (2.4, _hedgerow_crown_count, +1),
     "register_seeds": (False, _seed_error, +1),
     "min_diameter_ratio": (0.9, _flagged_crowns, +1),
     "max_diameter_ratio": (1.1, _flagged_crowns, +1),
@@ -229,6 +261,8 @@ def test_an_unknown_key_fails_naming_it(tmp_path: Path) -> None:
         {"match_distance_m": 0.0},
         {"max_canopy_height": -1.0},
         {"ortho_resolution": 0.0},
+        {"crown_seeds": "watershed"},
+        {"tree_spacing_m": -4.0},
     ],
 )
 def test_impossible_values_are_named(table: dict) -> None:

@@ -88,7 +88,11 @@ def _synthetic_orchard(res: float = 0.05):
 def test_crowns_found_measured_and_weeds_ignored():
     grid, rgb, chm, crowns = _synthetic_orchard()
     seg = delineate_crowns(
-        rgb, np.ones(grid.shape, bool), chm, grid, options=CrownOptions(min_tree_spacing_m=2.0)
+        rgb,
+        np.ones(grid.shape, bool),
+        chm,
+        grid,
+        options=CrownOptions(min_tree_spacing_m=2.0, unseeded="chm_maxima"),
     )
     table = measure_crowns(seg, chm)
     truth = np.array([(cx, cy) for cx, cy, _, _ in crowns])

@@ -28,6 +28,12 @@ def ground_truth(
         "--work-size",
         help="Longest image side (px) for the surface and mosaic (ground_truth.work_image_size)",
     ),
+    tree_spacing: float = typer.Option(
+        None,
+        "--tree-spacing",
+        help="Planting distance along the rows (m), for crowns found without --seeds "
+        "(ground_truth.tree_spacing_m); default: measured from the canopy",
+    ),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON"),
 ) -> None:
     """Structure from motion, orthomosaic, DSM/CHM and crown diameters from drone photos."""
@@ -52,6 +58,8 @@ def ground_truth(
         raise ConfigError(f"--set {other[0]}...: ground-truth takes only ground_truth.key=value")
     if work_size is not None:
         overrides.setdefault("ground_truth", {})["work_image_size"] = work_size
+    if tree_spacing is not None:
+        overrides.setdefault("ground_truth", {})["tree_spacing_m"] = tree_spacing
     config = load_preset(preset, overrides).ground_truth
     with progress_bar(transient=True) as progress:
         result = process_flight(
@@ -77,6 +85,14 @@ def ground_truth(
     line = f"[green]crowns[/] {len(result.crowns)}"
     if result.trees is not None:
         line += f", matched to {int(result.trees['matched'].sum())} of {len(result.trees)} trees"
+    rows = result.report.get("crown_rows")
+    if rows:
+        line += (
+            f", seeded along {rows['rows']} rows at {rows['tree_spacing_m']:.2f} m "
+            f"({rows['tree_spacing_source']})"
+        )
+    else:
+        line += f", seeded by {result.report.get('crown_seeding', 'tree positions')}"
     console.print(line)
     offset = result.report.get("seed_offset") or {}
     if offset.get("significant"):
