@@ -284,6 +284,45 @@ def cut_row(
     return segments[::-1]
 
 
+@dataclass
+class _RowProfile:
+    """One row band's along-row profiles (bins of ``PROFILE_BIN_M`` from ``start_m``)."""
+
+    start_m: float
+    height: np.ndarray
+    width: np.ndarray
+    stations: np.ndarray
+    centre: np.ndarray
+    offset_m: float
+
+    @property
+    def runs(self) -> list[tuple[int, int]]:
+        return canopy_runs(self.width <= 0)
+
+    def evidence(self, window_bins: int) -> np.ndarray:
+        return boundary_evidence(self.height, self.width, window_bins)[0]
+
+
+def _row_profiles(
+    along: np.ndarray, across: np.ndarray, heights: np.ndarray, cell: float, min_row_m: float
+) -> list[_RowProfile]:
+    edges = _row_bands(across, min_row_m)
+    band = np.searchsorted(edges, across) - 1
+    profiles = []
+    for k in range(len(edges) - 1):
+        sel = band == k
+        if sel.sum() < 10:
+            continue
+        s0 = float(along[sel].min())
+        bins = ((along[sel] - s0) / PROFILE_BIN_M).astype(int)
+        height, width = _ridge_and_width(bins, int(bins.max()) + 1, heights[sel], across[sel], cell)
+        stations, centre = _centre_line(along[sel], across[sel])
+        profiles.append(
+            _RowProfile(s0, height, width, stations, centre, float(np.median(across[sel])))
+        )
+    return profiles
+
+
 def row_seeds(
     canopy: np.ndarray,
     chm_smooth: np.ndarray,
@@ -302,52 +341,30 @@ def row_seeds(
     v = np.array([-u[1], u[0]])
     origin = points.mean(axis=0)
     d = points - origin
-    along, across = d @ u, d @ v
     heights = chm_smooth[::step, ::step][canopy[::step, ::step]]
-    edges = _row_bands(across, min_row_spacing_m)
-    band = np.searchsorted(edges, across) - 1
-    cell = grid.resolution * step
-    profiles = []
-    for k in range(len(edges) - 1):
-        sel = band == k
-        if sel.sum() < 10:
-            continue
-        s0 = float(along[sel].min())
-        bins = ((along[sel] - s0) / PROFILE_BIN_M).astype(int)
-        n = int(bins.max()) + 1
-        height, width = _ridge_and_width(bins, n, heights[sel], across[sel], cell)
-        stations, centre = _centre_line(along[sel], across[sel])
-        profiles.append((s0, n, height, width, stations, centre, float(np.median(across[sel]))))
+    profiles = _row_profiles(d @ u, d @ v, heights, grid.resolution * step, min_row_spacing_m)
     if not profiles:
         return None
-    evidences = []
-    for s0, n, height, width, *_ in profiles:
-        _, empty = boundary_evidence(height, width, 1)
-        evidences.append((boundary_evidence, height, width, canopy_runs(empty)))
     source = "given"
     if spacing_m is None:
         window = int(round(0.5 * 4.0 / PROFILE_BIN_M))  # half a typical spacing, first pass
-        stretches = []
-        for _, height, width, runs in evidences:
-            e, _ = boundary_evidence(height, width, window)
-            stretches += [e[i:j] for i, j in runs]
+        stretches = [p.evidence(window)[i:j] for p in profiles for i, j in p.runs]
         spacing_m = spacing_from_evidence(stretches, *spacing_range_m)
         source = "autocorrelation"
         if spacing_m is None:
             return None
     window = max(int(round(0.5 * spacing_m / PROFILE_BIN_M)), 1)
     rows, seeds = [], []
-    for (s0, n, height, width, stations, centre, offset), (_, _, _, runs) in zip(
-        profiles, evidences
-    ):
-        evidence, _ = boundary_evidence(height, width, window)
-        crown_width = float(np.median(width[width > 0]))
+    for p in profiles:
+        evidence = p.evidence(window)
+        crown_width = float(np.median(p.width[p.width > 0]))
         mids = []
-        for a, b in runs:
+        for a, b in p.runs:
             cuts = cut_row(evidence[a:b], spacing_m, crown_width, interior_sigma)
             mids += [a + 0.5 * (i + j) for i, j in cuts]
-        along_mid = s0 + np.array(mids) * PROFILE_BIN_M
-        row = OrchardRow(offset, s0, s0 + n * PROFILE_BIN_M, stations, centre, len(mids))
+        along_mid = p.start_m + np.array(mids) * PROFILE_BIN_M
+        end = p.start_m + len(p.height) * PROFILE_BIN_M
+        row = OrchardRow(p.offset_m, p.start_m, end, p.stations, p.centre, len(mids))
         rows.append(row)
         seeds.append(origin + np.outer(along_mid, u) + np.outer(row.across_at(along_mid), v))
     return RowLayout(
