@@ -173,27 +173,37 @@ def _ridge_and_width(
     return height, width
 
 
+def _valley_depth(values: np.ndarray, window_bins: int) -> np.ndarray:
+    """Per bin: how far it lies below the lower of the highest values within ``window_bins``
+    on its left and on its right, relative to that level (0 on slopes and plateaus)."""
+    from scipy.ndimage import maximum_filter1d
+
+    size = max(window_bins, 1) + 1
+    # left[k] = max(values[k - w .. k]), right[k] = max(values[k .. k + w])
+    left = maximum_filter1d(values, size, origin=(size - 1) // 2, mode="nearest")
+    right = maximum_filter1d(values, size, origin=-(size // 2), mode="nearest")
+    level = np.maximum(np.minimum(left, right), 1e-6)
+    return np.clip(1.0 - values / level, 0.0, 1.0)
+
+
 def boundary_evidence(
     height: np.ndarray, width: np.ndarray, window_bins: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(evidence, empty) per along-row bin: relative dips of ridge height and hedge width.
+    """(evidence, empty) per along-row bin: how deep the bin lies in a valley of the ridge
+    height and of the hedge width, summed.
 
-    ``evidence`` = (1 − h/max h) + (1 − w/max w), the maxima taken within ``window_bins``
-    either side: 0 on a plateau, 2 in an empty bin (a gap between crowns).
+    Each depth is relative to the lower of the highest values within ``window_bins`` on
+    either side (a saddle between two crowns, not the slope up to a taller neighbour): 0 on
+    a plateau or a slope, 2 in an empty bin (a gap between crowns).
     """
-    from scipy.ndimage import maximum_filter1d
-
-    size = 2 * max(window_bins, 1) + 1
-    h_top = np.maximum(maximum_filter1d(height, size, mode="nearest"), 1e-6)
-    w_top = np.maximum(maximum_filter1d(width, size, mode="nearest"), 1e-6)
-    evidence = (1.0 - height / h_top) + (1.0 - width / w_top)
+    evidence = _valley_depth(height, window_bins) + _valley_depth(width, window_bins)
     return np.clip(evidence, 0.0, 2.0), width <= 0
 
 
 def spacing_from_evidence(stretches: list[np.ndarray], lo_m: float, hi_m: float) -> float | None:
     """The tree spacing (m) from the autocorrelation of the boundary evidence along stretches
     of canopy (each stretch's products over the pairs it holds): the shortest lag in
-    [lo, hi] whose autocorrelation peak reaches 0.8 of the highest one there."""
+    [lo, hi] whose autocorrelation peak reaches a quarter of the highest one there."""
     from scipy.signal import find_peaks
 
     max_lag = int(hi_m / PROFILE_BIN_M) + 1
@@ -218,8 +228,9 @@ def spacing_from_evidence(stretches: list[np.ndarray], lo_m: float, hi_m: float)
     peaks = peaks[acf[peaks] > 0]
     if not len(peaks):
         return None
-    # the shortest lag nearly as correlated as the best one (not its multiples, not noise)
-    strong = peaks[acf[peaks] >= 0.8 * acf[peaks].max()]
+    # The shortest lag with a clear correlation: with irregular spacing a multiple of it can
+    # come out higher (fewer pairs, more noise), a ripple of noise comes out far lower.
+    strong = peaks[acf[peaks] >= 0.25 * acf[peaks].max()]
     return float(strong[0] * PROFILE_BIN_M)
 
 
