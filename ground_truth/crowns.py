@@ -292,6 +292,29 @@ def _seed_discs(
     return out
 
 
+def _watershed(
+    cells: np.ndarray,
+    chm_smooth: np.ndarray,
+    canopy: np.ndarray,
+    grid: Grid,
+    options: CrownOptions,
+    discs: bool,
+) -> np.ndarray:
+    """Marker-controlled watershed on the smoothed CHM from marker cells (label k + 1 for
+    cell k), each grown into a seed disc first when ``discs``."""
+    from skimage.segmentation import watershed
+
+    if not len(cells):
+        return np.zeros(grid.shape, np.int32)
+    markers = np.zeros(grid.shape, np.int32)
+    for k, (r, c) in enumerate(cells):
+        if markers[r, c] == 0:
+            markers[r, c] = k + 1
+    if discs and len(cells) > 1 and options.seed_disc_fraction > 0:
+        markers = _seed_discs(markers, cells, canopy, grid, options)
+    return watershed(-chm_smooth, markers, mask=canopy)
+
+
 def delineate_crowns(
     rgb: np.ndarray,
     valid: np.ndarray,
@@ -300,47 +323,50 @@ def delineate_crowns(
     seeds_xy: np.ndarray | None = None,
     options: CrownOptions | None = None,
 ) -> CrownSegmentation:
-    """Individual crowns on the orthomosaic grid; ``chm`` must be on the same grid."""
+    """Individual crowns on the orthomosaic grid; ``chm`` must be on the same grid.
+
+    Seeded by ``seeds_xy`` (tree positions, e.g. the LiDAR's) when given; else by the rows
+    (``ground_truth.row_seeds``: each crown the canopy of its tree's stretch of row) or by the
+    CHM maxima, as ``options.unseeded`` says.
+    """
     from scipy.ndimage import gaussian_filter
-    from skimage.segmentation import watershed
 
     opts = options or CrownOptions()
+    if opts.unseeded not in ("rows", "chm_maxima"):
+        raise ValueError(f"unseeded: expected 'rows' or 'chm_maxima', got {opts.unseeded!r}")
     canopy, vegetation, threshold = canopy_mask(rgb, valid, chm, grid, opts)
     chm_smooth = gaussian_filter(
         np.nan_to_num(chm, nan=0.0), opts.chm_smoothing_m / grid.resolution
     )
-    if opts.unseeded not in ("rows", "chm_maxima"):
-        raise ValueError(f"unseeded: expected 'rows' or 'chm_maxima', got {opts.unseeded!r}")
-    seeding, layout = "tree_positions", None
+    x, y = grid.centers()
+    layout = None
     if seeds_xy is not None and len(seeds_xy):
+        seeding = "tree_positions"
         cells, seed_ids = _markers_from_seeds(
             np.asarray(seeds_xy, float), canopy, grid, opts.seed_snap_m
         )
+        labels = _watershed(cells, chm_smooth, canopy, grid, opts, discs=True)
     else:
-        if opts.unseeded == "rows":
-            layout = row_seeds(canopy, chm_smooth, grid, opts.tree_spacing_m)
+        layout = (
+            row_seeds(canopy, chm_smooth, grid, opts.tree_spacing_m)
+            if (opts.unseeded == "rows")
+            else None
+        )
         if layout is not None:
             seeding = "rows"
-            cells, _ = _markers_from_seeds(layout.seeds_xy, canopy, grid, opts.seed_snap_m)
+            labels = np.where(canopy, layout.tree_of(x, y) + 1, 0)
+            seed_ids = np.full(len(layout.seeds_xy), -1)
         else:
             seeding = "chm_maxima"
             cells = _markers_from_maxima(chm_smooth, canopy, grid, opts)
-        seed_ids = np.full(len(cells), -1)
-    markers = np.zeros(grid.shape, np.int32)
-    for k, (r, c) in enumerate(cells):
-        if markers[r, c] == 0:
-            markers[r, c] = k + 1
-    if seeding != "chm_maxima" and len(cells) > 1 and opts.seed_disc_fraction > 0:
-        markers = _seed_discs(markers, cells, canopy, grid, opts)
-    labels = (
-        watershed(-chm_smooth, markers, mask=canopy)
-        if len(cells)
-        else np.zeros(grid.shape, np.int32)
-    )
-    x, y = grid.centers()
-    pos = (
-        np.column_stack([x[tuple(cells.T)], y[tuple(cells.T)]]) if len(cells) else np.zeros((0, 2))
-    )
+            seed_ids = np.full(len(cells), -1)
+            labels = _watershed(cells, chm_smooth, canopy, grid, opts, discs=False)
+    if layout is not None:
+        pos = layout.seeds_xy
+    elif len(cells):
+        pos = np.column_stack([x[tuple(cells.T)], y[tuple(cells.T)]])
+    else:
+        pos = np.zeros((0, 2))
     return CrownSegmentation(
         grid,
         labels.astype(np.int32),

@@ -51,7 +51,12 @@ class OrchardRow:
     end_m: float
     centre_along_m: np.ndarray  # along-row stations of the centre line
     centre_across_m: np.ndarray  # across-row offset of the centre line there
-    trees: int = 0
+    band_m: tuple[float, float] = (-np.inf, np.inf)  # across-row offsets the row's cells lie in
+    segments_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # per tree: start, end
+
+    @property
+    def trees(self) -> int:
+        return len(self.segments_m)
 
     def across_at(self, along: np.ndarray) -> np.ndarray:
         """The centre line's across-row offset at along-row positions."""
@@ -68,6 +73,27 @@ class RowLayout:
     spacing_m: float
     spacing_source: str  # "given" or "autocorrelation"
     seeds_xy: np.ndarray = field(repr=False)
+
+    def tree_of(self, x: np.ndarray, y: np.ndarray, core: float = 1.0) -> np.ndarray:
+        """Index of the seed (tree) whose row band and along-row segment hold each point, -1
+        for points in no tree's segment; ``core`` < 1 keeps only that share of each segment
+        about its middle."""
+        u = np.asarray(self.direction)
+        d = np.column_stack([np.ravel(x) - self.origin[0], np.ravel(y) - self.origin[1]])
+        along, across = d @ u, d @ np.array([-u[1], u[0]])
+        out = np.full(len(d), -1, int)
+        first = 0
+        for row in self.rows:
+            inside = (across >= row.band_m[0]) & (across < row.band_m[1])
+            mid = row.segments_m.mean(axis=1)
+            half = 0.5 * core * (row.segments_m[:, 1] - row.segments_m[:, 0])
+            starts, ends = mid - half, mid + half
+            k = np.searchsorted(starts, along, side="right") - 1
+            ok = inside & (k >= 0)
+            ok[ok] &= along[ok] < ends[k[ok]]
+            out[ok] = first + k[ok]
+            first += row.trees
+        return out.reshape(np.shape(x))
 
     @property
     def bearing_deg(self) -> float:
@@ -305,6 +331,7 @@ class _RowProfile:
     stations: np.ndarray
     centre: np.ndarray
     offset_m: float
+    band_m: tuple[float, float]
 
     @property
     def runs(self) -> list[tuple[int, int]]:
@@ -329,7 +356,15 @@ def _row_profiles(
         height, width = _ridge_and_width(bins, int(bins.max()) + 1, heights[sel], across[sel], cell)
         stations, centre = _centre_line(along[sel], across[sel])
         profiles.append(
-            _RowProfile(s0, height, width, stations, centre, float(np.median(across[sel])))
+            _RowProfile(
+                s0,
+                height,
+                width,
+                stations,
+                centre,
+                float(np.median(across[sel])),
+                (float(edges[k]), float(edges[k + 1])),
+            )
         )
     return profiles
 
@@ -369,13 +404,15 @@ def row_seeds(
     for p in profiles:
         evidence = p.evidence(window)
         crown_width = float(np.median(p.width[p.width > 0]))
-        mids = []
-        for a, b in p.runs:
-            cuts = cut_row(evidence[a:b], spacing_m, crown_width, interior_sigma)
-            mids += [a + 0.5 * (i + j) for i, j in cuts]
-        along_mid = p.start_m + np.array(mids) * PROFILE_BIN_M
+        segments = [
+            (a + i, a + j)
+            for a, b in p.runs
+            for i, j in cut_row(evidence[a:b], spacing_m, crown_width, interior_sigma)
+        ]
+        bounds = p.start_m + np.array(segments, float).reshape(-1, 2) * PROFILE_BIN_M
+        along_mid = bounds.mean(axis=1)
         end = p.start_m + len(p.height) * PROFILE_BIN_M
-        row = OrchardRow(p.offset_m, p.start_m, end, p.stations, p.centre, len(mids))
+        row = OrchardRow(p.offset_m, p.start_m, end, p.stations, p.centre, p.band_m, bounds)
         rows.append(row)
         seeds.append(origin + np.outer(along_mid, u) + np.outer(row.across_at(along_mid), v))
     return RowLayout(
