@@ -30,6 +30,28 @@ def camera_errors(model: SparseModel, cameras_csv: str | Path) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def true_row_extents(sim_dir: str | Path, samples: int = 4000) -> pd.DataFrame:
+    """Every simulated tree's crown extent along and across its rows (``tree_id``,
+    ``extent_along_row_m``, ``extent_across_row_m``): the crown envelope of the session's
+    orchard (rebuilt from its config and seed) projected on the orchard's row direction."""
+    from canopy_kit.sim.session import regenerate_orchard
+
+    orchard = regenerate_orchard(sim_dir)
+    u = np.asarray(orchard.row_direction, float)[:2]
+    v = np.asarray(orchard.right_direction, float)[:2]
+    rows = []
+    for tree in orchard.trees:
+        xy = tree.crown.surface_points(samples)[:, :2]
+        rows.append(
+            {
+                "tree_id": tree.tree_id,
+                "extent_along_row_m": float(np.ptp(xy @ u)),
+                "extent_across_row_m": float(np.ptp(xy @ v)),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
 def crown_agreement(
     crowns: pd.DataFrame,
     truth: pd.DataFrame,
@@ -39,7 +61,9 @@ def crown_agreement(
     """Match crowns one-to-one to true trees (Hungarian, gated) and summarise the errors.
 
     Returns (per-tree table, metrics). Detection rate: trees with exactly one crown within
-    the gate. Crowns cut by the mosaic border are left out when ``exclude_border``.
+    the gate. Crowns cut by the mosaic border are left out when ``exclude_border``. With the
+    columns of ``true_row_extents`` merged into ``truth``, the along- and across-row extents
+    are scored too (MAE and bias; ``*_free_m``: crowns that touch no other crown).
     """
     c = (
         crowns[~crowns["touches_border"]]
@@ -54,7 +78,7 @@ def crown_agreement(
     m = c.iloc[ib].reset_index(drop=True)
     table = pd.DataFrame(
         {
-            "tree_id": t["tree_id"],
+            "tree_id": t["tree_id"].to_numpy(),
             "label": t["label"],
             "row": t["row"],
             "distance_m": dist,
@@ -73,6 +97,12 @@ def crown_agreement(
             "envelope_volume_m3": m.get("envelope_volume_m3", pd.Series(np.nan, index=m.index)),
         }
     )
+    if "extent_along_row_m" in t and "diameter_along_row_m" in m:
+        table["along_row_true_m"] = t["extent_along_row_m"].to_numpy()
+        table["along_row_m"] = m["diameter_along_row_m"].to_numpy()
+        table["across_row_true_m"] = t["extent_across_row_m"].to_numpy()
+        table["across_row_m"] = m["diameter_across_row_m"].to_numpy()
+        table["shared_outline_fraction"] = m["shared_outline_fraction"].to_numpy()
     err = table["diameter_m"] - table["diameter_true_m"]
     err_mean = table["diameter_mean_m"] - table["diameter_mean_true_m"]
     metrics = {
@@ -90,6 +120,16 @@ def crown_agreement(
         if len(err)
         else np.nan,
     }
+    if "along_row_m" in table and len(table):
+        for side in ("along", "across"):
+            e = table[f"{side}_row_m"] - table[f"{side}_row_true_m"]
+            free = table["shared_outline_fraction"] == 0
+            metrics[f"{side}_row_mae_m"] = float(e.abs().mean())
+            metrics[f"{side}_row_bias_m"] = float(e.mean())
+            metrics[f"{side}_row_mae_free_m"] = (
+                float(e[free].abs().mean()) if free.any() else np.nan
+            )
+        metrics["free_standing"] = int(free.sum())
     if len(table) >= 2:
         for name, col in (
             ("sphere_from_true_diameter", "sphere_true_diameter_m3"),

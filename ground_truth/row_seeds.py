@@ -52,7 +52,8 @@ class OrchardRow:
     centre_along_m: np.ndarray  # along-row stations of the centre line
     centre_across_m: np.ndarray  # across-row offset of the centre line there
     band_m: tuple[float, float] = (-np.inf, np.inf)  # across-row offsets the row's cells lie in
-    segments_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # per tree: start, end
+    # per tree: along-row start and end of its stretch (the row's first and last: ±inf)
+    segments_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @property
     def trees(self) -> int:
@@ -74,10 +75,9 @@ class RowLayout:
     spacing_source: str  # "given" or "autocorrelation"
     seeds_xy: np.ndarray = field(repr=False)
 
-    def tree_of(self, x: np.ndarray, y: np.ndarray, core: float = 1.0) -> np.ndarray:
+    def tree_of(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Index of the seed (tree) whose row band and along-row segment hold each point, -1
-        for points in no tree's segment; ``core`` < 1 keeps only that share of each segment
-        about its middle."""
+        for points in no tree's segment."""
         u = np.asarray(self.direction)
         d = np.column_stack([np.ravel(x) - self.origin[0], np.ravel(y) - self.origin[1]])
         along, across = d @ u, d @ np.array([-u[1], u[0]])
@@ -85,9 +85,7 @@ class RowLayout:
         first = 0
         for row in self.rows:
             inside = (across >= row.band_m[0]) & (across < row.band_m[1])
-            mid = row.segments_m.mean(axis=1)
-            half = 0.5 * core * (row.segments_m[:, 1] - row.segments_m[:, 0])
-            starts, ends = mid - half, mid + half
+            starts, ends = row.segments_m[:, 0], row.segments_m[:, 1]
             k = np.searchsorted(starts, along, side="right") - 1
             ok = inside & (k >= 0)
             ok[ok] &= along[ok] < ends[k[ok]]
@@ -404,13 +402,21 @@ def row_seeds(
     for p in profiles:
         evidence = p.evidence(window)
         crown_width = float(np.median(p.width[p.width > 0]))
-        segments = [
-            (a + i, a + j)
-            for a, b in p.runs
-            for i, j in cut_row(evidence[a:b], spacing_m, crown_width, interior_sigma)
-        ]
-        bounds = p.start_m + np.array(segments, float).reshape(-1, 2) * PROFILE_BIN_M
-        along_mid = bounds.mean(axis=1)
+        runs = p.runs
+        # A stretch's outer trees own the canopy up to the middle of the gaps beside it (the
+        # row's ends: all of it), so that no crown edge is left out of its tree.
+        reach = [-np.inf] + [0.5 * (b0 + a1) for (_, b0), (a1, _) in zip(runs[:-1], runs[1:])]
+        reach = reach + [np.inf]
+        bounds, mids = [], []
+        for k, (a, b) in enumerate(runs):
+            cuts = cut_row(evidence[a:b], spacing_m, crown_width, interior_sigma)
+            for i, j in cuts:
+                mids.append(p.start_m + 0.5 * (a + i + a + j) * PROFILE_BIN_M)
+                lo = reach[k] if i == 0 else a + i
+                hi = reach[k + 1] if j == b - a else a + j
+                bounds.append((p.start_m + lo * PROFILE_BIN_M, p.start_m + hi * PROFILE_BIN_M))
+        bounds = np.array(bounds, float).reshape(-1, 2)
+        along_mid = np.array(mids, float)
         end = p.start_m + len(p.height) * PROFILE_BIN_M
         row = OrchardRow(p.offset_m, p.start_m, end, p.stations, p.centre, p.band_m, bounds)
         rows.append(row)

@@ -103,6 +103,9 @@ def directional_extents(
     """(extent along ``direction``, extent across it) of a pixel region, metres.
 
     Extents of the pixel centres plus one cell, the convention of ``crowns.feret_extents``.
+    The across extent is taken over the middle half of the region's along-row length: where
+    crowns touch in a row, a neighbour's flank reaches into the region near its ends, not
+    in its middle, and a crown is widest across near its middle.
     """
     pts = np.column_stack([cols, -rows]).astype(float) * resolution
     if len(pts) == 0:
@@ -110,4 +113,7 @@ def directional_extents(
     u = np.asarray(direction, float)
     u = u / np.linalg.norm(u)
     v = np.array([-u[1], u[0]])
-    return float(np.ptp(pts @ u)) + resolution, float(np.ptp(pts @ v)) + resolution
+    along, across = pts @ u, pts @ v
+    lo, hi = along.min(), along.max()
+    middle = np.abs(along - 0.5 * (lo + hi)) <= 0.25 * (hi - lo) + 0.5 * resolution
+    return float(hi - lo) + resolution, float(np.ptp(across[middle])) + resolution
