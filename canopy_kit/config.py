@@ -197,7 +197,7 @@ class GroundTruthConfig:
     # Crowns without seed trees: "rows" (one seed per tree along the rows seen in the
     # canopy, for touching crowns) or "chm_maxima" (local maxima of the canopy height model).
     crown_seeds: str = "rows"
-    # Planting distance along the row (m) for "rows"; unset: measured from the canopy.
+    # Planting distance along the row (m) for "rows"; unset: the crowns' width across the row.
     tree_spacing_m: float | None = None
     # Move the seed trees by their measured offset from the crowns and delineate again.
     register_seeds: bool = True

@@ -14,11 +14,9 @@ from fixtures_aerial import synthetic_hedgerows
 from ground_truth.crowns import CrownOptions, delineate_crowns, measure_crowns
 from ground_truth.match import assign
 from ground_truth.row_seeds import (
-    PROFILE_BIN_M,
     canopy_runs,
     cut_row,
     row_direction_from_canopy,
-    spacing_from_evidence,
 )
 
 
@@ -44,7 +42,9 @@ def test_touching_crowns_are_found_one_to_one_from_the_rows(orchard: dict) -> No
     assert matched >= trees - 1 and crowns <= trees + 1, (trees, crowns, matched)
     expected = orchard.get("bearing_deg", 20.0) % 180.0
     assert abs(seg.row_layout.bearing_deg - expected) < 1.0
-    assert 4.2 <= seg.row_layout.spacing_m <= 5.2  # drawn 4.2-5.2 m, measured by autocorrelation
+    # drawn 4.2-5.2 m apart, crowns 4.4-5.0 m across the row: the spacing is taken as the width
+    assert seg.row_layout.spacing_source == "hedge_width"
+    assert 4.2 <= seg.row_layout.spacing_m <= 5.2
     # The CHM maxima (today's mode without seeds) merge or split some of the same crowns.
     _, _, maxima, seg_max = _one_to_one(CrownOptions(unseeded="chm_maxima"), **orchard)
     assert seg_max.seeding == "chm_maxima" and maxima <= matched
@@ -95,14 +95,3 @@ def test_canopy_runs_split_at_gaps() -> None:
     # one empty bin does not split; two do
     assert canopy_runs(empty) == [(1, 6), (8, 11)]
     assert canopy_runs(np.ones(5, bool)) == []
-
-
-def test_spacing_from_the_autocorrelation_of_the_evidence() -> None:
-    rng = np.random.default_rng(2)
-    s = np.arange(0, 60, PROFILE_BIN_M)
-    stretches = []
-    for phase in (0.0, 1.3, 2.9):
-        e = np.clip(np.cos(2 * np.pi * (s + phase) / 4.6), 0, None) ** 4 * 0.4
-        stretches.append(e + rng.normal(0, 0.03, len(s)))
-    assert spacing_from_evidence(stretches, 2.0, 12.0) == pytest.approx(4.6, abs=0.2)
-    assert spacing_from_evidence([np.zeros(100)], 2.0, 12.0) is None

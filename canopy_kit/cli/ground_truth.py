@@ -32,7 +32,7 @@ def ground_truth(
         None,
         "--tree-spacing",
         help="Planting distance along the rows (m), for crowns found without --seeds "
-        "(ground_truth.tree_spacing_m); default: measured from the canopy",
+        "(ground_truth.tree_spacing_m); default: the crowns' width across the row",
     ),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON"),
 ) -> None:
