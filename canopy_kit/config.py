@@ -194,6 +194,9 @@ class GroundTruthConfig:
     max_canopy_height: float = 8.0
     # A crown farther than this from a tree is not that tree's crown (seeded or not).
     match_distance_m: float = 1.5
+    # Seed the crowns with the given trees' positions (the LiDAR's in a run); false: find them
+    # from the imagery alone (crown_seeds) and only match them to the trees.
+    crowns_from_seeds: bool = True
     # Crowns without seed trees: "rows" (one seed per tree along the rows seen in the
     # canopy, for touching crowns) or "chm_maxima" (local maxima of the canopy height model).
     crown_seeds: str = "rows"

@@ -85,6 +85,29 @@ class CrownOptions:
     tree_spacing_m: float | None = None  # planting distance along the row; unset: measured
 
 
+SEEDING_DESCRIPTIONS = {
+    "tree_positions": "seeded by the given tree positions (the LiDAR's trees: not independent "
+    "of the LiDAR in where crowns are, only in their sizes)",
+    "rows": "from the imagery alone: rows found in the canopy, one tree per stretch of row "
+    "between the dips of the hedge (independent of the LiDAR)",
+    "chm_maxima": "from the imagery alone: one crown per local maximum of the canopy height "
+    "model (independent of the LiDAR)",
+}
+
+
+def describe_seeding(seg: CrownSegmentation) -> str:
+    """One sentence on how the crowns were seeded, for reports."""
+    text = f"Crowns {SEEDING_DESCRIPTIONS.get(seg.seeding, seg.seeding)}"
+    if seg.row_layout is not None:
+        lay = seg.row_layout
+        spacing = "given" if lay.spacing_source == "given" else "the crowns' width across the row"
+        text += (
+            f"; {len(lay.rows)} rows at a bearing of {lay.bearing_deg:.1f}°, trees "
+            f"{lay.spacing_m:.2f} m apart ({spacing})"
+        )
+    return text + "."
+
+
 @dataclass
 class CrownSegmentation:
     """Crown labels on the orthomosaic grid (0 = not canopy) and the masks behind them."""

@@ -287,7 +287,8 @@ def crowns_stage(
     """
     ox, oy = mosaic.grid.centers()
     chm = sample_bilinear(surface.grid, surface.chm, ox, oy)
-    seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if trees is not None else None
+    seeded = trees is not None and opts.crowns_from_seeds
+    seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if seeded else None
     crown_opts = CrownOptions(unseeded=opts.crown_seeds, tree_spacing_m=opts.tree_spacing_m)
     offset = None
     for attempt in range(2):
@@ -301,7 +302,7 @@ def crowns_stage(
             break
         if attempt == 0:
             offset = {**seed_offset(matched), "seeds_shifted": False}
-            if not (opts.register_seeds and offset["significant"]):
+            if not (seeded and opts.register_seeds and offset["significant"]):
                 break
             seeds_xy = seeds_xy + np.array([offset["east_m"], offset["north_m"]])
             offset["seeds_shifted"] = True

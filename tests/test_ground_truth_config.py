@@ -157,6 +157,12 @@ def _seed_error(config: GroundTruthConfig, *_) -> float:
     return float(np.linalg.norm(seg.markers - truth, axis=1).mean())
 
 
+def _seeded_markers(config: GroundTruthConfig, *_) -> float:
+    """Share of the crowns' markers that are seed trees (the others come from the imagery)."""
+    seg, _, _ = _crowns_stage(config)
+    return float((seg.marker_seed_ids >= 0).mean()) if len(seg.marker_seed_ids) else 0.0
+
+
 def _flagged_crowns(config: GroundTruthConfig, *_) -> float:
     """Aerial crowns flagged as fragments or merges in the per-tree table."""
     from canopy_kit.tree_table import join_aerial
@@ -207,6 +213,7 @@ CASES: dict[str, tuple[object, Measure, int]] = {
     "ortho_resolution": (0.2, _mosaic_pixels, -1),
     "max_canopy_height": (2.5, _canopy_search_height, -1),
     "match_distance_m": (0.3, _matched_trees, -1),
+    "crowns_from_seeds": (False, _seeded_markers, -1),
     "crown_seeds": ("chm_maxima", _hedgerow_one_to_one, -1),
     "tree_spacing_m": (2.4, _hedgerow_crown_count, +1),
     "register_seeds": (False, _seed_error, +1),

@@ -148,6 +148,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
                     ),
                 )
             )
+        from ground_truth.crowns import describe_seeding
         from ground_truth.plots import plot_crowns
 
         ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation, ctx.aerial.crowns)
@@ -156,7 +157,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
             (
                 "Orthomosaic from the drone photos with the delineated crowns (red), each "
                 "labelled with the ID of the LiDAR tree it was matched to ('aerial n': "
-                "crown n, matched to none).",
+                "crown n, matched to none). " + describe_seeding(ctx.aerial.segmentation),
                 figure_to_data_uri(ax.figure),
             )
         )
