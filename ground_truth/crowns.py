@@ -452,8 +452,9 @@ def measure_crowns(
 ) -> pd.DataFrame:
     """One row per crown: centre, area, diameters, heights and volume models.
 
-    ``row_direction`` (default: estimated from the crowns, ``rows.estimate_row_direction``)
-    sets the along- and across-row extents; the one used is ``table.attrs["row_direction"]``.
+    ``row_direction`` (default: the rows the crowns were seeded along, else estimated from the
+    crowns, ``rows.estimate_row_direction``) sets the along- and across-row extents; the
+    one used is ``table.attrs["row_direction"]``.
     """
     from scipy.ndimage import binary_erosion, find_objects
 
@@ -524,6 +525,8 @@ def measure_crowns(
             }
         )
     table = pd.DataFrame(rows, columns=CROWN_COLUMNS)
+    if row_direction is None and seg.row_layout is not None:  # the rows the crowns came from
+        row_direction = RowDirection(seg.row_layout.direction, "canopy_rows", 1.0)
     if row_direction is None:
         row_direction = estimate_row_direction(
             table[["x", "y"]].to_numpy(),

@@ -30,7 +30,7 @@ class RowDirection:
     """A horizontal unit vector along the rows (local x east, y north) and how it was found."""
 
     vector: tuple[float, float]
-    source: str  # "crown_neighbours", "crown_axes" or "none"
+    source: str  # "crown_neighbours", "crown_axes", "canopy_rows" (row_seeds) or "none"
     concentration: float  # mean resultant length of the doubled angles (0..1)
 
     @property
