@@ -24,6 +24,7 @@ LONG_FILES = [
     "test_rigs_sim.py",
     "test_checks_runs.py",
     "test_ground_truth_flight.py",
+    "test_ground_truth_hedgerow_flight.py",
     "test_message_faults.py",
     "test_segment_sim.py",
     "test_reliability_catalogue.py",
