@@ -99,3 +99,49 @@ def synthetic_hedgerows(
     rgb = np.clip(rgb + rng.normal(0, 6, rgb.shape), 0, 255).astype(np.uint8)
     chm = chm + rng.normal(0, 0.05, chm.shape) * (chm > 0)
     return grid, rgb, chm, centres, np.array(row_of)
+
+
+def canopy_kit_cli() -> list[str]:
+    """The command that runs ``canopy-kit`` from this interpreter's environment."""
+    import sys
+    from pathlib import Path
+
+    script = Path(sys.executable).with_name("canopy-kit")
+    return (
+        [str(script)]
+        if script.exists()
+        else [sys.executable, "-c", "from canopy_kit.cli import main; main()"]
+    )
+
+
+def processed_simulated_flight(root, preset: str, overrides: dict, seeded: bool):
+    """A simulated drone flight (``load_sim_config(preset, overrides)``, drone on) processed by
+    ``canopy-kit ground-truth`` in the simulator's frame, with the true trees as ``--seeds``
+    when ``seeded``: (session folder, output folder, CLI stdout)."""
+    import subprocess
+
+    from canopy_kit.sim import load_sim_config
+    from canopy_kit.sim.drone import simulate_drone_session
+
+    cfg = load_sim_config(preset, {**overrides, "drone": {"enabled": True}})
+    sim, out = root / "sim", root / "out"
+    simulate_drone_session(sim, cfg)
+    seeds = ["--seeds", str(sim / "truth" / "trees.csv")] if seeded else []
+    result = subprocess.run(
+        [
+            *canopy_kit_cli(),
+            "ground-truth",
+            str(sim / "drone"),
+            "--out",
+            str(out),
+            *seeds,
+            "--frame",
+            str(sim / "truth" / "frame.json"),
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert result.returncode == 0, result.stderr
+    return sim, out, result.stdout

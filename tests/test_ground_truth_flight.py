@@ -5,59 +5,28 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures_aerial import canopy_kit_cli, processed_simulated_flight
 
-from canopy_kit.sim import load_sim_config
-from canopy_kit.sim.drone import simulate_drone_session
 from ground_truth.flight_accuracy import crown_agreement
 from ground_truth.raster import read_geotiff
 
 pytestmark = pytest.mark.slow
 
 
-def _cli() -> list[str]:
-    script = Path(sys.executable).with_name("canopy-kit")
-    return (
-        [str(script)]
-        if script.exists()
-        else [sys.executable, "-c", "from canopy_kit.cli import main; main()"]
-    )
-
-
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory):
     """A 2 x 3 pistachio flight (12 photos), processed by ``canopy-kit ground-truth``."""
-    root = tmp_path_factory.mktemp("gt_flight")
-    cfg = load_sim_config(
+    return processed_simulated_flight(
+        tmp_path_factory.mktemp("gt_flight"),
         "pistachio",
-        {"seed": 4, "orchard": {"rows": 2, "trees_per_row": 3}, "drone": {"enabled": True}},
+        {"seed": 4, "orchard": {"rows": 2, "trees_per_row": 3}},
+        seeded=True,
     )
-    simulate_drone_session(root / "sim", cfg)
-    out = root / "out"
-    result = subprocess.run(
-        [
-            *_cli(),
-            "ground-truth",
-            str(root / "sim" / "drone"),
-            "--out",
-            str(out),
-            "--seeds",
-            str(root / "sim" / "truth" / "trees.csv"),
-            "--frame",
-            str(root / "sim" / "truth" / "frame.json"),
-        ],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    assert result.returncode == 0, result.stderr
-    return root / "sim", out, result.stdout
 
 
 def test_all_photos_registered_and_georeferenced(processed):
@@ -114,7 +83,7 @@ def test_geotiffs_carry_the_crs(processed):
 def test_cli_reports_bad_input(tmp_path):
     (tmp_path / "empty").mkdir()
     result = subprocess.run(
-        [*_cli(), "ground-truth", str(tmp_path / "empty"), "--out", str(tmp_path / "o")],
+        [*canopy_kit_cli(), "ground-truth", str(tmp_path / "empty"), "--out", str(tmp_path / "o")],
         check=False,
         capture_output=True,
         text=True,

@@ -5,15 +5,11 @@ neighbours overlap), processed by ``canopy-kit ground-truth`` without ``--seeds`
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pandas as pd
 import pytest
+from fixtures_aerial import processed_simulated_flight
 
-from canopy_kit.sim import load_sim_config
-from canopy_kit.sim.drone import simulate_drone_session
 from ground_truth.flight_accuracy import crown_agreement, true_row_extents
 
 pytestmark = pytest.mark.slow
@@ -22,36 +18,12 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def hedgerow_flight(tmp_path_factory):
     """(simulated session, output folder, CLI stdout) of a 2 × 5 almond flight, seed 61."""
-    root = tmp_path_factory.mktemp("hedgerow_flight")
-    cfg = load_sim_config(
+    return processed_simulated_flight(
+        tmp_path_factory.mktemp("hedgerow_flight"),
         "almond",
-        {"seed": 61, "orchard": {"rows": 2, "trees_per_row": 5}, "drone": {"enabled": True}},
+        {"seed": 61, "orchard": {"rows": 2, "trees_per_row": 5}},
+        seeded=False,
     )
-    simulate_drone_session(root / "sim", cfg)
-    script = Path(sys.executable).with_name("canopy-kit")
-    cli = (
-        [str(script)]
-        if script.exists()
-        else [sys.executable, "-c", "from canopy_kit.cli import main; main()"]
-    )
-    out = root / "out"
-    result = subprocess.run(
-        [
-            *cli,
-            "ground-truth",
-            str(root / "sim" / "drone"),
-            "--out",
-            str(out),
-            "--frame",
-            str(root / "sim" / "truth" / "frame.json"),
-        ],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    assert result.returncode == 0, result.stderr
-    return root / "sim", out, result.stdout
 
 
 def test_touching_crowns_found_from_the_photos_alone(hedgerow_flight):
