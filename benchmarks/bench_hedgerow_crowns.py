@@ -107,8 +107,9 @@ def processed_flight(work: Path, name: str, preset: str, seed: int, orchard: dic
 
 def score(work: Path, name: str, preset: str) -> list[dict]:
     """Each seeding's crowns against the truth, from the processed rasters."""
+    from canopy_kit.sim.truth import crown_row_extents
     from ground_truth.crowns import CrownOptions, delineate_crowns, measure_crowns
-    from ground_truth.flight_accuracy import crown_agreement, true_row_extents
+    from ground_truth.flight_accuracy import crown_agreement
     from ground_truth.match import read_trees
     from ground_truth.pipeline import load_result
     from ground_truth.raster import sample_bilinear
@@ -117,7 +118,7 @@ def score(work: Path, name: str, preset: str) -> list[dict]:
     result = load_result(root / "gt")
     ox, oy = result.ortho.grid.centers()
     chm = sample_bilinear(result.surface.grid, result.surface.chm, ox, oy)
-    truth = pd.read_csv(root / "truth" / "trees.csv").merge(true_row_extents(root), on="tree_id")
+    truth = pd.read_csv(root / "truth" / "trees.csv").merge(crown_row_extents(root), on="tree_id")
     trunks = read_trees(root / "truth" / "trees.csv", result.frame)[["tree_x", "tree_y"]]
     seedings = {
         "rows": (None, CrownOptions()),

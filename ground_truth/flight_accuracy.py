@@ -30,28 +30,6 @@ def camera_errors(model: SparseModel, cameras_csv: str | Path) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def true_row_extents(sim_dir: str | Path, samples: int = 4000) -> pd.DataFrame:
-    """Every simulated tree's crown extent along and across its rows (``tree_id``,
-    ``extent_along_row_m``, ``extent_across_row_m``): the crown envelope of the session's
-    orchard (rebuilt from its config and seed) projected on the orchard's row direction."""
-    from canopy_kit.sim.session import regenerate_orchard
-
-    orchard = regenerate_orchard(sim_dir)
-    u = np.asarray(orchard.row_direction, float)[:2]
-    v = np.asarray(orchard.right_direction, float)[:2]
-    rows = []
-    for tree in orchard.trees:
-        xy = tree.crown.surface_points(samples)[:, :2]
-        rows.append(
-            {
-                "tree_id": tree.tree_id,
-                "extent_along_row_m": float(np.ptp(xy @ u)),
-                "extent_across_row_m": float(np.ptp(xy @ v)),
-            }
-        )
-    return pd.DataFrame(rows)
-
-
 def crown_agreement(
     crowns: pd.DataFrame,
     truth: pd.DataFrame,
@@ -62,8 +40,8 @@ def crown_agreement(
 
     Returns (per-tree table, metrics). Detection rate: trees with exactly one crown within
     the gate. Crowns cut by the mosaic border are left out when ``exclude_border``. With the
-    columns of ``true_row_extents`` merged into ``truth``, the along- and across-row extents
-    are scored too (MAE and bias; ``*_free_m``: crowns that touch no other crown).
+    columns of ``canopy_kit.sim.truth.crown_row_extents`` merged into ``truth``, the along-
+    and across-row extents are scored too (MAE and bias; ``*_free_m``: crowns that touch no other crown).
     """
     c = (
         crowns[~crowns["touches_border"]]

@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 from fixtures_aerial import processed_simulated_flight
 
-from ground_truth.flight_accuracy import crown_agreement, true_row_extents
+from canopy_kit.sim.truth import crown_row_extents
+from ground_truth.flight_accuracy import crown_agreement
 
 pytestmark = pytest.mark.slow
 
@@ -31,7 +32,7 @@ def test_touching_crowns_found_from_the_photos_alone(hedgerow_flight):
     report = json.loads((out / "report.json").read_text())
     assert report["crown_seeding"] == "rows"
     assert report["crown_rows"]["rows"] == 2 and "seeded along 2 rows" in stdout
-    truth = pd.read_csv(sim / "truth" / "trees.csv").merge(true_row_extents(sim), on="tree_id")
+    truth = pd.read_csv(sim / "truth" / "trees.csv").merge(crown_row_extents(sim), on="tree_id")
     crowns = pd.read_csv(out / "crowns.csv")
     assert (crowns["seed_id"] == -1).all()  # nothing but the photos placed them
     table, m = crown_agreement(crowns, truth)

@@ -7,13 +7,22 @@ re-exported here for code that imported them from the simulator.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
 from canopy_kit.sim.orchard import Orchard
 from canopy_kit.truth import TREE_COLUMNS, SessionTruth, load_truth, write_csv
 
-__all__ = ["TREE_COLUMNS", "SessionTruth", "load_truth", "tree_table", "write_csv"]
+__all__ = [
+    "TREE_COLUMNS",
+    "SessionTruth",
+    "crown_row_extents",
+    "load_truth",
+    "tree_table",
+    "write_csv",
+]
 
 
 def tree_table(orchard: Orchard) -> pd.DataFrame:
@@ -49,3 +58,25 @@ def tree_table(orchard: Orchard) -> pd.DataFrame:
             }
         )
     return pd.DataFrame(rows, columns=TREE_COLUMNS)
+
+
+def crown_row_extents(sim_dir: str | Path, samples: int = 4000) -> pd.DataFrame:
+    """Every simulated tree's crown extent along and across its rows (``tree_id``,
+    ``extent_along_row_m``, ``extent_across_row_m``): the crown envelope of the session's
+    orchard (rebuilt from its config and seed) projected on the orchard's row direction."""
+    from canopy_kit.sim.session import regenerate_orchard
+
+    orchard = regenerate_orchard(sim_dir)
+    u = np.asarray(orchard.row_direction, float)[:2]
+    v = np.asarray(orchard.right_direction, float)[:2]
+    rows = []
+    for tree in orchard.trees:
+        xy = tree.crown.surface_points(samples)[:, :2]
+        rows.append(
+            {
+                "tree_id": tree.tree_id,
+                "extent_along_row_m": float(np.ptp(xy @ u)),
+                "extent_across_row_m": float(np.ptp(xy @ v)),
+            }
+        )
+    return pd.DataFrame(rows)
