@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin, get_type_hints
 
 from canopy_kit.errors import ConfigError, InputError
+from canopy_kit.params import check_choice
 
 T = TypeVar("T")
 
@@ -174,6 +175,10 @@ class VolumeConfig:
             )
 
 
+# How crowns are found without seed trees (``ground_truth.crowns.delineate_crowns``).
+CROWN_SEEDINGS = ("rows", "chm_maxima")
+
+
 @dataclass
 class GroundTruthConfig:
     """Drone photogrammetry ground truth (``ground_truth.process_flight``, docs/GROUND_TRUTH.md).
@@ -220,27 +225,19 @@ class GroundTruthConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
                 raise ConfigError(f"ground_truth.{name}: expected a number > 0, got {value!r}")
-        if self.crown_seeds not in ("rows", "chm_maxima"):
-            raise ConfigError(
-                "ground_truth.crown_seeds: expected 'rows' or 'chm_maxima', "
-                f"got {self.crown_seeds!r}"
-            )
-        spacing = self.tree_spacing_m
-        if spacing is not None and (
-            isinstance(spacing, bool) or not isinstance(spacing, int | float) or spacing <= 0
+        check_choice(self.crown_seeds, "ground_truth.crown_seeds", None, CROWN_SEEDINGS)
+        for name, unset in (
+            ("ortho_resolution", "the ground sampling distance"),
+            ("tree_spacing_m", "the crowns' width across the row"),
         ):
-            raise ConfigError(
-                "ground_truth.tree_spacing_m: expected a number > 0 (m) or no value "
-                f"(measured from the canopy), got {spacing!r}"
-            )
-        res = self.ortho_resolution
-        if res is not None and (
-            isinstance(res, bool) or not isinstance(res, int | float) or res <= 0
-        ):
-            raise ConfigError(
-                f"ground_truth.ortho_resolution: expected a number > 0 (m) or no "
-                f"value (the ground sampling distance), got {res!r}"
-            )
+            value = getattr(self, name)
+            if value is not None and (
+                isinstance(value, bool) or not isinstance(value, int | float) or value <= 0
+            ):
+                raise ConfigError(
+                    f"ground_truth.{name}: expected a number > 0 (m) or no value ({unset}), "
+                    f"got {value!r}"
+                )
         if not 0 <= self.min_diameter_ratio < self.max_diameter_ratio:
             raise ConfigError(
                 "ground_truth.min_diameter_ratio/max_diameter_ratio: expected "

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from canopy_kit.config import CROWN_SEEDINGS
 from canopy_kit.errors import ProcessingError
 from ground_truth.envelope import envelope_volume
 from ground_truth.raster import Grid
@@ -82,7 +83,8 @@ class CrownOptions:
     # Without seed trees: "rows" (one seed per tree along rows found in the canopy,
     # ``ground_truth.row_seeds``) or "chm_maxima" (local maxima of the smoothed CHM).
     unseeded: str = "rows"
-    tree_spacing_m: float | None = None  # planting distance along the row; unset: measured
+    # planting distance along the row; unset: the crowns' width across the row
+    tree_spacing_m: float | None = None
 
 
 SEEDING_DESCRIPTIONS = {
@@ -355,8 +357,8 @@ def delineate_crowns(
     from scipy.ndimage import gaussian_filter
 
     opts = options or CrownOptions()
-    if opts.unseeded not in ("rows", "chm_maxima"):
-        raise ValueError(f"unseeded: expected 'rows' or 'chm_maxima', got {opts.unseeded!r}")
+    if opts.unseeded not in CROWN_SEEDINGS:
+        raise ValueError(f"unseeded: expected one of {CROWN_SEEDINGS}, got {opts.unseeded!r}")
     canopy, vegetation, threshold = canopy_mask(rgb, valid, chm, grid, opts)
     chm_smooth = gaussian_filter(
         np.nan_to_num(chm, nan=0.0), opts.chm_smoothing_m / grid.resolution
@@ -370,11 +372,8 @@ def delineate_crowns(
         )
         labels = _watershed(cells, chm_smooth, canopy, grid, opts, discs=True)
     else:
-        layout = (
-            row_seeds(canopy, chm_smooth, grid, opts.tree_spacing_m)
-            if (opts.unseeded == "rows")
-            else None
-        )
+        if opts.unseeded == "rows":
+            layout = row_seeds(canopy, chm_smooth, grid, opts.tree_spacing_m)
         if layout is not None:
             seeding = "rows"
             labels = np.where(canopy, layout.tree_of(x, y) + 1, 0)

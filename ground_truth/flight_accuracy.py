@@ -41,7 +41,8 @@ def crown_agreement(
     Returns (per-tree table, metrics). Detection rate: trees with exactly one crown within
     the gate. Crowns cut by the mosaic border are left out when ``exclude_border``. With the
     columns of ``canopy_kit.sim.truth.crown_row_extents`` merged into ``truth``, the along-
-    and across-row extents are scored too (MAE and bias; ``*_free_m``: crowns that touch no other crown).
+    and across-row extents are scored too (MAE and bias; ``*_free_m``: crowns that touch no
+    other crown).
     """
     c = (
         crowns[~crowns["touches_border"]]
@@ -99,9 +100,9 @@ def crown_agreement(
         else np.nan,
     }
     if "along_row_m" in table and len(table):
+        free = table["shared_outline_fraction"] == 0
         for side in ("along", "across"):
             e = table[f"{side}_row_m"] - table[f"{side}_row_true_m"]
-            free = table["shared_outline_fraction"] == 0
             metrics[f"{side}_row_mae_m"] = float(e.abs().mean())
             metrics[f"{side}_row_bias_m"] = float(e.mean())
             metrics[f"{side}_row_mae_free_m"] = (

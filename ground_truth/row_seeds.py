@@ -13,17 +13,18 @@ at a planting distance that varies little within an orchard. So:
    every canopy cell belongs to the row whose band (between the profile's minima) holds it,
    and each row keeps its own centre line (median across-row offset per metre), so bowed
    rows are followed.
-3. **Boundary evidence** along each row, per 0.2 m: how far the ridge height and the hedge
-   width fall below their maxima within half a tree spacing (0 on a plateau, about 0.3 at a
-   clear saddle, 2 in a gap between crowns).
+3. **Boundary evidence** along each row, per 0.2 m: how deep the bin lies in a valley of
+   the ridge height and of the hedge width, each relative to the lower of the highest
+   values within half a tree spacing on either side (0 on a plateau or a slope, about 0.3
+   at a clear saddle, 2 in a gap between crowns); two empty bins split a row into stretches.
 4. **Tree spacing**: given (the planting distance, ``tree_spacing_m``) or, where crowns
    touch, about a crown's width across the row (the 90th percentile of the hedge width).
-5. **Trees**: each row is cut into segments by dynamic programming, minimising the
+5. **Trees**: each stretch is cut into segments by dynamic programming, minimising the
    squared deviation of the segment lengths from the spacing (in units of a quarter of
-   it; looser for the two end trees, whose crowns reach past their trunks) plus a cost for
-   every cut that is not on a saddle. A segment may not span a gap in the canopy. Each
-   segment's middle, on the row's centre line, seeds one crown; the watershed on the
-   canopy height model then draws the boundaries.
+   it; looser for the end trees, whose crowns reach past their trunks) plus a cost for
+   every cut that is not on a saddle. Each tree's crown is the canopy of its segment (the
+   outer trees of a stretch reach to the middle of the gaps beside it); the segment's
+   middle, on the row's centre line, is its seed position.
 
 The seeds come from the photos only, so the crowns stay independent of the LiDAR.
 """
@@ -39,20 +40,14 @@ from ground_truth.raster import Grid
 PROFILE_BIN_M = 0.2  # along-row bin of the boundary evidence
 ACROSS_BIN_M = 0.25  # across-row bin of the row-direction and row-band profile
 SADDLE_EVIDENCE = 0.3  # boundary evidence of a clear saddle (height and width dips summed)
-SPACING_PER_WIDTH = (
-    0.5,
-    1.5,
-)  # measured tree spacing searched in these multiples of the hedge width
 CUT_COST = 2.0  # cost of a cut with no saddle under it (a length deviation of 0.35 spacing)
 
 
 @dataclass(frozen=True)
 class OrchardRow:
-    """One row: its across-row offset, along-row extent and centre line."""
+    """One row: its across-row offset, band, centre line and trees' stretches."""
 
     offset_m: float
-    start_m: float
-    end_m: float
     centre_along_m: np.ndarray  # along-row stations of the centre line
     centre_across_m: np.ndarray  # across-row offset of the centre line there
     band_m: tuple[float, float] = (-np.inf, np.inf)  # across-row offsets the row's cells lie in
@@ -220,18 +215,16 @@ def crown_width(width: np.ndarray) -> float:
     return float(np.percentile(width[width > 0], 90))
 
 
-def boundary_evidence(
-    height: np.ndarray, width: np.ndarray, window_bins: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """(evidence, empty) per along-row bin: how deep the bin lies in a valley of the ridge
-    height and of the hedge width, summed.
+def boundary_evidence(height: np.ndarray, width: np.ndarray, window_bins: int) -> np.ndarray:
+    """Per along-row bin: how deep it lies in a valley of the ridge height and of the hedge
+    width, summed.
 
     Each depth is relative to the lower of the highest values within ``window_bins`` on
     either side (a saddle between two crowns, not the slope up to a taller neighbour): 0 on
     a plateau or a slope, 2 in an empty bin (a gap between crowns).
     """
     evidence = _valley_depth(height, window_bins) + _valley_depth(width, window_bins)
-    return np.clip(evidence, 0.0, 2.0), width <= 0
+    return np.clip(evidence, 0.0, 2.0)
 
 
 def canopy_runs(empty: np.ndarray, min_gap_bins: int = 2) -> list[tuple[int, int]]:
@@ -312,7 +305,7 @@ class _RowProfile:
         return canopy_runs(self.width <= 0)
 
     def evidence(self, window_bins: int) -> np.ndarray:
-        return boundary_evidence(self.height, self.width, window_bins)[0]
+        return boundary_evidence(self.height, self.width, window_bins)
 
 
 def _row_profiles(
@@ -349,7 +342,6 @@ def row_seeds(
     grid: Grid,
     spacing_m: float | None = None,
     min_row_spacing_m: float = 3.0,
-    interior_sigma: float = 0.25,
 ) -> RowLayout | None:
     """Rows in the canopy mask and one seed per tree along them; None without canopy.
 
@@ -387,7 +379,7 @@ def row_seeds(
         reach = reach + [np.inf]
         bounds, mids = [], []
         for k, (a, b) in enumerate(runs):
-            cuts = cut_row(evidence[a:b], spacing_m, width, interior_sigma)
+            cuts = cut_row(evidence[a:b], spacing_m, width)
             for i, j in cuts:
                 mids.append(p.start_m + 0.5 * (a + i + a + j) * PROFILE_BIN_M)
                 lo = reach[k] if i == 0 else a + i
@@ -395,8 +387,7 @@ def row_seeds(
                 bounds.append((p.start_m + lo * PROFILE_BIN_M, p.start_m + hi * PROFILE_BIN_M))
         bounds = np.array(bounds, float).reshape(-1, 2)
         along_mid = np.array(mids, float)
-        end = p.start_m + len(p.height) * PROFILE_BIN_M
-        row = OrchardRow(p.offset_m, p.start_m, end, p.stations, p.centre, p.band_m, bounds)
+        row = OrchardRow(p.offset_m, p.stations, p.centre, p.band_m, bounds)
         rows.append(row)
         seeds.append(origin + np.outer(along_mid, u) + np.outer(row.across_at(along_mid), v))
     return RowLayout(
