@@ -7,7 +7,7 @@ error), thins it to 0.1 m voxels as the pipeline does, and measures every tree, 
 one-sided, with the paper's alpha shape, the convex hull and ``adaptive_alpha`` with its
 interval. Tuning seeds (401, 402) and held-out seeds (411-413) are reported apart.
 
-    .venv/bin/python benchmarks/bench_adaptive_volume.py [--forms lobed vase] [--speed]
+    .venv/bin/python benchmarks/bench_adaptive_volume.py [--forms lobed vase] [--speed | --speed-only]
 
 The calibration printed for the tuning seeds is what canopy_kit/volume/uncertainty.py
 CALIBRATIONS holds; the held-out table is what docs/VOLUMES.md quotes.
@@ -28,18 +28,27 @@ TUNE_SEEDS = [401, 402]
 CHECK_SEEDS = [411, 412, 413]
 
 
-def trees_of(cache: Path, form: str, seed: int) -> list:
-    """The session's SimulatedTree list (complete and one-sided clouds, 0.1 m voxels), cached."""
+def variant_name(orchard: dict | None) -> str:
+    """A short name for ``[orchard]`` overrides ("default" without any)."""
+    if not orchard:
+        return "default"
+    return ",".join(f"{k}={v}" for k, v in sorted(orchard.items())).replace(" ", "")
+
+
+def trees_of(cache: Path, form: str, seed: int, orchard: dict | None = None) -> list:
+    """The session's SimulatedTree list (complete and one-sided clouds, 0.1 m voxels), cached;
+    ``orchard``: extra ``[orchard]`` settings (harsher crowns)."""
     from canopy_kit.sim import load_sim_config, simulate_session
     from canopy_kit.sim.truth_map import truth_map
     from canopy_kit.volume.truth_errors import simulated_trees
 
-    root = cache / f"{form}_s{seed}"
+    suffix = "" if not orchard else "_" + variant_name(orchard)
+    root = cache / f"{form}_s{seed}{suffix}"
     done = root / "trees.pkl"
     if not done.exists():
         overrides = {
             "seed": seed,
-            "orchard": {"rows": 1, "trees_per_row": 3, "crown_form": form},
+            "orchard": {"rows": 1, "trees_per_row": 3, "crown_form": form, **(orchard or {})},
             "lidar": {"columns": 512, "rings": 16},
             "imu": {"enabled": False},
             "gnss": {"enabled": False},
@@ -55,7 +64,9 @@ def trees_of(cache: Path, form: str, seed: int) -> list:
 METHODS = {"convex_hull": {}, "alpha_shape": {"alpha": 0.9}, "adaptive_alpha": {}}
 
 
-def measure(cache: Path, forms: list[str], seeds: list[int]) -> pd.DataFrame:
+def measure(
+    cache: Path, forms: list[str], seeds: list[int], orchard: dict | None = None
+) -> pd.DataFrame:
     """One row per tree and scan: the methods' volumes, the truth, fill and coverage."""
     from canopy_kit.volume import estimate_volume
     from canopy_kit.volume.uncertainty import scan_coverage, surface_fill
@@ -63,9 +74,10 @@ def measure(cache: Path, forms: list[str], seeds: list[int]) -> pd.DataFrame:
     rows = []
     for seed in seeds:
         for form in forms:
-            for t in trees_of(cache, form, seed):
+            for t in trees_of(cache, form, seed, orchard):
                 for scan, xyz in {"complete": t.complete, **t.sides}.items():
                     row = {
+                        "variant": variant_name(orchard),
                         "form": form,
                         "seed": seed,
                         "tree": t.tree_id,
@@ -161,7 +173,14 @@ def main() -> None:
     parser.add_argument("--forms", nargs="+", default=FORMS)
     parser.add_argument("--cache", type=Path, default=Path("/tmp/canopy_kit_bench_adaptive"))
     parser.add_argument("--speed", action="store_true", help="also time a 50k-point tree")
+    parser.add_argument(
+        "--speed-only", action="store_true", help="only time a 50k-point tree (run it alone)"
+    )
     args = parser.parse_args()
+    if args.speed_only:
+        print("speed, one porous 50k-point crown (median of 5):")
+        print(speed(repeats=5).to_string(index=False))
+        return
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 40)
     df = measure(args.cache, args.forms, TUNE_SEEDS + CHECK_SEEDS)
