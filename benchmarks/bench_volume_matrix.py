@@ -100,6 +100,31 @@ def summarise(errors: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     return table
 
 
+def calibrate(errors: pd.DataFrame) -> dict[str, dict[str, tuple[float, float]]]:
+    """Per estimator and kind of crown (``Calibration.ratios`` of the surface fill): the 2 %
+    and 98 % quantiles of true / estimate ∓ MARGIN, what uncertainty.CALIBRATIONS holds."""
+    from canopy_kit.volume.uncertainty import CALIBRATIONS, MARGIN
+
+    key = ["sensor", "form", "seed", "scan", "tree"]
+    if "variant" in errors:
+        key.insert(0, "variant")
+    fill = errors[errors["method"] == "interval"].set_index(key)["fill"]
+    kind = fill.map(lambda f: CALIBRATIONS["adaptive_alpha"].ratios(f)[0]).rename("kind")
+    out = {}
+    for method in ESTIMATORS:
+        est = errors[errors["method"] == method].join(kind, on=key)
+        ratio = est["true_volume_m3"] / est["volume_m3"]
+        out[method] = {
+            k: (
+                round(float(ratio[est["kind"] == k].quantile(0.02)) - MARGIN, 3),
+                round(float(ratio[est["kind"] == k].quantile(0.98)) + MARGIN, 3),
+            )
+            for k in ("dense", "mixed", "sparse")
+            if (est["kind"] == k).any()
+        }
+    return out
+
+
 def write_summary(errors: pd.DataFrame, path: Path) -> None:
     """The accuracy table the report quotes: per scan over every form (``all``), over the
     forms whose foliage outlines the envelope (``dense``: all but ``sparse``), and per form."""
@@ -147,20 +172,28 @@ def main() -> None:
         "'lobe_hollow_range=[0.25, 0.35]' leaf_penetration_m=0.3",
     )
     parser.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="print the interval's calibration (uncertainty.CALIBRATIONS) from these rows: run "
+        "it on the tuning seeds (401 402) only",
+    )
+    parser.add_argument(
         "--from-csv",
         type=Path,
+        nargs="+",
         default=None,
-        help="summarise the rows a previous run wrote with --csv (no simulation)",
+        help="summarise the rows previous runs wrote with --csv (no simulation)",
     )
     args = parser.parse_args()
     if args.from_csv:
-        errors = pd.read_csv(args.from_csv)
-        print(f"rows of {args.from_csv}")
+        errors = pd.concat([pd.read_csv(path) for path in args.from_csv], ignore_index=True)
+        print(f"rows of {' '.join(map(str, args.from_csv))}")
         _report(errors, args)
         return
     import tomllib
 
     orchard = tomllib.loads("\n".join(args.orchard_set)) if args.orchard_set else None
+    variant = " ".join(args.orchard_set) or "default"
     parts = []
     segmented = [0, 0]
     for sensor in args.sensors:
@@ -170,7 +203,7 @@ def main() -> None:
                     session(args.cache, sensor, form, seed, orchard), sensor, form, seed
                 )
                 segmented = [a + b for a, b in zip(segmented, part.attrs["segmented"], strict=True)]
-                parts.append(part)
+                parts.append(part.assign(variant=variant))
     errors = pd.concat(parts, ignore_index=True)
     if args.csv:
         args.csv.parent.mkdir(parents=True, exist_ok=True)
@@ -180,6 +213,10 @@ def main() -> None:
 
 
 def _report(errors: pd.DataFrame, args: argparse.Namespace) -> None:
+    if args.calibrate:
+        print("calibration (uncertainty.CALIBRATIONS):")
+        for method, ratios in calibrate(errors).items():
+            print(f"  {method}: {ratios}")
     if args.summary:
         write_summary(errors, args.summary)
     pd.set_option("display.width", 200)

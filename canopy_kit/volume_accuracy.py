@@ -74,6 +74,7 @@ def segmented_volume_errors(
                     "error": np.nan,
                     "covered": bool(tree.volume_low_m3 <= truth_v <= tree.volume_high_m3),
                     "coverage": float(tree.scan_coverage),
+                    "fill": float(tree.surface_fill),
                     "flags": str(tree.volume_interval_flags),
                 }
             )

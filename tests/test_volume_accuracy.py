@@ -113,8 +113,32 @@ def test_recommended_estimator_on_trees_the_pipeline_segments(sim_factory) -> No
         intervals = errors[errors["method"] == "interval"]
         if form == "sparse":
             assert both.mean() < -0.2  # the documented failure: few leaves, no envelope
-            assert intervals["flags"].str.contains("sparse crown").mean() >= 0.9
+            # flagged as sparse, or as sparse or deeply lobed (the fill cannot tell those apart)
+            assert intervals["flags"].str.contains("sparse").mean() >= 0.9
             continue
         assert abs(both.mean()) <= 0.05 and both.abs().mean() <= 0.08, form
         covered.extend(intervals["covered"])
     assert len(covered) == 4 * 4 * 3 and np.mean(covered) >= 0.9
+
+
+@pytest.mark.slow
+def test_the_interval_holds_deeply_lobed_crowns(sim_factory) -> None:
+    """Crowns cut deep between their lobes, leaves only in a 0.3 m shell (harsher than any
+    default form; seed 451, never tuned on): their points fill the hull's surface as thinly
+    as a sparse tree's, yet the estimate is close. The interval (the ``mixed`` calibration)
+    still holds the exact envelope volume for ≥ 90 % of the scans."""
+    from canopy_kit.config import load_preset, merge
+    from canopy_kit.volume_accuracy import segmented_volume_errors
+
+    config = load_preset("adaptive")
+    harsh = {"crown_form": "lobed", "lobe_hollow_range": [0.25, 0.35], "leaf_penetration_m": 0.3}
+    session = sim_factory(
+        "pistachio", fmt="ros1", seed=451, overrides=merge(MATRIX_SESSION, {"orchard": harsh})
+    )
+    errors, score = segmented_volume_errors(session.root, config, [config.volume.recommended])
+    assert score.n_truth == 4 and score.n_correct == 4
+    mine = errors[errors["method"] == config.volume.recommended]
+    print(f"deep lobes: bias {mine['error'].mean():+.3f}, MAPE {mine['error'].abs().mean():.3f}")
+    assert mine["error"].abs().mean() <= 0.1  # the estimate itself is close
+    intervals = errors[errors["method"] == "interval"]
+    assert len(intervals) == 12 and intervals["covered"].mean() >= 0.9

@@ -36,6 +36,7 @@ COLUMN_LABELS: dict[str, str] = {
     "volume_low_m3": "Volume interval, low [m³]",
     "volume_high_m3": "Volume interval, high [m³]",
     "scan_coverage": "Crown seen around (share of sectors)",
+    "surface_fill": "Points' surface fill (dense ≥ 2, sparse < 1.2)",
     "volume_interval_flags": "Volume interval flags",
     "volume_flags": "Volume flags",
     "segment_flags": "Segment flags",

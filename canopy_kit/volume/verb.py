@@ -81,33 +81,19 @@ def interval_columns(
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, volume_interval
 
     col = INTERVAL_COLUMNS
+    row = {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan}
+    row.update({col["coverage"]: np.nan, col["fill"]: np.nan, col["flags"]: ""})
     interval = None
     if len(xyz) >= 4 and np.isfinite(volume_m3):
         try:
             interval = volume_interval(xyz, volume_m3, method, centre)
         except QhullError as exc:  # qhull on points that are nearly flat: no interval
-            return {
-                col["method"]: method,
-                col["low"]: np.nan,
-                col["high"]: np.nan,
-                col["coverage"]: np.nan,
-                col["flags"]: f"no interval: {type(exc).__name__}",
-            }
+            return {**row, col["flags"]: f"no interval: {type(exc).__name__}"}
     if interval is None:
-        return {
-            col["method"]: method,
-            col["low"]: np.nan,
-            col["high"]: np.nan,
-            col["coverage"]: np.nan,
-            col["flags"]: "",
-        }
-    return {
-        col["method"]: method,
-        col["low"]: interval.low_m3,
-        col["high"]: interval.high_m3,
-        col["coverage"]: interval.coverage,
-        col["flags"]: "; ".join(interval.flags),
-    }
+        return row
+    row.update({col["low"]: interval.low_m3, col["high"]: interval.high_m3})
+    row.update({col["coverage"]: interval.coverage, col["fill"]: interval.fill})
+    return {**row, col["flags"]: "; ".join(interval.flags)}
 
 
 def measure_tree(
