@@ -97,18 +97,10 @@ def measure(
 
 
 def calibrate(df: pd.DataFrame, method: str) -> dict[str, tuple[float, float]]:
-    """2 % and 98 % quantiles of true/estimate ∓ MARGIN per kind of crown (dense, mixed,
-    sparse: ``Calibration.ratios`` of the surface fill)."""
-    from canopy_kit.volume.uncertainty import CALIBRATIONS, MARGIN
+    """``uncertainty.calibrate_ratios`` of ``method`` on these scans (dense, mixed, sparse)."""
+    from canopy_kit.volume.uncertainty import calibrate_ratios
 
-    ratio = df["true"] / df[method]
-    kind = df["fill"].map(lambda f: CALIBRATIONS["adaptive_alpha"].ratios(f)[0])
-    out = {}
-    for k in ("dense", "mixed", "sparse"):
-        if (kind == k).any():
-            q = ratio[kind == k].quantile([0.02, 0.98]).to_numpy()
-            out[k] = (round(float(q[0]) - MARGIN, 3), round(float(q[1]) + MARGIN, 3))
-    return out
+    return calibrate_ratios(df["true"] / df[method], df["fill"])
 
 
 def check(df: pd.DataFrame) -> pd.DataFrame:

@@ -101,27 +101,18 @@ def summarise(errors: pd.DataFrame, by: list[str]) -> pd.DataFrame:
 
 
 def calibrate(errors: pd.DataFrame) -> dict[str, dict[str, tuple[float, float]]]:
-    """Per estimator and kind of crown (``Calibration.ratios`` of the surface fill): the 2 %
-    and 98 % quantiles of true / estimate ∓ MARGIN, what uncertainty.CALIBRATIONS holds."""
-    from canopy_kit.volume.uncertainty import CALIBRATIONS, MARGIN
+    """Per estimator: ``uncertainty.calibrate_ratios`` (per kind of crown, from the interval
+    rows' surface fill), what uncertainty.CALIBRATIONS holds."""
+    from canopy_kit.volume.uncertainty import calibrate_ratios
 
     key = ["sensor", "form", "seed", "scan", "tree"]
     if "variant" in errors:
         key.insert(0, "variant")
-    fill = errors[errors["method"] == "interval"].set_index(key)["fill"]
-    kind = fill.map(lambda f: CALIBRATIONS["adaptive_alpha"].ratios(f)[0]).rename("kind")
+    fill = errors[errors["method"] == "interval"].set_index(key)["fill"].rename("tree_fill")
     out = {}
     for method in ESTIMATORS:
-        est = errors[errors["method"] == method].join(kind, on=key)
-        ratio = est["true_volume_m3"] / est["volume_m3"]
-        out[method] = {
-            k: (
-                round(float(ratio[est["kind"] == k].quantile(0.02)) - MARGIN, 3),
-                round(float(ratio[est["kind"] == k].quantile(0.98)) + MARGIN, 3),
-            )
-            for k in ("dense", "mixed", "sparse")
-            if (est["kind"] == k).any()
-        }
+        est = errors[errors["method"] == method].join(fill, on=key)
+        out[method] = calibrate_ratios(est["true_volume_m3"] / est["volume_m3"], est["tree_fill"])
     return out
 
 

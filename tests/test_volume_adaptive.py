@@ -226,3 +226,24 @@ def test_the_table_bounds_the_recommended_estimator() -> None:
     assert load_preset("pistachio").volume.recommended == "alpha_shape"
     with pytest.raises(ConfigError, match="volume.recommended"):
         VolumeConfig(recommended="")
+
+
+def test_calibration_ratios_per_kind_of_crown() -> None:
+    """Each kind (by surface fill) gets its own 2-98 % quantiles of true/estimate ∓ MARGIN."""
+    from canopy_kit.volume.uncertainty import MARGIN, calibrate_ratios, crown_kind
+
+    assert [crown_kind(f) for f in (3.0, 2.0, 1.99, 1.2, 1.19)] == [
+        "dense",
+        "dense",
+        "mixed",
+        "mixed",
+        "sparse",
+    ]
+    rng = np.random.default_rng(3)
+    dense, sparse = rng.uniform(0.95, 1.05, 200), rng.uniform(1.4, 2.6, 50)
+    ratios = np.concatenate([dense, sparse])
+    fill = np.concatenate([np.full(200, 3.0), np.full(50, 1.0)])
+    out = calibrate_ratios(ratios, fill)
+    assert set(out) == {"dense", "sparse"}  # no mixed crowns, no mixed ratios
+    assert out["dense"][0] == pytest.approx(np.quantile(dense, 0.02) - MARGIN, abs=5e-4)
+    assert out["sparse"][1] == pytest.approx(np.quantile(sparse, 0.98) + MARGIN, abs=5e-4)

@@ -22,6 +22,7 @@ properties of the tree's points pick the ratios and widen them:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -53,12 +54,32 @@ class Calibration:
     sparse: tuple[float, float]
 
     def ratios(self, fill: float) -> tuple[str, tuple[float, float]]:
-        """The kind of crown a surface fill says (dense, mixed, sparse) and its ratios."""
-        if fill >= MIN_FILL:
-            return "dense", self.dense
-        if fill >= SPARSE_FILL:
-            return "mixed", self.mixed
-        return "sparse", self.sparse
+        """The kind of crown a surface fill says (:func:`crown_kind`) and its ratios."""
+        kind = crown_kind(fill)
+        return kind, getattr(self, kind)
+
+
+CROWN_KINDS = ("dense", "mixed", "sparse")
+
+
+def crown_kind(fill: float) -> str:
+    """``dense`` at or above ``MIN_FILL``, ``sparse`` below ``SPARSE_FILL``, else ``mixed``."""
+    if fill >= MIN_FILL:
+        return "dense"
+    return "mixed" if fill >= SPARSE_FILL else "sparse"
+
+
+def calibrate_ratios(true_over_estimate: Any, fill: Any) -> dict[str, tuple[float, float]]:
+    """Per kind of crown (:func:`crown_kind` of ``fill``): the 2 % and 98 % quantiles of
+    true / estimate ∓ ``MARGIN``, rounded as ``CALIBRATIONS`` holds them."""
+    ratio = np.asarray(true_over_estimate, dtype=float)
+    kinds = np.array([crown_kind(f) for f in np.asarray(fill, dtype=float)])
+    out = {}
+    for kind in CROWN_KINDS:
+        if (kinds == kind).any():
+            lo, hi = np.quantile(ratio[kinds == kind], [0.02, 0.98])
+            out[kind] = (round(float(lo) - MARGIN, 3), round(float(hi) + MARGIN, 3))
+    return out
 
 
 # The widest of two calibrations on seeds 401-402 (2 % and 98 % quantiles of true/estimate
@@ -66,9 +87,9 @@ class Calibration:
 # hollows, leaves in a 0.3 m shell), both-sided and one-sided scans:
 # - benchmarks/bench_volume_matrix.py --calibrate: VLP-16 and OS1-64, trees the adaptive
 #   preset segments (sets most bounds);
-# - benchmarks/bench_adaptive_volume.py (the calibration it prints): 16 rings × 512 columns, trees cut by the
-#   simulator's labels (sets the dense upper bounds of adaptive_alpha, convex_hull and
-#   alpha_shape and the sparse lower ones, coarser scans underestimating a little more).
+# - benchmarks/bench_adaptive_volume.py (the calibration it prints): 16 rings × 512 columns,
+#   trees cut by the simulator's labels (sets the dense upper bounds of adaptive_alpha,
+#   convex_hull and alpha_shape and the sparse lower ones: coarser scans are a little lower).
 CALIBRATIONS: dict[str, Calibration] = {
     "adaptive_alpha": Calibration(dense=(0.932, 1.042), mixed=(0.843, 2.75), sparse=(1.426, 4.222)),
     "alpha_shape": Calibration(  # α = 0.9 m
