@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -46,6 +47,32 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order kept within
 
 
+# Disk: simulated sessions are 20-160 MB each and the suite makes dozens (5.4 GB by the end
+# when every folder was kept, and a CI machine once ran out of space). Each test file's
+# temporary folders are removed when the file is done, unless one of its tests failed;
+# folders of session-wide fixtures (``_KEPT``) stay for the whole run.
+_KEPT: set[Path] = set()
+_FAILED_FILES: set[str] = set()
+
+
+def pytest_runtest_logreport(report):
+    if report.failed:
+        _FAILED_FILES.add(report.nodeid.split("::")[0])
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _free_disk_after_each_file(request, tmp_path_factory, sim_factory):
+    """Remove the temporary folders a test file made once it is done (kept if it failed)."""
+    base = tmp_path_factory.getbasetemp()
+    before = set(base.iterdir())
+    yield
+    if request.node.nodeid in _FAILED_FILES:
+        return
+    for path in set(base.iterdir()) - before - _KEPT:
+        shutil.rmtree(path, ignore_errors=True)
+    sim_factory.forget_removed()
+
+
 @pytest.fixture(scope="session")
 def sim_factory(tmp_path_factory):
     """``make(orchard, fmt="ros2-mcap", seed=0, **overrides) -> SimulatedSession`` (cached)."""
@@ -71,13 +98,21 @@ def sim_factory(tmp_path_factory):
             )
         return cache[key]
 
+    def forget_removed() -> None:
+        """Drop cached sessions whose folder was removed (they are made again if asked for)."""
+        for key in [k for k, session in cache.items() if not Path(session.root).exists()]:
+            del cache[key]
+
+    make.forget_removed = forget_removed
     return make
 
 
 @pytest.fixture(scope="session")
 def tiny_pistachio(sim_factory):
     """A 2-row x 3-tree pistachio session (ROS2 mcap, truth field on)."""
-    return sim_factory("pistachio", overrides=TINY)
+    session = sim_factory("pistachio", overrides=TINY)
+    _KEPT.add(Path(session.root))
+    return session
 
 
 @pytest.fixture(scope="session")
@@ -95,4 +130,5 @@ def tiny_pistachio_run(tiny_pistachio, tmp_path_factory):
     from canopy_kit.pipeline import run
 
     out = tmp_path_factory.mktemp("run")
+    _KEPT.add(out)
     return run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root)
