@@ -2,9 +2,10 @@
 
 ``estimate_volume(xyz, "alpha_shape", alpha=0.9)`` loads the estimator registered under
 that name in the ``canopy_kit.volumes`` entry-point group and returns a
-:class:`VolumeResult`. Built-ins: ``convex_hull``, ``alpha_shape`` (exact alpha complex),
-``alpha_hull`` (fast closing formulation), ``voxel``, ``slices`` and ``mirror`` (for
-one-sided scans). See docs/VOLUMES.md.
+:class:`VolumeResult`. Built-ins: ``convex_hull``, ``sample_corrected_hull`` (the hull
+corrected for a thin sample), ``alpha_shape`` (exact alpha complex), ``alpha_hull`` (fast
+closing formulation), ``alpha_auto``, ``adaptive_alpha`` (α from the point spacing),
+``voxel``, ``slices`` and ``mirror`` (for one-sided scans). See docs/VOLUMES.md.
 """
 
 from __future__ import annotations

@@ -15,7 +15,12 @@ measures). The estimator is
   that also scales with ``s``;
 - closed voids (empty space inside the crown no α-ball from outside reaches, e.g. the
   leafless inside of a crown whose leaves form a shell) count as crown (``fill_voids``): the
-  volume is the outer envelope's. An open hollow, such as a vase's centre, stays empty.
+  volume is the outer envelope's. An open hollow, such as a vase's centre, stays empty;
+- a sparse crown, whose few returns do not outline its envelope (surface fill
+  ``n · s² / A`` below ``sparse_fill``, :func:`canopy_kit.volume.uncertainty.surface_fill`:
+  young trees with few leaves), gets the convex hull corrected for its thin sampling
+  (:func:`~canopy_kit.volume.hull.sample_corrected_hull`) instead: every hull or α-solid of
+  such points is about half the envelope, and no α can close what was never hit.
 
 The two factors were calibrated on simulated crowns of every form (docs/VOLUMES.md,
 "Adaptive alpha"). One k-d tree query, two distance transforms: about 0.1-0.2 s for a
@@ -29,12 +34,15 @@ import numpy as np
 from canopy_kit.errors import ConfigError
 from canopy_kit.volume.alpha_hull import alpha_hull_volume, grid_step
 from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.volume.hull import sample_corrected_hull
 
 SPACING_K = 8  # neighbour whose distance is the point spacing
 SPACING_SAMPLE = 5000  # points sampled for the spacing (evenly through the array)
 # Calibrated on seeds 401-402 of every crown form (benchmarks/bench_adaptive_volume.py).
 ALPHA_FACTOR = 4.0
 OFFSET_FACTOR = 0.5
+SPARSE_FILL = 1.2  # below: a sparse crown (canopy_kit.volume.uncertainty.SPARSE_FILL)
+SAMPLE_CELL = 0.2  # thinning before the sampling correction of a sparse crown's hull
 
 
 def point_spacing(xyz: np.ndarray, k: int = SPACING_K, tree: object = None) -> float:
@@ -73,6 +81,11 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         Count closed cavities inside the crown (no leaves there, but enclosed by the crown's
         outer surface) as crown: the volume of the outer envelope, as the crown volume is
         defined. An open hollow (a vase's centre) is never filled.
+    sparse_fill : float or None, default 1.2
+        Below this surface fill (``n · s² / A``) the crown is sparse and its volume is the
+        sample-corrected convex hull (``result.extra["estimate"]`` says which); None: never.
+    sample_cell : float, default 0.2
+        Voxel edge (m) of the thinning before that correction.
     """
 
     name = "adaptive_alpha"
@@ -85,6 +98,8 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         alpha_max: float = 1.5,
         grid_step: float | None = None,
         fill_voids: bool = True,
+        sparse_fill: float | None = SPARSE_FILL,
+        sample_cell: float = SAMPLE_CELL,
     ) -> None:
         self.alpha_factor = alpha_factor
         self.offset_factor = offset_factor
@@ -92,12 +107,16 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         self.alpha_max = alpha_max
         self.grid_step = grid_step
         self.fill_voids = fill_voids
+        self.sparse_fill = sparse_fill
+        self.sample_cell = sample_cell
 
     def validate_params(self) -> None:
         """ConfigError naming the first unusable parameter."""
         for name in ("alpha_factor", "alpha_min", "alpha_max"):
             check_positive(getattr(self, name), name, self.name)
         check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
+        check_positive(self.sparse_fill, "sparse_fill", self.name, allow_none=True)
+        check_positive(self.sample_cell, "sample_cell", self.name)
         off = self.offset_factor
         if (
             not isinstance(off, int | float)
@@ -123,13 +142,28 @@ class AdaptiveAlphaVolume(VolumeEstimator):
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
         from scipy.spatial import cKDTree
 
+        from canopy_kit.volume.uncertainty import surface_fill
+
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
         alpha, offset, s = self.choose(xyz, tree)
+        fill = surface_fill(xyz, spacing=s)
+        if self.sparse_fill is not None and fill < self.sparse_fill:
+            est = sample_corrected_hull(xyz, self.sample_cell)
+            return est.volume_m3, {
+                "estimate": "sample_corrected_hull",
+                "surface_fill": fill,
+                "spacing": s,
+                "sample_factor": est.factor,
+                "thinned_points": est.n_points,
+            }
         h = grid_step(xyz, alpha, self.grid_step)
         volume, extra = alpha_hull_volume(
             xyz, alpha, h, offset=offset, tree=tree, fill_voids=self.fill_voids
         )
-        extra.update({"alpha": alpha, "offset": offset, "spacing": s})
+        extra.update(
+            {"estimate": "alpha_hull", "surface_fill": fill, "alpha": alpha, "offset": offset}
+        )
+        extra["spacing"] = s
         if volume <= 0.0:
             extra["reason"] = f"the adaptive alpha hull is empty (alpha = {alpha:.2f} m)"
         return volume, extra
