@@ -192,3 +192,35 @@ def test_interpolated_column_poses_match_exact_poses(tiny_pistachio):
         assert np.abs(pos - exact_pos).max() < 1e-3
         # a direction at 30 m range moves by less than a millimetre
         assert 30 * np.abs(mats - exact_mats).max() < 1e-3
+
+
+def test_an_interrupted_simulation_leaves_no_session_and_keeps_the_old_one(tmp_path):
+    """The session is written beside its folder and renamed when done: stopped half-way
+    (here by the progress callback), nothing appears under the name, the old session given
+    to ``overwrite`` is untouched, and a complete run then replaces it."""
+    from canopy_kit.config import merge
+    from canopy_kit.errors import InputError
+    from canopy_kit.sim import load_sim_config, simulate_session
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_two_sweeps(stage, done, total):
+        if stage == "LiDAR sweeps" and done == 2:
+            raise Stop
+
+    out = tmp_path / "session"
+    config = load_sim_config("pistachio", merge({"seed": 0}, MICRO))
+    with pytest.raises(Stop):
+        simulate_session(out, config, fmt="ros1", progress=stop_after_two_sweeps)
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    first = simulate_session(out, config, fmt="ros1")
+    before = (first.truth_dir / "trees.csv").read_bytes()
+    with pytest.raises(InputError, match="not empty"):
+        simulate_session(out, config, fmt="ros1")
+    with pytest.raises(Stop):
+        simulate_session(out, config, fmt="ros1", overwrite=True, progress=stop_after_two_sweeps)
+    assert (first.truth_dir / "trees.csv").read_bytes() == before and first.bag.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session"]
+    again = simulate_session(out, config, fmt="ros1", overwrite=True)
+    assert again.root == out and again.bag.exists() and again.n_scans == first.n_scans

@@ -105,17 +105,47 @@ def simulate_session(
 
     Layout: ``session.bag`` (ROS1) or ``session/`` (ROS2), ``truth/`` (trees.csv,
     trajectory.csv, frame.json, sim_config.toml) and, when ``config.drone.enabled``,
-    ``drone/`` with geotagged JPEGs.
+    ``drone/`` with geotagged JPEGs. The session is written into ``.<name>.partial`` beside
+    ``out`` and renamed when complete: an interrupted run leaves no half-written session
+    (and, with ``overwrite``, the old one stays until the new one is done).
     """
-    root = Path(out)
-    bag_path = bag_path_for(root / BAG_NAME, fmt)
-    if root.exists() and any(root.iterdir()):
-        if not overwrite:
-            raise InputError(
-                f"{root}: output folder is not empty (--overwrite, or overwrite=True from Python, replaces it)"
-            )
+    final = Path(out).absolute()
+    if final.exists() and any(final.iterdir()) and not overwrite:
+        raise InputError(
+            f"{final}: output folder is not empty (--overwrite, or overwrite=True from Python, replaces it)"
+        )
+    root = final.with_name(f".{final.name}.partial")
+    if root.exists():  # left by an interrupted run
         shutil.rmtree(root)
-    root.mkdir(parents=True, exist_ok=True)
+    root.mkdir(parents=True)
+    try:
+        orchard, trajectory, n_sweeps, n_points = _write_session(
+            root, config, fmt, truth_field, progress
+        )
+    except BaseException:
+        shutil.rmtree(root, ignore_errors=True)
+        raise
+    if final.exists():
+        shutil.rmtree(final)
+    root.rename(final)
+    return SimulatedSession(
+        final,
+        bag_path_for(final / BAG_NAME, fmt),
+        truth_dir(final),
+        orchard,
+        trajectory,
+        n_sweeps,
+        n_points,
+        drone_folder(final) if config.drone.enabled else None,
+    )
+
+
+def _write_session(
+    root: Path, config: SimConfig, fmt: str, truth_field: bool, progress: Progress | None
+) -> tuple[Orchard, Trajectory, int, int]:
+    """Simulate and write the session's files into ``root``: (orchard, trajectory, sweeps,
+    points)."""
+    bag_path = bag_path_for(root / BAG_NAME, fmt)
     report = progress or (lambda *_: None)
     orchard, trajectory, scene, rngs = build_world(config)
     mounts = sensor_mounts(config)
@@ -198,17 +228,13 @@ def simulate_session(
             scan.write(writer, config.lidar.topic, mounts.lidar_frame)
             report("LiDAR sweeps", k + 1, len(sweeps))
         flush(trajectory.end_time + 1.0)
-    drone_dir = None
     if config.drone.enabled:
         from canopy_kit.sim.drone import simulate_drone_flight
 
-        drone_dir = drone_folder(root)
         simulate_drone_flight(
-            orchard, scene, config.drone, drone_dir, truth_folder, rngs["drone"], progress=report
+            orchard, scene, config.drone, drone_folder(root), truth_folder, rngs["drone"], report
         )
-    return SimulatedSession(
-        root, bag_path, truth_folder, orchard, trajectory, len(sweeps), n_points, drone_dir
-    )
+    return orchard, trajectory, len(sweeps), n_points
 
 
 def _pose_frame(t: np.ndarray, pos: np.ndarray, rot: object) -> pd.DataFrame:
