@@ -1,4 +1,4 @@
-"""The ``canopy-kit`` command as a user meets it: fast --help, no heavy imports on
+"""The ``canopy-kit`` command as a user meets it: --help without heavy imports, none on
 ``import canopy_kit``, ``info`` on a LAZ and a bag, one-line errors with exit code 2."""
 
 from __future__ import annotations
@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -33,14 +32,25 @@ def run_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str
     )
 
 
-def test_help_is_fast() -> None:
-    run_cli("--help")  # warm the file cache: measure the answer, not the first disk read
-    start = time.perf_counter()
+def test_help_answers_without_loading_heavy_libraries() -> None:
+    """``--help`` lists the commands and imports none of the heavy libraries (their import
+    is what made it slow; a wall-clock limit here failed on loaded machines, so the
+    property is checked instead of a time)."""
     result = run_cli("--help")
-    elapsed = time.perf_counter() - start
     assert result.returncode == 0, result.stderr
     assert "info" in result.stdout and "plugins" in result.stdout
-    assert elapsed < 2.0, f"canopy-kit --help took {elapsed:.2f} s"
+    code = (
+        "import sys, json\n"
+        "from typer.testing import CliRunner\n"
+        "from canopy_kit.cli import app\n"
+        "r = CliRunner().invoke(app, ['--help'])\n"
+        f"print(json.dumps([r.exit_code, [m for m in {HEAVY!r} if m in sys.modules]]))\n"
+    )
+    probe = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120
+    )
+    assert probe.returncode == 0, probe.stderr
+    assert json.loads(probe.stdout.strip().splitlines()[-1]) == [0, []]
 
 
 def test_import_does_not_load_heavy_libraries() -> None:
