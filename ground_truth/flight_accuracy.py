@@ -99,12 +99,12 @@ def crown_agreement(
         if len(err)
         else np.nan,
     }
-    if "along_row_m" in table and len(table):
+    if "along_row_m" in table:  # NaN where no crown matched, so the keys are always there
         free = table["shared_outline_fraction"] == 0
         for side in ("along", "across"):
             e = table[f"{side}_row_m"] - table[f"{side}_row_true_m"]
-            metrics[f"{side}_row_mae_m"] = float(e.abs().mean())
-            metrics[f"{side}_row_bias_m"] = float(e.mean())
+            metrics[f"{side}_row_mae_m"] = float(e.abs().mean()) if len(e) else np.nan
+            metrics[f"{side}_row_bias_m"] = float(e.mean()) if len(e) else np.nan
             metrics[f"{side}_row_mae_free_m"] = (
                 float(e[free].abs().mean()) if free.any() else np.nan
             )

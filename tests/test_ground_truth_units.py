@@ -337,3 +337,43 @@ def test_seed_offset_is_measured_and_the_seeds_registered():
     exact = tree_positions(pd.DataFrame({"x": truth[:, 0], "y": truth[:, 1]}), None)
     _, _, _, offset = crowns_stage(mosaic, surface, exact, frame, GroundTruthConfig())
     assert not offset["significant"] and not offset["seeds_shifted"]
+
+
+def test_crown_agreement_scores_hand_made_crowns_and_an_empty_match():
+    """Two true trees, one crown 0.3 m from the first (its extents 0.5 m too long along the
+    row and 0.2 m too narrow across) and one 5 m from anything: one matched, one extra,
+    along/across errors as built; with no crown in the gate the row metrics are NaN."""
+    from ground_truth.crowns import CROWN_COLUMNS
+    from ground_truth.flight_accuracy import crown_agreement
+
+    truth = pd.DataFrame(
+        {
+            "tree_id": [1, 2],
+            "label": ["L0", "L1"],
+            "row": [0, 0],
+            "crown_x": [0.0, 5.0],
+            "crown_y": [0.0, 0.0],
+            "crown_diameter_m": [4.0, 4.0],
+            "crown_diameter_mean_m": [3.8, 3.8],
+            "tree_height_m": [3.0, 3.0],
+            "crown_volume_m3": [20.0, 20.0],
+            "sphere_volume_m3": [33.5, 33.5],
+            "extent_along_row_m": [4.0, 4.0],
+            "extent_across_row_m": [3.6, 3.6],
+        }
+    )
+    crowns = pd.DataFrame(0.0, index=range(2), columns=CROWN_COLUMNS)
+    crowns["x"], crowns["y"] = [0.3, 0.0], [0.0, 5.0]
+    crowns["touches_border"] = False
+    crowns["diameter_along_row_m"] = [4.5, 3.0]
+    crowns["diameter_across_row_m"] = [3.4, 3.0]
+    table, m = crown_agreement(crowns, truth)
+    assert (m["matched"], m["unmatched_crowns"], m["trees"]) == (1, 1, 2)
+    assert table["tree_id"].tolist() == [1] and table["distance_m"][0] == pytest.approx(0.3)
+    assert m["along_row_bias_m"] == pytest.approx(0.5)
+    assert m["across_row_bias_m"] == pytest.approx(-0.2)
+    assert m["free_standing"] == 1  # shared_outline_fraction 0
+    far = crowns.assign(x=[20.0, 30.0])
+    table, m = crown_agreement(far, truth)
+    assert m["matched"] == 0 and len(table) == 0
+    assert np.isnan(m["along_row_mae_m"]) and np.isnan(m["across_row_bias_m"])
