@@ -39,47 +39,43 @@ def test_help_answers_without_loading_heavy_libraries() -> None:
     result = run_cli("--help")
     assert result.returncode == 0, result.stderr
     assert "info" in result.stdout and "plugins" in result.stdout
-    code = (
-        "import sys, json\n"
+    help_code = (
         "from typer.testing import CliRunner\n"
         "from canopy_kit.cli import app\n"
-        "r = CliRunner().invoke(app, ['--help'])\n"
-        f"print(json.dumps([r.exit_code, [m for m in {HEAVY!r} if m in sys.modules]]))\n"
+        "assert CliRunner().invoke(app, ['--help']).exit_code == 0\n"
     )
-    probe = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120
+    assert heavy_modules_after(help_code) == []
+
+
+def heavy_modules_after(code: str) -> list[str]:
+    """The HEAVY modules loaded after running ``code`` in a fresh interpreter."""
+    probe = (
+        f"{code}\nimport sys, json\nprint(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))\n"
     )
-    assert probe.returncode == 0, probe.stderr
-    assert json.loads(probe.stdout.strip().splitlines()[-1]) == [0, []]
+    result = subprocess.run(
+        [sys.executable, "-c", probe], check=False, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout.strip().splitlines()[-1])
 
 
 def test_import_does_not_load_heavy_libraries() -> None:
     code = (
-        "import sys, json\n"
         "import canopy_kit, canopy_kit.cli, canopy_kit.io.clouds, canopy_kit.io.las\n"
         "import canopy_kit.io.open3d_clouds, canopy_kit.io.info, canopy_kit.io.bag\n"
-        f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120
-    )
-    assert result.returncode == 0, result.stderr
-    assert json.loads(result.stdout) == []
+    assert heavy_modules_after(code) == []
 
 
 def test_the_check_above_would_see_a_heavy_import() -> None:
     """Guard against a vacuous test: reading a PLY really does import open3d."""
     code = (
-        "import sys, numpy as np, tempfile, os\n"
+        "import numpy as np, tempfile, os\n"
         "from canopy_kit.cloud import PointCloud\n"
         "from canopy_kit.io.clouds import write_cloud\n"
         "d = tempfile.mkdtemp(); write_cloud(os.path.join(d, 'a.ply'), PointCloud(np.eye(3)))\n"
-        "print('open3d' in sys.modules)\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120
-    )
-    assert result.stdout.strip() == "True", result.stderr
+    assert "open3d" in heavy_modules_after(code)
 
 
 @pytest.fixture
