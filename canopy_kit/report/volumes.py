@@ -54,9 +54,9 @@ def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = 
     sparse = mine[(mine["form"] == "sparse") & (mine["scan"] == "both")]
     if not sparse.empty:
         text += (
-            f" On sparse young trees it is {sparse.iloc[0]['bias']:+.0%} (every estimator "
-            "is far low: a few leaves do not outline the envelope); such trees are flagged "
-            "'sparse crown' and get a wider interval."
+            f" On sparse young trees it is {sparse.iloc[0]['bias']:+.0%} (a few leaves do "
+            "not outline the envelope, and every estimator is low there); such trees are "
+            "flagged 'sparse crown' and get a wider interval."
         )
     return text + (
         " Real crowns unlike these can be further off; the table gives the paper's "
