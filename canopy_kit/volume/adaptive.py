@@ -85,7 +85,7 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         Below this surface fill (``n · s² / A``) the crown is sparse and its volume is the
         sample-corrected convex hull (``result.extra["estimate"]`` says which); None: never.
     sample_cell : float, default 0.2
-        Voxel edge (m) of the thinning before that correction.
+        Smallest distance (m) between the points kept for that correction.
     """
 
     name = "adaptive_alpha"
@@ -161,9 +161,8 @@ class AdaptiveAlphaVolume(VolumeEstimator):
             xyz, alpha, h, offset=offset, tree=tree, fill_voids=self.fill_voids
         )
         extra.update(
-            {"estimate": "alpha_hull", "surface_fill": fill, "alpha": alpha, "offset": offset}
+            estimate="alpha_hull", surface_fill=fill, alpha=alpha, offset=offset, spacing=s
         )
-        extra["spacing"] = s
         if volume <= 0.0:
             extra["reason"] = f"the adaptive alpha hull is empty (alpha = {alpha:.2f} m)"
         return volume, extra

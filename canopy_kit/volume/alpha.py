@@ -163,8 +163,9 @@ def _measured(
 
 def qhull_failure(exc: Exception) -> str:
     """Why qhull refused a point set (near-flat or coincident points), in one line."""
-    first = str(exc).strip().splitlines()[0] if str(exc).strip() else "QhullError"
-    return f"qhull could not triangulate the points: {first}"
+    from canopy_kit.volume.hull import qhull_reason
+
+    return f"qhull could not triangulate the points: {qhull_reason(exc)}"
 
 
 def alpha_volume(tetra: Tetrahedra, alpha: float) -> float:

@@ -43,6 +43,12 @@ def hull_mesh(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return xyz[corners], index[hull.simplices]
 
 
+def qhull_reason(exc: Exception) -> str:
+    """The first line of a QhullError's message (its name when it has none)."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else "QhullError"
+
+
 MAX_SAMPLE_FACTOR = 3.0  # the correction is capped: past it the sample says too little
 
 
@@ -109,19 +115,18 @@ class ConvexHullVolume(VolumeEstimator):
         try:
             return hull_volume(xyz)
         except QhullError as exc:
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else "QhullError"
-            return 0.0, {"reason": f"qhull could not build a hull: {first}"}
+            return 0.0, {"reason": f"qhull could not build a hull: {qhull_reason(exc)}"}
 
 
 class SampleCorrectedHullVolume(VolumeEstimator):
     """Convex hull scaled by Efron's sampling correction ``(n + 1) / (n + 1 − f)`` of the
     points thinned to at least ``cell`` apart (n points, f of them hull vertices).
 
-    Near the plain hull where the points are dense (1.0-1.1 on simulated crowns whose
-    foliage fills the envelope), up to ``max_factor`` where they are few (1.3-2 on sparse
-    young trees). Assumes a convex crown: on lobed or vase crowns it overshoots as the hull
-    does. Made for random samples (Efron's identity is about them): on a regular lattice
-    finer than ``cell`` the thinning drops the corners (a 9³ lattice of the unit cube gives
+    The factor is 1.2-1.35 on simulated crowns whose foliage fills the envelope (their points
+    lie in a shell, so it overshoots there: adaptive_alpha uses it only for sparse crowns)
+    and 1.7 up to ``max_factor`` on sparse young trees. Assumes a convex crown: on lobed or
+    vase crowns it overshoots as the hull does. Made for random samples (Efron's identity is
+    about them): on a regular lattice finer than ``cell`` the thinning drops the corners (a 9³ lattice of the unit cube gives
     0.75 m³), so it promises no ``convex_rtol``.
 
     Parameters
@@ -153,8 +158,8 @@ class SampleCorrectedHullVolume(VolumeEstimator):
         try:
             est = sample_corrected_hull(xyz, self.cell, self.max_factor)
         except QhullError as exc:
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else "QhullError"
-            return 0.0, {"reason": f"qhull could not build a hull of the thinned points: {first}"}
+            reason = f"qhull could not build a hull of the thinned points: {qhull_reason(exc)}"
+            return 0.0, {"reason": reason}
         return est.volume_m3, {
             "hull_m3": est.hull_m3,
             "sample_factor": est.factor,
