@@ -126,8 +126,8 @@ class SampleCorrectedHullVolume(VolumeEstimator):
     lie in a shell, so it overshoots there: adaptive_alpha uses it only for sparse crowns)
     and 1.7 up to ``max_factor`` on sparse young trees. Assumes a convex crown: on lobed or
     vase crowns it overshoots as the hull does. Made for random samples (Efron's identity is
-    about them): on a regular lattice finer than ``cell`` the thinning drops the corners (a 9³ lattice of the unit cube gives
-    0.75 m³), so it promises no ``convex_rtol``.
+    about them): on a regular lattice finer than ``cell`` the thinning drops the corners (a
+    9³ lattice of the unit cube gives 0.75 m³), so it promises no ``convex_rtol``.
 
     Parameters
     ----------
