@@ -161,6 +161,14 @@ _A = 1.25788199e-07  # a plane 1e-7 m across at UTM coordinates, found by hypoth
     far=st.booleans(),
 )
 @example(xyz=np.array([[0.0, _A, _A], [_A, 0.0, _A]] + [[_A, _A, _A]] * 8), far=True)
+# Sparse by surface fill, but only two points a sample cell apart: no hull to correct (CI).
+@example(
+    xyz=np.array(
+        [[0.125, 0.125, 0.0], [0.125, 0.0, 0.125], [1.0, 0.125, 0.125]]
+        + [[0.125, 0.125, 0.125]] * 7
+    ),
+    far=False,
+)
 def test_every_volume_estimator_gives_a_finite_non_negative_volume(xyz, far) -> None:
     """Any finite points of a crown-sized extent (duplicates, planes, lines included), near
     the origin or at UTM-like coordinates: a finite volume >= 0, or invalid with a reason."""

@@ -29,6 +29,8 @@ The two factors were calibrated on simulated crowns of every form (docs/VOLUMES.
 
 from __future__ import annotations
 
+from contextlib import suppress
+
 import numpy as np
 
 from canopy_kit.errors import ConfigError
@@ -140,15 +142,19 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         return alpha, offset, s
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
-        from scipy.spatial import cKDTree
+        from scipy.spatial import QhullError, cKDTree
 
         from canopy_kit.volume.uncertainty import surface_fill
 
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
         alpha, offset, s = self.choose(xyz, tree)
         fill = surface_fill(xyz, spacing=s)
+        est = None
         if self.sparse_fill is not None and fill < self.sparse_fill:
-            est = sample_corrected_hull(xyz, self.sample_cell)
+            # Too few points a sample cell apart for a solid hull: the alpha hull decides.
+            with suppress(QhullError):
+                est = sample_corrected_hull(xyz, self.sample_cell)
+        if est is not None:
             return est.volume_m3, {
                 "estimate": "sample_corrected_hull",
                 "surface_fill": fill,
