@@ -77,6 +77,23 @@ def test_measure_tree_gives_the_table_row_of_that_tree() -> None:
         assert row["volume_flags"] == table.loc[seg, "volume_flags"]
 
 
+def test_the_interval_takes_the_recommended_estimators_fill_unchanged() -> None:
+    """adaptive_alpha's surface fill, handed to the interval, is the fill measured afresh."""
+    from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, surface_fill
+    from canopy_kit.volume.verb import interval_columns, measured_points
+
+    cloud, labels = _blobs(2, seed=3)
+    config = VolumeConfig(voxel_size=0.1, workers=1, recommended="adaptive_alpha")
+    for seg in range(2):
+        xyz = cloud.xyz[labels == seg]
+        row = measure_tree(xyz, config)
+        measured = measured_points(xyz, config)
+        fresh = interval_columns(measured, row["volume_adaptive_alpha_m3"], "adaptive_alpha")
+        assert row[INTERVAL_COLUMNS["fill"]] == pytest.approx(surface_fill(measured), rel=1e-12)
+        for key in ("low", "high", "fill", "flags"):
+            assert row[INTERVAL_COLUMNS[key]] == fresh[INTERVAL_COLUMNS[key]]
+
+
 def test_tree_points_are_on_the_map_laz_grid() -> None:
     from canopy_kit.io.las_write import on_las_grid
 

@@ -152,15 +152,20 @@ def surface_fill(xyz: np.ndarray, spacing: float | None = None) -> float:
 
 
 def volume_interval(
-    xyz: np.ndarray, volume_m3: float, method: str, centre: np.ndarray | None = None
+    xyz: np.ndarray,
+    volume_m3: float,
+    method: str,
+    centre: np.ndarray | None = None,
+    fill: float | None = None,
 ) -> Interval | None:
     """The interval for ``method``'s ``volume_m3`` of the points ``xyz``; None when ``method``
-    has no calibration (or the volume is not a positive number)."""
+    has no calibration (or the volume is not a positive number). ``fill``: the points'
+    :func:`surface_fill` when the estimator has measured it already."""
     cal = CALIBRATIONS.get(method)
     if cal is None or not np.isfinite(volume_m3) or volume_m3 <= 0:
         return None
     coverage = scan_coverage(xyz, centre)
-    fill = surface_fill(xyz)
+    fill = surface_fill(xyz) if fill is None else fill
     flags = []
     kind, (lo, hi) = cal.ratios(fill)
     if kind == "sparse":

@@ -72,10 +72,15 @@ def tree_points(cloud: PointCloud, labels: np.ndarray, segment: int) -> np.ndarr
 
 
 def interval_columns(
-    xyz: np.ndarray, volume_m3: float, method: str, centre: np.ndarray | None = None
+    xyz: np.ndarray,
+    volume_m3: float,
+    method: str,
+    centre: np.ndarray | None = None,
+    fill: float | None = None,
 ) -> dict:
     """The table's interval columns (``INTERVAL_COLUMNS``) for ``method``'s volume of ``xyz``;
-    NaN bounds when the method has no calibration or no valid volume."""
+    NaN bounds when the method has no calibration or no valid volume. ``fill``: the surface
+    fill when the estimator has measured it (``adaptive_alpha`` does)."""
     from scipy.spatial import QhullError
 
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, volume_interval
@@ -86,7 +91,7 @@ def interval_columns(
     interval = None
     if len(xyz) >= 4 and np.isfinite(volume_m3):
         try:
-            interval = volume_interval(xyz, volume_m3, method, centre)
+            interval = volume_interval(xyz, volume_m3, method, centre, fill)
         except QhullError as exc:  # qhull on points that are nearly flat: no interval
             return {**row, col["flags"]: f"no interval: {type(exc).__name__}"}
     if interval is None:
@@ -127,15 +132,17 @@ def measure_tree(
     )
     flags = []
     measured = measured_points(xyz, volume)
+    fill = None
     for method, est in estimators.items():
         result = est(measured)
         row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
         if not result.valid:
             flags.append(f"{method}: {result.reason}")
+        if method == volume.recommended:
+            fill = result.extra.get("surface_fill")
     row["volume_flags"] = "; ".join(flags)
-    row.update(
-        interval_columns(measured, row[volume_column(volume.recommended)], volume.recommended)
-    )
+    recommended = row[volume_column(volume.recommended)]
+    row.update(interval_columns(measured, recommended, volume.recommended, fill=fill))
     return row
 
 
