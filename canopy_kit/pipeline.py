@@ -63,17 +63,23 @@ def run(
     ``orchard`` names the orchard or block in the provenance (default: the bag's stem);
     ``export_trees`` also writes each tree's points as ``trees/<tree_id>.laz``.
     """
-    from canopy_kit.provenance import provenance
+    from canopy_kit.provenance import BagHash, provenance
 
     out = Path(out)
     report = progress or (lambda *_: None)
     started, t0 = time.time(), time.perf_counter()
-    ctx, cache = compute(config, bag, out, drone_images, truth, use_cache, report)
+    bag_hash = BagHash(bag) if Path(bag).exists() else None  # compute() names a missing bag
+    try:
+        ctx, cache = compute(config, bag, out, drone_images, truth, use_cache, report)
+    except BaseException:
+        if bag_hash is not None:
+            bag_hash.cancel()
+        raise
     metrics = run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
     metrics["cached_stages"] = list(cache.hits)
     metrics["provenance"] = provenance(
-        bag, config.name, started, time.perf_counter() - t0, orchard, drone_images
+        bag, config.name, started, time.perf_counter() - t0, orchard, drone_images, bag_hash
     )
     exported = {}
     if export_trees:  # before the outputs: metrics.json and report.html come last
@@ -261,17 +267,19 @@ def write_outputs(
     from concurrent.futures import ThreadPoolExecutor
 
     from canopy_kit.io.las import las_ready, write_las
+    from canopy_kit.report.explorer import encoded_surfaces
     from canopy_kit.report.html import write_report
     from canopy_kit.report.session import session_report_page
     from canopy_kit.segment.labelled import labelled_map
 
     cloud = labelled_map(ctx.mapping.map, ctx.segmentation)
+    progress("report", 0, 1)
+    surfaces = encoded_surfaces(ctx, trees)  # forks its workers: before the thread starts
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="map.laz") as pool:
         laz = pool.submit(lambda: write_las(out / "map.laz", las_ready(cloud)))
         try:
             files = _write_tables(ctx, trees, out, metrics.get("provenance"))
-            progress("report", 0, 1)
-            page = session_report_page(ctx, trees, metrics)
+            page = session_report_page(ctx, trees, metrics, surfaces)
         except BaseException as exc:
             if laz.exception() is not None:  # waits for the writer
                 exc.add_note(f"writing {out / 'map.laz'} failed too: {laz.exception()!r}")

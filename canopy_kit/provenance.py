@@ -9,6 +9,10 @@ software_version, preset, run_started_utc, run_seconds.
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import suppress
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -18,9 +22,10 @@ from canopy_kit.errors import InputError
 CHUNK = 1 << 20
 
 
-def bag_sha256(bag: str | Path) -> str:
+def bag_sha256(bag: str | Path, stop: threading.Event | None = None) -> str:
     """SHA-256 of a bag file, or of every file of a ROS2 bag folder in sorted relative-path
-    order (each file's path and bytes), streamed in 1 MiB chunks."""
+    order (each file's path and bytes), streamed in 1 MiB chunks; an InputError when
+    ``stop`` is set before the end."""
     bag = Path(bag)
     if not bag.exists():
         raise InputError(f"{bag}: bag does not exist")
@@ -31,8 +36,38 @@ def bag_sha256(bag: str | Path) -> str:
             digest.update(path.relative_to(bag).as_posix().encode() + b"\0")
         with path.open("rb") as f:
             while chunk := f.read(CHUNK):
+                if stop is not None and stop.is_set():
+                    raise InputError(f"{bag}: hashing stopped")
                 digest.update(chunk)
     return digest.hexdigest()
+
+
+class BagHash:
+    """:func:`bag_sha256` of ``bag`` on a thread of the lowest priority, started at once: it
+    uses the cores a run leaves idle (segmentation is serial) instead of hashing a bag of
+    gigabytes after every stage. :meth:`result` waits for the hash (or raises what hashing
+    raised); :meth:`cancel` stops it, e.g. when the run fails."""
+
+    def __init__(self, bag: str | Path) -> None:
+        self._stop = threading.Event()
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bag-sha256")
+        self._future = pool.submit(self._hash, Path(bag))
+        pool.shutdown(wait=False)
+
+    def _hash(self, bag: Path) -> str:
+        with suppress(AttributeError, OSError):  # Linux: a thread id's nice value is its own
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        return bag_sha256(bag, self._stop)
+
+    def result(self) -> str:
+        """The bag's SHA-256 (hex)."""
+        return self._future.result()
+
+    def cancel(self) -> None:
+        """Stop hashing (within one chunk) and wait for the thread to end."""
+        self._stop.set()
+        with suppress(Exception):
+            self._future.result()
 
 
 def utc_iso(seconds: float) -> str:
@@ -55,9 +90,11 @@ def provenance(
     seconds: float,
     orchard: str | None = None,
     drone_images: str | Path | None = None,
+    bag_hash: BagHash | None = None,
 ) -> dict[str, Any]:
     """The provenance dict of a run of ``bag`` (``orchard`` defaults to the bag's stem;
-    ``started`` POSIX time, ``seconds`` how long the run took)."""
+    ``started`` POSIX time, ``seconds`` how long the run took; ``bag_hash`` the hash
+    :class:`BagHash` started, else the bag is hashed now)."""
     from canopy_kit import __version__
 
     bag = Path(bag)
@@ -65,7 +102,7 @@ def provenance(
         "orchard": orchard or bag.stem,
         "session_date": session_date(bag),
         "bag": bag.name,
-        "bag_sha256": bag_sha256(bag),
+        "bag_sha256": bag_hash.result() if bag_hash is not None else bag_sha256(bag),
         "drone_images": str(drone_images) if drone_images is not None else "",
         "software_version": __version__,
         "preset": preset,

@@ -397,6 +397,24 @@ def test_bag_hash_streams_files_and_folders(tmp_path) -> None:
     assert bag_sha256(folder) == expected
 
 
+def test_bag_hash_on_a_background_thread_is_the_hash_and_can_be_stopped(tmp_path) -> None:
+    import threading
+
+    from canopy_kit.errors import InputError
+    from canopy_kit.provenance import CHUNK, BagHash, bag_sha256
+
+    data = np.random.default_rng(1).bytes(CHUNK * 3 + 5)
+    (tmp_path / "a.bag").write_bytes(data)
+    assert BagHash(tmp_path / "a.bag").result() == hashlib.sha256(data).hexdigest()
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(InputError, match="a.bag: hashing stopped"):
+        bag_sha256(tmp_path / "a.bag", stop)
+    stopped = BagHash(tmp_path / "a.bag")
+    stopped.cancel()  # returns once the thread has ended, whether or not it had finished
+    assert stopped._future.done()
+
+
 def test_crowns_are_labelled_by_the_matched_lidar_tree() -> None:
     from ground_truth.match import crown_tree_ids
     from ground_truth.plots import crown_labels

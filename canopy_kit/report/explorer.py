@@ -13,6 +13,7 @@ import base64
 import io
 import json
 import math
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -140,35 +141,82 @@ def tree_surfaces(xyz: np.ndarray, volume: Any) -> list[Surface]:
     return [s for s in out if s is not None]
 
 
-def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) -> dict[str, Any]:
-    """Per tree_id: its points (at most ``max_points``), surfaces and orthomosaic crop; the
-    points as the volume stage measured them (on map.laz's coordinate grid)."""
+def _trees_points(ctx: Any, trees: pd.DataFrame) -> Iterator[tuple[Any, np.ndarray]]:
+    """Each table row with its points as the volume stage measured them (on map.laz's
+    coordinate grid); trees without points are left out."""
     from canopy_kit.io.las_write import on_las_grid
 
-    cloud, seg = on_las_grid(ctx.mapping.map), ctx.segmentation
-    labels = np.asarray(seg.labels)
+    cloud, labels = on_las_grid(ctx.mapping.map), np.asarray(ctx.segmentation.labels)
     order = np.argsort(labels, kind="stable")
     sorted_labels = labels[order]
+    for rec in trees.itertuples(index=False):
+        lo, hi = np.searchsorted(sorted_labels, [rec.segment, rec.segment + 1])
+        if hi > lo:
+            yield rec, cloud.xyz[order[lo:hi]]
+
+
+def _centre(rec: Any, xyz: np.ndarray) -> np.ndarray:
+    """The drill-down's origin for a tree: its table position at its lowest point."""
+    return np.array([rec.x, rec.y, float(xyz[:, 2].min())])
+
+
+def encoded_surfaces(ctx: Any, trees: pd.DataFrame) -> dict[str, list[dict[str, Any]]]:
+    """Per tree_id, its :func:`tree_surfaces` encoded for the drill-down, the trees shared
+    among forked processes (``volume.workers``, as the volume stage): a tetrahedralisation
+    per tree, the report's largest cost. Call it before starting any thread."""
+    from canopy_kit.parallel import run_jobs, worker_count
+    from canopy_kit.volume.verb import MIN_TREES_PER_WORKER
+
+    volume = ctx.config.volume
+    items = list(_trees_points(ctx, trees))
+
+    def encode(part: list[int], tick: Callable[[], None]) -> dict[str, list[dict[str, Any]]]:
+        out = {}
+        for i in part:
+            rec, xyz = items[i]
+            centre = _centre(rec, xyz)
+            out[str(rec.tree_id)] = [encode_surface(s, centre) for s in tree_surfaces(xyz, volume)]
+            tick()
+        return out
+
+    n = worker_count(volume.workers, len(items) // MIN_TREES_PER_WORKER)
+    parts = run_jobs(
+        encode,
+        [list(range(k, len(items), n)) for k in range(n)],
+        "report",
+        len(items),
+        first_in_parent=True,
+    )
+    return {k: v for part in parts for k, v in part.items()}
+
+
+def tree_details(
+    ctx: Any,
+    trees: pd.DataFrame,
+    max_points: int = MAX_POINTS,
+    surfaces: dict[str, list[dict[str, Any]]] | None = None,
+) -> dict[str, Any]:
+    """Per tree_id: its points (at most ``max_points``), surfaces (``surfaces`` when
+    :func:`encoded_surfaces` made them already) and orthomosaic crop; the points as the
+    volume stage measured them (on map.laz's coordinate grid)."""
     aerial = getattr(ctx, "aerial", None)
     shift = None
     if aerial is not None and getattr(aerial, "ortho", None) is not None:
         frame = getattr(ctx.mapping, "frame", None)
         origin = frame.origin[:2] if frame is not None else np.zeros(2)
-        shift = cloud.origin[:2] - origin
+        shift = ctx.mapping.map.origin[:2] - origin
     details: dict[str, Any] = {}
-    for rec in trees.itertuples(index=False):
-        lo, hi = np.searchsorted(sorted_labels, [rec.segment, rec.segment + 1])
-        xyz = cloud.xyz[order[lo:hi]]
-        if not len(xyz):
-            continue
-        centre = np.array([rec.x, rec.y, float(xyz[:, 2].min())])
+    for rec, xyz in _trees_points(ctx, trees):
+        centre = _centre(rec, xyz)
         shown = xyz[downsample(len(xyz), max_points, seed=int(rec.segment))]
         item: dict[str, Any] = {
             "centre": centre.tolist(),
             "n_points": len(xyz),
             "n_shown": len(shown),
             "points": encode_xyz(shown, centre),
-            "surfaces": [encode_surface(s, centre) for s in tree_surfaces(xyz, ctx.config.volume)],
+            "surfaces": surfaces[str(rec.tree_id)]
+            if surfaces is not None and str(rec.tree_id) in surfaces
+            else [encode_surface(s, centre) for s in tree_surfaces(xyz, ctx.config.volume)],
         }
         if shift is not None:
             radius = max(float(getattr(rec, "crown_diameter_m", 0) or 0) / 2, 1.0) + 1.5
@@ -234,14 +282,19 @@ def _flagged(trees: pd.DataFrame) -> pd.Series:
 
 
 def explorer_data(
-    ctx: Any, trees: pd.DataFrame, downloads: list[dict[str, str]], max_points: int = MAX_POINTS
+    ctx: Any,
+    trees: pd.DataFrame,
+    downloads: list[dict[str, str]],
+    max_points: int = MAX_POINTS,
+    surfaces: dict[str, list[dict[str, Any]]] | None = None,
 ) -> dict[str, Any]:
-    """Everything the page's script draws, as one JSON-ready dict."""
+    """Everything the page's script draws, as one JSON-ready dict (``surfaces``: see
+    :func:`tree_details`)."""
     return {
         "trees": json_records(trees),
         "columns": column_specs(trees),
         "flagged": [bool(f) for f in _flagged(trees)],
         "map": map_layers(ctx, trees),
-        "details": tree_details(ctx, trees, max_points),
+        "details": tree_details(ctx, trees, max_points, surfaces),
         "downloads": downloads,
     }

@@ -47,8 +47,14 @@ def report_checks(metrics: dict[str, Any], trees: pd.DataFrame, config: Any) -> 
     return run_checks(metrics, trees, config.checks)
 
 
-def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> str:
-    """The report of a run as one self-contained HTML page."""
+def session_report_page(
+    ctx: Any,
+    trees: pd.DataFrame,
+    metrics: dict[str, Any],
+    surfaces: dict[str, list[dict[str, Any]]] | None = None,
+) -> str:
+    """The report of a run as one self-contained HTML page (``surfaces``: the drill-down's,
+    when :func:`~canopy_kit.report.explorer.encoded_surfaces` made them already)."""
     from canopy_kit.config import config_toml
     from canopy_kit.outputs import config_used
     from canopy_kit.report import plots
@@ -244,7 +250,7 @@ def session_report_page(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) 
         config_toml(config_used(ctx)),
         subtitle=subtitle,
         provenance=provenance,
-        explorer=explorer_data(ctx, trees, downloads),
+        explorer=explorer_data(ctx, trees, downloads, surfaces=surfaces),
         row_table=row_table(row_summary(trees)),
     )
 
