@@ -76,6 +76,21 @@ def test_range_mask_and_point_count_message() -> None:
         check_point_count(12, 500, "bag.bag: topic '/p'")
 
 
+def test_range_mask_is_the_numpy_expression_on_every_kind_of_point() -> None:
+    """The compiled range filter against numpy's squared norm, bounds included exactly."""
+    pts = RNG.normal(0, 30, (20_000, 3)).astype(np.float32).astype(np.float64)
+    pts[::97] = [3.0, 4.0, 0.0]  # exactly 5 m away: on the bound
+    pts[::101, 1] = np.nan
+    pts[::103, 2] = np.inf
+    pts[::107, 0] = -np.inf
+    r2 = np.einsum("ij,ij->i", pts, pts)
+    with np.errstate(invalid="ignore"):
+        expected = np.isfinite(r2) & (r2 >= 25.0) & (r2 <= 3600.0)
+    assert np.array_equal(range_mask(pts, 5.0, 60.0), expected)
+    assert range_mask(pts[:, :3][::2], 5.0, 60.0).tolist() == expected[::2].tolist()  # strided
+    assert range_mask(np.zeros((0, 3)), 1.0, 2.0).shape == (0,)
+
+
 # -- IMU -------------------------------------------------------------------------------
 def _imu(
     rate: float = 200.0, still: float = 2.0, duration: float = 6.0, tilt=(0.05, -0.03)

@@ -162,8 +162,11 @@ def xyz_from(points: np.ndarray, where: str = "PointCloud2") -> np.ndarray:
             raise MessageError(
                 f"{where}: fields {a!r} and {b!r} overlap (bytes {a0}-{a1} and {b0}-{b1})"
             )
+    xyz = np.empty((len(points), 3))
     with np.errstate(invalid="ignore"):  # a signalling NaN among corrupt bytes raises the flag
-        return np.column_stack([points[c].astype(np.float64) for c in ("x", "y", "z")])
+        for i, c in enumerate(("x", "y", "z")):  # straight into place: no temporary columns
+            xyz[:, i] = points[c]
+    return xyz
 
 
 def time_field_name(names: tuple[str, ...] | list[str]) -> str | None:

@@ -14,9 +14,9 @@ from canopy_kit.errors import InputError
 
 def range_mask(xyz: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
     """Finite points whose distance to the sensor lies in ``[min_range, max_range]``."""
-    r2 = np.einsum("ij,ij->i", xyz, xyz)
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(r2) & (r2 >= min_range**2) & (r2 <= max_range**2)
+    from canopy_kit.mapping.kernels import in_range
+
+    return in_range(np.ascontiguousarray(xyz, np.float64), min_range**2, max_range**2)
 
 
 def check_point_count(n_points: int, minimum: int, where: str) -> None:
