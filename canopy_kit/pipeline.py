@@ -68,12 +68,14 @@ def run(
     out = Path(out)
     report = progress or (lambda *_: None)
     started, t0 = time.time(), time.perf_counter()
-    bag_hash = BagHash(bag) if Path(bag).exists() else None  # compute() names a missing bag
+    # Hashed once the map is made: the mapping keeps both cores busy, segmentation one.
+    bag_hash = BagHash(bag, start=False)
     try:
-        ctx, cache = compute(config, bag, out, drone_images, truth, use_cache, report)
+        ctx, cache = compute(
+            config, bag, out, drone_images, truth, use_cache, report, on_mapped=bag_hash.start
+        )
     except BaseException:
-        if bag_hash is not None:
-            bag_hash.cancel()
+        bag_hash.cancel()
         raise
     metrics = run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
@@ -98,8 +100,10 @@ def compute(
     truth: str | Path | None = None,
     use_cache: bool = True,
     progress: Progress | None = None,
+    on_mapped: Callable[[], None] | None = None,
 ) -> tuple[RunContext, StageCache]:
-    """Every stage's result (from the cache in ``out/.cache`` when unchanged), no outputs.
+    """Every stage's result (from the cache in ``out/.cache`` when unchanged), no outputs;
+    ``on_mapped()`` is called once the map is made or loaded.
 
     Notebooks call this to explore a run; :func:`run` adds the output files.
     """
@@ -121,6 +125,8 @@ def compute(
     ctx = RunContext(config, estimators=estimators)
     map_key = stage_key("map", fingerprint(bag), config.mapping)
     ctx.mapping = cache.get_or_compute("map", map_key, lambda: map_stage(bag, config, report))
+    if on_mapped is not None:
+        on_mapped()
     seg_key = stage_key(
         "segment", map_key, config.preprocess, config.segment, config.rows, config.seed
     )

@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import suppress
 from datetime import UTC, datetime
 from pathlib import Path
@@ -43,16 +43,24 @@ def bag_sha256(bag: str | Path, stop: threading.Event | None = None) -> str:
 
 
 class BagHash:
-    """:func:`bag_sha256` of ``bag`` on a thread of the lowest priority, started at once: it
-    uses the cores a run leaves idle (segmentation is serial) instead of hashing a bag of
-    gigabytes after every stage. :meth:`result` waits for the hash (or raises what hashing
+    """:func:`bag_sha256` of ``bag`` on a thread of the lowest priority, started at once or by
+    :meth:`start`: it uses the core a run leaves idle (segmentation is serial) instead of
+    hashing a bag of gigabytes after every stage. :meth:`result` waits for the hash (or raises what hashing
     raised); :meth:`cancel` stops it, e.g. when the run fails."""
 
-    def __init__(self, bag: str | Path) -> None:
+    def __init__(self, bag: str | Path, start: bool = True) -> None:
+        self.bag = Path(bag)
         self._stop = threading.Event()
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bag-sha256")
-        self._future = pool.submit(self._hash, Path(bag))
-        pool.shutdown(wait=False)
+        self._future: Future[str] | None = None
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Start hashing (once; later calls do nothing)."""
+        if self._future is None:
+            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bag-sha256")
+            self._future = pool.submit(self._hash, self.bag)
+            pool.shutdown(wait=False)
 
     def _hash(self, bag: Path) -> str:
         with suppress(AttributeError, OSError):  # Linux: a thread id's nice value is its own
@@ -60,14 +68,17 @@ class BagHash:
         return bag_sha256(bag, self._stop)
 
     def result(self) -> str:
-        """The bag's SHA-256 (hex)."""
+        """The bag's SHA-256 (hex); hashed now if it was never started."""
+        self.start()
+        assert self._future is not None
         return self._future.result()
 
     def cancel(self) -> None:
         """Stop hashing (within one chunk) and wait for the thread to end."""
         self._stop.set()
-        with suppress(Exception):
-            self._future.result()
+        if self._future is not None:
+            with suppress(Exception):
+                self._future.result()
 
 
 def utc_iso(seconds: float) -> str:

@@ -406,6 +406,8 @@ def test_bag_hash_on_a_background_thread_is_the_hash_and_can_be_stopped(tmp_path
     data = np.random.default_rng(1).bytes(CHUNK * 3 + 5)
     (tmp_path / "a.bag").write_bytes(data)
     assert BagHash(tmp_path / "a.bag").result() == hashlib.sha256(data).hexdigest()
+    later = BagHash(tmp_path / "a.bag", start=False)
+    assert later.result() == hashlib.sha256(data).hexdigest()  # started by result()
     stop = threading.Event()
     stop.set()
     with pytest.raises(InputError, match="a.bag: hashing stopped"):
