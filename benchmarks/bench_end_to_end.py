@@ -26,11 +26,11 @@ import json
 import os
 import resource
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
+
+from _checkout import child_json
 
 DEFAULT_SENSORS = ["vlp16", "hdl32", "os1-64", "os1-128"]
 
@@ -88,25 +88,8 @@ def run_once(session: Path, preset: str) -> dict:
 
 def _child(session: Path, preset: str, code: Path | None) -> dict:
     """:func:`run_once` in a fresh process, with ``code``'s canopy_kit first on the path."""
-    env = None
-    if code is not None:  # that checkout before the editable install
-        env = {
-            **os.environ,
-            "PYTHONPATH": os.pathsep.join(filter(None, [str(code), os.environ.get("PYTHONPATH")])),
-        }
-    load = os.getloadavg()[0]
-    out = subprocess.run(
-        [sys.executable, __file__, "--child", str(session), "--preset", preset],
-        capture_output=True,
-        text=True,
-        check=False,
-        env=env,
-    )
-    if out.returncode != 0:
-        raise RuntimeError(f"the run on {session} failed:\n{out.stderr[-3000:]}")
-    result = json.loads(out.stdout.strip().splitlines()[-1])
-    result["load"] = 0.5 * (load + os.getloadavg()[0])
-    return result
+    argv = [__file__, "--child", str(session), "--preset", preset]
+    return child_json(argv, code, f"the run on {session}")
 
 
 def simulated(work: Path, orchard: str, sensor: str, rows: int, per_row: int, seed: int) -> Path:

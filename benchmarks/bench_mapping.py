@@ -49,6 +49,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _checkout import child_json
+
 from canopy_kit.parallel import cpu_seconds
 
 DEFAULT = (
@@ -256,25 +258,8 @@ def _cm(metres: float | None) -> str:
 
 
 def _child(mode: str, session: Path, code: Path | None = None, *args: str) -> dict:
-    load = os.getloadavg()[0]
-    env = None
-    if code:  # that checkout's canopy_kit first on the path (before the editable install)
-        env = {
-            **os.environ,
-            "PYTHONPATH": os.pathsep.join(filter(None, [str(code), os.environ.get("PYTHONPATH")])),
-        }
-    out = subprocess.run(
-        [sys.executable, __file__, "--child", mode, "--session", str(session), *args],
-        capture_output=True,
-        text=True,
-        check=False,
-        env=env,
-    )
-    if out.returncode != 0:
-        raise RuntimeError(f"{mode} failed:\n{out.stderr[-3000:]}")
-    result = json.loads(out.stdout.strip().splitlines()[-1])
-    result["load"] = 0.5 * (load + os.getloadavg()[0])
-    return result
+    argv = [__file__, "--child", mode, "--session", str(session), *args]
+    return child_json(argv, code, mode)
 
 
 def _simulate(folder: Path, rig: str, sensor: str | None, seed: int) -> dict:
