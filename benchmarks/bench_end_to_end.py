@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_end_to_end.py [--sensors vlp16 hdl32 os1-64 os1-128]
         [--orchard pistachio] [--rows 4] [--trees-per-row 10] [--seed 11] [--preset adaptive]
-        [--repeats 5] [--against DIR] [--work DIR] [--session SIM_DIR]
+        [--repeats 5] [--against DIR] [--peers] [--work DIR] [--session SIM_DIR]
 
 For each sensor a session is simulated (not timed; kept in ``--work`` and reused when it is
 already there), or ``--session`` names one already simulated. Each run of the whole pipeline
@@ -12,7 +12,8 @@ is its own. With ``--against DIR`` (another checkout, e.g. ``git worktree add /t
 <rev>``) that code runs alternately with this one on the same sessions, the order within a
 pair alternating too, so both see the same spells of the machine, and the benchmark prints
 how far the two disagree: ATE, segmentation success against the simulator's truth and the
-recommended estimator's per-tree volumes.
+recommended estimator's per-tree volumes. ``--peers``: KISS-ICP's own pipeline and rko_lio
+(``bench_mapping.py``'s runs of them) on the same bags, beside canopy-kit's map stage.
 
 Prints one row per run and one Markdown table per code: median wall, real-time factor (wall
 and CPU, all processes), the median stage times, peak memory, ATE and success. The issue's
@@ -92,6 +93,37 @@ def _child(session: Path, preset: str, code: Path | None) -> dict:
     return child_json(argv, code, f"the run on {session}")
 
 
+def peer_odometry(session: Path) -> dict[str, dict]:
+    """KISS-ICP's own pipeline (a fresh process) and rko_lio (its command, when installed)
+    on the session's bag, as bench_mapping.py runs them: the odometry part only."""
+    import bench_mapping
+
+    peers = {"KISS-ICP (Python API, all cores)": bench_mapping._child("kiss", session)}
+    if bench_mapping.RKO_LIO.exists():
+        peers["rko_lio (LiDAR + IMU)"] = bench_mapping.run_rko_lio(session, bench_mapping.RKO_LIO)
+    else:
+        print(f"rko_lio not installed: {bench_mapping.RKO_INSTALL}")
+    return peers
+
+
+def _peer_rows(sensor: str, ours: list[dict], peers: dict[str, dict]) -> None:
+    """Markdown rows: canopy-kit's map stage (median of its runs) beside the peers."""
+    med = statistics.median
+    driving = ours[0]["driving_s"]
+    wall = med(r["stages"]["map"]["wall_s"] for r in ours)
+    cpu = med(r["stages"]["map"]["cpu_s"] for r in ours)
+    print(
+        f"| {sensor} | canopy-kit map stage (odometry + map) | {driving / wall:.1f}x | "
+        f"{cpu:.0f} ({driving / cpu:.1f}x) | {ours[0]['peak_mb']:.0f} | {100 * ours[0]['ate_m']:.1f} |"
+    )
+    for name, r in peers.items():
+        print(
+            f"| {sensor} | {name} | {r['duration_s'] / r['wall_s']:.1f}x | "
+            f"{r['cpu_s']:.0f} ({r['duration_s'] / r['cpu_s']:.1f}x) | {r['peak_mb']:.0f} | "
+            f"{100 * r['ate_m']:.1f} |"
+        )
+
+
 def simulated(work: Path, orchard: str, sensor: str, rows: int, per_row: int, seed: int) -> Path:
     """The session of these settings in ``work``, simulated unless it is already there."""
     from canopy_kit.sim import load_sim_config, simulate_session
@@ -145,6 +177,11 @@ def main() -> None:
     parser.add_argument("--against", type=Path, help="Another checkout to run alternately")
     parser.add_argument("--work", type=Path, help="Folder for the simulated sessions (kept)")
     parser.add_argument("--session", type=Path, help="An already simulated session folder")
+    parser.add_argument(
+        "--peers",
+        action="store_true",
+        help="Also run KISS-ICP's own pipeline and rko_lio (when installed) on each session",
+    )
     parser.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
@@ -189,6 +226,15 @@ def main() -> None:
             print("|---|" + "---|" * 13)
             for sensor in sessions:
                 _summary(sensor, runs[(sensor, name)])
+        if args.peers:
+            print("\nodometry beside the peers (real-time factor wall; CPU s and its factor):")
+            print(
+                "| sensor | pipeline | RTF wall | CPU s (RTF) | "
+                "peak MB (canopy-kit: its whole run's process) | ATE cm |"
+            )
+            print("|---|---|---|---|---|---|")
+            for sensor, session in sessions.items():
+                _peer_rows(sensor, runs[(sensor, "this code")], peer_odometry(session))
         if args.against:
             this, other = list(codes)
             print("\nthis code against the other, first runs:")
