@@ -265,27 +265,29 @@ def write_outputs(
 ) -> dict[str, Path]:
     """Every output file, each written under a temporary name and renamed.
 
-    ``map.laz`` (the longest, compressed by lazrs outside the GIL) is written on a thread
-    while the tables and the report's page are made; ``metrics.json`` and ``report.html``
-    are written last, once every other file is, so a run that failed leaves no report
-    (an error of the writer thread is raised, or noted on the main thread's error).
+    The report's per-tree drill-down is made first, its surfaces in forked processes (fork
+    before any thread is started); then ``map.laz`` (the longest, compressed by lazrs outside
+    the GIL) is written on a thread while the tables and the report's page are made;
+    ``metrics.json`` and ``report.html`` are written last, once every other file is, so a
+    run that failed leaves no report (an error of the writer thread is raised, or noted on
+    the main thread's error).
     """
     from concurrent.futures import ThreadPoolExecutor
 
     from canopy_kit.io.las import las_ready, write_las
-    from canopy_kit.report.explorer import encoded_surfaces
+    from canopy_kit.report.explorer import tree_details
     from canopy_kit.report.html import write_report
     from canopy_kit.report.session import session_report_page
     from canopy_kit.segment.labelled import labelled_map
 
     cloud = labelled_map(ctx.mapping.map, ctx.segmentation)
     progress("report", 0, 1)
-    surfaces = encoded_surfaces(ctx, trees)  # forks its workers: before the thread starts
+    details = tree_details(ctx, trees)  # forks its workers: before the thread starts
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="map.laz") as pool:
         laz = pool.submit(lambda: write_las(out / "map.laz", las_ready(cloud)))
         try:
             files = _write_tables(ctx, trees, out, metrics.get("provenance"))
-            page = session_report_page(ctx, trees, metrics, surfaces)
+            page = session_report_page(ctx, trees, metrics, details)
         except BaseException as exc:
             if laz.exception() is not None:  # waits for the writer
                 exc.add_note(f"writing {out / 'map.laz'} failed too: {laz.exception()!r}")

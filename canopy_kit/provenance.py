@@ -45,8 +45,8 @@ def bag_sha256(bag: str | Path, stop: threading.Event | None = None) -> str:
 class BagHash:
     """:func:`bag_sha256` of ``bag`` on a thread of the lowest priority, started at once or by
     :meth:`start`: it uses the core a run leaves idle (segmentation is serial) instead of
-    hashing a bag of gigabytes after every stage. :meth:`result` waits for the hash (or raises what hashing
-    raised); :meth:`cancel` stops it, e.g. when the run fails."""
+    hashing a bag of gigabytes after every stage. :meth:`result` waits for the hash (or
+    raises what hashing raised); :meth:`cancel` stops it, e.g. when the run fails."""
 
     def __init__(self, bag: str | Path, start: bool = True) -> None:
         self.bag = Path(bag)

@@ -160,53 +160,47 @@ def _centre(rec: Any, xyz: np.ndarray) -> np.ndarray:
     return np.array([rec.x, rec.y, float(xyz[:, 2].min())])
 
 
-def encoded_surfaces(ctx: Any, trees: pd.DataFrame) -> dict[str, list[dict[str, Any]]]:
-    """Per tree_id, its :func:`tree_surfaces` encoded for the drill-down, the trees shared
-    among forked processes (``volume.workers``, as the volume stage): a tetrahedralisation
-    per tree, the report's largest cost. Call it before starting any thread."""
+def _encoded_surfaces(
+    items: list[tuple[Any, np.ndarray]], volume: Any
+) -> list[list[dict[str, Any]]]:
+    """Each tree's :func:`tree_surfaces`, encoded for the drill-down, the trees shared among
+    forked processes (``volume.workers``, as the volume stage): a tetrahedralisation per
+    tree is the report's largest cost."""
     from canopy_kit.parallel import run_jobs, worker_count
     from canopy_kit.volume.verb import MIN_TREES_PER_WORKER
 
-    volume = ctx.config.volume
-    items = list(_trees_points(ctx, trees))
-
-    def encode(part: list[int], tick: Callable[[], None]) -> dict[str, list[dict[str, Any]]]:
-        out = {}
+    def encode(part: list[int], tick: Callable[[], None]) -> list[list[dict[str, Any]]]:
+        out = []
         for i in part:
             rec, xyz = items[i]
-            centre = _centre(rec, xyz)
-            out[str(rec.tree_id)] = [encode_surface(s, centre) for s in tree_surfaces(xyz, volume)]
+            out.append([encode_surface(s, _centre(rec, xyz)) for s in tree_surfaces(xyz, volume)])
             tick()
         return out
 
     n = worker_count(volume.workers, len(items) // MIN_TREES_PER_WORKER)
-    parts = run_jobs(
-        encode,
-        [list(range(k, len(items), n)) for k in range(n)],
-        "report",
-        len(items),
-        first_in_parent=True,
-    )
-    return {k: v for part in parts for k, v in part.items()}
+    parts = [list(range(k, len(items), n)) for k in range(n)]
+    done = run_jobs(encode, parts, "report", len(items), first_in_parent=True)
+    surfaces: list[list[dict[str, Any]]] = [[] for _ in items]
+    for part, encoded in zip(parts, done, strict=True):
+        for i, tree in zip(part, encoded, strict=True):
+            surfaces[i] = tree
+    return surfaces
 
 
-def tree_details(
-    ctx: Any,
-    trees: pd.DataFrame,
-    max_points: int = MAX_POINTS,
-    surfaces: dict[str, list[dict[str, Any]]] | None = None,
-) -> dict[str, Any]:
-    """Per tree_id: its points (at most ``max_points``), surfaces (``surfaces`` when
-    :func:`encoded_surfaces` made them already) and orthomosaic crop; the points as the
-    volume stage measured them (on map.laz's coordinate grid)."""
+def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) -> dict[str, Any]:
+    """Per tree_id: its points (at most ``max_points``), surfaces and orthomosaic crop; the
+    points as the volume stage measured them (on map.laz's coordinate grid). The surfaces
+    are made in forked processes: call it before starting any thread."""
     aerial = getattr(ctx, "aerial", None)
     shift = None
     if aerial is not None and getattr(aerial, "ortho", None) is not None:
         frame = getattr(ctx.mapping, "frame", None)
         origin = frame.origin[:2] if frame is not None else np.zeros(2)
         shift = ctx.mapping.map.origin[:2] - origin
+    items = list(_trees_points(ctx, trees))
+    surfaces = _encoded_surfaces(items, ctx.config.volume)
     details: dict[str, Any] = {}
-    for rec, xyz in _trees_points(ctx, trees):
+    for (rec, xyz), encoded in zip(items, surfaces, strict=True):
         centre = _centre(rec, xyz)
         shown = xyz[downsample(len(xyz), max_points, seed=int(rec.segment))]
         item: dict[str, Any] = {
@@ -214,9 +208,7 @@ def tree_details(
             "n_points": len(xyz),
             "n_shown": len(shown),
             "points": encode_xyz(shown, centre),
-            "surfaces": surfaces[str(rec.tree_id)]
-            if surfaces is not None and str(rec.tree_id) in surfaces
-            else [encode_surface(s, centre) for s in tree_surfaces(xyz, ctx.config.volume)],
+            "surfaces": encoded,
         }
         if shift is not None:
             radius = max(float(getattr(rec, "crown_diameter_m", 0) or 0) / 2, 1.0) + 1.5
@@ -286,15 +278,15 @@ def explorer_data(
     trees: pd.DataFrame,
     downloads: list[dict[str, str]],
     max_points: int = MAX_POINTS,
-    surfaces: dict[str, list[dict[str, Any]]] | None = None,
+    details: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Everything the page's script draws, as one JSON-ready dict (``surfaces``: see
-    :func:`tree_details`)."""
+    """Everything the page's script draws, as one JSON-ready dict (``details``: the
+    :func:`tree_details` made already, else they are made now)."""
     return {
         "trees": json_records(trees),
         "columns": column_specs(trees),
         "flagged": [bool(f) for f in _flagged(trees)],
         "map": map_layers(ctx, trees),
-        "details": tree_details(ctx, trees, max_points, surfaces),
+        "details": details if details is not None else tree_details(ctx, trees, max_points),
         "downloads": downloads,
     }

@@ -51,10 +51,10 @@ def session_report_page(
     ctx: Any,
     trees: pd.DataFrame,
     metrics: dict[str, Any],
-    surfaces: dict[str, list[dict[str, Any]]] | None = None,
+    details: dict[str, Any] | None = None,
 ) -> str:
-    """The report of a run as one self-contained HTML page (``surfaces``: the drill-down's,
-    when :func:`~canopy_kit.report.explorer.encoded_surfaces` made them already)."""
+    """The report of a run as one self-contained HTML page (``details``: the drill-down's
+    :func:`~canopy_kit.report.explorer.tree_details`, when made already)."""
     from canopy_kit.config import config_toml
     from canopy_kit.outputs import config_used
     from canopy_kit.report import plots
@@ -250,7 +250,7 @@ def session_report_page(
         config_toml(config_used(ctx)),
         subtitle=subtitle,
         provenance=provenance,
-        explorer=explorer_data(ctx, trees, downloads, surfaces=surfaces),
+        explorer=explorer_data(ctx, trees, downloads, details=details),
         row_table=row_table(row_summary(trees)),
     )
 
