@@ -228,6 +228,29 @@ def test_accumulator_keeps_first_point_per_voxel_with_fields_untouched() -> None
     assert np.array_equal(cloud.xyz[0], p1[0])
 
 
+def test_add_sweeps_gathers_fields_of_kept_points_only_and_equals_add() -> None:
+    sweeps = [RNG.uniform(0, 2, (300, 3)) for _ in range(5)] + [np.zeros((0, 3))]
+    fields = [{"order": np.arange(len(p)) + 1000 * i} for i, p in enumerate(sweeps)]
+    one_by_one = MapAccumulator(0.25)
+    for p, f in zip(sweeps, fields, strict=True):
+        one_by_one.add(p, f)
+    asked: list[int] = []
+
+    def fields_of(f: dict[str, np.ndarray]):
+        def gather(indices: np.ndarray) -> dict[str, np.ndarray]:
+            asked.append(len(indices))
+            return {k: v[indices] for k, v in f.items()}
+
+        return gather
+
+    batched_acc = MapAccumulator(0.25)
+    batched_acc.add_sweeps([(p, fields_of(f)) for p, f in zip(sweeps, fields, strict=True)])
+    a, b = one_by_one.cloud(), batched_acc.cloud()
+    assert np.array_equal(a.xyz, b.xyz) and np.array_equal(a.fields["order"], b.fields["order"])
+    assert batched_acc.n_offered == one_by_one.n_offered == 1500
+    assert sum(asked) == len(b) < 1500  # only the points that took a voxel were gathered
+
+
 def test_parallel_merge_equals_single_accumulator() -> None:
     pts = [RNG.uniform(0, 3, (400, 3)) for _ in range(7)]
     single = MapAccumulator(0.2)

@@ -9,6 +9,8 @@ map size.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from canopy_kit.cloud import PointCloud
@@ -79,33 +81,46 @@ class MapAccumulator:
         if len(xyz) == 0:
             return np.zeros(0, np.int64)
         take = np.flatnonzero(self._keys.insert(voxel_hash(xyz, self.voxel_size)))
-        if len(take) == 0:
-            return take
+        if len(take):
+            self._append(
+                np.asarray(xyz, np.float64)[take], {k: np.asarray(v)[take] for k, v in fields.items()}
+            )
+        return take
+
+    def add_sweeps(
+        self, sweeps: list[tuple[np.ndarray, Callable[[np.ndarray], dict[str, np.ndarray]]]]
+    ) -> None:
+        """Add sweeps in order, each as (xyz, fields_of): ``fields_of(indices)`` gives the
+        attributes of those points only. The same map as :meth:`add` of each sweep, but
+        attributes are gathered only for the few points that take a new voxel (about 1 in 13
+        on a 128-ring drive) instead of being copied for every point offered.
+        """
+        sizes = np.array([len(xyz) for xyz, _ in sweeps], np.int64)
+        self.n_offered += int(sizes.sum())
+        if not sizes.sum():
+            return
+        keys = np.concatenate([voxel_hash(xyz, self.voxel_size) for xyz, _ in sweeps])
+        take = np.flatnonzero(self._keys.insert(keys))
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        bounds = np.searchsorted(take, starts)
+        for i, (xyz, fields_of) in enumerate(sweeps):
+            mine = take[bounds[i] : bounds[i + 1]] - starts[i]
+            if len(mine):
+                self._append(np.asarray(xyz, np.float64)[mine], fields_of(mine))
+
+    def _append(self, xyz: np.ndarray, fields: dict[str, np.ndarray]) -> None:
+        """Keep points that took new voxels, their fields in the map's columns."""
         if not self._dtypes:
             self._dtypes = {k: np.asarray(v).dtype for k, v in fields.items()}
             self._fields = {k: [] for k in fields}
         for name, dtype in self._dtypes.items():
             values = fields.get(name)
             if values is None:  # a field missing in this sweep: zeros keep the columns aligned
-                self._fields[name].append(np.zeros(len(take), dtype))
+                self._fields[name].append(np.zeros(len(xyz), dtype))
             else:
-                self._fields[name].append(np.asarray(values)[take].astype(dtype, copy=False))
-        self._xyz.append(np.asarray(xyz, np.float64)[take])
-        self.n_points += len(take)
-        return take
-
-    def add_many(self, parts: list[tuple[np.ndarray, dict[str, np.ndarray]]]) -> None:
-        """Add several sweeps in order, as one :meth:`add` when their fields agree (cheaper)."""
-        layouts = {
-            tuple((k, np.asarray(v).dtype.str) for k, v in fields.items()) for _, fields in parts
-        }
-        if len(parts) > 1 and len(layouts) == 1:
-            xyz = np.concatenate([p[0] for p in parts])
-            names = list(parts[0][1])
-            self.add(xyz, {k: np.concatenate([p[1][k] for p in parts]) for k in names})
-        else:
-            for xyz, fields in parts:
-                self.add(xyz, fields)
+                self._fields[name].append(np.asarray(values).astype(dtype, copy=False))
+        self._xyz.append(xyz)
+        self.n_points += len(xyz)
 
     def cloud(self, crs: str | None = None, origin: np.ndarray | None = None) -> PointCloud:
         """The map so far as a PointCloud (local coordinates, ``origin`` and ``crs`` attached)."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from itertools import islice
 from typing import TypeVar
 
@@ -68,11 +69,12 @@ def _pose_times(scan: Scan, keep: np.ndarray, deskew: bool) -> tuple[np.ndarray,
 
 def place_sweeps(
     scans: list[Scan], deskew: list[bool], trajectory: ContinuousTrajectory, config: MappingConfig
-) -> list[tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]]:
+) -> list[tuple[np.ndarray, Callable[[np.ndarray], dict[str, np.ndarray]]]]:
     """Each sweep's points in range, moved to the map frame with the pose at each point's time.
 
     One trajectory lookup serves the whole batch (its cost is mostly per call). Returns,
-    per sweep, coordinates, fields (the scan's own plus ``gps_time``) and the kept indices.
+    per sweep, the coordinates and ``fields_of(indices)``: the fields (the scan's own plus
+    ``gps_time``) of those of the coordinates only, gathered when the map keeps them.
     """
     kept = [np.flatnonzero(range_mask(s.xyz, config.min_range, config.max_range)) for s in scans]
     plans = [_pose_times(s, k, d) for s, k, d in zip(scans, kept, deskew, strict=True)]
@@ -82,14 +84,18 @@ def place_sweeps(
     out = []
     for i, (scan, keep, (_, bins)) in enumerate(zip(scans, kept, plans, strict=True)):
         xyz = scan.xyz[keep]
-        fields = point_fields(scan.fields, keep, scan.times, scan.stamp, len(xyz))
         a = starts[i]
         if bins is None:
             world = xyz @ rot[a].T + pos[a]
         else:
             world = transform_binned(xyz, bins, rot[a : starts[i + 1]], pos[a : starts[i + 1]])
-        out.append((world, fields, keep))
+        out.append((world, partial(_fields_of, scan, keep)))
     return out
+
+
+def _fields_of(scan: Scan, keep: np.ndarray, indices: np.ndarray) -> dict[str, np.ndarray]:
+    """The fields of points ``keep[indices]`` of ``scan`` (see :func:`point_fields`)."""
+    return point_fields(scan.fields, keep[indices], scan.times, scan.stamp, len(indices))
 
 
 def transform_binned(
@@ -206,7 +212,7 @@ def _accumulate(
             placed = place_sweeps(
                 batch, [job.sweeps[s.index] for s in batch], job.trajectory, job.config
             )
-            acc.add_many([(xyz, fields) for xyz, fields, _ in placed])
+            acc.add_sweeps(placed)
             if tick:
                 for _ in batch:
                     tick()
