@@ -83,7 +83,8 @@ class MapAccumulator:
         take = np.flatnonzero(self._keys.insert(voxel_hash(xyz, self.voxel_size)))
         if len(take):
             self._append(
-                np.asarray(xyz, np.float64)[take], {k: np.asarray(v)[take] for k, v in fields.items()}
+                np.asarray(xyz, np.float64)[take],
+                {k: np.asarray(v)[take] for k, v in fields.items()},
             )
         return take
 
