@@ -311,9 +311,7 @@ class BagSession:
                     if time_name and points[time_name].ndim == 1
                     else None
                 )
-                # Views into the message, not copies: pass 1 never reads them, the map pass
-                # gathers the few points it keeps.
-                fields = {k: points[k] for k in names if k not in ("x", "y", "z")}
+                fields = {k: np.array(points[k]) for k in names if k not in ("x", "y", "z")}
         except MessageError as exc:
             log.drop(index, "malformed", str(exc))
             return None
