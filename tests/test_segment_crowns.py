@@ -88,3 +88,25 @@ def test_crown_split_trivial_inputs() -> None:
     assert np.all(crown_split(xyz, np.zeros((1, 2))) == 0)
     two = crown_split(xyz, np.array([[-5.0, 0.0], [5.0, 0.0]]))
     assert set(np.unique(two)) <= {0, 1}
+
+
+def test_neighbourhood_covariances_match_numpy() -> None:
+    """The compiled scatter matrices equal numpy's gather, mean and einsum."""
+    from scipy.spatial import cKDTree
+
+    from canopy_kit.segment.kernels import neighbourhood_covariances
+
+    xyz = np.random.default_rng(5).normal(0, 2, (3000, 3))
+    _, nb = cKDTree(xyz).query(xyz, k=12)
+    p = xyz[nb] - xyz[nb].mean(axis=1, keepdims=True)
+    expected = np.einsum("nki,nkj->nij", p, p)
+    assert np.allclose(neighbourhood_covariances(xyz, nb), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_normals_of_a_plane_are_its_normal() -> None:
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(-1, 1, (2000, 2))
+    tilt = np.array([0.3, -0.2])  # z = 0.3 x - 0.2 y
+    xyz = np.column_stack([xy, xy @ tilt])
+    normal = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])
+    assert np.allclose(np.abs(point_normals(xyz) @ normal), 1.0, atol=1e-9)
