@@ -172,7 +172,7 @@ class AdaptiveSegmenter(Segmenter):
                 # a stand seen from above keep the nearest top.
                 sub = crown_split(xyz[members], markers)
             else:
-                _, sub = cKDTree(markers).query(xyz[members, :2])
+                _, sub = cKDTree(markers).query(xyz[members, :2], workers=-1)
             labels[members] = sub + next_label
             next_label += len(markers)
             markers_all.append(markers)
@@ -278,7 +278,7 @@ class AdaptiveSegmenter(Segmenter):
         crumb_idx = np.flatnonzero(is_crumb)
         solid_idx = np.flatnonzero(solid)
         dist, nearest = cKDTree(xyz[solid]).query(
-            xyz[crumb_idx], distance_upper_bound=self.crumb_reach * scale.spacing
+            xyz[crumb_idx], distance_upper_bound=self.crumb_reach * scale.spacing, workers=-1
         )
         # A crumb joins the part its closest point is nearest to (the whole crumb moves).
         cp = parts[crumb_idx]

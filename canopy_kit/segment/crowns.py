@@ -110,13 +110,13 @@ def crown_split(
     n_trees = len(positions)
     if n_trees <= 1:
         return np.zeros(len(xyz), dtype=np.int64)
-    _, labels = cKDTree(positions).query(xyz[:, :2])
+    _, labels = cKDTree(positions).query(xyz[:, :2], workers=-1)
     labels = labels.astype(np.int64)
     normals = point_normals(xyz, normal_neighbours)
     kc = min(n_candidates, n_trees)
     for _ in range(n_iter):
         centre, semi = fit_crowns(xyz, normals, labels, n_trees, positions)
-        _, cand = cKDTree(centre[:, :2]).query(xyz[:, :2], k=kc)
+        _, cand = cKDTree(centre[:, :2]).query(xyz[:, :2], k=kc, workers=-1)
         cand = cand.reshape(len(xyz), kc)
         d = xyz[:, None, :] - centre[cand]
         depth = np.sqrt(

@@ -78,7 +78,11 @@ def neighbour_weight(
     """Sum of the weights of the points within ``eps`` of every point (itself included)."""
     xyz = np.asarray(xyz, dtype=np.float64)
     if sample_weight is None:
-        return cKDTree(xyz).query_ball_point(xyz, eps, return_length=True).astype(np.float64)
+        return (
+            cKDTree(xyz)
+            .query_ball_point(xyz, eps, return_length=True, workers=-1)
+            .astype(np.float64)
+        )
     w = np.asarray(sample_weight, dtype=np.float64)
     out = w.copy()
     local = np.full(len(xyz), -1, dtype=np.int64)
@@ -147,7 +151,7 @@ def weighted_dbscan(
     labels[core_idx] = comp[cell_of]
     border = np.flatnonzero(~core)
     if len(border):
-        dist, nearest = cKDTree(cp).query(xyz[border], distance_upper_bound=eps)
+        dist, nearest = cKDTree(cp).query(xyz[border], distance_upper_bound=eps, workers=-1)
         ok = np.isfinite(dist)
         labels[border[ok]] = labels[core_idx[nearest[ok]]]
     if progress:

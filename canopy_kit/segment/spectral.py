@@ -85,7 +85,7 @@ def spectral_split(
     parts[main] = KMeans(n_parts, n_init=4, random_state=random_state).fit_predict(emb)
     rest = np.setdiff1d(np.arange(n), main)
     if len(rest):
-        _, nearest = cKDTree(xyz[main]).query(xyz[rest])
+        _, nearest = cKDTree(xyz[main]).query(xyz[rest], workers=-1)
         parts[rest] = parts[main[nearest]]
     return parts
 
