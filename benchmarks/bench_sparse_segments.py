@@ -48,26 +48,13 @@ def enclosing_ellipsoid_volume(points: np.ndarray, tol: float = 1e-5) -> float:
 def session_rows(sim: Path, sensor: str, seed: int) -> list[dict]:
     """One row per sparse crown of ``sim`` the segmenter matched one-to-one."""
     from canopy_kit.config import load_preset
-    from canopy_kit.io.las_write import on_las_grid
-    from canopy_kit.segment.verb import make_segmenter, segment
-    from canopy_kit.segmentation_score import score_point_labels
-    from canopy_kit.truth import load_truth
-    from canopy_kit.truth_map import truth_map
     from canopy_kit.volume.hull import sample_corrected_hull, thin_to_distance
     from canopy_kit.volume.verb import measure_trees, measured_points, volume_column
+    from canopy_kit.volume_accuracy import segmented_session
 
     config = load_preset("adaptive")
-    truth = load_truth(sim)
-    cloud = on_las_grid(truth_map(sim, voxel_size=0.05))
-    seg = segment(
-        cloud,
-        make_segmenter(config.segment.method, config.segment.params),
-        config.preprocess,
-        config.rows,
-        seed=config.seed,
-    )
+    truth, cloud, seg, score = segmented_session(sim, config)
     tree_id = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
-    score = score_point_labels(seg.labels, tree_id)
     correct = score.trees[score.trees["status"] == "correct"]
     labelled = np.where(
         (seg.height >= config.preprocess.min_canopy_height) & (tree_id >= 0), tree_id, -1

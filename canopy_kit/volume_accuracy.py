@@ -16,6 +16,32 @@ import numpy as np
 from canopy_kit.volume.truth_errors import alley_sides
 
 
+def segmented_session(
+    sim_dir: str | Path, config: Any, reference_map: Any = None
+) -> tuple[Any, Any, Any, Any]:
+    """A simulated session's map (true poses unless ``reference_map`` is given, on map.laz's
+    grid) segmented with ``config``'s segmenter as ``canopy-kit run`` does: the truth, the
+    map, the segmentation and its score against the simulator's ``tree_id``."""
+    from canopy_kit.io.las_write import on_las_grid
+    from canopy_kit.segment.verb import make_segmenter, segment
+    from canopy_kit.segmentation_score import score_point_labels
+    from canopy_kit.truth import load_truth
+    from canopy_kit.truth_map import truth_map
+
+    truth = load_truth(sim_dir)
+    cloud = on_las_grid(
+        reference_map if reference_map is not None else truth_map(sim_dir, voxel_size=0.05)
+    )
+    seg = segment(
+        cloud,
+        make_segmenter(config.segment.method, config.segment.params),
+        config.preprocess,
+        config.rows,
+        seed=config.seed,
+    )
+    return truth, cloud, seg, score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
+
+
 def segmented_volume_errors(
     sim_dir: str | Path, config: Any, methods: list[str], reference_map: Any = None
 ) -> tuple[Any, Any]:
@@ -30,25 +56,9 @@ def segmented_volume_errors(
     """
     import pandas as pd
 
-    from canopy_kit.io.las_write import on_las_grid
-    from canopy_kit.segment.verb import make_segmenter, segment
-    from canopy_kit.segmentation_score import score_point_labels
-    from canopy_kit.truth import load_truth
-    from canopy_kit.truth_map import truth_map
     from canopy_kit.volume.verb import measure_trees, volume_column
 
-    truth = load_truth(sim_dir)
-    cloud = on_las_grid(
-        reference_map if reference_map is not None else truth_map(sim_dir, voxel_size=0.05)
-    )
-    seg = segment(
-        cloud,
-        make_segmenter(config.segment.method, config.segment.params),
-        config.preprocess,
-        config.rows,
-        seed=config.seed,
-    )
-    score = score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
+    truth, cloud, seg, score = segmented_session(sim_dir, config, reference_map)
     correct = score.trees[score.trees["status"] == "correct"]
     true_id_of = dict(zip(correct["segment_id"], correct["truth_id"], strict=True))
     true_volume = truth.trees.set_index("tree_id")["crown_volume_m3"]
