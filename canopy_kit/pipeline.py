@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -26,6 +26,9 @@ from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_write_json, atomic_write_text
 from canopy_kit.outputs import Results, run_metrics, write_tree_tables
 from canopy_kit.tree_table import tree_table
+
+if TYPE_CHECKING:
+    from canopy_kit.volume.verb import TreeVolumes
 
 Progress = Callable[[str, float, float], None]
 
@@ -45,6 +48,7 @@ class RunContext:
     truth_dir: Path | None = None  # simulated session the run was checked against
     layout: Any = None  # row and tree spacing, trunks per segment (segment.layout.Layout)
     estimators: dict[str, Any] | None = None  # the volume estimators, built once per run
+    surfaces: dict[int, list[Any]] = field(default_factory=dict)  # drawn solids per segment
 
 
 def run(
@@ -132,7 +136,8 @@ def compute(
     )
     ctx.segmentation = cache.get_or_compute("segment", seg_key, lambda: segment_stage(ctx, report))
     vol_key = stage_key("volumes", seg_key, config.volume)
-    ctx.trees = cache.get_or_compute("volumes", vol_key, lambda: volume_stage(ctx, report))
+    volumes = cache.get_or_compute("volumes", vol_key, lambda: volume_stage(ctx, report))
+    ctx.trees, ctx.surfaces = volumes.table, volumes.surfaces
     if drone_images is not None:
         gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
         ctx.aerial = cache.get_or_compute(
@@ -201,14 +206,17 @@ def segment_stage(ctx: RunContext, progress: Progress) -> Any:
     )
 
 
-def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
+def volume_stage(ctx: RunContext, progress: Progress) -> TreeVolumes:
     """Metrics and every configured volume estimator per segmented tree, on the map's points
-    as map.laz stores them (1 mm): a tree's points read back from it give the same numbers."""
+    as map.laz stores them (1 mm): a tree's points read back from it give the same numbers.
+    The solids of the drawn estimators come with it, for the report."""
+    from dataclasses import replace
+
     from canopy_kit.io.las_write import on_las_grid
-    from canopy_kit.volume.verb import measure_trees
+    from canopy_kit.volume.verb import measure_trees_and_surfaces
 
     seg = ctx.segmentation
-    table = measure_trees(
+    volumes = measure_trees_and_surfaces(
         on_las_grid(ctx.mapping.map),
         seg.labels,
         ctx.config.volume,
@@ -217,8 +225,8 @@ def volume_stage(ctx: RunContext, progress: Progress) -> pd.DataFrame:
         estimators=ctx.estimators,
     )
     records = seg.table().set_index("segment_id")
-    table = table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")
-    return table
+    table = volumes.table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")
+    return replace(volumes, table=table)
 
 
 def layout_stage(ctx: RunContext) -> Any:

@@ -109,20 +109,53 @@ def _closed(faces: np.ndarray) -> bool:
 
 def test_surfaces_are_the_estimators_solids() -> None:
     """The drawn surfaces bound what the estimators measure: same volumes, closed meshes."""
-    from canopy_kit.report.surfaces import alpha_surface, hull_surface
     from canopy_kit.volume.alpha import AlphaShapeVolume
-    from canopy_kit.volume.hull import hull_volume
+    from canopy_kit.volume.hull import ConvexHullVolume, hull_volume
 
     xyz = _ball()
-    hull = hull_surface(xyz)
+    result, hull = ConvexHullVolume().with_surface(xyz)
     assert hull is not None and hull.volume_m3 == pytest.approx(hull_volume(xyz))
+    assert result.volume_m3 == hull.volume_m3 == ConvexHullVolume()(xyz).volume_m3
     assert _closed(hull.faces) and hull.faces.max() < len(hull.vertices)
-    alpha = alpha_surface(xyz, 0.9)
-    assert alpha is not None
-    assert alpha.volume_m3 == pytest.approx(AlphaShapeVolume(alpha=0.9)(xyz).volume_m3)
+    result, alpha = AlphaShapeVolume(alpha=0.9).with_surface(xyz)
+    assert alpha is not None and alpha.name == "alpha shape (α = 0.9 m)"
+    assert alpha.volume_m3 == result.volume_m3 == AlphaShapeVolume(alpha=0.9)(xyz).volume_m3
     assert _closed(alpha.faces)
-    assert alpha_surface(xyz, 1e-4) is None  # α below the point spacing: nothing to draw
-    assert hull_surface(np.zeros((5, 3))) is None
+    # α below the point spacing, or points that enclose nothing: no solid to draw
+    assert AlphaShapeVolume(alpha=1e-4).with_surface(xyz)[1] is None
+    assert ConvexHullVolume().with_surface(np.zeros((5, 3)))[1] is None
+
+
+def test_boundary_triangles_are_the_faces_of_one_tetrahedron_only() -> None:
+    """Two tetrahedra glued on a face: the six outer faces, not the shared one; on a
+    Delaunay triangulation of many points, the same set as counting faces row by row."""
+    from scipy.spatial import Delaunay
+
+    from canopy_kit.volume.surface import boundary_triangles
+
+    glued = np.array([[0, 1, 2, 3], [4, 2, 1, 3]])
+    faces = {tuple(f) for f in boundary_triangles(glued, 5)}
+    assert faces == {(0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 4), (1, 3, 4), (2, 3, 4)}
+    simplices = Delaunay(_ball()).simplices[::2]  # every other one: holes inside too
+    rows = np.sort(
+        np.concatenate(
+            [
+                simplices[:, [0, 1, 2]],
+                simplices[:, [0, 1, 3]],
+                simplices[:, [0, 2, 3]],
+                simplices[:, [1, 2, 3]],
+            ]
+        ),
+        axis=1,
+    )
+    unique, counts = np.unique(rows, axis=0, return_counts=True)
+    expected = {tuple(f) for f in unique[counts == 1]}
+    assert {tuple(f) for f in boundary_triangles(simplices, len(_ball()))} == expected
+    # indices too large for one int64 key per triangle take the row-wise way, same answer
+    assert {tuple(f) for f in boundary_triangles(glued + 3_000_000, 3_000_005)} == {
+        tuple(np.array(f) + 3_000_000) for f in faces
+    }
+    assert boundary_triangles(np.empty((0, 4), np.int64), 10).shape == (0, 3)
 
 
 def test_encoded_points_round_trip_to_the_centimetre() -> None:

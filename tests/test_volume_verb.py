@@ -77,6 +77,32 @@ def test_measure_tree_gives_the_table_row_of_that_tree() -> None:
         assert row["volume_flags"] == table.loc[seg, "volume_flags"]
 
 
+def test_the_kept_surfaces_are_the_solids_the_table_measured() -> None:
+    """The volume stage's surfaces (from forked workers) are those drawn afresh for each
+    tree, their volumes the table's hull and alpha columns; the table is measure_trees'."""
+    from canopy_kit.volume.verb import measure_trees_and_surfaces, tree_surfaces
+
+    cloud, labels = _blobs(8, seed=5)
+    labels[labels == 3] = -1  # unlabelled points are no tree
+    config = VolumeConfig(voxel_size=0.1, workers=2)
+    kept = measure_trees_and_surfaces(cloud, labels, config)
+    pd.testing.assert_frame_equal(kept.table, measure_trees(cloud, labels, config))
+    assert sorted(kept.surfaces) == [0, 1, 2, 4, 5, 6, 7]
+    table = kept.table.set_index("segment")
+    for seg, surfaces in kept.surfaces.items():
+        fresh = tree_surfaces(cloud.xyz[labels == seg], config)
+        assert [s.name for s in surfaces] == ["convex hull", "alpha shape (α = 0.9 m)"]
+        for got, want in zip(surfaces, fresh, strict=True):
+            np.testing.assert_array_equal(got.vertices, want.vertices)
+            np.testing.assert_array_equal(got.faces, want.faces)
+        hull, alpha = (s.volume_m3 for s in surfaces)
+        assert hull == table.loc[seg, verb.CONVEX_HULL_COLUMN]
+        assert alpha == table.loc[seg, verb.ALPHA_COLUMN]
+    only_hull = VolumeConfig(voxel_size=0.1, workers=1, methods=["convex_hull", "slices"])
+    drawn = measure_trees_and_surfaces(cloud, labels, only_hull).surfaces
+    assert [s.name for s in drawn[0]] == ["convex hull"]
+
+
 def test_the_interval_takes_the_recommended_estimators_fill_unchanged() -> None:
     """adaptive_alpha's surface fill, handed to the interval, is the fill measured afresh."""
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, surface_fill
@@ -179,3 +205,19 @@ def test_the_volumes_notebook_shows_trees_csv_numbers(
     csv = pd.read_csv(tiny_pistachio_run.out_dir / "trees.csv").set_index("segment")
     columns = [volume_column(m) for m in volume_methods(ctx.config.volume)]
     _assert_same(defs["measured"], csv.loc[defs["tree"].value], MEASURED + columns)
+
+
+@pytest.mark.slow
+def test_the_drill_down_draws_what_the_volume_stage_kept(run_context, tiny_pistachio_run) -> None:
+    """The report's surfaces come from the volume stage; drawn afresh (a context without
+    them) they are the same, byte for byte."""
+    from dataclasses import replace
+
+    from canopy_kit.report.explorer import tree_details
+
+    ctx = run_context
+    trees = ctx.table
+    assert set(ctx.surfaces) == set(trees["segment"])
+    kept = tree_details(ctx, trees)
+    fresh = tree_details(replace(ctx, surfaces={}), trees)
+    assert kept == fresh and all(len(d["surfaces"]) == 2 for d in kept.values())

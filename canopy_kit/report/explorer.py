@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.report.columns import column_label
-from canopy_kit.report.surfaces import Surface, alpha_surface, hull_surface
+from canopy_kit.volume.surface import Surface
 from canopy_kit.volume.verb import ALPHA_COLUMN
 
 MAX_POINTS = 2000  # points per tree in the 3-D view
@@ -118,29 +118,6 @@ def ortho_crop(mosaic: Any, x: float, y: float, half: float) -> dict[str, Any] |
     }
 
 
-def tree_surfaces(xyz: np.ndarray, volume: Any) -> list[Surface]:
-    """The convex hull and alpha shape of a tree as the volume stage measured them (on the
-    points thinned to ``volume.voxel_size``, the alpha shape with its configured α)."""
-    from canopy_kit.volume.alpha import PAPER_ALPHA_M
-    from canopy_kit.volume.verb import measured_points
-
-    measured = measured_points(xyz, volume)
-    out = []
-    if "convex_hull" in volume.methods:
-        out.append(hull_surface(measured))
-    if "alpha_shape" in volume.methods:
-        alpha = float(volume.params.get("alpha_shape", {}).get("alpha", PAPER_ALPHA_M))
-        surface = alpha_surface(measured, alpha)
-        out.append(
-            None
-            if surface is None
-            else Surface(
-                f"alpha shape (α = {alpha:g} m)", surface.vertices, surface.faces, surface.volume_m3
-            )
-        )
-    return [s for s in out if s is not None]
-
-
 def _trees_points(ctx: Any, trees: pd.DataFrame) -> Iterator[tuple[Any, np.ndarray]]:
     """Each table row with its points as the volume stage measured them (on map.laz's
     coordinate grid); trees without points are left out."""
@@ -161,13 +138,20 @@ def _centre(rec: Any, xyz: np.ndarray) -> np.ndarray:
 
 
 def _encoded_surfaces(
-    items: list[tuple[Any, np.ndarray]], volume: Any
+    items: list[tuple[Any, np.ndarray]], volume: Any, known: dict[int, list[Surface]]
 ) -> list[list[dict[str, Any]]]:
-    """Each tree's :func:`tree_surfaces`, encoded for the drill-down, the trees shared among
-    forked processes (``volume.workers``, as the volume stage): a tetrahedralisation per
-    tree is the report's largest cost."""
+    """Each tree's surfaces encoded for the drill-down: those the volume stage kept
+    (``known``, per segment), the others drawn now (:func:`~canopy_kit.volume.verb.tree_surfaces`)
+    in forked processes (``volume.workers``, as the volume stage): a tetrahedralisation
+    per tree is the report's largest cost."""
     from canopy_kit.parallel import run_jobs, worker_count
-    from canopy_kit.volume.verb import MIN_TREES_PER_WORKER
+    from canopy_kit.volume.verb import MIN_TREES_PER_WORKER, tree_surfaces
+
+    surfaces = [
+        [encode_surface(s, _centre(rec, xyz)) for s in known.get(int(rec.segment), [])]
+        for rec, xyz in items
+    ]
+    missing = [i for i, (rec, _) in enumerate(items) if int(rec.segment) not in known]
 
     def encode(part: list[int], tick: Callable[[], None]) -> list[list[dict[str, Any]]]:
         out = []
@@ -177,10 +161,9 @@ def _encoded_surfaces(
             tick()
         return out
 
-    n = worker_count(volume.workers, len(items) // MIN_TREES_PER_WORKER)
-    parts = [list(range(k, len(items), n)) for k in range(n)]
-    done = run_jobs(encode, parts, "report", len(items), first_in_parent=True)
-    surfaces: list[list[dict[str, Any]]] = [[] for _ in items]
+    n = worker_count(volume.workers, len(missing) // MIN_TREES_PER_WORKER)
+    parts = [missing[k::n] for k in range(n)]
+    done = run_jobs(encode, parts, "report", len(missing), first_in_parent=True)
     for part, encoded in zip(parts, done, strict=True):
         for i, tree in zip(part, encoded, strict=True):
             surfaces[i] = tree
@@ -190,7 +173,8 @@ def _encoded_surfaces(
 def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) -> dict[str, Any]:
     """Per tree_id: its points (at most ``max_points``), surfaces and orthomosaic crop; the
     points as the volume stage measured them (on map.laz's coordinate grid). The surfaces
-    are made in forked processes: call it before starting any thread."""
+    are those the volume stage kept (``ctx.surfaces``); trees without them are drawn in
+    forked processes: call it before starting any thread."""
     aerial = getattr(ctx, "aerial", None)
     shift = None
     if aerial is not None and getattr(aerial, "ortho", None) is not None:
@@ -198,7 +182,8 @@ def tree_details(ctx: Any, trees: pd.DataFrame, max_points: int = MAX_POINTS) ->
         origin = frame.origin[:2] if frame is not None else np.zeros(2)
         shift = ctx.mapping.map.origin[:2] - origin
     items = list(_trees_points(ctx, trees))
-    surfaces = _encoded_surfaces(items, ctx.config.volume)
+    known = getattr(ctx, "surfaces", None) or {}
+    surfaces = _encoded_surfaces(items, ctx.config.volume, known)
     details: dict[str, Any] = {}
     for (rec, xyz), encoded in zip(items, surfaces, strict=True):
         centre = _centre(rec, xyz)

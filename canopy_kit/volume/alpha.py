@@ -18,6 +18,7 @@ import numpy as np
 
 from canopy_kit.params import PAPER_ALPHA_M
 from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.volume.surface import Surface, boundary_triangles, compact_surface
 
 # Tetrahedra are processed in chunks to bound temporary memory (~100 MB per chunk).
 _CHUNK = 1_000_000
@@ -195,12 +196,23 @@ class AlphaShapeVolume(VolumeEstimator):
         super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
+        return self._complex(xyz)[0]
+
+    def _volume_and_surface(self, xyz: np.ndarray) -> tuple[tuple[float, dict], Surface | None]:
+        out, kept = self._complex(xyz)
+        if kept is None or not len(kept):
+            return out, None
+        name = f"alpha shape (α = {self.alpha:g} m)"
+        return out, compact_surface(name, xyz, boundary_triangles(kept, len(xyz)), out[0])
+
+    def _complex(self, xyz: np.ndarray) -> tuple[tuple[float, dict], np.ndarray | None]:
+        """The volume with its extras, and the tetrahedra (K, 4) of the alpha complex."""
         from scipy.spatial import QhullError
 
         try:
             tetra = alpha_tetrahedra(xyz, self.alpha)
         except QhullError as exc:
-            return 0.0, {"reason": qhull_failure(exc)}
+            return (0.0, {"reason": qhull_failure(exc)}), None
         kept = tetra.circumradius < self.alpha
         extra: dict = {"n_tetrahedra": int(kept.sum())}
         if not kept.any():
@@ -208,4 +220,4 @@ class AlphaShapeVolume(VolumeEstimator):
                 f"alpha = {self.alpha} m is below the point spacing: "
                 f"no tetrahedron has a smaller circumradius"
             )
-        return float(tetra.volume[kept].sum()), extra
+        return (float(tetra.volume[kept].sum()), extra), tetra.simplices[kept]

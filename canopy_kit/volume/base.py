@@ -28,6 +28,7 @@ from sklearn.base import BaseEstimator
 
 from canopy_kit.errors import InputError
 from canopy_kit.params import check_choice, check_positive, validate_types
+from canopy_kit.volume.surface import Surface
 
 __all__ = [
     "MIN_POINTS",
@@ -116,8 +117,9 @@ class VolumeEstimator(BaseEstimator):
     Subclasses set ``name``, store their keyword arguments in ``__init__`` unchanged,
     document them in a numpydoc ``Parameters`` section and implement
     ``_volume(xyz) -> float`` (or ``-> (float, extra_dict)``) on checked, non-degenerate
-    points; ``validate_params`` adds their range checks (ConfigError naming the parameter)
-    and calls ``super().validate_params()``, which checks values against the annotations.
+    points (and ``_volume_and_surface`` when they can draw the solid they measured);
+    ``validate_params`` adds their range checks (ConfigError naming the parameter) and
+    calls ``super().validate_params()``, which checks values against the annotations.
     ``convex_rtol``: the relative error promised on a densely sampled convex solid (the
     conformance suite measures a unit cube); None promises only a positive volume.
     """
@@ -132,27 +134,37 @@ class VolumeEstimator(BaseEstimator):
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict[str, Any]]:
         raise NotImplementedError
 
+    def _volume_and_surface(
+        self, xyz: np.ndarray
+    ) -> tuple[float | tuple[float, dict[str, Any]], Surface | None]:
+        """:meth:`_volume` and the surface of the solid measured; estimators that can draw
+        it override this (from the same triangulation), the others draw nothing."""
+        return self._volume(xyz), None
+
     def __call__(self, xyz: Any) -> VolumeResult:
         """Estimate the volume enclosed by the points ``xyz`` (N, 3) in metres."""
+        return self._measure(xyz, surface=False)[0]
+
+    def with_surface(self, xyz: Any) -> tuple[VolumeResult, Surface | None]:
+        """The volume of ``xyz`` (as calling the estimator gives it) and the surface of the
+        solid it measured, from the same triangulation; None when the estimator draws no
+        surface or the result is not valid."""
+        return self._measure(xyz, surface=True)
+
+    def _measure(self, xyz: Any, surface: bool) -> tuple[VolumeResult, Surface | None]:
         self.validate_params()
         pts = as_points(xyz)
         params = self.get_params()
         reason = degeneracy(pts)
         if reason is not None:
-            return VolumeResult(0.0, self.name, params, False, reason, len(pts))
-        out = self._volume(pts)
+            return VolumeResult(0.0, self.name, params, False, reason, len(pts)), None
+        out, drawn = self._volume_and_surface(pts) if surface else (self._volume(pts), None)
         volume, extra = out if isinstance(out, tuple) else (out, {})
         if not np.isfinite(volume) or volume < 0:
-            return VolumeResult(
-                0.0,
-                self.name,
-                params,
-                False,
-                f"estimator produced an unusable volume ({volume!r})",
-                len(pts),
-                extra,
-            )
+            reason = f"estimator produced an unusable volume ({volume!r})"
+            return VolumeResult(0.0, self.name, params, False, reason, len(pts), extra), None
         reason = extra.pop("reason", None)
-        return VolumeResult(
+        result = VolumeResult(
             float(volume), self.name, params, reason is None, reason, len(pts), extra
         )
+        return result, drawn if result.valid else None

@@ -20,6 +20,7 @@ import numpy as np
 
 from canopy_kit.errors import ConfigError
 from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.volume.surface import Surface, compact_surface
 
 
 def hull_volume(xyz: np.ndarray) -> float:
@@ -110,12 +111,17 @@ class ConvexHullVolume(VolumeEstimator):
         pass
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
-        from scipy.spatial import QhullError
+        return self._volume_and_surface(xyz)[0]
+
+    def _volume_and_surface(self, xyz: np.ndarray) -> tuple[float | tuple[float, dict], Surface]:
+        from scipy.spatial import ConvexHull, QhullError
 
         try:
-            return hull_volume(xyz)
+            hull = ConvexHull(xyz - xyz.mean(axis=0))  # centred: as hull_volume
         except QhullError as exc:
-            return 0.0, {"reason": f"qhull could not build a hull: {qhull_reason(exc)}"}
+            return (0.0, {"reason": f"qhull could not build a hull: {qhull_reason(exc)}"}), None
+        volume = float(hull.volume)
+        return volume, compact_surface("convex hull", xyz, hull.simplices, volume)
 
 
 class SampleCorrectedHullVolume(VolumeEstimator):

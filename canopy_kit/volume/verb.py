@@ -3,13 +3,17 @@
 :func:`measure_trees` makes the per-tree table's measurement columns (trees.csv) for a
 segmented cloud; :func:`measure_tree` measures one tree's points exactly as that table does
 (the same voxel thinning, the same estimators), for notebooks that show one tree.
-:func:`build_estimators` makes a run's estimators once; pass them on to avoid building them
-again. Column names come from :func:`volume_column` only.
+:func:`measure_trees_and_surfaces` also keeps the solids of the drawn estimators
+(:data:`DRAWN_METHODS`) from the triangulations that measured them, for the report's 3-D
+view (:func:`tree_surfaces` draws one tree's alone). :func:`build_estimators` makes a
+run's estimators once; pass them on to avoid building them again. Column names come from
+:func:`volume_column` only.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -19,6 +23,7 @@ from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
 from canopy_kit.parallel import run_jobs, worker_count
 from canopy_kit.volume import tree_metrics
+from canopy_kit.volume.surface import Surface
 from canopy_kit.voxel import voxel_representatives
 
 Progress = Callable[[str, float, float], None]
@@ -32,6 +37,16 @@ CONVEX_HULL_COLUMN = VOLUME_COLUMN["convex_hull"]
 ALPHA_COLUMN = VOLUME_COLUMN["alpha_shape"]
 #: The paper's two volume columns, in the table's order.
 PAPER_VOLUME_COLUMNS = (CONVEX_HULL_COLUMN, ALPHA_COLUMN)
+#: The estimators whose solids the report draws, when a run measures them: the paper's two.
+DRAWN_METHODS = ("convex_hull", "alpha_shape")
+
+
+@dataclass(frozen=True)
+class TreeVolumes:
+    """The per-tree table and, per segment, the surfaces of the drawn estimators' solids."""
+
+    table: pd.DataFrame
+    surfaces: dict[int, list[Surface]]
 
 
 def volume_column(method: str) -> str:
@@ -55,6 +70,11 @@ def build_estimators(volume: VolumeConfig) -> Estimators:
         )
         for method in volume_methods(volume)
     }
+
+
+def drawn_methods(volume: VolumeConfig) -> list[str]:
+    """The :data:`DRAWN_METHODS` that ``volume`` measures, in that order."""
+    return [m for m in DRAWN_METHODS if m in volume.methods]
 
 
 def measured_points(xyz: np.ndarray, volume: VolumeConfig) -> np.ndarray:
@@ -114,6 +134,37 @@ def measure_tree(
     ``xyz`` are the tree's points (:func:`tree_points` gives them as the pipeline does);
     ``ground_height(xy) -> z`` the ground under the tree (default: its lowest point).
     """
+    return _measure_tree(xyz, volume, ground_height, estimators, drawn=())[0]
+
+
+def tree_surfaces(
+    xyz: np.ndarray, volume: VolumeConfig, estimators: Estimators | None = None
+) -> list[Surface]:
+    """The surfaces of the drawn estimators' solids (:func:`drawn_methods`) for one tree's
+    points, as :func:`measure_trees_and_surfaces` keeps them: on the points thinned to
+    ``volume.voxel_size``; estimators without a valid solid are left out."""
+    from canopy_kit import plugins
+
+    measured = measured_points(xyz, volume)
+    out = []
+    for method in drawn_methods(volume):
+        est = (estimators or {}).get(method) or plugins.create(
+            "volumes", method, volume.params.get(method, {}), where=f"volume.params.{method}"
+        )
+        surface = est.with_surface(measured)[1]
+        if surface is not None:
+            out.append(surface)
+    return out
+
+
+def _measure_tree(
+    xyz: np.ndarray,
+    volume: VolumeConfig,
+    ground_height: GroundHeight | None,
+    estimators: Estimators | None,
+    drawn: Collection[str],
+) -> tuple[dict[str, Any], list[Surface]]:
+    """:func:`measure_tree`'s row and the surfaces of the estimators in ``drawn``."""
     estimators = estimators if estimators is not None else build_estimators(volume)
     centre = np.median(xyz[:, :2], axis=0)
     ground = float(ground_height(centre[None, :])[0]) if ground_height is not None else None
@@ -133,8 +184,14 @@ def measure_tree(
     flags = []
     measured = measured_points(xyz, volume)
     fill = None
+    surfaces: dict[str, Surface] = {}
     for method, est in estimators.items():
-        result = est(measured)
+        if method in drawn:
+            result, surface = est.with_surface(measured)
+            if surface is not None:
+                surfaces[method] = surface
+        else:
+            result = est(measured)
         row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
         if not result.valid:
             flags.append(f"{method}: {result.reason}")
@@ -143,7 +200,7 @@ def measure_tree(
     row["volume_flags"] = "; ".join(flags)
     recommended = row[volume_column(volume.recommended)]
     row.update(interval_columns(measured, recommended, volume.recommended, fill=fill))
-    return row
+    return row, [surfaces[m] for m in drawn if m in surfaces]
 
 
 def measure_trees(
@@ -161,22 +218,49 @@ def measure_trees(
     (never inside a daemonic process such as a Dask worker); the table does not depend on
     the number of workers.
     """
+    return _measure_trees(cloud, labels, volume, ground_height, progress, estimators, ()).table
+
+
+def measure_trees_and_surfaces(
+    cloud: PointCloud,
+    labels: np.ndarray,
+    volume: VolumeConfig,
+    ground_height: GroundHeight | None = None,
+    progress: Progress | None = None,
+    estimators: Estimators | None = None,
+) -> TreeVolumes:
+    """:func:`measure_trees`' table and, per segment, the surfaces of the solids its drawn
+    estimators measured (:func:`drawn_methods`), from the same triangulations."""
+    drawn = tuple(drawn_methods(volume))
+    return _measure_trees(cloud, labels, volume, ground_height, progress, estimators, drawn)
+
+
+def _measure_trees(
+    cloud: PointCloud,
+    labels: np.ndarray,
+    volume: VolumeConfig,
+    ground_height: GroundHeight | None,
+    progress: Progress | None,
+    estimators: Estimators | None,
+    drawn: tuple[str, ...],
+) -> TreeVolumes:
     estimators = estimators if estimators is not None else build_estimators(volume)
     ids = np.unique(labels[labels >= 0])
     order = np.argsort(labels, kind="stable")
     sorted_labels = labels[order]
 
-    def measure(seg: int) -> dict:
+    def measure(seg: int) -> tuple[dict, list[Surface]]:
         lo, hi = np.searchsorted(sorted_labels, [seg, seg + 1])
-        row = measure_tree(cloud.xyz[order[lo:hi]], volume, ground_height, estimators)
-        return {"segment": int(seg), **row}
+        xyz = cloud.xyz[order[lo:hi]]
+        row, surfaces = _measure_tree(xyz, volume, ground_height, estimators, drawn)
+        return {"segment": int(seg), **row}, surfaces
 
-    def measure_all(segments: np.ndarray, tick: Callable[[], None]) -> list[dict]:
-        rows = []
+    def measure_all(segments: np.ndarray, tick: Callable[[], None]) -> list:
+        done = []
         for seg in segments:
-            rows.append(measure(int(seg)))
+            done.append(measure(int(seg)))
             tick()
-        return rows
+        return done
 
     n_workers = worker_count(volume.workers, len(ids) // MIN_TREES_PER_WORKER)
     parts = run_jobs(
@@ -186,5 +270,6 @@ def measure_trees(
         len(ids),
         progress,
     )
-    rows = [row for part in parts for row in part]
-    return pd.DataFrame(sorted(rows, key=lambda r: r["segment"]))
+    done = sorted((tree for part in parts for tree in part), key=lambda t: t[0]["segment"])
+    table = pd.DataFrame([row for row, _ in done])
+    return TreeVolumes(table, {row["segment"]: surfaces for row, surfaces in done if surfaces})
