@@ -161,8 +161,9 @@ def tree_metrics(
     if not 0 < crown_fraction <= 1:
         raise ConfigError(f"crown_fraction must be in (0, 1], got {crown_fraction!r}")
     ground = float(pts[:, 2].min()) if ground_z is None else float(ground_z)
-    widest, across = widest_extents(pts[:, :2])
-    area = polygon_area(horizontal_hull(pts[:, :2]))
+    outline = horizontal_hull(pts[:, :2])
+    widest, across = widest_extents(outline)  # the outline's extents are the points'
+    area = polygon_area(outline)
     if volume_m3 is None:
         from canopy_kit.volume.hull import ConvexHullVolume
 

@@ -166,10 +166,19 @@ def _measure_tree(
 ) -> tuple[dict[str, Any], list[Surface]]:
     """:func:`measure_tree`'s row and the surfaces of the estimators in ``drawn``."""
     estimators = estimators if estimators is not None else build_estimators(volume)
+    measured = measured_points(xyz, volume)
+    results, surfaces = {}, {}
+    for method, est in estimators.items():
+        results[method], surface = (
+            est.with_surface(measured) if method in drawn else (est(measured), None)
+        )
+        if surface is not None:
+            surfaces[method] = surface
     centre = np.median(xyz[:, :2], axis=0)
     ground = float(ground_height(centre[None, :])[0]) if ground_height is not None else None
     row: dict[str, Any] = {"x": float(centre[0]), "y": float(centre[1])}
-    metrics = tree_metrics(xyz, ground_z=ground)
+    # The metrics' density is not in the table: no second hull of every point for it.
+    metrics = tree_metrics(xyz, ground_z=ground, volume_m3=float("nan"))
     row.update(
         {
             "n_points": metrics.n_points,
@@ -181,23 +190,11 @@ def _measure_tree(
             "sphere_volume_m3": metrics.sphere_volume_m3,
         }
     )
-    flags = []
-    measured = measured_points(xyz, volume)
-    fill = None
-    surfaces: dict[str, Surface] = {}
-    for method, est in estimators.items():
-        if method in drawn:
-            result, surface = est.with_surface(measured)
-            if surface is not None:
-                surfaces[method] = surface
-        else:
-            result = est(measured)
+    for method, result in results.items():
         row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
-        if not result.valid:
-            flags.append(f"{method}: {result.reason}")
-        if method == volume.recommended:
-            fill = result.extra.get("surface_fill")
+    flags = [f"{m}: {r.reason}" for m, r in results.items() if not r.valid]
     row["volume_flags"] = "; ".join(flags)
+    fill = results[volume.recommended].extra.get("surface_fill")
     recommended = row[volume_column(volume.recommended)]
     row.update(interval_columns(measured, recommended, volume.recommended, fill=fill))
     return row, [surfaces[m] for m in drawn if m in surfaces]
