@@ -139,7 +139,9 @@ def compute(
     volumes = cache.get_or_compute("volumes", vol_key, lambda: volume_stage(ctx, report))
     ctx.trees, ctx.surfaces = volumes.table, volumes.surfaces
     if drone_images is not None:
-        gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
+        gt_key = stage_key(
+            "aerial", fingerprint(drone_images), config.ground_truth, config.seed, vol_key
+        )
         ctx.aerial = cache.get_or_compute(
             "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report)
         )
@@ -259,6 +261,7 @@ def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -
         seeds=seeds,
         progress=progress,
         config=ctx.config.ground_truth,
+        seed=ctx.config.seed,
     )
 
 

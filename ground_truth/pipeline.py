@@ -65,9 +65,10 @@ class GroundTruthResult:
 RECONSTRUCTION_KEYS = ("max_image_size", "work_image_size", "ortho_resolution", "max_canopy_height")
 
 
-def sfm_options(config: GroundTruthConfig) -> SfmOptions:
-    """The structure-from-motion settings of ``config`` (the rest at their defaults)."""
-    return SfmOptions(max_image_size=config.max_image_size)
+def sfm_options(config: GroundTruthConfig, seed: int = 0) -> SfmOptions:
+    """The structure-from-motion settings of ``config`` and the run's ``seed`` (the rest at
+    their defaults)."""
+    return SfmOptions(max_image_size=config.max_image_size, seed=seed)
 
 
 def ortho_resolution(gsd: float, config: GroundTruthConfig) -> float:
@@ -120,10 +121,11 @@ def _reconstruct(
     opts: GroundTruthConfig,
     report: Progress,
     timings: dict[str, float],
+    seed: int = 0,
 ) -> tuple[SparseModel, SurfaceModel, Orthomosaic, float, float, float]:
     """SfM, surface models and orthomosaic of a flight."""
     t0 = time.perf_counter()
-    model = run_sfm(flight, out / "sfm", frame, sfm_options(opts), report)
+    model = run_sfm(flight, out / "sfm", frame, sfm_options(opts, seed), report)
     timings["sfm"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -168,6 +170,7 @@ def process_flight(
     progress: Progress | None = None,
     config: GroundTruthConfig | None = None,
     reuse: GroundTruthResult | None = None,
+    seed: int = 0,
 ) -> GroundTruthResult:
     """Drone photos → georeferenced orthomosaic, DSM/DTM/CHM, crowns and (with seeds) per-tree table.
 
@@ -177,6 +180,7 @@ def process_flight(
     the same photos and frame, skips SfM, surface and orthomosaic (other seeds or crown and
     matching settings only). ``config`` is the ``[ground_truth]`` table of a preset
     (default: its defaults); it is written next to the results as ``ground_truth_config.json``.
+    ``seed`` (the preset's ``seed``) seeds SfM's random sampling; the report keeps it.
     """
     opts = config or GroundTruthConfig()
     report = progress or (lambda *_: None)
@@ -206,6 +210,12 @@ def process_flight(
                 f"{getattr(made_with, key)!r}, not {getattr(opts, key)!r}; "
                 "process the photos again"
             )
+        made_seed = reuse.report.get("sfm_seed", 0)
+        if made_seed != seed:
+            raise ProcessingError(
+                f"seed: the result to reuse was reconstructed with seed {made_seed}, "
+                f"not {seed}; process the photos again"
+            )
         model, surface, mosaic = reuse.model, reuse.surface, reuse.ortho
         timings.update(
             {
@@ -223,7 +233,7 @@ def process_flight(
         fresh = not (out / "sfm").exists()
         try:
             model, surface, mosaic, gsd, ortho_res, top = _reconstruct(
-                flight, out, frame, opts, report, timings
+                flight, out, frame, opts, report, timings, seed
             )
         except BaseException:
             if fresh:  # no half-made reconstruction left behind under --out
@@ -246,6 +256,7 @@ def process_flight(
         "images": str(Path(images_dir)),
         "frame": frame.to_dict(),
         "sfm": model.report(),
+        "sfm_seed": seed,
         "ground_sampling_distance_m": gsd,
         "orthomosaic_resolution_m": ortho_res,
         "surface_resolution_m": grid.resolution,

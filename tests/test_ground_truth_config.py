@@ -288,15 +288,15 @@ def test_process_flight_hands_the_config_to_sfm(
     seen = {}
 
     def fake_sfm(flight, work, frame, options, report):
-        seen["max_image_size"] = options.max_image_size
+        seen.update(max_image_size=options.max_image_size, seed=options.seed)
         raise ProcessingError("stop after SfM")
 
     monkeypatch.setattr(gp, "run_sfm", fake_sfm)
     with pytest.raises(ProcessingError, match="stop after SfM"):
         gp.process_flight(
-            flight_dir, tmp_path / "out", config=GroundTruthConfig(max_image_size=640)
+            flight_dir, tmp_path / "out", config=GroundTruthConfig(max_image_size=640), seed=7
         )
-    assert seen == {"max_image_size": 640}
+    assert seen == {"max_image_size": 640, "seed": 7}
 
 
 def test_reuse_refuses_other_reconstruction_settings(flight_dir: Path, tmp_path: Path) -> None:
@@ -311,6 +311,11 @@ def test_reuse_refuses_other_reconstruction_settings(flight_dir: Path, tmp_path:
     with pytest.raises(ProcessingError, match="ground_truth.work_image_size"):
         process_flight(
             flight_dir, tmp_path / "out", config=GroundTruthConfig(work_image_size=500), reuse=reuse
+        )
+    reuse.report = {"sfm_seed": 0}  # SfM's random sampling was seeded otherwise: an error too
+    with pytest.raises(ProcessingError, match="reconstructed with seed 0, not 3"):
+        process_flight(
+            flight_dir, tmp_path / "out", config=GroundTruthConfig(), reuse=reuse, seed=3
         )
 
 

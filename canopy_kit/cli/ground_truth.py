@@ -60,10 +60,16 @@ def ground_truth(
         overrides.setdefault("ground_truth", {})["work_image_size"] = work_size
     if tree_spacing is not None:
         overrides.setdefault("ground_truth", {})["tree_spacing_m"] = tree_spacing
-    config = load_preset(preset, overrides).ground_truth
+    pipeline = load_preset(preset, overrides)
     with progress_bar(transient=True) as progress:
         result = process_flight(
-            images_dir, out, frame=local, seeds=seeds, progress=progress, config=config
+            images_dir,
+            out,
+            frame=local,
+            seeds=seeds,
+            progress=progress,
+            config=pipeline.ground_truth,
+            seed=pipeline.seed,
         )
     if json_out:
         print_json(result.report)
