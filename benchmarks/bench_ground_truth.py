@@ -5,7 +5,8 @@ and docs/GROUND_TRUTH.md:
 
 * accuracy: pistachio and almond flights (4 rows x 10 trees, a seed the defaults were not
   tuned on): registration, camera georeferencing error, crown detection, diameter and
-  height errors, volume-model biases; crowns seeded by CHM maxima and by tree positions;
+  height errors, volume-model biases; crowns from the imagery alone (the preset's
+  ``crown_seeds``) and seeded by tree positions;
 * sphere-model bias of the paper's ground truth against the exact crown volume, on many
   simulated trees (no photogrammetry involved);
 * speed: SfM time per image and in total for about 20 and 50 photos, and the surface,
@@ -70,7 +71,7 @@ def accuracy(work: Path, orchards: list[str] | None = None) -> None:
         root = flight(work, kind, rows, trees, seed)
         truth = pd.read_csv(root / "truth" / "trees.csv")
         result = None
-        for seeding in ("chm_maxima", "tree_positions"):
+        for seeding in ("imagery", "tree_positions"):  # imagery: the preset's crown_seeds
             out = root / f"gt_{seeding}"
             t0, c0 = time.perf_counter(), time.process_time()
             # The second run reuses SfM, surface and mosaic: only the crowns differ.
@@ -87,7 +88,7 @@ def accuracy(work: Path, orchards: list[str] | None = None) -> None:
             sfm = result.report["sfm"]
             line = {
                 "flight": root.name,
-                "seeding": seeding,
+                "seeding": result.report.get("crown_seeding", seeding),
                 "photos": sfm["total_images"],
                 "registered": sfm["registered_images"],
                 "reprojection_px": round(sfm["mean_reprojection_error_px"], 3),
