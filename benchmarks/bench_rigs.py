@@ -100,7 +100,7 @@ def true_pose_trees(sim: Path, config) -> pd.DataFrame:
         sim, config.mapping.map_voxel_size, max_range=config.mapping.max_range
     )
     ctx.segmentation = segment_stage(ctx, quiet)
-    ctx.trees = volume_stage(ctx, quiet).table
+    ctx.trees = volume_stage(ctx, quiet, surfaces=False).table
     return evaluate_against_truth(ctx, tree_table(ctx), sim)["trees"]
 
 

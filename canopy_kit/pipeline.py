@@ -28,6 +28,7 @@ from canopy_kit.outputs import Results, run_metrics, write_tree_tables
 from canopy_kit.tree_table import tree_table
 
 if TYPE_CHECKING:
+    from canopy_kit.volume.surface import Surface
     from canopy_kit.volume.verb import TreeVolumes
 
 Progress = Callable[[str, float, float], None]
@@ -48,7 +49,7 @@ class RunContext:
     truth_dir: Path | None = None  # simulated session the run was checked against
     layout: Any = None  # row and tree spacing, trunks per segment (segment.layout.Layout)
     estimators: dict[str, Any] | None = None  # the volume estimators, built once per run
-    surfaces: dict[int, list[Any]] = field(default_factory=dict)  # drawn solids per segment
+    surfaces: dict[int, list[Surface]] = field(default_factory=dict)  # drawn solids per segment
 
 
 def run(
@@ -135,13 +136,12 @@ def compute(
         "segment", map_key, config.preprocess, config.segment, config.rows, config.seed
     )
     ctx.segmentation = cache.get_or_compute("segment", seg_key, lambda: segment_stage(ctx, report))
-    vol_key = stage_key("volumes", seg_key, config.volume)
+    # "surfaces": the entry holds the drawn solids too (TreeVolumes), not the table alone
+    vol_key = stage_key("volumes", seg_key, config.volume, "surfaces")
     volumes = cache.get_or_compute("volumes", vol_key, lambda: volume_stage(ctx, report))
     ctx.trees, ctx.surfaces = volumes.table, volumes.surfaces
     if drone_images is not None:
-        gt_key = stage_key(
-            "aerial", fingerprint(drone_images), config.ground_truth, config.seed, vol_key
-        )
+        gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
         ctx.aerial = cache.get_or_compute(
             "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report)
         )
@@ -208,10 +208,10 @@ def segment_stage(ctx: RunContext, progress: Progress) -> Any:
     )
 
 
-def volume_stage(ctx: RunContext, progress: Progress) -> TreeVolumes:
+def volume_stage(ctx: RunContext, progress: Progress, surfaces: bool = True) -> TreeVolumes:
     """Metrics and every configured volume estimator per segmented tree, on the map's points
     as map.laz stores them (1 mm): a tree's points read back from it give the same numbers.
-    The solids of the drawn estimators come with it, for the report."""
+    With ``surfaces`` the solids of the drawn estimators come with it, for the report."""
     from dataclasses import replace
 
     from canopy_kit.io.las_write import on_las_grid
@@ -225,6 +225,7 @@ def volume_stage(ctx: RunContext, progress: Progress) -> TreeVolumes:
         ground_height=seg.ground.height,
         progress=progress,
         estimators=ctx.estimators,
+        draw=surfaces,
     )
     records = seg.table().set_index("segment_id")
     table = volumes.table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")

@@ -370,6 +370,26 @@ def check_translation(est: Any) -> None:
     assert abs(there - here) <= TRANSLATION_RTOL * here, f"{here} m³ here, {there} m³ moved"
 
 
+def check_surface(est: Any) -> None:
+    """``with_surface(xyz)`` (when the estimator has it) gives the call's result and, if it
+    draws one, a mesh of the points' coordinates whose volume is the result's; invalid
+    results draw nothing."""
+    if not hasattr(est, "with_surface"):
+        return
+    xyz = crown()
+    result, surface = est.with_surface(xyz)
+    assert result == est(xyz), "with_surface's result differs from the call's"
+    if surface is not None:
+        assert result.valid, "a surface drawn for an invalid result"
+        assert surface.volume_m3 == result.volume_m3, "the surface's volume is not the result's"
+        faces = np.asarray(surface.faces)
+        assert faces.ndim == 2 and faces.shape[1] == 3 and len(faces), "faces are not triangles"
+        assert 0 <= faces.min() and faces.max() < len(surface.vertices), "faces index no vertex"
+        on_points = {tuple(p) for p in np.asarray(xyz)}
+        assert all(tuple(v) in on_points for v in surface.vertices), "a vertex is no input point"
+    assert est.with_surface(xyz[:3])[1] is None, "a surface drawn for three points"
+
+
 SHARED: tuple[tuple[str, Callable[[Any], None]], ...] = (
     ("init_stores_params", check_init_stores_params),
     ("get_params_round_trip", check_get_params_round_trip),
@@ -398,6 +418,7 @@ VOLUME_RULES = SHARED + (
     ("rejects_wrong_shape", check_vol_rejects_wrong_shape),
     ("deterministic", check_vol_deterministic),
     ("translation_invariant", check_translation),
+    ("surface_is_the_measured_solid", check_surface),
 )
 
 

@@ -155,6 +155,11 @@ def test_boundary_triangles_are_the_faces_of_one_tetrahedron_only() -> None:
     assert {tuple(f) for f in boundary_triangles(glued + 3_000_000, 3_000_005)} == {
         tuple(np.array(f) + 3_000_000) for f in faces
     }
+    # just below the cut-off the int64 keys of the largest indices do not overflow
+    near = glued + 1_999_990
+    assert {tuple(f) for f in boundary_triangles(near, 1_999_999)} == {
+        tuple(np.array(f) + 1_999_990) for f in faces
+    }
     assert boundary_triangles(np.empty((0, 4), np.int64), 10).shape == (0, 3)
 
 

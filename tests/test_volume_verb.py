@@ -103,6 +103,38 @@ def test_the_kept_surfaces_are_the_solids_the_table_measured() -> None:
     assert [s.name for s in drawn[0]] == ["convex hull"]
 
 
+def test_no_tree_gives_an_empty_table_that_still_joins() -> None:
+    """A segmentation without trees: an empty table with its ``segment`` key, no surfaces."""
+    from canopy_kit.volume.verb import measure_trees_and_surfaces
+
+    cloud, labels = _blobs(2)
+    kept = measure_trees_and_surfaces(cloud, np.full(len(labels), -1), VolumeConfig(workers=1))
+    assert kept.table.empty and kept.surfaces == {}
+    names = pd.DataFrame({"tree_id": pd.Series(dtype=str)}, index=pd.Index([], name="segment_id"))
+    assert kept.table.join(names, on="segment").empty
+
+
+def test_the_report_draws_only_the_trees_it_was_not_given() -> None:
+    """Kept surfaces are used as they are; the trees without an entry are drawn afresh,
+    exactly as the volume stage would have kept them; with no drawn estimator, none is."""
+    from types import SimpleNamespace
+
+    from canopy_kit.report.explorer import _encoded_surfaces, encode_surface
+    from canopy_kit.volume.verb import measure_trees_and_surfaces
+
+    cloud, labels = _blobs(3, seed=2)
+    config = VolumeConfig(voxel_size=0.1, workers=1)
+    kept = measure_trees_and_surfaces(cloud, labels, config).surfaces
+    items = [(SimpleNamespace(segment=s, x=0.0, y=0.0), cloud.xyz[labels == s]) for s in range(3)]
+    partly = {0: kept[0], 2: []}  # tree 1 missing; tree 2 measured with nothing to draw
+    encoded = _encoded_surfaces(items, config, partly)
+    centre = np.array([0.0, 0.0, cloud.xyz[labels == 1][:, 2].min()])
+    assert encoded[1] == [encode_surface(s, centre) for s in kept[1]] and len(encoded[1]) == 2
+    assert len(encoded[0]) == 2 and encoded[2] == []
+    no_drawing = VolumeConfig(voxel_size=0.1, workers=1, methods=["slices"])
+    assert _encoded_surfaces(items, no_drawing, {}) == [[], [], []]
+
+
 def test_the_interval_takes_the_recommended_estimators_fill_unchanged() -> None:
     """adaptive_alpha's surface fill, handed to the interval, is the fill measured afresh."""
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, surface_fill

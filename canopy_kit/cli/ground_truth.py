@@ -22,7 +22,9 @@ def ground_truth(
         "and CRS); default: UTM at the flight",
     ),
     preset: str = typer.Option("adaptive", help=preset_help(": its [ground_truth] table is used")),
-    set_: list[str] = typer.Option([], "--set", help="Override a setting: ground_truth.key=value"),
+    set_: list[str] = typer.Option(
+        [], "--set", help="Override a setting: ground_truth.key=value, or seed=N (SfM's sampling)"
+    ),
     work_size: int = typer.Option(
         None,
         "--work-size",
@@ -53,9 +55,11 @@ def ground_truth(
             raise InputError(f"{frame}: not a readable frame JSON ({exc})") from None
         local = LocalFrame.from_dict(data.get("frame", data) if isinstance(data, dict) else {})
     overrides = parse_overrides(set_)
-    other = sorted(set(overrides) - {"ground_truth"})
+    other = sorted(set(overrides) - {"ground_truth", "seed"})
     if other:  # the other sections do nothing here
-        raise ConfigError(f"--set {other[0]}...: ground-truth takes only ground_truth.key=value")
+        raise ConfigError(
+            f"--set {other[0]}...: ground-truth takes only ground_truth.key=value and seed=N"
+        )
     if work_size is not None:
         overrides.setdefault("ground_truth", {})["work_image_size"] = work_size
     if tree_spacing is not None:

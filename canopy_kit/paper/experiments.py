@@ -287,7 +287,7 @@ def compute_on_map(
 
     ctx = RunContext(pipeline_config, mapping=mapping)
     ctx.segmentation = segment_stage(ctx, progress)
-    ctx.trees = volume_stage(ctx, progress).table
+    ctx.trees = volume_stage(ctx, progress, surfaces=False).table
     if drone_images is not None:
         ctx.aerial = aerial_stage(ctx, drone_images, out / "aerial", progress)
     ctx.table = tree_table(ctx)

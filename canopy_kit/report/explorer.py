@@ -145,13 +145,15 @@ def _encoded_surfaces(
     in forked processes (``volume.workers``, as the volume stage): a tetrahedralisation
     per tree is the report's largest cost."""
     from canopy_kit.parallel import run_jobs, worker_count
-    from canopy_kit.volume.verb import MIN_TREES_PER_WORKER, tree_surfaces
+    from canopy_kit.volume.verb import MIN_TREES_PER_WORKER, drawn_methods, tree_surfaces
 
     surfaces = [
         [encode_surface(s, _centre(rec, xyz)) for s in known.get(int(rec.segment), [])]
         for rec, xyz in items
     ]
     missing = [i for i, (rec, _) in enumerate(items) if int(rec.segment) not in known]
+    if not drawn_methods(volume):  # nothing to draw: no tree is missing a surface
+        missing = []
 
     def encode(part: list[int], tick: Callable[[], None]) -> list[list[dict[str, Any]]]:
         out = []

@@ -111,17 +111,28 @@ class ConvexHullVolume(VolumeEstimator):
         pass
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
-        return self._volume_and_surface(xyz)[0]
+        from scipy.spatial import QhullError
 
-    def _volume_and_surface(self, xyz: np.ndarray) -> tuple[float | tuple[float, dict], Surface]:
+        try:
+            return hull_volume(xyz)
+        except QhullError as exc:
+            return 0.0, {"reason": _hull_failure(exc)}
+
+    def _volume_and_surface(
+        self, xyz: np.ndarray
+    ) -> tuple[float | tuple[float, dict], Surface | None]:
         from scipy.spatial import ConvexHull, QhullError
 
         try:
             hull = ConvexHull(xyz - xyz.mean(axis=0))  # centred: as hull_volume
         except QhullError as exc:
-            return (0.0, {"reason": f"qhull could not build a hull: {qhull_reason(exc)}"}), None
+            return (0.0, {"reason": _hull_failure(exc)}), None
         volume = float(hull.volume)
         return volume, compact_surface("convex hull", xyz, hull.simplices, volume)
+
+
+def _hull_failure(exc: Exception) -> str:
+    return f"qhull could not build a hull: {qhull_reason(exc)}"
 
 
 class SampleCorrectedHullVolume(VolumeEstimator):

@@ -101,9 +101,10 @@ def _farthest_pair(hull: np.ndarray) -> tuple[int, int]:
     return pair
 
 
-def widest_axis(xy: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """(widest extent, extent perpendicular to it, unit vector along the widest) of (N, 2) points."""
-    hull = horizontal_hull(xy)
+def widest_axis(xy: np.ndarray, hull: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
+    """(widest extent, extent perpendicular to it, unit vector along the widest) of (N, 2)
+    points; ``hull``: their :func:`horizontal_hull`, when already made."""
+    hull = horizontal_hull(xy) if hull is None else hull
     if len(hull) < 2:
         return 0.0, 0.0, np.array([1.0, 0.0])
     i, j = _farthest_pair(hull)
@@ -115,9 +116,10 @@ def widest_axis(xy: np.ndarray) -> tuple[float, float, np.ndarray]:
     return widest, float(np.ptp(across)), axis
 
 
-def widest_extents(xy: np.ndarray) -> tuple[float, float]:
-    """(widest horizontal extent, extent perpendicular to it) of (N, 2) points."""
-    widest, across, _ = widest_axis(xy)
+def widest_extents(xy: np.ndarray, hull: np.ndarray | None = None) -> tuple[float, float]:
+    """(widest horizontal extent, extent perpendicular to it) of (N, 2) points; ``hull``:
+    their :func:`horizontal_hull`, when already made."""
+    widest, across, _ = widest_axis(xy, hull)
     return widest, across
 
 
@@ -162,7 +164,7 @@ def tree_metrics(
         raise ConfigError(f"crown_fraction must be in (0, 1], got {crown_fraction!r}")
     ground = float(pts[:, 2].min()) if ground_z is None else float(ground_z)
     outline = horizontal_hull(pts[:, :2])
-    widest, across = widest_extents(outline)  # the outline's extents are the points'
+    widest, across = widest_extents(pts[:, :2], outline)
     area = polygon_area(outline)
     if volume_m3 is None:
         from canopy_kit.volume.hull import ConvexHullVolume

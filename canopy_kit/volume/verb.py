@@ -13,7 +13,7 @@ run's estimators once; pass them on to avoid building them again. Column names c
 from __future__ import annotations
 
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -151,10 +151,17 @@ def tree_surfaces(
         est = (estimators or {}).get(method) or plugins.create(
             "volumes", method, volume.params.get(method, {}), where=f"volume.params.{method}"
         )
-        surface = est.with_surface(measured)[1]
+        surface = _measured(est, measured, draw=True)[1]
         if surface is not None:
             out.append(surface)
     return out
+
+
+def _measured(est: Any, xyz: np.ndarray, draw: bool) -> tuple[Any, Surface | None]:
+    """``est``'s result on ``xyz`` and, when ``draw`` and it can draw one, its solid's surface
+    (a volume plugin need not derive from VolumeEstimator)."""
+    with_surface = getattr(est, "with_surface", None) if draw else None
+    return with_surface(xyz) if with_surface is not None else (est(xyz), None)
 
 
 def _measure_tree(
@@ -167,11 +174,10 @@ def _measure_tree(
     """:func:`measure_tree`'s row and the surfaces of the estimators in ``drawn``."""
     estimators = estimators if estimators is not None else build_estimators(volume)
     measured = measured_points(xyz, volume)
-    results, surfaces = {}, {}
+    results: dict[str, Any] = {}
+    surfaces: dict[str, Surface] = {}
     for method, est in estimators.items():
-        results[method], surface = (
-            est.with_surface(measured) if method in drawn else (est(measured), None)
-        )
+        results[method], surface = _measured(est, measured, method in drawn)
         if surface is not None:
             surfaces[method] = surface
     centre = np.median(xyz[:, :2], axis=0)
@@ -225,11 +231,15 @@ def measure_trees_and_surfaces(
     ground_height: GroundHeight | None = None,
     progress: Progress | None = None,
     estimators: Estimators | None = None,
+    draw: bool = True,
 ) -> TreeVolumes:
-    """:func:`measure_trees`' table and, per segment, the surfaces of the solids its drawn
-    estimators measured (:func:`drawn_methods`), from the same triangulations."""
-    drawn = tuple(drawn_methods(volume))
-    return _measure_trees(cloud, labels, volume, ground_height, progress, estimators, drawn)
+    """:func:`measure_trees`' table and, per measured segment, the surfaces of the solids its
+    drawn estimators measured (:func:`drawn_methods`), from the same triangulations (an
+    empty list when none of them measured a valid solid). ``draw=False``: the table only,
+    with no surfaces at all."""
+    drawn = tuple(drawn_methods(volume)) if draw else ()
+    volumes = _measure_trees(cloud, labels, volume, ground_height, progress, estimators, drawn)
+    return volumes if draw else replace(volumes, surfaces={})
 
 
 def _measure_trees(
@@ -252,7 +262,9 @@ def _measure_trees(
         row, surfaces = _measure_tree(xyz, volume, ground_height, estimators, drawn)
         return {"segment": int(seg), **row}, surfaces
 
-    def measure_all(segments: np.ndarray, tick: Callable[[], None]) -> list:
+    def measure_all(
+        segments: np.ndarray, tick: Callable[[], None]
+    ) -> list[tuple[dict, list[Surface]]]:
         done = []
         for seg in segments:
             done.append(measure(int(seg)))
@@ -268,5 +280,5 @@ def _measure_trees(
         progress,
     )
     done = sorted((tree for part in parts for tree in part), key=lambda t: t[0]["segment"])
-    table = pd.DataFrame([row for row, _ in done])
-    return TreeVolumes(table, {row["segment"]: surfaces for row, surfaces in done if surfaces})
+    table = pd.DataFrame([row for row, _ in done]) if done else pd.DataFrame(columns=["segment"])
+    return TreeVolumes(table, {row["segment"]: surfaces for row, surfaces in done})
