@@ -207,6 +207,9 @@ class GroundTruthConfig:
     crown_seeds: str = "rows"
     # Planting distance along the row (m) for "rows"; unset: the crowns' width across the row.
     tree_spacing_m: float | None = None
+    # The rows' bearing from north (degrees, 0-180) for the rows seeding and the along/across
+    # extents; unset: found in the imagery (the canopy's rows, else the crowns' neighbours).
+    row_bearing_deg: float | None = None
     # Move the seed trees by their measured offset from the crowns and delineate again.
     register_seeds: bool = True
     # An aerial crown whose diameter is outside this ratio of the LiDAR crown diameter is a
@@ -226,6 +229,16 @@ class GroundTruthConfig:
             if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
                 raise ConfigError(f"ground_truth.{name}: expected a number > 0, got {value!r}")
         check_choice(self.crown_seeds, "ground_truth.crown_seeds", None, CROWN_SEEDINGS)
+        bearing = self.row_bearing_deg
+        if bearing is not None and (
+            isinstance(bearing, bool)
+            or not isinstance(bearing, int | float)
+            or not 0 <= bearing < 360
+        ):
+            raise ConfigError(
+                "ground_truth.row_bearing_deg: expected a bearing from north in degrees "
+                f"(0 <= value < 360) or no value (found in the imagery), got {bearing!r}"
+            )
         for name, unset in (
             ("ortho_resolution", "the ground sampling distance"),
             ("tree_spacing_m", "the crowns' width across the row"),

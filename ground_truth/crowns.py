@@ -85,6 +85,8 @@ class CrownOptions:
     unseeded: str = "rows"
     # planting distance along the row; unset: the crowns' width across the row
     tree_spacing_m: float | None = None
+    # the rows' bearing from north (degrees); unset: found in the canopy
+    row_bearing_deg: float | None = None
 
 
 SEEDING_DESCRIPTIONS = {
@@ -373,7 +375,9 @@ def delineate_crowns(
         labels = _watershed(cells, chm_smooth, canopy, grid, opts, discs=True)
     else:
         if opts.unseeded == "rows":
-            layout = row_seeds(canopy, chm_smooth, grid, opts.tree_spacing_m)
+            layout = row_seeds(
+                canopy, chm_smooth, grid, opts.tree_spacing_m, bearing_deg=opts.row_bearing_deg
+            )
         if layout is not None:
             seeding = "rows"
             labels = np.where(canopy, layout.tree_of(x, y) + 1, 0)

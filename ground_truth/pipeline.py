@@ -38,6 +38,7 @@ from ground_truth.exif import Flight, read_flight
 from ground_truth.match import crown_tree_ids, match_crowns, read_trees, seed_offset, tree_positions
 from ground_truth.ortho import Orthomosaic, orthomosaic
 from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
+from ground_truth.rows import RowDirection
 from ground_truth.sfm import SfmOptions, SparseModel, run_sfm
 
 Progress = Callable[[str, float, float], None]
@@ -300,11 +301,17 @@ def crowns_stage(
     chm = sample_bilinear(surface.grid, surface.chm, ox, oy)
     seeded = trees is not None and opts.crowns_from_seeds
     seeds_xy = trees[["tree_x", "tree_y"]].to_numpy() if seeded else None
-    crown_opts = CrownOptions(unseeded=opts.crown_seeds, tree_spacing_m=opts.tree_spacing_m)
+    crown_opts = CrownOptions(
+        unseeded=opts.crown_seeds,
+        tree_spacing_m=opts.tree_spacing_m,
+        row_bearing_deg=opts.row_bearing_deg,
+    )
+    given = opts.row_bearing_deg
+    row_direction = RowDirection.from_bearing(given) if given is not None else None
     offset = None
     for attempt in range(2):
         seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy, crown_opts)
-        crowns = measure_crowns(seg, chm)
+        crowns = measure_crowns(seg, chm, row_direction)
         lat, lon, _ = frame.to_wgs84(crowns[["x", "y"]].to_numpy()) if len(crowns) else ([], [], [])
         crowns.insert(3, "lat", lat)
         crowns.insert(4, "lon", lon)

@@ -30,8 +30,14 @@ class RowDirection:
     """A horizontal unit vector along the rows (local x east, y north) and how it was found."""
 
     vector: tuple[float, float]
-    source: str  # "crown_neighbours", "crown_axes", "canopy_rows" (row_seeds) or "none"
+    source: str  # "crown_neighbours", "crown_axes", "canopy_rows" (row_seeds), "given" or "none"
     concentration: float  # mean resultant length of the doubled angles (0..1)
+
+    @classmethod
+    def from_bearing(cls, bearing_deg: float) -> RowDirection:
+        """The direction of a bearing from north (degrees) that the user gave."""
+        b = np.radians(bearing_deg)
+        return cls((float(np.sin(b)), float(np.cos(b))), "given", 1.0)
 
     @property
     def bearing_deg(self) -> float:

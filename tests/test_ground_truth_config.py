@@ -216,6 +216,8 @@ CASES: dict[str, tuple[object, Measure, int]] = {
     "crowns_from_seeds": (False, _seeded_markers, -1),
     "crown_seeds": ("chm_maxima", _hedgerow_one_to_one, -1),
     "tree_spacing_m": (2.4, _hedgerow_crown_count, +1),
+    # the fixture's rows run at 20°: given across them, the rows seeding finds fewer trees
+    "row_bearing_deg": (110.0, _hedgerow_one_to_one, -1),
     "register_seeds": (False, _seed_error, +1),
     "min_diameter_ratio": (0.9, _flagged_crowns, +1),
     "max_diameter_ratio": (1.1, _flagged_crowns, +1),
@@ -340,3 +342,19 @@ def test_ground_truth_cli_settings_are_checked_before_any_work(
     )
     assert isinstance(res.exception, ConfigError) and fragment in str(res.exception), res.output
     assert not (tmp_path / "out").exists()
+
+
+def test_a_given_row_bearing_is_used_and_reported() -> None:
+    """The rows' true bearing, given, finds the trees the imagery finds; the crowns are
+    measured along it and say so."""
+    from ground_truth.rows import RowDirection
+
+    found = _hedgerow_crowns(GroundTruthConfig())
+    given = _hedgerow_crowns(GroundTruthConfig(row_bearing_deg=20.0))
+    assert given[1] >= found[1] - 1
+    direction = given[0].attrs["row_direction"]
+    assert direction.source == "given" and direction.bearing_deg == pytest.approx(20.0)
+    assert RowDirection.from_bearing(200.0).bearing_deg == pytest.approx(20.0)
+    for bad in (-5.0, 360.0, "north", True):
+        with pytest.raises(ConfigError, match="ground_truth.row_bearing_deg"):
+            GroundTruthConfig(row_bearing_deg=bad)
