@@ -57,8 +57,8 @@ def test_adaptive_alpha_on_solids_of_known_volume(name: str) -> None:
     """Solids sampled on the 0.1 m grid up to their surface (measured: hull -3 %…+27 %).
     The α-hull alone (no offset) is 5-15 % below the truth (the thinned points lie up to half
     a cell inside; the 1 m thick L loses most) and never above the hull; the calibrated
-    outward offset (half a spacing, for LiDAR returns that lie inside the crown) lands at
-    +8 %…+13 %: on solids sampled up to their surface it over-counts by design."""
+    outward offset (0.425 of a spacing, for LiDAR returns that lie inside the crown) lands at
+    +6 %…+10 %: on solids sampled up to their surface it over-counts by design."""
     pts, true = SHAPES[name]()
     hull = estimate_volume(pts, "convex_hull").volume_m3
     shell = {"fill_voids": False}  # the shell's own volume: its closed cavity left empty
@@ -76,8 +76,8 @@ def test_adaptive_alpha_on_solids_of_known_volume(name: str) -> None:
 
 def test_closed_voids_are_filled_and_open_hollows_are_not() -> None:
     """A crown's leafless inside is still crown: by default the closed cavity of the thick
-    shell (r 1-2 m) is counted, giving the outer ball (33.5 m³; +8…+13 % by the offset as on
-    the solid ball). Cut open at the top (z ≥ 0.3 m removed: a bowl, like a vase's open centre),
+    shell (r 1-2 m) is counted, giving the outer ball (33.5 m³; over it by the offset as the
+    solid ball is). Cut open at the top (z ≥ 0.3 m removed: a bowl, like a vase's open centre),
     the hollow is reachable from outside and stays empty."""
     pts, shell_volume = hollow_ball()
     ball_volume = 4 / 3 * np.pi * 2.0**3
@@ -163,10 +163,13 @@ FORM_SESSION = {
 @pytest.mark.slow
 def test_interval_covers_the_true_volume_on_two_crown_forms(sim_factory) -> None:
     """A 1 × 3 session per form (seed 431: neither a calibration nor a held-out seed of the
-    benchmark), trees cut by the true tree_id, 0.1 m voxels, complete and one-sided scans: the
-    interval holds the simulator's exact envelope volume for ≥ 90 % of the 18 scans (measured
-    17: the complete scan of a small lobed crown, 4.6 m³, is 0.4 % above its upper bound),
-    every estimate within 6 % and their mean |error| under 3 %."""
+    benchmark), trees cut by the true tree_id, 16 rings × 512 columns, 0.1 m voxels, complete
+    and one-sided scans: the interval holds the simulator's exact envelope volume for ≥ 90 % of
+    the 18 scans (measured 17), and the estimates meet issue 25's goal, mean signed error within
+    ±5 % and mean |error| under 8 %, with none off by 10 % (measured −4.3 %, 4.3 % and −8.6 %).
+    This coarse, truth-labelled scan is the estimator's low side: the offset was set on the
+    trees the pipeline segments, where it is −0.2 % (docs/VOLUMES.md, "The offset
+    recalibrated"); with the offset of 0.5 it was −1 % here and +5…+9 % on deep-lobed crowns."""
     from canopy_kit.config import merge
     from canopy_kit.sim.truth_map import truth_map
     from canopy_kit.volume.truth_errors import simulated_trees
@@ -192,7 +195,8 @@ def test_interval_covers_the_true_volume_on_two_crown_forms(sim_factory) -> None
                 errors.append(result.volume_m3 / tree.true_volume_m3 - 1)
     print(f"inside {np.mean(inside):.0%}; errors {np.round(errors, 3)}")
     assert len(inside) == 18 and np.mean(inside) >= 0.9
-    assert np.abs(errors).max() < 0.06 and np.abs(errors).mean() < 0.03
+    assert abs(np.mean(errors)) <= 0.05 and np.abs(errors).mean() < 0.08
+    assert np.abs(errors).max() < 0.10
 
 
 REAL_TREES = ["archi_tree_1.las", "archi_tree_2.las", "pointcloudset_test_tree.las"]
