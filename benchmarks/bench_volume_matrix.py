@@ -9,8 +9,11 @@ simulator's trees (IoU ≥ 0.5 of the points) and measures every matched tree wi
 volume stage of the pipeline (the same code and settings as trees.csv):
 
 - ``both``: the tree's segment as the pipeline cut it (the crown seen from both alleys);
-- ``one-sided``: the same segment keeping only the points seen while the sensor was in the
-  alley on one side of the row (each side counted once).
+- ``one-sided``: the same segment as a drive along one alley alone would have mapped it:
+  the map of that alley's sweeps only (``canopy_kit.truth_map.alley_maps``), with the
+  segment's labels carried over (each side counted once). Until 2026-12-04 this was a split
+  of the whole map by the alley of each kept point, which gave the alley driven first every
+  voxel both alleys saw (docs/VOLUMES.md).
 
 Signed bias, MAPE and p90 of |error| against the simulator's exact envelope volume, and
 how often the recommended estimator's interval holds the truth, per cell and overall.

@@ -8,7 +8,7 @@ from ``canopy_kit.sim.truth_map``).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,14 +35,35 @@ def truth_map(
     Per-point attributes (intensity, ring, tree_id...) are kept; ``time`` holds absolute
     per-point times. Coordinates are in the session's local frame (CRS and origin set).
     """
+    return truth_maps(sim_dir, None, voxel_size, every, max_range, progress)[None]
+
+
+def truth_maps(
+    sim_dir: str | Path,
+    groups: Callable[[np.ndarray], Iterable[Hashable]] | None,
+    voxel_size: float = 0.05,
+    every: int = 1,
+    max_range: float = 30.0,
+    progress: Callable[[str, float, float], None] | None = None,
+) -> dict[Hashable, PointCloud]:
+    """Like :func:`truth_map`, one map per group of sweeps, in one pass over the bag:
+    ``groups(sensor_xy)`` names the groups a sweep belongs to from where the sensor was at its
+    stamp (None: one map of every sweep, key None). A group no sweep joined is absent."""
     truth = load_truth(sim_dir)
     pose_at = true_pose_interpolator(sim_dir)
-    chunks: list[PointCloud] = []
-    pending = 0
+    chunks: dict[Hashable, list[PointCloud]] = {}
+    pending: dict[Hashable, int] = {}
     with open_bag(find_bag(sim_dir)) as bag:
         total = next(t.count for t in bag.topics() if t.msgtype.endswith("PointCloud2"))
         for scan in bag.scans():
             if scan.index % every:
+                continue
+            keys = (
+                [None]
+                if groups is None
+                else list(groups(pose_at(np.array([scan.stamp]))[0][0, :2]))
+            )
+            if not keys:
                 continue
             times = scan.times if scan.times is not None else np.full(len(scan), scan.stamp)
             keep = np.linalg.norm(scan.xyz, axis=1) <= max_range
@@ -55,17 +76,63 @@ def truth_map(
                 k: v[keep] for k, v in scan.fields.items() if k not in ("t", "time", "timestamp")
             }
             fields["time"] = times[keep]
-            chunks.append(PointCloud(world, fields))
-            pending += len(world)
-            if pending > 4_000_000:
-                chunks = [voxel_downsample(PointCloud.concatenate(chunks), voxel_size)]
-                pending = len(chunks[0])
+            for key in keys:
+                chunks.setdefault(key, []).append(PointCloud(world, fields))
+                pending[key] = pending.get(key, 0) + len(world)
+                if pending[key] > 4_000_000:
+                    chunks[key] = [
+                        voxel_downsample(PointCloud.concatenate(chunks[key]), voxel_size)
+                    ]
+                    pending[key] = len(chunks[key][0])
             if progress:
                 progress("truth map", scan.index + 1, total)
-    cloud = voxel_downsample(PointCloud.concatenate(chunks), voxel_size)
-    cloud.crs = truth.frame.crs
-    cloud.origin = truth.frame.origin
-    return cloud
+    maps = {}
+    for key, parts in chunks.items():
+        cloud = voxel_downsample(PointCloud.concatenate(parts), voxel_size)
+        cloud.crs = truth.frame.crs
+        cloud.origin = truth.frame.origin
+        maps[key] = cloud
+    return maps
+
+
+def row_lines(trees: pd.DataFrame) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per row: a point on its line (the trunks' mean x, y) and the unit along-row direction
+    fitted through its trunks (pointing from its first tree to its last; x for a lone tree)."""
+    out = {}
+    for row, group in trees.groupby("row"):
+        xy = group[["x", "y"]].to_numpy(dtype=float)
+        direction = np.array([1.0, 0.0])
+        if len(xy) >= 2:
+            direction = np.linalg.svd(xy - xy.mean(axis=0), full_matrices=False)[2][0]
+            if direction @ (xy[-1] - xy[0]) < 0:
+                direction = -direction
+        out[int(row)] = (xy.mean(axis=0), direction)
+    return out
+
+
+def alley_maps(
+    sim_dir: str | Path, voxel_size: float = 0.05, max_range: float = 30.0
+) -> dict[tuple[int, int], PointCloud]:
+    """Per row and side (+1: left of the row line, as ``(-along_y, along_x)`` points; -1:
+    right), the map of only the sweeps driven in the alley on that side: the sensor on that
+    side of the line and nearer to it than the row spacing (20 m for a lone row). What a drive
+    along that alley alone would have mapped, unlike a split of the whole map, where the alley
+    driven first keeps every voxel both alleys saw."""
+    lines = row_lines(load_truth(sim_dir).trees)
+    across = {r: np.array([-d[1], d[0]]) for r, (_, d) in lines.items()}
+    centres = np.array([c for c, _ in lines.values()])
+    gaps = [abs((centres[i + 1] - centres[i]) @ across[r]) for i, r in enumerate(list(lines)[:-1])]
+    reach = float(np.median(gaps)) if gaps else 20.0
+
+    def sides(xy: np.ndarray) -> list[tuple[int, int]]:
+        out = []
+        for r, (centre, _) in lines.items():
+            d = float((xy - centre) @ across[r])
+            if 0 < abs(d) < reach:
+                out.append((r, 1 if d > 0 else -1))
+        return out
+
+    return truth_maps(sim_dir, sides, voxel_size, max_range=max_range)
 
 
 @dataclass

@@ -13,8 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.volume.truth_errors import alley_sides
-
 
 def segmented_session(
     sim_dir: str | Path, config: Any, reference_map: Any = None
@@ -49,10 +47,10 @@ def segmented_volume_errors(
 
     The map (true poses unless ``reference_map`` is given) is segmented with ``config``'s
     segmenter; each segment matched one-to-one to a simulated tree (IoU ≥ 0.5) is measured
-    by the volume stage with ``config.volume`` whole (scan ``both``) and keeping only the
-    points seen from each alley (``left``, ``right``). Returns one row per tree, scan and
-    method (``interval`` rows say whether the recommended estimator's interval held the
-    truth) and the segmentation score.
+    by the volume stage with ``config.volume`` whole (scan ``both``) and as a drive along
+    one alley alone would have seen it (``left``, ``right``: :func:`one_alley_scans`).
+    Returns one row per tree, scan and method (``interval`` rows say whether the recommended
+    estimator's interval held the truth) and the segmentation score.
     """
     import pandas as pd
 
@@ -62,11 +60,15 @@ def segmented_volume_errors(
     correct = score.trees[score.trees["status"] == "correct"]
     true_id_of = dict(zip(correct["segment_id"], correct["truth_id"], strict=True))
     true_volume = truth.trees.set_index("tree_id")["crown_volume_m3"]
-    side = alley_sides(sim_dir, cloud, truth.trees)
+    row_of_tree = truth.trees.set_index("tree_id")["row"]
+    row_of_segment = {s: int(row_of_tree[t]) for s, t in true_id_of.items()}
+    scans = [
+        ("both", cloud, seg.labels),
+        *one_alley_scans(sim_dir, cloud, seg.labels, row_of_segment),
+    ]
     rows = []
-    for scan, keep in [("both", None), ("left", side > 0), ("right", side < 0)]:
-        labels = seg.labels if keep is None else np.where(keep, seg.labels, -1)
-        table = measure_trees(cloud, labels, config.volume, ground_height=seg.ground.height)
+    for scan, scan_cloud, labels in scans:
+        table = measure_trees(scan_cloud, labels, config.volume, ground_height=seg.ground.height)
         for tree in table.itertuples(index=False):
             true_id = true_id_of.get(int(tree.segment))
             if true_id is None:
@@ -89,3 +91,31 @@ def segmented_volume_errors(
                 }
             )
     return pd.DataFrame(rows), score
+
+
+def one_alley_scans(
+    sim_dir: str | Path, cloud: Any, labels: np.ndarray, row_of_segment: dict[int, int]
+) -> list[tuple[str, Any, np.ndarray]]:
+    """``(scan, map, labels)`` per row and side: the map of that alley's sweeps alone
+    (:func:`canopy_kit.truth_map.alley_maps`, true poses, on map.laz's grid) with the segment
+    labels of ``cloud`` carried to its points (the nearest point of ``cloud`` within 0.1 m),
+    kept for the segments of that row (``row_of_segment``) only. ``scan`` is ``left`` or
+    ``right`` of the row line."""
+    from scipy.spatial import cKDTree
+
+    from canopy_kit.io.las_write import on_las_grid
+    from canopy_kit.truth_map import alley_maps
+
+    labels = np.asarray(labels)
+    index = cKDTree(cloud.xyz)
+    out = []
+    for (row, side), alley in sorted(alley_maps(sim_dir).items()):
+        alley = on_las_grid(alley)
+        dist, nearest = index.query(alley.xyz, distance_upper_bound=0.1, workers=-1)
+        carried = np.full(len(alley), -1, dtype=labels.dtype)
+        found = np.isfinite(dist)
+        carried[found] = labels[nearest[found]]
+        of_row = np.array([row_of_segment.get(int(s), -1) == row for s in np.unique(carried)])
+        carried[~np.isin(carried, np.unique(carried)[of_row])] = -1
+        out.append(("left" if side > 0 else "right", alley, carried))
+    return out

@@ -56,3 +56,34 @@ def test_fast_alpha_hull_tracks_the_exact_alpha_on_simulated_crowns(errors) -> N
     # the α-hull is bitten between sparse boundary points: slightly smaller, never larger
     assert ratio.max() < 0.01 and ratio.min() > -0.06, ratio.describe()
     assert np.isfinite(ratio).all()
+
+
+def test_alley_maps_hold_what_one_alley_alone_saw(tiny_pistachio) -> None:
+    """Each row's side map is built from the sweeps driven in the alley on that side only:
+    the points were measured with the sensor on that side of the row line (all but the ends of
+    sweeps that cross it in a headland turn) and nearer to it than the row spacing (true
+    poses); the two sides of a row share no point time; and each
+    side of a row sees every tree of that row."""
+    from canopy_kit.truth import load_truth, true_pose_interpolator
+    from canopy_kit.truth_map import alley_maps, row_lines
+
+    trees = load_truth(tiny_pistachio.root).trees
+    lines = row_lines(trees)
+    maps = alley_maps(tiny_pistachio.root)
+    assert set(maps) == {(r, s) for r in lines for s in (1, -1)}
+    pose_at = true_pose_interpolator(tiny_pistachio.root)
+    spacing = abs((lines[1][0] - lines[0][0]) @ np.array([-lines[0][1][1], lines[0][1][0]]))
+    for (row, side), cloud in maps.items():
+        centre, along = lines[row]
+        across = np.array([-along[1], along[0]])
+        times = np.asarray(cloud.fields["time"])
+        offset = (pose_at(times[::50])[0][:, :2] - centre) @ across
+        # a sweep joins by where it began: its last points may lie a few dm past a headland turn
+        assert (offset * side > -0.5).all() and (np.abs(offset) < spacing + 0.5).all()
+        assert np.mean(offset * side > 0) > 0.99
+        ids = set(np.unique(np.asarray(cloud.fields["tree_id"])))
+        assert set(trees.loc[trees["row"] == row, "tree_id"]) <= ids
+    for row in lines:
+        left = np.asarray(maps[(row, 1)].fields["time"])
+        right = np.asarray(maps[(row, -1)].fields["time"])
+        assert not np.intersect1d(left, right).size

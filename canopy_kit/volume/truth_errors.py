@@ -36,18 +36,9 @@ class SimulatedTree:
 
 def row_directions(trees: Any) -> dict[int, np.ndarray]:
     """Unit along-row direction per row, fitted through the row's trunk positions."""
-    out = {}
-    for row, group in trees.groupby("row"):
-        xy = group[["x", "y"]].to_numpy()
-        if len(xy) < 2:
-            out[int(row)] = np.array([1.0, 0.0])
-            continue
-        centred = xy - xy.mean(axis=0)
-        direction = np.linalg.svd(centred, full_matrices=False)[2][0]
-        if direction @ (xy[-1] - xy[0]) < 0:
-            direction = -direction
-        out[int(row)] = direction
-    return out
+    from canopy_kit.truth_map import row_lines
+
+    return {row: along for row, (_, along) in row_lines(trees).items()}
 
 
 def alley_sides(sim_dir: str | Path, cloud: Any, trees: Any) -> np.ndarray:
