@@ -161,22 +161,24 @@ FORM_SESSION = {
 
 
 @pytest.mark.slow
-def test_interval_covers_the_true_volume_on_two_crown_forms(sim_factory) -> None:
-    """A 1 × 3 session per form (seed 431: neither a calibration nor a held-out seed of the
-    benchmark), trees cut by the true tree_id, 16 rings × 512 columns, 0.1 m voxels, complete
-    and one-sided scans: the interval holds the simulator's exact envelope volume for ≥ 90 % of
-    the 18 scans (measured 17), and the estimates meet issue 25's goal, mean signed error within
-    ±5 % and mean |error| under 8 %, with none off by 10 % (measured −4.3 %, 4.3 % and −8.6 %).
-    This coarse, truth-labelled scan is the estimator's low side: the offset was set on the
-    trees the pipeline segments, where it is −0.2 % (docs/VOLUMES.md, "The offset
-    recalibrated"); with the offset of 0.5 it was −1 % here and +5…+9 % on deep-lobed crowns."""
+def test_interval_covers_the_true_volume_on_every_dense_crown_form(sim_factory) -> None:
+    """A 1 × 3 session per dense crown form (seed 431: neither a calibration nor a held-out
+    seed of the benchmark), trees cut by the true tree_id, 16 rings × 512 columns, 0.1 m
+    voxels, complete scans and one-sided ones (the map of one alley's sweeps): the interval
+    holds the simulator's exact envelope volume for ≥ 90 % of the 36 scans, and the
+    estimates meet issue 25's goal, mean signed error within ±5 % and mean |error| under 8 %,
+    with none off by 10 %. This coarse, truth-labelled scan is the estimator's low side: the
+    offset was set on the trees the pipeline segments, where it is −0.2 % (docs/VOLUMES.md,
+    "The offset recalibrated"). Until 2026-12-05 this test took the lobed and vase crowns
+    only (18 scans, one miss allowed); see docs/VOLUMES.md "One-sided scans from the alley
+    maps" for what it measured."""
     from canopy_kit.config import merge
     from canopy_kit.sim.truth_map import truth_map
     from canopy_kit.volume.truth_errors import simulated_trees
     from canopy_kit.volume.uncertainty import volume_interval
 
     inside, errors = [], []
-    for form in ("lobed", "vase"):
+    for form in ("ellipsoid", "lobed", "vase", "hedged"):
         session = sim_factory(
             "pistachio",
             fmt="ros1",
@@ -194,7 +196,7 @@ def test_interval_covers_the_true_volume_on_two_crown_forms(sim_factory) -> None
                 inside.append(interval.low_m3 <= tree.true_volume_m3 <= interval.high_m3)
                 errors.append(result.volume_m3 / tree.true_volume_m3 - 1)
     print(f"inside {np.mean(inside):.0%}; errors {np.round(errors, 3)}")
-    assert len(inside) == 18 and np.mean(inside) >= 0.9
+    assert len(inside) == 36 and np.mean(inside) >= 0.9
     assert abs(np.mean(errors)) <= 0.05 and np.abs(errors).mean() < 0.08
     assert np.abs(errors).max() < 0.10
 

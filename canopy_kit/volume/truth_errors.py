@@ -3,8 +3,9 @@ each method's error against the simulator's exact crown volume.
 
 A tree's points are those the simulator's ``tree_id`` field gives it in the reference map
 built with the true poses (so segmentation and odometry errors are left out). Its
-one-sided scans keep the points observed while the sensor was on one side of the tree's
-row line (the line fitted through the trunks of that row).
+one-sided scans are its points in the map of only the sweeps driven in the alley on one side
+of its row line (:func:`canopy_kit.truth_map.alley_maps`): what a drive along that alley
+alone would have mapped.
 """
 
 from __future__ import annotations
@@ -41,26 +42,6 @@ def row_directions(trees: Any) -> dict[int, np.ndarray]:
     return {row: along for row, (_, along) in row_lines(trees).items()}
 
 
-def alley_sides(sim_dir: str | Path, cloud: Any, trees: Any) -> np.ndarray:
-    """Per map point of ``cloud`` (``tree_id`` and ``time`` fields): +1 / -1 for the side of
-    its tree's row line (fitted through the trunks, measured from the tree's trunk) the sensor
-    was on when the point was measured (true poses), 0 for points of no tree."""
-    from canopy_kit.truth import true_pose_interpolator
-
-    pose_at = true_pose_interpolator(sim_dir)
-    tree_ids = np.asarray(cloud.fields["tree_id"])
-    times = np.asarray(cloud.fields["time"])
-    directions = row_directions(trees)
-    side = np.zeros(len(cloud), dtype=np.int8)
-    for _, tree in trees.iterrows():
-        mask = tree_ids == tree.tree_id
-        along = directions[int(tree.row)]
-        across = np.array([-along[1], along[0]])
-        sensor_xy = pose_at(times[mask])[0][:, :2]
-        side[mask] = np.sign((sensor_xy - np.array([tree.x, tree.y])) @ across).astype(np.int8)
-    return side
-
-
 def simulated_trees(
     sim_dir: str | Path,
     voxel_size: float = 0.1,
@@ -68,14 +49,16 @@ def simulated_trees(
     reference_map: Any = None,
     progress: ProgressCallback | None = None,
 ) -> list[SimulatedTree]:
-    """Per-tree clouds of a simulated session, voxel-thinned to ``voxel_size`` (paper: 0.1 m).
+    """Per-tree clouds of a simulated session, voxel-thinned to ``voxel_size`` (paper: 0.1 m):
+    complete (from ``reference_map``) and one-sided (``left``/``right`` of the row line, from
+    the alley maps, :func:`canopy_kit.truth_map.alley_maps`, on the same ``map_voxel_size``).
 
-    ``reference_map`` (a PointCloud with ``tree_id`` and ``time`` fields) is built from the
-    session with the true poses when not given.
+    ``reference_map`` (a PointCloud with a ``tree_id`` field) is built from the session with
+    the true poses when not given.
     """
     from canopy_kit.cloud import PointCloud
     from canopy_kit.truth import load_truth
-    from canopy_kit.truth_map import truth_map
+    from canopy_kit.truth_map import alley_maps, truth_map
     from canopy_kit.voxel import voxel_downsample
 
     truth = load_truth(sim_dir)
@@ -86,7 +69,15 @@ def simulated_trees(
     )
     directions = row_directions(truth.trees)
     tree_ids = np.asarray(cloud.fields["tree_id"])
-    sides = alley_sides(sim_dir, cloud, truth.trees)
+    alleys = {
+        key: (alley.xyz, np.asarray(alley.fields["tree_id"]))
+        for key, alley in alley_maps(sim_dir, voxel_size=map_voxel_size).items()
+    }
+    empty = (np.empty((0, 3)), np.empty(0, dtype=tree_ids.dtype))
+
+    def seen_from(row: int, side: int, tree_id: int) -> np.ndarray:
+        xyz, ids = alleys.get((row, side), empty)
+        return xyz[ids == tree_id]
 
     def thin(xyz: np.ndarray) -> np.ndarray:
         return voxel_downsample(PointCloud(xyz), voxel_size).xyz if voxel_size else xyz
@@ -98,7 +89,7 @@ def simulated_trees(
         along = directions[int(tree.row)]
         across = np.array([-along[1], along[0]])
         trunk = np.array([tree.x, tree.y])
-        side = sides[mask]
+        row = int(tree.row)
         out.append(
             SimulatedTree(
                 int(tree.tree_id),
@@ -107,7 +98,10 @@ def simulated_trees(
                 trunk,
                 across,
                 thin(xyz),
-                {"left": thin(xyz[side > 0]), "right": thin(xyz[side < 0])},
+                {
+                    "left": thin(seen_from(row, 1, int(tree.tree_id))),
+                    "right": thin(seen_from(row, -1, int(tree.tree_id))),
+                },
             )
         )
     return out

@@ -89,24 +89,19 @@ def calibrate_ratios(true_over_estimate: Any, fill: Any) -> dict[str, tuple[floa
 # per kind of crown, ∓ MARGIN), every crown form with default and harsher crowns (deep lobe
 # hollows, leaves in a 0.3 m shell), both-sided and one-sided scans:
 # - benchmarks/bench_volume_matrix.py --calibrate: VLP-16 and OS1-64, trees the adaptive
-#   preset segments (sets most bounds);
+#   preset segments;
 # - benchmarks/bench_adaptive_volume.py (the calibration it prints): 16 rings × 512 columns,
-#   trees cut by the simulator's labels (sets the dense upper bounds of adaptive_alpha,
-#   convex_hull and alpha_shape and the sparse lower ones: coarser scans are a little lower).
-# adaptive_alpha's sparse kind was recalibrated when it took the sample-corrected hull for
-# such crowns (2026-12-03; only crowns of that kind changed): the matrix's sparse sessions
-# (bench_volume_matrix.py --forms sparse --calibrate, both bounds) and the 16-ring bench.
-# adaptive_alpha's dense and mixed kinds again when its offset went from 0.5 to 0.425 spacings
-# (2026-12-04; the same two calibrations, the same seeds): dense lower bound and mixed from
-# the matrix, dense upper bound from the 16-ring bench; the sparse kind came out unchanged.
+#   trees cut by the simulator's labels (coarser scans: it sets most dense upper bounds).
+# Both take a one-sided scan as the map of that alley's sweeps alone
+# (canopy_kit.truth_map.alley_maps); every bound was set again on 2026-12-05 when they did
+# (before, a split of the whole map gave the second alley a thinner scan than a real drive:
+# docs/VOLUMES.md, "One-sided scans from the alley maps").
 CALIBRATIONS: dict[str, Calibration] = {
-    "adaptive_alpha": Calibration(
-        dense=(0.958, 1.071), mixed=(0.891, 2.989), sparse=(0.807, 2.377)
-    ),
+    "adaptive_alpha": Calibration(dense=(0.96, 1.064), mixed=(0.903, 2.941), sparse=(0.815, 2.307)),
     "alpha_shape": Calibration(  # α = 0.9 m
-        dense=(1.009, 1.231), mixed=(0.955, 3.73), sparse=(1.629, 4.899)
+        dense=(1.007, 1.228), mixed=(0.934, 3.424), sparse=(1.61, 4.46)
     ),
-    "convex_hull": Calibration(dense=(0.899, 1.13), mixed=(0.652, 3.523), sparse=(1.521, 4.7)),
+    "convex_hull": Calibration(dense=(0.888, 1.115), mixed=(0.621, 3.213), sparse=(1.506, 3.975)),
 }
 
 
