@@ -72,7 +72,7 @@ def measure(
 ) -> pd.DataFrame:
     """One row per tree and scan: the methods' volumes, the truth, fill and coverage."""
     from canopy_kit.volume import estimate_volume
-    from canopy_kit.volume.uncertainty import scan_coverage, surface_fill
+    from canopy_kit.volume.uncertainty import crown_kind, scan_coverage, surface_fill
 
     rows = []
     for seed in seeds:
@@ -91,7 +91,11 @@ def measure(
                         "fill": surface_fill(xyz),
                     }
                     for method, params in METHODS.items():
-                        row[method] = estimate_volume(xyz, method, **params).volume_m3
+                        result = estimate_volume(xyz, method, **params)
+                        row[method] = result.volume_m3
+                        if method == "adaptive_alpha":  # the interval's kind of crown
+                            kind = result.extra.get("crown_kind") or crown_kind(row["fill"])
+                            row["kind"] = kind
                     rows.append(row)
     return pd.DataFrame(rows)
 
@@ -100,7 +104,10 @@ def calibrate(df: pd.DataFrame, method: str) -> dict[str, tuple[float, float]]:
     """``uncertainty.calibrate_ratios`` of ``method`` on these scans (dense, mixed, sparse)."""
     from canopy_kit.volume.uncertainty import calibrate_ratios
 
-    return calibrate_ratios(df["true"] / df[method], df["fill"])
+    # adaptive_alpha may call a low-fill crown lobed (its extra's crown_kind); the others'
+    # intervals go by the fill alone
+    kinds = df["kind"] if method == "adaptive_alpha" else None
+    return calibrate_ratios(df["true"] / df[method], df["fill"], kinds)
 
 
 def check(df: pd.DataFrame) -> pd.DataFrame:
@@ -108,7 +115,7 @@ def check(df: pd.DataFrame) -> pd.DataFrame:
     from canopy_kit.volume.uncertainty import CALIBRATIONS, MIN_COVERAGE, SECTORS
 
     cal = CALIBRATIONS["adaptive_alpha"]
-    ratios = np.array([cal.ratios(f)[1] for f in df["fill"]])
+    ratios = np.array([getattr(cal, kind) for kind in df["kind"]])
     lo, hi = ratios[:, 0], ratios[:, 1]
     hi = np.where(df["coverage"] < MIN_COVERAGE, hi / np.maximum(df["coverage"], 1 / SECTORS), hi)
     v = df["adaptive_alpha"]

@@ -111,11 +111,17 @@ def calibrate(errors: pd.DataFrame) -> dict[str, dict[str, tuple[float, float]]]
     key = ["sensor", "form", "seed", "scan", "tree"]
     if "variant" in errors:
         key.insert(0, "variant")
-    fill = errors[errors["method"] == "interval"].set_index(key)["fill"].rename("tree_fill")
+    interval = errors[errors["method"] == "interval"].set_index(key)
+    tree = pd.DataFrame({"tree_fill": interval["fill"]})
+    # the interval's own kind (CSVs written before 2026-12-05 have none: the fill's)
+    tree["tree_kind"] = interval["kind"] if "kind" in interval else None
     out = {}
     for method in ESTIMATORS:
-        est = errors[errors["method"] == method].join(fill, on=key)
-        out[method] = calibrate_ratios(est["true_volume_m3"] / est["volume_m3"], est["tree_fill"])
+        est = errors[errors["method"] == method].join(tree, on=key)
+        ratio = est["true_volume_m3"] / est["volume_m3"]
+        # the interval rows' kind is the recommended estimator's; the others go by the fill
+        kinds = est["tree_kind"] if method == RECOMMENDED else None
+        out[method] = calibrate_ratios(ratio, est["tree_fill"], kinds)
     return out
 
 

@@ -88,6 +88,7 @@ def segmented_volume_errors(
                     "coverage": float(tree.scan_coverage),
                     "fill": float(tree.surface_fill),
                     "flags": str(tree.volume_interval_flags),
+                    "kind": str(tree.crown_kind),
                 }
             )
     return pd.DataFrame(rows), score

@@ -282,3 +282,10 @@ def test_calibration_ratios_per_kind_of_crown() -> None:
     assert set(out) == {"dense", "sparse"}  # no mixed crowns, no mixed ratios
     assert out["dense"][0] == pytest.approx(np.quantile(dense, 0.02) - MARGIN, abs=5e-4)
     assert out["sparse"][1] == pytest.approx(np.quantile(sparse, 0.98) + MARGIN, abs=5e-4)
+    # the interval's own kind overrides the fill's (a thinly scanned lobed crown is mixed);
+    # a missing kind falls back on the fill's
+    kinds = ["dense"] * 200 + ["mixed"] * 10 + [""] * 40
+    out = calibrate_ratios(ratios, fill, kinds)
+    assert set(out) == {"dense", "mixed", "sparse"}
+    assert out["mixed"][1] == pytest.approx(np.quantile(sparse[:10], 0.98) + MARGIN, abs=5e-4)
+    assert out["sparse"][0] == pytest.approx(np.quantile(sparse[10:], 0.02) - MARGIN, abs=5e-4)

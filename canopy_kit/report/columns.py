@@ -38,6 +38,7 @@ COLUMN_LABELS: dict[str, str] = {
     "scan_coverage": "Crown seen around (share of sectors)",
     "surface_fill": "Points' surface fill (dense ≥ 2, sparse < 1.2)",
     "volume_interval_flags": "Volume interval flags",
+    "crown_kind": "Crown kind the interval took (dense, mixed, sparse)",
     "volume_flags": "Volume flags",
     "segment_flags": "Segment flags",
     "n_trunks": "Trunks detected",

@@ -20,7 +20,13 @@ measures). The estimator is
   ``n · s² / A`` below ``sparse_fill``, :func:`canopy_kit.volume.uncertainty.surface_fill`:
   young trees with few leaves), gets the convex hull corrected for its thin sampling
   (:func:`~canopy_kit.volume.hull.sample_corrected_hull`) instead: every hull or α-solid of
-  such points is about half the envelope, and no α can close what was never hit.
+  such points is about half the envelope, and no α can close what was never hit. Unless the
+  thinned points are far from a sample of a convex body yet form a solid
+  (:func:`~canopy_kit.volume.convexity.is_hollowed_body`: a small lobed crown scanned
+  thinly, whose convex hull would be 60 % too much): then the α-hull, and
+  ``extra["crown_kind"] = "mixed"`` gives it the interval of sparse-or-lobed crowns. A
+  skeleton of bare branches is as far from convex, but its α-hull is thin tubes: it keeps
+  the corrected hull.
 
 The two factors were calibrated on simulated crowns of every form (docs/VOLUMES.md,
 "Adaptive alpha"). One k-d tree query, two distance transforms: about 0.1-0.2 s for a
@@ -36,7 +42,8 @@ import numpy as np
 from canopy_kit.errors import ConfigError
 from canopy_kit.volume.alpha_hull import alpha_hull_volume, grid_step
 from canopy_kit.volume.base import VolumeEstimator, check_positive
-from canopy_kit.volume.hull import sample_corrected_hull
+from canopy_kit.volume.convexity import is_hollowed_body, sample_convexity
+from canopy_kit.volume.hull import efron_corrected_hull, hull_volume, thin_to_distance
 
 SPACING_K = 8  # neighbour whose distance is the point spacing
 SPACING_SAMPLE = 5000  # points sampled for the spacing (evenly through the array)
@@ -152,19 +159,6 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
         alpha, offset, s = self.choose(xyz, tree)
         fill = surface_fill(xyz, spacing=s)
-        est = None
-        if self.sparse_fill is not None and fill < self.sparse_fill:
-            # Too few points a sample cell apart for a solid hull: the alpha hull decides.
-            with suppress(QhullError):
-                est = sample_corrected_hull(xyz, self.sample_cell)
-        if est is not None:
-            return est.volume_m3, {
-                "estimate": "sample_corrected_hull",
-                "surface_fill": fill,
-                "spacing": s,
-                "sample_factor": est.factor,
-                "thinned_points": est.n_points,
-            }
         h = grid_step(xyz, alpha, self.grid_step)
         volume, extra = alpha_hull_volume(
             xyz, alpha, h, offset=offset, tree=tree, fill_voids=self.fill_voids
@@ -172,6 +166,24 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         extra.update(
             estimate="alpha_hull", surface_fill=fill, alpha=alpha, offset=offset, spacing=s
         )
+        if self.sparse_fill is not None and fill < self.sparse_fill:
+            # Too few points a sample cell apart for a solid hull: the sample decides.
+            with suppress(QhullError):
+                sample = xyz[thin_to_distance(xyz, self.sample_cell)]
+                test = sample_convexity(sample)
+                if is_hollowed_body(test, volume, hull_volume(xyz)):
+                    # a lobed crown scanned thinly, not a sparse one: the α-hull holds
+                    extra.update(crown_kind="mixed", sample_convexity_z=test.z)
+                else:
+                    est = efron_corrected_hull(sample)
+                    return est.volume_m3, {
+                        "estimate": "sample_corrected_hull",
+                        "surface_fill": fill,
+                        "spacing": s,
+                        "sample_factor": est.factor,
+                        "thinned_points": est.n_points,
+                        "sample_convexity_z": test.z,
+                    }
         if volume <= 0.0:
             extra["reason"] = f"the adaptive alpha hull is empty (alpha = {alpha:.2f} m)"
         return volume, extra

@@ -89,9 +89,16 @@ def sample_corrected_hull(
 ) -> SampleCorrectedHull:
     """Efron's sampling correction of the convex hull of ``xyz`` thinned to points at least
     ``cell`` apart (module docstring); raises scipy's QhullError when degenerate."""
+    return efron_corrected_hull(xyz[thin_to_distance(xyz, cell)], max_factor)
+
+
+def efron_corrected_hull(
+    pts: np.ndarray, max_factor: float = MAX_SAMPLE_FACTOR
+) -> SampleCorrectedHull:
+    """Efron's correction of the convex hull of points already thinned (module docstring);
+    raises scipy's QhullError when degenerate."""
     from scipy.spatial import ConvexHull
 
-    pts = xyz[thin_to_distance(xyz, cell)]
     hull = ConvexHull(pts - pts.mean(axis=0))
     n, f = len(pts), len(hull.vertices)
     factor = min((n + 1) / (n + 1 - f), max_factor)

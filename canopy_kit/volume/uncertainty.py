@@ -36,6 +36,7 @@ INTERVAL_COLUMNS = {
     "coverage": "scan_coverage",
     "fill": "surface_fill",
     "flags": "volume_interval_flags",
+    "kind": "crown_kind",
 }
 SECTORS = 16
 MIN_COVERAGE = 0.75
@@ -72,11 +73,19 @@ def crown_kind(fill: float) -> str:
     return "mixed" if fill >= SPARSE_FILL else "sparse"
 
 
-def calibrate_ratios(true_over_estimate: Any, fill: Any) -> dict[str, tuple[float, float]]:
-    """Per kind of crown (:func:`crown_kind` of ``fill``): the 2 % and 98 % quantiles of
-    true / estimate ∓ ``MARGIN``, rounded as ``CALIBRATIONS`` holds them."""
+def calibrate_ratios(
+    true_over_estimate: Any, fill: Any, kinds: Any = None
+) -> dict[str, tuple[float, float]]:
+    """Per kind of crown (``kinds``, the interval's own, else :func:`crown_kind` of ``fill``):
+    the 2 % and 98 % quantiles of true / estimate ∓ ``MARGIN``, rounded as ``CALIBRATIONS``
+    holds them."""
     ratio = np.asarray(true_over_estimate, dtype=float)
-    kinds = np.array([crown_kind(f) for f in np.asarray(fill, dtype=float)])
+    by_fill = [crown_kind(f) for f in np.asarray(fill, dtype=float)]
+    if kinds is None:
+        kinds = by_fill
+    else:  # a missing kind (NaN or empty) falls back on the fill's
+        kinds = [k if isinstance(k, str) and k else f for k, f in zip(kinds, by_fill, strict=True)]
+    kinds = np.asarray(kinds)
     out = {}
     for kind in CROWN_KINDS:
         if (kinds == kind).any():
@@ -114,6 +123,7 @@ class Interval:
     coverage: float
     fill: float
     flags: tuple[str, ...] = ()
+    kind: str = ""  # the calibration it took: dense, mixed or sparse (CROWN_KINDS)
 
 
 def trunk_centre(xyz: np.ndarray) -> np.ndarray:
@@ -157,18 +167,31 @@ def volume_interval(
     method: str,
     centre: np.ndarray | None = None,
     fill: float | None = None,
+    kind: str | None = None,
 ) -> Interval | None:
     """The interval for ``method``'s ``volume_m3`` of the points ``xyz``; None when ``method``
     has no calibration (or the volume is not a positive number). ``fill``: the points'
-    :func:`surface_fill` when the estimator has measured it already."""
+    :func:`surface_fill` when the estimator has measured it already. ``kind``: the kind of
+    crown (``CROWN_KINDS``) when the estimator knows better than the fill (adaptive_alpha's
+    thinly scanned lobed crowns: ``mixed`` below ``SPARSE_FILL``)."""
     cal = CALIBRATIONS.get(method)
     if cal is None or not np.isfinite(volume_m3) or volume_m3 <= 0:
         return None
     coverage = scan_coverage(xyz, centre)
     fill = surface_fill(xyz) if fill is None else fill
     flags = []
-    kind, (lo, hi) = cal.ratios(fill)
-    if kind == "sparse":
+    if kind is None:
+        kind, (lo, hi) = cal.ratios(fill)
+    elif kind in CROWN_KINDS:
+        lo, hi = getattr(cal, kind)
+    else:
+        raise ValueError(f"kind must be one of {CROWN_KINDS}, got {kind!r}")
+    if kind == "mixed" and fill < SPARSE_FILL:
+        flags.append(
+            f"deeply lobed crown scanned thinly (surface fill {fill:.2f} < {SPARSE_FILL}, but "
+            f"its points are far from a sample of a convex body): wide interval"
+        )
+    elif kind == "sparse":
         flags.append(
             f"sparse crown (surface fill {fill:.2f} < {SPARSE_FILL}): the points do not "
             f"outline the envelope; on simulated sparse trees the true volume was "
@@ -182,4 +205,4 @@ def volume_interval(
     if coverage < MIN_COVERAGE:
         hi = hi / max(coverage, 1.0 / SECTORS)
         flags.append(f"one-sided scan: points in {coverage:.0%} of the azimuth sectors")
-    return Interval(volume_m3 * lo, volume_m3 * hi, coverage, fill, tuple(flags))
+    return Interval(volume_m3 * lo, volume_m3 * hi, coverage, fill, tuple(flags), kind)

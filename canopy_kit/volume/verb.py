@@ -97,27 +97,30 @@ def interval_columns(
     method: str,
     centre: np.ndarray | None = None,
     fill: float | None = None,
+    kind: str | None = None,
 ) -> dict:
     """The table's interval columns (``INTERVAL_COLUMNS``) for ``method``'s volume of ``xyz``;
-    NaN bounds when the method has no calibration or no valid volume. ``fill``: the surface
-    fill when the estimator has measured it (``adaptive_alpha`` does)."""
+    NaN bounds when the method has no calibration or no valid volume. ``fill`` and ``kind``:
+    the surface fill and the kind of crown when the estimator has measured them
+    (``adaptive_alpha`` does)."""
     from scipy.spatial import QhullError
 
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, volume_interval
 
     col = INTERVAL_COLUMNS
     row = {col["method"]: method, col["low"]: np.nan, col["high"]: np.nan}
-    row.update({col["coverage"]: np.nan, col["fill"]: np.nan, col["flags"]: ""})
+    row.update({col["coverage"]: np.nan, col["fill"]: np.nan, col["flags"]: "", col["kind"]: ""})
     interval = None
     if len(xyz) >= 4 and np.isfinite(volume_m3):
         try:
-            interval = volume_interval(xyz, volume_m3, method, centre, fill)
+            interval = volume_interval(xyz, volume_m3, method, centre, fill, kind)
         except QhullError as exc:  # qhull on points that are nearly flat: no interval
             return {**row, col["flags"]: f"no interval: {type(exc).__name__}"}
     if interval is None:
         return row
     row.update({col["low"]: interval.low_m3, col["high"]: interval.high_m3})
     row.update({col["coverage"]: interval.coverage, col["fill"]: interval.fill})
+    row[col["kind"]] = interval.kind
     return {**row, col["flags"]: "; ".join(interval.flags)}
 
 
@@ -200,9 +203,10 @@ def _measure_tree(
         row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
     flags = [f"{m}: {r.reason}" for m, r in results.items() if not r.valid]
     row["volume_flags"] = "; ".join(flags)
-    fill = results[volume.recommended].extra.get("surface_fill")
+    extra = results[volume.recommended].extra
+    fill, kind = extra.get("surface_fill"), extra.get("crown_kind")
     recommended = row[volume_column(volume.recommended)]
-    row.update(interval_columns(measured, recommended, volume.recommended, fill=fill))
+    row.update(interval_columns(measured, recommended, volume.recommended, fill=fill, kind=kind))
     return row, [surfaces[m] for m in drawn if m in surfaces]
 
 
