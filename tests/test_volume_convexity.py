@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_volume_sample_hull import uniform_in_ball
 
 from canopy_kit.volume import estimate_volume
 from canopy_kit.volume.convexity import HOLLOW_Z, is_hollowed_body, sample_convexity
@@ -42,16 +43,11 @@ def cross_scan_lines(step: float = 0.02, gap: float = 0.2) -> np.ndarray:
     return pts[in_cross(pts * (1 - 1e-9))]
 
 
-def uniform_in_ball(n: int, rng: np.random.Generator, radius: float = 1.5) -> np.ndarray:
-    d = rng.normal(size=(n, 3))
-    return d / np.linalg.norm(d, axis=1)[:, None] * radius * rng.uniform(0, 1, (n, 1)) ** (1 / 3)
-
-
 @pytest.mark.parametrize("n", [30, 100, 300])
 def test_a_uniform_sample_of_a_ball_is_not_called_hollowed(n: int) -> None:
     """A convex body's sample lies within the spread of the uniform samples of its own hull:
     |z| well under the threshold, at every sample size."""
-    test = sample_convexity(uniform_in_ball(n, np.random.default_rng(n)))
+    test = sample_convexity(uniform_in_ball(n, np.random.default_rng(n), radius=1.5))
     assert test.n_points == n
     assert abs(test.z) < 3.0 < -HOLLOW_Z, test
 

@@ -42,7 +42,7 @@ import numpy as np
 from canopy_kit.errors import ConfigError
 from canopy_kit.volume.alpha_hull import alpha_hull_volume, grid_step
 from canopy_kit.volume.base import VolumeEstimator, check_positive
-from canopy_kit.volume.convexity import is_hollowed_body, sample_convexity
+from canopy_kit.volume.convexity import HOLLOW_Z, is_hollowed_body, sample_convexity
 from canopy_kit.volume.hull import efron_corrected_hull, hull_volume, thin_to_distance
 
 SPACING_K = 8  # neighbour whose distance is the point spacing
@@ -159,6 +159,24 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
         alpha, offset, s = self.choose(xyz, tree)
         fill = surface_fill(xyz, spacing=s)
+        corrected, test = None, None
+        if self.sparse_fill is not None and fill < self.sparse_fill:
+            # Too few points a sample cell apart for a solid hull: the sample decides.
+            with suppress(QhullError):
+                sample = xyz[thin_to_distance(xyz, self.sample_cell)]
+                test = sample_convexity(sample)
+                corrected = efron_corrected_hull(sample)
+        if corrected is not None:
+            corrected_extra = {
+                "estimate": "sample_corrected_hull",
+                "surface_fill": fill,
+                "spacing": s,
+                "sample_factor": corrected.factor,
+                "thinned_points": corrected.n_points,
+                "sample_convexity_z": test.z,
+            }
+            if test.z > HOLLOW_Z:  # a sample of a convex body: no α-hull needed
+                return corrected.volume_m3, corrected_extra
         h = grid_step(xyz, alpha, self.grid_step)
         volume, extra = alpha_hull_volume(
             xyz, alpha, h, offset=offset, tree=tree, fill_voids=self.fill_voids
@@ -166,24 +184,11 @@ class AdaptiveAlphaVolume(VolumeEstimator):
         extra.update(
             estimate="alpha_hull", surface_fill=fill, alpha=alpha, offset=offset, spacing=s
         )
-        if self.sparse_fill is not None and fill < self.sparse_fill:
-            # Too few points a sample cell apart for a solid hull: the sample decides.
-            with suppress(QhullError):
-                sample = xyz[thin_to_distance(xyz, self.sample_cell)]
-                test = sample_convexity(sample)
-                if is_hollowed_body(test, volume, hull_volume(xyz)):
-                    # a lobed crown scanned thinly, not a sparse one: the α-hull holds
-                    extra.update(crown_kind="mixed", sample_convexity_z=test.z)
-                else:
-                    est = efron_corrected_hull(sample)
-                    return est.volume_m3, {
-                        "estimate": "sample_corrected_hull",
-                        "surface_fill": fill,
-                        "spacing": s,
-                        "sample_factor": est.factor,
-                        "thinned_points": est.n_points,
-                        "sample_convexity_z": test.z,
-                    }
+        if corrected is not None:
+            if not is_hollowed_body(test, volume, hull_volume(xyz)):  # bare branches
+                return corrected.volume_m3, corrected_extra
+            # a lobed crown scanned thinly, not a sparse one: the α-hull holds
+            extra.update(crown_kind="mixed", sample_convexity_z=test.z)
         if volume <= 0.0:
             extra["reason"] = f"the adaptive alpha hull is empty (alpha = {alpha:.2f} m)"
         return volume, extra

@@ -58,15 +58,14 @@ class SampleConvexity:
 def alpha_share(points: np.ndarray) -> float:
     """Volume of the α-hull of ``points`` (α = ``ALPHA_SPACINGS`` × their spacing) over their
     convex hull's; raises scipy's QhullError when the points are degenerate."""
-    from scipy.spatial import ConvexHull
-
     from canopy_kit.volume.adaptive import point_spacing
     from canopy_kit.volume.alpha_hull import alpha_hull_volume
+    from canopy_kit.volume.hull import hull_volume
 
     alpha = ALPHA_SPACINGS * point_spacing(points)
     step = max(alpha / 4.0, float(np.ptp(points, axis=0).max()) / GRID_CELLS)
     solid = alpha_hull_volume(points, alpha, step)[0]
-    return solid / float(ConvexHull(points - points.mean(axis=0)).volume)
+    return solid / hull_volume(points)
 
 
 def uniform_in_hull(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
