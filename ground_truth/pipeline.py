@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
-from canopy_kit.errors import ProcessingError
+from canopy_kit.errors import ConfigError, ProcessingError
 from canopy_kit.geo import LocalFrame
 from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
 from ground_truth.camera import PosedCamera
@@ -66,10 +66,15 @@ class GroundTruthResult:
 RECONSTRUCTION_KEYS = ("max_image_size", "work_image_size", "ortho_resolution", "max_canopy_height")
 
 
-def sfm_options(config: GroundTruthConfig, seed: int = 0) -> SfmOptions:
-    """The structure-from-motion settings of ``config`` and the run's ``seed`` (the rest at
-    their defaults)."""
-    return SfmOptions(max_image_size=config.max_image_size, seed=seed)
+def sfm_options(config: GroundTruthConfig, seed: int = 0, threads: int = 0) -> SfmOptions:
+    """The structure-from-motion settings of ``config``, the run's ``seed`` and its
+    ``threads`` (0: every core; 1: one thread, which makes COLMAP's result repeatable bit
+    for bit), the rest at their defaults."""
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
+        raise ConfigError(f"threads: expected an integer >= 0 (0: every core), got {threads!r}")
+    return SfmOptions(
+        max_image_size=config.max_image_size, seed=seed, num_threads=threads if threads else -1
+    )
 
 
 def ortho_resolution(gsd: float, config: GroundTruthConfig) -> float:
@@ -123,10 +128,11 @@ def _reconstruct(
     report: Progress,
     timings: dict[str, float],
     seed: int = 0,
+    threads: int = 0,
 ) -> tuple[SparseModel, SurfaceModel, Orthomosaic, float, float, float]:
     """SfM, surface models and orthomosaic of a flight."""
     t0 = time.perf_counter()
-    model = run_sfm(flight, out / "sfm", frame, sfm_options(opts, seed), report)
+    model = run_sfm(flight, out / "sfm", frame, sfm_options(opts, seed, threads), report)
     timings["sfm"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -172,6 +178,7 @@ def process_flight(
     config: GroundTruthConfig | None = None,
     reuse: GroundTruthResult | None = None,
     seed: int = 0,
+    threads: int = 0,
 ) -> GroundTruthResult:
     """Drone photos → georeferenced orthomosaic, DSM/DTM/CHM, crowns and (with seeds) per-tree table.
 
@@ -182,8 +189,12 @@ def process_flight(
     matching settings only). ``config`` is the ``[ground_truth]`` table of a preset
     (default: its defaults); it is written next to the results as ``ground_truth_config.json``.
     ``seed`` (the preset's ``seed``) seeds SfM's random sampling; the report keeps it.
+    ``threads`` are SfM's threads (0: every core). COLMAP's mapping and bundle adjustment
+    on several threads do not repeat bit for bit, so two runs can place a crown differently;
+    ``threads=1`` repeats exactly (and is slower).
     """
     opts = config or GroundTruthConfig()
+    sfm_options(opts, seed, threads)  # settings checked before anything is written
     report = progress or (lambda *_: None)
     out = Path(out_dir)
     timings: dict[str, float] = {}
@@ -234,7 +245,7 @@ def process_flight(
         fresh = not (out / "sfm").exists()
         try:
             model, surface, mosaic, gsd, ortho_res, top = _reconstruct(
-                flight, out, frame, opts, report, timings, seed
+                flight, out, frame, opts, report, timings, seed, threads
             )
         except BaseException:
             if fresh:  # no half-made reconstruction left behind under --out
@@ -258,6 +269,7 @@ def process_flight(
         "frame": frame.to_dict(),
         "sfm": model.report(),
         "sfm_seed": seed,
+        "sfm_threads": threads,
         "ground_sampling_distance_m": gsd,
         "orthomosaic_resolution_m": ortho_res,
         "surface_resolution_m": grid.resolution,

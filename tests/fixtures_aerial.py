@@ -135,6 +135,8 @@ def processed_simulated_flight(root, preset: str, overrides: dict, seeded: bool)
             "--out",
             str(out),
             *seeds,
+            "--threads",  # COLMAP on several threads does not repeat bit for bit
+            "1",
             "--frame",
             str(sim / "truth" / "frame.json"),
         ],

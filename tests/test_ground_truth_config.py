@@ -290,15 +290,30 @@ def test_process_flight_hands_the_config_to_sfm(
     seen = {}
 
     def fake_sfm(flight, work, frame, options, report):
-        seen.update(max_image_size=options.max_image_size, seed=options.seed)
+        seen.update(
+            max_image_size=options.max_image_size, seed=options.seed, threads=options.num_threads
+        )
         raise ProcessingError("stop after SfM")
 
     monkeypatch.setattr(gp, "run_sfm", fake_sfm)
+    config = GroundTruthConfig(max_image_size=640)
     with pytest.raises(ProcessingError, match="stop after SfM"):
-        gp.process_flight(
-            flight_dir, tmp_path / "out", config=GroundTruthConfig(max_image_size=640), seed=7
-        )
-    assert seen == {"max_image_size": 640, "seed": 7}
+        gp.process_flight(flight_dir, tmp_path / "out", config=config, seed=7, threads=1)
+    assert seen == {"max_image_size": 640, "seed": 7, "threads": 1}
+    with pytest.raises(ProcessingError, match="stop after SfM"):
+        gp.process_flight(flight_dir, tmp_path / "out2", config=config)
+    assert seen["threads"] == -1  # COLMAP's "every core"
+
+
+@pytest.mark.parametrize("threads", [-1, 1.5, True])
+def test_impossible_thread_counts_are_named_before_any_work(
+    threads: object, flight_dir: Path, tmp_path: Path
+) -> None:
+    import ground_truth.pipeline as gp
+
+    with pytest.raises(ConfigError, match="threads"):
+        gp.process_flight(flight_dir, tmp_path / "out", threads=threads)  # type: ignore[arg-type]
+    assert not (tmp_path / "out").exists()
 
 
 def test_reuse_refuses_other_reconstruction_settings(flight_dir: Path, tmp_path: Path) -> None:

@@ -36,6 +36,11 @@ def ground_truth(
         help="Planting distance along the rows (m), for crowns found without --seeds "
         "(ground_truth.tree_spacing_m); default: the crowns' width across the row",
     ),
+    threads: int = typer.Option(
+        0,
+        "--threads",
+        help="Threads of structure from motion (0: every core); 1 repeats a result bit for bit",
+    ),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON"),
 ) -> None:
     """Structure from motion, orthomosaic, DSM/CHM and crown diameters from drone photos."""
@@ -74,6 +79,7 @@ def ground_truth(
             progress=progress,
             config=pipeline.ground_truth,
             seed=pipeline.seed,
+            threads=threads,
         )
     if json_out:
         print_json(result.report)
