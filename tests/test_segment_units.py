@@ -235,6 +235,23 @@ def test_adaptive_splits_touching_crowns_in_a_hedgerow(trunks: bool) -> None:
     assert score_point_labels(paper.labels, truth).n_merged >= 8
 
 
+def test_parts_split_in_forked_workers_give_the_labels_of_one_process(monkeypatch) -> None:
+    """The canopy parts shared among workers (adaptive.each_part) give every point the tree
+    it gets when the parts are split one after the other, and the trees are still found."""
+    import canopy_kit.segment.adaptive as adaptive
+
+    orch = synthetic_orchard(
+        rows=3, trees_per_row=4, spacing=3.0, row_spacing=6.0, bearing_deg=25.0, density=150
+    )
+    monkeypatch.setattr(adaptive, "PARALLEL_MIN_POINTS", 10**12)
+    serial = segment(orch.cloud, make_segmenter("adaptive"))
+    monkeypatch.setattr(adaptive, "PARALLEL_MIN_POINTS", 0)
+    monkeypatch.setattr("canopy_kit.parallel.worker_count", lambda setting, most: min(2, most))
+    forked = segment(orch.cloud, make_segmenter("adaptive"))
+    assert np.array_equal(forked.labels, serial.labels)
+    assert score_point_labels(forked.labels, orch.cloud.fields["tree_id"]).success_rate == 1.0
+
+
 # -- rows and labels --------------------------------------------------------------------------
 @pytest.mark.parametrize("bearing", [0.0, 30.0, 95.0, 200.0, 315.0])
 @pytest.mark.parametrize("bow", [0.0, 1.0])

@@ -173,6 +173,10 @@ class BagSession:
         except Exception as exc:  # rosbags raises several unrelated types for bad files
             self._reader = None
             self._recover(f"{type(exc).__name__}: {exc}")
+        else:
+            from canopy_kit.io.mcap_messages import fast_mcap_reader
+
+            self._reader = fast_mcap_reader(self._reader, target)
         # for bags that define their other types but not these (and for recovered bags)
         register_velodyne_types(self._reader.typestore)
         return self
