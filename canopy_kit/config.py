@@ -45,9 +45,7 @@ class MappingConfig:
     # ``workers`` processes (mapping.chunks), tied together where they overlap.
     odometry_chunk_sweeps: int = 600
     kiss_voxel_size: float = 0.5
-    # Points a voxel of KISS-ICP's local map keeps; 0: from the sensor's sweep size
-    # (mapping.odometry.local_map_points_per_voxel: 20, or 10 for sweeps of over 100k points).
-    kiss_max_points_per_voxel: int = 0
+    kiss_max_points_per_voxel: int = 20
     # KISS-ICP's ICP stops when an iteration moves the pose by less than this (its own default
     # 1e-4; 1e-3 saved 18 % of the odometry at the same trajectory error, docs/BENCHMARKS.md).
     kiss_convergence: float = 1e-3

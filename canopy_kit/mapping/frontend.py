@@ -21,11 +21,7 @@ from canopy_kit.mapping.deskew import deskew_points, reference_time
 from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
 from canopy_kit.mapping.ground import GroundHeightGrid, apply_ground_correction, ground_correction
 from canopy_kit.mapping.imu import RotationTrack, Standstill, detect_standstill, level_rotation
-from canopy_kit.mapping.odometry import (
-    LidarOdometry,
-    OdometrySettings,
-    local_map_points_per_voxel,
-)
+from canopy_kit.mapping.odometry import LidarOdometry, OdometrySettings
 from canopy_kit.mapping.sensors import ImuBuffer
 
 IMU_WAIT_SCANS = 5  # process a sweep anyway when the IMU lags this many sweeps behind
@@ -81,7 +77,6 @@ class FrontendState:
     )  # (last stamp, seconds) of dropouts
     max_displacement: float = 0.0  # m, horizontal, of any sweep from the first
     rejected_registrations: int = 0
-    local_map_points_per_voxel: int = 0  # KISS-ICP's, as chosen for the sensor (0: not started)
     warnings: list[str] = field(default_factory=list)
 
 
@@ -180,15 +175,12 @@ class LidarFrontend:
         )
         t0 = np.eye(4)
         t0[:3, :3] = st.initial_rotation
-        st.local_map_points_per_voxel = local_map_points_per_voxel(
-            self.config.kiss_max_points_per_voxel, len(first.xyz)
-        )
         self._odometry = LidarOdometry(
             OdometrySettings(
                 voxel_size=self.config.kiss_voxel_size,
                 max_range=self.config.max_range,
                 min_range=self.config.min_range,
-                max_points_per_voxel=st.local_map_points_per_voxel,
+                max_points_per_voxel=self.config.kiss_max_points_per_voxel,
                 max_threads=self.config.threads,
                 convergence_criterion=self.config.kiss_convergence,
             ),

@@ -28,23 +28,6 @@ class OdometrySettings:
     convergence_criterion: float = 1e-4
 
 
-# A sweep of more points than this (a 128-ring sensor, or 64 rings of 2048 columns) fills
-# the local map's voxels from a few sweeps: half as many points per voxel halve the ICP's
-# neighbour search for +0.4 cm of ATE on the OS1-128 drives (docs/BENCHMARKS.md), where on a
-# VLP-16 the same cut cost +0.5 cm for no time saved.
-DENSE_SWEEP_POINTS = 100_000
-POINTS_PER_VOXEL = 20  # KISS-ICP's own default
-DENSE_POINTS_PER_VOXEL = 10
-
-
-def local_map_points_per_voxel(setting: int, sweep_points: int) -> int:
-    """Points per voxel of the local map: ``setting`` when given (> 0), else from the size of
-    the sensor's sweep (its first sweep's points, range filter not applied)."""
-    if setting > 0:
-        return setting
-    return DENSE_POINTS_PER_VOXEL if sweep_points > DENSE_SWEEP_POINTS else POINTS_PER_VOXEL
-
-
 class LidarOdometry:
     """Scan-to-local-map registration (KISS-ICP core) with an external initial guess."""
 

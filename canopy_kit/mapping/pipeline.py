@@ -142,11 +142,6 @@ def _check_config(config: MappingConfig) -> None:
             raise ConfigError(f"mapping.{name}: must be >= 1, got {getattr(config, name)}")
     if config.workers < 0:
         raise ConfigError(f"mapping.workers: must be >= 0 (0: one per core), got {config.workers}")
-    if config.kiss_max_points_per_voxel < 0:
-        raise ConfigError(
-            "mapping.kiss_max_points_per_voxel: must be >= 0 (0: from the sensor's sweep "
-            f"size), got {config.kiss_max_points_per_voxel}"
-        )
 
 
 def build_map(
@@ -269,7 +264,6 @@ def build_map(
         "points_offered": offered,
         "up_source": st.up_source,
         "registrations_rejected": st.rejected_registrations,
-        "local_map_points_per_voxel": st.local_map_points_per_voxel,
         "ground_corrections": st.ground_corrections,
         "georeferenced": frame is not None,
         "quality_flags": quality_flags(one, frame, imu) + gnss_flags(gnss_diag),
