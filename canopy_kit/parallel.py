@@ -2,12 +2,14 @@
 
 Fork, not spawn: a forked child starts from the parent's memory (the trajectory, the
 config) without re-importing ``__main__``, so scripts and notebooks work unchanged. Any
-exception in a child comes back to the parent and is raised there.
+exception in a child comes back to the parent and is raised there. Results come back in a
+file on the memory-backed ``/dev/shm`` where it has room, else through a pipe.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import suppress
 from typing import Any
 
 from canopy_kit.errors import ProcessingError
@@ -15,13 +17,72 @@ from canopy_kit.errors import ProcessingError
 Tick = Callable[[], None]
 
 
-def _child(function: Callable[[Any, Tick], Any], job: Any, counter, conn) -> None:
+# A result is handed over in a file of this memory-backed folder when there is one with room
+# (tmpfs: a copy at memory speed) instead of through the pipe: the map pass's partial map of
+# 166 MB took 0.52 s through a pipe and 0.18 s through /dev/shm, on the run's critical path.
+SHARED_MEMORY_DIR = "/dev/shm"
+MIN_FREE_SHARED_MEMORY = 1 << 30
+
+
+def _handover_dir() -> str | None:
+    """A fresh private folder on the memory-backed file system for the workers' results, or
+    None (results go through the pipes) when there is none or it has less than 1 GiB free."""
+    import os
+    import tempfile
+
+    try:
+        st = os.statvfs(SHARED_MEMORY_DIR)
+        if st.f_bavail * st.f_frsize < MIN_FREE_SHARED_MEMORY:
+            return None
+        return tempfile.mkdtemp(prefix="canopy-kit-", dir=SHARED_MEMORY_DIR)
+    except OSError:
+        return None
+
+
+def _send_result(conn, result: Any, handover: str | None, index: int) -> None:
+    """Send ``("ok", result)``: pickled into a file of ``handover`` and its path sent, or
+    through the pipe when there is no folder or the file could not be written (full)."""
+    import os
+    import pickle
+
+    if handover is not None:
+        path = os.path.join(handover, f"result-{index}.pickle")
+        try:
+            with open(path, "wb") as fh:
+                pickle.dump(result, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        except OSError:
+            with suppress(OSError):
+                os.unlink(path)
+        else:
+            conn.send(("file", path))
+            return
+    conn.send(("ok", result))
+
+
+def _received(message: tuple[str, Any]) -> tuple[str, Any]:
+    """A worker's message, with a result handed over in a file read back (and removed)."""
+    import os
+    import pickle
+
+    status, value = message
+    if status != "file":
+        return message
+    try:
+        with open(value, "rb") as fh:
+            return "ok", pickle.load(fh)
+    finally:
+        os.unlink(value)
+
+
+def _child(
+    function: Callable[[Any, Tick], Any], job: Any, counter, conn, handover: str | None, index: int
+) -> None:
     def tick() -> None:
         with counter.get_lock():
             counter.value += 1
 
     try:
-        conn.send(("ok", function(job, tick)))
+        _send_result(conn, function(job, tick), handover, index)
     except BaseException as exc:  # report any failure to the parent instead of dying silently
         conn.send(("error", exc))
     finally:
@@ -64,15 +125,17 @@ def run_forked(
     crosses a pipe.
     """
     import multiprocessing as mp
+    import shutil
 
     ctx = mp.get_context("fork")
     counter = ctx.Value("i", 0)
     skip = 1 if first_in_parent else 0  # jobs[skip + i] runs in procs[i]
     forked = jobs[skip:]
     pipes = [ctx.Pipe(duplex=False) for _ in forked]
+    handover = _handover_dir()  # removed with whatever a worker left in it, come what may
     procs = [
-        ctx.Process(target=_child, args=(function, job, counter, send), daemon=True)
-        for job, (_, send) in zip(forked, pipes)
+        ctx.Process(target=_child, args=(function, job, counter, send, handover, i), daemon=True)
+        for i, (job, (_, send)) in enumerate(zip(forked, pipes))
     ]
     for proc in procs:
         proc.start()
@@ -98,7 +161,7 @@ def run_forked(
         while any(r is None for r in results):
             for i, (recv, _) in enumerate(pipes):
                 if results[i] is None and recv.poll(0.2):
-                    results[i] = recv.recv()
+                    results[i] = _received(recv.recv())
             if progress:
                 progress(label, counter.value, total)
             dead = [
@@ -119,6 +182,8 @@ def run_forked(
             proc.join(timeout=5)
             if proc.is_alive():
                 proc.terminate()
+        if handover is not None:
+            shutil.rmtree(handover, ignore_errors=True)
     for status, value in results:
         if status == "error":
             raise value

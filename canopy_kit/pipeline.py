@@ -214,13 +214,17 @@ def volume_stage(ctx: RunContext, progress: Progress, surfaces: bool = True) -> 
     With ``surfaces`` the solids of the drawn estimators come with it, for the report."""
     from dataclasses import replace
 
+    from canopy_kit.cloud import PointCloud
     from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.volume.verb import measure_trees_and_surfaces
 
     seg = ctx.segmentation
+    # Only the trees' points (about half of a dense map) are put on the grid and grouped.
+    in_trees = np.flatnonzero(seg.labels >= 0)
+    trees = PointCloud(ctx.mapping.map.xyz[in_trees], origin=ctx.mapping.map.origin)
     volumes = measure_trees_and_surfaces(
-        on_las_grid(ctx.mapping.map),
-        seg.labels,
+        on_las_grid(trees),
+        seg.labels[in_trees],
         ctx.config.volume,
         ground_height=seg.ground.height,
         progress=progress,

@@ -9,7 +9,7 @@ from typing import Literal
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.cloud import PointCloud, column_max, column_min
 from canopy_kit.errors import InputError
 
 
@@ -17,13 +17,13 @@ def voxel_keys(xyz: np.ndarray, size: float, origin: np.ndarray | None = None) -
     """Integer voxel coordinates (N, 3) of points for a cubic grid of edge ``size``."""
     if not size > 0:
         raise InputError(f"voxel size must be positive, got {size}")
-    o = xyz.min(axis=0) if origin is None else np.asarray(origin, float)
+    o = column_min(xyz) if origin is None else np.asarray(origin, float)
     return np.floor((xyz - o) / size).astype(np.int64)
 
 
 def linear_keys(keys: np.ndarray) -> np.ndarray:
     """One int64 per voxel from non-negative (N, 3) voxel coordinates (fast 1-D unique)."""
-    span = keys.max(axis=0) + 1 if len(keys) else np.ones(3, np.int64)
+    span = column_max(keys) + 1 if len(keys) else np.ones(3, np.int64)
     if np.prod(span.astype(float)) >= 2**62:
         raise InputError("voxel grid too large for the point extent; use a larger voxel size")
     return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
@@ -37,13 +37,16 @@ def voxel_index(keys: np.ndarray) -> np.ndarray:
 
 def first_minimum(groups: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Per group (non-negative ints), in ascending group order: the index of its smallest
-    value, the first such index on ties. No sort of all points (a lexsort of a 4 M-point map
-    took 2 s)."""
-    lowest = np.full(int(groups.max()) + 1, np.inf)
-    np.minimum.at(lowest, groups, values)
-    candidates = np.flatnonzero(values == lowest[groups])
-    _, first = np.unique(groups[candidates], return_index=True)
-    return candidates[first]
+    value, the first such index on ties (a group with a NaN value has none). One compiled
+    pass, no sort of all points (a lexsort of a 4 M-point map took 2 s)."""
+    from canopy_kit.voxel_kernels import first_minimum_per_group
+
+    if len(groups) == 0:
+        return np.zeros(0, np.int64)
+    groups = np.ascontiguousarray(groups, np.int64)
+    values = np.ascontiguousarray(values, np.float64)
+    index = first_minimum_per_group(groups, values, int(groups.max()) + 1)
+    return index[index >= 0]
 
 
 def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -52,22 +55,17 @@ def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.
     Points equally near the centre are told apart by their coordinates (smallest x, y, z), so
     the choice does not depend on the order of the points.
     """
+    from canopy_kit.voxel_kernels import nearest_per_group
+
     if len(xyz) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    origin = xyz.min(axis=0)
+    xyz = np.ascontiguousarray(xyz, np.float64)
+    origin = column_min(xyz)
     keys = voxel_keys(xyz, size, origin)
     inverse = voxel_index(keys)
     centre = origin + (keys + 0.5) * size
     dist = np.einsum("ij,ij->i", xyz - centre, xyz - centre)
-    reps = first_minimum(inverse, dist)  # reps[v]: the point kept for voxel v
-    tied = dist == dist[reps][inverse]
-    crowded = np.bincount(inverse[tied], minlength=len(reps)) > 1
-    if crowded.any():  # rare: several points at the nearest distance; sort only those
-        cand = np.flatnonzero(tied & crowded[inverse])
-        cand = cand[np.lexsort((xyz[cand, 2], xyz[cand, 1], xyz[cand, 0], inverse[cand]))]
-        lead = np.ones(len(cand), bool)
-        lead[1:] = inverse[cand[1:]] != inverse[cand[:-1]]
-        reps[inverse[cand[lead]]] = cand[lead]
+    reps = nearest_per_group(inverse, dist, xyz, int(inverse.max()) + 1)  # every voxel has one
     return reps, inverse
 
 

@@ -89,3 +89,56 @@ def test_a_worker_killed_while_the_parent_works_stops_the_parents_job() -> None:
     with pytest.raises(ProcessingError, match="squares: worker 1 ended without a result"):
         run_forked(_die_or_wait, [0, 1], "squares", 201, first_in_parent=True)
     assert time.monotonic() - start < 8  # not the parent's whole 10 s job
+
+
+def _large_result(x: int, tick) -> dict:
+    import numpy as np
+
+    tick()
+    rng = np.random.default_rng(x)
+    return {"xyz": rng.normal(size=(200_000, 3)), "ring": rng.integers(0, 128, 200_000, np.uint16)}
+
+
+def _handover_folders() -> set[str]:
+    from canopy_kit import parallel
+
+    if not os.path.isdir(parallel.SHARED_MEMORY_DIR):
+        return set()
+    return {n for n in os.listdir(parallel.SHARED_MEMORY_DIR) if n.startswith("canopy-kit-")}
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_results_come_back_equal_through_shared_memory_or_the_pipe(monkeypatch, shared) -> None:
+    import numpy as np
+
+    from canopy_kit import parallel
+
+    if shared and parallel._handover_dir() is None:
+        pytest.skip("no /dev/shm with 1 GiB free on this machine")
+    if not shared:
+        monkeypatch.setattr(parallel, "SHARED_MEMORY_DIR", "/nonexistent-shm")
+    before = _handover_folders()
+    statuses = []
+    received = parallel._received
+    monkeypatch.setattr(parallel, "_received", lambda m: statuses.append(m[0]) or received(m))
+    out = run_forked(_large_result, [1, 2], "big", 2)
+    assert statuses == (["file", "file"] if shared else ["ok", "ok"])
+    for x, got in zip([1, 2], out, strict=True):
+        want = _large_result(x, lambda: None)
+        np.testing.assert_array_equal(got["xyz"], want["xyz"])
+        np.testing.assert_array_equal(got["ring"], want["ring"])
+        assert got["ring"].dtype == np.uint16
+    assert _handover_folders() == before  # nothing left behind
+
+
+def _large_or_fail(x: int, tick) -> dict:
+    if x == 0:
+        raise InputError("scan 3: truncated")
+    return _large_result(x, tick)
+
+
+def test_a_failed_run_leaves_no_handed_over_results_behind() -> None:
+    before = _handover_folders()
+    with pytest.raises(InputError, match="scan 3: truncated"):
+        run_forked(_large_or_fail, [1, 0, 2], "big", 3)
+    assert _handover_folders() == before

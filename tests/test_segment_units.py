@@ -665,6 +665,27 @@ def test_first_minimum_and_voxel_representatives_match_a_plain_loop() -> None:
         )  # nearest the centre, then smallest x, y, z
 
 
+def test_first_minimum_skips_groups_without_a_minimum_as_numpy_does() -> None:
+    """A group with a NaN value has no minimum (``np.minimum`` propagates NaN); an infinite
+    value is one; a group number with no point has none."""
+    from canopy_kit.voxel import first_minimum
+
+    groups = np.array([0, 0, 2, 2, 3, 3, 5])
+    values = np.array([2.0, np.nan, np.inf, np.inf, -np.inf, 1.0, 4.0])
+    assert first_minimum(groups, values).tolist() == [2, 4, 6]
+    assert first_minimum(np.zeros(0, np.int64), np.zeros(0)).tolist() == []
+
+
+def test_column_extremes_equal_numpys_reduction_over_rows() -> None:
+    from canopy_kit.cloud import column_max, column_min
+
+    rng = np.random.default_rng(2)
+    for a in (rng.normal(size=(1000, 3)), rng.integers(-50, 50, (1000, 2))):
+        assert np.array_equal(column_min(a), a.min(axis=0))
+        assert np.array_equal(column_max(a), a.max(axis=0))
+        assert column_min(a).dtype == a.dtype
+
+
 def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
     """Two neighbours merged into one segment measure about twice the typical crown; a
     piece of a crown a fraction of it. Ordinary variation (±25 %) is not flagged."""

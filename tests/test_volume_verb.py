@@ -253,3 +253,17 @@ def test_the_drill_down_draws_what_the_volume_stage_kept(run_context, tiny_pista
     kept = tree_details(ctx, trees)
     fresh = tree_details(replace(ctx, surfaces={}), trees)
     assert kept == fresh and all(len(d["surfaces"]) == 2 for d in kept.values())
+
+
+@pytest.mark.parametrize("largest", [40, 70_000])
+def test_points_grouped_by_label_as_a_stable_sort_groups_them(largest) -> None:
+    from canopy_kit.volume.verb import grouped_by_label
+
+    rng = np.random.default_rng(3)
+    labels = rng.integers(-1, 6, 50_000) * (largest // 5)  # labels -largest/5 .. largest
+    order, sorted_labels = grouped_by_label(labels)
+    kept = np.flatnonzero(labels >= 0)
+    want = kept[np.argsort(labels[kept], kind="mergesort")]
+    np.testing.assert_array_equal(order, want)
+    np.testing.assert_array_equal(sorted_labels, labels[want])
+    assert sorted_labels.dtype == labels.dtype

@@ -19,6 +19,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from canopy_kit.cloud import column_max, column_min
 from canopy_kit.errors import InputError
 
 Progress = Callable[[str, float, float], None]
@@ -37,11 +38,11 @@ def spatial_tiles(
     n = len(xy)
     if n == 0:
         return
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    lo, hi = column_min(xy), column_max(xy)
     area = float(np.prod(np.maximum(hi - lo, margin)))
     size = max(np.sqrt(area * target_points / n), 4.0 * margin)
     keys = np.floor((xy - lo) / size).astype(np.int64)
-    span = keys.max(axis=0) + 1
+    span = column_max(keys) + 1
     tile_of = keys[:, 0] * span[1] + keys[:, 1]
     order = np.argsort(tile_of, kind="stable")
     bounds = np.searchsorted(tile_of[order], np.arange(span[0] * span[1] + 1))
@@ -127,8 +128,8 @@ def weighted_dbscan(
         return labels, core
     cp = xyz[core_idx]
     cell = eps / np.sqrt(3.0) * (1 - 1e-9)
-    keys = np.floor((cp - cp.min(axis=0)) / cell).astype(np.int64)
-    span = keys.max(axis=0) + 1
+    keys = np.floor((cp - column_min(cp)) / cell).astype(np.int64)
+    span = column_max(keys) + 1
     _, cell_of = np.unique(
         (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2], return_inverse=True
     )
@@ -216,9 +217,9 @@ def grid_dbscan(
     if n == 0:
         return labels, np.zeros(0, bool)
     h = eps / 8.0 if cell is None else float(cell)
-    lo = xyz.min(axis=0)
+    lo = column_min(xyz)
     keys = np.floor((xyz - lo) / h).astype(np.int64)
-    span = keys.max(axis=0) + 1
+    span = column_max(keys) + 1
     lin = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
     cells, point_cell = np.unique(lin, return_inverse=True)
     point_cell = point_cell.ravel()

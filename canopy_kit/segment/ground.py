@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from canopy_kit.cloud import column_max, column_min
 from canopy_kit.errors import InputError, ProcessingError
 from canopy_kit.voxel import first_minimum
 
@@ -45,7 +46,7 @@ class GroundModel:
 
 def lowest_per_cell(xyz: np.ndarray, cell: float) -> np.ndarray:
     """The lowest point of every occupied ``cell`` x ``cell`` column: ground candidates."""
-    keys = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / cell).astype(np.int64)
+    keys = np.floor((xyz[:, :2] - column_min(xyz[:, :2])) / cell).astype(np.int64)
     lin = keys[:, 0] * (keys[:, 1].max() + 1) + keys[:, 1]
     return xyz[first_minimum(lin, xyz[:, 2])]
 
@@ -114,8 +115,8 @@ def fit_ground(
         )
     rng = np.random.default_rng(seed)
     cand = lowest_per_cell(xyz, candidate_cell)
-    lo = xyz[:, :2].min(axis=0)
-    hi = xyz[:, :2].max(axis=0)
+    lo = column_min(xyz[:, :2])
+    hi = column_max(xyz[:, :2])
     shape = np.maximum(np.ceil((hi - lo) / cell_size).astype(int), 1)
     origin = lo + 0.5 * cell_size
     heights = np.full(tuple(shape), np.nan)

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.cloud import PointCloud, column_max, column_min
 from canopy_kit.segment.result import Segmentation
 from canopy_kit.voxel import first_minimum
 
@@ -36,9 +36,9 @@ def top_view_image(
 ) -> tuple[np.ndarray, list[float]]:
     """RGBA image of points seen from above (the highest point of each pixel gives its
     colour, as a scatter plot of every point would look) and its ``imshow`` extent."""
-    lo = xy.min(axis=0)
+    lo = column_min(xy)
     ij = np.floor((xy - lo) / pixel).astype(np.int64)
-    shape = ij.max(axis=0) + 1
+    shape = column_max(ij) + 1
     flat = ij[:, 1] * shape[0] + ij[:, 0]
     top = first_minimum(flat, -np.asarray(height, float))  # the highest point of each pixel
     image = np.zeros((shape[1] * shape[0], 4))  # transparent where no point fell
@@ -71,7 +71,7 @@ def plot_top_view(
     for t in seg.trees:
         ax.annotate(t.tree_id, (t.x, t.y), fontsize=7, ha="center", va="center", weight="bold")
     d = seg.rows.direction
-    lo = cloud.xyz[keep, :2].min(axis=0) if len(keep) else np.zeros(2)
+    lo = column_min(cloud.xyz[keep, :2]) if len(keep) else np.zeros(2)
     ax.annotate("", lo + 3 * d, lo, arrowprops={"arrowstyle": "->", "lw": 1.5})
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
