@@ -209,6 +209,28 @@ def test_transform_binned_applies_each_points_own_pose() -> None:
         transform_binned(xyz, bins + 1, rot.as_matrix(), t)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_points_binned_while_placed_equal_the_numpy_binning_to_the_bit(dtype) -> None:
+    """The map pass's one-pass kernel gives the bins and products of the numpy steps it
+    replaced (``times[keep]``, the bin expression, ``transform_binned``), bit for bit."""
+    from canopy_kit.mapping.assemble import POSE_BINS
+    from canopy_kit.mapping.kernels import kept_time_span, place_kept_binned
+
+    rot = Rotation.random(POSE_BINS, random_state=4).as_matrix()
+    shift = RNG.normal(0, 50, (POSE_BINS, 3))
+    xyz = RNG.normal(0, 20, (4000, 3)).astype(dtype)
+    for times in (1.7e9 + np.sort(RNG.uniform(0, 0.1, 4000)), np.full(4000, 1.7e9 + 0.05)):
+        keep = np.flatnonzero(RNG.uniform(size=4000) < 0.8)
+        t = times[keep]
+        lo, hi = float(t.min()), float(t.max())
+        assert kept_time_span(times, keep) == (lo, hi)
+        span = max(hi - lo, 1e-12)
+        bins = np.clip(((t - lo) / span * (POSE_BINS - 1) + 0.5).astype(np.int64), 0, POSE_BINS - 1)
+        want = transform_binned(xyz[keep], bins, rot, shift)
+        got = place_kept_binned(xyz, keep, times, lo, span, rot, shift)
+        assert np.array_equal(got, want)
+
+
 def test_accumulator_keeps_first_point_per_voxel_with_fields_untouched() -> None:
     acc = MapAccumulator(0.1)
     p1 = np.array([[0.01, 0.01, 0.01], [0.5, 0.5, 0.5], [0.02, 0.02, 0.02]])

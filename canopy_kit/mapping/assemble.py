@@ -23,7 +23,7 @@ from canopy_kit.io.bag import BagSession, Scan, open_bag
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
 from canopy_kit.mapping.filters import range_mask
-from canopy_kit.mapping.kernels import transform_by_bin
+from canopy_kit.mapping.kernels import kept_time_span, place_kept_binned, transform_by_bin
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
 from canopy_kit.parallel import run_jobs, worker_count
 
@@ -46,14 +46,22 @@ def point_fields(
     return fields
 
 
-def _pose_times(scan: Scan, keep: np.ndarray, deskew: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """Times whose poses place the kept points, and each point's index among them (None: one pose).
+def _pose_times(
+    scan: Scan, keep: np.ndarray, deskew: bool
+) -> tuple[np.ndarray, np.ndarray | tuple[float, float] | None]:
+    """Times whose poses place the kept points, and how each point finds its pose among them:
+    None (one pose), each point's bin, or ``(lo, span)`` for :func:`place_kept_binned` to
+    bin them as it moves them.
 
     Deskewed sweeps get ``POSE_BINS`` poses spread over their time span, one per bin; the
     others one pose at the middle of the sweep (or its stamp when the times are unusable).
     """
     times = scan.times
     if deskew and times is not None and len(keep):
+        if times.dtype == np.float64:  # binned while placed, in one compiled pass
+            lo, hi = (float(v) for v in kept_time_span(times, np.asarray(keep, np.int64)))
+            spread = lo + (hi - lo) * np.arange(POSE_BINS) / (POSE_BINS - 1)
+            return spread, (lo, max(hi - lo, 1e-12))
         t = times[keep]
         lo, hi = float(t.min()), float(t.max())
         bins = np.clip(
@@ -83,12 +91,14 @@ def place_sweeps(
     rot = quat.to_matrix(q)
     out = []
     for i, (scan, keep, (_, bins)) in enumerate(zip(scans, kept, plans, strict=True)):
-        xyz = scan.xyz[keep]
-        a = starts[i]
+        a, b = starts[i], starts[i + 1]
         if bins is None:
-            world = xyz @ rot[a].T + pos[a]
+            world = scan.xyz[keep] @ rot[a].T + pos[a]
+        elif isinstance(bins, tuple):
+            xyz = scan.xyz if scan.xyz.flags.c_contiguous else np.ascontiguousarray(scan.xyz)
+            world = place_kept_binned(xyz, keep, scan.times, *bins, rot[a:b], pos[a:b])
         else:
-            world = transform_binned(xyz, bins, rot[a : starts[i + 1]], pos[a : starts[i + 1]])
+            world = transform_binned(scan.xyz[keep], bins, rot[a:b], pos[a:b])
         out.append((world, partial(_fields_of, scan, keep)))
     return out
 

@@ -64,6 +64,56 @@ def transform_by_bin(
 
 
 @numba.njit(cache=True, nogil=True)
+def kept_time_span(times: np.ndarray, keep: np.ndarray) -> tuple[float, float]:
+    """Smallest and largest of ``times[keep]`` (``keep`` not empty), without the gather."""
+    lo = times[keep[0]]
+    hi = lo
+    for i in range(1, keep.shape[0]):
+        t = times[keep[i]]
+        if t < lo:
+            lo = t
+        elif t > hi:
+            hi = t
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def place_kept_binned(
+    xyz: np.ndarray,
+    keep: np.ndarray,
+    times: np.ndarray,
+    lo: float,
+    span: float,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+) -> np.ndarray:
+    """Points ``xyz[keep]`` moved by the pose of their time bin: bin ``b`` of ``n`` =
+    ``len(rotations)`` is ``clip(int((t - lo) / span * (n - 1) + 0.5), 0, n - 1)``, the numpy
+    expression of ``assemble._pose_times`` evaluated in the same order (same bins), then
+    :func:`transform_by_bin`'s product. One pass: no gathered copies of the points or
+    times and no temporary per step (float64 ``times`` only)."""
+    n = rotations.shape[0]
+    out = np.empty((keep.shape[0], 3), np.float64)
+    for i in range(keep.shape[0]):
+        k = keep[i]
+        v = (times[k] - lo) / span * (n - 1) + 0.5
+        b = np.int64(v)
+        if b < 0:
+            b = 0
+        elif b > n - 1:
+            b = n - 1
+        x, y, z = np.float64(xyz[k, 0]), np.float64(xyz[k, 1]), np.float64(xyz[k, 2])
+        for r in range(3):
+            out[i, r] = (
+                rotations[b, r, 0] * x
+                + rotations[b, r, 1] * y
+                + rotations[b, r, 2] * z
+                + translations[b, r]
+            )
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def voxel_keys(xyz: np.ndarray, size: float, bits: int) -> tuple[np.ndarray, bool]:
     """Each point's voxel ``floor(p / size)`` packed in ``bits`` bits per axis (offset so
     that the grid's centre is 0), and whether every voxel fits the packing."""
@@ -156,6 +206,9 @@ def warm_up() -> None:
     keys, _ = voxel_keys(xyz, 1.0, 21)
     insert_keys(keys, np.full(4, EMPTY, np.int64), 2)
     transform_by_bin(xyz, index, np.eye(3)[None], np.zeros((1, 3)))
+    for points in (xyz, xyz.astype(np.float32)):  # scans decode to either
+        place_kept_binned(points, index, np.zeros(1), 0.0, 1.0, np.eye(3)[None], np.zeros((1, 3)))
+    kept_time_span(np.zeros(1), index)
     rotate_and_shift(xyz, index, np.zeros((1, 3)), np.zeros(1), np.zeros(3))
     integrate_gyro(np.array([0.0, 0.0, 0.0, 1.0]), 0.0, np.zeros(3), np.ones(1), np.zeros((1, 3)))
     in_range(xyz, 0.0, 1.0)
