@@ -44,6 +44,16 @@ def insert_keys(keys: np.ndarray, table: np.ndarray, bits: int) -> np.ndarray:
     return new
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _move_point(
+    xyz: np.ndarray, k: int, out: np.ndarray, i: int, rotation: np.ndarray, translation: np.ndarray
+) -> None:
+    """``out[i] = rotation @ xyz[k] + translation`` (float64)."""
+    x, y, z = np.float64(xyz[k, 0]), np.float64(xyz[k, 1]), np.float64(xyz[k, 2])
+    for r in range(3):
+        out[i, r] = rotation[r, 0] * x + rotation[r, 1] * y + rotation[r, 2] * z + translation[r]
+
+
 @numba.njit(cache=True, nogil=True)
 def transform_by_bin(
     xyz: np.ndarray, bins: np.ndarray, rotations: np.ndarray, translations: np.ndarray
@@ -52,14 +62,7 @@ def transform_by_bin(
     out = np.empty((xyz.shape[0], 3), np.float64)
     for i in range(xyz.shape[0]):
         b = bins[i]
-        x, y, z = np.float64(xyz[i, 0]), np.float64(xyz[i, 1]), np.float64(xyz[i, 2])
-        for r in range(3):
-            out[i, r] = (
-                rotations[b, r, 0] * x
-                + rotations[b, r, 1] * y
-                + rotations[b, r, 2] * z
-                + translations[b, r]
-            )
+        _move_point(xyz, i, out, i, rotations[b], translations[b])
     return out
 
 
@@ -102,14 +105,7 @@ def place_kept_binned(
             b = 0
         elif b > n - 1:
             b = n - 1
-        x, y, z = np.float64(xyz[k, 0]), np.float64(xyz[k, 1]), np.float64(xyz[k, 2])
-        for r in range(3):
-            out[i, r] = (
-                rotations[b, r, 0] * x
-                + rotations[b, r, 1] * y
-                + rotations[b, r, 2] * z
-                + translations[b, r]
-            )
+        _move_point(xyz, k, out, i, rotations[b], translations[b])
     return out
 
 
