@@ -53,7 +53,7 @@ class FastMcapReader:
             return
         topics = sorted({c.topic for c in by_channel.values()})
         for _, channel, message in self._mcap.iter_messages(
-            topics=topics, start_time=start, end_time=stop, log_time_order=True
+            topics=topics, starting_at=start, ending_before=stop, log_time_order=True
         ):
             conn = by_channel.get(channel.id)
             if conn is not None:
