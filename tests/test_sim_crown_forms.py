@@ -3,6 +3,8 @@ sessions per form, the default form unchanged, and config errors."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -181,6 +183,29 @@ def test_leaf_penetration_limits_the_foliage_depth():
             # A cluster's centre is its leaf position (up to its 0.22 m size).
             assert below.max() < pen + 0.25 and below.min() > -1e-9
             assert np.quantile(below, 0.9) > 0.5 * pen  # the shell is filled, not only its skin
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_leaf_clusters_fill_each_envelope_up_to_it(form):
+    """Every leaf-cluster vertex lies inside its crown's envelope, and the clusters reach it."""
+    from canopy_kit.sim.scene import leaf_cluster_vertices
+
+    cfg = load_sim_config("pistachio", {"orchard": {"rows": 1, "trees_per_row": 2}})
+    spec = replace(cfg.orchard, crown_form=form)
+    rng = np.random.default_rng(8)
+    for tree in generate_orchard(spec, rng).trees:
+        density = tree.foliage_scale
+        verts = leaf_cluster_vertices(
+            tree,
+            rng,
+            spec.foliage_density_shell * density,
+            spec.foliage_density_core * density,
+            spec.leaf_cluster_size_range,
+        )
+        assert len(verts) >= 6 * 5 and len(verts) % 6 == 0
+        depth = tree.crown.relative_depth(verts)
+        assert depth.max() <= 1.0 + 1e-9
+        assert (depth > 0.999).mean() > 0.05  # clipped onto the envelope where they stuck out
 
 
 @pytest.mark.parametrize(

@@ -219,9 +219,30 @@ def _add_foliage(
     size_range: list[float],
     penetration: float = float("inf"),
 ) -> None:
-    """Leaf clusters inside the envelope, denser towards it by relative depth (from the
-    envelope's centre, which for a vase is the trunk top), and at most ``penetration`` metres
-    below the envelope along the ray from the centre."""
+    verts = leaf_cluster_vertices(tree, rng, shell, core, size_range, penetration)
+    m = len(verts) // 6
+    if m == 0:
+        return
+    faces = (_OCTAHEDRON_F[None, :, :] + 6 * np.arange(m)[:, None, None]).reshape(-1, 3)
+    shade = np.repeat(rng.uniform(0.6, 1.4, m), 8)
+    b.add(verts, faces, FOLIAGE, tree.tree_id, shade)
+
+
+def leaf_cluster_vertices(
+    tree: Tree,
+    rng: np.random.Generator,
+    shell: float,
+    core: float,
+    size_range: list[float],
+    penetration: float = float("inf"),
+) -> np.ndarray:
+    """The six vertices of each leaf cluster (flattened octahedra, ``(6 m, 3)``) of one crown.
+
+    Clusters lie inside the envelope, denser towards it by relative depth (from the
+    envelope's centre, which for a vase is the trunk top), and at most ``penetration``
+    metres below the envelope along the ray from the centre; vertices sticking out are
+    moved radially back onto the envelope.
+    """
     lo, hi = tree.crown.bounds
     n_candidates = int(shell * np.prod(hi - lo))
     p = rng.uniform(lo, hi, (n_candidates, 3))
@@ -234,7 +255,7 @@ def _add_foliage(
     p, size = p[keep], size[keep]
     m = len(p)
     if m == 0:
-        return
+        return np.empty((0, 3))
     from scipy.spatial.transform import Rotation
 
     rot = Rotation.random(m, random_state=rng).as_matrix()
@@ -245,10 +266,7 @@ def _add_foliage(
     verts = (p[:, None, :] + np.einsum("mij,mkj->mki", rot, local)).reshape(-1, 3)
     # Clip leaf vertices that stick out radially back onto the envelope, so the foliage
     # fills the crown right up to its envelope and never beyond it.
-    verts = _clip_to_envelope(tree.crown, verts)
-    faces = (_OCTAHEDRON_F[None, :, :] + 6 * np.arange(m)[:, None, None]).reshape(-1, 3)
-    shade = np.repeat(rng.uniform(0.6, 1.4, m), 8)
-    b.add(verts, faces, FOLIAGE, tree.tree_id, shade)
+    return _clip_to_envelope(tree.crown, verts)
 
 
 def depth_below_envelope(
