@@ -11,7 +11,8 @@ any scan of the same trees. Printed per crown form, as estimate / true envelope 
 - ``efron``: the hull of the vertices thinned to 0.2 m, corrected for its sample
   (``canopy_kit.volume.hull.sample_corrected_hull``, what ``adaptive_alpha`` takes for a
   sparse crown);
-- ``ellipsoid``: the minimum-volume enclosing ellipsoid of all vertices;
+- ``ellipsoid``: the minimum-volume enclosing ellipsoid of all vertices
+  (``canopy_kit.volume.ellipsoid``, the ``enclosing_ellipsoid`` estimator);
 - ``hull x g(n)``: the hull times a factor fitted on the cluster count n (log-linear,
   leave-one-out over the crowns of every form printed, pooled): what a calibration on n
   could give with n known exactly (a scan sees only part of it) and the form unknown.
@@ -28,8 +29,6 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from bench_sparse_segments import enclosing_ellipsoid_volume
-from scipy.spatial import ConvexHull
 
 FORMS = ("sparse", "ellipsoid", "lobed", "vase", "hedged")
 
@@ -39,6 +38,7 @@ def crowns(form: str, seed: int, rows: int = 2, trees_per_row: int = 8) -> list[
     from canopy_kit.sim.config import OrchardSpec
     from canopy_kit.sim.orchard import generate_orchard
     from canopy_kit.sim.scene import leaf_cluster_vertices
+    from canopy_kit.volume.ellipsoid import enclosing_ellipsoid
     from canopy_kit.volume.hull import hull_volume, sample_corrected_hull
 
     spec = OrchardSpec(crown_form=form, rows=rows, trees_per_row=trees_per_row)
@@ -63,8 +63,7 @@ def crowns(form: str, seed: int, rows: int = 2, trees_per_row: int = 8) -> list[
                 "clusters": len(verts) // 6,
                 "convex_hull": hull_volume(verts) / true,
                 "efron": sample_corrected_hull(verts, 0.2).volume_m3 / true,
-                # the enclosing ellipsoid of a set is that of its hull's vertices
-                "ellipsoid": enclosing_ellipsoid_volume(verts[ConvexHull(verts).vertices]) / true,
+                "ellipsoid": enclosing_ellipsoid(verts).volume / true,
             }
         )
     return out

@@ -25,29 +25,10 @@ import pandas as pd
 from bench_volume_matrix import session
 
 
-def enclosing_ellipsoid_volume(points: np.ndarray, tol: float = 1e-5) -> float:
-    """Volume of the minimum-volume enclosing ellipsoid of ``points`` (Khachiyan's method)."""
-    n, d = points.shape
-    q = np.column_stack([points, np.ones(n)]).T
-    u = np.full(n, 1.0 / n)
-    for _ in range(5000):
-        m = np.einsum("ij,ji->i", q.T, np.linalg.solve(q @ (u[:, None] * q.T), q))
-        j = int(np.argmax(m))
-        step = (m[j] - d - 1) / ((d + 1) * (m[j] - 1))
-        new = (1 - step) * u
-        new[j] += step
-        done = np.linalg.norm(new - u) < tol
-        u = new
-        if done:
-            break
-    c = points.T @ u
-    shape = np.linalg.inv(points.T @ (u[:, None] * points) - np.outer(c, c)) / d
-    return float(4.0 / 3.0 * np.pi / np.sqrt(np.linalg.det(shape)))
-
-
 def session_rows(sim: Path, sensor: str, seed: int) -> list[dict]:
     """One row per sparse crown of ``sim`` the segmenter matched one-to-one."""
     from canopy_kit.config import load_preset
+    from canopy_kit.volume.ellipsoid import enclosing_ellipsoid
     from canopy_kit.volume.hull import sample_corrected_hull, thin_to_distance
     from canopy_kit.volume.verb import measure_trees, measured_points, volume_column
     from canopy_kit.volume_accuracy import segmented_session
@@ -86,7 +67,7 @@ def session_rows(sim: Path, sensor: str, seed: int) -> list[dict]:
                 "thinned_n": corrected.n_points,
                 "hull_vertices": corrected.n_vertices,
                 "efron_factor": corrected.factor,
-                "ellipsoid_labelled": enclosing_ellipsoid_volume(pts[thin_to_distance(pts, 0.2)])
+                "ellipsoid_labelled": enclosing_ellipsoid(pts[thin_to_distance(pts, 0.2)]).volume
                 / v
                 - 1,
             }
