@@ -42,12 +42,12 @@ def test_the_cube_is_enclosed_by_its_circumscribed_sphere():
 def test_encloses_every_point_and_follows_affine_maps():
     rng = np.random.default_rng(7)
     cloud = rng.normal(size=(400, 3)) * [2.0, 1.0, 0.5]
-    ell = enclosing_ellipsoid(cloud)
+    ell = enclosing_ellipsoid(cloud, tol=1e-8)
     assert ell.contains(cloud).all()
     assert ell.volume >= hull_volume(cloud)
     # The minimum-volume ellipsoid of A x + b is A applied to x's: volume times |det A|.
     a = np.array([[1.5, 0.3, 0.0], [0.0, 0.7, 0.2], [0.1, 0.0, 2.0]])
-    moved = enclosing_ellipsoid(cloud @ a.T + [10.0, -4.0, 3.0])
+    moved = enclosing_ellipsoid(cloud @ a.T + [10.0, -4.0, 3.0], tol=1e-8)
     assert moved.volume == pytest.approx(ell.volume * abs(np.linalg.det(a)), rel=1e-4)
 
 
@@ -55,7 +55,7 @@ def test_the_estimator_measures_and_reports():
     pts, _, _ = ellipsoid_surface((2.0, 1.5, 1.0), 200, seed=3)
     res = EnclosingEllipsoidVolume()(pts)
     assert res.valid and res.method == "enclosing_ellipsoid"
-    assert res.volume_m3 == pytest.approx(4 / 3 * np.pi * 3.0, rel=1e-4)
+    assert res.volume_m3 == pytest.approx(4 / 3 * np.pi * 3.0, rel=3e-4)
     assert res.extra["semi_axes_m"] == pytest.approx([2.0, 1.5, 1.0], rel=1e-3)
 
 
