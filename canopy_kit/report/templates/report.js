@@ -297,8 +297,11 @@
     }
     traces.push({type: "scatter", mode: "markers", name: "LiDAR tree position", x: [t.x], y: [t.y],
                  hoverinfo: "skip", marker: {color: "#ffeb3b", size: 8, symbol: "x"}});
-    Plotly.react(el, traces, {margin: {l: 45, r: 10, t: 26, b: 35}, showlegend: false,
-      title: {text: "Drone orthomosaic around " + id + " (yellow: LiDAR crown)", font: {size: 13}},
+    // The title sits just above the plot, below the mode bar's row (centred, they overlapped).
+    Plotly.react(el, traces, {margin: {l: 45, r: 10, t: 48, b: 35}, showlegend: false,
+      title: {text: "Drone orthomosaic around " + id + " (yellow: LiDAR crown)", font: {size: 13},
+              x: 0, xref: "paper", xanchor: "left", y: 1, yref: "paper", yanchor: "bottom",
+              pad: {b: 6}},
       xaxis: {range: [o.x0, o.x1], title: {text: "x east [m]"}, showgrid: false},
       yaxis: {range: [o.y0, o.y1], scaleanchor: "x", scaleratio: 1, showgrid: false},
       images: [{source: o.uri, xref: "x", yref: "y", x: o.x0, y: o.y1, sizex: o.x1 - o.x0,
