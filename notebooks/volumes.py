@@ -16,8 +16,9 @@ def _():
 
     from canopy_kit import plugins
     from canopy_kit.explore import load_context
-    from canopy_kit.report.plots import plot_volumes
+    from canopy_kit.report.plots import plot_accuracy_matrix, plot_volumes
     from canopy_kit.volume import alpha_curve, auto_alpha, estimate_volume
+    from canopy_kit.volume.accuracy import accuracy_table
     from canopy_kit.volume.alpha import PAPER_ALPHA_M
     from canopy_kit.volume.hull import hull_mesh
     from canopy_kit.volume.verb import (
@@ -29,9 +30,10 @@ def _():
         volume_column,
     )
 
-    return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, PAPER_ALPHA_M, alpha_curve, auto_alpha,
-            estimate_volume, go, hull_mesh, load_context, measure_tree, measured_points, mo, np,
-            plot_volumes, plt, plugins, tree_points, volume_column)
+    return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, PAPER_ALPHA_M, accuracy_table, alpha_curve,
+            auto_alpha, estimate_volume, go, hull_mesh, load_context, measure_tree,
+            measured_points, mo, np, plot_accuracy_matrix, plot_volumes, plt, plugins,
+            tree_points, volume_column)
 
 
 @app.cell
@@ -50,6 +52,18 @@ def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, plot_volumes, table, volume_column):
             "slices": volume_column("slices"), "true crown": "true_crown_volume_m3"}
     fig_all = plot_volumes(table, cols)
     fig_all
+    return
+
+
+@app.cell
+def _(accuracy_table, mo, plot_accuracy_matrix):
+    # How far to trust each estimator on crowns like these: the shipped accuracy matrix
+    # (benchmarks/bench_volume_matrix.py, held-out seeds, trees the pipeline segmented).
+    accuracy = accuracy_table()
+    fig_accuracy = plot_accuracy_matrix(accuracy)
+    sensors, seeds = accuracy["sensors"].iloc[0], accuracy["seeds"].iloc[0]
+    mo.vstack([mo.md(f"## Measured accuracy by crown form\n\nSensors {sensors}, seed {seeds}; "
+                     "docs/VOLUMES.md explains every cell."), fig_accuracy])
     return
 
 

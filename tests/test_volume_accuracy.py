@@ -32,6 +32,27 @@ def test_the_shipped_table_covers_every_form_scan_and_estimator() -> None:
     assert weighted / both.loc["all", "n"] == pytest.approx(both.loc["all", "bias"], abs=1e-3)
 
 
+def test_the_accuracy_figure_draws_the_table() -> None:
+    """Every bar of the notebook's figure is a form's signed bias from the shipped table."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from canopy_kit.report.plots import plot_accuracy_matrix
+    from canopy_kit.sim.crown_forms import FORM_NAMES
+
+    table = accuracy_table()
+    fig = plot_accuracy_matrix(table)
+    panels = fig.axes
+    assert [ax.get_title() for ax in panels] == ["scan: both", "scan: one-sided"]
+    for ax, scan in zip(panels, ("both", "one-sided"), strict=True):
+        assert [t.get_text() for t in ax.get_xticklabels()] == list(FORM_NAMES)
+        rows = table[table.scan == scan].set_index(["form", "method"])
+        for container, method in zip(ax.containers, MATRIX_METHODS, strict=True):
+            heights = [bar.get_height() for bar in container.patches]
+            expected = [100 * rows.loc[(form, method), "bias"] for form in FORM_NAMES]
+            assert heights == pytest.approx(expected)
+
+
 def test_the_statement_quotes_the_table() -> None:
     from canopy_kit.report.volumes import accuracy_section, estimator_text
 

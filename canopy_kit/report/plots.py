@@ -70,3 +70,43 @@ def plot_agreement(
     b.set_title("Bland-Altman (mean and 95 % limits)")
     fig.tight_layout()
     return fig
+
+
+def plot_accuracy_matrix(table: pd.DataFrame, goal: tuple[float, float] = (0.05, 0.08)) -> Any:
+    """Per crown form, each estimator's signed bias (bar) and MAPE (dot) against the true crown
+    volume, one panel per scan (both sides, one side), from the accuracy table
+    (``canopy_kit.volume.accuracy.accuracy_table``); ``goal``: the |bias| and MAPE bars drawn."""
+    import matplotlib.pyplot as plt
+
+    forms = [f for f in table["form"].unique() if f not in ("all", "dense")]
+    scans = list(table["scan"].unique())
+    methods = list(table["method"].unique())
+    fig, axes = plt.subplots(1, len(scans), figsize=(5.5 * len(scans), 4.2), sharey=True)
+    axes = np.atleast_1d(axes)
+    x = np.arange(len(forms))
+    width = 0.8 / max(len(methods), 1)
+    for ax, scan in zip(axes, scans, strict=True):
+        rows = table[table["scan"] == scan].set_index(["form", "method"])
+        for i, method in enumerate(methods):
+            offset = x + (i - (len(methods) - 1) / 2) * width
+            cells = [(form, method) for form in forms]
+            bias = [100 * rows["bias"].get(c, np.nan) for c in cells]
+            mape = [100 * rows["mape"].get(c, np.nan) for c in cells]
+            bars = ax.bar(offset, bias, width, label=f"{method}: bias")
+            ax.plot(offset, mape, "o", color=bars.patches[0].get_facecolor(), mec="black", ms=5)
+        ax.axhline(0, color="black", lw=0.8)
+        for level, style in ((goal[0], "--"), (-goal[0], "--"), (goal[1], ":")):
+            ax.axhline(100 * level, color="grey", lw=0.8, ls=style)
+        ax.set_xticks(x)
+        ax.set_xticklabels(forms)
+        ax.set_title(f"scan: {scan}")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].set_ylabel("error against the true volume (%)\nbar: signed bias, dot: MAPE")
+    axes[0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(
+        f"Volume accuracy by crown form (dashed: ±{100 * goal[0]:.0f} % bias, "
+        f"dotted: {100 * goal[1]:.0f} % MAPE)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    return fig
