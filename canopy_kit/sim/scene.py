@@ -101,9 +101,10 @@ def build_scene(
         shell, core = spec.foliage_density_shell, spec.foliage_density_core
         if tree.foliage_scale != 1.0:
             shell, core = shell * tree.foliage_scale, core * tree.foliage_scale
-        _add_foliage(
-            b, tree, rng, shell, core, spec.leaf_cluster_size_range, spec.leaf_penetration_m
+        verts = leaf_cluster_vertices(
+            tree, rng, shell, core, spec.leaf_cluster_size_range, spec.leaf_penetration_m
         )
+        _add_leaf_clusters(b, tree, verts, rng)
     top = max((t.crown.z_range[1] for t in orchard.trees), default=5.0)
     return b.build((np.array([lo[0], lo[1], -50.0]), np.array([hi[0], hi[1], top + 1.0])))
 
@@ -210,16 +211,10 @@ def _add_wood(b: _Builder, tree: Tree) -> None:
         b.add(v, fc, WOOD, tree.tree_id)
 
 
-def _add_foliage(
-    b: _Builder,
-    tree: Tree,
-    rng: np.random.Generator,
-    shell: float,
-    core: float,
-    size_range: list[float],
-    penetration: float = float("inf"),
+def _add_leaf_clusters(
+    b: _Builder, tree: Tree, verts: np.ndarray, rng: np.random.Generator
 ) -> None:
-    verts = leaf_cluster_vertices(tree, rng, shell, core, size_range, penetration)
+    """Mesh ``leaf_cluster_vertices`` as octahedra, each with a drawn shade."""
     m = len(verts) // 6
     if m == 0:
         return
