@@ -33,9 +33,12 @@ def tree_table(ctx: Any) -> pd.DataFrame:
     from canopy_kit.segment.qa import crown_outliers
 
     trees = ctx.trees.copy()
-    trees["segment_flags"] = crown_outliers(trees)
-    if ctx.layout is not None:
-        trees["n_trunks"] = ctx.layout.trunks_per_segment(trees["segment"].to_numpy())
+    if ctx.layout is None:
+        trees["segment_flags"] = crown_outliers(trees)
+    else:  # the trunks tell a small tree from a fragment
+        trunks = ctx.layout.trunks_per_segment(trees["segment"].to_numpy())
+        trees["segment_flags"] = crown_outliers(trees.assign(n_trunks=trunks))
+        trees["n_trunks"] = trunks
     frame = getattr(ctx.mapping, "frame", None)
     if frame is not None and len(trees):
         xyz = np.column_stack([trees["x"], trees["y"], np.zeros(len(trees))])

@@ -713,3 +713,13 @@ def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
     flagged = [i for i, n in enumerate(crown_outliers(young)) if n]
     assert flagged == [15, 18] and "its row" in crown_outliers(young)[15]
     assert "all trees" in crown_outliers(young)[18]
+
+    # A small crown over a trunk of its own is a small (young, replanted) tree; one with no
+    # trunk, or over two, is still suspect.
+    replanted = trees.assign(n_trunks=1)
+    replanted.loc[3, "n_trunks"] = 2
+    assert [i for i, n in enumerate(crown_outliers(replanted)) if n] == [3]
+    for trunks in (0, 2):
+        piece = replanted.assign(n_trunks=1)
+        piece.loc[8, "n_trunks"] = trunks
+        assert "fragment" in crown_outliers(piece)[8]
