@@ -112,9 +112,9 @@ def compute(
 
     Notebooks call this to explore a run; :func:`run` adds the output files.
     """
-    bag, out = Path(bag), Path(out)
-    if not bag.exists():
-        raise InputError(f"{bag}: bag does not exist")
+    from canopy_kit.io.bag import require_bag
+
+    bag, out = require_bag(bag), Path(out)
     if drone_images is not None and not Path(drone_images).is_dir():
         raise InputError(f"{drone_images}: drone image folder does not exist")
     if truth is not None and not Path(truth).is_dir():

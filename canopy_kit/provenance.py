@@ -26,9 +26,9 @@ def bag_sha256(bag: str | Path, stop: threading.Event | None = None) -> str:
     """SHA-256 of a bag file, or of every file of a ROS2 bag folder in sorted relative-path
     order (each file's path and bytes), streamed in 1 MiB chunks; an InputError when
     ``stop`` is set before the end."""
-    bag = Path(bag)
-    if not bag.exists():
-        raise InputError(f"{bag}: bag does not exist")
+    from canopy_kit.io.bag import require_bag
+
+    bag = require_bag(bag)
     digest = hashlib.sha256()
     files = sorted(p for p in bag.rglob("*") if p.is_file()) if bag.is_dir() else [bag]
     for path in files:

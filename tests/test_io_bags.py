@@ -342,6 +342,23 @@ def test_empty_bag_file(tmp_path: Path, name: str) -> None:
     assert str(path) in str(err.value) and "empty" in str(err.value)
 
 
+def test_a_bag_named_without_its_suffix_is_pointed_at(tmp_path: Path) -> None:
+    from canopy_kit.io.bag import require_bag
+
+    (tmp_path / "drive.bag").write_bytes(b"#ROSBAG V2.0\n")
+    (tmp_path / "drive.mcap").write_bytes(b"\x89MCAP0\r\n")
+    (tmp_path / "drive.txt").write_text("notes")  # not a bag: not offered
+    with pytest.raises(InputError) as err:
+        require_bag(tmp_path / "drive")
+    message = str(err.value)
+    assert message.startswith(f"{tmp_path / 'drive'}: bag does not exist")
+    assert "did you mean drive.bag, drive.mcap in" in message and "drive.txt" not in message
+    with pytest.raises(InputError) as err:
+        require_bag(tmp_path / "elsewhere" / "drive")
+    assert str(err.value).endswith("bag does not exist")  # no folder, no guess
+    assert require_bag(str(tmp_path / "drive.bag")) == tmp_path / "drive.bag"
+
+
 def test_missing_bag_path(tmp_path: Path) -> None:
     path = tmp_path / "nowhere.bag"
     with pytest.raises(InputError) as err:

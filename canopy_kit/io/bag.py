@@ -101,6 +101,20 @@ class OdometrySeries:
     child_frame_id: str = ""
 
 
+def require_bag(bag: str | Path) -> Path:
+    """``bag`` as a Path; an InputError when it does not exist, naming the bags beside it
+    that its name may have meant (``session`` for ``session.bag``, ``session.mcap``...)."""
+    bag = Path(bag)
+    if bag.exists():
+        return bag
+    siblings = bag.parent.iterdir() if bag.parent.is_dir() else ()
+    near = sorted(
+        p.name for p in siblings if p.name.startswith(bag.name) and bag_kind(p) is not None
+    )
+    hint = f"; did you mean {', '.join(near)} in {bag.parent}?" if near else ""
+    raise InputError(f"{bag}: bag does not exist{hint}")
+
+
 def bag_kind(path: Path) -> str | None:
     """``ros1``, ``ros2`` or None, from the path's shape and magic bytes."""
     if path.is_dir():
@@ -137,9 +151,7 @@ class BagSession:
     """An open bag. Use as a context manager: ``with open_bag(path) as bag: ...``."""
 
     def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        if not self.path.exists():
-            raise InputError(f"{self.path}: file or folder does not exist")
+        self.path = require_bag(path)
         if self.path.is_file() and self.path.stat().st_size == 0:
             raise InputError(f"{self.path}: file is empty, not a ROS bag")
         if bag_kind(self.path) is None:

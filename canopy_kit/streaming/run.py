@@ -19,7 +19,6 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
-from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_write_json
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
 
@@ -51,12 +50,11 @@ def run_stream(
 ) -> Any:
     """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.outputs.Results`
     (``orchard`` names the orchard in the provenance, default the bag's stem)."""
+    from canopy_kit.io.bag import require_bag
     from canopy_kit.outputs import Results, write_trees
     from canopy_kit.provenance import provenance
 
-    bag, out = Path(bag), Path(out)
-    if not bag.exists():
-        raise InputError(f"{bag}: bag does not exist")
+    bag, out = require_bag(bag), Path(out)
     out.mkdir(parents=True, exist_ok=True)
     stream = TreeStream(config, bag, settings, progress)
     started, wall, cpu = time.time(), time.perf_counter(), time.process_time()
