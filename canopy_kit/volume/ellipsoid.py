@@ -9,10 +9,11 @@ docs/VOLUMES.md "Sparse crowns: what their foliage can tell at all").
 
 Computed by Khachiyan's algorithm with Wolfe's away steps (Todd & Yıldırım 2007, which
 converges linearly where the plain algorithm crawls on near-duplicate points) on the convex
-hull's vertices, which have the same enclosing ellipsoid as the whole cloud. The iteration stops when the
-largest Mahalanobis-type distance of a point is within ``tol`` of the optimum's ``d + 1``;
-the ellipsoid returned is then scaled to contain every point, so its volume is at most
-``(1 + tol) ** 1.5`` times the optimum's and never below it.
+hull's vertices, which have the same enclosing ellipsoid as the whole cloud. The iteration
+stops when the largest Mahalanobis-type distance of a point is within ``tol`` of the
+optimum's ``d + 1``; the ellipsoid it has then is scaled to pass through the farthest point,
+so it contains every point and its volume is at most ``(1 + tol) ** 1.5`` times the
+optimum's.
 """
 
 from __future__ import annotations
@@ -89,7 +90,8 @@ def enclosing_ellipsoid(
     shape = np.linalg.inv(scatter) / d
     rel = pts - center
     reach = float(np.einsum("ij,jk,ik->i", rel, shape, rel).max())
-    return Ellipsoid(center + origin, shape / max(reach, 1.0), iterations, converged)
+    # exactly through the farthest point: enclosing, and no larger than it needs to be
+    return Ellipsoid(center + origin, shape / reach, iterations, converged)
 
 
 class EnclosingEllipsoidVolume(VolumeEstimator):
