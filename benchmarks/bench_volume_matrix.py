@@ -112,8 +112,9 @@ def summarise(errors: pd.DataFrame, by: list[str]) -> pd.DataFrame:
 
 
 def calibrate(errors: pd.DataFrame) -> dict[str, dict[str, tuple[float, float]]]:
-    """Per estimator: ``uncertainty.calibrate_ratios`` (per kind of crown, from the interval
-    rows' surface fill), what uncertainty.CALIBRATIONS holds."""
+    """Per estimator in the rows (``--extra-estimators`` too): ``uncertainty.calibrate_ratios``
+    (per kind of crown, from the interval rows' surface fill), what uncertainty.CALIBRATIONS
+    holds."""
     from canopy_kit.volume.uncertainty import calibrate_ratios
 
     key = ["sensor", "form", "seed", "scan", "tree"]
@@ -124,7 +125,7 @@ def calibrate(errors: pd.DataFrame) -> dict[str, dict[str, tuple[float, float]]]
     # the interval's own kind (CSVs written before 2026-12-05 have none: the fill's)
     tree["tree_kind"] = interval["kind"] if "kind" in interval else None
     out = {}
-    for method in ESTIMATORS:
+    for method in dict.fromkeys(errors.loc[errors["method"] != "interval", "method"]):
         est = errors[errors["method"] == method].join(tree, on=key)
         ratio = est["true_volume_m3"] / est["volume_m3"]
         # the interval rows' kind is the recommended estimator's; the others go by the fill
