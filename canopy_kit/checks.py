@@ -174,8 +174,8 @@ def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
         (
             "segment_flags",
             (
-                "crowns unlike the others of their row (below 0.5x or above 1.6x "
-                "the median diameter: fragments or merged trees?)"
+                "crowns unlike the others of their row (below 0.5x the median diameter "
+                "with no trunk of its own, or above 1.6x: fragments or merged trees?)"
             ),
             st.crown_outlier_share_warn,
             st.crown_outlier_share_fail,
