@@ -194,6 +194,18 @@ def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
                 _names(trees, odd, 12),
             )
         )
+    if "volume_interval_flags" in trees:  # not an error of the run: trees to trust less
+        wide = flagged(trees, "volume_interval_flags").to_numpy()
+        note = _names(trees, wide, 12)
+        out.append(
+            Check(
+                "volumes with a wide interval (sparse or deeply lobed crowns)",
+                None,
+                f"{int(wide.sum())} ({100 * _share(int(wide.sum()), n):.0f} %)",
+                "",
+                f"{note}: see volume_low_m3 / volume_high_m3" if note else "",
+            )
+        )
     return out
 
 

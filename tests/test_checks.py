@@ -92,6 +92,21 @@ def test_crown_outliers_share() -> None:
     assert _by_name(run_checks({}, two), "crowns unlike").status == "fail"
 
 
+def test_trees_with_a_wide_volume_interval_are_named_for_information() -> None:
+    trees = _row([4.0] * 10)
+    assert not [c for c in run_checks({}, trees) if "wide interval" in c.name]  # no column
+    flags = [""] * 10
+    flags[2] = flags[7] = "sparse crown (surface fill 1.05 < 1.2): wide interval"
+    check = _by_name(
+        run_checks({}, trees.assign(volume_interval_flags=flags)), "volumes with a wide"
+    )
+    assert check.status == "info" and check.value == "2 (20 %)"
+    names = list(trees["tree_id"].iloc[[2, 7]])
+    assert check.note.startswith(", ".join(names))
+    none = _by_name(run_checks({}, trees.assign(volume_interval_flags="")), "volumes with a wide")
+    assert none.value == "0 (0 %)" and none.note == ""
+
+
 def test_map_quality_from_the_mapping_diagnostics() -> None:
     clean = {
         "sweeps_registered": 200,
