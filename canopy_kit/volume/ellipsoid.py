@@ -48,8 +48,12 @@ class Ellipsoid:
 
     def contains(self, xyz: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
         """Which points lie inside (or on, to ``rtol``) the ellipsoid."""
-        rel = np.asarray(xyz, float) - self.center
-        return np.einsum("ij,jk,ik->i", rel, self.shape, rel) <= 1.0 + rtol
+        return _reach(np.asarray(xyz, float) - self.center, self.shape) <= 1.0 + rtol
+
+
+def _reach(rel: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """``relᵢᵀ shape relᵢ`` per row: 1 on the ellipsoid's surface."""
+    return np.einsum("ij,jk,ik->i", rel, shape, rel)
 
 
 def enclosing_ellipsoid(
@@ -76,20 +80,19 @@ def enclosing_ellipsoid(
             break
         support = np.flatnonzero(weights > 0)
         down = int(support[np.argmin(dist[support])])
-        if dist[up] - (d + 1) >= (d + 1) - dist[down]:  # move weight towards the farthest
-            j, step = up, (dist[up] - d - 1) / ((d + 1) * (dist[up] - 1))
-        else:  # away step: take weight from the nearest support point, at most all of it
-            j = down
-            step = (dist[down] - d - 1) / ((d + 1) * (dist[down] - 1))
-            step = max(step, -weights[down] / (1.0 - weights[down]))
+        # towards the farthest point, or away from the nearest support point (at most all of
+        # its weight), whichever is further from the optimum's d + 1
+        j = up if dist[up] - (d + 1) >= (d + 1) - dist[down] else down
+        step = (dist[j] - d - 1) / ((d + 1) * (dist[j] - 1))
+        if j == down:
+            step = max(step, -weights[j] / (1.0 - weights[j]))
         weights *= 1.0 - step
         weights[j] += step
         weights[weights < 0] = 0.0
     center = pts.T @ weights
     scatter = pts.T @ (weights[:, None] * pts) - np.outer(center, center)
     shape = np.linalg.inv(scatter) / d
-    rel = pts - center
-    reach = float(np.einsum("ij,jk,ik->i", rel, shape, rel).max())
+    reach = float(_reach(pts - center, shape).max())
     # exactly through the farthest point: enclosing, and no larger than it needs to be
     return Ellipsoid(center + origin, shape / reach, iterations, converged)
 
