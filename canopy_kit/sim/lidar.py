@@ -140,13 +140,7 @@ class SpinningLidar:
             return self._vlp16.sweep(stamp)
         sp = self.spec
         n_col, n_ring = sp.columns, sp.rings
-        pos, mats = self._column_poses(stamp)
-        world_dirs = np.matmul(self.directions, mats.transpose(0, 2, 1))
-        rays = np.empty((n_col, n_ring, 6), np.float32)
-        rays[..., :3] = pos[:, None, :]
-        rays[..., 3:] = world_dirs
-        # column-major order: time increases with the index
-        idx, ranges, prim, intensity = self.cast(rays.reshape(-1, 6), world_dirs.reshape(-1, 3))
+        _, _, idx, ranges, prim, intensity = self._cast_columns(stamp)
         dirs_local = self.directions.reshape(-1, 3)[idx]
         xyz = (dirs_local * ranges[:, None]).astype(np.float32)
         col = idx // n_ring
@@ -168,6 +162,28 @@ class SpinningLidar:
         if self.truth_field:
             columns["tree_id"] = self.scene.tree_id[prim].astype(np.int32)
         return SimulatedScan(stamp, columns)
+
+    def _cast_columns(
+        self, stamp: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Cast the columns of the sweep at ``stamp``: ray origins (columns, 3), world
+        directions (columns · rings, 3) and :meth:`cast`'s returns, column-major (time
+        increases with the index)."""
+        n_col, n_ring = self.spec.columns, self.spec.rings
+        pos, mats = self._column_poses(stamp)
+        world_dirs = np.matmul(self.directions, mats.transpose(0, 2, 1))
+        rays = np.empty((n_col, n_ring, 6), np.float32)
+        rays[..., :3] = pos[:, None, :]
+        rays[..., 3:] = world_dirs
+        world_dirs = world_dirs.reshape(-1, 3)
+        return (pos, world_dirs, *self.cast(rays.reshape(-1, 6), world_dirs))
+
+    def sweep_world(self, stamp: float) -> tuple[np.ndarray, np.ndarray]:
+        """The sweep at ``stamp`` as world points (N, 3) and the scene primitive each hit:
+        no sensor frame, no deskewing (for truth-labelled scans; firing in columns)."""
+        pos, world_dirs, idx, ranges, prim, _ = self._cast_columns(stamp)
+        origin = pos[idx // self.spec.rings]
+        return origin + world_dirs[idx] * ranges[:, None], prim
 
 
 def interpolated_poses(

@@ -48,7 +48,9 @@ class Scene:
         return scene
 
 
-class _Builder:
+class SceneBuilder:
+    """Collects meshes with their material, tree and shade, then builds one :class:`Scene`."""
+
     def __init__(self) -> None:
         self.v: list[np.ndarray] = []
         self.f: list[np.ndarray] = []
@@ -65,6 +67,7 @@ class _Builder:
         tree: np.ndarray | int,
         shade: np.ndarray | float = 1.0,
     ) -> None:
+        """Add a mesh whose faces index ``verts``; ``tree`` per face or for all."""
         self.v.append(verts)
         self.f.append(faces + self.n)
         self.n += len(verts)
@@ -74,6 +77,7 @@ class _Builder:
         self.shade.append(np.broadcast_to(np.asarray(shade, np.float32), (m,)).copy())
 
     def build(self, bounds: tuple[np.ndarray, np.ndarray]) -> Scene:
+        """The scene of everything added, with these bounds."""
         return Scene(
             np.concatenate(self.v),
             np.concatenate(self.f),
@@ -93,7 +97,7 @@ def build_scene(
     """Mesh the whole orchard; ``extra_bounds`` widens the ground (e.g. to the drive path)."""
     spec = orchard.spec
     lo, hi = _ground_bounds(orchard, extra_bounds)
-    b = _Builder()
+    b = SceneBuilder()
     _add_ground(b, orchard, lo, hi, ground_step)
     _add_grass(b, orchard, rng, lo, hi)
     for tree in orchard.trees:
@@ -128,7 +132,9 @@ def _ground_bounds(
     return lo, hi
 
 
-def _add_ground(b: _Builder, orchard: Orchard, lo: np.ndarray, hi: np.ndarray, step: float) -> None:
+def _add_ground(
+    b: SceneBuilder, orchard: Orchard, lo: np.ndarray, hi: np.ndarray, step: float
+) -> None:
     xs = np.arange(lo[0], hi[0] + step, step)
     ys = np.arange(lo[1], hi[1] + step, step)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
@@ -143,7 +149,7 @@ def _add_ground(b: _Builder, orchard: Orchard, lo: np.ndarray, hi: np.ndarray, s
 
 
 def _add_grass(
-    b: _Builder, orchard: Orchard, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray
+    b: SceneBuilder, orchard: Orchard, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray
 ) -> None:
     spec = orchard.spec
     if spec.grass_height <= 0 or spec.grass_density <= 0:
@@ -173,54 +179,99 @@ def cylinder(
 ) -> tuple[np.ndarray, np.ndarray]:
     """An open tapered cylinder between two points."""
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    return cylinders(p0[None], p1[None], np.array([r0], float), np.array([r1], float), sides)
+
+
+def cylinders(
+    p0: np.ndarray, p1: np.ndarray, r0: np.ndarray, r1: np.ndarray, sides: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
+    """Open tapered cylinders from ``p0[k]`` (radius ``r0[k]``) to ``p1[k]`` (``r1[k]``), as one
+    mesh: ``(2 · sides · K, 3)`` vertices and ``(2 · sides · K, 3)`` faces."""
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     axis = p1 - p0
-    axis /= np.linalg.norm(axis)
-    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    axis /= np.linalg.norm(axis, axis=1)[:, None]
+    helper = np.where(np.abs(axis[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     u = np.cross(axis, helper)
-    u /= np.linalg.norm(u)
+    u /= np.linalg.norm(u, axis=1)[:, None]
     v = np.cross(axis, u)
     ang = np.linspace(0, 2 * np.pi, sides, endpoint=False)
-    ring = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v
-    verts = np.concatenate([p0 + r0 * ring, p1 + r1 * ring])
+    ring = np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]
+    r0 = np.asarray(r0, float)[:, None, None]
+    r1 = np.asarray(r1, float)[:, None, None]
+    verts = np.concatenate([p0[:, None, :] + r0 * ring, p1[:, None, :] + r1 * ring], axis=1)
     i = np.arange(sides)
     j = (i + 1) % sides
-    faces = np.concatenate(
+    one = np.concatenate(
         [np.column_stack([i, j, j + sides]), np.column_stack([i, j + sides, i + sides])]
     )
-    return verts, faces
+    faces = one[None, :, :] + 2 * sides * np.arange(len(p0))[:, None, None]
+    return verts.reshape(-1, 3), faces.reshape(-1, 3)
 
 
-def _add_wood(b: _Builder, tree: Tree) -> None:
+def _add_wood(b: SceneBuilder, tree: Tree) -> None:
+    for verts, faces, in_crown in wood_parts(tree):
+        b.add(verts, faces, WOOD, tree.tree_id if in_crown else -1)
+
+
+def wood_parts(tree: Tree) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """The tree's trunk and scaffold branches as meshes (vertices, faces, inside the crown):
+    the trunk below the crown is not canopy, the part inside it and the branches are."""
     base = np.asarray(tree.base) - np.array([0, 0, 0.1])
     top = np.asarray(tree.trunk_top)
     crown_bottom = tree.crown.z_range[0]
-    # The trunk below the crown is not canopy (tree id -1); the part inside it is.
+    parts = []
     if crown_bottom > base[2] + 0.2 and crown_bottom < top[2]:
         f = (crown_bottom - base[2]) / (top[2] - base[2])
         mid = base + f * (top - base)
         r_mid = tree.trunk_radius * (1 - 0.3 * f)
-        v, fc = cylinder(base, mid, tree.trunk_radius, r_mid)
-        b.add(v, fc, WOOD, -1)
-        v, fc = cylinder(mid, top, r_mid, tree.trunk_radius * 0.7)
-        b.add(v, fc, WOOD, tree.tree_id)
+        parts.append((*cylinder(base, mid, tree.trunk_radius, r_mid), False))
+        parts.append((*cylinder(mid, top, r_mid, tree.trunk_radius * 0.7), True))
     else:
-        v, fc = cylinder(base, top, tree.trunk_radius, tree.trunk_radius * 0.7)
-        b.add(v, fc, WOOD, -1)
+        parts.append((*cylinder(base, top, tree.trunk_radius, tree.trunk_radius * 0.7), False))
     for tip in tree.branch_tips:
-        v, fc = cylinder(top, np.asarray(tip), tree.trunk_radius * 0.45, 0.015, sides=6)
-        b.add(v, fc, WOOD, tree.tree_id)
+        parts.append(
+            (*cylinder(top, np.asarray(tip), tree.trunk_radius * 0.45, 0.015, sides=6), True)
+        )
+    return parts
 
 
 def _add_leaf_clusters(
-    b: _Builder, tree: Tree, verts: np.ndarray, rng: np.random.Generator
+    b: SceneBuilder, tree: Tree, verts: np.ndarray, rng: np.random.Generator
 ) -> None:
     """Mesh ``leaf_cluster_vertices`` as octahedra, each with a drawn shade."""
+    add_octahedra(b, verts, tree.tree_id, rng)
+
+
+def octahedra_faces(m: int) -> np.ndarray:
+    """The faces (8 m, 3) of ``m`` octahedra whose vertices come six by six."""
+    return (_OCTAHEDRON_F[None, :, :] + 6 * np.arange(m)[:, None, None]).reshape(-1, 3)
+
+
+def add_octahedra(
+    b: SceneBuilder, verts: np.ndarray, tree: int, rng: np.random.Generator, material: int = FOLIAGE
+) -> None:
+    """Add leaf clusters (vertices from :func:`leaf_octahedra`, six each) with drawn shades."""
     m = len(verts) // 6
     if m == 0:
         return
-    faces = (_OCTAHEDRON_F[None, :, :] + 6 * np.arange(m)[:, None, None]).reshape(-1, 3)
     shade = np.repeat(rng.uniform(0.6, 1.4, m), 8)
-    b.add(verts, faces, FOLIAGE, tree.tree_id, shade)
+    b.add(verts, octahedra_faces(m), material, tree, shade)
+
+
+def leaf_octahedra(centres: np.ndarray, size: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The six vertices of flattened, randomly turned octahedra (``(6 m, 3)``): leaf clusters
+    of diameter ``size`` (m) about ``centres``, 0.6-1.0 × as wide and 0.25-0.5 × as thick."""
+    from scipy.spatial.transform import Rotation
+
+    m = len(centres)
+    if m == 0:
+        return np.empty((0, 3))
+    rot = Rotation.random(m, random_state=rng).as_matrix()
+    scale = np.column_stack(
+        [size, size * rng.uniform(0.6, 1.0, m), size * rng.uniform(0.25, 0.5, m)]
+    )
+    local = _OCTAHEDRON_V[None, :, :] * scale[:, None, :]
+    return (centres[:, None, :] + np.einsum("mij,mkj->mki", rot, local)).reshape(-1, 3)
 
 
 def leaf_cluster_vertices(
@@ -248,17 +299,9 @@ def leaf_cluster_vertices(
     if np.isfinite(penetration):
         keep &= depth_below_envelope(tree.crown, p, depth) <= penetration
     p, size = p[keep], size[keep]
-    m = len(p)
-    if m == 0:
+    if len(p) == 0:
         return np.empty((0, 3))
-    from scipy.spatial.transform import Rotation
-
-    rot = Rotation.random(m, random_state=rng).as_matrix()
-    scale = np.column_stack(
-        [size, size * rng.uniform(0.6, 1.0, m), size * rng.uniform(0.25, 0.5, m)]
-    )
-    local = _OCTAHEDRON_V[None, :, :] * scale[:, None, :]
-    verts = (p[:, None, :] + np.einsum("mij,mkj->mki", rot, local)).reshape(-1, 3)
+    verts = leaf_octahedra(p, size, rng)
     # Clip leaf vertices that stick out radially back onto the envelope, so the foliage
     # fills the crown right up to its envelope and never beyond it.
     return _clip_to_envelope(tree.crown, verts)
