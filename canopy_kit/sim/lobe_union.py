@@ -173,7 +173,7 @@ def lobe_union_tree(
         trunk,
         envelope_m3=union.volume,
         young=young,
-        info={"lobes": len(centres)},
+        info={"lobes": len(centres), "union": union},
     )
 
 
