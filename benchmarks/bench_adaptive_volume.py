@@ -115,7 +115,7 @@ def check(df: pd.DataFrame) -> pd.DataFrame:
     from canopy_kit.volume.uncertainty import CALIBRATIONS, MIN_COVERAGE, SECTORS
 
     cal = CALIBRATIONS["adaptive_alpha"]
-    ratios = np.array([getattr(cal, kind) for kind in df["kind"]])
+    ratios = np.array([cal.kinds[kind] for kind in df["kind"]])
     lo, hi = ratios[:, 0], ratios[:, 1]
     hi = np.where(df["coverage"] < MIN_COVERAGE, hi / np.maximum(df["coverage"], 1 / SECTORS), hi)
     v = df["adaptive_alpha"]

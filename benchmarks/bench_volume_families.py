@@ -83,6 +83,163 @@ def scans(cache: Path, family: str, seed: int, sensors: list[str], mount: float 
     return out
 
 
+#: The estimators measured: (label, plugin, parameters). ``foliage_envelope`` is the
+#: recommended one; its complete-foliage reference takes the measurand its scan took.
+METHODS = [
+    ("convex_hull", "convex_hull", {}),
+    ("alpha_shape", "alpha_shape", {"alpha": 0.9}),
+    ("alpha_hull", "alpha_hull", {"alpha": 0.9}),
+    ("slices", "slices", {}),
+    ("voxel", "voxel", {}),
+    ("adaptive_alpha", "adaptive_alpha", {}),
+    ("enclosing_ellipsoid", "enclosing_ellipsoid", {}),
+    ("foliage_envelope", "foliage_envelope", {}),
+]
+RECOMMENDED = "foliage_envelope"
+
+
+def measure_cloud(xyz: np.ndarray, complete: bool = False) -> dict:
+    """Every method's volume of ``xyz`` and what the recommended one chose; on ``complete``
+    foliage the recommended one is measured as each of its measurands (``envelope`` and
+    ``ellipsoid``), since the reference takes the one the scan took."""
+    from canopy_kit.volume import estimate_volume
+    from canopy_kit.volume.uncertainty import scan_coverage
+
+    out: dict = {"n_points": len(xyz)}
+    if len(xyz) < 8:
+        return out
+    out["coverage"] = scan_coverage(xyz)
+    for label, method, params in METHODS:
+        if label == RECOMMENDED and complete:
+            continue
+        r = estimate_volume(xyz, method, **params)
+        out[label] = r.volume_m3 if r.valid else np.nan
+        if label == RECOMMENDED:
+            out.update(
+                estimate=r.extra.get("estimate"),
+                kind=r.extra.get("crown_kind"),
+                fill=r.extra.get("surface_fill"),
+                spacing=r.extra.get("spacing"),
+                void_m3=r.extra.get("void_m3", 0.0),
+                without_voids=r.extra.get("volume_without_voids_m3", np.nan),
+            )
+    if complete:
+        for m in ("envelope", "ellipsoid"):
+            r = estimate_volume(xyz, RECOMMENDED, measurand=m)
+            out[f"{RECOMMENDED}_{m}"] = r.volume_m3 if r.valid else np.nan
+            if m == "envelope":
+                out["without_voids"] = r.extra.get("volume_without_voids_m3", np.nan)
+    return out
+
+
+def measurements(cache: Path, family: str, seed: int, sensors: list[str]) -> pd.DataFrame:
+    """One row per tree and scan (``complete``, ``left``, ``right``, ``both``) of ``family``,
+    ``seed`` and each sensor: every method's volume, cached beside the scans."""
+    frames = []
+    for sensor in sensors:
+        path = cache / f"{family}_s{seed}" / f"measured_{sensor}.pkl"
+        if not path.exists():
+            start = time.perf_counter()
+            rows = []
+            complete: dict[tuple, dict] = {}
+            for _, _, mount, t in scans(cache, family, seed, [sensor]):
+                base = {
+                    "family": family,
+                    "seed": seed,
+                    "sensor": sensor,
+                    "mount": mount,
+                    "row": t.row,
+                    "tree": t.name,
+                    "form": t.form,
+                    "young": t.young,
+                    "envelope_m3": t.envelope_m3,
+                }
+                key = (t.row, t.name)
+                if key not in complete:
+                    complete[key] = measure_cloud(t.complete, complete=True)
+                rows.append({**base, "scan": "complete", **complete[key]})
+                for side, xyz in t.scans.items():
+                    rows.append({**base, "scan": side, **measure_cloud(xyz)})
+            tmp = path.with_suffix(".tmp")
+            pd.DataFrame(rows).to_pickle(tmp)
+            tmp.rename(path)
+            print(
+                f"  measured {family} s{seed} {sensor}: {len(rows)} clouds, "
+                f"{time.perf_counter() - start:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+        frames.append(pd.read_pickle(path))
+    return pd.concat(frames, ignore_index=True)
+
+
+SIDE = {"left": "one", "right": "one", "both": "both"}
+
+
+def errors(df: pd.DataFrame) -> pd.DataFrame:
+    """One row per scan (left, right, both) with, per method, ``scan:<m>``: the scan's volume
+    over the same method's on complete foliage, minus 1 (the recommended method against its
+    complete foliage measured as the measurand the scan took), and ``env:<m>``: against the
+    envelope where the family has one."""
+    key = ["family", "seed", "sensor", "row", "tree"]
+    complete = df[df["scan"] == "complete"].set_index(key)
+    scans_ = df[df["scan"] != "complete"].copy()
+    idx = pd.MultiIndex.from_frame(scans_[key])
+    labels = [label for label, _, _ in METHODS]
+    for label in labels:
+        if label == RECOMMENDED:
+            env = complete[f"{RECOMMENDED}_envelope"].reindex(idx).to_numpy()
+            ell = complete[f"{RECOMMENDED}_ellipsoid"].reindex(idx).to_numpy()
+            ref = np.where(scans_["estimate"].to_numpy() == "ellipsoid", ell, env)
+            scans_["reference"] = ref
+        else:
+            ref = complete[label].reindex(idx).to_numpy()
+        scans_[f"scan:{label}"] = scans_[label].to_numpy() / ref - 1
+        scans_[f"env:{label}"] = scans_[label] / scans_["envelope_m3"] - 1
+    scans_["side"] = scans_["scan"].map(SIDE)
+    return scans_
+
+
+def summary(err: pd.DataFrame, by: list[str], kind: str = "scan") -> pd.DataFrame:
+    """Bias / MAPE (%) of every method's ``kind`` error (``scan`` or ``env``) per group."""
+    labels = [label for label, _, _ in METHODS]
+    g = err.groupby(by, sort=False)
+    out = pd.DataFrame({"n": g.size()})
+    for label in labels:
+        col = f"{kind}:{label}"
+        bias = 100 * g[col].mean()
+        mape = 100 * g[col].apply(lambda e: e.abs().mean())
+        out[label] = bias.map("{:+.1f}".format) + " / " + mape.map("{:.1f}".format)
+    return out
+
+
+def all_measurements(args: argparse.Namespace) -> pd.DataFrame:
+    frames = []
+    for family in args.families:
+        seeds = args.seeds or (REAL_SEEDS if family == "real" else TUNE_SEEDS + HELD_OUT_SEEDS)
+        for seed in seeds:
+            frames.append(measurements(args.cache, family, seed, args.sensors))
+    return pd.concat(frames, ignore_index=True)
+
+
+def print_report(args: argparse.Namespace) -> None:
+    pd.set_option("display.width", 250)
+    pd.set_option("display.max_columns", 40)
+    pd.set_option("display.max_rows", 500)
+    err = errors(all_measurements(args))
+    err["age"] = np.where(err["young"], "young", "old")
+    print(
+        "scan-induced error (drive against the same estimator on complete foliage), bias / MAPE %"
+    )
+    print(summary(err, ["family", "age", "side"]).to_string())
+    print("\nby sensor, old trees")
+    print(summary(err[~err["young"]], ["family", "sensor", "side"]).to_string())
+    env = err[err["envelope_m3"].notna()].copy()
+    env["variant"] = env["row"].str.split("-").str[-1]
+    print("\nagainst the envelope, bias / MAPE %")
+    print(summary(env, ["family", "variant", "age", "side"], "env").to_string())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -92,12 +249,24 @@ def main() -> None:
     scan.add_argument("--sensors", nargs="+", default=SENSORS)
     scan.add_argument("--mount", type=float, default=1.8)
     scan.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
+    measure = sub.add_parser("measure", help="measure every estimator on the cached scans")
+    report = sub.add_parser("report", help="print the tables of docs/VOLUMES.md")
+    for p in (measure, report):
+        p.add_argument("--families", nargs="+", default=FAMILIES, choices=FAMILIES)
+        p.add_argument("--seeds", nargs="+", type=int, default=None)
+        p.add_argument("--sensors", nargs="+", default=SENSORS)
+        p.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     args = parser.parse_args()
-    if args.command == "scan":
-        for family in args.families:
-            seeds = args.seeds or (REAL_SEEDS if family == "real" else TUNE_SEEDS + HELD_OUT_SEEDS)
-            for seed in seeds:
+    if args.command == "report":
+        print_report(args)
+        return
+    for family in args.families:
+        seeds = args.seeds or (REAL_SEEDS if family == "real" else TUNE_SEEDS + HELD_OUT_SEEDS)
+        for seed in seeds:
+            if args.command == "scan":
                 scans(args.cache, family, seed, args.sensors, args.mount)
+            else:
+                measurements(args.cache, family, seed, args.sensors)
 
 
 if __name__ == "__main__":

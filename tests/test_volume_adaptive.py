@@ -110,7 +110,7 @@ def test_one_sided_and_sparse_crowns_widen_the_interval() -> None:
 
     pts, true = ball()
     full = volume_interval(pts, true, "adaptive_alpha")
-    lo, hi = CALIBRATIONS["adaptive_alpha"].dense
+    lo, hi = CALIBRATIONS["adaptive_alpha"].kinds["dense"]
     assert full.coverage == 1.0 and full.flags == ()
     assert (full.low_m3, full.high_m3) == pytest.approx((lo * true, hi * true))
     half = pts[pts[:, 0] > 0.3]  # seen from one side only
@@ -123,7 +123,7 @@ def test_one_sided_and_sparse_crowns_widen_the_interval() -> None:
     few = (centres[:, None, :] + rng.normal(0, 0.05, (25, 10, 3))).reshape(-1, 3)
     sparse = volume_interval(few, true, "adaptive_alpha")
     assert any("sparse crown" in f for f in sparse.flags)
-    lo_sparse, hi_sparse = CALIBRATIONS["adaptive_alpha"].sparse
+    lo_sparse, hi_sparse = CALIBRATIONS["adaptive_alpha"].kinds["sparse"]
     assert sparse.low_m3 == pytest.approx(lo_sparse * true)
     assert sparse.high_m3 >= hi_sparse * true * (1 - 1e-9)  # (25 clusters leave sectors empty)
     assert hi_sparse / lo_sparse > 1.5 * hi / lo  # a sparse crown's interval is wider

@@ -157,8 +157,9 @@ def scanned_trees(
     complete: Sequence[np.ndarray] | None = None,
 ) -> list[ScannedTree]:
     """Drive ``sensor`` past ``row`` on both sides (clearance and speed drawn per row from
-    ``CLEARANCE`` and ``SPEED``) and thin every tree's clouds to ``voxel_size`` (one point per voxel, the one nearest its centre, as the volume stage
-    measures trees). ``complete``: the thinned complete clouds when already made."""
+    ``CLEARANCE`` and ``SPEED``) and thin every tree's clouds to ``voxel_size`` (one point
+    per voxel, the one nearest its centre, as the volume stage measures trees).
+    ``complete``: the thinned complete clouds when already made."""
     from canopy_kit.sim.alley import SIDES, drive_row
     from canopy_kit.voxel import voxel_representatives
 

@@ -185,6 +185,11 @@ class AlphaShapeVolume(VolumeEstimator):
     """
 
     name = "alpha_shape"
+    measures = (
+        "the alpha complex of the points at alpha (default 0.9 m, the paper's): Delaunay "
+        "tetrahedra of circumradius below alpha; it depends on the point density, and thin or"
+        " one-sided scans fall apart into shells"
+    )
     convex_rtol = 1e-6
 
     def __init__(self, alpha: float = PAPER_ALPHA_M) -> None:

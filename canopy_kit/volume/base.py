@@ -114,7 +114,8 @@ def degeneracy(xyz: np.ndarray) -> str | None:
 class VolumeEstimator(BaseEstimator):
     """Base class: validates input and parameters, then calls :meth:`_volume`.
 
-    Subclasses set ``name``, store their keyword arguments in ``__init__`` unchanged,
+    Subclasses set ``name`` and ``measures`` (what volume the estimator measures, its
+    measurand, in a sentence for the docs and the report), store their keyword arguments in ``__init__`` unchanged,
     document them in a numpydoc ``Parameters`` section and implement
     ``_volume(xyz) -> float`` (or ``-> (float, extra_dict)``) on checked, non-degenerate
     points (and ``_volume_and_surface`` when they can draw the solid they measured);
@@ -125,6 +126,7 @@ class VolumeEstimator(BaseEstimator):
     """
 
     name: ClassVar[str] = "volume"
+    measures: ClassVar[str] = ""  # what volume it measures, in a sentence (docs, report)
     convex_rtol: ClassVar[float | None] = None
 
     def validate_params(self) -> None:

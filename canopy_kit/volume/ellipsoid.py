@@ -110,6 +110,10 @@ class EnclosingEllipsoidVolume(VolumeEstimator):
     """
 
     name = "enclosing_ellipsoid"
+    measures = (
+        "the smallest ellipsoid enclosing every point: a crown model, exact for an "
+        "ellipsoidal crown, over-filling any other form"
+    )
     convex_rtol = None  # an ellipsoid, not the hull: over-fills any polyhedron
 
     def __init__(self, tol: float = 1e-4, max_iterations: int = 100_000) -> None:

@@ -112,6 +112,10 @@ class ConvexHullVolume(VolumeEstimator):
     """
 
     name = "convex_hull"
+    measures = (
+        "the convex hull of the points: every hollow and concavity filled; an upper bound of "
+        "any envelope of the same points"
+    )
     convex_rtol = 1e-6
 
     def __init__(self) -> None:
@@ -163,6 +167,10 @@ class SampleCorrectedHullVolume(VolumeEstimator):
     """
 
     name = "sample_corrected_hull"
+    measures = (
+        "the convex hull times Efron's sampling correction: the hull of the body a thin "
+        "sample was drawn from"
+    )
 
     def __init__(self, cell: float = 0.2, max_factor: float = MAX_SAMPLE_FACTOR) -> None:
         self.cell = cell

@@ -116,6 +116,10 @@ class MirrorVolume(VolumeEstimator):
     """
 
     name = "mirror"
+    measures = (
+        "the base estimator on the points and their mirror image across a vertical plane "
+        "(one-sided scans): assumes a crown symmetric about the row"
+    )
 
     def __init__(
         self,

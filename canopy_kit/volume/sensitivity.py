@@ -116,6 +116,7 @@ class AutoAlphaVolume(VolumeEstimator):
     """
 
     name = "alpha_auto"
+    measures = "the alpha shape at the start of its volume plateau, alpha chosen per tree"
     convex_rtol = 1e-3  # a filled convex solid is a plateau from the first α that fills it
 
     def __init__(self, tolerance: float = 0.02) -> None:

@@ -81,6 +81,10 @@ class SliceVolume(VolumeEstimator):
     """
 
     name = "slices"
+    measures = (
+        "the sum over horizontal slices of the slice's 2-D hull (or alpha shape) area times "
+        "the thickness"
+    )
 
     def __init__(
         self, thickness: float = 0.2, area: str = "hull", alpha: float = PAPER_ALPHA_M

@@ -21,7 +21,7 @@ properties of the tree's points pick the ratios and widen them:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -45,22 +45,33 @@ MIN_FILL = 2.0  # at or above: a dense crown
 # between the two: either
 TRUNK_SHARE = 0.1
 INNER_RADIUS = 0.3  # points nearer the centre than this share of the crown radius are skipped
+VOID_SHARE = 0.15  # enclosed empty space above this share of the volume: flagged, spanned
 MARGIN = 0.02  # added on either side of the calibrated ratio quantiles (2 % and 98 %)
 TUNED_ON = (401, 402)
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """True / estimated volume ratios (low, high) for dense, mixed and sparse crowns."""
+    """True / estimated volume ratios (low, high) per kind of crown, and the parameters of
+    the estimator they were measured with: an estimator run with other parameters measures
+    something else, so it gets no interval (:func:`volume_interval`)."""
 
-    dense: tuple[float, float]
-    mixed: tuple[float, float]
-    sparse: tuple[float, float]
+    kinds: dict[str, tuple[float, float]]
+    params: dict[str, Any] = field(default_factory=dict)
 
     def ratios(self, fill: float) -> tuple[str, tuple[float, float]]:
         """The kind of crown a surface fill says (:func:`crown_kind`) and its ratios."""
         kind = crown_kind(fill)
-        return kind, getattr(self, kind)
+        return kind, self.kinds[kind]
+
+    def mismatch(self, params: dict[str, Any] | None) -> str | None:
+        """Which calibrated parameter ``params`` set otherwise (None: none, or not given)."""
+        if params is None:
+            return None
+        for key, value in self.params.items():
+            if key in params and params[key] != value:
+                return f"{key} = {params[key]!r} (calibrated at {value!r})"
+        return None
 
 
 CROWN_KINDS = ("dense", "mixed", "sparse")
@@ -106,12 +117,77 @@ def calibrate_ratios(
 # (before, a split of the whole map gave the second alley a thinner scan than a real drive:
 # docs/VOLUMES.md, "One-sided scans from the alley maps").
 CALIBRATIONS: dict[str, Calibration] = {
-    "adaptive_alpha": Calibration(dense=(0.96, 1.064), mixed=(0.903, 2.941), sparse=(0.815, 2.307)),
-    "alpha_shape": Calibration(  # α = 0.9 m
-        dense=(1.007, 1.228), mixed=(0.934, 3.424), sparse=(1.61, 4.46)
+    "foliage_envelope": Calibration(
+        {"dense": (0.95, 1.05), "thin": (0.85, 1.1), "sparse": (0.9, 1.1)},
+        params={
+            "alpha": 0.75,
+            "spacing_factor": 5.0,
+            "fill_voids": True,
+            "sparse_fill": 1.2,
+            "measurand": "auto",
+        },
     ),
-    "convex_hull": Calibration(dense=(0.888, 1.115), mixed=(0.621, 3.213), sparse=(1.506, 3.975)),
+    "adaptive_alpha": Calibration(
+        {"dense": (0.96, 1.064), "mixed": (0.903, 2.941), "sparse": (0.815, 2.307)},
+        params={
+            "alpha_factor": 4.0,
+            "offset_factor": 0.425,
+            "alpha_min": 0.3,
+            "alpha_max": 1.5,
+            "fill_voids": True,
+            "sparse_fill": 1.2,
+            "sample_cell": 0.2,
+        },
+    ),
+    "alpha_shape": Calibration(
+        {"dense": (1.007, 1.228), "mixed": (0.934, 3.424), "sparse": (1.61, 4.46)},
+        params={"alpha": 0.9},
+    ),
+    "convex_hull": Calibration(
+        {"dense": (0.888, 1.115), "mixed": (0.621, 3.213), "sparse": (1.506, 3.975)}
+    ),
 }
+
+
+@dataclass(frozen=True)
+class Disagreement:
+    """Estimators of one tree that disagree beyond every tree family: why, and their span."""
+
+    flag: str
+    low: float
+    high: float
+
+
+#: Ratios (low, high) between two estimators of one tree, the widest seen on the tree
+#: families (complete foliage and drives of every sensor and side, tuning and held-out seeds,
+#: benchmarks/bench_volume_families.py): a tree outside them is unlike every family.
+AGREEMENT: dict[tuple[str, str], tuple[float, float]] = {
+    ("foliage_envelope", "convex_hull"): (0.5, 1.3),
+    ("alpha_shape", "convex_hull"): (0.4, 1.0),
+}
+
+
+def disagreement(method: str, volume_m3: float, others: dict[str, float]) -> Disagreement | None:
+    """A flag and the span of the estimators when any pair of :data:`AGREEMENT` disagrees
+    beyond the families' range on this tree (``others``: the other estimators' volumes)."""
+    volumes = {m: v for m, v in {**others, method: volume_m3}.items() if np.isfinite(v) and v > 0}
+    bad, involved = [], set()
+    for (a, b), (lo, hi) in AGREEMENT.items():
+        if a in volumes and b in volumes:
+            ratio = volumes[a] / volumes[b]
+            if not lo <= ratio <= hi:
+                bad.append(f"{a} = {ratio:.2f} × {b} (tree families {lo:.2f}-{hi:.2f})")
+                involved.update((a, b))
+    if not bad:
+        return None
+    span = [volumes[m] for m in involved]
+    low, high = min(span), max(span)
+    return Disagreement(
+        f"estimators disagree beyond every tree family: {'; '.join(bad)}; the interval spans "
+        f"{low:.1f}-{high:.1f} m³",
+        low,
+        high,
+    )
 
 
 @dataclass(frozen=True)
@@ -168,41 +244,81 @@ def volume_interval(
     centre: np.ndarray | None = None,
     fill: float | None = None,
     kind: str | None = None,
+    params: dict[str, Any] | None = None,
+    extra: dict[str, Any] | None = None,
+    others: dict[str, float] | None = None,
 ) -> Interval | None:
     """The interval for ``method``'s ``volume_m3`` of the points ``xyz``; None when ``method``
-    has no calibration (or the volume is not a positive number). ``fill``: the points'
-    :func:`surface_fill` when the estimator has measured it already. ``kind``: the kind of
-    crown (``CROWN_KINDS``) when the estimator knows better than the fill (adaptive_alpha's
-    thinly scanned lobed crowns: ``mixed`` below ``SPARSE_FILL``)."""
+    has no calibration (or the volume is not a positive number).
+
+    ``fill``: the points' :func:`surface_fill` when the estimator has measured it already.
+    ``kind``: the kind of crown when the estimator knows it (``foliage_envelope``'s dense,
+    thin or sparse; ``adaptive_alpha``'s thinly scanned lobed crowns: ``mixed``), else the
+    fill says. ``params``: the estimator's parameters; set otherwise than the calibration's,
+    the interval has NaN bounds and a flag saying why. ``extra``: the estimator's result
+    extra (enclosed voids, :data:`VOID_SHARE`). ``others``: other estimators' volumes of the
+    same tree (:func:`disagreement`).
+    """
     cal = CALIBRATIONS.get(method)
     if cal is None or not np.isfinite(volume_m3) or volume_m3 <= 0:
         return None
     coverage = scan_coverage(xyz, centre)
     fill = surface_fill(xyz) if fill is None else fill
+    mismatch = cal.mismatch(params)
+    if mismatch is not None:
+        flag = f"no interval: {method} was run with {mismatch}; its calibration does not hold"
+        return Interval(np.nan, np.nan, coverage, fill, (flag,), "")
     flags = []
     if kind is None:
         kind, (lo, hi) = cal.ratios(fill)
-    elif kind in CROWN_KINDS:
-        lo, hi = getattr(cal, kind)
+    elif kind in cal.kinds:
+        lo, hi = cal.kinds[kind]
     else:
-        raise ValueError(f"kind must be one of {CROWN_KINDS}, got {kind!r}")
-    if kind == "mixed" and fill < SPARSE_FILL:
-        flags.append(
-            f"deeply lobed crown scanned thinly (surface fill {fill:.2f} < {SPARSE_FILL}, but "
-            f"its points are far from a sample of a convex body): wide interval"
-        )
-    elif kind == "sparse":
-        flags.append(
-            f"sparse crown (surface fill {fill:.2f} < {SPARSE_FILL}): the points do not "
-            f"outline the envelope; on simulated sparse trees the true volume was "
-            f"{lo:.2f}-{hi:.2f} × this estimate"
-        )
-    elif kind == "mixed":
-        flags.append(
-            f"sparse or deeply lobed crown (surface fill {fill:.2f}, between {SPARSE_FILL} "
-            f"and {MIN_FILL}): wide interval"
-        )
+        raise ValueError(f"kind must be one of {sorted(cal.kinds)}, got {kind!r}")
+    flags.extend(_kind_flags(kind, fill, lo, hi, extra))
     if coverage < MIN_COVERAGE:
         hi = hi / max(coverage, 1.0 / SECTORS)
         flags.append(f"one-sided scan: points in {coverage:.0%} of the azimuth sectors")
-    return Interval(volume_m3 * lo, volume_m3 * hi, coverage, fill, tuple(flags), kind)
+    low, high = volume_m3 * lo, volume_m3 * hi
+    void = float((extra or {}).get("void_m3", 0.0))
+    if void > VOID_SHARE * volume_m3:  # the data cannot tell a leafless inside from an unseen one
+        without = volume_m3 - void
+        flags.append(
+            f"enclosed empty space: {void:.1f} m³ ({void / volume_m3:.0%}) inside the foliage is "
+            f"counted as crown; without it the volume is {without:.1f} m³ (the interval spans both)"
+        )
+        low = min(low, without * lo)
+    disagree = disagreement(method, volume_m3, others or {})
+    if disagree is not None:
+        flags.append(disagree.flag)
+        low, high = min(low, disagree.low), max(high, disagree.high)
+    return Interval(low, high, coverage, fill, tuple(flags), kind)
+
+
+def _kind_flags(
+    kind: str, fill: float, lo: float, hi: float, extra: dict[str, Any] | None
+) -> list[str]:
+    """The flag a kind of crown carries (none for a dense one)."""
+    if kind == "thin":
+        alpha = (extra or {}).get("alpha_used", float("nan"))
+        return [
+            f"scan too thin for the envelope's scale: the closing ball grew to {alpha:.2f} m "
+            f"and bridges wider gaps (true volume {lo:.2f}-{hi:.2f} × this estimate on the "
+            "tree families)"
+        ]
+    if kind == "mixed" and fill < SPARSE_FILL:
+        return [
+            f"deeply lobed crown scanned thinly (surface fill {fill:.2f} < {SPARSE_FILL}, but "
+            f"its points are far from a sample of a convex body): wide interval"
+        ]
+    if kind == "sparse":
+        return [
+            f"sparse crown (surface fill {fill:.2f} < {SPARSE_FILL}): the points do not "
+            f"outline a closed crown; the true volume was {lo:.2f}-{hi:.2f} × this estimate"
+        ]
+    if kind == "mixed":
+        return [
+            f"sparse or deeply lobed crown (surface fill {fill:.2f}, between {SPARSE_FILL} "
+            f"and {MIN_FILL}): wide interval"
+        ]
+    return []

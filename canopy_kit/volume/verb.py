@@ -98,11 +98,16 @@ def interval_columns(
     centre: np.ndarray | None = None,
     fill: float | None = None,
     kind: str | None = None,
+    params: dict | None = None,
+    extra: dict | None = None,
+    others: dict[str, float] | None = None,
 ) -> dict:
     """The table's interval columns (``INTERVAL_COLUMNS``) for ``method``'s volume of ``xyz``;
-    NaN bounds when the method has no calibration or no valid volume. ``fill`` and ``kind``:
-    the surface fill and the kind of crown when the estimator has measured them
-    (``adaptive_alpha`` does)."""
+    NaN bounds when the method has no calibration, was run with other parameters than its
+    calibration's (the flags say so) or has no valid volume. ``fill``, ``kind``, ``params``,
+    ``extra`` and ``others``: as :func:`canopy_kit.volume.uncertainty.volume_interval` takes
+    them (the estimator's surface fill, kind of crown, parameters and result extra; the other
+    estimators' volumes)."""
     from scipy.spatial import QhullError
 
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, volume_interval
@@ -113,7 +118,9 @@ def interval_columns(
     interval = None
     if len(xyz) >= 4 and np.isfinite(volume_m3):
         try:
-            interval = volume_interval(xyz, volume_m3, method, centre, fill, kind)
+            interval = volume_interval(
+                xyz, volume_m3, method, centre, fill, kind, params, extra, others
+            )
         except QhullError as exc:  # qhull on points that are nearly flat: no interval
             return {**row, col["flags"]: f"no interval: {type(exc).__name__}"}
     if interval is None:
@@ -203,10 +210,26 @@ def _measure_tree(
         row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
     flags = [f"{m}: {r.reason}" for m, r in results.items() if not r.valid]
     row["volume_flags"] = "; ".join(flags)
-    extra = results[volume.recommended].extra
-    fill, kind = extra.get("surface_fill"), extra.get("crown_kind")
+    best = results[volume.recommended]
+    extra = best.extra
     recommended = row[volume_column(volume.recommended)]
-    row.update(interval_columns(measured, recommended, volume.recommended, fill=fill, kind=kind))
+    row["volume_measurand"] = extra.get("measurand") or getattr(
+        estimators[volume.recommended], "measures", ""
+    )
+    row["volume_without_voids_m3"] = extra.get("volume_without_voids_m3", recommended)
+    others = {m: r.volume_m3 for m, r in results.items() if r.valid and m != volume.recommended}
+    row.update(
+        interval_columns(
+            measured,
+            recommended,
+            volume.recommended,
+            fill=extra.get("surface_fill"),
+            kind=extra.get("crown_kind"),
+            params=best.params,
+            extra=extra,
+            others=others,
+        )
+    )
     return row, [surfaces[m] for m in drawn if m in surfaces]
 
 

@@ -46,6 +46,10 @@ class VoxelVolume(VolumeEstimator):
     """
 
     name = "voxel"
+    measures = (
+        "occupied voxels of the given size, enclosed holes of each layer filled: where "
+        "returns are, a lower bound of the crown"
+    )
 
     def __init__(self, voxel_size: float = 0.1, fill_holes: bool = True) -> None:
         self.voxel_size = voxel_size
