@@ -160,6 +160,8 @@ def measurements(cache: Path, family: str, seed: int, sensors: list[str]) -> pd.
                 rows.append({**base, "scan": "complete", **complete[key]})
                 for side, xyz in t.scans.items():
                     rows.append({**base, "scan": side, **measure_cloud(xyz)})
+                if getattr(t, "surfaces", None) is not None:  # a real tree's splats, complete
+                    rows.append({**base, "scan": "splats", **measure_cloud(t.surfaces, True)})
             tmp = path.with_suffix(".tmp")
             pd.DataFrame(rows).to_pickle(tmp)
             tmp.rename(path)
@@ -183,7 +185,7 @@ def errors(df: pd.DataFrame) -> pd.DataFrame:
     envelope where the family has one."""
     key = ["family", "seed", "sensor", "row", "tree"]
     complete = df[df["scan"] == "complete"].set_index(key)
-    scans_ = df[df["scan"] != "complete"].copy()
+    scans_ = df[df["scan"].isin(list(SIDE))].copy()
     idx = pd.MultiIndex.from_frame(scans_[key])
     labels = [label for label, _, _ in METHODS]
     for label in labels:
@@ -197,6 +199,7 @@ def errors(df: pd.DataFrame) -> pd.DataFrame:
         scans_[f"scan:{label}"] = scans_[label].to_numpy() / ref - 1
         scans_[f"env:{label}"] = scans_[label] / scans_["envelope_m3"] - 1
     scans_["side"] = scans_["scan"].map(SIDE)
+    scans_["age"] = np.where(scans_["young"], "young", "old")
     return scans_
 
 
@@ -213,6 +216,108 @@ def summary(err: pd.DataFrame, by: list[str], kind: str = "scan") -> pd.DataFram
     return out
 
 
+CALIBRATED_FAMILIES = ["envelope", "lobe_union", "grown"]
+
+
+def calibrate(err: pd.DataFrame) -> dict[str, tuple[float, float]]:
+    """The recommended estimator's interval ratios (complete-foliage reference / estimate) per
+    kind of crown, as ``uncertainty.calibrate_ratios`` makes them, on these scans."""
+    from canopy_kit.volume.uncertainty import calibrate_ratios
+
+    ok = err[RECOMMENDED].notna() & err["reference"].notna()
+    e = err[ok]
+    return calibrate_ratios(e["reference"] / e[RECOMMENDED], e["fill"], e["kind"].to_numpy())
+
+
+def covered(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.Series:
+    """Whether the interval the shipped rules build from ``kinds`` holds each scan's
+    complete-foliage reference (a kind not calibrated takes the widest calibrated range)."""
+    from canopy_kit.volume.uncertainty import interval_bounds
+
+    widest = (min(lo for lo, _ in kinds.values()), max(hi for _, hi in kinds.values()))
+    inside = []
+    for r in err.itertuples(index=False):
+        v = getattr(r, RECOMMENDED)
+        if not (np.isfinite(v) and np.isfinite(r.reference)):
+            inside.append(False)
+            continue
+        others = {m: getattr(r, m) for m in ("convex_hull", "alpha_shape")}
+        low, high, _ = interval_bounds(
+            RECOMMENDED,
+            v,
+            kinds.get(r.kind, widest),
+            r.kind,
+            r.fill,
+            r.coverage,
+            {"void_m3": r.void_m3},
+            others,
+        )
+        inside.append(low <= r.reference <= high)
+    return pd.Series(inside, index=err.index)
+
+
+def leave_one_family_out(err: pd.DataFrame) -> pd.DataFrame:
+    """Per held-out family: the interval calibrated on the other families' tuning seeds, its
+    coverage on the held-out family's held-out seeds (the real family: on all of it)."""
+    tune = err[err["seed"].isin(TUNE_SEEDS)]
+    rows = []
+    for family in [*CALIBRATED_FAMILIES, "real"]:
+        train = tune[tune["family"].isin([f for f in CALIBRATED_FAMILIES if f != family])]
+        kinds = calibrate(train)
+        test = err[(err["family"] == family) & ~err["seed"].isin(TUNE_SEEDS)]
+        if test.empty:
+            continue
+        inside = covered(test, kinds)
+        for (age, side), g in test.assign(inside=inside).groupby(["age", "side"]):
+            rows.append(
+                {
+                    "held out": family,
+                    "age": age,
+                    "side": side,
+                    "n": len(g),
+                    "covered %": round(100 * g["inside"].mean(), 1),
+                    "calibrated on": "+".join(f for f in CALIBRATED_FAMILIES if f != family),
+                    "ratios": {k: v for k, v in sorted(kinds.items())},
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def write_summary(err: pd.DataFrame, path: Path) -> None:
+    """The table the report quotes (canopy_kit/volume/data/family_accuracy.csv): per family,
+    age and side, on held-out seeds (the real family: all of it), every method's scan-induced
+    bias, MAPE and p90 of |error|; for the recommended method, how often its interval held
+    the complete-foliage value (calibrated without that family: leave one family out)."""
+    held = err[~err["seed"].isin(TUNE_SEEDS)].copy()
+    tune = err[err["seed"].isin(TUNE_SEEDS)]
+    held["covered"] = np.nan
+    for family in held["family"].unique():
+        train = tune[tune["family"].isin([f for f in CALIBRATED_FAMILIES if f != family])]
+        mask = held["family"] == family
+        held.loc[mask, "covered"] = covered(held[mask], calibrate(train)).astype(float)
+    rows = []
+    for (family, age, side), g in held.groupby(["family", "age", "side"], sort=False):
+        for label, _, _ in METHODS:
+            e = g[f"scan:{label}"].dropna()
+            rows.append(
+                {
+                    "family": family,
+                    "age": age,
+                    "side": side,
+                    "method": label,
+                    "n": len(e),
+                    "bias": e.mean(),
+                    "mape": e.abs().mean(),
+                    "p90": e.abs().quantile(0.9),
+                    "interval_covers": g["covered"].mean() if label == RECOMMENDED else np.nan,
+                    "seeds": " ".join(map(str, sorted(g["seed"].unique()))),
+                    "sensors": " ".join(sorted(g["sensor"].unique())),
+                }
+            )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame(rows).to_csv(path, index=False, float_format="%.4f")
+
+
 def all_measurements(args: argparse.Namespace) -> pd.DataFrame:
     frames = []
     for family in args.families:
@@ -227,7 +332,6 @@ def print_report(args: argparse.Namespace) -> None:
     pd.set_option("display.max_columns", 40)
     pd.set_option("display.max_rows", 500)
     err = errors(all_measurements(args))
-    err["age"] = np.where(err["young"], "young", "old")
     print(
         "scan-induced error (drive against the same estimator on complete foliage), bias / MAPE %"
     )
@@ -238,6 +342,15 @@ def print_report(args: argparse.Namespace) -> None:
     env["variant"] = env["row"].str.split("-").str[-1]
     print("\nagainst the envelope, bias / MAPE %")
     print(summary(env, ["family", "variant", "age", "side"], "env").to_string())
+    tune = err[err["seed"].isin(TUNE_SEEDS) & err["family"].isin(CALIBRATED_FAMILIES)]
+    if not tune.empty:
+        print(f"\ninterval calibration on every family's tuning seeds {TUNE_SEEDS}:")
+        print(f"  {RECOMMENDED}: {calibrate(tune)}")
+        print("\nleave-one-family-out coverage of the interval:")
+        print(leave_one_family_out(err).to_string(index=False))
+    if args.summary:
+        write_summary(err, args.summary)
+        print(f"\nwrote {args.summary}")
 
 
 def main() -> None:
@@ -251,6 +364,12 @@ def main() -> None:
     scan.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     measure = sub.add_parser("measure", help="measure every estimator on the cached scans")
     report = sub.add_parser("report", help="print the tables of docs/VOLUMES.md")
+    report.add_argument(
+        "--summary",
+        type=Path,
+        default=None,
+        help="write the table the report quotes (canopy_kit/volume/data/family_accuracy.csv)",
+    )
     for p in (measure, report):
         p.add_argument("--families", nargs="+", default=FAMILIES, choices=FAMILIES)
         p.add_argument("--seeds", nargs="+", type=int, default=None)

@@ -452,6 +452,18 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
             )
         )
     recommended = evaluation.get("recommended_volume")
+    own = evaluation.get("volumes", {}).get("recommended_vs_measurand")
+    if isinstance(own, dict) and "mape_pct" in own:
+        out.append(
+            Check(
+                f"{recommended} (recommended) volume vs its measurand on the complete foliage "
+                "(MAPE)",
+                None,
+                format_value(own["mape_pct"], " %", 1),
+                "",
+                f"bias {format_value(own['bias_pct'], ' %', 1)}",
+            )
+        )
     for method, v in evaluation.get("volumes", {}).items():
         if (
             isinstance(v, dict)
@@ -461,7 +473,7 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
             out.append(
                 Check(
                     f"{method}{' (recommended)' if method == recommended else ''} volume vs true "
-                    "crown volume (MAPE)",
+                    "crown volume, the simulator's drawn envelope (MAPE)",
                     None,
                     format_value(v["mape_pct"], " %", 1),
                     "",

@@ -65,11 +65,16 @@ def write_csv(df: pd.DataFrame, path: Path, float_format: str = "%.6f") -> Path:
 
 class WorldModel(Protocol):
     """What a generator rebuilds of a truth folder: the orchard (trees with exact crown
-    envelopes, the terrain) and the scene (surfaces a map is scored against)."""
+    envelopes, the terrain), the scene (surfaces a map is scored against) and each tree's
+    complete foliage (the reference of a volume's measurand, docs/VOLUMES.md)."""
 
     def orchard(self) -> Any: ...
 
     def scene(self) -> Any: ...
+
+    def complete_foliage(self) -> dict[int, Any]:
+        """Per tree id: points on every leaf and crown-branch surface, seen or not ((N, 3))."""
+        ...
 
 
 #: World models are plugins (entry-point group ``canopy_kit.worlds``), each registered under

@@ -105,6 +105,17 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
         volumes["diameter_mae_m"] = float(
             np.mean(np.abs(out.loc[ok, "crown_diameter_m"] - out.loc[ok, "true_crown_diameter_m"]))
         )
+    measurand = _measurand_truth(truth, out, ctx.config.volume)
+    rec = ctx.config.volume.recommended
+    if measurand is not None:
+        out["true_measurand_m3"] = measurand
+        col = volume_column(rec)
+        out[f"error_{rec}_vs_measurand_pct"] = 100 * (out[col] - measurand) / measurand
+        good = measurand.notna() & out[col].notna() & (measurand > 0)
+        if good.sum() >= 2:
+            volumes["recommended_vs_measurand"] = stats.agreement(
+                out.loc[good, col].to_numpy(), measurand[good].to_numpy()
+            ).as_dict()
     result: dict[str, Any] = {
         "segmentation": score.to_dict(),
         "volumes": volumes,
@@ -116,6 +127,25 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
     if mapping_eval:
         result["mapping"] = mapping_eval
     return result
+
+
+def _measurand_truth(truth: Any, trees: pd.DataFrame, volume: Any) -> pd.Series | None:
+    """Per row of ``trees``: the recommended estimator on the matched tree's complete foliage
+    (as the measurand its estimate took: a sparse crown's ellipsoid), NaN where unmatched;
+    None when the world model knows no complete foliage."""
+    from canopy_kit.volume_accuracy import foliage_references, reference_volume
+
+    rec = volume.recommended
+    ids = trees["truth_tree_id"].dropna().astype(int).unique().tolist()
+    if not ids or not hasattr(truth.world(), "complete_foliage"):
+        return None
+    refs = foliage_references(truth, ids, volume, [rec])
+    kinds = trees["crown_kind"] if "crown_kind" in trees else pd.Series("", index=trees.index)
+    values = [
+        reference_volume(refs[int(t)], rec, str(k)) if pd.notna(t) else np.nan
+        for t, k in zip(trees["truth_tree_id"], kinds, strict=True)
+    ]
+    return pd.Series(values, index=trees.index, dtype=float)
 
 
 def _mapping_evaluation(ctx: Any, sim_dir: Path) -> dict[str, Any]:

@@ -40,8 +40,54 @@ def segmented_session(
     return truth, cloud, seg, score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
 
 
+def foliage_references(
+    truth: Any, tree_ids: list[int], volume: Any, methods: list[str]
+) -> dict[int, dict[str, float]]:
+    """Each method's volume of each tree's complete foliage (every leaf and crown-branch
+    surface, seen or not: the world model's :meth:`complete_foliage`), thinned as the volume
+    stage thins a tree. An estimator that chooses its measurand per tree
+    (``foliage_envelope``) is measured as each of them (``<method>:<measurand>``)."""
+    from sklearn.base import clone
+
+    from canopy_kit.volume.verb import build_estimators, measured_points
+
+    foliage = truth.world().complete_foliage()
+    estimators = build_estimators(volume)
+    out: dict[int, dict[str, float]] = {}
+    for tree_id in tree_ids:
+        xyz = measured_points(np.asarray(foliage[tree_id]), volume)
+        row = {}
+        for method in methods:
+            est = estimators[method]
+            choices = getattr(est, "measurand", None)
+            if choices is None:
+                row[method] = _valid_volume(est(xyz))
+                continue
+            for measurand in ("envelope", "ellipsoid"):
+                forced = clone(est).set_params(measurand=measurand)
+                row[f"{method}:{measurand}"] = _valid_volume(forced(xyz))
+        out[int(tree_id)] = row
+    return out
+
+
+def _valid_volume(result: Any) -> float:
+    return float(result.volume_m3) if result.valid else float("nan")
+
+
+def reference_volume(refs: dict[str, float], method: str, kind: str) -> float:
+    """The complete-foliage volume a scan's ``method`` volume is compared with: the measurand
+    the scan took (a sparse crown's ellipsoid) for an estimator that chooses one."""
+    if method in refs:
+        return refs[method]
+    return refs.get(f"{method}:{'ellipsoid' if kind == 'sparse' else 'envelope'}", np.nan)
+
+
 def segmented_volume_errors(
-    sim_dir: str | Path, config: Any, methods: list[str], reference_map: Any = None
+    sim_dir: str | Path,
+    config: Any,
+    methods: list[str],
+    reference_map: Any = None,
+    reference: str = "envelope",
 ) -> tuple[Any, Any]:
     """Volume errors on the trees the pipeline segments, as trees.csv measures them.
 
@@ -51,6 +97,10 @@ def segmented_volume_errors(
     one alley alone would have seen it (``left``, ``right``: :func:`one_alley_scans`).
     Returns one row per tree, scan and method (``interval`` rows say whether the recommended
     estimator's interval held the truth) and the segmentation score.
+
+    ``reference``: ``envelope`` compares every method with the simulator's crown envelope
+    volume; ``foliage`` with the same method on the tree's complete foliage
+    (:func:`foliage_references`): the error the drive and the segmentation made.
     """
     import pandas as pd
 
@@ -66,6 +116,13 @@ def segmented_volume_errors(
         ("both", cloud, seg.labels),
         *one_alley_scans(sim_dir, cloud, seg.labels, row_of_segment),
     ]
+    refs = None
+    recommended = config.volume.recommended
+    if reference == "foliage":
+        measured = list(dict.fromkeys([*methods, recommended]))
+        refs = foliage_references(truth, list(true_id_of.values()), config.volume, measured)
+    elif reference != "envelope":
+        raise ValueError(f"reference must be 'envelope' or 'foliage', got {reference!r}")
     rows = []
     for scan, scan_cloud, labels in scans:
         table = measure_trees(scan_cloud, labels, config.volume, ground_height=seg.ground.height)
@@ -73,14 +130,30 @@ def segmented_volume_errors(
             true_id = true_id_of.get(int(tree.segment))
             if true_id is None:
                 continue
-            truth_v = float(true_volume[true_id])
-            base = {"scan": scan, "tree": int(true_id), "true_volume_m3": truth_v}
+            kind = str(tree.crown_kind)
+
+            def truth_of(method: str, true_id: int = true_id, kind: str = kind) -> float:
+                if refs is None:
+                    return float(true_volume[true_id])
+                return reference_volume(refs[true_id], method, kind)
+
+            base = {"scan": scan, "tree": int(true_id)}
             for method in methods:
-                v = float(getattr(tree, volume_column(method)))
-                rows.append({**base, "method": method, "volume_m3": v, "error": v / truth_v - 1})
+                v, t = float(getattr(tree, volume_column(method))), truth_of(method)
+                rows.append(
+                    {
+                        **base,
+                        "true_volume_m3": t,
+                        "method": method,
+                        "volume_m3": v,
+                        "error": v / t - 1,
+                    }
+                )
+            truth_v = truth_of(recommended)
             rows.append(
                 {
                     **base,
+                    "true_volume_m3": truth_v,
                     "method": "interval",
                     "volume_m3": np.nan,
                     "error": np.nan,

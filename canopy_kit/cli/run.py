@@ -115,9 +115,11 @@ def print_results(results) -> None:
         )
     for method, a in ev.get("volumes", {}).items():
         if isinstance(a, dict) and "mape_pct" in a:
+            against = "true crown volume (drawn envelope)"
+            if method == "recommended_vs_measurand":
+                method, against = ev.get("recommended_volume", method), "its measurand"
             console.print(
-                f"  {method} vs true crown volume: MAPE {a['mape_pct']:.1f} %, "
-                f"bias {a['bias_pct']:+.1f} %"
+                f"  {method} vs {against}: MAPE {a['mape_pct']:.1f} %, bias {a['bias_pct']:+.1f} %"
             )
     aerial = m.get("aerial") or {}
     for column, a in aerial.items():

@@ -61,7 +61,8 @@ COLUMN_LABELS: dict[str, str] = {
     "truth_tree_id": "Simulator tree",
     "truth_label": "Simulator label",
     "truth_row": "Simulator row",
-    "true_crown_volume_m3": "True crown volume (simulator) [m³]",
+    "true_crown_volume_m3": "True crown volume: the simulator's drawn envelope [m³]",
+    "true_measurand_m3": "True volume as the recommended estimator defines it, on the complete foliage [m³]",
     "true_sphere_volume_m3": "True sphere volume (simulator) [m³]",
     "true_crown_diameter_m": "True crown diameter (simulator) [m]",
     "true_height_m": "True height (simulator) [m]",
@@ -69,8 +70,12 @@ COLUMN_LABELS: dict[str, str] = {
 
 _UNITS = [("_pct", "%"), ("_m3", "m³"), ("_m2", "m²"), ("_m", "m"), ("_s", "s"), ("_deg", "°")]
 # error_<method>_vs_<reference>_pct: the relative error of a volume column against a reference
-_ERROR = re.compile(r"error_(?P<method>.+)_vs_(?P<ref>true|aerial)_pct")
-_REFERENCES = {"true": "true crown", "aerial": "drone sphere"}
+_ERROR = re.compile(r"error_(?P<method>.+)_vs_(?P<ref>true|aerial|measurand)_pct")
+_REFERENCES = {
+    "true": "true crown (drawn envelope)",
+    "aerial": "drone sphere",
+    "measurand": "its measurand on the complete foliage",
+}
 _METHODS = {"alpha": "alpha shape"}
 
 

@@ -1,92 +1,138 @@
-"""The report's statement of the volume estimator: which one, and how biased it was measured."""
+"""The report's statement of the volume estimator: what it measures, and how far the drive's
+estimate was measured to be from that measurand on tree families it was not tuned on."""
 
 from __future__ import annotations
 
 import pandas as pd
 
 from canopy_kit.report.html import ReportSection
-from canopy_kit.volume.accuracy import accuracy_table
+from canopy_kit.volume.accuracy import family_accuracy_table
 
 PAPER_METHODS = ("alpha_shape", "convex_hull")
-SCANS = {"both": "both sides", "one-sided": "one side only"}
-DENSE_FORMS = ("ellipsoid", "lobed", "vase", "hedged")
+SIDES = {"both": "both sides", "one": "one side only"}
+FAMILY_NAMES = {
+    "envelope": "the simulator's envelope crowns",
+    "lobe_union": "unions of lobes on scaffold tips",
+    "grown": "trees grown by space colonisation (vase, central leader, hedgerow)",
+    "real": "real terrestrial scans of trees, re-scanned",
+}
 
 
-def _scan_phrase(r: pd.Series, name: str) -> str:
+def measures(method: str) -> str:
+    """What ``method`` measures (its plugin's ``measures``), or '' when it does not say."""
+    from canopy_kit import plugins
+
+    try:
+        return str(getattr(plugins.load("volumes", method), "measures", "") or "")
+    except Exception:  # an unknown or broken plugin says nothing here; the run reports it
+        return ""
+
+
+def pooled(rows: pd.DataFrame) -> pd.Series:
+    """Bias, MAPE and interval coverage over ``rows`` (families pooled, weighted by trees)."""
+    n = rows["n"].to_numpy(float)
+    out = {"n": n.sum()}
+    for col in ("bias", "mape", "interval_covers"):
+        ok = rows[col].notna().to_numpy()
+        out[col] = (
+            float((rows[col].to_numpy()[ok] * n[ok]).sum() / n[ok].sum()) if ok.any() else None
+        )
+    return pd.Series(out)
+
+
+def _side_phrase(r: pd.Series, name: str) -> str:
     covers = (
-        f", its interval held the true volume for {r['interval_covers']:.0%} of them"
-        if pd.notna(r["interval_covers"])
+        f", its interval held that value for {r['interval_covers']:.0%} of them"
+        if r["interval_covers"] is not None and pd.notna(r["interval_covers"])
         else ""
     )
     return (
-        f"seen from {name}, mean signed error {r['bias']:+.1%} and mean absolute error "
+        f"from {name}, mean signed error {r['bias']:+.1%} and mean absolute error "
         f"{r['mape']:.1%} over {int(r['n'])} crown scans{covers}"
     )
 
 
 def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = None) -> str:
-    """One paragraph: the recommended estimator, its measured bias and where it comes from
-    (``table``: :func:`accuracy_table`, read when not given)."""
-    table = accuracy_table() if table is None else table
+    """One paragraph: the recommended estimator, what it measures, and its measured errors on
+    the tree families (``table``: :func:`family_accuracy_table`, read when not given)."""
+    table = family_accuracy_table() if table is None else table
     mine = table[table["method"] == recommended]
     shown = (
         f"{recommended} ({', '.join(f'{k} = {v}' for k, v in params.items())})"
         if params
         else recommended
     )
+    what = measures(recommended)
     text = (
-        f"Volumes: the recommended estimator of this preset is {shown}; the per-tree "
-        "table's interval (volume low / high) bounds its volume."
+        f"Volumes: the recommended estimator of this preset is {shown}"
+        + (f"; it measures {what}." if what else ".")
+        + " The per-tree table says which volume each tree's is (what the recommended volume "
+        "measures) and bounds it by an interval (volume low / high)."
     )
-    dense = mine[mine["form"] == "dense"].set_index("scan")
-    if dense.empty:
-        return text + " Its accuracy was not measured in the accuracy matrix (docs/VOLUMES.md)."
-    first = dense.iloc[0]
+    old = mine[mine["age"] == "old"]
+    if old.empty:
+        return text + " Its accuracy was not measured on the tree families (docs/VOLUMES.md)."
+    families = [FAMILY_NAMES.get(f, f) for f in dict.fromkeys(old["family"])]
     parts = [
-        _scan_phrase(dense.loc[scan], name) for scan, name in SCANS.items() if scan in dense.index
+        _side_phrase(pooled(old[old["side"] == side]), name)
+        for side, name in SIDES.items()
+        if (old["side"] == side).any()
     ]
+    first = old.iloc[0]
     text += (
-        f" Measured on simulated crowns (sensors {first['sensors']}, held-out seeds "
-        f"{first['seeds']}, trees segmented by the pipeline, "
-        "benchmarks/bench_volume_matrix.py), on crowns whose foliage outlines the envelope "
-        f"({', '.join(DENSE_FORMS)}): " + "; ".join(parts) + "."
+        f" Measured on tree families built {len(families)} ways ({'; '.join(families)}), "
+        f"sensors {first['sensors']}, held-out seeds, against the same measurand on each tree's "
+        "complete foliage (every leaf and branch, seen or not; the interval calibrated without "
+        "the family it was checked on): " + "; ".join(parts) + "."
     )
-    sparse = mine[(mine["form"] == "sparse") & (mine["scan"] == "both")]
-    if not sparse.empty:
+    worst = old.loc[old["mape"].idxmax()]
+    text += (
+        f" The largest error was on {FAMILY_NAMES.get(worst['family'], worst['family'])} "
+        f"seen from {SIDES[worst['side']]}: {worst['bias']:+.1%} (mean absolute "
+        f"{worst['mape']:.1%})."
+    )
+    young = mine[(mine["age"] == "young") & (mine["side"] == "both")]
+    if not young.empty:
+        r = pooled(young)
         text += (
-            f" On sparse young trees it is {sparse.iloc[0]['bias']:+.0%} (a few leaves do "
-            "not outline the envelope, and every estimator is low there); such trees are "
-            "flagged 'sparse crown' and get a wider interval."
+            f" On young trees, {r['bias']:+.1%} (mean absolute {r['mape']:.1%}); those whose few "
+            "leaves do not close a crown are measured as the enclosing ellipsoid of their "
+            "foliage, as young trees are in the field, and the table says so."
         )
     return text + (
-        " Real crowns unlike these can be further off; the table gives the paper's "
-        "estimators on the same trees."
+        " These are the errors of the drive. A crown volume also depends on its definition: "
+        "an envelope drawn round the leaves' tips, or the convex hull, is larger (the table "
+        "gives the paper's estimators on the same trees)."
     )
 
 
 def accuracy_section(recommended: str, params: dict) -> ReportSection:
-    """A report section: the statement and the measured errors of the recommended estimator
-    beside the paper's alpha shape and convex hull, per scan, on dense and on sparse crowns."""
-    table = accuracy_table()
+    """A report section: the statement and, per tree family and side, the measured errors of
+    the recommended estimator beside the paper's alpha shape and convex hull."""
+    table = family_accuracy_table()
     methods = list(dict.fromkeys([recommended, *PAPER_METHODS]))
-    rows = table[table["form"].isin(["dense", "sparse"]) & table["method"].isin(methods)].copy()
+    rows = table[table["method"].isin(methods)].copy()
     rows["order"] = rows["method"].map({m: i for i, m in enumerate(methods)})
-    rows = rows.sort_values(["form", "scan", "order"])
+    rows = rows.sort_values(["family", "age", "side", "order"], kind="stable")
     shown = pd.DataFrame(
         {
             "estimator": [
                 m + (" (recommended)" if m == recommended else "") for m in rows["method"]
             ],
-            "crowns": rows["form"].map({"dense": "dense (4 forms)", "sparse": "sparse"}).to_numpy(),
-            "scan": rows["scan"].map(SCANS).to_numpy(),
+            "tree family": rows["family"].map(lambda f: FAMILY_NAMES.get(f, f)).to_numpy(),
+            "trees": rows["age"].to_numpy(),
+            "scan": rows["side"].map(SIDES).to_numpy(),
             "crown scans": rows["n"].astype(int).to_numpy(),
             "mean signed error": [f"{v:+.1%}" for v in rows["bias"]],
             "mean |error|": [f"{v:.1%}" for v in rows["mape"]],
             "90th percentile |error|": [f"{v:.1%}" for v in rows["p90"]],
+            "interval held the value": [
+                "" if pd.isna(v) else f"{v:.0%}" for v in rows["interval_covers"]
+            ],
         }
     )
     return ReportSection(
-        "Volume estimator and its measured accuracy",
+        "Volume estimator, what it measures and its measured accuracy",
         text=estimator_text(recommended, params, table),
         table=shown if len(shown) else None,
     )

@@ -146,6 +146,7 @@ class ScannedTree:
     envelope_m3: float | None
     complete: np.ndarray
     scans: dict[str, np.ndarray]
+    surfaces: np.ndarray | None = None  # a real tree's splats, sampled completely
 
 
 def scanned_trees(

@@ -213,6 +213,17 @@ def _add_wood(b: SceneBuilder, tree: Tree) -> None:
         b.add(verts, faces, WOOD, tree.tree_id if in_crown else -1)
 
 
+def _frames_about(normals: np.ndarray, spin: np.ndarray) -> np.ndarray:
+    """Rotation matrices (m, 3, 3) taking z to each normal, turned by ``spin`` about it."""
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(normals, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(normals, u)
+    c, s = np.cos(spin)[:, None], np.sin(spin)[:, None]
+    u, v = c * u + s * v, -s * u + c * v
+    return np.stack([u, v, normals], axis=2)
+
+
 def wood_parts(tree: Tree) -> list[tuple[np.ndarray, np.ndarray, bool]]:
     """The tree's trunk and scaffold branches as meshes (vertices, faces, inside the crown):
     the trunk below the crown is not canopy, the part inside it and the branches are."""
@@ -258,15 +269,25 @@ def add_octahedra(
     b.add(verts, octahedra_faces(m), material, tree, shade)
 
 
-def leaf_octahedra(centres: np.ndarray, size: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def leaf_octahedra(
+    centres: np.ndarray,
+    size: np.ndarray,
+    rng: np.random.Generator,
+    normals: np.ndarray | None = None,
+) -> np.ndarray:
     """The six vertices of flattened, randomly turned octahedra (``(6 m, 3)``): leaf clusters
-    of diameter ``size`` (m) about ``centres``, 0.6-1.0 × as wide and 0.25-0.5 × as thick."""
+    of diameter ``size`` (m) about ``centres``, 0.6-1.0 × as wide and 0.25-0.5 × as thick.
+    ``normals``: unit vectors the thin axis of each takes (splats lying in a scanned
+    surface), turned at random about them; None: turned at random in every way."""
     from scipy.spatial.transform import Rotation
 
     m = len(centres)
     if m == 0:
         return np.empty((0, 3))
-    rot = Rotation.random(m, random_state=rng).as_matrix()
+    if normals is None:
+        rot = Rotation.random(m, random_state=rng).as_matrix()
+    else:
+        rot = _frames_about(np.asarray(normals, float), rng.uniform(0, 2 * np.pi, m))
     scale = np.column_stack(
         [size, size * rng.uniform(0.6, 1.0, m), size * rng.uniform(0.25, 0.5, m)]
     )

@@ -9,8 +9,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from canopy_kit.sim.orchard import Orchard
 from canopy_kit.sim.scene import Scene
+from canopy_kit.sim.specimen import COMPLETE_DENSITY
 
 
 class SimulatedWorld:
@@ -30,3 +33,16 @@ class SimulatedWorld:
         from canopy_kit.sim.session import build_world, load_sim_config_of
 
         return build_world(load_sim_config_of(self.root))[2]
+
+    def complete_foliage(self, density: float = COMPLETE_DENSITY) -> dict[int, np.ndarray]:
+        """Per tree id: ``density`` points per m² on every leaf and crown-branch surface the
+        scene gives the tree (every vertex too), seen or not: the complete foliage."""
+        from canopy_kit.sim.specimen import sample_mesh
+
+        scene = self.scene()
+        rng = np.random.default_rng(0)
+        out = {}
+        for tree in np.unique(scene.tree_id[scene.tree_id >= 0]):
+            faces = scene.triangles[scene.tree_id == tree]
+            out[int(tree)] = sample_mesh(scene.vertices, faces, density, rng)
+        return out

@@ -98,7 +98,7 @@ def calibrate_ratios(
         kinds = [k if isinstance(k, str) and k else f for k, f in zip(kinds, by_fill, strict=True)]
     kinds = np.asarray(kinds)
     out = {}
-    for kind in CROWN_KINDS:
+    for kind in dict.fromkeys([*CROWN_KINDS, *kinds.tolist()]):
         if (kinds == kind).any():
             lo, hi = np.quantile(ratio[kinds == kind], [0.02, 0.98])
             out[kind] = (round(float(lo) - MARGIN, 3), round(float(hi) + MARGIN, 3))
@@ -268,19 +268,38 @@ def volume_interval(
     if mismatch is not None:
         flag = f"no interval: {method} was run with {mismatch}; its calibration does not hold"
         return Interval(np.nan, np.nan, coverage, fill, (flag,), "")
-    flags = []
     if kind is None:
-        kind, (lo, hi) = cal.ratios(fill)
-    elif kind in cal.kinds:
-        lo, hi = cal.kinds[kind]
-    else:
+        kind = crown_kind(fill)
+    elif kind not in cal.kinds:
         raise ValueError(f"kind must be one of {sorted(cal.kinds)}, got {kind!r}")
-    flags.extend(_kind_flags(kind, fill, lo, hi, extra))
+    low, high, flags = interval_bounds(
+        method, volume_m3, cal.kinds[kind], kind, fill, coverage, extra, others
+    )
+    return Interval(low, high, coverage, fill, tuple(flags), kind)
+
+
+def interval_bounds(
+    method: str,
+    volume_m3: float,
+    ratios: tuple[float, float],
+    kind: str,
+    fill: float,
+    coverage: float,
+    extra: dict[str, Any] | None = None,
+    others: dict[str, float] | None = None,
+) -> tuple[float, float, list[str]]:
+    """(low, high, flags) of the interval: ``volume_m3`` × the kind's ``ratios``, the upper
+    bound raised for a one-sided scan (``coverage`` below ``MIN_COVERAGE``), the lower one
+    down to the volume without enclosed empty space when that space is large
+    (:data:`VOID_SHARE`), both out to the span of estimators that disagree beyond every tree
+    family (:func:`disagreement`)."""
+    lo, hi = ratios
+    flags = _kind_flags(kind, fill, lo, hi, extra)
     if coverage < MIN_COVERAGE:
         hi = hi / max(coverage, 1.0 / SECTORS)
         flags.append(f"one-sided scan: points in {coverage:.0%} of the azimuth sectors")
     low, high = volume_m3 * lo, volume_m3 * hi
-    void = float((extra or {}).get("void_m3", 0.0))
+    void = float((extra or {}).get("void_m3", 0.0) or 0.0)
     if void > VOID_SHARE * volume_m3:  # the data cannot tell a leafless inside from an unseen one
         without = volume_m3 - void
         flags.append(
@@ -292,7 +311,7 @@ def volume_interval(
     if disagree is not None:
         flags.append(disagree.flag)
         low, high = min(low, disagree.low), max(high, disagree.high)
-    return Interval(low, high, coverage, fill, tuple(flags), kind)
+    return low, high, flags
 
 
 def _kind_flags(
