@@ -3,12 +3,14 @@
 A terrestrial scan of a tree is already a sample of its surfaces. To drive the simulator's
 sensors past it, the cloud (thinned to ``cell``) becomes splats: flattened octahedra, as
 the simulator's leaf clusters are, centred on the points and lying in the local surface
-(thin axis along the normal of the point's 8 neighbours, surface splatting), each as wide as
-the distance to its neighbours (at most the cloud's median distance, and 0.12 m): the surface stops beams where the scanned
-surface did and is hardly thicker than it (splats twice as wide and turned at random made
-re-scans of the real trees 10-70 % larger than their clouds). The tree is moved so its trunk base (the median x, y of its
-lowest 2 % of points) is at the origin and its lowest point at z = 0. The full cloud, moved
-the same way, is the complete-foliage reference (:attr:`Specimen.reference`).
+(thin axis along the normal of the point's 8 neighbours: surface splatting), each as wide
+as the distance to its neighbours (at most the cloud's median distance, and 0.12 m). The
+surface then stops beams where the scanned surface did and is hardly thicker than it
+(splats twice as wide and turned at random made re-scans of the real trees 10-70 % larger
+than their clouds; these add 2-10 %, docs/VOLUMES.md). The tree is moved so its trunk base
+(the median x, y of its lowest 2 % of points) is at the origin and its lowest point at
+z = 0. The full cloud, moved the same way, is the complete-foliage reference
+(:attr:`Specimen.reference`).
 """
 
 from __future__ import annotations
