@@ -72,15 +72,27 @@ def test_a_scan_too_thin_for_alpha_grows_the_ball_and_says_so() -> None:
 
 
 def test_a_sparse_crown_is_measured_as_its_enclosing_ellipsoid() -> None:
-    rng = np.random.default_rng(3)  # 30 leaf clusters spread through a 2 m crown
-    clusters = rng.normal(size=(30, 3)) * [1.0, 0.9, 0.7] + [0, 0, 1.5]
-    xyz = np.concatenate([c + rng.normal(0, 0.04, (9, 3)) for c in clusters])
+    rng = np.random.default_rng(3)  # 30 leaf clusters spread through a young crown
+    clusters = rng.normal(size=(30, 3)) * [0.6, 0.55, 0.45] + [0, 0, 1.5]
+    xyz = np.concatenate([c + rng.normal(0, 0.03, (9, 3)) for c in clusters])
+    assert estimate_volume(xyz, "convex_hull").volume_m3 < 15.0
     r = estimate_volume(xyz, "foliage_envelope")
     assert r.extra["surface_fill"] < 1.2 and r.extra["crown_kind"] == "sparse"
     assert r.extra["measurand"] == ELLIPSOID_MEASURAND
     assert r.volume_m3 == pytest.approx(estimate_volume(xyz, "enclosing_ellipsoid").volume_m3)
     forced = estimate_volume(xyz, "foliage_envelope", measurand="envelope")
     assert forced.extra["estimate"] == "envelope" and forced.volume_m3 < r.volume_m3
+
+
+def test_a_large_sparse_crown_keeps_the_envelope() -> None:
+    """A leafless or barely seen big crown is not a young tree: no ellipsoid of a crown its
+    points do not show."""
+    rng = np.random.default_rng(4)
+    clusters = rng.normal(size=(60, 3)) * [2.5, 2.5, 2.0] + [0, 0, 5.0]
+    xyz = np.concatenate([c + rng.normal(0, 0.03, (9, 3)) for c in clusters])
+    assert estimate_volume(xyz, "convex_hull").volume_m3 > 15.0
+    r = estimate_volume(xyz, "foliage_envelope")
+    assert r.extra["surface_fill"] < 1.2 and r.extra["estimate"] == "envelope"
 
 
 @pytest.mark.parametrize(
@@ -125,7 +137,7 @@ def test_estimators_that_disagree_beyond_the_families_are_flagged_and_spanned() 
     from canopy_kit.volume.uncertainty import AGREEMENT, volume_interval
 
     xyz = ball(5000, 2.0)
-    lo, _ = AGREEMENT[("foliage_envelope", "convex_hull")]
+    lo, _ = AGREEMENT[("foliage_envelope", "convex_hull", "envelope")]
     hull = 30.0 / (0.5 * lo)  # the envelope far below the hull
     interval = volume_interval(
         xyz, 30.0, "foliage_envelope", kind="dense", others={"convex_hull": hull}

@@ -146,7 +146,13 @@ def test_the_interval_takes_the_recommended_estimators_fill_unchanged() -> None:
         xyz = cloud.xyz[labels == seg]
         row = measure_tree(xyz, config)
         measured = measured_points(xyz, config)
-        fresh = interval_columns(measured, row["volume_adaptive_alpha_m3"], "adaptive_alpha")
+        others = {
+            "convex_hull": row["volume_convex_hull_m3"],
+            "alpha_shape": row["volume_alpha_m3"],
+        }
+        fresh = interval_columns(
+            measured, row["volume_adaptive_alpha_m3"], "adaptive_alpha", others=others
+        )
         assert row[INTERVAL_COLUMNS["fill"]] == pytest.approx(surface_fill(measured), rel=1e-12)
         for key in ("low", "high", "fill", "flags"):
             assert row[INTERVAL_COLUMNS[key]] == fresh[INTERVAL_COLUMNS[key]]

@@ -16,10 +16,12 @@ and branch, seen or not) it is what the estimate from a drive aims at, so the tw
 compared (docs/VOLUMES.md, "Tree families").
 
 A sparse young crown whose few leaves do not form a closed crown (surface fill
-``n · s² / A`` below ``sparse_fill``, :func:`canopy_kit.volume.uncertainty.surface_fill`) is
-measured as young trees are in the field: the **enclosing ellipsoid of its foliage**
-(:func:`canopy_kit.volume.ellipsoid.enclosing_ellipsoid`). ``extra["measurand"]`` says
-which of the two a tree's volume is.
+``n · s² / A`` below ``sparse_fill``, :func:`canopy_kit.volume.uncertainty.surface_fill`, and a
+convex hull of at most ``young_max_m3``) is measured as young trees are in the field: the
+**enclosing ellipsoid of its foliage** (:func:`canopy_kit.volume.ellipsoid.enclosing_ellipsoid`).
+``extra["measurand"]`` says which of the two a tree's volume is. A large crown that sparse
+(a leafless tree, a tall tree seen only at its foot) keeps the envelope: its ellipsoid would
+be a model of a crown the points do not show.
 
 The estimate from a scan is the same construction on the scanned points. Where the scan is
 too thin to resolve α (median 8th-neighbour spacing s above α / ``spacing_factor``), the
@@ -39,7 +41,8 @@ from canopy_kit.volume.base import VolumeEstimator, check_choice, check_positive
 
 ENVELOPE_ALPHA = 0.75  # m: the measurand's scale
 SPACING_FACTOR = 5.0  # the closing ball is at least this many point spacings
-SPARSE_FILL = 1.2  # below: a sparse young crown, measured as its enclosing ellipsoid
+SPARSE_FILL = 1.2  # below: a sparse crown, measured as its enclosing ellipsoid when young
+YOUNG_MAX_M3 = 15.0  # convex hull of a young crown at most (a full pistachio crown: 12-38 m³)
 MEASURANDS = ("auto", "envelope", "ellipsoid")
 VOID_EXACT_SHARE = 0.01  # enclosed voids above this share are measured exactly (a second closing)
 
@@ -66,8 +69,10 @@ class FoliageEnvelopeVolume(VolumeEstimator):
     fill_voids : bool, default True
         Count the empty space the foliage closes round as crown (the measurand does).
     sparse_fill : float or None, default 1.2
-        Below this surface fill the crown is sparse and young: its volume is the enclosing
-        ellipsoid of its foliage. None: never.
+        Below this surface fill the crown is sparse; if young (``young_max_m3``) its volume
+        is the enclosing ellipsoid of its foliage. None: never.
+    young_max_m3 : float, default 15.0
+        The largest convex hull (m³) of a sparse crown measured as young.
     measurand : {"auto", "envelope", "ellipsoid"}, default "auto"
         Which measurand to estimate; "auto" chooses by the surface fill (to measure complete
         foliage as a scan chose, force it).
@@ -89,6 +94,7 @@ class FoliageEnvelopeVolume(VolumeEstimator):
         spacing_factor: float = SPACING_FACTOR,
         fill_voids: bool = True,
         sparse_fill: float | None = SPARSE_FILL,
+        young_max_m3: float = YOUNG_MAX_M3,
         measurand: str = "auto",
         grid_step: float | None = None,
     ) -> None:
@@ -96,6 +102,7 @@ class FoliageEnvelopeVolume(VolumeEstimator):
         self.spacing_factor = spacing_factor
         self.fill_voids = fill_voids
         self.sparse_fill = sparse_fill
+        self.young_max_m3 = young_max_m3
         self.measurand = measurand
         self.grid_step = grid_step
 
@@ -104,6 +111,7 @@ class FoliageEnvelopeVolume(VolumeEstimator):
         check_positive(self.alpha, "alpha", self.name)
         check_positive(self.spacing_factor, "spacing_factor", self.name)
         check_positive(self.sparse_fill, "sparse_fill", self.name, allow_none=True)
+        check_positive(self.young_max_m3, "young_max_m3", self.name)
         check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
         check_choice(self.measurand, "measurand", self.name, MEASURANDS)
         super().validate_params()
@@ -112,6 +120,7 @@ class FoliageEnvelopeVolume(VolumeEstimator):
         from scipy.spatial import QhullError, cKDTree
 
         from canopy_kit.volume.adaptive import point_spacing
+        from canopy_kit.volume.hull import hull_volume
         from canopy_kit.volume.uncertainty import surface_fill
 
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
@@ -120,7 +129,8 @@ class FoliageEnvelopeVolume(VolumeEstimator):
         chosen = self.measurand
         if chosen == "auto":
             sparse = self.sparse_fill is not None and fill < self.sparse_fill
-            chosen = "ellipsoid" if sparse else "envelope"
+            young = sparse and hull_volume(xyz) <= self.young_max_m3
+            chosen = "ellipsoid" if young else "envelope"
         extra: dict[str, Any] = {"spacing": s, "surface_fill": fill, "estimate": chosen}
         if chosen == "ellipsoid":
             from canopy_kit.volume.ellipsoid import enclosing_ellipsoid

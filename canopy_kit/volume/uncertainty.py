@@ -124,6 +124,7 @@ CALIBRATIONS: dict[str, Calibration] = {
             "spacing_factor": 5.0,
             "fill_voids": True,
             "sparse_fill": 1.2,
+            "young_max_m3": 15.0,
             "measurand": "auto",
         },
     ),
@@ -160,20 +161,28 @@ class Disagreement:
 
 #: Ratios (low, high) between two estimators of one tree, the widest seen on the tree
 #: families (complete foliage and drives of every sensor and side, tuning and held-out seeds,
-#: benchmarks/bench_volume_families.py): a tree outside them is unlike every family.
-AGREEMENT: dict[tuple[str, str], tuple[float, float]] = {
-    ("foliage_envelope", "convex_hull"): (0.5, 1.3),
-    ("alpha_shape", "convex_hull"): (0.4, 1.0),
+#: benchmarks/bench_volume_families.py), per measurand of the first (``None``: any): a tree
+#: outside them is unlike every family.
+AGREEMENT: dict[tuple[str, str, str | None], tuple[float, float]] = {
+    ("foliage_envelope", "convex_hull", "envelope"): (0.5, 1.05),
+    ("foliage_envelope", "convex_hull", "ellipsoid"): (1.0, 4.0),
+    ("alpha_shape", "convex_hull", None): (0.4, 1.0),
 }
 
 
-def disagreement(method: str, volume_m3: float, others: dict[str, float]) -> Disagreement | None:
+def disagreement(
+    method: str, volume_m3: float, others: dict[str, float], kind: str = ""
+) -> Disagreement | None:
     """A flag and the span of the estimators when any pair of :data:`AGREEMENT` disagrees
-    beyond the families' range on this tree (``others``: the other estimators' volumes)."""
+    beyond the families' range on this tree (``others``: the other estimators' volumes;
+    ``kind``: the crown kind, ``sparse`` for a young crown's ellipsoid)."""
     volumes = {m: v for m, v in {**others, method: volume_m3}.items() if np.isfinite(v) and v > 0}
+    measurand = "ellipsoid" if kind == "sparse" else "envelope"
     bad, involved = [], set()
-    for (a, b), (lo, hi) in AGREEMENT.items():
-        if a in volumes and b in volumes:
+    for (a, b, of), (lo, hi) in AGREEMENT.items():
+        if of not in (None, measurand if a == method else None) or a not in volumes:
+            continue
+        if b in volumes:
             ratio = volumes[a] / volumes[b]
             if not lo <= ratio <= hi:
                 bad.append(f"{a} = {ratio:.2f} × {b} (tree families {lo:.2f}-{hi:.2f})")
@@ -307,7 +316,7 @@ def interval_bounds(
             f"counted as crown; without it the volume is {without:.1f} m³ (the interval spans both)"
         )
         low = min(low, without * lo)
-    disagree = disagreement(method, volume_m3, others or {})
+    disagree = disagreement(method, volume_m3, others or {}, kind)
     if disagree is not None:
         flags.append(disagree.flag)
         low, high = min(low, disagree.low), max(high, disagree.high)
