@@ -56,13 +56,27 @@ def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, plot_volumes, table, volume_column):
 
 
 @app.cell
+def _(mo):
+    # What the drive loses on tree families built four ways, against the same estimator on
+    # each tree's complete foliage (benchmarks/bench_volume_families.py, held-out seeds).
+    from canopy_kit.report.plots import plot_family_accuracy
+    from canopy_kit.volume.accuracy import family_accuracy_table
+
+    families = family_accuracy_table()
+    mo.vstack([mo.md("## Measured accuracy on tree families\n\nThe recommended estimator "
+                     "(foliage_envelope) beside the paper's two; docs/VOLUMES.md, \"Tree "
+                     "families\", says what each measures."), plot_family_accuracy(families)])
+    return
+
+
+@app.cell
 def _(accuracy_table, mo, plot_accuracy_matrix):
     # How far to trust each estimator on crowns like these: the shipped accuracy matrix
     # (benchmarks/bench_volume_matrix.py, held-out seeds, trees the pipeline segmented).
     accuracy = accuracy_table()
     fig_accuracy = plot_accuracy_matrix(accuracy)
     sensors, seeds = accuracy["sensors"].iloc[0], accuracy["seeds"].iloc[0]
-    mo.vstack([mo.md(f"## Measured accuracy by crown form\n\nSensors {sensors}, seed {seeds}; "
+    mo.vstack([mo.md(f"## Against the simulator's drawn envelopes, by crown form\n\nSensors {sensors}, seed {seeds}; "
                      "docs/VOLUMES.md explains every cell."), fig_accuracy])
     return
 

@@ -51,3 +51,39 @@ def test_every_method_measures_a_real_terrestrial_tree(shared_data, name: str) -
         assert 0 < result.volume_m3 < 2.5 * 2.5 * 21, method
         if method != "mirror":  # the mirror completes an unseen side that is not there
             assert result.volume_m3 <= hull * 1.05, method
+
+
+def test_a_real_tree_whose_estimators_disagree_does_not_pass_silently(shared_data) -> None:
+    """aRchi's tree 1 is a leafless skeleton 22 m tall: the foliage envelope follows its
+    branches (tens of m³), its convex hull is over a thousand. The command says what the
+    volume measures and warns that the estimators disagree beyond every tree family; the
+    small leafy tree 2 gets no warning."""
+    import json
+
+    from test_volume_contract import _cli
+
+    skeleton = _cli(
+        "volume",
+        str(shared_data / "real_trees" / "archi_tree_1.las"),
+        "--voxel-size",
+        "0.1",
+        "--json",
+    )
+    assert skeleton.returncode == 0, skeleton.stderr
+    out = json.loads(skeleton.stdout)
+    assert out["method"] == "foliage_envelope" and "alpha-hull of the foliage" in out["measures"]
+    assert out["disagreement"] and "convex_hull" in out["disagreement"]
+    human = _cli(
+        "volume", str(shared_data / "real_trees" / "archi_tree_1.las"), "--voxel-size", "0.1"
+    )
+    assert "warning: estimators disagree beyond every tree family" in human.stdout
+    leafy = json.loads(
+        _cli(
+            "volume",
+            str(shared_data / "real_trees" / "archi_tree_2.las"),
+            "--voxel-size",
+            "0.1",
+            "--json",
+        ).stdout
+    )
+    assert leafy["disagreement"] is None and leafy["valid"]

@@ -12,11 +12,12 @@ def volume(
         ..., help="LAS/LAZ/PLY/PCD file holding one tree's points only, in metres"
     ),
     method: str = typer.Option(
-        "alpha_shape",
+        "foliage_envelope",
         "--method",
         "-m",
-        help="volume plugin: convex_hull, alpha_shape, alpha_hull, voxel, "
-        "slices, mirror, ... (see 'canopy-kit plugins volumes')",
+        help="volume plugin: foliage_envelope (what the adaptive preset recommends), "
+        "convex_hull, alpha_shape (the paper's), alpha_hull, voxel, slices, mirror, ... "
+        "(see 'canopy-kit plugins volumes')",
     ),
     alpha: float = typer.Option(
         None,
@@ -34,7 +35,9 @@ def volume(
     ),
     json: bool = typer.Option(False, "--json", help="print the result as JSON"),
 ) -> None:
-    """Estimate the canopy volume of the points in CLOUD with one volume method.
+    """Estimate the canopy volume of the points in CLOUD with one volume method, say what that
+    volume measures, and warn when the estimators disagree beyond every tree family measured
+    (docs/VOLUMES.md).
 
     CLOUD must hold one tree and nothing else: every point counts, so ground, trunk-height
     clutter or a neighbour's crown inflate the volume and the height. canopy-kit's own
@@ -57,16 +60,50 @@ def volume(
         measured = measured[voxel_representatives(measured, voxel_size)[0]]
     result = est(measured)
     metrics = tree_metrics(points.xyz, volume_m3=result.volume_m3 if result.valid else None)
+    what = result.extra.get("measurand") or getattr(est, "measures", "")
+    disagree = _disagreement(result, measured) if result.valid else None
     if json:
-        print_json({"cloud": str(cloud), **result.as_dict(), "metrics": metrics.as_dict()})
+        print_json(
+            {
+                "cloud": str(cloud),
+                **result.as_dict(),
+                "measures": what,
+                "disagreement": disagree,
+                "metrics": metrics.as_dict(),
+            }
+        )
         return
     status = "[green]valid" if result.valid else f"[red]invalid: {result.reason}"
     console.print(
         f"{cloud}: {result.volume_m3:.3f} m³ by {result.method} "
         f"{result.params} from {result.n_points} points ({status}[/])"
     )
+    if what:
+        console.print(f"measures: {what}")
+    if disagree:
+        console.print(f"[yellow]warning: {disagree}[/]")
     console.print(
         f"height {metrics.height_m:.2f} m, crown diameter max "
         f"{metrics.crown_diameter_max_m:.2f} m / mean {metrics.crown_diameter_mean_m:.2f} m, "
         f"sphere volume {metrics.sphere_volume_m3:.2f} m³"
     )
+
+
+def _disagreement(result, xyz) -> str | None:
+    """The flag of :func:`canopy_kit.volume.uncertainty.disagreement` for ``result`` against
+    the estimators it is compared with on the tree families (measured here), else None."""
+    from canopy_kit.volume import estimate_volume
+    from canopy_kit.volume.uncertainty import AGREEMENT, disagreement
+
+    wanted = {b for (a, b, _) in AGREEMENT if a == result.method}
+    wanted |= {m for pair in AGREEMENT for m in pair[:2] if result.method in pair[:2]}
+    wanted.discard(result.method)
+    others = {}
+    for other in sorted(wanted):
+        r = estimate_volume(xyz, other)
+        if r.valid:
+            others[other] = r.volume_m3
+    found = disagreement(
+        result.method, result.volume_m3, others, result.extra.get("crown_kind", "")
+    )
+    return None if found is None else found.flag

@@ -110,3 +110,60 @@ def plot_accuracy_matrix(table: pd.DataFrame, goal: tuple[float, float] = (0.05,
     )
     fig.tight_layout()
     return fig
+
+
+def plot_family_accuracy(
+    table: pd.DataFrame,
+    methods: tuple[str, ...] = ("foliage_envelope", "alpha_shape", "convex_hull"),
+    goal: tuple[float, float] = (0.05, 0.08),
+) -> Any:
+    """Per tree family (old trees), each estimator's scan-induced signed bias (bar) and MAPE
+    (dot) against the same estimator on the complete foliage, one panel per side, from the
+    family accuracy table (``canopy_kit.volume.accuracy.family_accuracy_table``); the first
+    method's interval coverage is written over its bars; ``goal``: the |bias| and MAPE lines."""
+    import matplotlib.pyplot as plt
+
+    old = table[(table["age"] == "old") & table["method"].isin(methods)]
+    families = list(dict.fromkeys(old["family"]))
+    sides = [s for s in ("both", "one") if s in set(old["side"])]
+    fig, axes = plt.subplots(1, len(sides), figsize=(5.5 * len(sides), 4.2), sharey=True)
+    axes = np.atleast_1d(axes)
+    x = np.arange(len(families))
+    width = 0.8 / len(methods)
+    for ax, side in zip(axes, sides, strict=True):
+        rows = old[old["side"] == side].set_index(["family", "method"])
+        for i, method in enumerate(methods):
+            offset = x + (i - (len(methods) - 1) / 2) * width
+            cells = [(family, method) for family in families]
+            bias = [100 * rows["bias"].get(c, np.nan) for c in cells]
+            mape = [100 * rows["mape"].get(c, np.nan) for c in cells]
+            bars = ax.bar(offset, bias, width, label=f"{method}: bias")
+            ax.plot(offset, mape, "o", color=bars.patches[0].get_facecolor(), mec="black", ms=5)
+            if i == 0:
+                for xo, c in zip(offset, cells, strict=True):
+                    cover = rows["interval_covers"].get(c, np.nan)
+                    if np.isfinite(cover):
+                        ax.annotate(
+                            f"{cover:.0%}",
+                            (xo, 0),
+                            xytext=(0, -14),
+                            textcoords="offset points",
+                            ha="center",
+                            fontsize=7,
+                        )
+        ax.axhline(0, color="black", lw=0.8)
+        for level, style in ((goal[0], "--"), (-goal[0], "--"), (goal[1], ":")):
+            ax.axhline(100 * level, color="grey", lw=0.8, ls=style)
+        ax.set_xticks(x)
+        ax.set_xticklabels([f.replace("_", " ") for f in families])
+        ax.set_title(f"scan: {'both sides' if side == 'both' else 'one side'}")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].set_ylabel("drive against complete foliage (%)\nbar: signed bias, dot: MAPE")
+    axes[0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(
+        f"What the drive loses, per tree family (held-out seeds; under the bars: how often "
+        f"{methods[0]}'s interval held the value)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    return fig

@@ -192,8 +192,8 @@ def disagreement(
     span = [volumes[m] for m in involved]
     low, high = min(span), max(span)
     return Disagreement(
-        f"estimators disagree beyond every tree family: {'; '.join(bad)}; the interval spans "
-        f"{low:.1f}-{high:.1f} m³",
+        f"estimators disagree beyond every tree family: {'; '.join(bad)}; they span "
+        f"{low:.1f}-{high:.1f} m³ (an interval takes that span)",
         low,
         high,
     )
