@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.sim.specimen import FAMILIES, Specimen
+from canopy_kit.sim.specimen import COMPLETE_DENSITY, FAMILIES, Specimen, sample_mesh
 
 ENVELOPE_FORMS = ("ellipsoid", "lobed", "vase", "hedged", "sparse")
 HARSH = {"lobe_hollow_range": [0.25, 0.35], "leaf_penetration_m": 0.3}
@@ -183,9 +183,21 @@ def scanned_trees(
         clouds = {side: thin(scan.tree_points(k, [side])) for side in SIDES}
         clouds["both"] = thin(scan.tree_points(k, SIDES))
         reference = complete[k] if complete is not None else thin(sp.complete_foliage(seed=k))
+        surfaces = None
+        if sp.reference is not None:  # the splats the drive saw, beside the cloud they stand for
+            mesh = sp.crown_mesh()
+            surfaces = thin(sample_mesh(*mesh, COMPLETE_DENSITY, np.random.default_rng(k)))
         out.append(
             ScannedTree(
-                row.name, sp.family, sp.name, sp.form, sp.young, sp.envelope_m3, reference, clouds
+                row.name,
+                sp.family,
+                sp.name,
+                sp.form,
+                sp.young,
+                sp.envelope_m3,
+                reference,
+                clouds,
+                surfaces,
             )
         )
     return out
