@@ -139,7 +139,8 @@ def check(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def speed(n: int = 50_000, repeats: int = 3) -> pd.DataFrame:
-    """Seconds per tree of n points: adaptive_alpha, alpha_shape 0.9, Open3D's alpha shape."""
+    """Seconds per tree of n points: foliage_envelope (recommended), adaptive_alpha,
+    alpha_shape 0.9, Open3D's alpha shape."""
     from bench_volume import open3d_alpha_volume, timed  # the sibling script
 
     from canopy_kit.volume import estimate_volume
@@ -150,6 +151,7 @@ def speed(n: int = 50_000, repeats: int = 3) -> pd.DataFrame:
     xyz = d * np.sqrt(rng.uniform(0.5, 1.0, (n, 1))) * [2.2, 2.0, 1.7] + [0, 0, 2.5]  # porous shell
     rows = []
     for label, fn in [
+        ("foliage_envelope", lambda: estimate_volume(xyz, "foliage_envelope").volume_m3),
         ("adaptive_alpha", lambda: estimate_volume(xyz, "adaptive_alpha").volume_m3),
         ("alpha_shape α=0.9", lambda: estimate_volume(xyz, "alpha_shape").volume_m3),
         ("Open3D alpha shape α=0.9", lambda: open3d_alpha_volume(xyz, 0.9)),

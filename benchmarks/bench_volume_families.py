@@ -38,6 +38,7 @@ REAL_CLOUDS = [
     SHARED / "treels" / "pine.laz",
     SHARED / "treels" / "spruce.laz",
 ]
+REAL_PLOTS = [SHARED / "real_trees" / "treeiso_lpine1_demo.laz"]  # 14 red pines, split by stem
 FAMILIES = ["envelope", "lobe_union", "grown", "real"]
 SENSORS = ["vlp16", "hdl32", "os1-64", "os1-128"]
 TUNE_SEEDS = [1000, 1001]  # what any rule or calibration was fitted on
@@ -58,7 +59,10 @@ def scans(cache: Path, family: str, seed: int, sensors: list[str], mount: float 
     complete: dict[str, list] = {}
     for sensor in sensors:
         if rows is None:
-            rows = family_rows(family, seed, REAL_CLOUDS if family == "real" else ())
+            real = family == "real"
+            rows = family_rows(
+                family, seed, REAL_CLOUDS if real else (), REAL_PLOTS if real else ()
+            )
         for row in rows:
             path = cache_path(cache, family, seed, row.name, sensor, mount)
             if not path.exists():

@@ -52,7 +52,7 @@ class AlleyScan:
     (-1: ground or trunk), and where the trees stand (x along the row)."""
 
     specimens: list[Specimen]
-    positions: np.ndarray
+    positions: np.ndarray  # (K, 2): each trunk base's x (along the row) and y
     points: dict[str, np.ndarray]
     tree: dict[str, np.ndarray]
     sensor: str
@@ -64,14 +64,16 @@ class AlleyScan:
         base at the origin, as its specimen and :meth:`Specimen.complete_foliage` are)."""
         parts = [self.points[s][self.tree[s] == k] for s in sides if s in self.points]
         xyz = np.concatenate(parts) if parts else np.empty((0, 3))
-        return xyz - np.array([self.positions[k], 0.0, 0.0])
+        return xyz - np.array([*self.positions[k], 0.0])
 
 
 def plant_row(specimens: Sequence[Specimen], gaps: Sequence[float] | float) -> np.ndarray:
-    """Along-row positions (x) of the trunks, ``gaps`` metres apart (one value or one per gap)."""
+    """Trunk positions (K, 2) along the row line y = 0, ``gaps`` metres apart (one value or
+    one per gap)."""
     n = len(specimens)
     gaps = np.broadcast_to(np.asarray(gaps, float), (max(n - 1, 0),))
-    return np.concatenate([[0.0], np.cumsum(gaps)])
+    x = np.concatenate([[0.0], np.cumsum(gaps)])
+    return np.column_stack([x, np.zeros_like(x)])
 
 
 def row_scene(specimens: Sequence[Specimen], positions: np.ndarray, margin: float = 30.0):
@@ -79,15 +81,15 @@ def row_scene(specimens: Sequence[Specimen], positions: np.ndarray, margin: floa
     from canopy_kit.sim.scene import FOLIAGE, GROUND, WOOD, SceneBuilder, octahedra_faces
 
     b = SceneBuilder()
-    x0, x1 = float(positions.min()) - margin, float(positions.max()) + margin
+    x0, x1 = float(positions[:, 0].min()) - margin, float(positions[:, 0].max()) + margin
     ground = np.array(
         [[x0, -margin, 0.0], [x1, -margin, 0.0], [x1, margin, 0.0], [x0, margin, 0.0]]
     )
     b.add(ground, np.array([[0, 1, 2], [0, 2, 3]]), GROUND, -1)
     rng = np.random.default_rng(0)  # shades only: returns do not depend on them
     top = 0.0
-    for k, (sp, x) in enumerate(zip(specimens, positions)):
-        shift = np.array([x, 0.0, 0.0])
+    for k, (sp, xy) in enumerate(zip(specimens, positions)):
+        shift = np.array([xy[0], xy[1], 0.0])
         m = sp.n_leaf_clusters
         if m:
             b.add(
@@ -116,12 +118,14 @@ def drive_row(
     lead: float = 6.0,
     seed: int = 0,
     progress: Progress | None = None,
+    positions: np.ndarray | None = None,
 ) -> AlleyScan:
     """Drive ``sensor`` along the alley on each of ``sides`` of a row of ``specimens``.
 
     The alley's centre line lies ``clearance`` metres beyond the widest crown's side (at least
     ``min_alley_offset`` from the row line); each pass starts ``lead`` metres before the first
-    trunk and ends as far past the last.
+    trunk and ends as far past the last. ``positions`` (K, 2): trunk positions instead of a
+    row (a plot of trees standing where they stood, around y = 0); ``gaps`` is then unused.
     """
     from canopy_kit.config import from_dict
     from canopy_kit.sim.config import SENSOR_MODELS, LidarSpec
@@ -132,14 +136,17 @@ def drive_row(
     bad = [s for s in sides if s not in SIDES]
     if bad:
         raise ValueError(f"sides must be among {SIDES}, got {bad}")
-    positions = plant_row(specimens, gaps)
-    half_width = max(float(np.abs(np.stack(sp.extent())[:, 1]).max()) for sp in specimens)
+    positions = plant_row(specimens, gaps) if positions is None else np.asarray(positions, float)
+    half_width = max(
+        float(np.abs(np.stack(sp.extent())[:, 1] + y).max())
+        for sp, y in zip(specimens, positions[:, 1])
+    )
     offset = max(half_width + clearance, min_alley_offset)
     scene = row_scene(specimens, positions)
     spec = from_dict(LidarSpec, {**SENSOR_MODELS[sensor], "mount_height": mount_height}, "lidar")
     rng = np.random.default_rng(seed)
     points, trees = {}, {}
-    x0, x1 = float(positions.min()) - lead, float(positions.max()) + lead
+    x0, x1 = float(positions[:, 0].min()) - lead, float(positions[:, 0].max()) + lead
     for n_side, side in enumerate(sides):
         y = offset if side == "left" else -offset
         start, end = ((x0, y), (x1, y)) if side == "left" else ((x1, y), (x0, y))

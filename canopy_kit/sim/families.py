@@ -43,17 +43,24 @@ class FamilyRow:
     family: str
     specimens: list[Specimen]
     gaps: list[float]
+    positions: np.ndarray | None = None  # (K, 2) trunk positions of a plot, instead of gaps
 
 
-def family_rows(family: str, seed: int, real_clouds: Sequence[str | Path] = ()) -> list[FamilyRow]:
-    """The rows of ``family`` for ``seed`` (``real_clouds``: the files of the real family)."""
+def family_rows(
+    family: str,
+    seed: int,
+    real_clouds: Sequence[str | Path] = (),
+    real_plots: Sequence[str | Path] = (),
+) -> list[FamilyRow]:
+    """The rows of ``family`` for ``seed`` (``real_clouds``: single-tree files of the real
+    family; ``real_plots``: plot files, split into trees that keep where they stood)."""
     if family not in FAMILIES:
         raise ValueError(f"family must be one of {FAMILIES}, got {family!r}")
     return {
         "envelope": _envelope_rows,
         "lobe_union": _lobe_union_rows,
         "grown": _grown_rows,
-        "real": lambda s: _real_rows(s, real_clouds),
+        "real": lambda s: _real_rows(s, real_clouds, real_plots),
     }[family](seed)
 
 
@@ -112,8 +119,10 @@ def _grown_rows(seed: int) -> list[FamilyRow]:
     return rows
 
 
-def _real_rows(seed: int, clouds: Sequence[str | Path]) -> list[FamilyRow]:
-    from canopy_kit.sim.real_tree import real_tree
+def _real_rows(
+    seed: int, clouds: Sequence[str | Path], plots: Sequence[str | Path] = ()
+) -> list[FamilyRow]:
+    from canopy_kit.sim.real_tree import plot_specimens, real_tree
 
     rows = []
     for path in clouds:
@@ -125,6 +134,9 @@ def _real_rows(seed: int, clouds: Sequence[str | Path]) -> list[FamilyRow]:
             for k in range(TREES_PER_ROW)
         ]
         rows.append(FamilyRow(tree.name, "real", turns, [width + 1.0] * (TREES_PER_ROW - 1)))
+    for path in plots:
+        trees, positions = plot_specimens(path, seed=seed)
+        rows.append(FamilyRow(Path(path).stem, "real", trees, [], positions))
     return rows
 
 
@@ -177,6 +189,7 @@ def scanned_trees(
         speed=float(drive.uniform(*SPEED)),
         seed=seed,
         lead=lead_for(row),
+        positions=row.positions,
     )
     out = []
     for k, sp in enumerate(row.specimens):

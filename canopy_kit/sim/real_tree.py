@@ -79,3 +79,50 @@ def splatted(
     return Specimen(
         name, "real", form, leaves, reference=full, info={"points": len(full), "splats": len(thin)}
     )
+
+
+def split_plot(
+    xyz: np.ndarray,
+    band: tuple[float, float] = (1.0, 2.0),
+    eps: float = 0.25,
+    min_points: int = 30,
+) -> list[np.ndarray]:
+    """A plot's cloud split into trees: stems found as DBSCAN clusters (x, y) of the points
+    ``band`` metres above the plot's lowest point, every point given to the stem nearest it
+    in x, y (a Voronoi split: crowns that interleave are cut half-way between stems).
+    Returns one cloud per stem, in the plot's coordinates, west to east."""
+    from scipy.spatial import cKDTree
+    from sklearn.cluster import DBSCAN
+
+    xyz = np.asarray(xyz, float)
+    z = xyz[:, 2] - xyz[:, 2].min()
+    slab = xyz[(z >= band[0]) & (z <= band[1]), :2]
+    labels = DBSCAN(eps=eps, min_samples=min_points).fit_predict(slab)
+    stems = np.array([slab[labels == k].mean(axis=0) for k in range(labels.max() + 1)])
+    if len(stems) == 0:
+        raise ValueError(f"no stem found {band[0]}-{band[1]} m above the plot's lowest point")
+    stems = stems[np.argsort(stems[:, 0])]
+    owner = cKDTree(stems).query(xyz[:, :2])[1]
+    return [xyz[owner == k] for k in range(len(stems))]
+
+
+def plot_specimens(
+    path: str | Path, cell: float = 0.03, seed: int = 0, max_trees: int | None = None
+) -> tuple[list[Specimen], np.ndarray]:
+    """The trees of a real plot (:func:`split_plot`) as specimens, and where their trunk
+    bases stand (K, 2), centred on the plot, x along its longer side."""
+    from canopy_kit.io.clouds import read_cloud
+
+    path = Path(path)
+    xyz = read_cloud(path).xyz
+    if np.ptp(xyz[:, 1]) > np.ptp(xyz[:, 0]):  # the plot's longer side along the row (x)
+        xyz = xyz[:, [1, 0, 2]] * [1.0, -1.0, 1.0]
+    trees = split_plot(xyz)
+    centre = xyz[:, :2].mean(axis=0)
+    specimens, bases = [], []
+    for k, tree in enumerate(trees[:max_trees]):
+        z = tree[:, 2]
+        low = z <= np.quantile(z, 0.02)
+        bases.append(np.median(tree[low, :2], axis=0) - centre)
+        specimens.append(splatted(tree, cell, seed + k, f"{path.stem}-tree{k}", "plot"))
+    return specimens, np.asarray(bases)
