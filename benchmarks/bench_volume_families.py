@@ -267,9 +267,9 @@ def leave_one_family_out(err: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for family in [*CALIBRATED_FAMILIES, "real"]:
         train = tune[tune["family"].isin([f for f in CALIBRATED_FAMILIES if f != family])]
-        kinds = calibrate(train)
+        kinds = calibrate(train) if not train.empty else {}
         test = err[(err["family"] == family) & ~err["seed"].isin(TUNE_SEEDS)]
-        if test.empty:
+        if test.empty or not kinds:
             continue
         inside = covered(test, kinds)
         for (age, side), g in test.assign(inside=inside).groupby(["age", "side"]):
@@ -298,7 +298,8 @@ def write_summary(err: pd.DataFrame, path: Path) -> None:
     for family in held["family"].unique():
         train = tune[tune["family"].isin([f for f in CALIBRATED_FAMILIES if f != family])]
         mask = held["family"] == family
-        held.loc[mask, "covered"] = covered(held[mask], calibrate(train)).astype(float)
+        if not train.empty:
+            held.loc[mask, "covered"] = covered(held[mask], calibrate(train)).astype(float)
     rows = []
     for (family, age, side), g in held.groupby(["family", "age", "side"], sort=False):
         for label, _, _ in METHODS:

@@ -105,8 +105,10 @@ def test_the_report_names_the_estimator_its_measurand_and_its_interval(tiny_pist
     from canopy_kit.report.volumes import pooled
     from canopy_kit.volume.accuracy import family_accuracy_table
 
+    import html
+
     page = (tiny_pistachio_run.out_dir / "report.html").read_text()
-    plain = re.sub(r"<[^>]+>", " ", page)
+    plain = html.unescape(re.sub(r"<[^>]+>", " ", page))
     assert "the recommended estimator of this preset is foliage_envelope" in plain
     table = family_accuracy_table()
     mine = table[(table["method"] == "foliage_envelope") & (table["age"] == "old")]
