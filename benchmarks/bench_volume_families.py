@@ -230,7 +230,15 @@ def calibrate(err: pd.DataFrame) -> dict[str, tuple[float, float]]:
 
     ok = err[RECOMMENDED].notna() & err["reference"].notna()
     e = err[ok]
-    return calibrate_ratios(e["reference"] / e[RECOMMENDED], e["fill"], e["kind"].to_numpy())
+    return calibrate_ratios(e["reference"] / e[RECOMMENDED], e["fill"], calibration_kind(e))
+
+
+def calibration_kind(err: pd.DataFrame) -> np.ndarray:
+    """Each scan's calibration kind: the crown kind, ``/one`` when seen from one side."""
+    from canopy_kit.volume.uncertainty import ONE_SIDED
+
+    suffix = np.where(err["side"].to_numpy() == "one", ONE_SIDED, "")
+    return np.char.add(err["kind"].astype(str).to_numpy(), suffix)
 
 
 def covered(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.Series:
@@ -240,7 +248,7 @@ def covered(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.Seri
 
     widest = (min(lo for lo, _ in kinds.values()), max(hi for _, hi in kinds.values()))
     inside = []
-    for r in err.itertuples(index=False):
+    for r, kind in zip(err.itertuples(index=False), calibration_kind(err), strict=True):
         v = getattr(r, RECOMMENDED)
         if not (np.isfinite(v) and np.isfinite(r.reference)):
             inside.append(False)
@@ -249,7 +257,7 @@ def covered(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.Seri
         low, high, _ = interval_bounds(
             RECOMMENDED,
             v,
-            kinds.get(r.kind, widest),
+            kinds.get(kind, kinds.get(r.kind, widest)),
             r.kind,
             r.fill,
             r.coverage,

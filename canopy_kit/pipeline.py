@@ -208,6 +208,15 @@ def segment_stage(ctx: RunContext, progress: Progress) -> Any:
     )
 
 
+def sensor_positions(mapping: Any) -> np.ndarray | None:
+    """The sensor's x, y along the drive (map frame), from the mapping's trajectory; None
+    when the map came without one (a finished map)."""
+    trajectory = getattr(mapping, "trajectory", None)
+    if trajectory is None or len(trajectory) == 0 or not {"x", "y"} <= set(trajectory):
+        return None
+    return trajectory[["x", "y"]].to_numpy(float)
+
+
 def volume_stage(ctx: RunContext, progress: Progress, surfaces: bool = True) -> TreeVolumes:
     """Metrics and every configured volume estimator per segmented tree, on the map's points
     as map.laz stores them (1 mm): a tree's points read back from it give the same numbers.
@@ -230,6 +239,7 @@ def volume_stage(ctx: RunContext, progress: Progress, surfaces: bool = True) -> 
         progress=progress,
         estimators=ctx.estimators,
         draw=surfaces,
+        sensor_xy=sensor_positions(ctx.mapping),
     )
     records = seg.table().set_index("segment_id")
     table = volumes.table.join(records[["tree_id", "row", "label", "index_in_row"]], on="segment")

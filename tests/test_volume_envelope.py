@@ -148,3 +148,33 @@ def test_estimators_that_disagree_beyond_the_families_are_flagged_and_spanned() 
         xyz, 30.0, "foliage_envelope", kind="dense", others={"convex_hull": 32.0}
     )
     assert not any("disagree" in f for f in agree.flags)
+
+
+def test_sides_seen_counts_the_alleys_the_drive_passed_along() -> None:
+    from canopy_kit.volume.uncertainty import sides_seen
+
+    x = np.linspace(-20, 20, 200)
+    alley = lambda y: np.column_stack([x, np.full_like(x, y)])  # noqa: E731
+    tree = np.array([1.0, 0.2])
+    assert sides_seen(tree, np.vstack([alley(3.0), alley(-3.0)])) == 2
+    assert sides_seen(tree, alley(3.0)) == 1
+    assert sides_seen(tree, alley(-3.2)) == 1
+    assert sides_seen(tree, alley(40.0)) == 0
+    # the alley beyond the next row (9 m off) is not the far side of this tree's row
+    assert sides_seen(tree, np.vstack([alley(3.0), alley(9.0)])) == 1
+    # a rotated, bowed drive: the principal axis follows the alleys
+    turn = np.array([[np.cos(0.7), -np.sin(0.7)], [np.sin(0.7), np.cos(0.7)]])
+    both = np.vstack([alley(3.0), alley(-3.0)]) @ turn.T
+    assert sides_seen(tree @ turn.T, both) == 2
+
+
+def test_a_tree_seen_from_one_side_takes_the_one_sided_calibration() -> None:
+    from canopy_kit.volume.uncertainty import CALIBRATIONS, ONE_SIDED, volume_interval
+
+    kinds = CALIBRATIONS["foliage_envelope"].kinds
+    xyz = ball(5000, 2.0)
+    both = volume_interval(xyz, 30.0, "foliage_envelope", kind="dense", sides=2)
+    one = volume_interval(xyz, 30.0, "foliage_envelope", kind="dense", sides=1)
+    assert both.high_m3 == pytest.approx(30.0 * kinds["dense"][1])
+    assert one.high_m3 == pytest.approx(30.0 * kinds["dense" + ONE_SIDED][1])
+    assert one.flags[0].startswith("seen from one side of its row only")

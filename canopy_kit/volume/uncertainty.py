@@ -45,6 +45,7 @@ MIN_FILL = 2.0  # at or above: a dense crown
 # between the two: either
 TRUNK_SHARE = 0.1
 INNER_RADIUS = 0.3  # points nearer the centre than this share of the crown radius are skipped
+ONE_SIDED = "/one"  # a calibration kind's suffix for trees seen from one side of their row
 VOID_SHARE = 0.15  # enclosed empty space above this share of the volume: flagged, spanned
 MARGIN = 0.02  # added on either side of the calibrated ratio quantiles (2 % and 98 %)
 TUNED_ON = (401, 402)
@@ -118,7 +119,12 @@ def calibrate_ratios(
 # docs/VOLUMES.md, "One-sided scans from the alley maps").
 CALIBRATIONS: dict[str, Calibration] = {
     "foliage_envelope": Calibration(
-        {"dense": (0.95, 1.05), "thin": (0.85, 1.1), "sparse": (0.9, 1.1)},
+        {
+            "dense": (0.95, 1.05),
+            "dense/one": (0.93, 1.22),
+            "thin": (0.85, 1.1),
+            "sparse": (0.9, 1.1),
+        },
         params={
             "alpha": 0.75,
             "spacing_factor": 5.0,
@@ -236,6 +242,25 @@ def scan_coverage(
     return float((counts >= max(2.0, 0.1 * keep.sum() / sectors)).mean())
 
 
+def sides_seen(
+    centre_xy: np.ndarray, sensor_xy: np.ndarray, crown_radius: float = 2.5, gap: float = 0.5
+) -> int:
+    """From how many sides of its row the drive saw a tree: 2 when the sensor passed on both
+    sides of the line through ``centre_xy`` along the local driving direction, 1 when on one
+    only, 0 when never near it. ``sensor_xy``: the sensor's positions (N, 2) in the tree's
+    frame; positions within ``crown_radius`` + 4 m (at least 8 m) count, ``gap`` metres or more
+    off the line. The driving direction is the principal axis of those positions."""
+    c = np.asarray(centre_xy, float)[:2]
+    p = np.asarray(sensor_xy, float)[:, :2] - c
+    reach = max(8.0, float(crown_radius) + 4.0)
+    p = p[np.einsum("ij,ij->i", p, p) <= reach * reach]
+    if len(p) < 2:
+        return 0
+    axis = np.linalg.svd(p - p.mean(axis=0), full_matrices=False)[2][0]
+    across = p @ np.array([-axis[1], axis[0]])
+    return int((across > gap).any()) + int((across < -gap).any())
+
+
 def surface_fill(xyz: np.ndarray, spacing: float | None = None) -> float:
     """``n · s² / A``: how well the points cover their convex hull's surface (2.2-4.4 on dense simulated crowns)."""
     from scipy.spatial import ConvexHull
@@ -256,9 +281,14 @@ def volume_interval(
     params: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
     others: dict[str, float] | None = None,
+    sides: int | None = None,
 ) -> Interval | None:
     """The interval for ``method``'s ``volume_m3`` of the points ``xyz``; None when ``method``
     has no calibration (or the volume is not a positive number).
+
+    ``sides``: from how many sides of its row the drive saw the tree (:func:`sides_seen`);
+    seen from one, the kind's one-sided calibration (``<kind>/one``) is taken where there is
+    one.
 
     ``fill``: the points' :func:`surface_fill` when the estimator has measured it already.
     ``kind``: the kind of crown when the estimator knows it (``foliage_envelope``'s dense,
@@ -281,9 +311,15 @@ def volume_interval(
         kind = crown_kind(fill)
     elif kind not in cal.kinds:
         raise ValueError(f"kind must be one of {sorted(cal.kinds)}, got {kind!r}")
+    ratios = cal.kinds[kind]
+    one_sided = f"{kind}{ONE_SIDED}"
+    if sides == 1 and one_sided in cal.kinds:
+        ratios = cal.kinds[one_sided]
     low, high, flags = interval_bounds(
-        method, volume_m3, cal.kinds[kind], kind, fill, coverage, extra, others
+        method, volume_m3, ratios, kind, fill, coverage, extra, others
     )
+    if sides == 1:
+        flags.insert(0, "seen from one side of its row only: the far side is estimated")
     return Interval(low, high, coverage, fill, tuple(flags), kind)
 
 

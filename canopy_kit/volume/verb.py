@@ -101,13 +101,14 @@ def interval_columns(
     params: dict | None = None,
     extra: dict | None = None,
     others: dict[str, float] | None = None,
+    sides: int | None = None,
 ) -> dict:
     """The table's interval columns (``INTERVAL_COLUMNS``) for ``method``'s volume of ``xyz``;
     NaN bounds when the method has no calibration, was run with other parameters than its
     calibration's (the flags say so) or has no valid volume. ``fill``, ``kind``, ``params``,
-    ``extra`` and ``others``: as :func:`canopy_kit.volume.uncertainty.volume_interval` takes
-    them (the estimator's surface fill, kind of crown, parameters and result extra; the other
-    estimators' volumes)."""
+    ``extra``, ``others`` and ``sides``: as :func:`canopy_kit.volume.uncertainty.volume_interval`
+    takes them (the estimator's surface fill, kind of crown, parameters and result extra; the
+    other estimators' volumes; from how many sides of its row the drive saw the tree)."""
     from scipy.spatial import QhullError
 
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS, volume_interval
@@ -119,7 +120,7 @@ def interval_columns(
     if len(xyz) >= 4 and np.isfinite(volume_m3):
         try:
             interval = volume_interval(
-                xyz, volume_m3, method, centre, fill, kind, params, extra, others
+                xyz, volume_m3, method, centre, fill, kind, params, extra, others, sides
             )
         except QhullError as exc:  # qhull on points that are nearly flat: no interval
             return {**row, col["flags"]: f"no interval: {type(exc).__name__}"}
@@ -136,6 +137,7 @@ def measure_tree(
     volume: VolumeConfig,
     ground_height: GroundHeight | None = None,
     estimators: Estimators | None = None,
+    sensor_xy: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """One tree's row of the per-tree table (all but ``segment``): position, metrics, each
     estimator's volume (:func:`volume_column`, NaN when invalid), ``volume_flags`` and the
@@ -143,8 +145,10 @@ def measure_tree(
 
     ``xyz`` are the tree's points (:func:`tree_points` gives them as the pipeline does);
     ``ground_height(xy) -> z`` the ground under the tree (default: its lowest point).
+    ``sensor_xy``: the drive's sensor positions (N, 2), in the points' frame: the row's
+    ``sides_seen`` (:func:`canopy_kit.volume.uncertainty.sides_seen`) and its interval.
     """
-    return _measure_tree(xyz, volume, ground_height, estimators, drawn=())[0]
+    return _measure_tree(xyz, volume, ground_height, estimators, drawn=(), sensor_xy=sensor_xy)[0]
 
 
 def tree_surfaces(
@@ -180,6 +184,7 @@ def _measure_tree(
     ground_height: GroundHeight | None,
     estimators: Estimators | None,
     drawn: Collection[str],
+    sensor_xy: np.ndarray | None = None,
 ) -> tuple[dict[str, Any], list[Surface]]:
     """:func:`measure_tree`'s row and the surfaces of the estimators in ``drawn``."""
     estimators = estimators if estimators is not None else build_estimators(volume)
@@ -218,6 +223,13 @@ def _measure_tree(
     )
     row["volume_without_voids_m3"] = extra.get("volume_without_voids_m3", recommended)
     others = {m: r.volume_m3 for m, r in results.items() if r.valid and m != volume.recommended}
+    sides = None
+    if sensor_xy is not None and len(sensor_xy):
+        from canopy_kit.volume.uncertainty import sides_seen
+
+        radius = 0.5 * float(metrics.crown_diameter_max_m or 0.0)
+        sides = sides_seen(centre, sensor_xy, crown_radius=radius)
+    row["sides_seen"] = sides if sides is not None else np.nan
     row.update(
         interval_columns(
             measured,
@@ -228,6 +240,7 @@ def _measure_tree(
             params=best.params,
             extra=extra,
             others=others,
+            sides=sides,
         )
     )
     return row, [surfaces[m] for m in drawn if m in surfaces]
@@ -253,6 +266,7 @@ def measure_trees(
     ground_height: GroundHeight | None = None,
     progress: Progress | None = None,
     estimators: Estimators | None = None,
+    sensor_xy: np.ndarray | None = None,
 ) -> pd.DataFrame:
     """One row per segment label ≥ 0: ``segment`` and :func:`measure_tree`'s columns.
 
@@ -261,7 +275,9 @@ def measure_trees(
     (never inside a daemonic process such as a Dask worker); the table does not depend on
     the number of workers.
     """
-    return _measure_trees(cloud, labels, volume, ground_height, progress, estimators, ()).table
+    return _measure_trees(
+        cloud, labels, volume, ground_height, progress, estimators, (), sensor_xy
+    ).table
 
 
 def measure_trees_and_surfaces(
@@ -272,13 +288,16 @@ def measure_trees_and_surfaces(
     progress: Progress | None = None,
     estimators: Estimators | None = None,
     draw: bool = True,
+    sensor_xy: np.ndarray | None = None,
 ) -> TreeVolumes:
     """:func:`measure_trees`' table and, per measured segment, the surfaces of the solids its
     drawn estimators measured (:func:`drawn_methods`), from the same triangulations (an
     empty list when none of them measured a valid solid). ``draw=False``: the table only,
     with no surfaces at all."""
     drawn = tuple(drawn_methods(volume)) if draw else ()
-    volumes = _measure_trees(cloud, labels, volume, ground_height, progress, estimators, drawn)
+    volumes = _measure_trees(
+        cloud, labels, volume, ground_height, progress, estimators, drawn, sensor_xy
+    )
     return volumes if draw else replace(volumes, surfaces={})
 
 
@@ -290,6 +309,7 @@ def _measure_trees(
     progress: Progress | None,
     estimators: Estimators | None,
     drawn: tuple[str, ...],
+    sensor_xy: np.ndarray | None = None,
 ) -> TreeVolumes:
     estimators = estimators if estimators is not None else build_estimators(volume)
     order, sorted_labels = grouped_by_label(labels)
@@ -298,7 +318,7 @@ def _measure_trees(
     def measure(seg: int) -> tuple[dict, list[Surface]]:
         lo, hi = np.searchsorted(sorted_labels, [seg, seg + 1])
         xyz = cloud.xyz[order[lo:hi]]
-        row, surfaces = _measure_tree(xyz, volume, ground_height, estimators, drawn)
+        row, surfaces = _measure_tree(xyz, volume, ground_height, estimators, drawn, sensor_xy)
         return {"segment": int(seg), **row}, surfaces
 
     def measure_all(
