@@ -113,6 +113,7 @@ def measure_cloud(xyz: np.ndarray, complete: bool = False) -> dict:
     if len(xyz) < 8:
         return out
     out["coverage"] = scan_coverage(xyz)
+    out["height"] = float(np.ptp(xyz[:, 2]))
     for label, method, params in METHODS:
         if label == RECOMMENDED and complete:
             continue
@@ -175,8 +176,22 @@ def measurements(cache: Path, family: str, seed: int, sensors: list[str]) -> pd.
                 file=sys.stderr,
                 flush=True,
             )
-        frames.append(pd.read_pickle(path))
+        frame = pd.read_pickle(path)
+        if "height" not in frame:  # measured before the height was: read it off the scans
+            frame = with_heights(frame, scans(cache, family, seed, [sensor]))
+        frames.append(frame)
     return pd.concat(frames, ignore_index=True)
+
+
+def with_heights(frame: pd.DataFrame, scanned: list) -> pd.DataFrame:
+    """``frame`` with each cloud's vertical extent (``height``), from its scans."""
+    heights = {}
+    for _, _, _, t in scanned:
+        heights[(t.row, t.name, "complete")] = float(np.ptp(t.complete[:, 2]))
+        for side, xyz in t.scans.items():
+            heights[(t.row, t.name, side)] = float(np.ptp(xyz[:, 2])) if len(xyz) else np.nan
+    keys = zip(frame["row"], frame["tree"], frame["scan"], strict=True)
+    return frame.assign(height=[heights.get(k, np.nan) for k in keys])
 
 
 SIDE = {"left": "one", "right": "one", "both": "both"}
@@ -263,6 +278,7 @@ def covered(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.Seri
             r.coverage,
             {"void_m3": r.void_m3},
             others,
+            getattr(r, "height", np.nan) if np.isfinite(getattr(r, "height", np.nan)) else 0.0,
         )
         inside.append(low <= r.reference <= high)
     return pd.Series(inside, index=err.index)

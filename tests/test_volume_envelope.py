@@ -178,3 +178,15 @@ def test_a_tree_seen_from_one_side_takes_the_one_sided_calibration() -> None:
     assert both.high_m3 == pytest.approx(30.0 * kinds["dense"][1])
     assert one.high_m3 == pytest.approx(30.0 * kinds["dense" + ONE_SIDED][1])
     assert one.flags[0].startswith("seen from one side of its row only")
+
+
+def test_a_crown_taller_than_every_calibration_tree_reaches_the_hull() -> None:
+    from canopy_kit.volume.uncertainty import CALIBRATED_HEIGHT_M, volume_interval
+
+    tall = ball(8000, 1.0) * [1.0, 1.0, 1.5 * CALIBRATED_HEIGHT_M / 2] + [0, 0, 8.0]
+    hull = estimate_volume(tall, "convex_hull").volume_m3
+    interval = volume_interval(tall, 0.5 * hull, "foliage_envelope", kind="dense")
+    assert any("taller than every tree" in f for f in interval.flags)
+    assert interval.high_m3 == pytest.approx(hull)
+    short = volume_interval(ball(8000, 1.0), 3.0, "foliage_envelope", kind="dense")
+    assert not any("taller" in f for f in short.flags)

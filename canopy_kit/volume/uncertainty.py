@@ -45,6 +45,7 @@ MIN_FILL = 2.0  # at or above: a dense crown
 # between the two: either
 TRUNK_SHARE = 0.1
 INNER_RADIUS = 0.3  # points nearer the centre than this share of the crown radius are skipped
+CALIBRATED_HEIGHT_M = 5.0  # the tree families' crowns reach 4.1 m from their lowest to top point
 ONE_SIDED = "/one"  # a calibration kind's suffix for trees seen from one side of their row
 VOID_SHARE = 0.15  # enclosed empty space above this share of the volume: flagged, spanned
 MARGIN = 0.02  # added on either side of the calibrated ratio quantiles (2 % and 98 %)
@@ -315,8 +316,13 @@ def volume_interval(
     one_sided = f"{kind}{ONE_SIDED}"
     if sides == 1 and one_sided in cal.kinds:
         ratios = cal.kinds[one_sided]
+    height = float(np.ptp(np.asarray(xyz)[:, 2]))
+    if height > CALIBRATED_HEIGHT_M and "convex_hull" not in (others or {}):
+        from canopy_kit.volume.hull import hull_volume
+
+        others = {**(others or {}), "convex_hull": hull_volume(xyz)}
     low, high, flags = interval_bounds(
-        method, volume_m3, ratios, kind, fill, coverage, extra, others
+        method, volume_m3, ratios, kind, fill, coverage, extra, others, height
     )
     if sides == 1:
         flags.insert(0, "seen from one side of its row only: the far side is estimated")
@@ -332,11 +338,14 @@ def interval_bounds(
     coverage: float,
     extra: dict[str, Any] | None = None,
     others: dict[str, float] | None = None,
+    height_m: float = 0.0,
 ) -> tuple[float, float, list[str]]:
     """(low, high, flags) of the interval: ``volume_m3`` × the kind's ``ratios``, the upper
-    bound raised for a one-sided scan (``coverage`` below ``MIN_COVERAGE``), the lower one
+    bound raised for a one-sided scan (``coverage`` below ``MIN_COVERAGE``) and, for a crown
+    taller than every calibration tree (``height_m`` above :data:`CALIBRATED_HEIGHT_M`: its
+    top may be out of the sensor's view), up to the convex hull (``others``); the lower one
     down to the volume without enclosed empty space when that space is large
-    (:data:`VOID_SHARE`), both out to the span of estimators that disagree beyond every tree
+    (:data:`VOID_SHARE`); both out to the span of estimators that disagree beyond every tree
     family (:func:`disagreement`)."""
     lo, hi = ratios
     flags = _kind_flags(kind, fill, lo, hi, extra)
@@ -352,6 +361,15 @@ def interval_bounds(
             f"counted as crown; without it the volume is {without:.1f} m³ (the interval spans both)"
         )
         low = min(low, without * lo)
+    hull = (others or {}).get("convex_hull", np.nan)
+    if height_m > CALIBRATED_HEIGHT_M:
+        flags.append(
+            f"crown {height_m:.1f} m high, taller than every tree the interval was calibrated "
+            f"on ({CALIBRATED_HEIGHT_M:g} m): its top may have been out of the sensor's view; "
+            "the interval reaches the convex hull"
+        )
+        if np.isfinite(hull) and hull > high:
+            high = hull
     disagree = disagreement(method, volume_m3, others or {}, kind)
     if disagree is not None:
         flags.append(disagree.flag)
