@@ -72,6 +72,38 @@ def plot_agreement(
     return fig
 
 
+def _bias_panel(
+    ax: Any,
+    rows: pd.DataFrame,
+    groups: list[str],
+    methods: list[str] | tuple[str, ...],
+    goal: tuple[float, float],
+    labels: list[str],
+    title: str,
+) -> list[tuple[np.ndarray, list[tuple[str, str]]]]:
+    """One panel: per group (``rows`` indexed by (group, method)) each method's signed bias
+    (bar) and MAPE (dot) in %, the goal's lines; returns each method's bar positions and cells."""
+    x = np.arange(len(groups))
+    width = 0.8 / max(len(methods), 1)
+    drawn = []
+    for i, method in enumerate(methods):
+        offset = x + (i - (len(methods) - 1) / 2) * width
+        cells = [(group, method) for group in groups]
+        bias = [100 * rows["bias"].get(c, np.nan) for c in cells]
+        mape = [100 * rows["mape"].get(c, np.nan) for c in cells]
+        bars = ax.bar(offset, bias, width, label=f"{method}: bias")
+        ax.plot(offset, mape, "o", color=bars.patches[0].get_facecolor(), mec="black", ms=5)
+        drawn.append((offset, cells))
+    ax.axhline(0, color="black", lw=0.8)
+    for level, style in ((goal[0], "--"), (-goal[0], "--"), (goal[1], ":")):
+        ax.axhline(100 * level, color="grey", lw=0.8, ls=style)
+    ax.set_xticks(x)
+    ax.set_xticklabels(labels)
+    ax.set_title(title)
+    ax.grid(axis="y", alpha=0.3)
+    return drawn
+
+
 def plot_accuracy_matrix(table: pd.DataFrame, goal: tuple[float, float] = (0.05, 0.08)) -> Any:
     """Per crown form, each estimator's signed bias (bar) and MAPE (dot) against the true crown
     volume, one panel per scan (both sides, one side), from the accuracy table
@@ -83,24 +115,9 @@ def plot_accuracy_matrix(table: pd.DataFrame, goal: tuple[float, float] = (0.05,
     methods = list(table["method"].unique())
     fig, axes = plt.subplots(1, len(scans), figsize=(5.5 * len(scans), 4.2), sharey=True)
     axes = np.atleast_1d(axes)
-    x = np.arange(len(forms))
-    width = 0.8 / max(len(methods), 1)
     for ax, scan in zip(axes, scans, strict=True):
         rows = table[table["scan"] == scan].set_index(["form", "method"])
-        for i, method in enumerate(methods):
-            offset = x + (i - (len(methods) - 1) / 2) * width
-            cells = [(form, method) for form in forms]
-            bias = [100 * rows["bias"].get(c, np.nan) for c in cells]
-            mape = [100 * rows["mape"].get(c, np.nan) for c in cells]
-            bars = ax.bar(offset, bias, width, label=f"{method}: bias")
-            ax.plot(offset, mape, "o", color=bars.patches[0].get_facecolor(), mec="black", ms=5)
-        ax.axhline(0, color="black", lw=0.8)
-        for level, style in ((goal[0], "--"), (-goal[0], "--"), (goal[1], ":")):
-            ax.axhline(100 * level, color="grey", lw=0.8, ls=style)
-        ax.set_xticks(x)
-        ax.set_xticklabels(forms)
-        ax.set_title(f"scan: {scan}")
-        ax.grid(axis="y", alpha=0.3)
+        _bias_panel(ax, rows, forms, methods, goal, forms, f"scan: {scan}")
     axes[0].set_ylabel("error against the true volume (%)\nbar: signed bias, dot: MAPE")
     axes[0].legend(fontsize=7, loc="lower left")
     fig.suptitle(
@@ -120,7 +137,7 @@ def plot_family_accuracy(
     """Per tree family (old trees), each estimator's scan-induced signed bias (bar) and MAPE
     (dot) against the same estimator on the complete foliage, one panel per side, from the
     family accuracy table (``canopy_kit.volume.accuracy.family_accuracy_table``); the first
-    method's interval coverage is written over its bars; ``goal``: the |bias| and MAPE lines."""
+    method's interval coverage is written under its bars; ``goal``: the |bias| and MAPE lines."""
     import matplotlib.pyplot as plt
 
     old = table[(table["age"] == "old") & table["method"].isin(methods)]
@@ -128,36 +145,22 @@ def plot_family_accuracy(
     sides = [s for s in ("both", "one") if s in set(old["side"])]
     fig, axes = plt.subplots(1, len(sides), figsize=(5.5 * len(sides), 4.2), sharey=True)
     axes = np.atleast_1d(axes)
-    x = np.arange(len(families))
-    width = 0.8 / len(methods)
+    labels = [f.replace("_", " ") for f in families]
     for ax, side in zip(axes, sides, strict=True):
         rows = old[old["side"] == side].set_index(["family", "method"])
-        for i, method in enumerate(methods):
-            offset = x + (i - (len(methods) - 1) / 2) * width
-            cells = [(family, method) for family in families]
-            bias = [100 * rows["bias"].get(c, np.nan) for c in cells]
-            mape = [100 * rows["mape"].get(c, np.nan) for c in cells]
-            bars = ax.bar(offset, bias, width, label=f"{method}: bias")
-            ax.plot(offset, mape, "o", color=bars.patches[0].get_facecolor(), mec="black", ms=5)
-            if i == 0:
-                for xo, c in zip(offset, cells, strict=True):
-                    cover = rows["interval_covers"].get(c, np.nan)
-                    if np.isfinite(cover):
-                        ax.annotate(
-                            f"{cover:.0%}",
-                            (xo, 0),
-                            xytext=(0, -14),
-                            textcoords="offset points",
-                            ha="center",
-                            fontsize=7,
-                        )
-        ax.axhline(0, color="black", lw=0.8)
-        for level, style in ((goal[0], "--"), (-goal[0], "--"), (goal[1], ":")):
-            ax.axhline(100 * level, color="grey", lw=0.8, ls=style)
-        ax.set_xticks(x)
-        ax.set_xticklabels([f.replace("_", " ") for f in families])
-        ax.set_title(f"scan: {'both sides' if side == 'both' else 'one side'}")
-        ax.grid(axis="y", alpha=0.3)
+        title = f"scan: {'both sides' if side == 'both' else 'one side'}"
+        offsets, cells = _bias_panel(ax, rows, families, methods, goal, labels, title)[0]
+        for xo, cell in zip(offsets, cells, strict=True):
+            cover = rows["interval_covers"].get(cell, np.nan)
+            if np.isfinite(cover):
+                ax.annotate(
+                    f"{cover:.0%}",
+                    (xo, 0),
+                    xytext=(0, -14),
+                    textcoords="offset points",
+                    ha="center",
+                    fontsize=7,
+                )
     axes[0].set_ylabel("drive against complete foliage (%)\nbar: signed bias, dot: MAPE")
     axes[0].legend(fontsize=7, loc="lower left")
     fig.suptitle(
