@@ -217,6 +217,11 @@ def errors(df: pd.DataFrame) -> pd.DataFrame:
             ref = complete[label].reindex(idx).to_numpy()
         scans_[f"scan:{label}"] = scans_[label].to_numpy() / ref - 1
         scans_[f"env:{label}"] = scans_[label] / scans_["envelope_m3"] - 1
+    # kinds measured before the "small" kind existed: the same rule on the scan's hull
+    from canopy_kit.volume.envelope import YOUNG_MAX_M3
+
+    small = (scans_["kind"] == "dense") & (scans_["convex_hull"] <= YOUNG_MAX_M3)
+    scans_.loc[small, "kind"] = "small"
     scans_["side"] = scans_["scan"].map(SIDE)
     scans_["age"] = np.where(scans_["young"], "young", "old")
     return scans_

@@ -28,6 +28,9 @@ too thin to resolve α (median 8th-neighbour spacing s above α / ``spacing_fact
 closing ball must grow to ``spacing_factor · s`` to keep the solid whole: the estimate then
 bridges wider gaps than the measurand does, and ``extra["alpha_used"]`` and
 ``extra["thin_scan"]`` say so (the interval widens, :mod:`canopy_kit.volume.uncertainty`).
+``extra["crown_kind"]`` names the interval's calibration: ``dense``, ``small`` (a young or
+small crown, on which the sensor's range noise weighs more), ``thin`` or ``sparse`` (the
+ellipsoid).
 """
 
 from __future__ import annotations
@@ -53,6 +56,13 @@ def envelope_measurand(alpha: float) -> str:
 
 
 ELLIPSOID_MEASURAND = "enclosing ellipsoid of the foliage (sparse young crown)"
+
+
+def envelope_kind(thin: bool, small: bool) -> str:
+    """The interval's kind of an envelope: ``thin`` (the ball had to grow), ``small`` (a hull
+    of at most ``young_max_m3``: the sensor's range noise is a larger share of a small
+    crown), else ``dense``."""
+    return "thin" if thin else ("small" if small else "dense")
 
 
 class FoliageEnvelopeVolume(VolumeEstimator):
@@ -126,11 +136,11 @@ class FoliageEnvelopeVolume(VolumeEstimator):
         tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
         s = point_spacing(xyz, tree=tree)
         fill = surface_fill(xyz, spacing=s)
+        small = hull_volume(xyz) <= self.young_max_m3
         chosen = self.measurand
         if chosen == "auto":
             sparse = self.sparse_fill is not None and fill < self.sparse_fill
-            young = sparse and hull_volume(xyz) <= self.young_max_m3
-            chosen = "ellipsoid" if young else "envelope"
+            chosen = "ellipsoid" if sparse and small else "envelope"
         extra: dict[str, Any] = {"spacing": s, "surface_fill": fill, "estimate": chosen}
         if chosen == "ellipsoid":
             from canopy_kit.volume.ellipsoid import enclosing_ellipsoid
@@ -155,7 +165,7 @@ class FoliageEnvelopeVolume(VolumeEstimator):
             void_m3=void,
             volume_without_voids_m3=max(volume - void, 0.0),
             grid_step=h,
-            crown_kind="thin" if alpha > float(self.alpha) * (1 + 1e-9) else "dense",
+            crown_kind=envelope_kind(alpha > float(self.alpha) * (1 + 1e-9), small),
         )
         if volume <= 0.0:
             extra["reason"] = f"the foliage envelope is empty (alpha = {alpha:.2f} m)"

@@ -123,6 +123,7 @@ CALIBRATIONS: dict[str, Calibration] = {
         {
             "dense": (0.95, 1.05),
             "dense/one": (0.93, 1.22),
+            "small": (0.9, 1.05),
             "thin": (0.85, 1.1),
             "sparse": (0.9, 1.1),
         },
