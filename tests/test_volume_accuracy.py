@@ -102,10 +102,10 @@ def test_the_per_tree_table_shows_the_recommended_volume_and_its_interval(recomm
 
 
 def test_the_report_names_the_estimator_its_measurand_and_its_interval(tiny_pistachio_run) -> None:
+    import html
+
     from canopy_kit.report.volumes import pooled
     from canopy_kit.volume.accuracy import family_accuracy_table
-
-    import html
 
     page = (tiny_pistachio_run.out_dir / "report.html").read_text()
     plain = html.unescape(re.sub(r"<[^>]+>", " ", page))
