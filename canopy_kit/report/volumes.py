@@ -108,10 +108,13 @@ def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = 
 
 def accuracy_section(recommended: str, params: dict) -> ReportSection:
     """A report section: the statement and, per tree family and side, the measured errors of
-    the recommended estimator beside the paper's alpha shape and convex hull."""
+    the recommended estimator beside the paper's alpha shape and convex hull (young trees:
+    the recommended one alone)."""
     table = family_accuracy_table()
     methods = list(dict.fromkeys([recommended, *PAPER_METHODS]))
-    rows = table[table["method"].isin(methods)].copy()
+    # old trees: the recommended estimator beside the paper's two; young: the recommended
+    old = (table["age"] == "old") & table["method"].isin(methods)
+    rows = table[old | ((table["age"] == "young") & (table["method"] == recommended))].copy()
     rows["order"] = rows["method"].map({m: i for i, m in enumerate(methods)})
     rows = rows.sort_values(["family", "age", "side", "order"], kind="stable")
     shown = pd.DataFrame(
