@@ -264,17 +264,30 @@ def calibration_kind(err: pd.DataFrame) -> np.ndarray:
 def covered(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.Series:
     """Whether the interval the shipped rules build from ``kinds`` holds each scan's
     complete-foliage reference (a kind not calibrated takes the widest calibrated range)."""
+    return intervals(err, kinds)["inside"]
+
+
+#: The interval's flags that say a tree is outside what the families calibrated.
+WARNINGS = ("taller than every tree", "estimators disagree")
+
+
+def intervals(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.DataFrame:
+    """Per scan: whether the interval the shipped rules build from ``kinds`` holds the
+    complete-foliage reference (``inside``), and whether the tree is flagged as outside the
+    calibrated families (``flagged``: taller than every calibration tree, or estimators that
+    disagree beyond them). A kind not calibrated takes the widest calibrated range."""
     from canopy_kit.volume.uncertainty import interval_bounds
 
     widest = (min(lo for lo, _ in kinds.values()), max(hi for _, hi in kinds.values()))
-    inside = []
+    rows = []
     for r, kind in zip(err.itertuples(index=False), calibration_kind(err), strict=True):
         v = getattr(r, RECOMMENDED)
         if not (np.isfinite(v) and np.isfinite(r.reference)):
-            inside.append(False)
+            rows.append((False, False))
             continue
         others = {m: getattr(r, m) for m in ("convex_hull", "alpha_shape")}
-        low, high, _ = interval_bounds(
+        height = getattr(r, "height", np.nan)
+        low, high, flags = interval_bounds(
             RECOMMENDED,
             v,
             kinds.get(kind, kinds.get(r.kind, widest)),
@@ -283,10 +296,37 @@ def covered(err: pd.DataFrame, kinds: dict[str, tuple[float, float]]) -> pd.Seri
             r.coverage,
             {"void_m3": r.void_m3},
             others,
-            getattr(r, "height", np.nan) if np.isfinite(getattr(r, "height", np.nan)) else 0.0,
+            height if np.isfinite(height) else 0.0,
         )
-        inside.append(low <= r.reference <= high)
-    return pd.Series(inside, index=err.index)
+        flagged = any(w in f for f in flags for w in WARNINGS)
+        rows.append((low <= r.reference <= high, flagged))
+    return pd.DataFrame(rows, columns=["inside", "flagged"], index=err.index)
+
+
+def shipped_coverage(err: pd.DataFrame) -> pd.DataFrame:
+    """The shipped calibration (``uncertainty.CALIBRATIONS``) on every family's held-out
+    seeds (the real family: all of it): coverage, flagged share, coverage of the unflagged."""
+    from canopy_kit.volume.uncertainty import CALIBRATIONS
+
+    held = err[~err["seed"].isin(TUNE_SEEDS)]
+    checked = held.join(intervals(held, CALIBRATIONS[RECOMMENDED].kinds))
+    rows = []
+    for (family, age, side), g in checked.groupby(["family", "age", "side"]):
+        clear = g[~g["flagged"]]
+        rows.append(
+            {
+                "family": family,
+                "age": age,
+                "side": side,
+                "n": len(g),
+                "covered %": round(100 * g["inside"].mean(), 1),
+                "flagged %": round(100 * g["flagged"].mean(), 1),
+                "covered, unflagged %": round(100 * clear["inside"].mean(), 1)
+                if len(clear)
+                else np.nan,
+            }
+        )
+    return pd.DataFrame(rows)
 
 
 def leave_one_family_out(err: pd.DataFrame) -> pd.DataFrame:
@@ -300,8 +340,9 @@ def leave_one_family_out(err: pd.DataFrame) -> pd.DataFrame:
         test = err[(err["family"] == family) & ~err["seed"].isin(TUNE_SEEDS)]
         if test.empty or not kinds:
             continue
-        inside = covered(test, kinds)
-        for (age, side), g in test.assign(inside=inside).groupby(["age", "side"]):
+        checked = intervals(test, kinds)
+        for (age, side), g in test.join(checked).groupby(["age", "side"]):
+            clear = g[~g["flagged"]]
             rows.append(
                 {
                     "held out": family,
@@ -309,8 +350,11 @@ def leave_one_family_out(err: pd.DataFrame) -> pd.DataFrame:
                     "side": side,
                     "n": len(g),
                     "covered %": round(100 * g["inside"].mean(), 1),
+                    "flagged %": round(100 * g["flagged"].mean(), 1),
+                    "covered, unflagged %": round(100 * clear["inside"].mean(), 1)
+                    if len(clear)
+                    else np.nan,
                     "calibrated on": "+".join(f for f in CALIBRATED_FAMILIES if f != family),
-                    "ratios": {k: v for k, v in sorted(kinds.items())},
                 }
             )
     return pd.DataFrame(rows)
@@ -323,12 +367,14 @@ def write_summary(err: pd.DataFrame, path: Path) -> None:
     the complete-foliage value (calibrated without that family: leave one family out)."""
     held = err[~err["seed"].isin(TUNE_SEEDS)].copy()
     tune = err[err["seed"].isin(TUNE_SEEDS)]
-    held["covered"] = np.nan
+    held["covered"], held["flagged"] = np.nan, np.nan
     for family in held["family"].unique():
         train = tune[tune["family"].isin([f for f in CALIBRATED_FAMILIES if f != family])]
         mask = held["family"] == family
         if not train.empty:
-            held.loc[mask, "covered"] = covered(held[mask], calibrate(train)).astype(float)
+            checked = intervals(held[mask], calibrate(train)).astype(float)
+            held.loc[mask, "covered"] = checked["inside"]
+            held.loc[mask, "flagged"] = checked["flagged"]
     rows = []
     for (family, age, side), g in held.groupby(["family", "age", "side"], sort=False):
         for label, _, _ in METHODS:
@@ -344,12 +390,53 @@ def write_summary(err: pd.DataFrame, path: Path) -> None:
                     "mape": e.abs().mean(),
                     "p90": e.abs().quantile(0.9),
                     "interval_covers": g["covered"].mean() if label == RECOMMENDED else np.nan,
+                    "flagged": g["flagged"].mean() if label == RECOMMENDED else np.nan,
                     "seeds": " ".join(map(str, sorted(g["seed"].unique()))),
                     "sensors": " ".join(sorted(g["sensor"].unique())),
                 }
             )
     path.parent.mkdir(parents=True, exist_ok=True)
     pd.DataFrame(rows).to_csv(path, index=False, float_format="%.4f")
+
+
+AGREEMENT_MARGIN = 0.1  # the ranges are widened by this share on either side
+
+
+def agreement_ranges(err: pd.DataFrame) -> dict[tuple[str, str, str | None], tuple[float, float]]:
+    """The widest ratios between estimators of one tree on these scans, ∓ the margin: what
+    ``uncertainty.AGREEMENT`` holds (the recommended one per measurand)."""
+    out = {}
+    measurand = np.where(err["estimate"] == "ellipsoid", "ellipsoid", "envelope")
+    for a, b, of in (
+        (RECOMMENDED, "convex_hull", "envelope"),
+        (RECOMMENDED, "convex_hull", "ellipsoid"),
+        ("alpha_shape", "convex_hull", None),
+    ):
+        rows = err if of is None else err[measurand == of]
+        ratio = (rows[a] / rows[b]).replace([np.inf, -np.inf], np.nan).dropna()
+        if len(ratio):
+            lo = round(float(ratio.min()) * (1 - AGREEMENT_MARGIN), 2)
+            hi = round(float(ratio.max()) * (1 + AGREEMENT_MARGIN), 2)
+            out[(a, b, of)] = (lo, hi)
+    return out
+
+
+def flagged_share(err: pd.DataFrame) -> pd.DataFrame:
+    """Per family, age and side: the share of scans the shipped agreement ranges flag."""
+    from canopy_kit.volume.uncertainty import disagreement
+
+    flags = [
+        disagreement(
+            RECOMMENDED,
+            getattr(r, RECOMMENDED),
+            {"convex_hull": r.convex_hull, "alpha_shape": r.alpha_shape},
+            r.kind,
+        )
+        is not None
+        for r in err.itertuples(index=False)
+    ]
+    g = err.assign(flagged=flags).groupby(["family", "age", "side"])["flagged"]
+    return (100 * g.mean()).round(1).rename("flagged %").reset_index()
 
 
 def all_measurements(args: argparse.Namespace) -> pd.DataFrame:
@@ -380,8 +467,14 @@ def print_report(args: argparse.Namespace) -> None:
     if not tune.empty:
         print(f"\ninterval calibration on every family's tuning seeds {TUNE_SEEDS}:")
         print(f"  {RECOMMENDED}: {calibrate(tune)}")
+        print("agreement ranges (uncertainty.AGREEMENT) on the same scans:")
+        print(f"  {agreement_ranges(tune)}")
+        print("\nshare of scans the shipped agreement ranges flag:")
+        print(flagged_share(err).to_string(index=False))
         print("\nleave-one-family-out coverage of the interval:")
         print(leave_one_family_out(err).to_string(index=False))
+        print("\nthe shipped interval (uncertainty.CALIBRATIONS) on held-out seeds:")
+        print(shipped_coverage(err).to_string(index=False))
     if args.summary:
         write_summary(err, args.summary)
         print(f"\nwrote {args.summary}")

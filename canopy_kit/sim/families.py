@@ -98,7 +98,7 @@ def _lobe_union_rows(seed: int) -> list[FamilyRow]:
 
 
 def _grown_rows(seed: int) -> list[FamilyRow]:
-    from canopy_kit.sim.grown import GROWN_FORMS, grown_tree
+    from canopy_kit.sim.grown import GROWN_FORMS, TALL, grown_tree
 
     rng = np.random.default_rng([seed, 29])
     rows = []
@@ -116,6 +116,17 @@ def _grown_rows(seed: int) -> list[FamilyRow]:
             else:
                 gaps = _gaps(rng, n, 4.5, 5.5)
             rows.append(FamilyRow(f"{form}{'-young' if young else ''}", "grown", trees, gaps))
+    # tall old trees (walnut, pecan, old almond and olive reach 8-12 m): their own stream, so
+    # the rows above are the same with or without them
+    tall_rng = np.random.default_rng([seed, 31])
+    for form in ("vase", "central_leader"):
+        trees = [
+            grown_tree(tall_rng, form, spec=TALL, name=f"grown-{form}-tall-{i}")
+            for i in range(TREES_PER_ROW)
+        ]
+        rows.append(
+            FamilyRow(f"{form}-tall", "grown", trees, _gaps(tall_rng, TREES_PER_ROW, 7.5, 9.0))
+        )
     return rows
 
 

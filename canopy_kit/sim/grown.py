@@ -136,6 +136,16 @@ class GrownSpec:
     blobs: int = 10  # random density blobs that make the growing space irregular
 
 
+#: Old tall trees (walnut, pecan, old almond, olive: 8-12 m): wider, much higher crowns on a
+#: taller trunk, the growing space filled half as densely (the shoots per m³ of an old crown)
+TALL = GrownSpec(
+    crown_radius=(2.6, 3.6),
+    crown_top=(8.0, 11.5),
+    trunk_height=(1.0, 1.6),
+    attractor_density=(45.0, 80.0),
+)
+
+
 def grown_tree(
     rng: np.random.Generator,
     form: str,
