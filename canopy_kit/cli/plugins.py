@@ -66,3 +66,8 @@ def _print_params(kind: str | None, name: str) -> None:
         default = "required" if p.default is REQUIRED else repr(p.default)
         table.add_row(escape(p.name), escape(p.type_name), escape(default), escape(p.doc or "-"))
     print_grid(table)
+    what = getattr(registry.load(kinds[0], name), "measures", "")
+    if what:  # a volume estimator says what it measures
+        from canopy_kit.cli.common import console
+
+        console.print(f"measures: {escape(what)}")
