@@ -292,6 +292,15 @@ def check_vol_validates_params(est: Any) -> None:
     _rejects(est, lambda e: e(crown(100)), "__call__")
 
 
+def check_says_what_it_measures(est: Any) -> None:
+    """``measures``: a sentence saying what volume the estimator measures (its measurand), for
+    the docs, the report and ``canopy-kit plugins volumes --params``."""
+    what = getattr(est, "measures", None)
+    assert isinstance(what, str) and len(what.split()) >= 4, (
+        f"measures must say in a sentence what volume {type(est).__name__} measures, got {what!r}"
+    )
+
+
 def check_result(est: Any) -> None:
     """``est(xyz)`` is a :class:`VolumeResult` naming the method and its parameters, JSON-able."""
     from canopy_kit.volume.base import VolumeResult
@@ -411,6 +420,7 @@ SEGMENTER_RULES = SHARED + (
 VOLUME_RULES = SHARED + (
     ("validate_params_rejects_wrong_type", check_vol_validates_params),
     ("result_is_volume_result", check_result),
+    ("says_what_it_measures", check_says_what_it_measures),
     ("unit_cube", check_unit_cube),
     ("coplanar_is_invalid", check_coplanar),
     ("too_few_points", check_too_few_points),

@@ -73,6 +73,7 @@ class BoxVolume(VolumeEstimator):
     """
 
     name = "toy_box"
+    measures = "the axis-aligned bounding box of the points, grown by the margin"
     convex_rtol = 1e-9  # exact on an axis-aligned box
 
     def __init__(self, margin: float = 0.0) -> None:
@@ -111,6 +112,12 @@ class FloatVolume(BoxVolume):
 
     def __call__(self, xyz: object) -> float:  # type: ignore[override]
         return super().__call__(xyz).volume_m3
+
+
+class UnstatedVolume(BoxVolume):
+    """Does not say what volume it measures."""
+
+    measures = ""
 
 
 class UncheckedVolume(BoxVolume):
@@ -246,6 +253,7 @@ def test_preset_plugin_params_fail_before_mapping(toy_plugins: None) -> None:
         (ShortLabelsSegmenter, "labels_one_per_point", check_segmenter),
         (FloatVolume, "result_is_volume_result", check_volume_estimator),
         (UncheckedVolume, "validate_params_rejects_wrong_type", check_volume_estimator),
+        (UnstatedVolume, "says_what_it_measures", check_volume_estimator),
     ],
 )
 def test_broken_plugin_fails_naming_the_rule(broken: type, rule: str, check) -> None:
