@@ -217,11 +217,14 @@ def errors(df: pd.DataFrame) -> pd.DataFrame:
             ref = complete[label].reindex(idx).to_numpy()
         scans_[f"scan:{label}"] = scans_[label].to_numpy() / ref - 1
         scans_[f"env:{label}"] = scans_[label] / scans_["envelope_m3"] - 1
-    # kinds measured before the "small" kind existed: the same rule on the scan's hull
-    from canopy_kit.volume.envelope import YOUNG_MAX_M3
+    # kinds measured before the "small" and "tall" kinds existed: the same rules on the scan
+    from canopy_kit.volume.envelope import TALL_HEIGHT_M, YOUNG_MAX_M3
 
     small = (scans_["kind"] == "dense") & (scans_["convex_hull"] <= YOUNG_MAX_M3)
     scans_.loc[small, "kind"] = "small"
+    if "height" in scans_:
+        tall = scans_["kind"].isin(["dense", "small", "thin"]) & (scans_["height"] > TALL_HEIGHT_M)
+        scans_.loc[tall, "kind"] = "tall"
     scans_["side"] = scans_["scan"].map(SIDE)
     scans_["age"] = np.where(scans_["young"], "young", "old")
     return scans_

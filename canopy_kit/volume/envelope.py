@@ -29,8 +29,9 @@ closing ball must grow to ``spacing_factor · s`` to keep the solid whole: the e
 bridges wider gaps than the measurand does, and ``extra["alpha_used"]`` and
 ``extra["thin_scan"]`` say so (the interval widens, :mod:`canopy_kit.volume.uncertainty`).
 ``extra["crown_kind"]`` names the interval's calibration: ``dense``, ``small`` (a young or
-small crown, on which the sensor's range noise weighs more), ``thin`` or ``sparse`` (the
-ellipsoid).
+small crown, on which the sensor's range noise weighs more), ``tall`` (a crown over 4.5 m
+high, whose top a sensor with a narrow field of view may not have seen), ``thin`` or
+``sparse`` (the ellipsoid).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from canopy_kit.volume.base import VolumeEstimator, check_choice, check_positive
 ENVELOPE_ALPHA = 0.75  # m: the measurand's scale
 SPACING_FACTOR = 5.0  # the closing ball is at least this many point spacings
 SPARSE_FILL = 1.2  # below: a sparse crown, measured as its enclosing ellipsoid when young
+TALL_HEIGHT_M = 4.5  # a crown higher than this (lowest to top point) is of the tall kind
 YOUNG_MAX_M3 = 15.0  # convex hull of a young crown at most (a full pistachio crown: 12-38 m³)
 MEASURANDS = ("auto", "envelope", "ellipsoid")
 VOID_EXACT_SHARE = 0.01  # enclosed voids above this share are measured exactly (a second closing)
@@ -58,10 +60,13 @@ def envelope_measurand(alpha: float) -> str:
 ELLIPSOID_MEASURAND = "enclosing ellipsoid of the foliage (sparse young crown)"
 
 
-def envelope_kind(thin: bool, small: bool) -> str:
-    """The interval's kind of an envelope: ``thin`` (the ball had to grow), ``small`` (a hull
-    of at most ``young_max_m3``: the sensor's range noise is a larger share of a small
-    crown), else ``dense``."""
+def envelope_kind(thin: bool, small: bool, height_m: float = 0.0) -> str:
+    """The interval's kind of an envelope: ``tall`` (a crown more than ``TALL_HEIGHT_M``
+    high: a sensor with a narrow field of view may not have seen its top), ``thin`` (the
+    ball had to grow), ``small`` (a hull of at most ``young_max_m3``: the sensor's range noise
+    is a larger share of a small crown), else ``dense``."""
+    if height_m > TALL_HEIGHT_M:
+        return "tall"
     return "thin" if thin else ("small" if small else "dense")
 
 
@@ -165,7 +170,9 @@ class FoliageEnvelopeVolume(VolumeEstimator):
             void_m3=void,
             volume_without_voids_m3=max(volume - void, 0.0),
             grid_step=h,
-            crown_kind=envelope_kind(alpha > float(self.alpha) * (1 + 1e-9), small),
+            crown_kind=envelope_kind(
+                alpha > float(self.alpha) * (1 + 1e-9), small, float(np.ptp(xyz[:, 2]))
+            ),
         )
         if volume <= 0.0:
             extra["reason"] = f"the foliage envelope is empty (alpha = {alpha:.2f} m)"

@@ -45,7 +45,7 @@ MIN_FILL = 2.0  # at or above: a dense crown
 # between the two: either
 TRUNK_SHARE = 0.1
 INNER_RADIUS = 0.3  # points nearer the centre than this share of the crown radius are skipped
-CALIBRATED_HEIGHT_M = 5.0  # the tree families' crowns reach 4.1 m from their lowest to top point
+CALIBRATED_HEIGHT_M = 10.0  # the tree families' crowns reach 9.7 m from their lowest to top point
 ONE_SIDED = "/one"  # a calibration kind's suffix for trees seen from one side of their row
 VOID_SHARE = 0.15  # enclosed empty space above this share of the volume: flagged, spanned
 MARGIN = 0.02  # added on either side of the calibrated ratio quantiles (2 % and 98 %)
@@ -104,6 +104,13 @@ def calibrate_ratios(
         if (kinds == kind).any():
             lo, hi = np.quantile(ratio[kinds == kind], [0.02, 0.98])
             out[kind] = (round(float(lo) - MARGIN, 3), round(float(hi) + MARGIN, 3))
+    # A tall crown's risk is an unseen top (its upper bound); what puts an estimate above the
+    # truth (range noise on the outermost leaves) is the same as on a dense crown, whose many
+    # more scans set that bound better: the tall kinds share the dense kinds' lower bound.
+    for kind, (lo, hi) in list(out.items()):
+        dense = out.get(kind.replace("tall", "dense", 1)) if kind.startswith("tall") else None
+        if dense is not None:
+            out[kind] = (min(lo, dense[0]), hi)
     return out
 
 
@@ -122,13 +129,16 @@ CALIBRATIONS: dict[str, Calibration] = {
     # the tree families' tuning seeds 1000-1001 (envelope, lobe_union, grown; four sensors;
     # both sides and one side: benchmarks/bench_volume_families.py report, "interval
     # calibration"); no family scan was too thin for the envelope's scale, so ``thin`` takes
-    # the widest of the envelope kinds (docs/VOLUMES.md, "Tree families")
+    # the widest of the dense and small kinds (docs/VOLUMES.md, "Tree families"). ``tall``:
+    # crowns over 4.5 m high, whose top a narrow field of view (HDL-32: +10.7°) may miss
     "foliage_envelope": Calibration(
         {
             "dense": (0.961, 1.098),
             "dense/one": (0.973, 1.246),
             "small": (0.894, 1.048),
             "small/one": (0.931, 1.225),
+            "tall": (0.961, 1.717),
+            "tall/one": (0.973, 1.982),
             "thin": (0.894, 1.246),
             "sparse": (0.936, 0.997),
             "sparse/one": (0.944, 1.033),
@@ -178,9 +188,9 @@ class Disagreement:
 #: benchmarks/bench_volume_families.py), widened by 10 % either way, per measurand of the
 #: first (``None``: any): a tree outside them is unlike every family.
 AGREEMENT: dict[tuple[str, str, str | None], tuple[float, float]] = {
-    ("foliage_envelope", "convex_hull", "envelope"): (0.52, 1.09),
+    ("foliage_envelope", "convex_hull", "envelope"): (0.51, 1.09),
     ("foliage_envelope", "convex_hull", "ellipsoid"): (1.45, 1.86),
-    ("alpha_shape", "convex_hull", None): (0.67, 1.1),
+    ("alpha_shape", "convex_hull", None): (0.61, 1.1),
 }
 
 
