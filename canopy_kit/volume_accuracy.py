@@ -49,11 +49,15 @@ def foliage_references(
     (``foliage_envelope``) is measured as each of them (``<method>:<measurand>``)."""
     from sklearn.base import clone
 
+    from canopy_kit import plugins
     from canopy_kit.volume.verb import build_estimators, measured_points
 
     foliage = truth.world().complete_foliage()
     estimators = build_estimators(volume)
     out: dict[int, dict[str, float]] = {}
+    for method in methods:  # an estimator measured beside the run's: its configured parameters
+        if method not in estimators:
+            estimators[method] = plugins.create("volumes", method, volume.params.get(method, {}))
     for tree_id in tree_ids:
         xyz = measured_points(np.asarray(foliage[tree_id]), volume)
         row = {}

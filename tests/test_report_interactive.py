@@ -25,7 +25,12 @@ def test_columns_get_human_names_with_units() -> None:
     assert column_label("tree_id") == "Tree ID"
     # Columns without an entry get words and the unit their suffix names.
     assert column_label("error_alpha_vs_aerial_pct") == "Alpha shape vs drone sphere: error [%]"
-    assert column_label("error_voxel_vs_true_pct") == "Voxel vs true crown: error [%]"
+    assert (
+        column_label("error_voxel_vs_true_pct") == "Voxel vs true crown (drawn envelope): error [%]"
+    )
+    assert column_label("error_foliage_envelope_vs_measurand_pct") == (
+        "Foliage envelope vs its measurand on the complete foliage: error [%]"
+    )
     assert column_label("aerial_gap_m") == "Aerial gap [m]"
     assert column_label("projected_gap_m2") == "Projected gap [m²]"
     assert column_label("volume_flags") == "Volume flags"

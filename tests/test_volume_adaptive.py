@@ -257,7 +257,7 @@ def test_the_table_bounds_the_recommended_estimator() -> None:
     default = measure_trees(cloud, labels, VolumeConfig(workers=1))  # the paper's alpha shape
     assert (default["volume_method"] == "alpha_shape").all()
     assert default["volume_low_m3"].notna().all()
-    assert load_preset("adaptive").volume.recommended == "adaptive_alpha"
+    assert load_preset("adaptive").volume.recommended == "foliage_envelope"
     assert load_preset("pistachio").volume.recommended == "alpha_shape"
     with pytest.raises(ConfigError, match="volume.recommended"):
         VolumeConfig(recommended="")
