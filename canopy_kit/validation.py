@@ -133,14 +133,18 @@ def _measurand_truth(truth: Any, trees: pd.DataFrame, volume: Any) -> pd.Series 
     """Per row of ``trees``: the recommended estimator on the matched tree's complete foliage
     (as the measurand its estimate took: a sparse crown's ellipsoid), NaN where unmatched;
     None when the world model knows no complete foliage."""
+    from canopy_kit.volume.uncertainty import measurand_of_kind
     from canopy_kit.volume_accuracy import foliage_references, reference_volume
 
     rec = volume.recommended
-    ids = trees["truth_tree_id"].dropna().astype(int).unique().tolist()
-    if not ids or not hasattr(truth.world(), "complete_foliage"):
-        return None
-    refs = foliage_references(truth, ids, volume, [rec])
     kinds = trees["crown_kind"] if "crown_kind" in trees else pd.Series("", index=trees.index)
+    wanted: dict[int, set[str]] = {}
+    for tree_id, kind in zip(trees["truth_tree_id"], kinds, strict=True):
+        if pd.notna(tree_id):
+            wanted.setdefault(int(tree_id), set()).add(measurand_of_kind(str(kind)))
+    if not wanted or not hasattr(truth.world(), "complete_foliage"):
+        return None
+    refs = foliage_references(truth, list(wanted), volume, [rec], measurands=wanted)
     values = [
         reference_volume(refs[int(t)], rec, str(k)) if pd.notna(t) else np.nan
         for t, k in zip(trees["truth_tree_id"], kinds, strict=True)

@@ -8,10 +8,14 @@ package itself must not import (tests/test_architecture.py).
 
 from __future__ import annotations
 
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+# what an estimator that chooses its measurand per tree (``foliage_envelope``) may measure
+MEASURANDS = ("envelope", "ellipsoid")
 
 
 def segmented_session(
@@ -41,12 +45,17 @@ def segmented_session(
 
 
 def foliage_references(
-    truth: Any, tree_ids: list[int], volume: Any, methods: list[str]
+    truth: Any,
+    tree_ids: list[int],
+    volume: Any,
+    methods: list[str],
+    measurands: Mapping[int, Collection[str]] | None = None,
 ) -> dict[int, dict[str, float]]:
     """Each method's volume of each tree's complete foliage (every leaf and crown-branch
     surface, seen or not: the world model's :meth:`complete_foliage`), thinned as the volume
     stage thins a tree. An estimator that chooses its measurand per tree
-    (``foliage_envelope``) is measured as each of them (``<method>:<measurand>``)."""
+    (``foliage_envelope``) is measured as each of them (``<method>:<measurand>``), or, per
+    tree id in ``measurands``, as those named only (the others are not computed)."""
     from sklearn.base import clone
 
     from canopy_kit import plugins
@@ -67,7 +76,8 @@ def foliage_references(
             if choices is None:
                 row[method] = _valid_volume(est(xyz))
                 continue
-            for measurand in ("envelope", "ellipsoid"):
+            wanted = MEASURANDS if measurands is None else measurands[int(tree_id)]
+            for measurand in wanted:
                 forced = clone(est).set_params(measurand=measurand)
                 row[f"{method}:{measurand}"] = _valid_volume(forced(xyz))
         out[int(tree_id)] = row
@@ -83,7 +93,9 @@ def reference_volume(refs: dict[str, float], method: str, kind: str) -> float:
     the scan took (a sparse crown's ellipsoid) for an estimator that chooses one."""
     if method in refs:
         return refs[method]
-    return refs.get(f"{method}:{'ellipsoid' if kind == 'sparse' else 'envelope'}", np.nan)
+    from canopy_kit.volume.uncertainty import measurand_of_kind
+
+    return refs.get(f"{method}:{measurand_of_kind(kind)}", np.nan)
 
 
 def segmented_volume_errors(

@@ -126,6 +126,28 @@ def test_the_report_names_the_estimator_its_measurand_and_its_interval(tiny_pist
     assert np.all(trees["volume_low_m3"] <= trees["volume_foliage_envelope_m3"])
 
 
+def test_the_measurand_truth_is_the_estimator_on_the_complete_foliage(
+    tiny_pistachio, tiny_pistachio_run
+) -> None:
+    """The run's ``true_measurand_m3`` (computed for the kind's measurand only) equals the
+    recommended estimator on the matched tree's complete foliage computed from scratch."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.truth import load_truth
+    from canopy_kit.volume_accuracy import foliage_references, reference_volume
+
+    table = tiny_pistachio_run.trees
+    matched = table[table["truth_tree_id"].notna()]
+    assert len(matched) >= 2 and matched["true_measurand_m3"].notna().all()
+    volume = load_preset("adaptive").volume
+    first = matched.iloc[0]
+    truth = load_truth(tiny_pistachio.root)
+    refs = foliage_references(truth, [int(first["truth_tree_id"])], volume, [volume.recommended])
+    expected = reference_volume(
+        refs[int(first["truth_tree_id"])], volume.recommended, str(first["crown_kind"])
+    )
+    assert first["true_measurand_m3"] == pytest.approx(expected, rel=1e-9)
+
+
 MATRIX_SESSION = {
     "orchard": {"rows": 2, "trees_per_row": 2},
     "lidar": {"columns": 512, "rings": 16},

@@ -56,6 +56,9 @@ def _reach(rel: np.ndarray, shape: np.ndarray) -> np.ndarray:
     return np.einsum("ij,jk,ik->i", rel, shape, rel)
 
 
+REFRESH = 200  # iterations between recomputing the moment's inverse from the weights
+
+
 def enclosing_ellipsoid(
     xyz: np.ndarray, tol: float = 1e-4, max_iterations: int = 100_000
 ) -> Ellipsoid:
@@ -71,9 +74,10 @@ def enclosing_ellipsoid(
     weights = np.full(n, 1.0 / n)
     converged = False
     iterations = 0
-    for iterations in range(1, max_iterations + 1):  # noqa: B007 - reported below
-        moment = lifted.T @ (weights[:, None] * lifted)
-        dist = np.einsum("ij,ij->i", lifted, np.linalg.solve(moment, lifted.T).T)
+    for iterations in range(1, max_iterations + 1):
+        if iterations % REFRESH == 1:  # from scratch now and then: no drift of the updates
+            inverse = np.linalg.inv(lifted.T @ (weights[:, None] * lifted))
+            dist = np.einsum("ij,jk,ik->i", lifted, inverse, lifted)
         up = int(np.argmax(dist))
         if dist[up] <= (d + 1) * (1.0 + tol):
             converged = True
@@ -89,6 +93,13 @@ def enclosing_ellipsoid(
         weights *= 1.0 - step
         weights[j] += step
         weights[weights < 0] = 0.0
+        # the moment becomes (1 - step) M + step lⱼlⱼᵀ: Sherman-Morrison on its inverse and on
+        # every point's distance, O(n d) instead of a solve per iteration
+        toward = inverse @ lifted[j]
+        gain = step / (1.0 - step)
+        scale = gain / (1.0 + gain * dist[j])
+        dist = (dist - scale * (lifted @ toward) ** 2) / (1.0 - step)
+        inverse = (inverse - scale * np.outer(toward, toward)) / (1.0 - step)
     center = pts.T @ weights
     scatter = pts.T @ (weights[:, None] * pts) - np.outer(center, center)
     shape = np.linalg.inv(scatter) / d

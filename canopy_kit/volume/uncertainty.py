@@ -194,6 +194,12 @@ AGREEMENT: dict[tuple[str, str, str | None], tuple[float, float]] = {
 }
 
 
+def measurand_of_kind(kind: str) -> str:
+    """The measurand ``foliage_envelope`` takes for a crown of this ``crown_kind``: a sparse
+    young crown's enclosing ellipsoid, any other crown's foliage envelope."""
+    return "ellipsoid" if kind == "sparse" else "envelope"
+
+
 def disagreement(
     method: str, volume_m3: float, others: dict[str, float], kind: str = ""
 ) -> Disagreement | None:
@@ -201,7 +207,7 @@ def disagreement(
     beyond the families' range on this tree (``others``: the other estimators' volumes;
     ``kind``: the crown kind, ``sparse`` for a young crown's ellipsoid)."""
     volumes = {m: v for m, v in {**others, method: volume_m3}.items() if np.isfinite(v) and v > 0}
-    measurand = "ellipsoid" if kind == "sparse" else "envelope"
+    measurand = measurand_of_kind(kind)
     bad, involved = [], set()
     for (a, b, of), (lo, hi) in AGREEMENT.items():
         if of not in (None, measurand if a == method else None) or a not in volumes:
