@@ -72,8 +72,9 @@ class WorldModel(Protocol):
 
     def scene(self) -> Any: ...
 
-    def complete_foliage(self) -> dict[int, Any]:
-        """Per tree id: points on every leaf and crown-branch surface, seen or not ((N, 3))."""
+    def complete_foliage(self, density: float = ...) -> dict[int, Any]:
+        """Per tree id: points on every leaf and crown-branch surface, seen or not ((N, 3)),
+        about ``density`` per m² (the generator's default when not given)."""
         ...
 
 

@@ -50,18 +50,22 @@ def foliage_references(
     volume: Any,
     methods: list[str],
     measurands: Mapping[int, Collection[str]] | None = None,
+    density: float | None = None,
 ) -> dict[int, dict[str, float]]:
     """Each method's volume of each tree's complete foliage (every leaf and crown-branch
     surface, seen or not: the world model's :meth:`complete_foliage`), thinned as the volume
     stage thins a tree. An estimator that chooses its measurand per tree
     (``foliage_envelope``) is measured as each of them (``<method>:<measurand>``), or, per
-    tree id in ``measurands``, as those named only (the others are not computed)."""
+    tree id in ``measurands``, as those named only (the others are not computed).
+    ``density``: points per m² of surface (the world model's default when None; any density
+    that fills the volume stage's voxels gives the same volumes)."""
     from sklearn.base import clone
 
     from canopy_kit import plugins
     from canopy_kit.volume.verb import build_estimators, measured_points
 
-    foliage = truth.world().complete_foliage()
+    world = truth.world()
+    foliage = world.complete_foliage() if density is None else world.complete_foliage(density)
     estimators = build_estimators(volume)
     out: dict[int, dict[str, float]] = {}
     for method in methods:  # an estimator measured beside the run's: its configured parameters
