@@ -60,7 +60,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
 
     truth = load_truth(sim_dir)
     score = score_segmentation(ctx, sim_dir)
-    pairs = score.trees[score.trees["segment_id"] >= 0][["truth_id", "segment_id"]]
+    pairs = score.trees[score.trees["segment_id"] >= 0][["truth_id", "segment_id", "iou"]]
     t = truth.trees.set_index("tree_id")
     matched = pairs.join(
         t[
@@ -85,6 +85,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
             "sphere_volume_m3": "true_sphere_volume_m3",
             "crown_diameter_m": "true_crown_diameter_m",
             "tree_height_m": "true_height_m",
+            "iou": "truth_iou",
         }
     )
     out = trees.merge(matched, on="segment", how="left")
@@ -121,6 +122,9 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
             volumes["recommended_vs_measurand"] = stats.agreement(
                 out.loc[good, col].to_numpy(), measurand[good].to_numpy()
             ).as_dict()
+        held = interval_holds(out, measurand)
+        if held is not None:
+            volumes["recommended_interval"] = held
     result: dict[str, Any] = {
         "segmentation": score.to_dict(),
         "volumes": volumes,
@@ -132,6 +136,26 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
     if mapping_eval:
         result["mapping"] = mapping_eval
     return result
+
+
+def interval_holds(trees: pd.DataFrame, measurand: pd.Series) -> dict[str, Any] | None:
+    """How many trees' interval (``volume_low_m3`` … ``volume_high_m3``) holds their
+    measurand, and the IoU with their true tree of those it misses (a crown the segmentation
+    cut wrongly is outside what the interval covers); None without bounds."""
+    if "volume_low_m3" not in trees or "volume_high_m3" not in trees:
+        return None
+    low, high = trees["volume_low_m3"], trees["volume_high_m3"]
+    known = measurand.notna() & low.notna() & high.notna()
+    if not known.any():
+        return None
+    inside = (low <= measurand) & (measurand <= high)
+    missed = known & ~inside
+    iou = trees["truth_iou"] if "truth_iou" in trees else pd.Series(np.nan, index=trees.index)
+    return {
+        "held": int((known & inside).sum()),
+        "n": int(known.sum()),
+        "missed_iou": [round(float(v), 3) for v in iou[missed]],
+    }
 
 
 def _measurand_truth(truth: Any, trees: pd.DataFrame, volume: Any) -> pd.Series | None:

@@ -195,7 +195,7 @@ def test_the_report_headline_says_when_not_to_trust_a_run() -> None:
     page = render_report("r", {}, _row([4.0]), [], checks, "")
     assert "Do not trust this run: 1 check failed" in page
     assert "widest crown over the row spacing: 2.50x (warn &gt; 1.00x, fail &gt; 1.50x)" in page
-    assert "Validation checks (1 of 2 passed, 1 warned, 1 for information)" in page
+    assert "Validation checks (1 of 3 passed, 1 warned, 1 for information)" in page
     assert 'class="verdict verdict-fail"' in page
     calm = render_report("r", {}, _row([4.0]), [], checks[:1], "")
     assert "Every check passed" in calm and "verdict-pass" in calm
@@ -238,3 +238,27 @@ def test_run_help_documents_the_strict_exit_code() -> None:
 
     result = run_cli("run", "--help")
     assert "--strict" in result.stdout and "4 with --strict" in " ".join(result.stdout.split())
+
+
+def test_interval_check_counts_the_trees_whose_interval_holds_their_measurand() -> None:
+    """Four matched trees, one outside its interval (cut at IoU 0.7), one unmatched: 3/4 held,
+    a warning (the families hold ≥ 90 %) naming the miss's IoU; all held: a pass."""
+    from canopy_kit.checks import interval_check
+    from canopy_kit.validation import interval_holds
+
+    trees = pd.DataFrame(
+        {
+            "volume_low_m3": [9.0, 18.0, 27.0, 36.0, 5.0],
+            "volume_high_m3": [11.0, 22.0, 33.0, 44.0, 6.0],
+            "truth_iou": [0.95, 0.97, 0.70, 0.96, np.nan],
+        }
+    )
+    measurand = pd.Series([10.0, 21.9, 40.0, 36.0, np.nan])
+    held = interval_holds(trees, measurand)
+    assert held == {"held": 3, "n": 4, "missed_iou": [0.7]}
+    check = interval_check("foliage_envelope", held)
+    assert check.status == "warn" and check.value == "3/4 (75 %)"
+    assert "0.70-0.70" in check.note
+    measurand[2] = 30.0
+    assert interval_check("foliage_envelope", interval_holds(trees, measurand)).status == "pass"
+    assert interval_holds(trees.drop(columns="volume_low_m3"), measurand) is None

@@ -121,6 +121,13 @@ def print_results(results) -> None:
             console.print(
                 f"  {method} vs {against}: MAPE {a['mape_pct']:.1f} %, bias {a['bias_pct']:+.1f} %"
             )
+    held = ev.get("volumes", {}).get("recommended_interval")
+    if isinstance(held, dict) and held.get("n"):
+        console.print(
+            f"  {ev.get('recommended_volume', 'recommended')} interval held its measurand for "
+            f"{held['held']}/{held['n']} trees"
+            + (f" (misses' IoU {held['missed_iou']})" if held.get("missed_iou") else "")
+        )
     aerial = m.get("aerial") or {}
     for column, a in aerial.items():
         if isinstance(a, dict) and "mape_pct" in a:

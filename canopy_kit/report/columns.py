@@ -61,6 +61,7 @@ COLUMN_LABELS: dict[str, str] = {
     "truth_tree_id": "Simulator tree",
     "truth_label": "Simulator label",
     "truth_row": "Simulator row",
+    "truth_iou": "Point IoU with the simulator tree",
     "true_crown_volume_m3": "True crown volume: the simulator's drawn envelope [m³]",
     "true_measurand_m3": "True volume as the recommended estimator defines it, on the complete foliage [m³]",
     "true_sphere_volume_m3": "True sphere volume (simulator) [m³]",

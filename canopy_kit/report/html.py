@@ -161,7 +161,7 @@ def render_report(
         checks=checks,
         verdict=verdict(checks),
         n_passed=sum(1 for c in checks if c.status == "pass"),
-        n_checks=sum(1 for c in checks if c.status in ("pass", "fail")),
+        n_checks=sum(1 for c in checks if c.status in ("pass", "warn", "fail")),
         n_warned=sum(1 for c in checks if c.status == "warn"),
         n_info=sum(1 for c in checks if c.status == "info"),
         config_toml=config_toml,

@@ -222,14 +222,15 @@ def session_report_page(
                 )
             )
     seg_m = metrics.get("segmentation", {})
+    rec_column = volume_column(volume_cfg.recommended)
     summary = {
         "trees": len(trees),
         "rows": seg_m.get("n_rows", "n/a"),
         "segmenter": metrics.get("segmenter", ""),
         "map points": f"{len(cloud):,}",
         "drive": format_value(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
-        "median alpha volume": format_value(
-            float(trees[ALPHA_COLUMN].median()) if len(trees) and ALPHA_COLUMN in trees else None,
+        f"median {volume_cfg.recommended} volume": format_value(
+            float(trees[rec_column].median()) if len(trees) and rec_column in trees else None,
             " m³",
             1,
         ),
@@ -251,7 +252,7 @@ def session_report_page(
         subtitle=subtitle,
         provenance=provenance,
         explorer=explorer_data(ctx, trees, downloads, details=details),
-        row_table=row_table(row_summary(trees)),
+        row_table=row_table(row_summary(trees, rec_column), rec_column),
     )
 
 
@@ -297,17 +298,21 @@ def report_downloads(
     ]
 
 
-def row_table(rows: pd.DataFrame) -> pd.DataFrame | None:
-    """The per-row summary (:func:`~canopy_kit.report.explorer.row_summary`) with human
-    headers; None without rows."""
+def row_table(rows: pd.DataFrame, volume: str = ALPHA_COLUMN) -> pd.DataFrame | None:
+    """The per-row summary (:func:`~canopy_kit.report.explorer.row_summary` of the column
+    ``volume``) with human headers; None without rows."""
+    from canopy_kit.report.columns import column_label
+
     if not len(rows):
         return None
+    label = column_label(volume)
+    label = label[0].lower() + label[1:]
     return rows.rename(
         columns={
             "row": "Row",
             "trees": "Trees",
-            "median_m3": "Median alpha-shape volume [m³]",
-            "total_m3": "Total alpha-shape volume [m³]",
+            "median_m3": f"Median {label}",
+            "total_m3": f"Total {label}",
             "flagged": "Flagged trees",
         }
     )

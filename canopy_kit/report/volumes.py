@@ -100,7 +100,9 @@ def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = 
             "foliage, as young trees are in the field, and the table says so."
         )
     return text + (
-        " These are the errors of the drive. A crown volume also depends on its definition: "
+        " These are the errors of the drive; a crown the segmentation cuts wrongly (touching "
+        "crowns) errs beyond them, which a run checked against a simulated session counts. "
+        "A crown volume also depends on its definition: "
         "an envelope drawn round the leaves' tips, or the convex hull, is larger (the table "
         "gives the paper's estimators on the same trees)."
     )
