@@ -315,21 +315,20 @@ def shipped_coverage(err: pd.DataFrame) -> pd.DataFrame:
     checked = held.join(intervals(held, CALIBRATIONS[RECOMMENDED].kinds))
     rows = []
     for (family, age, side), g in checked.groupby(["family", "age", "side"]):
-        clear = g[~g["flagged"]]
-        rows.append(
-            {
-                "family": family,
-                "age": age,
-                "side": side,
-                "n": len(g),
-                "covered %": round(100 * g["inside"].mean(), 1),
-                "flagged %": round(100 * g["flagged"].mean(), 1),
-                "covered, unflagged %": round(100 * clear["inside"].mean(), 1)
-                if len(clear)
-                else np.nan,
-            }
-        )
+        rows.append({"family": family, "age": age, "side": side, **coverage(g)})
     return pd.DataFrame(rows)
+
+
+def coverage(scans: pd.DataFrame) -> dict[str, float]:
+    """Of these scans (``inside``, ``flagged`` per scan): how many, the % whose interval held
+    the value, the % flagged, and the % held among the unflagged."""
+    clear = scans[~scans["flagged"]]
+    return {
+        "n": len(scans),
+        "covered %": round(100 * scans["inside"].mean(), 1),
+        "flagged %": round(100 * scans["flagged"].mean(), 1),
+        "covered, unflagged %": round(100 * clear["inside"].mean(), 1) if len(clear) else np.nan,
+    }
 
 
 def leave_one_family_out(err: pd.DataFrame) -> pd.DataFrame:
@@ -345,18 +344,12 @@ def leave_one_family_out(err: pd.DataFrame) -> pd.DataFrame:
             continue
         checked = intervals(test, kinds)
         for (age, side), g in test.join(checked).groupby(["age", "side"]):
-            clear = g[~g["flagged"]]
             rows.append(
                 {
                     "held out": family,
                     "age": age,
                     "side": side,
-                    "n": len(g),
-                    "covered %": round(100 * g["inside"].mean(), 1),
-                    "flagged %": round(100 * g["flagged"].mean(), 1),
-                    "covered, unflagged %": round(100 * clear["inside"].mean(), 1)
-                    if len(clear)
-                    else np.nan,
+                    **coverage(g),
                     "calibrated on": "+".join(f for f in CALIBRATED_FAMILIES if f != family),
                 }
             )

@@ -226,3 +226,24 @@ def test_the_interval_holds_deeply_lobed_crowns(sim_factory) -> None:
     assert mine["error"].abs().mean() <= 0.08
     intervals = errors[errors["method"] == "interval"]
     assert len(intervals) == 12 and intervals["covered"].mean() >= 0.9
+
+
+def test_the_family_figure_draws_the_shipped_table() -> None:
+    """The report's family figure: one panel per side, each bar the table's bias (%) for its
+    family and estimator, and under the recommended estimator's bars its interval coverage."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from canopy_kit.report.plots import plot_family_accuracy
+    from canopy_kit.volume.accuracy import family_accuracy_table
+
+    table = family_accuracy_table()
+    fig = plot_family_accuracy(table)
+    old = table[table["age"] == "old"]
+    both = old[(old["side"] == "both") & (old["method"] == "foliage_envelope")]
+    panel = fig.axes[0]
+    heights = [p.get_height() for p in panel.patches[: len(both)]]
+    assert heights == pytest.approx(list(100 * both["bias"]), abs=1e-9)
+    notes = [t.get_text() for t in panel.texts]
+    assert notes == [f"{v:.0%}" for v in both["interval_covers"]]
+    assert len(fig.axes) == 2 and "one side" in fig.axes[1].get_title()

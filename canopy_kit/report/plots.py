@@ -118,13 +118,20 @@ def plot_accuracy_matrix(table: pd.DataFrame, goal: tuple[float, float] = (0.05,
     for ax, scan in zip(axes, scans, strict=True):
         rows = table[table["scan"] == scan].set_index(["form", "method"])
         _bias_panel(ax, rows, forms, methods, goal, forms, f"scan: {scan}")
-    axes[0].set_ylabel("error against the true volume (%)\nbar: signed bias, dot: MAPE")
-    axes[0].legend(fontsize=7, loc="lower left")
-    fig.suptitle(
+    return _finish_bias_figure(
+        fig,
+        axes,
+        "error against the true volume (%)",
         f"Volume accuracy by crown form (dashed: ±{100 * goal[0]:.0f} % bias, "
         f"dotted: {100 * goal[1]:.0f} % MAPE)",
-        fontsize=10,
     )
+
+
+def _finish_bias_figure(fig: Any, axes: np.ndarray, ylabel: str, title: str) -> Any:
+    """Label, legend and title a row of :func:`_bias_panel` panels."""
+    axes[0].set_ylabel(f"{ylabel}\nbar: signed bias, dot: MAPE")
+    axes[0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return fig
 
@@ -161,12 +168,10 @@ def plot_family_accuracy(
                     ha="center",
                     fontsize=7,
                 )
-    axes[0].set_ylabel("drive against complete foliage (%)\nbar: signed bias, dot: MAPE")
-    axes[0].legend(fontsize=7, loc="lower left")
-    fig.suptitle(
+    return _finish_bias_figure(
+        fig,
+        axes,
+        "drive against complete foliage (%)",
         f"What the drive loses, per tree family (held-out seeds; under the bars: how often "
         f"{methods[0]}'s interval held the value)",
-        fontsize=10,
     )
-    fig.tight_layout()
-    return fig
