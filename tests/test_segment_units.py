@@ -723,3 +723,20 @@ def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
         piece = replanted.assign(n_trunks=1)
         piece.loc[8, "n_trunks"] = trunks
         assert "fragment" in crown_outliers(piece)[8]
+
+
+def test_crowns_reaching_max_canopy_height_are_named_in_a_warning() -> None:
+    """Crowns 3.9 m tall under a 3.5 m ceiling: every tree is named as cut, with the setting
+    to raise; under the default 12 m ceiling, no warning; points above the ceiling outside
+    every crown (a wire) are not counted."""
+    orch = synthetic_orchard(rows=1, trees_per_row=3)
+    low = segment(orch.cloud, "adaptive", PreprocessConfig(max_canopy_height=3.5))
+    cut = [w for w in low.warnings if "max_canopy_height" in w]
+    assert len(cut) == 1 and cut[0].startswith("3 tree(s) reach preprocess.max_canopy_height")
+    assert all(t.tree_id in cut[0] for t in low.trees)
+    assert not [w for w in segment(orch.cloud, "adaptive").warnings if "max_canopy_height" in w]
+    # a wire above the ceiling beside the row, outside every crown: the same points counted
+    wire = np.column_stack([np.linspace(-3, 13, 400), np.full(400, 3.0), np.full(400, 4.5)])
+    with_wire = PointCloud(np.vstack([orch.cloud.xyz, wire]), crs=orch.cloud.crs)
+    again = segment(with_wire, "adaptive", PreprocessConfig(max_canopy_height=3.5))
+    assert [w for w in again.warnings if "max_canopy_height" in w] == cut

@@ -98,11 +98,48 @@ def segment(
         cloud, labels, prepared, segmenter, rows_config, driving_direction, direction_source
     )
     timings["rows"] = time.perf_counter() - t0
+    cut = crowns_cut_at_the_ceiling(seg, cloud.xyz[:, :2], prepared.height, pre.max_canopy_height)
+    if cut:
+        seg.warnings.append(cut)
     seg.timings = timings
     seg.classification = classify_points(
         seg.labels, seg.height, pre.ground_ransac_threshold, pre.min_canopy_height
     )
     return seg
+
+
+def crowns_cut_at_the_ceiling(
+    seg: Segmentation, xy: np.ndarray, height: np.ndarray, ceiling: float, margin: float = 0.3
+) -> str | None:
+    """A warning naming the trees whose crown reaches ``preprocess.max_canopy_height`` while
+    map points stand above it inside their footprint (their tops, and volumes, are cut);
+    None when no tree does. Points above the ceiling elsewhere (wires, buildings) are not
+    counted."""
+    from matplotlib.path import Path as Polygon
+
+    above = np.flatnonzero(height > ceiling)
+    if not len(above):
+        return None
+    cut, lost = [], 0
+    for tree in seg.trees:
+        footprint = seg.footprints.get(tree.segment_id)
+        if tree.crown_top_height_m < ceiling - margin or footprint is None or len(footprint) < 3:
+            continue
+        inside = int(Polygon(footprint).contains_points(xy[above]).sum())
+        if inside >= MIN_POINTS_ABOVE:
+            cut.append(tree.tree_id)
+            lost += inside
+    if not cut:
+        return None
+    return (
+        f"{len(cut)} tree(s) reach preprocess.max_canopy_height = {ceiling:g} m and {lost} map "
+        f"points above it in their footprints were left out ({', '.join(cut[:8])}"
+        f"{', ...' if len(cut) > 8 else ''}): their tops and volumes are cut; raise "
+        "max_canopy_height (--set preprocess.max_canopy_height=...)"
+    )
+
+
+MIN_POINTS_ABOVE = 10  # points above the ceiling in a footprint that make a crown cut
 
 
 def _describe(
