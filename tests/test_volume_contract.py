@@ -246,7 +246,7 @@ def test_cli_volume_json_and_errors(tmp_path: Path) -> None:
     expected = estimate_volume(pts, "alpha_shape", alpha=1.2).volume_m3
     assert data["method"] == "alpha_shape" and data["params"] == {"alpha": 1.2}
     assert data["volume_m3"] == pytest.approx(expected, rel=1e-6) and data["valid"] is True
-    assert data["metrics"]["n_points"] == 2000
+    assert data["metrics"]["n_points"] == 2000 and data["warnings"] == []
     human = _cli("volume", str(path), "-m", "convex_hull")
     assert human.returncode == 0 and "m³ by convex_hull" in human.stdout
     bad = _cli("volume", str(path), "-m", "voxel", "--alpha", "0.9")
@@ -290,3 +290,27 @@ def test_alpha_hull_gap_to_the_complex_grows_with_the_spacing() -> None:
         gaps[n] = (ratio, gap)
     assert gaps[3000][0] < 0.16 and -0.03 < gaps[3000][1] < 0
     assert gaps[200][0] > 0.3 and gaps[200][1] < -0.1
+
+
+def test_cli_volume_warns_when_the_file_holds_several_trees_or_ground(tmp_path: Path) -> None:
+    """Two labelled crowns over a ground plane (class 2) in one LAS file: the volume is still
+    computed, and the user is told the file is not one tree, naming the field and the ground."""
+    from canopy_kit.cloud import PointCloud
+    from canopy_kit.io.las_write import write_las
+
+    rng = np.random.default_rng(3)
+    crowns = np.vstack([blob(1500), blob(1500) + [6.0, 0.0, 0.0]])
+    ground = np.column_stack([rng.uniform(-3, 9, (600, 2)), np.full(600, -3.0)])
+    xyz = np.vstack([crowns, ground])
+    fields = {
+        "segment_id": np.r_[np.zeros(1500), np.ones(1500), -np.ones(600)].astype(np.int32),
+        "classification": np.r_[np.ones(3000), np.full(600, 2)].astype(np.uint8),
+    }
+    path = write_las(tmp_path / "plot.las", PointCloud(xyz, fields))
+    out = _cli("volume", str(path), "--json")
+    assert out.returncode == 0, out.stderr
+    (warning,) = [w for w in json.loads(out.stdout)["warnings"] if "may not be one tree" in w]
+    assert "its segment_id field labels 2 trees" in warning
+    assert "600 of its 3,600 points (17 %) are classified ground" in warning
+    human = _cli("volume", str(path))
+    assert "warning:" in human.stdout and "cut one tree out first" in human.stdout

@@ -49,6 +49,7 @@ def volume(
     from canopy_kit.cli.common import console, print_json
     from canopy_kit.io.clouds import read_cloud
     from canopy_kit.volume import estimator, tree_metrics
+    from canopy_kit.volume.one_tree import not_one_tree
 
     params = {} if alpha is None else {"alpha": alpha}
     est = estimator(method, **params)  # ConfigError names a parameter the method lacks
@@ -59,9 +60,20 @@ def volume(
 
         measured = measured[voxel_representatives(measured, voxel_size)[0]]
     result = est(measured)
+    several = not_one_tree(points)
+    warnings = (
+        [
+            f"{cloud} may not be one tree: {'; '.join(several)}. Every point is measured as "
+            "one crown; cut one tree out first (e.g. run --export-trees)"
+        ]
+        if several
+        else []
+    )
     metrics = tree_metrics(points.xyz, volume_m3=result.volume_m3 if result.valid else None)
     what = result.extra.get("measurand") or getattr(est, "measures", "")
     disagree = _disagreement(result, measured) if result.valid else None
+    if disagree:
+        warnings.append(disagree)
     if json:
         print_json(
             {
@@ -69,6 +81,7 @@ def volume(
                 **result.as_dict(),
                 "measures": what,
                 "disagreement": disagree,
+                "warnings": warnings,
                 "metrics": metrics.as_dict(),
             }
         )
@@ -80,8 +93,8 @@ def volume(
     )
     if what:
         console.print(f"measures: {what}")
-    if disagree:
-        console.print(f"[yellow]warning: {disagree}[/]")
+    for warning in warnings:
+        console.print(f"[yellow]warning: {warning}[/]")
     console.print(
         f"height {metrics.height_m:.2f} m, crown diameter max "
         f"{metrics.crown_diameter_max_m:.2f} m / mean {metrics.crown_diameter_mean_m:.2f} m, "
