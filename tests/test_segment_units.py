@@ -366,6 +366,11 @@ def test_rows_give_up_clearly_on_a_forest_and_handle_tiny_inputs() -> None:
     result = assign_rows(xy)
     assert result.warnings and "no rows detected" in result.warnings[0]
     assert result.labels[0].startswith("T") and (result.row == -1).all()
+    # it says which sign of an orchard is missing, not a contradiction ("159 of 169 in rows")
+    reasons = result.warnings[0].removeprefix("no rows detected: ").split("; ")[:-1]
+    assert reasons and all(
+        r.startswith(("only ", "trees stand a median", "the candidate rows are")) for r in reasons
+    )
     one = assign_rows(np.array([[3.0, 4.0]]))
     assert one.labels == ["L0"] and not one.warnings
     empty = assign_rows(np.zeros((0, 2)))

@@ -329,21 +329,28 @@ def assign_rows(
     spacing = np.median(np.diff(centres)) if len(centres) > 1 else np.inf
     steps = [np.diff(np.sort(along[row == ln.row])) for ln in lines if ln.n_trees >= 2]
     in_row = np.median(np.concatenate(steps)) if steps else np.inf
-    # In an orchard, trees in a row stand closer together than the rows do.
-    if (
-        n >= 3
-        and not trust_direction
-        and (
-            in_rows.mean() < 0.8
-            or spread > min(gap / 3, 0.15 * spacing)
-            or (len(lines) > 1 and in_row >= spacing)
+    # In an orchard most trees stand in rows, on their row's line, and closer together
+    # along a row than the rows stand apart.
+    off_line = min(gap / 3, 0.15 * spacing)
+    not_rows = []
+    if in_rows.mean() < 0.8:
+        not_rows.append(
+            f"only {in_rows.sum()} of {n} trees lie in rows of at least "
+            f"{config.min_trees_per_row} trees (an orchard: 80 % or more)"
         )
-    ):
+    if np.isfinite(spread) and spread > off_line:
+        not_rows.append(
+            f"trees stand a median {spread:.2f} m off their row's line (an orchard: under "
+            f"{off_line:.2f} m; rows.max_distance_to_row = {gap} m)"
+        )
+    if len(lines) > 1 and in_row >= spacing:
+        not_rows.append(
+            f"the candidate rows are {spacing:.1f} m apart, closer than their trees stand "
+            f"along them ({in_row:.1f} m): in an orchard the trees of a row stand closer"
+        )
+    if n >= 3 and not trust_direction and not_rows:
         warnings.append(
-            f"no rows detected: {in_rows.sum()} of {n} trees lie in rows of at least "
-            f"{config.min_trees_per_row} trees, median distance to the row line {spread:.2f} m "
-            f"(rows.max_distance_to_row = {gap} m), spacing {in_row:.1f} m in rows and "
-            f"{spacing:.1f} m between rows; trees are labelled T0, T1, ... instead"
+            f"no rows detected: {'; '.join(not_rows)}; trees are labelled T0, T1, ... instead"
         )
         order_xy = np.lexsort((xy[:, 0], xy[:, 1]))
         idx = np.empty(n, dtype=np.int64)
