@@ -10,7 +10,7 @@ interval. Tuning seeds (401, 402) and held-out seeds (411-413) are reported apar
     .venv/bin/python benchmarks/bench_adaptive_volume.py [--forms lobed vase] [--speed | --speed-only]
 
 The calibration printed for the tuning seeds is what canopy_kit/volume/uncertainty.py
-CALIBRATIONS holds; the held-out table is what docs/VOLUMES.md quotes.
+CALIBRATIONS holds; the held-out table is what docs/history/VOLUMES_LOG.md quotes.
 """
 
 from __future__ import annotations

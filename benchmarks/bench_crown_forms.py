@@ -4,7 +4,7 @@ Per crown form, simulates a small pistachio session (cached under ``--cache``), 
 reference map with the true poses, cuts each tree by the simulator's ``tree_id`` (perfect
 segmentation, no odometry error), thins it to 0.1 m voxels, and runs convex hull, the
 paper's alpha shape (0.9 m), alpha hull (0.9 m) and slices (0.2 m) on the complete tree
-and each one-sided scan. Prints signed bias and MAPE per form; docs/VOLUMES.md quotes it.
+and each one-sided scan. Prints signed bias and MAPE per form; docs/history/VOLUMES_LOG.md quotes it.
 
     .venv/bin/python benchmarks/bench_crown_forms.py [--forms lobed vase] [--rows 2 --trees 3]
 """

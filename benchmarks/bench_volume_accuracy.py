@@ -4,7 +4,7 @@ Simulates a small pistachio and almond session (cached under ``--cache``), build
 reference map with the true poses, cuts each tree by the simulator's ``tree_id`` (perfect
 segmentation, no odometry error), thins it to 0.1 m voxels as the paper does, and runs
 every method on the complete tree and on each one-sided scan (points seen from the alley
-on one side of its row). Prints MAPE and bias per orchard; docs/VOLUMES.md quotes it.
+on one side of its row). Prints MAPE and bias per orchard; docs/history/VOLUMES_LOG.md quotes it.
 
     .venv/bin/python benchmarks/bench_volume_accuracy.py
 """

@@ -13,7 +13,7 @@ volume stage of the pipeline (the same code and settings as trees.csv):
   the map of that alley's sweeps only (``canopy_kit.truth_map.alley_maps``), with the
   segment's labels carried over (each side counted once). Until 2026-12-04 this was a split
   of the whole map by the alley of each kept point, which gave the alley driven first every
-  voxel both alleys saw (docs/VOLUMES.md).
+  voxel both alleys saw (docs/history/VOLUMES_LOG.md).
 
 Signed bias, MAPE and p90 of |error| against the simulator's exact envelope volume, and
 how often the recommended estimator's interval holds the truth, per cell and overall.
@@ -21,7 +21,7 @@ how often the recommended estimator's interval holds the truth, per cell and ove
     .venv/bin/python benchmarks/bench_volume_matrix.py [--sensors vlp16 os1-128] [--forms lobed]
         [--seeds 431] [--csv out/volume_matrix.csv]
 
-The summary is what docs/VOLUMES.md "Accuracy matrix" quotes and what the report states as
+The summary is what docs/history/VOLUMES_LOG.md "Accuracy matrix" quotes and what the report states as
 the recommended estimator's measured bias (canopy_kit/volume/data/accuracy.csv).
 """
 

@@ -150,7 +150,7 @@ class VolumeConfig:
     ``recommended``: the estimator whose volume the table's interval columns
     (``volume_low_m3``, ``volume_high_m3``, ``canopy_kit.volume.uncertainty``) bound; it is
     run even when not in ``methods``. Default the paper's ``alpha_shape``; the ``adaptive``
-    preset recommends ``adaptive_alpha`` (docs/VOLUMES.md, "Adaptive alpha").
+    preset recommends ``foliage_envelope`` (docs/VOLUMES.md, "Tree families").
     """
 
     methods: list[str] = field(default_factory=lambda: ["convex_hull", "alpha_shape"])

@@ -48,7 +48,7 @@ VISITS = {
 }
 # Only what the identity and growth checks use: two volume methods, no report.
 PIPELINE = {"volume": {"methods": ["convex_hull", "alpha_shape"]}}
-# The volume method's error, as measured on simulated pistachio trees (docs/VOLUMES.md:
+# The volume method's error, as measured on simulated pistachio trees (docs/history/VOLUMES_LOG.md:
 # alpha shape, alpha = 0.9 m: MAPE 6.1 % on complete trees, 8.9 % one-sided).
 VOLUME_ERROR = 0.09
 

@@ -168,9 +168,9 @@ def test_interval_covers_the_true_volume_on_every_dense_crown_form(sim_factory) 
     holds the simulator's exact envelope volume for ≥ 90 % of the 36 scans, and the
     estimates meet issue 25's goal, mean signed error within ±5 % and mean |error| under 8 %,
     with none off by 10 %. This coarse, truth-labelled scan is the estimator's low side: the
-    offset was set on the trees the pipeline segments, where it is −0.2 % (docs/VOLUMES.md,
+    offset was set on the trees the pipeline segments, where it is −0.2 % (docs/history/VOLUMES_LOG.md,
     "The offset recalibrated"). Until 2026-12-05 this test took the lobed and vase crowns
-    only (18 scans, one miss allowed); see docs/VOLUMES.md "One-sided scans from the alley
+    only (18 scans, one miss allowed); see docs/history/VOLUMES_LOG.md "One-sided scans from the alley
     maps" for what it measured."""
     from canopy_kit.config import merge
     from canopy_kit.sim.truth_map import truth_map

@@ -1,5 +1,5 @@
 """Volume methods on simulated trees against the simulator's exact crown volume (loose
-bounds; the full table is benchmarks/bench_volume_accuracy.py, quoted in docs/VOLUMES.md)."""
+bounds; the full table is benchmarks/bench_volume_accuracy.py, quoted in docs/history/VOLUMES_LOG.md)."""
 
 from __future__ import annotations
 

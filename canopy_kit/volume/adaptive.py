@@ -28,7 +28,7 @@ measures). The estimator is
   skeleton of bare branches is as far from convex, but its α-hull is thin tubes: it keeps
   the corrected hull.
 
-The two factors were calibrated on simulated crowns of every form (docs/VOLUMES.md,
+The two factors were calibrated on simulated crowns of every form (docs/history/VOLUMES_LOG.md,
 "Adaptive alpha"). One k-d tree query, two distance transforms: about 0.1-0.2 s for a
 50k-point tree, where the exact alpha complex needs a Delaunay triangulation (1-2 s).
 """
@@ -50,7 +50,7 @@ SPACING_SAMPLE = 5000  # points sampled for the spacing (evenly through the arra
 # Calibrated on seeds 401-402 of every crown form (benchmarks/bench_adaptive_volume.py). The
 # offset was 0.5 until the harsher crowns (deep lobe hollows, leaves in a 0.3 m shell) and the
 # matrix's denser sensors joined the tuning set: 0.5 left them 5-6 % high, 0.4 and 0.45 bracket
-# every sensor and form within ±3.4 % (docs/VOLUMES.md, "The offset recalibrated").
+# every sensor and form within ±3.4 % (docs/history/VOLUMES_LOG.md, "The offset recalibrated").
 ALPHA_FACTOR = 4.0
 OFFSET_FACTOR = 0.425
 SPARSE_FILL = 1.2  # below: a sparse crown (canopy_kit.volume.uncertainty.SPARSE_FILL)

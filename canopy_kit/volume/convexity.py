@@ -4,7 +4,7 @@ Efron's correction of the convex hull (:func:`canopy_kit.volume.hull.sample_corr
 estimates the volume of the convex hull of the body the points were drawn from. That is the
 crown for a sparse young tree, whose few leaf clusters lie scattered through a rounded
 envelope; it is not for a small crown with deep hollows between its lobes, whose points can
-fill their hull's surface as thinly as a sparse tree's (docs/VOLUMES.md, "A small lobed
+fill their hull's surface as thinly as a sparse tree's (docs/history/VOLUMES_LOG.md, "A small lobed
 crown taken for a sparse one") and whose hull is 60 % more than the crown.
 
 The test compares the sample with what a convex body would give. The α-solid of the points

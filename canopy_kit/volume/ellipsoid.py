@@ -5,7 +5,7 @@ and the paper's drone reference takes it as a sphere. For a crown that is an ell
 enclosing ellipsoid of even a thin sample of its surface is the crown itself, which a hull of
 the same sample is not; for a crown of any other form it over-fills (on full-size simulated
 crowns with thin foliage: +10 % ellipsoid, +27 % hedged, +41 % vase, +55 % lobed, median;
-docs/VOLUMES.md "Sparse crowns: what their foliage can tell at all").
+docs/history/VOLUMES_LOG.md "Sparse crowns: what their foliage can tell at all").
 
 Computed by Khachiyan's algorithm with Wolfe's away steps (Todd & Yıldırım 2007, which
 converges linearly where the plain algorithm crawls on near-duplicate points) on the convex

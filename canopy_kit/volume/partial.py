@@ -8,7 +8,7 @@ half across that plane.
 
 The plane (a point and a horizontal normal, the across-row direction) should come from
 the pipeline: the trunk position or the fitted row line. When it is not given, it is
-estimated from the points with this rule (documented in docs/VOLUMES.md):
+estimated from the points with this rule (documented in docs/history/VOLUMES_LOG.md):
 
 - normal: the minor principal axis of the horizontal coordinates (a one-sided scan, like a
   row of crowns, is narrower across the row than along it);

@@ -124,7 +124,7 @@ def calibrate_ratios(
 # Both take a one-sided scan as the map of that alley's sweeps alone
 # (canopy_kit.truth_map.alley_maps); every bound was set again on 2026-12-05 when they did
 # (before, a split of the whole map gave the second alley a thinner scan than a real drive:
-# docs/VOLUMES.md, "One-sided scans from the alley maps").
+# docs/history/VOLUMES_LOG.md, "One-sided scans from the alley maps").
 CALIBRATIONS: dict[str, Calibration] = {
     # the tree families' tuning seeds 1000-1001 (envelope, lobe_union, grown; four sensors;
     # both sides and one side: benchmarks/bench_volume_families.py report, "interval
