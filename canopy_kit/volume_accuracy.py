@@ -14,8 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from canopy_kit.volume.envelope import MEASURANDS as ENVELOPE_MEASURANDS
+
 # what an estimator that chooses its measurand per tree (``foliage_envelope``) may measure
-MEASURANDS = ("envelope", "ellipsoid")
+MEASURANDS = tuple(m for m in ENVELOPE_MEASURANDS if m != "auto")
 
 
 def segmented_session(

@@ -60,15 +60,13 @@ def volume(
 
         measured = measured[voxel_representatives(measured, voxel_size)[0]]
     result = est(measured)
+    warnings = []
     several = not_one_tree(points)
-    warnings = (
-        [
+    if several:
+        warnings.append(
             f"{cloud} may not be one tree: {'; '.join(several)}. Every point is measured as "
             "one crown; cut one tree out first (e.g. run --export-trees)"
-        ]
-        if several
-        else []
-    )
+        )
     metrics = tree_metrics(points.xyz, volume_m3=result.volume_m3 if result.valid else None)
     what = result.extra.get("measurand") or getattr(est, "measures", "")
     disagree = _disagreement(result, measured) if result.valid else None

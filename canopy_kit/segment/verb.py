@@ -117,7 +117,7 @@ def crowns_cut_at_the_ceiling(
     counted."""
     from matplotlib.path import Path as Polygon
 
-    above = np.flatnonzero(height > ceiling)
+    above = xy[height > ceiling]
     if not len(above):
         return None
     cut, lost = [], 0
@@ -125,7 +125,7 @@ def crowns_cut_at_the_ceiling(
         footprint = seg.footprints.get(tree.segment_id)
         if tree.crown_top_height_m < ceiling - margin or footprint is None or len(footprint) < 3:
             continue
-        inside = int(Polygon(footprint).contains_points(xy[above]).sum())
+        inside = int(Polygon(footprint).contains_points(above).sum())
         if inside >= MIN_POINTS_ABOVE:
             cut.append(tree.tree_id)
             lost += inside

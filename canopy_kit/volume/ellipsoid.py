@@ -75,7 +75,7 @@ def enclosing_ellipsoid(
     converged = False
     iterations = 0
     for iterations in range(1, max_iterations + 1):
-        if iterations % REFRESH == 1:  # from scratch now and then: no drift of the updates
+        if (iterations - 1) % REFRESH == 0:  # from scratch now and then: no drift of updates
             inverse = np.linalg.inv(lifted.T @ (weights[:, None] * lifted))
             dist = np.einsum("ij,jk,ik->i", lifted, inverse, lifted)
         up = int(np.argmax(dist))
