@@ -4,7 +4,9 @@ The GeoJSON files are WGS84 by RFC 7946; GIS work in metres wants the map's own 
 CRS (the UTM zone of the drive), which this file keeps: one layer per table (``trees``
 points, ``crowns`` polygons, ``rows`` lines), coordinates ``local + origin`` in ``crs``
 (no CRS when the map has none: then the local frame). Provenance goes in the dataset's
-and every layer's metadata, one string item per key.
+and every layer's metadata, one string item per key. The file is a GeoPackage 1.2 (GDAL
+3.7+ would write 1.4, which GDAL 3.6 and other readers of 1.2/1.3 warn about; nothing here
+needs more than 1.2).
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ import pandas as pd
 
 from canopy_kit.errors import InputError
 from canopy_kit.io.atomic import atomic_path
+
+GPKG_VERSION = "1.2"  # the GeoPackage version written: the one every reader knows
 
 
 def write_gpkg(
@@ -46,6 +50,7 @@ def write_gpkg(
                     driver="GPKG",
                     dataset_metadata=meta if i == 0 and meta else None,
                     layer_metadata=meta or None,
+                    dataset_options={"VERSION": GPKG_VERSION} if i == 0 else None,
                 )
     return path
 

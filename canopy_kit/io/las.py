@@ -4,8 +4,11 @@ The header is checked against the file first (:mod:`canopy_kit.io.las_header`); 
 present are then read a million at a time. Coordinates become local (``xyz = absolute -
 origin``, origin from :func:`las_origin` on the points' bounds), every standard and
 extra-bytes dimension becomes a ``PointCloud.fields`` entry, and a float extra dimension's
-declared no-data value (e.g. DBL_MAX in lidR's ``treeID``) becomes NaN. Writing is
-:mod:`canopy_kit.io.las_write`.
+declared no-data value (e.g. DBL_MAX in lidR's ``treeID``) becomes NaN. ``gps_time`` in
+Adjusted Standard GPS Time (global encoding bit 0 set) becomes Unix seconds, the clock
+of a bag and of ``gps_time`` in the pipeline, when they hold it exactly (every file
+canopy-kit writes; :func:`~canopy_kit.io.las_write.cloud_gps_time`); GPS week seconds and
+finer times are kept as stored. Writing is :mod:`canopy_kit.io.las_write`.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from canopy_kit.cloud import PointCloud
 from canopy_kit.errors import InputError, InputWarning, foreign_message
 from canopy_kit.io.clouds import LOCAL_LIMIT_M, check_input_file, local_origin
 from canopy_kit.io.las_header import LAS_MAGIC, LasLayout, read_las_layout
-from canopy_kit.io.las_write import choose_point_format, las_ready, write_las
+from canopy_kit.io.las_write import choose_point_format, cloud_gps_time, las_ready, write_las
 
 __all__ = [
     "LasReader",
@@ -189,6 +192,10 @@ def read_las(path: str | Path) -> PointCloud:
         )
         crs = _parse_crs(header, layout.path)
         no_data = _no_data_values(header)
+        # Adjusted Standard GPS Time in the standard dimension (not an extra one so named)
+        to_unix = header.global_encoding.gps_time_type == 1 and any(
+            d.name == "gps_time" and d.is_standard for d in header.point_format.dimensions
+        )
     raw = np.column_stack([np.asarray(points[c]) for c in ("X", "Y", "Z")])
     origin = las_origin(
         layout.offsets, _scaled(layout, raw.min(axis=0)), _scaled(layout, raw.max(axis=0))
@@ -201,6 +208,8 @@ def read_las(path: str | Path) -> PointCloud:
         values = np.array(points[name])
         if name in no_data and values.dtype.kind == "f":
             values[values == no_data[name]] = np.nan
+        if name == "gps_time" and to_unix:
+            values = cloud_gps_time(values)
         fields[name] = values
     if layout.cut_short:
         warnings.warn(InputWarning(cut_short_warning(layout)), stacklevel=2)
