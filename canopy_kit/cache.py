@@ -21,7 +21,7 @@ from canopy_kit.io.atomic import atomic_path
 from canopy_kit.parallel import cpu_seconds
 
 T = TypeVar("T")
-CACHE_VERSION = 2  # 2: segmentations keep a LAS class per point
+CACHE_VERSION = 3  # 2: segmentations keep a LAS class per point; 3: and their canopy band
 
 
 def fingerprint(path: str | Path) -> dict[str, Any]:

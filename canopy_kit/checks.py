@@ -158,6 +158,67 @@ def trunk_checks(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) 
     ]
 
 
+TRUNKS_SEEN_SHARE = 0.5  # trunks must stand under this share of trees to judge splits by them
+
+
+def split_crown_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) -> list[Check]:
+    """Segments with no trunk of their own closer to a neighbour than the tree spacing allows:
+    a crown cut in two (its other piece holds the trunk). Judged only where trunks are seen
+    under most trees; a tree whose trunk is hidden stands a full spacing from its
+    neighbours and is not counted."""
+    spacing = layout.get("tree_spacing_m")
+    if "n_trunks" not in trees or not layout.get("trunks") or len(trees) < 2:
+        return []
+    if layout.get("tree_spacing_source") != "trunks" or not spacing or not np.isfinite(spacing):
+        return []
+    n = trees["n_trunks"].to_numpy(int)
+    name = "segments on no trunk, closer to a neighbour than the tree spacing (split crowns?)"
+    counted = f"{layout['trunks']} trunks found in the stem band under {len(trees)} trees"
+    if (n > 0).mean() < TRUNKS_SEEN_SHARE:
+        note = f"{counted}: trunks seen under {int((n > 0).sum())} trees only, not judged"
+        return [Check(name, None, "n/a", "", note)]
+    xy = trees[["x", "y"]].to_numpy(float)
+    gaps = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    nearest = gaps.min(axis=1)
+    split = (n == 0) & (nearest < st.trunkless_neighbour_ratio * spacing)
+    note = f"{counted}; tree spacing {spacing:.1f} m"
+    if split.any():
+        note += f"; on no trunk, a neighbour within {st.trunkless_neighbour_ratio:g}x: "
+        note += _names(trees, split)
+    return [
+        Check(
+            name,
+            grade(int(split.sum()), st.split_crowns_warn, st.split_crowns_fail),
+            str(int(split.sum())),
+            _thresholds(st.split_crowns_warn, st.split_crowns_fail, "", 0),
+            note,
+        )
+    ]
+
+
+def ceiling_check(segmentation: dict[str, Any], st: ChecksConfig) -> list[Check]:
+    """Trees whose tops a set ``preprocess.max_canopy_height`` cut (map points above it in
+    their footprints); a band from the data cuts none (``segment.preprocess.canopy_ceiling``)."""
+    band = segmentation.get("canopy_band_m")
+    if not band or "canopy_ceiling_source" not in segmentation:
+        return []
+    cut = list(segmentation.get("cut_at_ceiling", []))
+    source = segmentation["canopy_ceiling_source"]
+    note = f"canopy band {band[0]:g}-{band[1]:.1f} m above ground ({'from the data' if source == 'data' else source})"
+    if cut:
+        note += f"; cut: {', '.join(cut[:8])}{' ...' if len(cut) > 8 else ''}: raise the limit or unset it"
+    return [
+        Check(
+            "crowns cut at the canopy band's top",
+            grade(len(cut), st.crowns_cut_at_ceiling_warn, st.crowns_cut_at_ceiling_fail),
+            str(len(cut)),
+            _thresholds(st.crowns_cut_at_ceiling_warn, st.crowns_cut_at_ceiling_fail, "", 0),
+            note,
+        )
+    ]
+
+
 def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     """Trees found, volumes flagged unreliable, crowns unlike the others of their row."""
     from canopy_kit.tree_table import flagged
@@ -495,6 +556,8 @@ def run_checks(
     checks = table_checks(trees, st)
     checks += crown_spacing_checks(trees, layout, st)
     checks += trunk_checks(trees, layout, st)
+    checks += split_crown_check(trees, layout, st)
+    checks += ceiling_check(metrics.get("segmentation", {}), st)
     checks += map_checks(metrics.get("mapping", {}), st)
     checks += aerial_checks(metrics, trees, st)
     checks += truth_checks(metrics.get("evaluation", {}))

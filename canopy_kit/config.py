@@ -100,7 +100,10 @@ class PreprocessConfig:
     """Ground, trunk and low-vegetation removal and the voxel grid (``canopy_kit.segment``).
 
     Heights are above the piecewise RANSAC ground model. ``stem_band`` is where trunks are
-    looked for; canopy is ``min_canopy_height``..``max_canopy_height``. ``voxelize`` orders
+    looked for; canopy is ``min_canopy_height``..``max_canopy_height``; an unset
+    ``max_canopy_height`` follows the trees (the top of the map's height distribution below
+    its first empty band, ``segment.preprocess.canopy_ceiling``), a set one is a fixed
+    limit and crowns reaching it are named in a warning. ``voxelize`` orders
     the voxel grid and the clustering (the paper's text and Fig. 3 disagree);
     ``weight_by_density`` makes each voxel count as the map points it holds.
     """
@@ -109,7 +112,7 @@ class PreprocessConfig:
     ground_ransac_threshold: float = 0.15
     ground_candidate_cell: float = 0.5
     min_canopy_height: float = 0.8
-    max_canopy_height: float = 12.0
+    max_canopy_height: float | None = None  # None: from the data
     stem_band: list[float] = field(default_factory=lambda: [0.3, 0.8])
     voxel_size: float = 0.1
     voxelize: Literal["before_clustering", "after_clustering"] = "before_clustering"
@@ -275,6 +278,14 @@ class ChecksConfig:
     crown_tree_spacing_fail: float = 3.0
     trunks_per_segment_warn: int = 2
     trunks_per_segment_fail: int = 3
+    # Segments on no trunk of their own, closer to a neighbour than this share of the tree
+    # spacing: pieces of a split crown (counted; any fails by default).
+    trunkless_neighbour_ratio: float = 0.7
+    split_crowns_warn: int = 0
+    split_crowns_fail: int = 0
+    # Trees whose tops a set preprocess.max_canopy_height cut (counted; any fails).
+    crowns_cut_at_ceiling_warn: int = 0
+    crowns_cut_at_ceiling_fail: int = 0
     crown_outlier_share_warn: float = 0.0
     crown_outlier_share_fail: float = 0.10
     flagged_volume_share_warn: float = 0.0

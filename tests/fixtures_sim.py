@@ -34,12 +34,15 @@ def synthetic_orchard(
     density: float = 400.0,
     seed: int = 0,
     ground_extent: float = 6.0,
+    crown_aspect: float = 0.8,
+    crown_base: float = 1.0,
 ) -> SyntheticOrchard:
     """Rows of hollow ellipsoid crowns on trunks over a sloped, slightly bumpy ground.
 
     Rows run along the bearing ``bearing_deg`` (clockwise from +y), numbered left to right
     as seen along it; ``bow`` bends every row (metres at mid-row). ``density`` is points
-    per square metre of crown shell.
+    per square metre of crown shell; crowns are ``crown_aspect`` times as tall (half-height
+    over radius) as wide and start ``crown_base`` m above the ground.
     """
     rng = np.random.default_rng(seed)
     b = np.radians(bearing_deg)
@@ -60,16 +63,17 @@ def synthetic_orchard(
             xy = a * d + c * right
             g = ground(xy[:1], xy[1:])[0]
             k = len(centres)
-            n = int(density * 4 * np.pi * crown_radius**2)
+            n = int(density * 4 * np.pi * crown_radius**2 * max(1.0, crown_aspect))
             u = rng.normal(size=(n, 3))
             u /= np.linalg.norm(u, axis=1, keepdims=True)
             depth = rng.uniform(0.8, 1.0, n)
-            shell = u * depth[:, None] * np.array([crown_radius, crown_radius, 0.8 * crown_radius])
-            centre3 = np.array([xy[0], xy[1], g + 1.0 + 0.8 * crown_radius])
+            semi = np.array([crown_radius, crown_radius, crown_aspect * crown_radius])
+            shell = u * depth[:, None] * semi
+            centre3 = np.array([xy[0], xy[1], g + crown_base + crown_aspect * crown_radius])
             pts.append(shell + centre3)
             ids.append(np.full(n, k))
             if trunks:
-                h = rng.uniform(0.0, 1.2, 250)
+                h = rng.uniform(0.0, crown_base + 0.2, 250)
                 ang = rng.uniform(0, 2 * np.pi, 250)
                 pts.append(
                     np.column_stack([xy[0] + 0.1 * np.cos(ang), xy[1] + 0.1 * np.sin(ang), g + h])

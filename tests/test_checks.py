@@ -9,10 +9,12 @@ import pytest
 from canopy_kit.checks import (
     Check,
     aerial_checks,
+    ceiling_check,
     crown_spacing_checks,
     grade,
     map_checks,
     run_checks,
+    split_crown_check,
     summary,
     trunk_checks,
 )
@@ -81,6 +83,45 @@ def test_trunks_per_segment() -> None:
     (five,) = trunk_checks(trees.assign(n_trunks=[5, 1, 1, 1]), {"trunks": 8}, ST)
     assert five.status == "fail"
     assert trunk_checks(trees, {"trunks": 0}, ST) == []  # no trunks seen: nothing to say
+
+
+def test_a_trunkless_piece_beside_its_tree_is_a_split_crown() -> None:
+    """Four trees 5 m apart on their trunks pass; a fifth segment on no trunk 2 m from a
+    tree (the other half of its crown) fails and is named; a trunkless tree a full spacing
+    from its neighbours (its trunk hidden) is not counted; with trunks under too few trees
+    (an airborne scan) the check only informs."""
+    layout = {"trunks": 4, "tree_spacing_m": 5.0, "tree_spacing_source": "trunks"}
+    trees = _row([4.0] * 4).assign(n_trunks=1)
+    (whole,) = split_crown_check(trees, layout, ST)
+    assert whole.status == "pass" and whole.value == "0"
+    piece = pd.DataFrame({"tree_id": ["r0-L4"], "row": 0, "x": [0.0], "y": [7.0], "n_trunks": [0]})
+    split = pd.concat([trees, piece], ignore_index=True)
+    (cut,) = split_crown_check(split, layout, ST)
+    assert cut.status == "fail" and cut.value == "1" and "r0-L4" in cut.note
+    assert "4 trunks found in the stem band under 5 trees" in cut.note
+    hidden = trees.assign(n_trunks=[1, 1, 0, 1])  # 5 m from both neighbours
+    assert split_crown_check(hidden, {**layout, "trunks": 3}, ST)[0].status == "pass"
+    loose = ChecksConfig(split_crowns_warn=0, split_crowns_fail=2)
+    assert split_crown_check(split, layout, loose)[0].status == "warn"
+    airborne = split.assign(n_trunks=[1, 0, 0, 0, 0])
+    (info,) = split_crown_check(airborne, layout, ST)
+    assert info.status == "info" and "not judged" in info.note
+    assert split_crown_check(split, {**layout, "tree_spacing_source": "segments"}, ST) == []
+    assert _by_name(run_checks({"layout": layout}, split), "segments on no trunk").status == "fail"
+
+
+def test_crowns_cut_at_a_set_canopy_top_fail_and_a_band_from_the_data_passes() -> None:
+    cut = {
+        "canopy_band_m": [0.8, 12.0],
+        "canopy_ceiling_source": "preprocess.max_canopy_height",
+        "cut_at_ceiling": ["r0-L0", "r0-L2"],
+    }
+    (check,) = ceiling_check(cut, ST)
+    assert check.status == "fail" and check.value == "2" and "r0-L0, r0-L2" in check.note
+    whole = {**cut, "canopy_band_m": [0.8, 17.43], "canopy_ceiling_source": "data"}
+    (ok,) = ceiling_check({**whole, "cut_at_ceiling": []}, ST)
+    assert ok.status == "pass" and "0.8-17.4 m above ground (from the data)" in ok.note
+    assert ceiling_check({}, ST) == []  # a run from before the band was recorded
 
 
 def test_crown_outliers_share() -> None:

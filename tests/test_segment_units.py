@@ -90,7 +90,8 @@ def test_prepare_bands_heights_and_weighs_voxels() -> None:
     [
         ("stem_band", [0.8, 0.3], "preprocess.stem_band"),
         ("voxel_size", 0.0, "preprocess.voxel_size"),
-        ("min_canopy_height", 20.0, "preprocess.min_canopy_height"),
+        ("max_canopy_height", 0.5, "preprocess.min_canopy_height"),  # under the 0.8 floor
+        ("min_canopy_height", -1.0, "preprocess.min_canopy_height"),
     ],
 )
 def test_preprocess_config_errors_name_the_setting(field: str, value: object, message: str) -> None:
@@ -579,7 +580,7 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
             text=True,
         )
     assert res["flat"].returncode == 2
-    assert res["flat"].stderr.strip().startswith("error: map has no points 0.8-12.0 m above")
+    assert res["flat"].stderr.strip().startswith("error: map has no points more than 0.8 m above")
     assert "Traceback" not in res["flat"].stderr
     assert res["one"].returncode == 0 and "segmented 1 trees in 1 rows" in res["one"].stdout
     assert res["scattered"].returncode == 0, res["scattered"].stderr
@@ -732,8 +733,8 @@ def test_crowns_far_wider_or_smaller_than_the_others_are_flagged() -> None:
 
 def test_crowns_reaching_max_canopy_height_are_named_in_a_warning() -> None:
     """Crowns 3.9 m tall under a 3.5 m ceiling: every tree is named as cut, with the setting
-    to raise; under the default 12 m ceiling, no warning; points above the ceiling outside
-    every crown (a wire) are not counted."""
+    to raise; with the ceiling from the data (default), no warning; points above the ceiling
+    outside every crown (a wire) are not counted."""
     orch = synthetic_orchard(rows=1, trees_per_row=3)
     low = segment(orch.cloud, "adaptive", PreprocessConfig(max_canopy_height=3.5))
     cut = [w for w in low.warnings if "max_canopy_height" in w]
@@ -745,3 +746,30 @@ def test_crowns_reaching_max_canopy_height_are_named_in_a_warning() -> None:
     with_wire = PointCloud(np.vstack([orch.cloud.xyz, wire]), crs=orch.cloud.crs)
     again = segment(with_wire, "adaptive", PreprocessConfig(max_canopy_height=3.5))
     assert [w for w in again.warnings if "max_canopy_height" in w] == cut
+
+
+def test_tall_crowns_are_kept_whole_and_a_set_limit_below_them_warns() -> None:
+    """Trees 18 m tall (crowns 2-18 m, walnut- or pine-like heights): the default canopy band
+    follows the data and keeps every crown whole (tops at the true 18 m, volumes uncut), while
+    an overhead wire 3 m clear above the tops is left out; a user's 12 m limit names every
+    tree as cut."""
+    from canopy_kit.segment.preprocess import canopy_ceiling
+
+    orch = synthetic_orchard(
+        rows=1, trees_per_row=3, crown_radius=2.0, crown_aspect=4.0, crown_base=2.0, spacing=5.0
+    )
+    true_top = 2.0 + 2 * 4.0 * 2.0  # crown base + height
+    tops = [orch.cloud.xyz[orch.cloud.fields["tree_id"] == k, 2].max() for k in range(3)]
+    wire = np.column_stack([np.linspace(-4, 14, 600), np.full(600, 0.5), np.full(600, 21.0)])
+    cloud = PointCloud(np.vstack([orch.cloud.xyz, wire]), crs=orch.cloud.crs)
+    seg = segment(cloud, "adaptive")
+    assert len(seg.trees) == 3
+    for tree, top in zip(sorted(seg.trees, key=lambda t: t.tree_id), tops, strict=True):
+        assert abs(tree.crown_top_height_m - top) < 0.1 and top > true_top - 0.4
+    assert not [w for w in seg.warnings if "max_canopy_height" in w]
+    height = seg.height
+    assert np.all(seg.labels[height > 20.0] == -1)  # the wire is no tree's
+    assert canopy_ceiling(height, 0.8) < 19.0
+    limited = segment(cloud, "adaptive", PreprocessConfig(max_canopy_height=12.0))
+    cut = [w for w in limited.warnings if "max_canopy_height" in w]
+    assert len(cut) == 1 and cut[0].startswith("3 tree(s) reach preprocess.max_canopy_height = 12")

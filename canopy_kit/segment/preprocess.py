@@ -2,8 +2,9 @@
 
 Points are split by their height above the fitted ground: ground and low vegetation below
 the stem band, stems (trunks) inside it, canopy from ``min_canopy_height`` up to
-``max_canopy_height``. Segmenters see canopy points height-normalised, ``(x, y, height
-above ground)``, so sloped and bumpy ground looks flat to them.
+``max_canopy_height`` or, unset, up to the top the data shows (:func:`canopy_ceiling`).
+Segmenters see canopy points height-normalised, ``(x, y, height above ground)``, so sloped
+and bumpy ground looks flat to them.
 
 With ``voxelize = "before_clustering"`` (the paper's text) the segmenter sees one point per
 occupied voxel; with ``weight_by_density`` each voxel then weighs as many map points as it
@@ -39,6 +40,7 @@ class PreparedMap:
     seen_index: np.ndarray  # map indices of the points handed to the segmenter
     seen_weight: np.ndarray  # map points each of them stands for
     canopy_to_seen: np.ndarray  # per canopy point: index into seen_index
+    ceiling: float  # top of the canopy band (m above ground): set, or from the data
 
     def normalized(self, cloud: PointCloud, index: np.ndarray) -> np.ndarray:
         """``(x, y, height above ground)`` of map points ``index``."""
@@ -51,10 +53,11 @@ def check_preprocess_config(config: PreprocessConfig) -> None:
     """Reject impossible preprocessing settings with an error naming the setting."""
     if not config.voxel_size > 0:
         raise ConfigError(f"preprocess.voxel_size must be positive, got {config.voxel_size}")
-    if not 0 <= config.min_canopy_height < config.max_canopy_height:
+    top = config.max_canopy_height
+    if not (0 <= config.min_canopy_height and (top is None or config.min_canopy_height < top)):
         raise ConfigError(
             "preprocess.min_canopy_height must be >= 0 and below max_canopy_height, got "
-            f"{config.min_canopy_height} and {config.max_canopy_height}"
+            f"{config.min_canopy_height} and {top}"
         )
     lo, hi = config.stem_band
     if not 0 <= lo < hi:
@@ -83,7 +86,10 @@ def prepare(
     )
     height = ground.above(cloud.xyz)
     report("ground", 1, 2)
-    canopy = (height >= config.min_canopy_height) & (height <= config.max_canopy_height)
+    ceiling = config.max_canopy_height
+    if ceiling is None:
+        ceiling = canopy_ceiling(height, config.min_canopy_height)
+    canopy = (height >= config.min_canopy_height) & (height <= ceiling)
     canopy_index = np.flatnonzero(canopy)
     stem_index = np.flatnonzero((height >= config.stem_band[0]) & (height < config.stem_band[1]))
     if config.voxelize == "before_clustering" and len(canopy_index):
@@ -97,4 +103,35 @@ def prepare(
         weight = np.ones(len(canopy_index))
         canopy_to_seen = np.arange(len(canopy_index))
     report("ground", 2, 2)
-    return PreparedMap(ground, height, canopy_index, stem_index, seen_index, weight, canopy_to_seen)
+    return PreparedMap(
+        ground, height, canopy_index, stem_index, seen_index, weight, canopy_to_seen, ceiling
+    )
+
+
+CEILING_BIN_M = 0.25  # height bins the canopy's top is looked for in
+CEILING_GAP_M = 2.0  # an empty band this deep ends the canopy: what floats above is not tree
+CEILING_MIN_SHARE = 1e-5  # a bin holding fewer of the points above the floor counts as empty
+
+
+def canopy_ceiling(height: np.ndarray, floor: float) -> float:
+    """The top of the canopy band (m above ground) from the data, with no fixed limit.
+
+    Going up from ``floor`` in ``CEILING_BIN_M`` bins, the canopy ends at the first band
+    ``CEILING_GAP_M`` deep that holds (next to) no points: crowns of any height are kept
+    whole, while what floats clear above them (overhead wires, birds, multipath echoes,
+    stray returns) is left out. A bin is empty below ``CEILING_MIN_SHARE`` of the points
+    (and at least 3); the ceiling is the highest point below the gap.
+    """
+    above = height[np.isfinite(height) & (height >= floor)] - floor
+    if not len(above):
+        return float(floor)
+    counts = np.bincount((above / CEILING_BIN_M).astype(np.int64))
+    occupied = np.flatnonzero(counts >= max(3.0, CEILING_MIN_SHARE * len(above)))
+    if not len(occupied):
+        return float(floor + above.max())
+    gap_bins = int(round(CEILING_GAP_M / CEILING_BIN_M))
+    jumps = np.flatnonzero(np.diff(occupied) > gap_bins)
+    last = occupied[jumps[0]] if len(jumps) else occupied[-1]
+    # Sparse points just above the last full bin (a spire's tip) still belong to the crown.
+    limit = (last + 1 + gap_bins) * CEILING_BIN_M
+    return float(floor + above[above < limit].max())

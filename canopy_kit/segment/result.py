@@ -48,6 +48,10 @@ class Segmentation:
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     classification: np.ndarray | None = None  # per map point: LAS class (segment.classes)
+    canopy_band_m: tuple[float, float] = (float("nan"), float("nan"))  # heights segmented
+    ceiling_source: str = ""  # "data" or the setting that fixed the band's top
+    cut_at_ceiling: list[str] = field(default_factory=list)  # trees whose tops it cut
+    ceiling_warning: str = ""  # the warning naming them (a run's check carries it instead)
 
     @property
     def n_trees(self) -> int:
@@ -72,5 +76,8 @@ class Segmentation:
             "crs": self.crs,
             "origin": [float(v) for v in self.origin],
             "warnings": list(self.warnings),
+            "canopy_band_m": [round(float(v), 3) for v in self.canopy_band_m],
+            "canopy_ceiling_source": self.ceiling_source,
+            "cut_at_ceiling": list(self.cut_at_ceiling),
             "timings_s": dict(self.timings),
         }

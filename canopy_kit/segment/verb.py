@@ -69,10 +69,14 @@ def segment(
     prepared = prepare(cloud, pre, seed=seed, progress=report)
     timings["preprocess"] = time.perf_counter() - t0
     if len(prepared.canopy_index) == 0:
-        raise InputError(
-            f"map has no points {pre.min_canopy_height}-{pre.max_canopy_height} m above the "
-            "ground (preprocess.min_canopy_height/max_canopy_height): is it all ground?"
+        band = (
+            f"more than {pre.min_canopy_height:g} m above the ground "
+            "(preprocess.min_canopy_height)"
+            if pre.max_canopy_height is None
+            else f"{pre.min_canopy_height:g}-{pre.max_canopy_height:g} m above the ground "
+            "(preprocess.min_canopy_height/max_canopy_height)"
         )
+        raise InputError(f"map has no points {band}: is it all ground?")
     xyz = prepared.normalized(cloud, prepared.seen_index)
     kwargs: dict[str, Any] = {}
     accepted = _fit_params(segmenter)
@@ -98,9 +102,16 @@ def segment(
         cloud, labels, prepared, segmenter, rows_config, driving_direction, direction_source
     )
     timings["rows"] = time.perf_counter() - t0
-    cut = crowns_cut_at_the_ceiling(seg, cloud.xyz[:, :2], prepared.height, pre.max_canopy_height)
-    if cut:
-        seg.warnings.append(cut)
+    seg.canopy_band_m = (float(pre.min_canopy_height), float(prepared.ceiling))
+    seg.ceiling_source = "data" if pre.max_canopy_height is None else "preprocess.max_canopy_height"
+    if pre.max_canopy_height is not None:  # a ceiling from the data stands above a gap
+        cut, lost = crowns_cut_at_the_ceiling(
+            seg, cloud.xyz[:, :2], prepared.height, prepared.ceiling
+        )
+        if cut:
+            seg.cut_at_ceiling = cut
+            seg.ceiling_warning = ceiling_warning(cut, lost, prepared.ceiling)
+            seg.warnings.append(seg.ceiling_warning)
     seg.timings = timings
     seg.classification = classify_points(
         seg.labels, seg.height, pre.ground_ransac_threshold, pre.min_canopy_height
@@ -110,17 +121,18 @@ def segment(
 
 def crowns_cut_at_the_ceiling(
     seg: Segmentation, xy: np.ndarray, height: np.ndarray, ceiling: float, margin: float = 0.3
-) -> str | None:
-    """A warning naming the trees whose crown reaches ``preprocess.max_canopy_height`` while
-    map points stand above it inside their footprint (their tops, and volumes, are cut);
-    None when no tree does. Points above the ceiling elsewhere (wires, buildings) are not
-    counted."""
+) -> tuple[list[str], int]:
+    """The trees whose crown reaches ``ceiling`` (``preprocess.max_canopy_height``) while
+    map points stand above it inside their footprint (their tops, and volumes, are cut), and
+    how many such points were left out. Points above the ceiling elsewhere (wires,
+    buildings) are not counted."""
     from matplotlib.path import Path as Polygon
 
     above = xy[height > ceiling]
+    cut: list[str] = []
+    lost = 0
     if not len(above):
-        return None
-    cut, lost = [], 0
+        return cut, lost
     for tree in seg.trees:
         footprint = seg.footprints.get(tree.segment_id)
         if tree.crown_top_height_m < ceiling - margin or footprint is None or len(footprint) < 3:
@@ -129,13 +141,17 @@ def crowns_cut_at_the_ceiling(
         if inside >= MIN_POINTS_ABOVE:
             cut.append(tree.tree_id)
             lost += inside
-    if not cut:
-        return None
+    return cut, lost
+
+
+def ceiling_warning(cut: list[str], lost: int, ceiling: float) -> str:
+    """The warning naming the trees cut at a set ceiling and the setting to change."""
     return (
         f"{len(cut)} tree(s) reach preprocess.max_canopy_height = {ceiling:g} m and {lost} map "
         f"points above it in their footprints were left out ({', '.join(cut[:8])}"
         f"{', ...' if len(cut) > 8 else ''}): their tops and volumes are cut; raise "
-        "max_canopy_height (--set preprocess.max_canopy_height=...)"
+        "max_canopy_height or leave it unset to follow the trees "
+        "(--set preprocess.max_canopy_height=...)"
     )
 
 
