@@ -70,8 +70,7 @@ def segment(
     timings["preprocess"] = time.perf_counter() - t0
     if len(prepared.canopy_index) == 0:
         band = (
-            f"more than {pre.min_canopy_height:g} m above the ground "
-            "(preprocess.min_canopy_height)"
+            f"more than {pre.min_canopy_height:g} m above the ground (preprocess.min_canopy_height)"
             if pre.max_canopy_height is None
             else f"{pre.min_canopy_height:g}-{pre.max_canopy_height:g} m above the ground "
             "(preprocess.min_canopy_height/max_canopy_height)"
