@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 
 import typer
@@ -9,7 +10,7 @@ import typer
 
 def batch(
     manifest: Path = typer.Argument(
-        ..., help="Sessions to process: TOML (\\[\\[session]] tables) or CSV"
+        ..., help="Sessions to process: TOML ([[session]] tables) or CSV"
     ),
     out: Path = typer.Option(..., "--out", help="Output folder (sessions/<id>/, orchard.duckdb)"),
     scheduler: str = typer.Option(
@@ -40,10 +41,21 @@ def batch(
 ) -> None:
     """Process every session of a manifest on Dask and track each tree in the store."""
     from canopy_kit.batch import load_manifest, run_batch
-    from canopy_kit.cli.common import console, err_console, progress_bar
+    from canopy_kit.cli.common import (
+        check_output_file,
+        check_output_folder,
+        console,
+        err_console,
+        output_file,
+        output_folder,
+        progress_bar,
+    )
     from canopy_kit.store import MatchSettings
 
     specs = load_manifest(manifest, default_rig=rig)
+    check_output_folder(out)  # a file in the way: said before the cluster starts
+    if store is not None:
+        check_output_file(store, "--store")
     console.print(f"{len(specs)} sessions from {manifest} on {scheduler or 'a LocalCluster'}")
 
     def show(outcome) -> None:
@@ -55,7 +67,11 @@ def batch(
         else:
             console.print(f"  [red]failed[/] {outcome.session_id}: {outcome.error}")
 
-    with progress_bar() as progress:
+    with (
+        output_folder(out),
+        output_file(store, "--store") if store is not None else nullcontext(),
+        progress_bar() as progress,
+    ):
         result = run_batch(
             specs,
             out,

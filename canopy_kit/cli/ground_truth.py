@@ -46,7 +46,13 @@ def ground_truth(
     """Structure from motion, orthomosaic, DSM/CHM and crown diameters from drone photos."""
     import json
 
-    from canopy_kit.cli.common import console, parse_overrides, print_json, progress_bar
+    from canopy_kit.cli.common import (
+        console,
+        output_folder,
+        parse_overrides,
+        print_json,
+        progress_bar,
+    )
     from canopy_kit.config import load_preset
     from canopy_kit.errors import ConfigError, InputError
     from canopy_kit.geo import LocalFrame
@@ -70,7 +76,7 @@ def ground_truth(
     if tree_spacing is not None:
         overrides.setdefault("ground_truth", {})["tree_spacing_m"] = tree_spacing
     pipeline = load_preset(preset, overrides)
-    with progress_bar(transient=True) as progress:
+    with output_folder(out), progress_bar(transient=True) as progress:
         result = process_flight(
             images_dir,
             out,

@@ -29,6 +29,37 @@ def info(
         print_grid(grid)
     for w in facts.get("warnings", []):
         console.print(f"[yellow]warning[/]: {w}", markup=True, highlight=False)
+    unusable = why_run_cannot_use(facts)
+    if unusable:
+        console.print(
+            f"[bold red]canopy-kit run cannot use this bag[/]: {unusable}",
+            markup=True,
+            highlight=False,
+        )
+
+
+MIN_SWEEPS = 2  # what mapping needs at the least (canopy_kit.mapping.frontend)
+
+
+def why_run_cannot_use(facts: dict[str, Any]) -> str | None:
+    """Why ``canopy-kit run`` (and ``map``) would refuse the bag ``facts`` describe, from
+    what info sees (its LiDAR topic and its count), else None; None for a point cloud."""
+    from rich.markup import escape
+
+    from canopy_kit.io.bag import LIDAR_TYPES
+
+    if facts.get("kind") != "bag":
+        return None
+    name = facts.get("lidar_topic")
+    if not name:
+        return f"it has no LiDAR topic ({' or '.join(LIDAR_TYPES)})"
+    count = next((t["count"] for t in facts.get("topics", []) if t["name"] == name), None)
+    if count is not None and count < MIN_SWEEPS:
+        return (
+            f"its LiDAR topic {escape(name)} has {count} message{'s' if count != 1 else ''}; "
+            f"mapping needs at least {MIN_SWEEPS} sweeps"
+        )
+    return None
 
 
 def grids(facts: dict[str, Any]) -> list[Any]:

@@ -35,7 +35,13 @@ def map_bag(
     calibrate: bool = CALIBRATE_OPTION,
 ) -> None:
     """Map a bag: deskewed, gravity-aligned, georeferenced, voxel-thinned LAZ plus trajectory."""
-    from canopy_kit.cli.common import console, parse_overrides, progress_bar
+    from canopy_kit.cli.common import (
+        check_output_folder,
+        console,
+        output_folder,
+        parse_overrides,
+        progress_bar,
+    )
     from canopy_kit.config import MappingConfig, from_dict, load_preset, merge, to_dict
     from canopy_kit.mapping import build_map
     from canopy_kit.mapping.outputs import write_mapping_outputs
@@ -49,14 +55,16 @@ def map_bag(
     )
     base = to_dict(load_preset(preset).mapping) if preset else {}
     config = from_dict(MappingConfig, merge(base, overrides), "mapping")
+    check_output_folder(out)  # before the mapping, not after it
     with progress_bar(transient=True) as progress:
         result = build_map(bag, config, progress=progress)
         evaluation, reference = (
             _evaluate(result, bag, truth, progress) if evaluate else (None, None)
         )
-    paths = write_mapping_outputs(result, out, evaluation)
-    if plots:
-        paths.update(_write_plots(result, out, reference, evaluation))
+    with output_folder(out):
+        paths = write_mapping_outputs(result, out, evaluation)
+        if plots:
+            paths.update(_write_plots(result, out, reference, evaluation))
     _print_summary(console, result, evaluation, paths)
 
 
@@ -91,12 +99,14 @@ def _write_plots(result, out: Path, reference, evaluation) -> dict[str, Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from canopy_kit.io.atomic import atomic_path
     from canopy_kit.mapping.plots import mapping_figures
 
     paths = {}
     for name, fig in mapping_figures(result, reference, evaluation).items():
         path = out / f"{name}.png"
-        fig.savefig(path, dpi=110)
+        with atomic_path(path) as tmp:  # an interrupt leaves no half-written PNG
+            fig.savefig(tmp, dpi=110, format="png")
         plt.close(fig)
         paths[f"{name}_png"] = path
     return paths

@@ -346,8 +346,16 @@ def experiments(
     301-303, 2 rows x 6 trees: docs/REPRODUCTION.md).
     """
     import tempfile
+    from contextlib import nullcontext
 
-    from canopy_kit.cli.common import console, parse_overrides, print_json, progress_bar
+    from canopy_kit.cli.common import (
+        check_output_folder,
+        console,
+        output_folder,
+        parse_overrides,
+        print_json,
+        progress_bar,
+    )
     from canopy_kit.errors import InputError
     from canopy_kit.paper.experiments import (
         ExperimentConfig,
@@ -361,7 +369,11 @@ def experiments(
     if show_saved:
         results = load_results(out)
     else:
-        out = check_results_dir(out or new_results_dir(), overwrite)  # before hours of runs
+        out = out or new_results_dir()
+        check_output_folder(out)  # before hours of runs
+        out = check_results_dir(out, overwrite)
+        if work is not None:
+            check_output_folder(work, "--work")
         config = ExperimentConfig(
             seeds=tuple(range(first_seed, first_seed + seeds)),
             rows=rows,
@@ -378,6 +390,7 @@ def experiments(
             raise InputError("--saved-only needs --work (the folder the sessions ran in)")
         with (
             tempfile.TemporaryDirectory(prefix="canopy-kit-experiments-") as tmp,
+            output_folder(work, "--work") if work is not None else nullcontext(),
             progress_bar(transient=True) as progress,
         ):
             results = run_experiments(
@@ -387,7 +400,8 @@ def experiments(
                 keep_sessions=keep_sessions,
                 saved_only=saved_only,
             )
-        files = write_results(results, out, overwrite)
+        with output_folder(out):
+            files = write_results(results, out, overwrite)
     if json_output:
         print_json(results.to_dict())
         return

@@ -55,7 +55,7 @@ def run(
     Exit codes: 0 done (also when checks failed, unless --strict), 2 bad input, 3 processing
     failed, 4 with --strict: done, but a check failed (docs/RELIABILITY.md).
     """
-    from canopy_kit.cli.common import parse_overrides, progress_bar
+    from canopy_kit.cli.common import output_folder, parse_overrides, progress_bar
     from canopy_kit.config import load_preset, merge
     from canopy_kit.errors import InputError
     from canopy_kit.pipeline import run as run_pipeline
@@ -75,9 +75,10 @@ def run(
     if stream:
         from canopy_kit.cli.stream import run_streaming
 
-        run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
+        with output_folder(out):
+            run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
         return
-    with progress_bar(transient=True) as progress:
+    with output_folder(out), progress_bar(transient=True) as progress:
         results = run_pipeline(
             config,
             bag,

@@ -33,7 +33,13 @@ def segment(
     import numpy as np
     import pandas as pd
 
-    from canopy_kit.cli.common import console, parse_overrides, progress_bar
+    from canopy_kit.cli.common import (
+        check_output_folder,
+        console,
+        output_folder,
+        parse_overrides,
+        progress_bar,
+    )
     from canopy_kit.config import load_preset, write_config
     from canopy_kit.errors import InputError
     from canopy_kit.io.clouds import read_cloud
@@ -46,6 +52,7 @@ def segment(
     if method:  # another method than the preset's starts from its own defaults (apply_overrides)
         overrides.setdefault("segment", {})["method"] = method
     config = load_preset(preset, overrides)
+    check_output_folder(out)  # before reading and segmenting the map
     cloud = read_cloud(map_path)
     direction, source = None, None
     if trajectory is not None:
@@ -57,7 +64,7 @@ def segment(
         direction = driving_direction_from_trajectory(traj[["x", "y"]].to_numpy())
         source = f"trajectory {trajectory.name}"
     segmenter = make_segmenter(config.segment.method, config.segment.params)
-    with progress_bar(transient=True) as progress:
+    with output_folder(out), progress_bar(transient=True) as progress:
         seg = run_segment(
             cloud,
             segmenter,
@@ -73,7 +80,7 @@ def segment(
             from canopy_kit.segment.tree_export import export_trees as write_tree_clouds
 
             write_tree_clouds(out / "trees", cloud, seg)
-    write_config(config, out / "config.toml")
+        write_config(config, out / "config.toml")
     for w in seg.warnings:
         console.print(f"[yellow]warning:[/] {w}")
     n_rows = len(seg.rows.lines)

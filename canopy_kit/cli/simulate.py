@@ -35,7 +35,7 @@ def simulate(
     overwrite: bool = typer.Option(False, help="Replace a non-empty output folder"),
 ) -> None:
     """Simulate an orchard drive (LiDAR, IMU, GNSS bag) with per-tree truth."""
-    from canopy_kit.cli.common import console, parse_overrides, progress_bar
+    from canopy_kit.cli.common import console, output_folder, parse_overrides, progress_bar
     from canopy_kit.sim import load_sim_config, simulate_session
 
     overrides = parse_overrides(set_)
@@ -57,7 +57,7 @@ def simulate(
     if no_tf_static:
         overrides.setdefault("rig", {})["write_tf_static"] = False
     config = load_sim_config(orchard, overrides, sensor=sensor)
-    with progress_bar() as progress:
+    with output_folder(out, option=None), progress_bar() as progress:
         session = simulate_session(
             out,
             config,

@@ -101,11 +101,11 @@ def export(
     orchard: str = typer.Option(None, help="Only this orchard"),
 ) -> None:
     """Export a growth table (per tree or per row) or a store table to Parquet or CSV."""
-    from canopy_kit.cli.common import console
+    from canopy_kit.cli.common import console, output_file
     from canopy_kit.store import OrchardStore
     from canopy_kit.store import export as export_table
 
-    with OrchardStore(store, read_only=True) as db:
+    with output_file(out, None), OrchardStore(store, read_only=True) as db:
         path = export_table(db, what, out, method=method, orchard=orchard)
     console.print(f"[green]wrote[/] {path}")
 
@@ -124,7 +124,7 @@ def add(
 
     import pandas as pd
 
-    from canopy_kit.cli.common import console
+    from canopy_kit.cli.common import console, output_file
     from canopy_kit.errors import InputError
     from canopy_kit.store import MatchSettings, OrchardStore, SessionRecord
 
@@ -138,7 +138,7 @@ def add(
     record = SessionRecord(
         session_id or f"{orchard}-{day.isoformat()}", orchard, day, run_dir=str(run_dir)
     )
-    with OrchardStore(store) as db:
+    with output_file(store, None), OrchardStore(store) as db:
         rep = db.ingest(record, pd.read_parquet(table), MatchSettings(gate_m=gate)).summary()
     console.print(
         f"[green]stored[/] {rep['session_id']}: {rep['n_matched']} known trees, "

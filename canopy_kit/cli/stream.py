@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from canopy_kit.config import PipelineConfig
+
+LIVE_TABLE = "trees.live.csv"  # the trees as they come (canopy_kit.streaming.run)
 
 
 def run_streaming(
@@ -27,8 +30,15 @@ def run_streaming(
     from canopy_kit.volume.verb import volume_column
 
     method = config.volume.methods[0] if config.volume.methods else None
+    shown = []
 
     def show(tree) -> None:
+        if not shown and method:  # said with the first tree: a refused bag prints no more
+            console.print(
+                f"streaming {bag}: one line per tree as the robot passes it (V: {method}); "
+                "labels are provisional (the rows seen so far), trees.csv has the final ones"
+            )
+        shown.append(tree.index)
         v = tree.values
         volume = f"  V {v[volume_column(method)]:.2f} m³" if method else ""
         where = (
@@ -41,13 +51,14 @@ def run_streaming(
             f"h {v['height_m']:.2f} m  d {v['crown_diameter_m']:.2f} m{volume}"
         )
 
-    if method:
-        console.print(
-            f"streaming {bag}: one line per tree as the robot passes it (V: {method}); "
-            "labels are provisional (the rows seen so far), trees.csv has the final ones"
-        )
-    with progress_bar(transient=True) as progress:
-        results = run_stream(config, bag, out, progress=progress, on_tree=show, orchard=orchard)
+    started = time.time()
+    try:
+        with progress_bar(transient=True) as progress:
+            results = run_stream(config, bag, out, progress=progress, on_tree=show, orchard=orchard)
+    except BaseException:
+        if not shown:
+            _drop_empty_live_table(out / LIVE_TABLE, started)
+        raise
     m = results.metrics
     s = m["streaming"]
     console.print(
@@ -58,3 +69,13 @@ def run_streaming(
     for w in results.warnings:
         console.print(f"  [yellow]warning[/]: {w}")
     console.print(f"  trees: {results.files['trees.csv']}")
+
+
+def _drop_empty_live_table(path: Path, since: float) -> None:
+    """Remove the live table a stream that stopped before its first tree wrote (its header
+    only): a refused run leaves nothing behind. Never a table with a tree or an older one."""
+    try:
+        if path.stat().st_mtime >= since - 1 and len(path.read_text().splitlines()) <= 1:
+            path.unlink()
+    except (OSError, UnicodeDecodeError):
+        pass

@@ -41,10 +41,10 @@ def volume(
 
     CLOUD must hold one tree and nothing else: every point counts, so ground, trunk-height
     clutter or a neighbour's crown inflate the volume and the height. canopy-kit's own
-    outputs are whole orchards (`map.laz` of `run`, `segmented.laz` of `segment`); cut a tree
-    out of them first (e.g. with PDAL or CloudCompare), or let `run --export-trees` write
-    each tree's points as such a file. Those files (``trees/<tree_id>.laz``) give that tree's trees.csv
-    volume with the run's settings: ``--voxel-size 0.1`` and its method's ``--alpha``.
+    outputs are whole orchards (map.laz of run, segmented.laz of segment); cut a tree out of
+    them first (e.g. with PDAL or CloudCompare), or let run --export-trees write each tree's
+    points as such a file. Those files (trees/<tree_id>.laz) give that tree's trees.csv
+    volume with the run's settings: --voxel-size 0.1 and its method's --alpha.
     """
     from canopy_kit.cli.common import console, print_json
     from canopy_kit.io.clouds import read_cloud

@@ -8,7 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import tempfile
+import secrets
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,25 +19,31 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it to ``path`` on success.
 
     The temporary name keeps the final suffix (``suffix`` overrides it), so libraries
-    that choose a format by extension (laspy, open3d) still work.
+    that choose a format by extension (laspy, open3d) still work. On any exception,
+    Ctrl-C (KeyboardInterrupt) included, the temporary file is removed: the final name
+    holds the old file or the new one, never a part, and no temporary is left behind.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.name}.",
-        suffix=".tmp" + (suffix if suffix is not None else path.suffix),
-        dir=path.parent,
-    )
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
-    tmp_path = Path(tmp)
+    tail = ".tmp" + (suffix if suffix is not None else path.suffix)
+    while True:
+        tmp_path = path.parent / f".{path.name}.{secrets.token_hex(6)}{tail}"
+        try:
+            # 0o666 less the umask, as for any new file; O_EXCL: never another's file
+            os.close(os.open(tmp_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        except FileExistsError:
+            continue  # a name taken by another writer: never remove that one
+        except BaseException:
+            # Interrupted (Ctrl-C) between the file's creation and the end of the call.
+            with contextlib.suppress(FileNotFoundError):
+                tmp_path.unlink()
+            raise
+        break
     try:
         yield tmp_path
         os.replace(tmp_path, path)
     finally:
-        if tmp_path.exists():
+        with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
 
 
