@@ -12,7 +12,7 @@ from typing import Any
 import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
-from canopy_kit.io.atomic import atomic_path, atomic_write_text
+from canopy_kit.io.atomic import atomic_path
 from canopy_kit.tree_table import comparable_aerial_sphere, flagged
 from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS
 
@@ -116,18 +116,24 @@ def write_tree_tables(
     return files
 
 
+TREES_CSV_TITLE = "canopy-kit per-tree table"
+
+
 def write_trees(
     trees: pd.DataFrame, out: Path, provenance: dict[str, Any] | None = None
 ) -> dict[str, Path]:
-    """The per-tree table as trees.csv (full precision), trees.parquet (``provenance`` in its
-    schema metadata) and trees.geojson (none when no tree has a WGS84 position)."""
+    """The per-tree table as trees.csv (rounded to each column's meaning, ``provenance`` in
+    its CSVW sidecar trees.csv-metadata.json: ``canopy_kit.io.csv_table``), trees.parquet
+    (full precision, ``provenance`` in its schema metadata) and trees.geojson (none when no
+    tree has a WGS84 position)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from canopy_kit.io.csv_table import write_csv_table
     from canopy_kit.segment.export import write_geojson
 
     files: dict[str, Path] = {}
-    files["trees.csv"] = atomic_write_text(out / "trees.csv", trees.to_csv(index=False))
+    files.update(write_csv_table(trees, out / "trees.csv", provenance, TREES_CSV_TITLE))
     table = pa.Table.from_pandas(trees, preserve_index=False)
     if provenance:
         meta = dict(table.schema.metadata or {})

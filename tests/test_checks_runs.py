@@ -99,3 +99,27 @@ def test_the_demo_runs_fail_no_check(orchard, preset, small_almond, small_pistac
     result = _cli_run(session, run_folder(orchard), preset, "--strict")
     failed = _failed(run_folder(orchard))
     assert result.returncode == 0 and failed == [], failed
+
+
+@pytest.mark.slow
+def test_a_split_almond_tree_fails_the_run_and_the_right_run_passes(sim_factory, tmp_path):
+    """Issue 48's wrong run: a 1 row x 4 almond drive (3 trees stand, seed 3) under the
+    paper's almond preset cuts one crown in two; the simulator's truth is the independent
+    count. The piece on no trunk beside its tree fails --strict and is named; the adaptive
+    preset's run of the same bag (cached map) finds the three trees and passes."""
+    session = sim_factory(
+        "almond", seed=3, overrides={"orchard": {"rows": 1, "trees_per_row": 4}}, truth_field=False
+    )
+    truth = pd.read_csv(session.truth_dir / "trees.csv")
+    split = _cli_run(session, tmp_path, "almond", "--strict")
+    assert split.returncode == 4, split.stdout + split.stderr
+    trees = pd.read_csv(tmp_path / "trees.csv")
+    assert len(trees) == len(truth) + 1  # the independent count: one tree cut in two
+    (check,) = [c for c in _failed(tmp_path) if c["name"].startswith("segments on no trunk")]
+    assert check["value"] == "1"
+    piece = trees.loc[trees["n_trunks"] == 0, "tree_id"].tolist()
+    assert len(piece) == 1 and piece[0] in check["note"]
+    assert "segments on no trunk" in split.stdout
+    right = _cli_run(session, tmp_path, "adaptive", "--strict")
+    assert right.returncode == 0, right.stdout + right.stderr
+    assert len(pd.read_csv(tmp_path / "trees.csv")) == len(truth) and _failed(tmp_path) == []

@@ -79,8 +79,11 @@ def _check_cache_entries(out: Path) -> list[str]:
 
 @pytest.fixture(scope="module")
 def reference_csv(tiny_pistachio_run) -> str:
-    """``trees.csv`` of the uninterrupted run of the same command (conftest's cached run)."""
-    return tiny_pistachio_run.trees.to_csv(index=False)
+    """``trees.csv`` of the uninterrupted run of the same command (conftest's cached run), as
+    the run writes it (rounded: ``canopy_kit.io.csv_table``)."""
+    from canopy_kit.io.csv_table import csv_text
+
+    return csv_text(tiny_pistachio_run.trees)
 
 
 def test_killed_after_mapping_leaves_no_output_and_resumes(tiny_pistachio, reference_csv, tmp_path):

@@ -254,7 +254,8 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
 
     run = tiny_pistachio_run
     path = Path(run.files["report.html"])
-    trees = pd.read_csv(run.out_dir / "trees.csv")
+    # The run's table at full precision (trees.csv holds it rounded to its meaning).
+    trees = pd.read_parquet(run.out_dir / "trees.parquet")
     page_url = path.resolve().as_uri()
     requests: list[str] = []
     blocked: list[str] = []
@@ -373,6 +374,17 @@ def test_interactive_report_works_offline_and_matches_trees_csv(tiny_pistachio_r
             embedded = page.evaluate("href => fetch(href).then(r => r.text())", href)
             assert embedded == (run.out_dir / name).read_text(), name
 
+        # The recommended estimator's volume leads: the map's colours and the histogram.
+        from canopy_kit.config import load_preset
+        from canopy_kit.report.columns import COLUMN_LABELS
+        from canopy_kit.volume.verb import volume_column
+
+        lead = COLUMN_LABELS[
+            volume_column(load_preset(run.out_dir / "config.toml").volume.recommended)
+        ]
+        assert page.locator("#map-colour option").first.text_content() == lead.replace(" [m³]", "")
+        assert page.evaluate("document.getElementById('hist').data[0].name") == lead
+
         # Colouring by flag redraws the map with the same trees.
         page.select_option("#map-colour", "flag")
         again = page.evaluate(
@@ -447,7 +459,7 @@ def test_drill_down_shows_the_drone_crop_around_the_tree(tiny_drone_run) -> None
     from canopy_kit.report.browser import CHROMIUM_ARGS, find_chromium
 
     run = tiny_drone_run
-    trees = pd.read_csv(run.out_dir / "trees.csv")
+    trees = pd.read_parquet(run.out_dir / "trees.parquet")  # trees.csv: rounded
     assert trees["aerial_sphere_volume_m3"].notna().any()
     url = Path(run.files["report.html"]).resolve().as_uri()
     errors: list[str] = []

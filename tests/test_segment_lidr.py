@@ -35,10 +35,12 @@ def test_adaptive_agrees_with_the_tree_ids_above_a_floor(mixed_conifer) -> None:
     tid = np.asarray(cloud.fields["treeID"], dtype=np.float64)
     truth = np.where(np.isfinite(tid) & (tid < 1e300), tid, -1).astype(np.int64)
     truth[cloud.fields["classification"] == 2] = -1  # ground points carry IDs too
-    # Conifers are taller than orchard trees: widen the canopy band, nothing else.
-    seg = segment(
-        cloud, "adaptive", PreprocessConfig(min_canopy_height=2.0, max_canopy_height=40.0)
-    )
+    # The band's floor raised for conifers; its top follows the data (the file's 32.07 m
+    # tallest point): no crown is cut and nothing says one is.
+    seg = segment(cloud, "adaptive", PreprocessConfig(min_canopy_height=2.0))
+    assert 31.9 < seg.canopy_band_m[1] <= 32.1 and seg.ceiling_source == "data"
+    assert max(t.crown_top_height_m for t in seg.trees) > 31.0
+    assert not [w for w in seg.warnings if "max_canopy_height" in w]
     score = score_point_labels(seg.labels, truth)
     both = (truth >= 0) | (seg.labels >= 0)
     ari = adjusted_rand_score(truth[both], seg.labels[both])

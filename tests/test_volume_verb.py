@@ -203,7 +203,8 @@ def run_context(tiny_pistachio, tiny_pistachio_run):
 @pytest.mark.slow
 def test_the_notebook_code_path_gives_trees_csv_numbers(run_context, tiny_pistachio_run) -> None:
     ctx = run_context
-    csv = pd.read_csv(tiny_pistachio_run.out_dir / "trees.csv").set_index("segment")
+    # trees.parquet: the run's table at full precision (trees.csv is rounded to its meaning)
+    csv = pd.read_parquet(tiny_pistachio_run.out_dir / "trees.parquet").set_index("segment")
     assert len(csv) > 0
     columns = MEASURED + [volume_column(m) for m in volume_methods(ctx.config.volume)]
     for seg in csv.index:
@@ -240,7 +241,8 @@ def test_the_volumes_notebook_shows_trees_csv_numbers(
     spec.loader.exec_module(notebook)
     _, defs = notebook.app.run()
     ctx = defs["ctx"]
-    csv = pd.read_csv(tiny_pistachio_run.out_dir / "trees.csv").set_index("segment")
+    # trees.parquet: the run's table at full precision (trees.csv is rounded to its meaning)
+    csv = pd.read_parquet(tiny_pistachio_run.out_dir / "trees.parquet").set_index("segment")
     columns = [volume_column(m) for m in volume_methods(ctx.config.volume)]
     _assert_same(defs["measured"], csv.loc[defs["tree"].value], MEASURED + columns)
 

@@ -268,8 +268,13 @@ def explorer_data(
     details: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Everything the page's script draws, as one JSON-ready dict (``details``: the
-    :func:`tree_details` made already, else they are made now)."""
+    :func:`tree_details` made already, else they are made now). ``recommended``: the volume
+    the map is coloured by and every chart leads with."""
+    from canopy_kit.volume.verb import volume_column
+
+    name = ctx.config.volume.recommended
     return {
+        "recommended": {"name": name, "column": volume_column(name)},
         "trees": json_records(trees),
         "columns": column_specs(trees),
         "flagged": [bool(f) for f in _flagged(trees)],

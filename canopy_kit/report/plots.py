@@ -26,9 +26,10 @@ def plot_volumes(trees: pd.DataFrame, columns: dict[str, str], ax: Any = None) -
     for i, (name, col) in enumerate(cols.items()):
         ax.bar(x + (i - (len(cols) - 1) / 2) * width, trees[col], width, label=name)
     ax.set_xticks(x)
-    ax.set_xticklabels(
-        [f"{r}:{lab}" for r, lab in zip(trees["row"], trees["label"])], rotation=90, fontsize=7
+    names = (
+        trees["tree_id"] if "tree_id" in trees else trees["row"].astype(str) + "-" + trees["label"]
     )
+    ax.set_xticklabels(names.astype(str), rotation=90, fontsize=9)
     ax.set_ylabel("volume (m³)")
     ax.legend(fontsize=8)
     ax.set_title("canopy volume per tree")
@@ -53,7 +54,7 @@ def plot_agreement(
     a.scatter(ref, est, s=18)
     if labels is not None:
         for x, y, lab in zip(ref, est, labels):
-            a.annotate(lab, (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
+            a.annotate(lab, (x, y), fontsize=8, xytext=(2, 2), textcoords="offset points")
     ag = stats.agreement(est, ref)
     a.set_xlabel(f"{names[1]} (m³)")
     a.set_ylabel(f"{names[0]} (m³)")
@@ -130,7 +131,7 @@ def plot_accuracy_matrix(table: pd.DataFrame, goal: tuple[float, float] = (0.05,
 def _finish_bias_figure(fig: Any, axes: np.ndarray, ylabel: str, title: str) -> Any:
     """Label, legend and title a row of :func:`_bias_panel` panels."""
     axes[0].set_ylabel(f"{ylabel}\nbar: signed bias, dot: MAPE")
-    axes[0].legend(fontsize=7, loc="lower left")
+    axes[0].legend(fontsize=8, loc="lower left")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return fig
@@ -166,7 +167,7 @@ def plot_family_accuracy(
                     xytext=(0, -14),
                     textcoords="offset points",
                     ha="center",
-                    fontsize=7,
+                    fontsize=8,
                 )
     return _finish_bias_figure(
         fig,

@@ -75,10 +75,11 @@ def session_report_page(
             figure_to_data_uri(map_fig),
         )
     ]
-    volume_columns = {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN}
     recommended = ctx.config.volume.recommended
-    if volume_column(recommended) not in volume_columns.values():
-        volume_columns[f"{recommended} (recommended)"] = volume_column(recommended)
+    volume_columns = {f"{recommended} (recommended)": volume_column(recommended)}
+    for name, column in (("convex hull", CONVEX_HULL_COLUMN), ("alpha shape", ALPHA_COLUMN)):
+        if column not in volume_columns.values():
+            volume_columns[name] = column
     if "aerial_sphere_volume_m3" in trees:
         volume_columns["aerial sphere"] = "aerial_sphere_volume_m3"
     if "true_crown_volume_m3" in trees:
@@ -283,12 +284,13 @@ def report_downloads(
 ) -> list[dict[str, str]]:
     """The files the page offers for download, made by the functions that write them beside
     it (with the run's ``provenance``); a GeoJSON the run does not write (no CRS) is left out."""
+    from canopy_kit.io.csv_table import csv_text
     from canopy_kit.outputs import trees_geojson
     from canopy_kit.segment.export import crowns_geojson, rows_geojson
 
     geo = "application/geo+json"
     files = [
-        ("trees.csv", "text/csv", trees.to_csv(index=False)),
+        ("trees.csv", "text/csv", csv_text(trees)),
         ("trees.geojson", geo, trees_geojson(trees, provenance)),
         ("crowns.geojson", geo, crowns_geojson(ctx.segmentation, provenance)),
         ("rows.geojson", geo, rows_geojson(ctx.segmentation, provenance)),

@@ -46,6 +46,58 @@ NO_CRS_NOTE = (
     "RFC 7946 GeoJSON is WGS84 only; trees.gpkg holds the layers in the local frame"
 )
 RUN_CLOUD = "map.laz"  # the cloud of a ``canopy-kit run`` folder
+# trees.csv of ``segment``: the columns ``run`` writes for a tree before its volumes, in its
+# order (``tree_table.FIRST_COLUMNS``), so one script reads both.
+TREE_COLUMNS = [
+    "tree_id",
+    "label",
+    "row",
+    "x",
+    "y",
+    "lat",
+    "lon",
+    "n_points",
+    "height_m",
+    "crown_diameter_m",
+    "segment",
+    "crown_base_height_m",
+    "crown_diameter_mean_m",
+    "projected_area_m2",
+    "sphere_volume_m3",
+    "index_in_row",
+]
+
+
+def tree_rows(seg: Segmentation, cloud: PointCloud) -> pd.DataFrame:
+    """The per-tree table ``segment`` writes: each tree's position and size measured as ``run``
+    measures them (``volume.metrics.crown_columns`` on its points, heights above the
+    segmentation's ground), lat/lon when the map has a CRS; no volumes."""
+    from canopy_kit.volume.metrics import crown_columns
+
+    rows = []
+    order = np.argsort(seg.labels, kind="stable")
+    ids, starts = np.unique(seg.labels[order], return_index=True)
+    bounds = dict(
+        zip(ids.tolist(), zip(starts, [*starts[1:], len(order)], strict=True), strict=True)
+    )
+    for tree in seg.trees:
+        lo, hi = bounds[tree.segment_id]
+        row = crown_columns(cloud.xyz[order[lo:hi]], seg.ground.height)
+        row.update(
+            tree_id=tree.tree_id,
+            label=tree.label,
+            row=tree.row,
+            segment=tree.segment_id,
+            index_in_row=tree.index_in_row,
+        )
+        rows.append(row)
+    table = pd.DataFrame(rows, columns=[c for c in TREE_COLUMNS if c not in ("lat", "lon")])
+    lat = lon = np.full(len(table), np.nan)
+    if seg.crs and len(table):
+        lon, lat = lonlat_of(table[["x", "y"]].to_numpy(), seg.crs, seg.origin)
+    table.insert(TREE_COLUMNS.index("lat"), "lat", lat)
+    table.insert(TREE_COLUMNS.index("lon"), "lon", lon)
+    return table
 
 
 @dataclass
@@ -148,8 +200,8 @@ def write_segmentation(
 ) -> dict[str, Path]:
     """Write a run folder (see module docstring); returns the paths written."""
     from canopy_kit.io.clouds import write_cloud
+    from canopy_kit.io.csv_table import write_csv_table
     from canopy_kit.segment.labelled import labelled_map
-    from canopy_kit.truth import write_csv
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -157,7 +209,10 @@ def write_segmentation(
     if with_cloud:
         labelled = labelled_map(_las_compatible(cloud), seg, with_height=True)
         paths["cloud"] = write_cloud(out / FILES["cloud"], labelled)
-    paths["trees"] = write_csv(seg.table(), out / FILES["trees"])
+    written = write_csv_table(
+        tree_rows(seg, cloud), out / FILES["trees"], provenance, "canopy-kit segments"
+    )
+    paths["trees"] = written[FILES["trees"]]
     paths |= write_geojson(out, {"positions": positions_geojson(seg, provenance)})
     return paths | write_segmentation_summary(out, seg, provenance=provenance)
 
@@ -264,9 +319,8 @@ def read_segmentation(run_dir: str | Path, with_cloud: bool = True) -> Segmentat
             raise InputError(f"{root}: not a segmentation folder (no {FILES[key]})")
     summary = json.loads((root / FILES["summary"]).read_text())
     trees = pd.read_csv(root / FILES["trees"], dtype={"tree_id": str, "label": str})
-    run_folder = "segment_id" not in trees and "segment" in trees  # `canopy-kit run`'s table
-    if run_folder:
-        trees = trees.rename(columns={"segment": "segment_id"})
+    trees = trees.rename(columns={"segment": "segment_id"})  # both tables name it `segment`
+    run_folder = (root / "metrics.json").exists()  # `canopy-kit run` writes it, `segment` not
     origin = np.asarray(summary.get("origin", [0, 0, 0]), float)
     footprints = read_footprints(root, summary)
     cloud = None

@@ -181,3 +181,26 @@ def tree_metrics(
         density_per_m3=float(density),
         sphere_volume_m3=sphere_volume(widest),
     )
+
+
+def crown_columns(xyz: Any, ground_height: Any = None) -> dict[str, Any]:
+    """One tree's position and size as the per-tree table's columns (``x``, ``y``: the median
+    of its points; heights above ``ground_height(xy)`` at that position, e.g. the
+    segmentation's ground model; else above its lowest point): what ``run`` and ``segment``
+    both write for a tree."""
+    pts = as_points(xyz)
+    centre = np.median(pts[:, :2], axis=0)
+    ground = float(ground_height(centre[None, :])[0]) if ground_height is not None else None
+    # The metrics' density is not in the table: no second hull of every point for it.
+    metrics = tree_metrics(pts, ground_z=ground, volume_m3=float("nan"))
+    return {
+        "x": float(centre[0]),
+        "y": float(centre[1]),
+        "n_points": metrics.n_points,
+        "height_m": metrics.height_m,
+        "crown_base_height_m": metrics.crown_base_height_m,
+        "crown_diameter_m": metrics.crown_diameter_max_m,
+        "crown_diameter_mean_m": metrics.crown_diameter_mean_m,
+        "projected_area_m2": metrics.projected_area_m2,
+        "sphere_volume_m3": metrics.sphere_volume_m3,
+    }

@@ -22,7 +22,7 @@ import pandas as pd
 from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
 from canopy_kit.parallel import run_jobs, worker_count
-from canopy_kit.volume import tree_metrics
+from canopy_kit.volume.metrics import crown_columns
 from canopy_kit.volume.surface import Surface
 from canopy_kit.voxel import voxel_representatives
 
@@ -195,22 +195,7 @@ def _measure_tree(
         results[method], surface = _measured(est, measured, method in drawn)
         if surface is not None:
             surfaces[method] = surface
-    centre = np.median(xyz[:, :2], axis=0)
-    ground = float(ground_height(centre[None, :])[0]) if ground_height is not None else None
-    row: dict[str, Any] = {"x": float(centre[0]), "y": float(centre[1])}
-    # The metrics' density is not in the table: no second hull of every point for it.
-    metrics = tree_metrics(xyz, ground_z=ground, volume_m3=float("nan"))
-    row.update(
-        {
-            "n_points": metrics.n_points,
-            "height_m": metrics.height_m,
-            "crown_base_height_m": metrics.crown_base_height_m,
-            "crown_diameter_m": metrics.crown_diameter_max_m,
-            "crown_diameter_mean_m": metrics.crown_diameter_mean_m,
-            "projected_area_m2": metrics.projected_area_m2,
-            "sphere_volume_m3": metrics.sphere_volume_m3,
-        }
-    )
+    row: dict[str, Any] = crown_columns(xyz, ground_height)
     for method, result in results.items():
         row[volume_column(method)] = result.volume_m3 if result.valid else np.nan
     flags = [f"{m}: {r.reason}" for m, r in results.items() if not r.valid]
@@ -227,8 +212,8 @@ def _measure_tree(
     if sensor_xy is not None and len(sensor_xy):
         from canopy_kit.volume.uncertainty import sides_seen
 
-        radius = 0.5 * float(metrics.crown_diameter_max_m or 0.0)
-        sides = sides_seen(centre, sensor_xy, crown_radius=radius)
+        radius = 0.5 * float(row["crown_diameter_m"] or 0.0)
+        sides = sides_seen(np.array([row["x"], row["y"]]), sensor_xy, crown_radius=radius)
     row["sides_seen"] = sides if sides is not None else np.nan
     row.update(
         interval_columns(

@@ -86,7 +86,10 @@
     if (t.aerial_flag) { return "drone crown flag"; }
     return "no flag";
   }
-  var VOL = "volume_alpha_m3";
+  // The recommended estimator's volume leads: the map's colours, the hover, the histogram.
+  var VOL = D.recommended && D.recommended.column in (D.trees[0] || {}) ? D.recommended.column : "volume_alpha_m3";
+  var VOLUMES = [VOL].concat(["volume_alpha_m3", "volume_convex_hull_m3", "aerial_sphere_volume_m3"]
+    .filter(function (k) { return k !== VOL; }));
   var vols = D.trees.map(function (t) { return t[VOL]; }).filter(function (v) { return v !== null; });
   var vmin = vols.length ? Math.min.apply(null, vols) : 0, vmax = vols.length ? Math.max.apply(null, vols) : 1;
   function volumeColour(t) {
@@ -95,7 +98,7 @@
   }
   function hoverText(t) {
     var lines = ["<b>" + t.tree_id + "</b> (row " + t.row + ")"];
-    ["volume_alpha_m3", "volume_convex_hull_m3", "aerial_sphere_volume_m3", "crown_diameter_m", "height_m"]
+    VOLUMES.concat(["crown_diameter_m", "height_m"])
       .forEach(function (k) { if (k in t) { lines.push(label[k] + ": " + fmt(t[k])); } });
     ["volume_flags", "segment_flags", "aerial_flag"].forEach(function (k) {
       if (t[k]) { lines.push(label[k] + ": " + t[k]); } });
@@ -177,6 +180,7 @@
       if (id) { showTree(id); }
     });
     var sel = document.getElementById("map-colour");
+    if (sel && sel.options.length) { sel.options[0].textContent = (label[VOL] || VOL).replace(/ \[m³\]$/, ""); }
     if (sel) { sel.addEventListener("change", function () { mode = sel.value; drawMap(); }); }
   }
 
@@ -185,7 +189,7 @@
   if (histEl && !vols.length) { histEl.parentNode.style.display = "none"; }
   if (histEl && vols.length) {
     var hist = [], series = [], all = [];
-    ["volume_alpha_m3", "volume_convex_hull_m3", "aerial_sphere_volume_m3"].forEach(function (k) {
+    VOLUMES.forEach(function (k) {
       if (!(k in (D.trees[0] || {}))) { return; }
       var v = D.trees.filter(function (t) { return k !== "aerial_sphere_volume_m3" || !t.aerial_flag; })
         .map(function (t) { return t[k]; }).filter(function (x) { return x !== null && x !== undefined; });
@@ -201,8 +205,9 @@
       hist.push({type: "histogram", name: name, opacity: 0.85, x: kv[1],
                  xbins: {start: start, end: end, size: size}});
     });
-    Plotly.newPlot(histEl, hist, {barmode: "group", bargap: 0.15, margin: {l: 50, r: 10, t: 30, b: 70},
-      title: {text: "Volume per tree", font: {size: 14}}, xaxis: {title: {text: "volume [m³]"}, dtick: 2 * size, tick0: 0},
+    Plotly.newPlot(histEl, hist, {barmode: "group", bargap: 0.15, margin: {l: 50, r: 10, t: 50, b: 70},
+      title: {text: "Volume per tree", font: {size: 14}, x: 0, xref: "paper", xanchor: "left",
+              y: 1, yref: "paper", yanchor: "bottom", pad: {b: 6}},  // below the mode bar xaxis: {title: {text: "volume [m³]"}, dtick: 2 * size, tick0: 0},
       yaxis: {title: {text: "trees"}}, legend: {orientation: "h", y: -0.32}}, config);
   }
 
