@@ -62,7 +62,7 @@ def plot_crowns(
             label,
             (row.x, row.y),
             color="white",
-            fontsize=7,
+            fontsize=8,
             ha="center",
             va="center",
             weight="bold",

@@ -303,4 +303,3 @@ def test_interval_check_counts_the_trees_whose_interval_holds_their_measurand() 
     measurand[2] = 30.0
     assert interval_check("foliage_envelope", interval_holds(trees, measurand)).status == "pass"
     assert interval_holds(trees.drop(columns="volume_low_m3"), measurand) is None
-
