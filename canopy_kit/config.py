@@ -198,8 +198,9 @@ class GroundTruthConfig:
     work_image_size: int = 2000
     # Orthomosaic cell size (m); unset: the ground sampling distance, at least 2 cm.
     ortho_resolution: float | None = None
-    # Highest canopy (m above ground) the surface matching searches.
-    max_canopy_height: float = 8.0
+    # Highest canopy (m above ground) the surface matching searches; unset: from the flight's
+    # sparse points (ground_truth.dsm.search_height: the trees' own height, plus 2 m).
+    max_canopy_height: float | None = None
     # A crown farther than this from a tree is not that tree's crown (seeded or not).
     match_distance_m: float = 1.5
     # Seed the crowns with the given trees' positions (the LiDAR's in a run); false: find them
@@ -227,10 +228,11 @@ class GroundTruthConfig:
                 raise ConfigError(
                     f"ground_truth.{name}: expected an integer >= 64 (px), got {value!r}"
                 )
-        for name in ("max_canopy_height", "match_distance_m"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
-                raise ConfigError(f"ground_truth.{name}: expected a number > 0, got {value!r}")
+        value = self.match_distance_m
+        if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+            raise ConfigError(
+                f"ground_truth.match_distance_m: expected a number > 0, got {value!r}"
+            )
         check_choice(self.crown_seeds, "ground_truth.crown_seeds", None, CROWN_SEEDINGS)
         bearing = self.row_bearing_deg
         if bearing is not None and (
@@ -245,6 +247,7 @@ class GroundTruthConfig:
         for name, unset in (
             ("ortho_resolution", "the ground sampling distance"),
             ("tree_spacing_m", "the crowns' width across the row"),
+            ("max_canopy_height", "from the flight's sparse points"),
         ):
             value = getattr(self, name)
             if value is not None and (

@@ -10,19 +10,14 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
+from canopy_kit.volume.metrics import POSITION_AND_SIZE
 from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS
 
 FIRST_COLUMNS = [
     "tree_id",
     "label",
     "row",
-    "x",
-    "y",
-    "lat",
-    "lon",
-    "n_points",
-    "height_m",
-    "crown_diameter_m",
+    *POSITION_AND_SIZE,
     *PAPER_VOLUME_COLUMNS,
 ]
 

@@ -364,6 +364,32 @@ def dense_surface(
     return SurfaceModel(grid, dsm, ground, score, views, [c.name for c in cameras])
 
 
+SEARCH_HEIGHT_WITHOUT_DATA_M = 8.0  # the coarse pass's range when the sparse points tell nothing
+SEARCH_MARGIN_M = 2.0  # above the sparse points' canopy: the coarse pass finds the real top
+MIN_CANOPY_POINTS = 30  # sparse points above the floor that show where the canopy ends
+
+
+def search_height(
+    points: np.ndarray, grid: Grid, ground: np.ndarray, floor: float = 0.5
+) -> tuple[float, str]:
+    """The highest canopy (m above ground) the surface matching searches, from the flight's own
+    sparse points (no fixed limit): the top of their height distribution below its first
+    empty 2 m band (``canopy_kit.segment.preprocess.canopy_ceiling``: trees of any height,
+    not a stray point high above them) plus ``SEARCH_MARGIN_M``; with too few points above
+    ``floor``, ``SEARCH_HEIGHT_WITHOUT_DATA_M``. Returns the height and where it came from."""
+    from canopy_kit.segment.preprocess import canopy_ceiling
+    from ground_truth.raster import sample_bilinear
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts):
+        height = pts[:, 2] - sample_bilinear(grid, ground, pts[:, 0], pts[:, 1])
+        height = height[np.isfinite(height)]
+        if int((height >= floor).sum()) >= MIN_CANOPY_POINTS:
+            top = canopy_ceiling(height, floor) + SEARCH_MARGIN_M
+            return float(top), "the flight's sparse points"
+    return SEARCH_HEIGHT_WITHOUT_DATA_M, "too few sparse points above the ground: a default"
+
+
 def canopy_top(
     cameras: Sequence[PosedCamera],
     images: Sequence[np.ndarray],

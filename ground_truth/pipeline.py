@@ -33,6 +33,7 @@ from ground_truth.dsm import (
     ground_from_surface,
     ground_model,
     reliable_points,
+    search_height,
 )
 from ground_truth.exif import Flight, read_flight
 from ground_truth.match import crown_tree_ids, match_crowns, read_trees, seed_offset, tree_positions
@@ -153,7 +154,10 @@ def _reconstruct(
         _grey(rgb, 0.35 * grid.resolution / gsd) for rgb in rgbs
     ]  # anti-alias to the cell size
     classes = vegetation_images(rgbs, 0.35 * grid.resolution / gsd)
-    top = canopy_top(cameras, greys, grid, ground, opts.max_canopy_height, surface_opts)
+    limit = opts.max_canopy_height
+    if limit is None:  # unset: the trees' own height, as the sparse points show it
+        limit, _ = search_height(points, grid, ground)
+    top = canopy_top(cameras, greys, grid, ground, limit, surface_opts)
     raw = dense_surface(
         cameras, greys, grid, ground, top, surface_opts, classes=classes, progress=report
     )

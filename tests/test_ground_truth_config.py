@@ -88,14 +88,18 @@ def _work_pixels(config: GroundTruthConfig, flight_dir: Path, tmp_path: Path) ->
 
 def _canopy_search_height(config: GroundTruthConfig, *_) -> float:
     """The height above ground the fine surface matching searches up to."""
-    from ground_truth.dsm import SurfaceOptions, canopy_top
+    from ground_truth.dsm import SurfaceOptions, canopy_top, search_height
     from ground_truth.raster import Grid
 
     cams, images = two_photos_of_a_block(3.0)
     grid = Grid(-6.0, 6.0, 0.1, 120, 120)
-    return canopy_top(
-        cams, images, grid, np.zeros(grid.shape), config.max_canopy_height, SurfaceOptions()
-    )
+    ground = np.zeros(grid.shape)
+    limit = config.max_canopy_height
+    if limit is None:  # unset: from sparse points, here on the ground and the 3 m block's top
+        xy = np.random.default_rng(0).uniform(-5, 5, (400, 2))
+        top = np.abs(xy).max(axis=1) < 3.0
+        limit, _ = search_height(np.column_stack([xy, np.where(top, 3.0, 0.0)]), grid, ground)
+    return canopy_top(cams, images, grid, ground, limit, SurfaceOptions())
 
 
 def _mosaic_pixels(config: GroundTruthConfig, *_) -> float:
@@ -373,3 +377,26 @@ def test_a_given_row_bearing_is_used_and_reported() -> None:
     for bad in (-5.0, 360.0, "north", True):
         with pytest.raises(ConfigError, match="ground_truth.row_bearing_deg"):
             GroundTruthConfig(row_bearing_deg=bad)
+
+
+def test_the_search_height_follows_the_trees_in_the_sparse_points() -> None:
+    """Unset max_canopy_height: the sparse points' canopy top (14 m walnut-like crowns here,
+    above the old fixed 8 m) plus 2 m, a stray point 60 m up left out; too few points above
+    the ground: the 8 m default, said to be one."""
+    from ground_truth.dsm import SEARCH_HEIGHT_WITHOUT_DATA_M, search_height
+    from ground_truth.raster import Grid
+
+    rng = np.random.default_rng(1)
+    grid = Grid(-10.0, 10.0, 0.5, 40, 40)
+    ground = np.full(grid.shape, 100.0)  # heights are above this ground, not above zero
+    xy = rng.uniform(-9, 9, (3000, 2))
+    crown = np.hypot(xy[:, 0], xy[:, 1]) < 5
+    z = 100.0 + np.where(crown, rng.uniform(2.0, 14.0, len(xy)), rng.normal(0, 0.05, len(xy)))
+    points = np.vstack([np.column_stack([xy, z]), [[0.0, 0.0, 160.0]]])
+    height, source = search_height(points, grid, ground)
+    assert 15.8 < height <= 16.0 and source == "the flight's sparse points"
+    flat = np.column_stack([xy, np.full(len(xy), 100.0)])
+    assert search_height(flat, grid, ground) == (
+        SEARCH_HEIGHT_WITHOUT_DATA_M,
+        "too few sparse points above the ground: a default",
+    )

@@ -27,19 +27,21 @@ def plot_trajectories(
     title: str = "",
     ax: Any = None,
 ) -> Any:
-    """Top view of the estimated trajectory and, when given, the reference (SE(3)-aligned).
+    """Top view of the estimated trajectory and, when given, the reference, in the estimate's
+    (the map's) frame: the frame of every other map figure.
 
-    ``alignment`` (4x4, e.g. from :func:`canopy_kit.mapping.trajectory_error.trajectory_errors`) maps
-    the estimate onto the reference frame; without it the estimate is drawn as is.
-    Returns the matplotlib Figure.
+    ``alignment`` (4x4, e.g. from :func:`canopy_kit.mapping.trajectory_error.trajectory_errors`)
+    maps the estimate onto the reference frame; its inverse brings the reference onto the
+    map. Without it both are drawn as they are. Returns the matplotlib Figure.
     """
     fig, ax = _figure(ax, (7, 6))
     xyz = estimated[["x", "y", "z"]].to_numpy()
-    if alignment is not None:
-        a = np.asarray(alignment)
-        xyz = xyz @ a[:3, :3].T + a[:3, 3]
     if reference is not None:
-        ax.plot(reference["x"], reference["y"], color="0.3", lw=2.5, alpha=0.6, label="true")
+        ref = reference[["x", "y", "z"]].to_numpy()
+        if alignment is not None:
+            a = np.asarray(alignment)
+            ref = (ref - a[:3, 3]) @ a[:3, :3]  # the inverse of x -> R x + t
+        ax.plot(ref[:, 0], ref[:, 1], color="0.3", lw=2.5, alpha=0.6, label="true")
     ax.plot(xyz[:, 0], xyz[:, 1], color="tab:red", lw=1.0, label="estimated")
     ax.plot(xyz[0, 0], xyz[0, 1], "o", color="tab:green", ms=6, label="start")
     ax.set_aspect("equal")

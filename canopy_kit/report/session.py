@@ -11,19 +11,14 @@ from canopy_kit.checks import Check, format_value
 from canopy_kit.report.figures import figure_to_data_uri
 from canopy_kit.report.html import ReportSection, render_report
 from canopy_kit.report.mapdecor import add_north_arrow_and_scale
+from canopy_kit.volume.metrics import POSITION_AND_SIZE
 from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN, volume_column
 
 TABLE_COLUMNS = [
     "tree_id",
     "row",
     "label",
-    "x",
-    "y",
-    "lat",
-    "lon",
-    "n_points",
-    "height_m",
-    "crown_diameter_m",
+    *POSITION_AND_SIZE,
     CONVEX_HULL_COLUMN,
     ALPHA_COLUMN,
     "aerial_diameter_m",
@@ -119,8 +114,8 @@ def session_report_page(
                 "Mapping",
                 [
                     (
-                        "Estimated trajectory (SE(3)-aligned) against the true one, and the position error "
-                        "over time.",
+                        "Estimated trajectory against the true one (SE(3)-aligned onto the map's "
+                        "frame, the frame of the maps above), and the position error over time.",
                         figure_to_data_uri(mfigs["trajectory"]),
                     ),
                     (

@@ -31,6 +31,7 @@ from canopy_kit.geo import local_of, lonlat_of
 from canopy_kit.io.atomic import atomic_write_text
 from canopy_kit.io.gpkg import read_gpkg_layer, write_gpkg
 from canopy_kit.segment.result import Segmentation
+from canopy_kit.volume.metrics import POSITION_AND_SIZE
 
 FILES = {
     "cloud": "segmented.laz",
@@ -52,13 +53,7 @@ TREE_COLUMNS = [
     "tree_id",
     "label",
     "row",
-    "x",
-    "y",
-    "lat",
-    "lon",
-    "n_points",
-    "height_m",
-    "crown_diameter_m",
+    *POSITION_AND_SIZE,
     "segment",
     "crown_base_height_m",
     "crown_diameter_mean_m",

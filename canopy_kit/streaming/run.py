@@ -21,19 +21,14 @@ import pandas as pd
 from canopy_kit.config import PipelineConfig, write_config
 from canopy_kit.io.atomic import atomic_write_json
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
+from canopy_kit.volume.metrics import POSITION_AND_SIZE
 
 Progress = Callable[[str, float, float], None]
 LIVE_COLUMNS = [
     "index",
     "provisional_label",
     "provisional_row",
-    "x",
-    "y",
-    "lat",
-    "lon",
-    "n_points",
-    "height_m",
-    "crown_diameter_m",
+    *POSITION_AND_SIZE,
     "emitted_at_s",
     "emission_delay_s",
 ]

@@ -26,6 +26,9 @@ import numpy as np
 from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.volume.base import as_points
 
+# A tree's position and size in every per-tree table (run, segment, stream, report), in order.
+POSITION_AND_SIZE = ["x", "y", "lat", "lon", "n_points", "height_m", "crown_diameter_m"]
+
 
 @dataclass(frozen=True)
 class TreeMetrics:
