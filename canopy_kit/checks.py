@@ -84,6 +84,8 @@ def _thresholds(
     warn: float, fail: float, unit: str = "", digits: int = 2, below: bool = False
 ) -> str:
     sign = "<" if below else ">"
+    if warn == fail:  # nothing between: beyond it fails
+        return f"fail {sign} {fail:.{digits}f}{unit}"
     return f"warn {sign} {warn:.{digits}f}{unit}, fail {sign} {fail:.{digits}f}{unit}"
 
 

@@ -98,6 +98,7 @@ def test_a_trunkless_piece_beside_its_tree_is_a_split_crown() -> None:
     split = pd.concat([trees, piece], ignore_index=True)
     (cut,) = split_crown_check(split, layout, ST)
     assert cut.status == "fail" and cut.value == "1" and "r0-L4" in cut.note
+    assert cut.threshold == "fail > 0"  # any piece fails: no warning band between
     assert "4 trunks found in the stem band under 5 trees" in cut.note
     hidden = trees.assign(n_trunks=[1, 1, 0, 1])  # 5 m from both neighbours
     assert split_crown_check(hidden, {**layout, "trunks": 3}, ST)[0].status == "pass"
