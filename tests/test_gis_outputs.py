@@ -252,6 +252,24 @@ def test_exported_tree_volume_matches_trees_csv(gis_run) -> None:
         )
         n_all = json.loads(plain.output)["n_points"]
         assert n_all == csv.loc[tree_id, "n_points"]
+        # With the run's config: its recommended estimator, parameters and voxel size.
+        as_run = runner.invoke(
+            app,
+            [
+                "volume",
+                str(out / "trees" / f"{tree_id}.laz"),
+                "--config",
+                str(out / "config.toml"),
+                "--json",
+            ],
+        )
+        assert as_run.exit_code == 0, as_run.output
+        measured = json.loads(as_run.output)
+        assert measured["method"] == csv.loc[tree_id, "volume_method"]
+        from canopy_kit.volume.verb import volume_column
+
+        column = volume_column(measured["method"])
+        assert measured["volume_m3"] == pytest.approx(csv.loc[tree_id, column], abs=5e-4)
 
 
 def test_provenance_in_metrics_tables_gpkg_and_geojson(gis_run) -> None:

@@ -12,12 +12,12 @@ def volume(
         ..., help="LAS/LAZ/PLY/PCD file holding one tree's points only, in metres"
     ),
     method: str = typer.Option(
-        "foliage_envelope",
+        None,
         "--method",
         "-m",
-        help="volume plugin: foliage_envelope (what the adaptive preset recommends), "
-        "convex_hull, alpha_shape (the paper's), alpha_hull, voxel, slices, mirror, ... "
-        "(see 'canopy-kit plugins volumes')",
+        help="volume plugin: foliage_envelope (what the adaptive preset recommends; the "
+        "default without --config), convex_hull, alpha_shape (the paper's), alpha_hull, "
+        "voxel, slices, mirror, ... (see 'canopy-kit plugins volumes')",
     ),
     alpha: float = typer.Option(
         None,
@@ -26,12 +26,19 @@ def volume(
         help=f"alpha radius in metres for alpha-based methods (default {PAPER_ALPHA_M:g})",
     ),
     voxel_size: float = typer.Option(
-        0.0,
+        None,
         "--voxel-size",
         min=0.0,
         help="thin the points to this voxel grid first, as a run "
         "measures its trees (volume.voxel_size, 0.1 m); "
-        "0: every point",
+        "0: every point (the default without --config)",
+    ),
+    config: str = typer.Option(
+        None,
+        "--config",
+        help="a run's config.toml (or a preset name): measure as that run did, with its "
+        "recommended estimator, that estimator's parameters and its voxel size; "
+        "--method, --alpha and --voxel-size override",
     ),
     json: bool = typer.Option(False, "--json", help="print the result as JSON"),
 ) -> None:
@@ -51,11 +58,11 @@ def volume(
     from canopy_kit.volume import estimator, tree_metrics
     from canopy_kit.volume.one_tree import not_one_tree
 
-    params = {} if alpha is None else {"alpha": alpha}
+    method, params, voxel_size = _settings(method, alpha, voxel_size, config)
     est = estimator(method, **params)  # ConfigError names a parameter the method lacks
     points = read_cloud(cloud)
     measured = points.xyz
-    if voxel_size > 0:
+    if voxel_size > 0:  # as a run measures its trees
         from canopy_kit.voxel import voxel_representatives
 
         measured = measured[voxel_representatives(measured, voxel_size)[0]]
@@ -98,6 +105,28 @@ def volume(
         f"{metrics.crown_diameter_max_m:.2f} m / mean {metrics.crown_diameter_mean_m:.2f} m, "
         f"sphere volume {metrics.sphere_volume_m3:.2f} m³"
     )
+
+
+DEFAULT_METHOD = "foliage_envelope"
+
+
+def _settings(
+    method: str | None, alpha: float | None, voxel_size: float | None, config: str | None
+) -> tuple[str, dict, float]:
+    """The method, its parameters and the voxel size: the options, else the run's config
+    (its recommended estimator, that estimator's parameters, volume.voxel_size), else the
+    defaults (foliage_envelope, every point)."""
+    params: dict = {}
+    if config is not None:
+        from canopy_kit.config import load_preset
+
+        volume = load_preset(config).volume
+        method = method or volume.recommended
+        params = dict(volume.params.get(method, {}))
+        voxel_size = volume.voxel_size if voxel_size is None else voxel_size
+    if alpha is not None:
+        params["alpha"] = alpha
+    return method or DEFAULT_METHOD, params, 0.0 if voxel_size is None else voxel_size
 
 
 def _disagreement(result, xyz) -> str | None:
