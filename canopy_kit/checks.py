@@ -199,6 +199,28 @@ def split_crown_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksCon
     ]
 
 
+def map_edge_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) -> list[Check]:
+    """Trees whose crown reaches the map's outline: the scan may end inside them (a clipped
+    plot, a drive that stopped short), cutting their crowns and volumes."""
+    if "trees_at_map_edge" not in layout or not len(trees):
+        return []
+    names = list(layout["trees_at_map_edge"])
+    share = _share(len(names), len(trees))
+    warn, fail = st.crowns_at_map_edge_share_warn, st.crowns_at_map_edge_share_fail
+    note = ""
+    if names:
+        note = f"within 0.5 m of the map's outline: {', '.join(names[:8])}{' ...' if len(names) > 8 else ''}"
+    return [
+        Check(
+            "crowns reaching the map's edge (cut by the scan's end?)",
+            grade(share, warn, fail),
+            f"{len(names)} ({100 * share:.0f} %)",
+            _thresholds(100 * warn, 100 * fail, " %", 0),
+            note,
+        )
+    ]
+
+
 def ceiling_check(segmentation: dict[str, Any], st: ChecksConfig) -> list[Check]:
     """Trees whose tops a set ``preprocess.max_canopy_height`` cut (map points above it in
     their footprints); a band from the data cuts none (``segment.preprocess.canopy_ceiling``)."""
@@ -560,6 +582,7 @@ def run_checks(
     checks += trunk_checks(trees, layout, st)
     checks += split_crown_check(trees, layout, st)
     checks += ceiling_check(metrics.get("segmentation", {}), st)
+    checks += map_edge_check(trees, layout, st)
     checks += map_checks(metrics.get("mapping", {}), st)
     checks += aerial_checks(metrics, trees, st)
     checks += truth_checks(metrics.get("evaluation", {}))

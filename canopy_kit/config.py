@@ -286,6 +286,9 @@ class ChecksConfig:
     trunkless_neighbour_ratio: float = 0.7
     split_crowns_warn: int = 0
     split_crowns_fail: int = 0
+    # Share of trees whose crown reaches the map's outline (it may end inside them).
+    crowns_at_map_edge_share_warn: float = 0.0
+    crowns_at_map_edge_share_fail: float = 0.25
     # Trees whose tops a set preprocess.max_canopy_height cut (counted; any fails).
     crowns_cut_at_ceiling_warn: int = 0
     crowns_cut_at_ceiling_fail: int = 0

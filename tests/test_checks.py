@@ -10,6 +10,7 @@ from canopy_kit.checks import (
     Check,
     aerial_checks,
     ceiling_check,
+    map_edge_check,
     crown_spacing_checks,
     grade,
     map_checks,
@@ -304,3 +305,14 @@ def test_interval_check_counts_the_trees_whose_interval_holds_their_measurand() 
     measurand[2] = 30.0
     assert interval_check("foliage_envelope", interval_holds(trees, measurand)).status == "pass"
     assert interval_holds(trees.drop(columns="volume_low_m3"), measurand) is None
+
+
+def test_crowns_at_the_maps_edge_warn_and_many_fail() -> None:
+    trees = _row([4.0] * 8)
+    (none,) = map_edge_check(trees, {"trees_at_map_edge": []}, ST)
+    assert none.status == "pass" and none.value == "0 (0 %)"
+    (one,) = map_edge_check(trees, {"trees_at_map_edge": ["r0-L7"]}, ST)
+    assert one.status == "warn" and "r0-L7" in one.note
+    edge = [f"r0-L{i}" for i in (0, 1, 6, 7)]
+    assert map_edge_check(trees, {"trees_at_map_edge": edge}, ST)[0].status == "fail"
+    assert map_edge_check(trees, {}, ST) == []  # a run from before the outline was measured

@@ -773,3 +773,20 @@ def test_tall_crowns_are_kept_whole_and_a_set_limit_below_them_warns() -> None:
     limited = segment(cloud, "adaptive", PreprocessConfig(max_canopy_height=12.0))
     cut = [w for w in limited.warnings if "max_canopy_height" in w]
     assert len(cut) == 1 and cut[0].startswith("3 tree(s) reach preprocess.max_canopy_height = 12")
+
+
+def test_crowns_reaching_the_maps_edge_are_named() -> None:
+    """A whole orchard scanned with ground 6 m round it: no crown at the map's edge; the
+    same map clipped through the last tree (a plot cut from a larger scan): that tree, and
+    only it, reaches the edge."""
+    from canopy_kit.segment.layout import crowns_at_map_edge
+
+    orch = synthetic_orchard(rows=1, trees_per_row=3)
+    seg = segment(orch.cloud, "adaptive")
+    assert crowns_at_map_edge(orch.cloud.xyz[:, :2], seg) == ()
+    y_last = orch.centres[-1, 1]
+    keep = orch.cloud.xyz[:, 1] < y_last  # the scan ends half way through the last crown
+    clipped = PointCloud(orch.cloud.xyz[keep], crs=orch.cloud.crs)
+    cut = segment(clipped, "adaptive")
+    last = max(cut.trees, key=lambda t: t.y)
+    assert crowns_at_map_edge(clipped.xyz[:, :2], cut) == (last.tree_id,)

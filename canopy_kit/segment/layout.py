@@ -30,6 +30,7 @@ class Layout:
     tree_spacing_source: str  # "trunks", "segments" or "none"
     stems: StemDetections
     stem_segment: np.ndarray  # per trunk: segment id, -1 under no segment
+    at_map_edge: tuple[str, ...] = ()  # trees whose crown reaches the map's edge (cut there?)
 
     def trunks_per_segment(self, segment_ids: np.ndarray) -> np.ndarray:
         """Number of detected trunks under each of ``segment_ids``."""
@@ -50,6 +51,7 @@ class Layout:
             "tree_spacing_source": self.tree_spacing_source,
             "trunks": len(self.stems),
             "trunks_under_a_segment": int((self.stem_segment >= 0).sum()),
+            "trees_at_map_edge": list(self.at_map_edge),
         }
 
 
@@ -126,4 +128,38 @@ def measure_layout(
         spacing, source = spacing_along_rows(xy, rows), "segments"
     if not np.isfinite(spacing):
         source = "none"
-    return Layout(row_spacing(rows), spacing, source, stems, owner)
+    edge = crowns_at_map_edge(xyz[:, :2], segmentation)
+    return Layout(row_spacing(rows), spacing, source, stems, owner, edge)
+
+
+EDGE_DISTANCE_M = 0.5  # a crown this close to the map's outline may run on beyond it
+EDGE_SAMPLE = 200_000  # map points the outline is drawn round (a hull needs few)
+
+
+def crowns_at_map_edge(
+    xy: np.ndarray, segmentation: Any, distance: float = EDGE_DISTANCE_M
+) -> tuple[str, ...]:
+    """The trees whose crown footprint comes within ``distance`` of the map's outline (the
+    convex hull of its points, seen from above): the map may end inside them, cutting their
+    crowns and volumes (a plot clipped from a larger scan, a drive that stopped short)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    xy = np.asarray(xy, dtype=np.float64)
+    if len(xy) < 3 or not segmentation.trees:
+        return ()
+    step = max(1, len(xy) // EDGE_SAMPLE)
+    try:
+        hull = ConvexHull(xy[::step])
+    except QhullError:
+        return ()
+    # Hull facets as a·p + b <= 0 inside; -(a·p + b) is the distance to each edge's line.
+    normals, offsets = hull.equations[:, :2], hull.equations[:, 2]
+    names = []
+    for tree in segmentation.trees:
+        ring = segmentation.footprints.get(tree.segment_id)
+        if ring is None or not len(ring):
+            continue
+        inside = -(np.asarray(ring) @ normals.T + offsets)  # (vertices, edges)
+        if float(inside.min()) < distance:
+            names.append(tree.tree_id)
+    return tuple(names)
