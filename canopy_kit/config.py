@@ -47,7 +47,7 @@ class MappingConfig:
     kiss_voxel_size: float = 0.5
     kiss_max_points_per_voxel: int = 20
     # KISS-ICP's ICP stops when an iteration moves the pose by less than this (its own default
-    # 1e-4; 1e-3 saved 18 % of the odometry at the same trajectory error, docs/BENCHMARKS.md).
+    # 1e-4; 1e-3 saved 18 % of the odometry at the same trajectory error, docs/history/BENCHMARKS_LOG.md).
     kiss_convergence: float = 1e-3
     min_points_per_scan: int = 500
     odometry_max_correction: float = 0.15

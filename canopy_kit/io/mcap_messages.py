@@ -2,7 +2,7 @@
 
 rosbags' MCAP storage parses every record of a chunk in Python and copies each message
 three times: 6.5 s per pass over the scans and IMU of a 5.5 GB 128-ring bag, against 1.4 s
-through ``mcap``'s reader (docs/BENCHMARKS.md). :func:`fast_mcap_reader` wraps an open
+through ``mcap``'s reader (docs/history/BENCHMARKS_LOG.md). :func:`fast_mcap_reader` wraps an open
 rosbags ``AnyReader`` so that its ``messages`` come from ``mcap`` while everything else
 (connections, types, deserialisation) stays rosbags'. It does so only where both read the
 same bytes in the same order: one uncompressed-message ROS2 bag of a single indexed
