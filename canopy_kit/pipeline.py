@@ -48,6 +48,7 @@ class RunContext:
     truth_matches: pd.DataFrame | None = None  # per true tree: status and matched segment
     truth_dir: Path | None = None  # simulated session the run was checked against
     layout: Any = None  # row and tree spacing, trunks per segment (segment.layout.Layout)
+    row_profiles: Any = None  # per row and metre: height, width, TRV, LWA (segment.row_profile)
     estimators: dict[str, Any] | None = None  # the volume estimators, built once per run
     surfaces: dict[int, list[Surface]] = field(default_factory=dict)  # drawn solids per segment
 
@@ -146,6 +147,7 @@ def compute(
             "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report)
         )
     ctx.layout = layout_stage(ctx)
+    ctx.row_profiles = row_profile_stage(ctx)
     ctx.table = tree_table(ctx)
     if truth is not None:
         from canopy_kit.validation import evaluate_against_truth
@@ -256,6 +258,13 @@ def layout_stage(ctx: RunContext) -> Any:
     )
 
 
+def row_profile_stage(ctx: RunContext) -> Any:
+    """Canopy height, width, cross-section, TRV and LWA per row and metre along it."""
+    from canopy_kit.segment.row_profile import segmentation_row_profiles
+
+    return segmentation_row_profiles(ctx.segmentation, ctx.mapping.map.xyz, ctx.layout)
+
+
 def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -> Any:
     """Drone photogrammetry ground truth, seeded with the LiDAR tree positions."""
     from ground_truth import process_flight
@@ -329,7 +338,12 @@ def write_outputs(
 def _write_tables(
     ctx: RunContext, trees: pd.DataFrame, out: Path, provenance: dict[str, Any] | None = None
 ) -> dict[str, Path]:
+    from canopy_kit.segment.row_profile import write_row_profiles
+
     files = write_tree_tables(ctx, trees, out, provenance)
+    if ctx.row_profiles is not None:
+        seg = ctx.segmentation
+        files |= write_row_profiles(out, ctx.row_profiles, seg.crs, seg.origin, provenance)
     files["trajectory.csv"] = atomic_write_text(
         out / "trajectory.csv", ctx.mapping.trajectory.to_csv(index=False, float_format="%.6f")
     )

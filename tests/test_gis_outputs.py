@@ -107,7 +107,7 @@ def gis_run(tiny_pistachio, tmp_path_factory):
 def test_every_geojson_of_a_run_is_rfc7946_wgs84(gis_run) -> None:
     _, out, _ = gis_run
     names = sorted(p.name for p in out.glob("*.geojson"))
-    assert names == ["crowns.geojson", "rows.geojson", "trees.geojson"]
+    assert names == ["crowns.geojson", "rows.geojson", "rows_sections.geojson", "trees.geojson"]
     for name in names:
         validate_rfc7946(out / name)
 

@@ -176,3 +176,63 @@ def plot_family_accuracy(
         f"What the drive loses, per tree family (held-out seeds; under the bars: how often "
         f"{methods[0]}'s interval held the value)",
     )
+
+
+MAX_PROFILE_ROWS = 12  # rows drawn by plot_row_profiles (a figure stays readable)
+
+
+def plot_row_profiles(
+    sections: pd.DataFrame, summary: pd.DataFrame | None = None, max_rows: int = MAX_PROFILE_ROWS
+) -> Any:
+    """Per row (the first ``max_rows``), a side view of the canopy height and a top view of
+    its left and right width about the fitted row line, per section along the row, from a
+    row profile's sections table (``canopy_kit.segment.row_profile``); ``summary`` adds each
+    row's TRV and LWA to its title."""
+    import matplotlib.pyplot as plt
+
+    rows = [int(r) for r in dict.fromkeys(sections["row"])] if len(sections) else []
+    shown = rows[:max_rows]
+    n = max(len(shown), 1)
+    fig, axes = plt.subplots(n, 2, figsize=(11, 1.9 * n + 0.8), squeeze=False)
+    if not shown:
+        for ax in axes[0]:
+            ax.text(0.5, 0.5, "no row holds canopy", ha="center", va="center", fontsize=10)
+            ax.set_axis_off()
+        return fig
+    info = summary.set_index("row") if summary is not None and len(summary) else None
+    top_h = float(np.nanmax(sections["height_m"])) if len(sections) else 1.0
+    wide = np.nanmax(np.abs(sections[["width_left_m", "width_right_m"]].to_numpy()))
+    wide = float(wide) if np.isfinite(wide) and wide > 0 else 1.0
+    for (side, top), row in zip(axes, shown, strict=True):
+        t = sections[sections["row"] == row]
+        edges = np.r_[t["start_m"].to_numpy(), t["end_m"].to_numpy()[-1:]]
+        height = np.r_[t["height_m"].to_numpy(), t["height_m"].to_numpy()[-1:]]
+        left = np.r_[t["width_left_m"].to_numpy(), t["width_left_m"].to_numpy()[-1:]]
+        right = np.r_[t["width_right_m"].to_numpy(), t["width_right_m"].to_numpy()[-1:]]
+        side.fill_between(edges, 0, height, step="post", color="tab:green", alpha=0.5)
+        side.step(edges, height, where="post", color="darkgreen", lw=1)
+        side.set_ylim(0, 1.1 * top_h)
+        side.set_ylabel("height (m)", fontsize=9)
+        top.fill_between(edges, -left, right, step="post", color="tab:green", alpha=0.5)
+        top.step(edges, right, where="post", color="darkgreen", lw=1, label="right")
+        top.step(edges, -left, where="post", color="tab:brown", lw=1, label="left")
+        top.axhline(0, color="black", lw=0.8, ls="--")
+        top.set_ylim(-1.1 * wide, 1.45 * wide)
+        top.set_ylabel("left - / right + (m)", fontsize=9)
+        title = f"row {row}"
+        if info is not None and row in info.index:
+            trv, lwa = info.loc[row, "trv_m3_per_ha"], info.loc[row, "lwa_m2_per_ha"]
+            if np.isfinite(trv):
+                title += f": TRV {trv:,.0f} m³/ha, LWA {lwa:,.0f} m²/ha"
+        side.set_title(f"{title} (height)", fontsize=9)
+        top.set_title(f"row {row} (width about the row line)", fontsize=9)
+        for ax in (side, top):
+            ax.tick_params(labelsize=8)
+            ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("distance along the row, driving direction (m)", fontsize=9)
+    axes[0, 1].legend(fontsize=8, loc="upper right", ncol=2)
+    if len(rows) > len(shown):
+        fig.suptitle(f"first {len(shown)} of {len(rows)} rows (all in rows.csv)", fontsize=10)
+    fig.tight_layout()
+    return fig

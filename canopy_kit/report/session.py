@@ -89,6 +89,9 @@ def session_report_page(
         )
     )
     sections.append(ReportSection("Map and trees", figs))
+    profiles = getattr(ctx, "row_profiles", None)
+    if profiles is not None and len(profiles.summary):
+        sections.append(row_metrics_section(profiles))
     from canopy_kit.report.volumes import accuracy_section
 
     volume_cfg = ctx.config.volume
@@ -250,6 +253,31 @@ def session_report_page(
         explorer=explorer_data(ctx, trees, downloads, details=details),
         row_table=row_table(row_summary(trees, rec_column), rec_column),
     )
+
+
+def row_metrics_section(profiles: Any) -> ReportSection:
+    """The row metrics (``canopy_kit.segment.row_profile``): profiles figure, per-row table."""
+    from canopy_kit.report import plots
+
+    caption = (
+        "Per row, per 1 m section along it: the canopy's top above the ground (left) and how far "
+        "it reaches left and right of the fitted row line (right), as written to rows.csv. "
+        "Tree-Row Volume TRV = height x width x 10,000 / row spacing, Leaf Wall Area "
+        "LWA = 2 x height x 10,000 / row spacing (docs/OUTPUTS.md, Row metrics)."
+    )
+    figure = plots.plot_row_profiles(profiles.sections, profiles.summary)
+    table = profiles.summary.rename(
+        columns={
+            "row": "Row",
+            "length_m": "Length (m)",
+            "mean_height_m": "Mean height (m)",
+            "mean_width_m": "Mean width (m)",
+            "trv_m3_per_ha": "TRV (m³/ha)",
+            "lwa_m2_per_ha": "LWA (m²/ha)",
+        }
+    )[["Row", "Length (m)", "Mean height (m)", "Mean width (m)", "TRV (m³/ha)", "LWA (m²/ha)"]]
+    text = " ".join(profiles.warnings)
+    return ReportSection("Row metrics", [(caption, figure_to_data_uri(figure))], table, text)
 
 
 def table_columns(recommended: str) -> list[str]:

@@ -1,0 +1,256 @@
+"""Row metrics (issue 52): per row and metre, canopy height and width against the simulator's
+exact crowns, TRV and LWA by hand, and what a row without canopy gives."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.errors import InputError
+from canopy_kit.segment.row_profile import (
+    SECTION_COLUMNS,
+    SUMMARY_COLUMNS,
+    leaf_wall_area,
+    row_profiles,
+    section_metrics,
+    tree_row_volume,
+)
+from canopy_kit.segment.rows import RowAssignment, RowLine
+
+TRUTH_STEP = 0.05  # grid of the true crowns' interiors (m)
+
+
+def _rows(lines: list[RowLine]) -> RowAssignment:
+    return RowAssignment(
+        np.zeros(0, int), np.zeros(0, int), [], lines, np.array([0.0, 1.0]), "given"
+    )
+
+
+def _line(row: int, x: float, along: tuple[float, float] = (0.0, 10.0)) -> RowLine:
+    # driving north (+y): right is +x, so ``across = x`` and the line is x = ``x``
+    return RowLine(row, np.array([0.0, 1.0]), (x, 0.0, 0.0), along, 3)
+
+
+def _box(x0: float, x1: float, y0: float, y1: float, z0: float, z1: float, step: float = 0.05):
+    """Points filling a box, its faces across the row (x) and in height (z) included: a
+    canopy wall as a LiDAR with a perfect view would see it."""
+    g = [
+        np.linspace(x0, x1, round((x1 - x0) / step) + 1),
+        np.arange(y0 + step / 2, y1, step),
+        np.linspace(z0, z1, round((z1 - z0) / step) + 1),
+    ]
+    return np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_tree_row_volume_and_leaf_wall_area_by_hand() -> None:
+    # height 3 m, width 2 m, rows 5 m apart: 3 x 2 x 10,000 / 5 and 2 x 3 x 10,000 / 5
+    assert tree_row_volume(3.0, 2.0, 5.0) == pytest.approx(12_000.0)
+    assert leaf_wall_area(3.0, 5.0) == pytest.approx(12_000.0)
+    assert np.isnan(tree_row_volume(3.0, 2.0, float("nan")))
+    assert np.isnan(leaf_wall_area(3.0, 0.0))
+
+
+def test_a_box_canopy_gives_its_height_width_trv_and_lwa() -> None:
+    # rows at x = 0 and x = 5 (spacing 5 m); row 0's canopy 1.2 m left and 0.8 m right of its
+    # line, 1 to 3 m high, for 10 m; row 1's a 1 m wide, 2 m high wall.
+    wall0 = _box(-1.2, 0.8, 0.0, 10.0, 1.0, 3.0)
+    wall1 = _box(4.5, 5.5, 0.0, 10.0, 1.0, 2.0)
+    xyz = np.vstack([wall0, wall1])
+    profiles = row_profiles(xyz, xyz[:, 2], _rows([_line(0, 0.0), _line(1, 5.0)]))
+    assert profiles.row_spacing_m == pytest.approx(5.0)
+    assert list(profiles.sections.columns) == SECTION_COLUMNS
+    assert list(profiles.summary.columns) == SUMMARY_COLUMNS
+    row0 = profiles.sections[profiles.sections["row"] == 0]
+    assert len(row0) == 10 and row0["start_m"].tolist() == list(range(10))
+    assert row0["height_m"].to_numpy() == pytest.approx(3.0, abs=0.03)
+    assert row0["width_left_m"].to_numpy() == pytest.approx(1.2, abs=0.03)
+    assert row0["width_right_m"].to_numpy() == pytest.approx(0.8, abs=0.03)
+    assert row0["width_m"].to_numpy() == pytest.approx(2.0, abs=0.05)
+    # the wall's 2 m x 2 m face, to a 0.1 m cell at each edge
+    assert row0["cross_section_m2"].to_numpy() == pytest.approx(4.0, abs=0.45)
+    assert row0["y"].to_numpy() == pytest.approx(np.arange(10) + 0.5)
+    assert row0["x"].to_numpy() == pytest.approx(0.0)
+    summary = profiles.summary.set_index("row")
+    # 3 x 2 x 10,000 / 5 = 12,000 m³/ha; 2 x 3 x 10,000 / 5 = 12,000 m²/ha
+    assert summary.loc[0, "trv_m3_per_ha"] == pytest.approx(12_000.0)
+    assert summary.loc[0, "lwa_m2_per_ha"] == pytest.approx(12_000.0)
+    assert summary.loc[0, "length_m"] == 10.0
+    assert summary.loc[1, "mean_height_m"] == pytest.approx(2.0, abs=0.03)
+    assert summary.loc[1, "mean_width_m"] == pytest.approx(1.0, abs=0.05)
+    assert profiles.warnings == []
+
+
+def test_a_stray_return_sets_no_extent() -> None:
+    wall = _box(-1.0, 1.0, 0.0, 1.0, 0.5, 3.0)
+    strays = np.array([[0.0, 0.5, 9.0], [2.4, 0.5, 1.5]])  # a bird above, dust beside
+    xyz = np.vstack([wall, strays])
+    table = section_metrics(xyz[:, 1], xyz[:, 0], xyz[:, 2], 0.0, 1)
+    assert table.loc[0, "height_m"] == pytest.approx(3.0, abs=0.03)
+    assert table.loc[0, "width_right_m"] == pytest.approx(1.0, abs=0.03)
+
+
+def test_a_gap_in_the_row_is_a_section_without_canopy() -> None:
+    xyz = np.vstack([_box(-1, 1, 0, 3, 0.5, 3), _box(-1, 1, 5, 8, 0.5, 3)])
+    profiles = row_profiles(xyz, xyz[:, 2], _rows([_line(0, 0.0, (0.0, 8.0))]), row_spacing_m=5)
+    t = profiles.sections
+    gap = t[(t["start_m"] >= 3) & (t["end_m"] <= 5)]
+    assert len(t) == 8 and len(gap) == 2
+    assert (gap[["height_m", "width_m", "cross_section_m2", "trv_m3_per_ha"]] == 0).all().all()
+    assert (gap["n_points"] == 0).all()
+    s = profiles.summary.iloc[0]
+    assert s["canopy_sections"] == 6 and s["n_sections"] == 8
+    # the row's TRV averages the sections, the gap's included: 6 of 8 at 3 x 2 x 10,000 / 5
+    assert s["trv_m3_per_ha"] == pytest.approx(12_000.0 * 6 / 8)
+
+
+def test_a_row_without_canopy_has_no_sections_and_says_so() -> None:
+    wall = _box(-1, 1, 0, 10, 0.5, 3)
+    few = np.array([[5.0, 1.0, 2.0], [5.0, 4.0, 2.0]])  # two returns: no section's canopy
+    xyz = np.vstack([wall, few])
+    profiles = row_profiles(xyz, xyz[:, 2], _rows([_line(0, 0.0), _line(1, 5.0)]))
+    assert set(profiles.sections["row"]) == {0}
+    s = profiles.summary.set_index("row").loc[1]
+    assert s["n_sections"] == 0 and s["length_m"] == 0 and np.isnan(s["trv_m3_per_ha"])
+    assert any("row 1: no section holds" in w for w in profiles.warnings)
+
+
+def test_one_row_has_no_spacing_hence_no_trv_and_no_rows_no_table() -> None:
+    wall = _box(-1, 1, 0, 4, 0.5, 3)
+    profiles = row_profiles(wall, wall[:, 2], _rows([_line(0, 0.0, (0.0, 4.0))]))
+    assert np.isnan(profiles.row_spacing_m)
+    assert profiles.sections["height_m"].to_numpy() == pytest.approx(3.0, abs=0.03)
+    assert profiles.sections["trv_m3_per_ha"].isna().all()
+    assert any("row spacing unknown" in w for w in profiles.warnings)
+    empty = row_profiles(wall, wall[:, 2], _rows([]))
+    assert len(empty.sections) == 0 and len(empty.summary) == 0
+    assert list(empty.sections.columns) == SECTION_COLUMNS
+
+
+def test_bad_input_is_named() -> None:
+    wall = _box(-1, 1, 0, 4, 0.5, 3)
+    rows = _rows([_line(0, 0.0)])
+    with pytest.raises(InputError, match="one height each"):
+        row_profiles(wall, wall[:-1, 2], rows)
+    with pytest.raises(InputError, match="row spacing must be a positive"):
+        row_profiles(wall, wall[:, 2], rows, row_spacing_m=0.0)
+    with pytest.raises(InputError, match="section"):
+        section_metrics(wall[:, 1], wall[:, 0], wall[:, 2], 0.0, 4, section_m=0.0)
+
+
+# -- against the simulator's exact crowns ----------------------------------------------------
+def _truth_onto_map(ctx, session_root):
+    """The rigid transform (4x4) taking the truth's local frame onto the map's: the inverse
+    of the SE(3) alignment of the estimated trajectory onto the true one (a georeferencing
+    offset of a few decimetres is the mapping's error, not the row metrics')."""
+    from canopy_kit.mapping.trajectory_error import trajectory_errors
+    from canopy_kit.truth import load_truth
+
+    truth = load_truth(session_root)
+    reference = truth.trajectory_of(getattr(ctx.mapping, "trajectory_frame", ""))
+    align = np.asarray(trajectory_errors(ctx.mapping.trajectory, reference)["alignment"])
+    return np.linalg.inv(align)
+
+
+def _true_sections(profiles, ctx, session_root, min_height: float) -> pd.DataFrame:
+    """Per measured section, the true canopy's top above the true ground and its reach left
+    and right of the same fitted line: the interiors of the true crowns (a 5 cm grid inside
+    the exact envelopes) cut into the same 1 m sections."""
+    from canopy_kit.sim.session import regenerate_orchard
+
+    orchard = regenerate_orchard(session_root)
+    onto_map = _truth_onto_map(ctx, session_root)
+    inside = []
+    for tree in orchard.trees:
+        lo, hi = tree.crown.bounds
+        axes = [np.arange(lo[k], hi[k] + TRUTH_STEP, TRUTH_STEP) for k in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        grid = grid[tree.crown.contains(grid)]
+        h = grid[:, 2] - orchard.terrain.height(grid[:, 0], grid[:, 1])
+        xy = grid[:, :2] @ onto_map[:2, :2].T + onto_map[:2, 3]
+        inside.append(np.column_stack([xy, h]))
+    true_pts = np.vstack(inside)
+    true_pts = true_pts[true_pts[:, 2] >= min_height]
+    half = 0.5 * profiles.row_spacing_m
+    out = []
+    for line in ctx.segmentation.rows.lines:
+        offset = line.offset(true_pts[:, :2])
+        along = true_pts[:, :2] @ line.direction
+        near = np.abs(offset) <= half
+        sections = profiles.sections[profiles.sections["row"] == line.row]
+        mid = sections[["x", "y"]].to_numpy() @ line.direction
+        for (_, sec), m in zip(sections.iterrows(), mid, strict=True):
+            s = near & (along >= m - 0.5) & (along < m + 0.5)
+            top = true_pts[s, 2].max() if s.any() else 0.0
+            left = -offset[s].min() if s.any() else 0.0
+            right = offset[s].max() if s.any() else 0.0
+            out.append(
+                {
+                    "row": line.row,
+                    "section": sec["section"],
+                    "height_m": sec["height_m"],
+                    "width_m": sec["width_m"],
+                    "width_left_m": sec["width_left_m"],
+                    "width_right_m": sec["width_right_m"],
+                    "n_points": sec["n_points"],
+                    "true_height_m": top,
+                    "true_width_left_m": left,
+                    "true_width_right_m": right,
+                    "true_width_m": left + right,
+                }
+            )
+    return pd.DataFrame(out)
+
+
+def test_row_metrics_match_the_simulators_exact_crowns(tiny_pistachio, tiny_pistachio_run) -> None:
+    """On the 2 x 3 pistachio session, per section against the true crowns' top and across-row
+    reach. Measured when written: median |error| height 0.02 m, width 0.05 m; per row TRV
+    1-3 % low (a 3 x 4 almond session, seed 1, not run here: 0.02 m, 0.04 m, 0.8-0.9 %
+    low). Issue 52's goal is 5 % on fruiting walls, which the simulator cannot make."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.pipeline import compute
+
+    run = tiny_pistachio_run
+    ctx, _ = compute(load_preset("adaptive"), tiny_pistachio.bag, run.out_dir)  # cached stages
+    profiles, seg = ctx.row_profiles, ctx.segmentation
+    assert len(seg.rows.lines) == 2 and len(profiles.summary) == 2
+    assert 5.0 < profiles.row_spacing_m < 7.0
+    d = _true_sections(profiles, ctx, tiny_pistachio.root, seg.canopy_band_m[0])
+    both = (d["true_height_m"] > 0) & (d["height_m"] > 0)
+    assert both.sum() >= 0.9 * len(d)
+    # a section the measurement calls a gap holds at most a sliver of true canopy, and a
+    # section without true canopy is a gap
+    assert (d.loc[d["height_m"] == 0, "true_width_m"] < 0.3).all()
+    assert (d.loc[d["true_height_m"] == 0, "height_m"] == 0).all()
+    err = d[both]
+    assert np.median(np.abs(err["height_m"] - err["true_height_m"])) <= 0.1
+    assert np.median(np.abs(err["width_m"] - err["true_width_m"])) <= 0.15
+    for side in ("width_left_m", "width_right_m"):
+        assert np.median(np.abs(err[side] - err[f"true_{side}"])) <= 0.15, side
+    assert np.abs(err["height_m"] - err["true_height_m"]).max() <= 0.4
+    # per row TRV: the mean of the sections' height x width, gaps included
+    for row, sec in d.groupby("row"):
+        measured = profiles.summary.set_index("row").loc[row, "trv_m3_per_ha"]
+        true = (sec["true_height_m"] * sec["true_width_m"]).mean() * 1e4 / profiles.row_spacing_m
+        assert measured == pytest.approx(true, rel=0.10), row
+
+    # the run wrote them: rows.csv (rounded), rows_summary.csv, the sprayer map in WGS84
+    written = pd.read_csv(run.out_dir / "rows.csv")
+    assert list(written.columns) == SECTION_COLUMNS
+    assert written["height_m"].to_numpy() == pytest.approx(
+        profiles.sections["height_m"].to_numpy(), abs=5e-4
+    )
+    assert (run.out_dir / "rows.csv-metadata.json").exists()
+    summary = pd.read_csv(run.out_dir / "rows_summary.csv")
+    assert list(summary.columns) == SUMMARY_COLUMNS and len(summary) == 2
+    features = json.loads((run.out_dir / "rows_sections.geojson").read_text())["features"]
+    assert len(features) == len(written)
+    first = features[0]
+    assert first["geometry"]["type"] == "LineString"
+    lon, lat = np.asarray(first["geometry"]["coordinates"]).mean(axis=0)
+    assert lon == pytest.approx(written.loc[0, "lon"], abs=1e-6)
+    assert lat == pytest.approx(written.loc[0, "lat"], abs=1e-6)
+    assert first["properties"]["height_m"] == pytest.approx(written.loc[0, "height_m"], abs=1e-3)
+    assert "Row metrics" in (run.out_dir / "report.html").read_text()
