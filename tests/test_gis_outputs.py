@@ -534,8 +534,13 @@ def test_cli_run_and_segment_export_trees(gis_run, tmp_path) -> None:
         assert np.allclose(same[f"{col}_run"], same[f"{col}_seg"], rtol=0, atol=tol), col
     for col in ("crown_diameter_m", "projected_area_m2", "crown_base_height_m"):
         assert np.allclose(same[f"{col}_run"], same[f"{col}_seg"], rtol=0, atol=2e-3), col
-    for name in ("trees.geojson", "crowns.geojson", "rows.geojson"):
+    for name in ("trees.geojson", "crowns.geojson", "rows.geojson", "rows_sections.geojson"):
         validate_rfc7946(tmp_path / "seg" / name)
+    # ... and the run's row metrics: the same rows cut into the same sections.
+    seg_rows = pd.read_csv(tmp_path / "seg" / "rows.csv")
+    run_rows = pd.read_csv(again / "rows.csv")
+    assert list(seg_rows.columns) == list(run_rows.columns)
+    assert seg_rows.groupby("row").size().to_dict() == run_rows.groupby("row").size().to_dict()
     res = runner.invoke(
         app, ["run", str(sim.bag), "--out", str(tmp_path / "s"), "--stream", "--export-trees"]
     )

@@ -197,6 +197,7 @@ def write_segmentation(
     from canopy_kit.io.clouds import write_cloud
     from canopy_kit.io.csv_table import write_csv_table
     from canopy_kit.segment.labelled import labelled_map
+    from canopy_kit.segment.row_profile import segmentation_row_profiles, write_row_profiles
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -209,6 +210,9 @@ def write_segmentation(
     )
     paths["trees"] = written[FILES["trees"]]
     paths |= write_geojson(out, {"positions": positions_geojson(seg, provenance)})
+    # The row metrics a run writes (rows.csv, rows_summary.csv, rows_sections.geojson).
+    profiles = segmentation_row_profiles(seg, cloud.xyz)
+    paths |= write_row_profiles(out, profiles, seg.crs, seg.origin, provenance)
     return paths | write_segmentation_summary(out, seg, provenance=provenance)
 
 
