@@ -13,11 +13,11 @@ def _():
 
     from canopy_kit.explore import load_context
     from canopy_kit.report.plots import plot_agreement
-    from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN
+    from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN, volume_column
     from ground_truth.plots import plot_crowns, plot_surface
 
     return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, load_context, mo, plot_agreement, plot_crowns,
-            plot_surface)
+            plot_surface, volume_column)
 
 
 @app.cell
@@ -47,9 +47,12 @@ def _(aerial, mo, plot_surface):
 
 
 @app.cell
-def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, ctx, mo):
-    source = mo.ui.dropdown({"alpha shape": ALPHA_COLUMN, "convex hull": CONVEX_HULL_COLUMN},
-                            value="alpha shape", label="LiDAR volume")
+def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, ctx, mo, volume_column):
+    # The run's recommended volume first (the headline everywhere), the paper's beside it.
+    recommended = f"{ctx.config.volume.recommended} (recommended)"
+    choices = {recommended: volume_column(ctx.config.volume.recommended)}
+    choices |= {"alpha shape": ALPHA_COLUMN, "convex hull": CONVEX_HULL_COLUMN}
+    source = mo.ui.dropdown(choices, value=recommended, label="LiDAR volume")
     reference = mo.ui.dropdown({"aerial sphere (paper)": "aerial_sphere_volume_m3",
                                 "aerial ellipsoid": "aerial_ellipsoid_volume_m3",
                                 "true crown (simulator)": "true_crown_volume_m3"},

@@ -47,9 +47,11 @@ def _(load_context, mo):
 
 
 @app.cell
-def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, plot_volumes, table, volume_column):
-    cols = {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN,
-            "slices": volume_column("slices"), "true crown": "true_crown_volume_m3"}
+def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, ctx, plot_volumes, table, volume_column):
+    # The run's recommended volume leads, as in the report.
+    cols = {f"{ctx.config.volume.recommended} (recommended)": volume_column(ctx.config.volume.recommended)}
+    cols |= {"convex hull": CONVEX_HULL_COLUMN, "alpha shape": ALPHA_COLUMN,
+             "slices": volume_column("slices"), "true crown": "true_crown_volume_m3"}
     fig_all = plot_volumes(table, cols)
     fig_all
     return
