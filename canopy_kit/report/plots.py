@@ -193,7 +193,8 @@ def plot_row_profiles(
     rows = [int(r) for r in dict.fromkeys(sections["row"])] if len(sections) else []
     shown = rows[:max_rows]
     n = max(len(shown), 1)
-    fig, axes = plt.subplots(n, 2, figsize=(11, 1.9 * n + 0.8), squeeze=False)
+    # 7 in wide: the report shows figures at most 640 px wide, so 9 pt stays about 11 px.
+    fig, axes = plt.subplots(n, 2, figsize=(7, 2.1 * n + 0.8), squeeze=False)
     if not shown:
         for ax in axes[0]:
             ax.text(0.5, 0.5, "no row holds canopy", ha="center", va="center", fontsize=10)
@@ -219,18 +220,18 @@ def plot_row_profiles(
         top.axhline(0, color="black", lw=0.8, ls="--")
         top.set_ylim(-1.1 * wide, 1.45 * wide)
         top.set_ylabel("left - / right + (m)", fontsize=9)
-        title = f"row {row}"
+        title = f"row {row}: height"
         if info is not None and row in info.index:
-            trv, lwa = info.loc[row, "trv_m3_per_ha"], info.loc[row, "lwa_m2_per_ha"]
+            trv = info.loc[row, "trv_m3_per_ha"]
             if np.isfinite(trv):
-                title += f": TRV {trv:,.0f} m³/ha, LWA {lwa:,.0f} m²/ha"
-        side.set_title(f"{title} (height)", fontsize=9)
-        top.set_title(f"row {row} (width about the row line)", fontsize=9)
+                title += f" (TRV {trv:,.0f} m³/ha)"
+        side.set_title(title, fontsize=9)
+        top.set_title(f"row {row}: width about the row line", fontsize=9)
         for ax in (side, top):
             ax.tick_params(labelsize=8)
             ax.grid(alpha=0.3)
     for ax in axes[-1]:
-        ax.set_xlabel("distance along the row, driving direction (m)", fontsize=9)
+        ax.set_xlabel("along the row (m)", fontsize=9)
     axes[0, 1].legend(fontsize=8, loc="upper right", ncol=2)
     if len(rows) > len(shown):
         fig.suptitle(f"first {len(shown)} of {len(rows)} rows (all in rows.csv)", fontsize=10)

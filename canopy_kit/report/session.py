@@ -276,6 +276,13 @@ def row_metrics_section(profiles: Any) -> ReportSection:
             "lwa_m2_per_ha": "LWA (m²/ha)",
         }
     )[["Row", "Length (m)", "Mean height (m)", "Mean width (m)", "TRV (m³/ha)", "LWA (m²/ha)"]]
+    # TRV and LWA per hectare shown whole (the table shows other numbers to the mm).
+    for column in ("TRV (m³/ha)", "LWA (m²/ha)"):
+        table[column] = pd.Series(
+            [int(round(v)) if np.isfinite(v) else float("nan") for v in table[column]],
+            index=table.index,
+            dtype=object,
+        )
     text = " ".join(profiles.warnings)
     return ReportSection("Row metrics", [(caption, figure_to_data_uri(figure))], table, text)
 
