@@ -770,6 +770,9 @@ def test_tall_crowns_are_kept_whole_and_a_set_limit_below_them_warns() -> None:
     height = seg.height
     assert np.all(seg.labels[height > 20.0] == -1)  # the wire is no tree's
     assert canopy_ceiling(height, 0.8) < 19.0
+    # a corrupt point 1e9 m up neither sizes the height bins nor moves the ceiling
+    wild = np.r_[height, 1e9]
+    assert canopy_ceiling(wild, 0.8) == canopy_ceiling(height, 0.8)
     limited = segment(cloud, "adaptive", PreprocessConfig(max_canopy_height=12.0))
     cut = [w for w in limited.warnings if "max_canopy_height" in w]
     assert len(cut) == 1 and cut[0].startswith("3 tree(s) reach preprocess.max_canopy_height = 12")

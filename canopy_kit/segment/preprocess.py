@@ -111,6 +111,7 @@ def prepare(
 CEILING_BIN_M = 0.25  # height bins the canopy's top is looked for in
 CEILING_GAP_M = 2.0  # an empty band this deep ends the canopy: what floats above is not tree
 CEILING_MIN_SHARE = 1e-5  # a bin holding fewer of the points above the floor counts as empty
+TALLEST_TREE_M = 150.0  # heights above this are never canopy
 
 
 def canopy_ceiling(height: np.ndarray, floor: float) -> float:
@@ -123,6 +124,8 @@ def canopy_ceiling(height: np.ndarray, floor: float) -> float:
     (and at least 3); the ceiling is the highest point below the gap.
     """
     above = height[np.isfinite(height) & (height >= floor)] - floor
+    # No tree stands higher (the tallest known, 116 m): a wild point cannot size the bins.
+    above = above[above < TALLEST_TREE_M]
     if not len(above):
         return float(floor)
     counts = np.bincount((above / CEILING_BIN_M).astype(np.int64))
