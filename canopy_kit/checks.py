@@ -71,9 +71,14 @@ def format_value(value: float | None, unit: str = "", digits: int = 2) -> str:
     return f"{value:.{digits}f}{unit}"
 
 
+def _listed(names: list[str], limit: int = 8) -> str:
+    """The first ``limit`` names, comma-separated, " ..." when there are more."""
+    return ", ".join(names[:limit]) + (" ..." if len(names) > limit else "")
+
+
 def _names(trees: pd.DataFrame, mask: np.ndarray, limit: int = 8) -> str:
     names = trees.loc[mask, "tree_id"].astype(str).tolist() if "tree_id" in trees else []
-    return ", ".join(names[:limit]) + (" ..." if len(names) > limit else "")
+    return _listed(names, limit)
 
 
 def _share(n: int, total: int) -> float:
@@ -179,10 +184,10 @@ def split_crown_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksCon
     if (n > 0).mean() < TRUNKS_SEEN_SHARE:
         note = f"{counted}: trunks seen under {int((n > 0).sum())} trees only, not judged"
         return [Check(name, None, "n/a", "", note)]
+    from scipy.spatial import cKDTree
+
     xy = trees[["x", "y"]].to_numpy(float)
-    gaps = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
-    np.fill_diagonal(gaps, np.inf)
-    nearest = gaps.min(axis=1)
+    nearest = cKDTree(xy).query(xy, k=2)[0][:, 1]  # the nearest other tree (memory O(n))
     split = (n == 0) & (nearest < st.trunkless_neighbour_ratio * spacing)
     note = f"{counted}; tree spacing {spacing:.1f} m"
     if split.any():
@@ -202,6 +207,8 @@ def split_crown_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksCon
 def map_edge_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig) -> list[Check]:
     """Trees whose crown reaches the map's outline: the scan may end inside them (a clipped
     plot, a drive that stopped short), cutting their crowns and volumes."""
+    from canopy_kit.segment.layout import EDGE_DISTANCE_M
+
     if "trees_at_map_edge" not in layout or not len(trees):
         return []
     names = list(layout["trees_at_map_edge"])
@@ -209,7 +216,7 @@ def map_edge_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksConfig
     warn, fail = st.crowns_at_map_edge_share_warn, st.crowns_at_map_edge_share_fail
     note = ""
     if names:
-        note = f"within 0.5 m of the map's outline: {', '.join(names[:8])}{' ...' if len(names) > 8 else ''}"
+        note = f"within {EDGE_DISTANCE_M:g} m of the map's outline: {_listed(names)}"
     return [
         Check(
             "crowns reaching the map's edge (cut by the scan's end?)",
@@ -231,7 +238,7 @@ def ceiling_check(segmentation: dict[str, Any], st: ChecksConfig) -> list[Check]
     source = segmentation["canopy_ceiling_source"]
     note = f"canopy band {band[0]:g}-{band[1]:.1f} m above ground ({'from the data' if source == 'data' else source})"
     if cut:
-        note += f"; cut: {', '.join(cut[:8])}{' ...' if len(cut) > 8 else ''}: raise the limit or unset it"
+        note += f"; cut: {_listed(cut)}: raise the limit or unset it"
     return [
         Check(
             "crowns cut at the canopy band's top",

@@ -68,15 +68,12 @@ def tree_rows(seg: Segmentation, cloud: PointCloud) -> pd.DataFrame:
     measures them (``volume.metrics.crown_columns`` on its points, heights above the
     segmentation's ground), lat/lon when the map has a CRS; no volumes."""
     from canopy_kit.volume.metrics import crown_columns
+    from canopy_kit.volume.verb import grouped_by_label
 
     rows = []
-    order = np.argsort(seg.labels, kind="stable")
-    ids, starts = np.unique(seg.labels[order], return_index=True)
-    bounds = dict(
-        zip(ids.tolist(), zip(starts, [*starts[1:], len(order)], strict=True), strict=True)
-    )
+    order, sorted_labels = grouped_by_label(seg.labels)  # as the run's volume stage groups
     for tree in seg.trees:
-        lo, hi = bounds[tree.segment_id]
+        lo, hi = np.searchsorted(sorted_labels, [tree.segment_id, tree.segment_id + 1])
         row = crown_columns(cloud.xyz[order[lo:hi]], seg.ground.height)
         row.update(
             tree_id=tree.tree_id,
