@@ -14,8 +14,7 @@ def _():
     import numpy as np
     import plotly.graph_objects as go
 
-    from canopy_kit.io.bag import open_bag, read_scan
-    from canopy_kit.io.info import describe_path
+    from canopy_kit import describe_path, open_bag, read_scan
     from canopy_kit.sim.plots import plot_scan_by_time
 
     return describe_path, go, mo, np, open_bag, plot_scan_by_time, plt, read_scan
@@ -79,7 +78,7 @@ def _(bag_input, np, open_bag, plt):
     if odom is not None:
         ax_traj.plot(odom.position[:, 0], odom.position[:, 1], label=f"odometry topic ({len(odom.t)})")
     if gnss is not None:
-        from canopy_kit.mapping.gnss import local_frame_for
+        from canopy_kit import local_frame_for
 
         frame = local_frame_for(gnss)
         xyz = frame.to_local(gnss.latitude, gnss.longitude, gnss.altitude)

@@ -12,9 +12,8 @@ def _():
     matplotlib.use("Agg")
     import pandas as pd
 
-    from canopy_kit.explore import load_context
+    from canopy_kit import load_context, load_truth
     from canopy_kit.mapping.plots import mapping_figures
-    from canopy_kit.truth import load_truth
 
     return load_context, load_truth, mapping_figures, mo, pd
 

@@ -13,9 +13,11 @@ def _():
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from canopy_kit.store import OrchardStore, changes, growth, row_growth
+    from canopy_kit.store import OrchardStore, changes, growth, orchard_trees, row_growth, stored_methods
+    from canopy_kit.store import sessions as stored_sessions
 
-    return OrchardStore, changes, growth, mo, np, plt, row_growth
+    return (OrchardStore, changes, growth, mo, np, orchard_trees, plt, row_growth, stored_methods,
+            stored_sessions)
 
 
 @app.cell
@@ -35,7 +37,7 @@ def _(mo):
 
 
 @app.cell
-def _(OrchardStore, mo, np):
+def _(OrchardStore, mo, np, stored_sessions):
     import datetime as dt
     import tempfile
     from pathlib import Path
@@ -44,9 +46,8 @@ def _(OrchardStore, mo, np):
 
     def demo_store() -> Path:
         """Three visits of a synthetic planting through OrchardStore.ingest."""
-        from canopy_kit.geo import LocalFrame
+        from canopy_kit import ALPHA_COLUMN, LocalFrame
         from canopy_kit.store import SessionRecord
-        from canopy_kit.volume.verb import ALPHA_COLUMN
 
         rng = np.random.default_rng(0)
         layout = np.array([[r * 6.0, i * 5.0] for r in range(4) for i in range(8)])
@@ -71,20 +72,17 @@ def _(OrchardStore, mo, np):
     given = mo.cli_args().get("store")
     store_path = Path(given) if given else demo_store()
     db = OrchardStore(store_path, read_only=True)
-    sessions = db.query("SELECT session_id, orchard, date, n_trees, n_matched, n_new, n_missing, "
-                        "n_replanted, round(align_dx, 2) AS dx, round(align_dy, 2) AS dy, "
-                        "round(align_rms_m, 3) AS rms_m FROM sessions ORDER BY orchard, date")
+    sessions = stored_sessions(db)
     mo.vstack([mo.md(f"Store: `{store_path}`{' (synthetic demo)' if not given else ''}"), sessions])
     return db, sessions
 
 
 @app.cell
-def _(db, mo, sessions):
+def _(db, mo, sessions, stored_methods):
     orchards = sorted(sessions["orchard"].unique())
     orchard = mo.ui.dropdown(orchards, value=orchards[0], label="Orchard")
-    method = mo.ui.dropdown(sorted(db.query("SELECT DISTINCT method FROM volumes")["method"]),
-                            value=db.volume_method if db.volume_method in set(
-                                db.query("SELECT DISTINCT method FROM volumes")["method"]) else None,
+    methods = stored_methods(db)
+    method = mo.ui.dropdown(methods, value=db.volume_method if db.volume_method in methods else None,
                             label="Volume method")
     mo.hstack([orchard, method])
     return method, orchard
@@ -108,9 +106,9 @@ def _(db, growth, method, orchard, plt, row_growth):
 
 
 @app.cell
-def _(changes, db, g, mo, np, orchard, plt):
+def _(changes, db, g, mo, np, orchard, orchard_trees, plt):
     last = g[g["date"] == g["date"].max()]
-    trees = db.query("SELECT tree_id, x, y, status FROM trees WHERE orchard = ?", [orchard.value])
+    trees = orchard_trees(db, orchard.value)
     fig2, ax = plt.subplots(figsize=(7, 6))
     sc = ax.scatter(last["x"], last["y"], c=100 * last["growth_since_first"], cmap="viridis", s=80)
     fig2.colorbar(sc, ax=ax, label="growth since first visit (%)")

@@ -12,11 +12,9 @@ def _():
     matplotlib.use("Agg")
     import numpy as np
 
-    from canopy_kit import plugins
-    from canopy_kit.explore import load_context
+    from canopy_kit import load_context, make_segmenter, plugins, score_point_labels
+    from canopy_kit import segment_trees as segment
     from canopy_kit.segment.plots import plot_failure_gallery, plot_top_view
-    from canopy_kit.segment.verb import make_segmenter, segment
-    from canopy_kit.segmentation_score import score_point_labels
 
     return (load_context, make_segmenter, mo, np, plot_failure_gallery, plot_top_view, plugins,
             score_point_labels, segment)

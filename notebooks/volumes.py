@@ -14,24 +14,27 @@ def _():
     import numpy as np
     import plotly.graph_objects as go
 
-    from canopy_kit import plugins
-    from canopy_kit.explore import load_context
-    from canopy_kit.report.plots import plot_accuracy_matrix, plot_volumes
-    from canopy_kit.volume import alpha_curve, auto_alpha, estimate_volume
-    from canopy_kit.volume.accuracy import accuracy_table
-    from canopy_kit.volume.alpha import PAPER_ALPHA_M
-    from canopy_kit.volume.hull import hull_mesh
-    from canopy_kit.volume.verb import (
+    from canopy_kit import (
         ALPHA_COLUMN,
         CONVEX_HULL_COLUMN,
+        PAPER_ALPHA_M,
+        accuracy_table,
+        alpha_curve,
+        auto_alpha,
+        estimate_volume,
+        estimator,
+        hull_mesh,
+        load_context,
         measure_tree,
         measured_points,
+        plugins,
         tree_points,
         volume_column,
     )
+    from canopy_kit.report.plots import plot_accuracy_matrix, plot_volumes
 
     return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, PAPER_ALPHA_M, accuracy_table, alpha_curve,
-            auto_alpha, estimate_volume, go, hull_mesh, load_context, measure_tree,
+            auto_alpha, estimate_volume, estimator, go, hull_mesh, load_context, measure_tree,
             measured_points, mo, np, plot_accuracy_matrix, plot_volumes, plt, plugins,
             tree_points, volume_column)
 
@@ -62,7 +65,7 @@ def _(mo):
     # What the drive loses on tree families built four ways, against the same estimator on
     # each tree's complete foliage (benchmarks/bench_volume_families.py, held-out seeds).
     from canopy_kit.report.plots import plot_family_accuracy
-    from canopy_kit.volume.accuracy import family_accuracy_table
+    from canopy_kit import family_accuracy_table
 
     families = family_accuracy_table()
     mo.vstack([mo.md("## Measured accuracy on tree families\n\nThe recommended estimator "
@@ -110,8 +113,9 @@ def _(ctx, measure_tree, mo, tree, tree_points, volume_column):
 
 
 @app.cell
-def _(alpha, ctx, estimate_volume, measured_points, method, mo, np, table, tree, xyz):
-    params = {"alpha": alpha.value} if method.value in ("alpha_shape", "alpha_hull") else {}
+def _(alpha, ctx, estimate_volume, estimator, measured_points, method, mo, np, table, tree, xyz):
+    # the slider's alpha goes to every estimator that has an alpha parameter
+    params = {"alpha": alpha.value} if "alpha" in estimator(method.value).get_params() else {}
     thinned = measured_points(xyz, ctx.config.volume)  # the points trees.csv measures
     result = estimate_volume(thinned, method.value, **params)
     row = table[table["segment"] == tree.value].iloc[0]

@@ -11,7 +11,16 @@ from __future__ import annotations
 
 from canopy_kit.store.db import IngestReport, OrchardStore, SessionRecord, volume_methods
 from canopy_kit.store.identity import Alignment, MatchSettings, TreeMatch, match_trees
-from canopy_kit.store.queries import changes, consistency_problems, export, growth, row_growth
+from canopy_kit.store.queries import (
+    changes,
+    consistency_problems,
+    export,
+    growth,
+    orchard_trees,
+    row_growth,
+    sessions,
+    stored_methods,
+)
 
 __all__ = [
     "Alignment",
@@ -25,6 +34,9 @@ __all__ = [
     "export",
     "growth",
     "match_trees",
+    "orchard_trees",
     "row_growth",
+    "sessions",
+    "stored_methods",
     "volume_methods",
 ]

@@ -64,6 +64,31 @@ def changes(store: Any, orchard: str | None = None) -> pd.DataFrame:
     return store.con.execute(CHANGES_SQL, {"orchard": orchard}).df()
 
 
+SESSIONS_SQL = """
+SELECT session_id, orchard, date, n_trees, n_matched, n_new, n_missing, n_replanted,
+       round(align_dx, 2) AS dx, round(align_dy, 2) AS dy, round(align_rms_m, 3) AS rms_m
+FROM sessions ORDER BY orchard, date
+"""
+
+
+def sessions(store: Any) -> pd.DataFrame:
+    """One row per ingested session: its trees, matches, changes and alignment to the orchard."""
+    return store.con.execute(SESSIONS_SQL).df()
+
+
+def stored_methods(store: Any) -> list[str]:
+    """The volume methods the store holds, sorted."""
+    rows = store.con.execute("SELECT DISTINCT method FROM volumes ORDER BY method").fetchall()
+    return [r[0] for r in rows]
+
+
+def orchard_trees(store: Any, orchard: str) -> pd.DataFrame:
+    """The orchard's known trees: id, position (orchard frame) and status."""
+    return store.con.execute(
+        "SELECT tree_id, x, y, status FROM trees WHERE orchard = ? ORDER BY tree_id", [orchard]
+    ).df()
+
+
 def export(
     store: Any, what: str, path: str | Path, method: str | None = None, orchard: str | None = None
 ) -> Path:
