@@ -11,9 +11,8 @@ def _():
 
     matplotlib.use("Agg")
 
-    from canopy_kit import load_context
+    from canopy_kit import ALPHA_COLUMN, CONVEX_HULL_COLUMN, load_context, volume_column
     from canopy_kit.report.plots import plot_agreement
-    from canopy_kit import ALPHA_COLUMN, CONVEX_HULL_COLUMN, volume_column
     from ground_truth.plots import plot_crowns, plot_surface
 
     return (ALPHA_COLUMN, CONVEX_HULL_COLUMN, load_context, mo, plot_agreement, plot_crowns,

@@ -13,7 +13,14 @@ def _():
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from canopy_kit.store import OrchardStore, changes, growth, orchard_trees, row_growth, stored_methods
+    from canopy_kit.store import (
+        OrchardStore,
+        changes,
+        growth,
+        orchard_trees,
+        row_growth,
+        stored_methods,
+    )
     from canopy_kit.store import sessions as stored_sessions
 
     return (OrchardStore, changes, growth, mo, np, orchard_trees, plt, row_growth, stored_methods,

@@ -64,8 +64,8 @@ def _(ALPHA_COLUMN, CONVEX_HULL_COLUMN, ctx, plot_volumes, table, volume_column)
 def _(mo):
     # What the drive loses on tree families built four ways, against the same estimator on
     # each tree's complete foliage (benchmarks/bench_volume_families.py, held-out seeds).
-    from canopy_kit.report.plots import plot_family_accuracy
     from canopy_kit import family_accuracy_table
+    from canopy_kit.report.plots import plot_family_accuracy
 
     families = family_accuracy_table()
     mo.vstack([mo.md("## Measured accuracy on tree families\n\nThe recommended estimator "
