@@ -219,7 +219,7 @@ def session_folder(out_root: str | Path, session_id: str) -> Path:
 
 
 def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
-    from canopy_kit.config import merge
+    from canopy_kit.config import merge, nested_settings, parse_settings
 
     where = f"{path}: session {number}"
     unknown = sorted(set(entry) - SESSION_KEYS)
@@ -240,10 +240,10 @@ def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
             raise ConfigError(f"{where}: date {entry['date']!r} is not YYYY-MM-DD") from None
     overrides = entry.get("set", {})
     if isinstance(overrides, str):  # CSV: "section.key=value; section.key=value"
-        overrides = _parse_set(overrides, where)
+        overrides = parse_settings(overrides.split(";"), f"{where}: set")
     elif not isinstance(overrides, dict):
         raise ConfigError(f"{where}: 'set' must be a table of overrides")
-    overrides = merge({}, _nested(overrides))
+    overrides = merge({}, nested_settings(overrides))
 
     def resolve(value: Any) -> Path | None:
         if value is None:
@@ -277,36 +277,6 @@ def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
         _flag(entry.get("report", True), where, "report"),
         _flag(entry.get("stream", False), where, "stream"),
     )
-
-
-def _parse_set(text: str, where: str) -> dict[str, Any]:
-    """``"a.b=1; c.d=[1, 2]"`` to ``{"a.b": 1, "c.d": [1, 2]}`` (values are TOML)."""
-    import tomllib
-
-    out: dict[str, Any] = {}
-    for item in (part.strip() for part in text.split(";")):
-        if not item:
-            continue
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"{where}: set {item!r}: expected section.key=value")
-        try:
-            out[key.strip()] = tomllib.loads(f"v = {raw.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            out[key.strip()] = raw.strip()
-    return out
-
-
-def _nested(overrides: dict[str, Any]) -> dict[str, Any]:
-    """``{"mapping.threads": 1}`` and ``{"mapping": {"threads": 1}}`` both become the latter."""
-    out: dict[str, Any] = {}
-    for key, value in overrides.items():
-        node = out
-        parts = str(key).split(".")
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = _nested(value) if isinstance(value, dict) else value
-    return out
 
 
 def _flag(value: Any, where: str, name: str) -> bool:

@@ -10,7 +10,7 @@ import dataclasses
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -496,6 +496,35 @@ def check_plugin_param_types(config: PipelineConfig, where: str = "config") -> N
             continue
         if isinstance(target, type):
             check_types(params, target, at)
+
+
+def parse_settings(items: Iterable[str], where: str = "--set") -> dict[str, Any]:
+    """``["orchard.rows=3", "lidar.rings=16"]`` to a nested dict; values parsed as TOML (text
+    that is not TOML stays text). ``where`` starts the error for an item without ``=``."""
+    flat: dict[str, Any] = {}
+    for item in (part.strip() for part in items):
+        if not item:
+            continue
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{where} {item!r}: expected section.key=value")
+        try:
+            flat[key.strip()] = tomllib.loads(f"v = {raw.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            flat[key.strip()] = raw.strip()
+    return nested_settings(flat)
+
+
+def nested_settings(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"mapping.threads": 1}`` and ``{"mapping": {"threads": 1}}`` both become the latter."""
+    out: dict[str, Any] = {}
+    for key, value in settings.items():
+        node = out
+        parts = str(key).split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = nested_settings(value) if isinstance(value, Mapping) else value
+    return out
 
 
 def apply_overrides(data: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:

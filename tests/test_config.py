@@ -160,3 +160,19 @@ def test_unknown_preset_lists_the_shipped_ones() -> None:
         and "pistachio" in str(err.value)
     )
     assert isinstance(err.value, InputError)  # the CLI maps it to exit code 2
+
+
+def test_one_settings_parser_for_cli_and_manifests():
+    """--set items and a manifest's "a=1; b=2" text go through the same parser."""
+    from canopy_kit.config import nested_settings, parse_settings
+
+    parsed = parse_settings(["volume.voxel_size=0.05", "segment.method = dbscan", " a.b.c=[1, 2]"])
+    assert parsed == {
+        "volume": {"voxel_size": 0.05},
+        "segment": {"method": "dbscan"},  # not TOML: kept as text
+        "a": {"b": {"c": [1, 2]}},
+    }
+    assert parse_settings("x.y=1; ; x.z=true".split(";")) == {"x": {"y": 1, "z": True}}
+    assert nested_settings({"m.t": 1, "n": {"o.p": 2}}) == {"m": {"t": 1}, "n": {"o": {"p": 2}}}
+    with pytest.raises(ConfigError, match=r"row 3: set 'novalue': expected section.key=value"):
+        parse_settings(["novalue"], "row 3: set")

@@ -97,25 +97,9 @@ def print_json(data: Any) -> None:
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
     """``["orchard.rows=3", "lidar.rings=16"]`` to a nested dict; values parsed as TOML."""
-    import tomllib
+    from canopy_kit.config import parse_settings
 
-    from canopy_kit.errors import ConfigError
-
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"--set {item!r}: expected section.key=value")
-        try:
-            value = tomllib.loads(f"v = {raw.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = raw.strip()
-        node = out
-        parts = key.strip().split(".")
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = value
-    return out
+    return parse_settings(items, "--set")
 
 
 # -- output folders and files ---------------------------------------------------------------
