@@ -541,7 +541,17 @@ class RosbagReader:
     suffixes = (".bag", ".db3", ".mcap")
 
     def sniff(self, path: Path) -> bool:
-        return bag_kind(Path(path)) is not None
+        """A bag folder, or a file that starts with a ROS1, MCAP or SQLite (db3) signature
+        (the suffix alone routes a damaged bag to recovery; it does not make a bag)."""
+        path = Path(path)
+        if path.is_dir():
+            return bag_kind(path) is not None
+        try:
+            with path.open("rb") as fh:
+                head = fh.read(16)
+        except OSError:
+            return False
+        return head.startswith((b"#ROSBAG V2.0", b"\x89MCAP", b"SQLite format 3\x00"))
 
     def describe(self, path: Path) -> dict[str, Any]:
         with open_bag(path) as bag:

@@ -101,6 +101,8 @@ def _instance(estimator: Any) -> Any:
     """A fresh instance: the class built with its defaults, or a copy of the instance's params."""
     if isinstance(estimator, type):
         return estimator()
+    if not hasattr(estimator, "get_params"):  # a reader: no parameters, used as it is
+        return estimator
     return type(estimator)(**estimator.get_params())
 
 
@@ -443,13 +445,20 @@ def volume_checks() -> list[Check]:
 
 
 def checks_for(estimator: Any) -> list[Check]:
-    """The rules for a segmenter (has ``fit``) or a volume estimator (callable)."""
+    """The rules for a reader (has ``sniff``), a segmenter (has ``fit``) or a volume
+    estimator (callable)."""
     cls = estimator if isinstance(estimator, type) else type(estimator)
+    if hasattr(cls, "sniff"):
+        from canopy_kit.testing.readers import reader_checks
+
+        return reader_checks()
     if hasattr(cls, "fit"):
         return segmenter_checks()
     if any("__call__" in vars(k) for k in cls.__mro__[:-1]):
         return volume_checks()
-    raise TypeError(f"{cls.__name__} is neither a segmenter (fit) nor a volume estimator")
+    raise TypeError(
+        f"{cls.__name__} is not a reader (sniff), a segmenter (fit) or a volume estimator"
+    )
 
 
 def _run(estimator: Any, checks: Iterable[Check]) -> None:
