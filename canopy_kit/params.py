@@ -1,9 +1,15 @@
 """One declaration of a plugin's parameters: its ``__init__`` signature and class docstring.
 
-Types come from the ``__init__`` annotations, defaults from the signature and meanings from
-the numpydoc ``Parameters`` section of the class docstring. :func:`check_type` checks a
-value against such an annotation (a preset value, or a parameter before a run) and
-:func:`check_positive` is the one positivity check every plugin uses.
+Types and their constraints come from the ``__init__`` annotations, defaults from the
+signature and meanings from the numpydoc ``Parameters`` section of the class docstring::
+
+    def __init__(self, eps: Positive = 0.8, algorithm: Literal["auto", "grid"] = "auto"): ...
+
+:func:`validate_types` (what every plugin's ``validate_params`` starts from) checks each
+value against its annotation and its constraints (``annotated_types`` metadata in
+``Annotated``: :data:`Positive`, :data:`NonNegative`, ``Annotated[float, Ge(1)]``...), so a
+range is declared once, beside the type. :func:`check_type` checks one value (a preset's)
+and :func:`check_positive` remains for values that are not plugin parameters.
 """
 
 from __future__ import annotations
@@ -17,7 +23,9 @@ import re
 import types
 import typing
 from dataclasses import dataclass
-from typing import Any, Literal, get_args, get_origin
+from typing import Annotated, Any, Literal, get_args, get_origin
+
+from annotated_types import Ge, Gt, Le, Lt, Predicate
 
 from canopy_kit.errors import ConfigError
 
@@ -27,6 +35,16 @@ from canopy_kit.errors import ConfigError
 PAPER_ALPHA_M = 0.9
 
 REQUIRED = inspect.Parameter.empty
+
+_FINITE = Predicate(math.isfinite)
+#: A finite number > 0 (a distance, a factor, a count given as a number).
+Positive = Annotated[float, Gt(0), _FINITE]
+#: An integer > 0.
+PositiveInt = Annotated[int, Gt(0)]
+#: A finite number >= 0.
+NonNegative = Annotated[float, Ge(0), _FINITE]
+#: A finite number >= 1 (a factor that may only enlarge).
+AtLeastOne = Annotated[float, Ge(1), _FINITE]
 
 _SECTION = re.compile(r"^\s*(\w[\w ]*)\n\s*-{3,}\s*$", re.MULTILINE)
 
@@ -39,11 +57,13 @@ class ParamInfo:
     type: Any  # the resolved annotation (``Any`` when there is none)
     default: Any  # :data:`REQUIRED` when the parameter has no default
     doc: str = ""
+    constraint: str = ""  # the range its annotation declares ("a positive number"), if any
 
     @property
     def type_name(self) -> str:
-        """The annotation as written (``float | None``)."""
-        return type_name(self.type)
+        """The annotation as written (``float | None``), with its range (``float > 0``)."""
+        name = type_name(self.type)
+        return f"{name}, {self.constraint}" if self.constraint else name
 
 
 def type_name(tp: Any) -> str:
@@ -115,9 +135,16 @@ def _entries(block: str) -> dict[str, str]:
 def parameters_of(cls: type) -> list[ParamInfo]:
     """Every keyword parameter of plugin class ``cls`` with type, default and meaning."""
     hints = annotations(cls)
+    ranges = constraints(cls)
     docs = docstring_parameters(cls.__doc__)
     return [
-        ParamInfo(p.name, hints.get(p.name, Any), p.default, docs.get(p.name, ""))
+        ParamInfo(
+            p.name,
+            hints.get(p.name, Any),
+            p.default,
+            docs.get(p.name, ""),
+            _describe(ranges[p.name]) if p.name in ranges else "",
+        )
         for p in init_parameters(cls)
     ]
 
@@ -131,9 +158,62 @@ def _is_int(value: Any) -> bool:
 
 
 def _expected(tp: Any) -> str:
+    if get_origin(tp) is Literal:
+        return f"one of {list(get_args(tp))}"
     return {float: "a number", int: "an integer", bool: "true or false", str: "a string"}.get(
         tp, type_name(tp)
     )
+
+
+def constraints(cls: type) -> dict[str, list[Any]]:
+    """Parameter name -> the ``annotated_types`` constraints of its ``__init__`` annotation
+    (also inside ``X | None``); parameters without any are left out."""
+    try:
+        hints = typing.get_type_hints(cls.__init__, include_extras=True)
+    except Exception:  # unresolvable names in a third-party annotation: no constraint
+        return {}
+    out = {}
+    for name, tp in hints.items():
+        members = get_args(tp) if get_origin(tp) in (typing.Union, types.UnionType) else (tp,)
+        found = [m for t in members if get_origin(t) is Annotated for m in t.__metadata__]
+        if found:
+            out[name] = found
+    return out
+
+
+_BOUNDS = {Gt: (">", "gt"), Ge: (">=", "ge"), Lt: ("<", "lt"), Le: ("<=", "le")}
+
+
+def _describe(found: list[Any]) -> str:
+    """``[Gt(0), finite]`` -> "a positive number"; ``[Ge(1), finite]`` -> "a number >= 1"."""
+    if any(isinstance(c, Gt) and c.gt == 0 for c in found):
+        return "a positive number"
+    bounds = [
+        f"{_BOUNDS[type(c)][0]} {getattr(c, _BOUNDS[type(c)][1])}"
+        for c in found
+        if type(c) in _BOUNDS
+    ]
+    return "a number " + " and ".join(bounds) if bounds else "a finite number"
+
+
+def _holds(value: Any, found: list[Any]) -> bool:
+    if not _is_number(value):
+        return False
+    for c in found:
+        if type(c) in _BOUNDS:
+            op, attr = _BOUNDS[type(c)]
+            bound = getattr(c, attr)
+            ok = {
+                ">": value > bound,
+                ">=": value >= bound,
+                "<": value < bound,
+                "<=": value <= bound,
+            }[op]
+            if not ok:
+                return False
+        elif isinstance(c, Predicate) and not c.func(value):
+            return False
+    return True
 
 
 def matches(value: Any, tp: Any) -> bool:
@@ -203,14 +283,19 @@ def check_choice(value: Any, name: str, owner: str | None, choices: tuple[Any, .
 
 
 def validate_types(obj: Any, owner: str | None = None) -> None:
-    """ConfigError naming the first parameter of ``obj`` whose value misfits its annotation."""
+    """ConfigError naming the first parameter of ``obj`` whose value misfits its annotation
+    or breaks the annotation's constraints (None passes where the annotation allows it)."""
     cls = type(obj)
     hints = annotations(cls)
+    ranges = constraints(cls)
+    prefix = f"{owner}: " if owner else ""
     for p in init_parameters(cls):
-        if p.name in hints and hasattr(obj, p.name):
-            value = getattr(obj, p.name)
-            if not matches(value, hints[p.name]):
-                prefix = f"{owner}: " if owner else ""
-                raise ConfigError(
-                    f"{prefix}{p.name} must be {_expected(hints[p.name])}, got {value!r}"
-                )
+        if not hasattr(obj, p.name):
+            continue
+        value = getattr(obj, p.name)
+        found = ranges.get(p.name)
+        if found and not (value is None and matches(None, hints.get(p.name, Any))):
+            if not _holds(value, found):
+                raise ConfigError(f"{prefix}{p.name} must be {_describe(found)}, got {value!r}")
+        if p.name in hints and not matches(value, hints[p.name]):
+            raise ConfigError(f"{prefix}{p.name} must be {_expected(hints[p.name])}, got {value!r}")

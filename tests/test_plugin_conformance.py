@@ -5,14 +5,17 @@ a test entry point, broken plugins failing with the rule they break, ``plugins.c
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import pytest
+from annotated_types import Ge
 
 from canopy_kit import plugins
 from canopy_kit.errors import ConfigError, InputError
-from canopy_kit.params import check_positive
+from canopy_kit.params import NonNegative, Positive, check_positive
 from canopy_kit.segment.base import Segmenter, check_points
 from canopy_kit.testing import (
     check_segmenter,
@@ -286,7 +289,7 @@ def test_cli_prints_each_parameter() -> None:
     assert out.exit_code == 0, out.output
     (row,) = [line for line in out.output.splitlines() if line.startswith("alpha")]
     name, type_, default, meaning = row.split("\t")
-    assert (name, type_, default) == ("alpha", "float", "0.9")
+    assert (name, type_, default) == ("alpha", "float, a positive number", "0.9")
     assert meaning.startswith("Radius (m): the solid is the union of the Delaunay tetrahedra")
     hull = CliRunner().invoke(app, ["plugins", "--params", "convex_hull"])
     assert hull.exit_code == 0 and "0 parameter(s)" in hull.output
@@ -332,3 +335,54 @@ def test_every_shipped_preset_passes_the_checks() -> None:
 
     for name in preset_names():
         check_settings(load_preset(name))
+
+
+# -- ranges declared once, in the annotation ----------------------------------------------
+@pytest.mark.parametrize(
+    "kind, name", [(k, n) for k in ("segmenters", "volumes") for n in plugins.names(k)]
+)
+def test_every_declared_range_is_enforced_by_create(kind, name):
+    """Each parameter whose annotation declares a range (Positive, NonNegative, ...) is
+    refused by plugins.create just outside it, with a ConfigError naming the parameter."""
+    from canopy_kit.params import constraints
+
+    cls = plugins.load(kind, name)
+    for param, found in constraints(cls).items():
+        lows = [getattr(c, a) for c in found for a in ("gt", "ge") if hasattr(c, a)]
+        outside = (lows[0] - 1.0) if lows else float("nan")
+        with pytest.raises(ConfigError, match=param):
+            plugins.create(kind, name, {param: outside})
+
+
+class Ranged:
+    """A plugin-like class whose ranges are declared in its annotations (module level, so
+    that its string annotations resolve)."""
+
+    def __init__(
+        self,
+        size: Positive = 1.0,
+        margin: NonNegative | None = None,
+        factor: Annotated[float, Ge(1)] = 1.0,
+        mode: Literal["a", "b"] = "a",
+    ) -> None:
+        self.size, self.margin, self.factor, self.mode = size, margin, factor, mode
+
+
+def test_constraints_read_from_the_annotation_and_shown_in_params():
+    from canopy_kit.params import parameters_of, validate_types
+
+    validate_types(Ranged(margin=0.0))  # 0 is allowed where >= 0, None where Optional
+    cases = {
+        "size": (0, "size must be a positive number, got 0"),
+        "margin": (-0.1, "margin must be a number >= 0, got -0.1"),
+        "factor": (0.5, "factor must be a number >= 1, got 0.5"),
+        "mode": ("c", "mode must be one of ['a', 'b'], got 'c'"),
+    }
+    for param, (value, message) in cases.items():
+        with pytest.raises(ConfigError, match=f"^ranged: {re.escape(message)}$"):
+            validate_types(Ranged(**{param: value}), "ranged")
+    with pytest.raises(ConfigError, match="size must be a positive number, got inf"):
+        validate_types(Ranged(size=float("inf")))
+    shown = {p.name: p.type_name for p in parameters_of(Ranged)}
+    assert shown["size"] == "float, a positive number"
+    assert shown["margin"] == "Optional[float], a number >= 0"

@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
+from canopy_kit.params import Positive
+from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.crowns import crown_split
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
 from canopy_kit.segment.profile import along_axis, chm_peaks, chm_spacing, principal_axis
@@ -126,11 +127,11 @@ class AdaptiveSegmenter(Segmenter):
 
     def __init__(
         self,
-        link_factor: float = 2.0,
-        crumb_fraction: float = 0.1,
-        crumb_reach: float = 0.25,
+        link_factor: Positive = 2.0,
+        crumb_fraction: Positive = 0.1,
+        crumb_reach: Positive = 0.25,
         use_stems: bool = True,
-        stem_search_radius: float = 1.0,
+        stem_search_radius: Positive = 1.0,
         crown_split: bool = True,
         random_state: int = 0,
     ) -> None:
@@ -141,13 +142,6 @@ class AdaptiveSegmenter(Segmenter):
         self.use_stems = use_stems
         self.stem_search_radius = stem_search_radius
         self.random_state = random_state
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        owner = type(self).__name__
-        for name in ("link_factor", "crumb_fraction", "crumb_reach", "stem_search_radius"):
-            check_positive(getattr(self, name), name, owner)
-        super().validate_params()
 
     def fit(
         self,

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import numpy as np
 
 from canopy_kit.errors import InputError
-from canopy_kit.params import check_choice
-from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
+from canopy_kit.params import Positive
+from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.density import grid_dbscan, weighted_dbscan
 
 
@@ -36,7 +38,8 @@ def run_dbscan(
     raise InputError(f"algorithm must be 'auto', 'grid' or 'exact', got {algorithm!r}")
 
 
-ALGORITHMS = ("auto", "grid", "exact")
+Algorithm = Literal["auto", "grid", "exact"]
+ALGORITHMS = get_args(Algorithm)
 
 
 class DBSCANSegmenter(Segmenter):
@@ -59,19 +62,11 @@ class DBSCANSegmenter(Segmenter):
     """
 
     def __init__(
-        self, eps: float = 0.8, min_samples: float = 1300, algorithm: str = "auto"
+        self, eps: Positive = 0.8, min_samples: Positive = 1300, algorithm: Algorithm = "auto"
     ) -> None:
         self.eps = eps
         self.min_samples = min_samples
         self.algorithm = algorithm
-
-    def validate_params(self) -> None:
-        """ConfigError naming ``eps``, ``min_samples`` or ``algorithm`` when unusable."""
-        owner = type(self).__name__
-        check_positive(self.eps, "eps", owner)
-        check_positive(self.min_samples, "min_samples", owner)
-        check_choice(self.algorithm, "algorithm", owner, ALGORITHMS)
-        super().validate_params()
 
     def fit(
         self,

@@ -18,9 +18,9 @@ import warnings
 import numpy as np
 
 from canopy_kit.errors import ConfigError
-from canopy_kit.params import check_choice
-from canopy_kit.segment.base import Segmenter, check_points, check_positive, check_weight
-from canopy_kit.segment.dbscan import ALGORITHMS, run_dbscan
+from canopy_kit.params import NonNegative, Positive, PositiveInt
+from canopy_kit.segment.base import Segmenter, check_points, check_weight
+from canopy_kit.segment.dbscan import Algorithm, run_dbscan
 from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.voxel import voxel_centroids
 
@@ -119,14 +119,14 @@ class DBSCANSpectralSegmenter(Segmenter):
 
     def __init__(
         self,
-        eps: float = 0.8,
-        min_samples: float = 1300,
-        max_cluster_size: float = 45000,
-        n_neighbors: int = 10,
+        eps: Positive = 0.8,
+        min_samples: Positive = 1300,
+        max_cluster_size: Positive = 45000,
+        n_neighbors: PositiveInt = 10,
         eigen_solver: str = "amg",
         random_state: int = 0,
-        algorithm: str = "auto",
-        graph_cell: float = 0.0,
+        algorithm: Algorithm = "auto",
+        graph_cell: NonNegative = 0.0,
     ) -> None:
         self.eps = eps
         self.min_samples = min_samples
@@ -136,15 +136,6 @@ class DBSCANSpectralSegmenter(Segmenter):
         self.random_state = random_state
         self.algorithm = algorithm
         self.graph_cell = graph_cell
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        owner = type(self).__name__
-        for name in ("eps", "min_samples", "max_cluster_size", "n_neighbors"):
-            check_positive(getattr(self, name), name, owner)
-        check_graph_cell(self.graph_cell)
-        check_choice(self.algorithm, "algorithm", owner, ALGORITHMS)
-        super().validate_params()
 
     def fit(
         self,

@@ -40,8 +40,9 @@ from contextlib import suppress
 import numpy as np
 
 from canopy_kit.errors import ConfigError
+from canopy_kit.params import NonNegative, Positive
 from canopy_kit.volume.alpha_hull import alpha_hull_volume, grid_step
-from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.convexity import HOLLOW_Z, is_hollowed_body, sample_convexity
 from canopy_kit.volume.hull import efron_corrected_hull, hull_volume, thin_to_distance
 
@@ -109,14 +110,14 @@ class AdaptiveAlphaVolume(VolumeEstimator):
 
     def __init__(
         self,
-        alpha_factor: float = ALPHA_FACTOR,
-        offset_factor: float = OFFSET_FACTOR,
-        alpha_min: float = 0.3,
-        alpha_max: float = 1.5,
-        grid_step: float | None = None,
+        alpha_factor: Positive = ALPHA_FACTOR,
+        offset_factor: NonNegative = OFFSET_FACTOR,
+        alpha_min: Positive = 0.3,
+        alpha_max: Positive = 1.5,
+        grid_step: Positive | None = None,
         fill_voids: bool = True,
-        sparse_fill: float | None = SPARSE_FILL,
-        sample_cell: float = SAMPLE_CELL,
+        sparse_fill: Positive | None = SPARSE_FILL,
+        sample_cell: Positive = SAMPLE_CELL,
     ) -> None:
         self.alpha_factor = alpha_factor
         self.offset_factor = offset_factor
@@ -129,25 +130,12 @@ class AdaptiveAlphaVolume(VolumeEstimator):
 
     def validate_params(self) -> None:
         """ConfigError naming the first unusable parameter."""
-        for name in ("alpha_factor", "alpha_min", "alpha_max"):
-            check_positive(getattr(self, name), name, self.name)
-        check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
-        check_positive(self.sparse_fill, "sparse_fill", self.name, allow_none=True)
-        check_positive(self.sample_cell, "sample_cell", self.name)
-        off = self.offset_factor
-        if (
-            not isinstance(off, int | float)
-            or isinstance(off, bool)
-            or not np.isfinite(off)
-            or off < 0
-        ):
-            raise ConfigError(f"{self.name}: offset_factor must be a number >= 0, got {off!r}")
+        super().validate_params()  # each value's type and range first
         if self.alpha_min > self.alpha_max:
             raise ConfigError(
                 f"{self.name}: alpha_min ({self.alpha_min}) must not exceed "
                 f"alpha_max ({self.alpha_max})"
             )
-        super().validate_params()
 
     def choose(self, xyz: np.ndarray, tree: object = None) -> tuple[float, float, float]:
         """(α, offset, spacing) for these points."""

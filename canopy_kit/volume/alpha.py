@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.params import PAPER_ALPHA_M
-from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.params import PAPER_ALPHA_M, Positive
+from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.surface import Surface, boundary_triangles, compact_surface
 
 # Tetrahedra are processed in chunks to bound temporary memory (~100 MB per chunk).
@@ -192,13 +192,8 @@ class AlphaShapeVolume(VolumeEstimator):
     )
     convex_rtol = 1e-6
 
-    def __init__(self, alpha: float = PAPER_ALPHA_M) -> None:
+    def __init__(self, alpha: Positive = PAPER_ALPHA_M) -> None:
         self.alpha = alpha
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        check_positive(self.alpha, "alpha", self.name)
-        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
         return self._complex(xyz)[0]

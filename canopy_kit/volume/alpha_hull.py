@@ -29,8 +29,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from canopy_kit.params import Positive
 from canopy_kit.volume.alpha import PAPER_ALPHA_M
-from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.volume.base import VolumeEstimator
 
 DEFAULT_CELLS_PER_ALPHA = 4.0
 MAX_CELLS = 8_000_000
@@ -210,15 +211,9 @@ class AlphaHullVolume(VolumeEstimator):
     )
     convex_rtol = 0.03  # the grid's rounding of edges and corners (1.1 % on the unit cube)
 
-    def __init__(self, alpha: float = PAPER_ALPHA_M, grid_step: float | None = None) -> None:
+    def __init__(self, alpha: Positive = PAPER_ALPHA_M, grid_step: Positive | None = None) -> None:
         self.alpha = alpha
         self.grid_step = grid_step
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        check_positive(self.alpha, "alpha", self.name)
-        check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
-        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
         h = grid_step(xyz, float(self.alpha), self.grid_step)

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.errors import ConfigError
-from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.params import Positive, PositiveInt
+from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.hull import qhull_reason
 
 
@@ -127,18 +127,9 @@ class EnclosingEllipsoidVolume(VolumeEstimator):
     )
     convex_rtol = None  # an ellipsoid, not the hull: over-fills any polyhedron
 
-    def __init__(self, tol: float = 1e-4, max_iterations: int = 100_000) -> None:
+    def __init__(self, tol: Positive = 1e-4, max_iterations: PositiveInt = 100_000) -> None:
         self.tol = tol
         self.max_iterations = max_iterations
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        super().validate_params()
-        check_positive(self.tol, "tol", self.name)
-        if self.max_iterations < 1:
-            raise ConfigError(
-                f"{self.name}: max_iterations must be at least 1, got {self.max_iterations!r}"
-            )
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
         from scipy.spatial import QhullError

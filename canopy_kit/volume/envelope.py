@@ -36,19 +36,21 @@ high, whose top a sensor with a narrow field of view may not have seen), ``thin`
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 
+from canopy_kit.params import Positive
 from canopy_kit.volume.alpha_hull import alpha_hull_volume, grid_step
-from canopy_kit.volume.base import VolumeEstimator, check_choice, check_positive
+from canopy_kit.volume.base import VolumeEstimator
 
 ENVELOPE_ALPHA = 0.75  # m: the measurand's scale
 SPACING_FACTOR = 5.0  # the closing ball is at least this many point spacings
 SPARSE_FILL = 1.2  # below: a sparse crown, measured as its enclosing ellipsoid when young
 TALL_HEIGHT_M = 4.5  # a crown higher than this (lowest to top point) is of the tall kind
 YOUNG_MAX_M3 = 15.0  # convex hull of a young crown at most (a full pistachio crown: 12-38 m³)
-MEASURANDS = ("auto", "envelope", "ellipsoid")
+Measurand = Literal["auto", "envelope", "ellipsoid"]
+MEASURANDS = get_args(Measurand)
 VOID_EXACT_SHARE = 0.01  # enclosed voids above this share are measured exactly (a second closing)
 
 
@@ -105,13 +107,13 @@ class FoliageEnvelopeVolume(VolumeEstimator):
 
     def __init__(
         self,
-        alpha: float = ENVELOPE_ALPHA,
-        spacing_factor: float = SPACING_FACTOR,
+        alpha: Positive = ENVELOPE_ALPHA,
+        spacing_factor: Positive = SPACING_FACTOR,
         fill_voids: bool = True,
-        sparse_fill: float | None = SPARSE_FILL,
-        young_max_m3: float = YOUNG_MAX_M3,
-        measurand: str = "auto",
-        grid_step: float | None = None,
+        sparse_fill: Positive | None = SPARSE_FILL,
+        young_max_m3: Positive = YOUNG_MAX_M3,
+        measurand: Measurand = "auto",
+        grid_step: Positive | None = None,
     ) -> None:
         self.alpha = alpha
         self.spacing_factor = spacing_factor
@@ -120,16 +122,6 @@ class FoliageEnvelopeVolume(VolumeEstimator):
         self.young_max_m3 = young_max_m3
         self.measurand = measurand
         self.grid_step = grid_step
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        check_positive(self.alpha, "alpha", self.name)
-        check_positive(self.spacing_factor, "spacing_factor", self.name)
-        check_positive(self.sparse_fill, "sparse_fill", self.name, allow_none=True)
-        check_positive(self.young_max_m3, "young_max_m3", self.name)
-        check_positive(self.grid_step, "grid_step", self.name, allow_none=True)
-        check_choice(self.measurand, "measurand", self.name, MEASURANDS)
-        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict[str, Any]]:
         from scipy.spatial import QhullError, cKDTree

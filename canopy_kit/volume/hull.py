@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.errors import ConfigError
-from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.params import AtLeastOne, Positive
+from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.surface import Surface, compact_surface
 
 
@@ -172,17 +172,9 @@ class SampleCorrectedHullVolume(VolumeEstimator):
         "sample was drawn from"
     )
 
-    def __init__(self, cell: float = 0.2, max_factor: float = MAX_SAMPLE_FACTOR) -> None:
+    def __init__(self, cell: Positive = 0.2, max_factor: AtLeastOne = MAX_SAMPLE_FACTOR) -> None:
         self.cell = cell
         self.max_factor = max_factor
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        check_positive(self.cell, "cell", self.name)
-        check_positive(self.max_factor, "max_factor", self.name)
-        if self.max_factor < 1.0:
-            raise ConfigError(f"{self.name}: max_factor must be >= 1, got {self.max_factor}")
-        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
         from scipy.spatial import QhullError

@@ -25,15 +25,18 @@ changes little.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 
 from canopy_kit.errors import ConfigError
+from canopy_kit.params import Positive
 from canopy_kit.volume.alpha import PAPER_ALPHA_M
-from canopy_kit.volume.base import VolumeEstimator, check_choice, check_positive
+from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.hull import hull_volume
 
-MIRROR_BASES = ("convex_hull", "alpha_hull", "alpha_shape")
+MirrorBase = Literal["convex_hull", "alpha_hull", "alpha_shape"]
+MIRROR_BASES = get_args(MirrorBase)
 
 
 @dataclass(frozen=True)
@@ -125,9 +128,9 @@ class MirrorVolume(VolumeEstimator):
         self,
         plane_point: tuple[float, float] | None = None,
         plane_normal: tuple[float, float] | None = None,
-        base: str = "convex_hull",
-        alpha: float = PAPER_ALPHA_M,
-        across_ratio: float = 1.0,
+        base: MirrorBase = "convex_hull",
+        alpha: Positive = PAPER_ALPHA_M,
+        across_ratio: Positive = 1.0,
     ) -> None:
         self.plane_point = plane_point
         self.plane_normal = plane_normal
@@ -137,14 +140,11 @@ class MirrorVolume(VolumeEstimator):
 
     def validate_params(self) -> None:
         """ConfigError naming the first unusable parameter."""
-        check_choice(self.base, "base", self.name, MIRROR_BASES)
-        check_positive(self.alpha, "alpha", self.name)
-        check_positive(self.across_ratio, "across_ratio", self.name)
+        super().validate_params()  # each value's type and range first
         _as_pair(self.plane_point, "plane_point", self.name)
         normal = _as_pair(self.plane_normal, "plane_normal", self.name)
         if normal is not None and np.linalg.norm(normal) == 0:
             raise ConfigError(f"{self.name}: plane_normal must not be (0, 0)")
-        super().validate_params()
 
     def plane(self, xyz: np.ndarray) -> MirrorPlane:
         """The plane used for ``xyz``: as given, or estimated."""

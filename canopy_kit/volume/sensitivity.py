@@ -7,9 +7,10 @@ tetrahedra sorted by circumradius, their volumes summed cumulatively.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from annotated_types import Gt, Lt
 
 from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.volume.alpha import Tetrahedra, delaunay_tetrahedra, qhull_failure
@@ -119,15 +120,8 @@ class AutoAlphaVolume(VolumeEstimator):
     measures = "the alpha shape at the start of its volume plateau, alpha chosen per tree"
     convex_rtol = 1e-3  # a filled convex solid is a plateau from the first α that fills it
 
-    def __init__(self, tolerance: float = 0.02) -> None:
+    def __init__(self, tolerance: Annotated[float, Gt(0), Lt(1)] = 0.02) -> None:
         self.tolerance = tolerance
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        ok = isinstance(self.tolerance, int | float) and not isinstance(self.tolerance, bool)
-        if not ok or not 0 < self.tolerance < 1:
-            raise ConfigError(f"{self.name}: tolerance must be in (0, 1), got {self.tolerance!r}")
-        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> tuple[float, dict]:
         from scipy.spatial import QhullError

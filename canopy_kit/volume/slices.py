@@ -8,12 +8,16 @@ points, or collinear ones, add nothing.
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import numpy as np
 
+from canopy_kit.params import Positive
 from canopy_kit.volume.alpha import PAPER_ALPHA_M
-from canopy_kit.volume.base import VolumeEstimator, check_choice, check_positive
+from canopy_kit.volume.base import VolumeEstimator
 
-AREA_METHODS = ("hull", "alpha")
+AreaMethod = Literal["hull", "alpha"]
+AREA_METHODS = get_args(AreaMethod)
 
 
 def hull_area(xy: np.ndarray) -> float:
@@ -87,18 +91,11 @@ class SliceVolume(VolumeEstimator):
     )
 
     def __init__(
-        self, thickness: float = 0.2, area: str = "hull", alpha: float = PAPER_ALPHA_M
+        self, thickness: Positive = 0.2, area: AreaMethod = "hull", alpha: Positive = PAPER_ALPHA_M
     ) -> None:
         self.thickness = thickness
         self.area = area
         self.alpha = alpha
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        check_positive(self.thickness, "thickness", self.name)
-        check_choice(self.area, "area", self.name, AREA_METHODS)
-        check_positive(self.alpha, "alpha", self.name)
-        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
         t = float(self.thickness)

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from canopy_kit.volume.base import VolumeEstimator, check_positive
+from canopy_kit.params import Positive
+from canopy_kit.volume.base import VolumeEstimator
 
 MAX_VOXELS = 50_000_000
 
@@ -51,14 +52,9 @@ class VoxelVolume(VolumeEstimator):
         "returns are, a lower bound of the crown"
     )
 
-    def __init__(self, voxel_size: float = 0.1, fill_holes: bool = True) -> None:
+    def __init__(self, voxel_size: Positive = 0.1, fill_holes: bool = True) -> None:
         self.voxel_size = voxel_size
         self.fill_holes = fill_holes
-
-    def validate_params(self) -> None:
-        """ConfigError naming the first unusable parameter."""
-        check_positive(self.voxel_size, "voxel_size", self.name)
-        super().validate_params()
 
     def _volume(self, xyz: np.ndarray) -> float | tuple[float, dict]:
         size = float(self.voxel_size)
