@@ -76,7 +76,7 @@ class AutoAlpha:
 def auto_alpha(xyz: Any, tolerance: float = 0.02, n: int = 64) -> AutoAlpha:
     """Smallest α after which doubling α adds less than ``tolerance`` of the volume.
 
-    Rule (docs/VOLUMES.md): sample α at ``n`` log-spaced values from the median
+    Rule (docs/VOLUME_METHODS.md): sample α at ``n`` log-spaced values from the median
     nearest-neighbour spacing of the points to half the diagonal of their bounding box
     (beyond which the alpha shape is the convex hull), and return the first α with a
     non-zero volume V(α) and V(2α) <= (1 + tolerance) V(α): the start of the plateau
