@@ -29,8 +29,9 @@ measures). The estimator is
   the corrected hull.
 
 The two factors were calibrated on simulated crowns of every form (docs/history/VOLUMES_LOG.md,
-"Adaptive alpha"). One k-d tree query, two distance transforms: about 0.1-0.2 s for a
-50k-point tree, where the exact alpha complex needs a Delaunay triangulation (1-2 s).
+"`adaptive_alpha` and the per-tree interval" and "The offset recalibrated on harsher
+crowns"). One k-d tree query, two distance transforms: about 0.1-0.2 s for a 50k-point
+tree, where the exact alpha complex needs a Delaunay triangulation (1-2 s).
 """
 
 from __future__ import annotations
