@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 from canopy_kit.params import PAPER_ALPHA_M
@@ -41,6 +43,12 @@ def volume(
         "--method, --alpha and --voxel-size override",
     ),
     json: bool = typer.Option(False, "--json", help="print the result as JSON"),
+    mesh: Path = typer.Option(
+        None,
+        "--mesh",
+        help="also write the measured solid as a mesh (.ply, .stl, .obj, .vtp, .vtk; "
+        "convex_hull and alpha_shape draw theirs)",
+    ),
 ) -> None:
     """Estimate the canopy volume of the points in CLOUD with one volume method, say what that
     volume measures, and warn when the estimators disagree beyond every tree family measured
@@ -66,7 +74,9 @@ def volume(
         from canopy_kit.voxel import voxel_representatives
 
         measured = measured[voxel_representatives(measured, voxel_size)[0]]
-    result = est(measured)
+    result, surface = est.with_surface(measured) if mesh is not None else (est(measured), None)
+    if mesh is not None:
+        _write_mesh(mesh, surface, result)
     warnings = []
     several = not_one_tree(points)
     if several:
@@ -88,6 +98,7 @@ def volume(
                 "disagreement": disagree,
                 "warnings": warnings,
                 "metrics": metrics.as_dict(),
+                "mesh": None if mesh is None else str(mesh),
             }
         )
         return
@@ -98,6 +109,8 @@ def volume(
     )
     if what:
         console.print(f"measures: {what}")
+    if mesh is not None:
+        console.print(f"mesh of the measured solid: {mesh}")
     for warning in warnings:
         console.print(f"[yellow]warning: {warning}[/]")
     console.print(
@@ -108,6 +121,21 @@ def volume(
 
 
 DEFAULT_METHOD = "foliage_envelope"
+
+
+def _write_mesh(path: Path, surface, result) -> None:
+    """The solid behind ``result`` as a mesh file; InputError when there is none to write."""
+    from canopy_kit.errors import InputError
+    from canopy_kit.volume.mesh_export import write_surface
+    from canopy_kit.volume.verb import DRAWN_METHODS
+
+    if surface is None:
+        why = result.reason if not result.valid else f"{result.method} draws no surface"
+        raise InputError(
+            f"--mesh {path}: no solid to write ({why}); the methods that draw theirs: "
+            f"{', '.join(DRAWN_METHODS)}"
+        )
+    write_surface(path, surface)
 
 
 def _settings(

@@ -203,7 +203,7 @@ class AlphaShapeVolume(VolumeEstimator):
         if kept is None or not len(kept):
             return out, None
         name = f"alpha shape (α = {self.alpha:g} m)"
-        return out, compact_surface(name, xyz, boundary_triangles(kept, len(xyz)), out[0])
+        return out, compact_surface(name, xyz, boundary_triangles(kept, len(xyz), xyz), out[0])
 
     def _complex(self, xyz: np.ndarray) -> tuple[tuple[float, dict], np.ndarray | None]:
         """The volume with its extras, and the tetrahedra (K, 4) of the alpha complex."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from canopy_kit.params import AtLeastOne, Positive
 from canopy_kit.volume.base import VolumeEstimator
-from canopy_kit.volume.surface import Surface, compact_surface
+from canopy_kit.volume.surface import Surface, compact_surface, wound_away_from
 
 
 def hull_volume(xyz: np.ndarray) -> float:
@@ -139,7 +139,8 @@ class ConvexHullVolume(VolumeEstimator):
         except QhullError as exc:
             return (0.0, {"reason": _hull_failure(exc)}), None
         volume = float(hull.volume)
-        return volume, compact_surface("convex hull", xyz, hull.simplices, volume)
+        faces = wound_away_from(hull.simplices, xyz, xyz.mean(axis=0))  # outwards: convex
+        return volume, compact_surface("convex hull", xyz, faces, volume)
 
 
 def _hull_failure(exc: Exception) -> str:
