@@ -1,0 +1,303 @@
+"""A Velodyne VLP-16 pcap drive (plus an optional GNSS track file) turned into a ROS1 bag
+that the normal pipeline maps.
+
+Design: an import step, not a second source type for the mapping stage. The capture's
+data packets become ``velodyne_msgs/VelodyneScan`` messages (one per rotation) and the
+track's fixes ``sensor_msgs/NavSatFix`` messages, in a ROS1 bag in the run's cache folder
+(``out/.cache/pcap_import/``, reused while the pcap, track and settings are unchanged).
+Every reader, check, rig and fusion path of the mapping stage then works on a pcap drive as
+on a bag, with no second code path to keep in step.
+
+Time: each packet's time is its µs-past-the-hour counter on the UTC hour that the first
+position packet's ``$GPRMC`` gives (the sensor takes its clock from that receiver), else the
+hour nearest the capture time. Packet stamps are written as exactly those times, so the
+bag reader's stamp-to-counter offset is zero. Both sensors are written in one frame
+(``velodyne``): give a rig (``--rig``) for a GNSS antenna away from the LiDAR.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from canopy_kit.errors import InputError
+from canopy_kit.io.clouds import check_input_file
+from canopy_kit.io.gnss_track import GnssTrack, parse_rmc, read_gnss_track
+from canopy_kit.io.velodyne import DATA_PACKET_BYTES, HOUR_US, hour_base
+from canopy_kit.io.velodyne_pcap import DATA_PORT, PCAP_MAGICS, POSITION_PORT, _udp_packets
+
+SCAN_TOPIC = "/velodyne_packets"
+GNSS_TOPIC = "/gnss/fix"
+FRAME = "velodyne"
+MIN_DRIVE_S = 10.0  # shorter captures cannot show trees from both sides or close a pass
+MIN_TRAVEL_M = 5.0  # a drive must pass at least a tree spacing or two
+CRS_CHECK_M = 500.0  # track vs the capture's $GPRMC position: further means a wrong CRS
+IMPORT_VERSION = 1  # bump when the bag layout changes: cached imports are remade
+
+
+def is_pcap(path: str | Path) -> bool:
+    """True for an existing classic libpcap file (by its magic number)."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    with path.open("rb") as fh:
+        return fh.read(4) in PCAP_MAGICS
+
+
+@dataclass
+class PcapDrive:
+    """A capture's data packets with their UTC times, and its $GPRMC fixes."""
+
+    path: Path
+    packet_times: np.ndarray  # UTC epoch s of each data packet (its counter on the UTC hour)
+    packets: list[bytes]
+    rmc: np.ndarray  # (K, 3) UTC epoch s, latitude, longitude of the position packets' fixes
+    clock: str  # "gprmc" or "capture time"
+    capture_start: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def duration(self) -> float:
+        return float(self.packet_times[-1] - self.packet_times[0]) if len(self.packets) else 0.0
+
+    @property
+    def rotations(self) -> int:
+        return len(rotation_starts(self.packets))
+
+
+def _nmea_in(payload: bytes) -> str | None:
+    start = payload.find(b"$G")
+    if start < 0:
+        return None
+    end = len(payload)
+    for stop in (b"\r", b"\n", b"\x00"):
+        k = payload.find(stop, start)
+        if k >= 0:
+            end = min(end, k)
+    return payload[start:end].decode("ascii", errors="replace")
+
+
+def read_pcap_drive(path: str | Path) -> PcapDrive:
+    """Every VLP-16 data packet of a capture with its UTC time, and the $GPRMC fixes."""
+    path = check_input_file(path, "pcap file")
+    captures, counters, packets, rmc = [], [], [], []
+    with path.open("rb") as fh:
+        for capture, port, payload in _udp_packets(fh, path):
+            if port == DATA_PORT and len(payload) == DATA_PACKET_BYTES:
+                captures.append(capture)
+                counters.append(struct.unpack("<I", payload[1200:1204])[0])
+                packets.append(bytes(payload))
+            elif port == POSITION_PORT:
+                sentence = _nmea_in(payload)
+                fix = parse_rmc(sentence) if sentence and sentence[3:6] == "RMC" else None
+                if fix is not None:
+                    rmc.append(fix)
+    if not packets:
+        raise InputError(f"{path}: no VLP-16 data packets (UDP port {DATA_PORT}, 1206 bytes)")
+    counter = np.asarray(counters, float)
+    # the counter restarts every hour: count on from the first packet's hour
+    counter += HOUR_US * np.cumsum(np.diff(counter, prepend=counter[0]) < -HOUR_US / 2)
+    clock = "gprmc" if rmc else "capture time"
+    reference = rmc[0][0] if rmc else captures[0]
+    base = hour_base(reference, counter[0])
+    times = base + counter * 1e-6
+    return PcapDrive(path, times, packets, np.asarray(rmc).reshape(-1, 3), clock, captures[0])
+
+
+def rotation_starts(packets: list[bytes]) -> np.ndarray:
+    """Index of each packet whose first block's azimuth wrapped past 0° (plus 0)."""
+    azimuth = np.array([struct.unpack("<H", p[2:4])[0] for p in packets], float)
+    wraps = np.flatnonzero(np.diff(azimuth) < -18000.0) + 1
+    return np.concatenate([[0], wraps]).astype(int)
+
+
+def track_for(
+    drive: PcapDrive, track: str | Path, crs: int | str | None, time_scale: str
+) -> tuple[GnssTrack, list[str]]:
+    """The track read on the capture's date, checked against the capture's time and place."""
+    notes = []
+    if crs is None and len(drive.rmc):
+        from canopy_kit.geo import utm_epsg
+
+        crs = utm_epsg(float(drive.rmc[0, 1]), float(drive.rmc[0, 2]))
+        notes.append(
+            f"--gnss-crs not given: easting/northing (if any) read as EPSG:{crs}, the WGS84 UTM "
+            "zone of the capture's $GPRMC position"
+        )
+    got = read_gnss_track(track, crs, drive.packet_times[0], time_scale)
+    t = got.fixes.t
+    start, end = drive.packet_times[0], drive.packet_times[-1]
+    inside = (t >= start - 1.0) & (t <= end + 1.0)
+    if inside.sum() < 2:
+        from datetime import UTC, datetime
+
+        def iso(x: float) -> str:
+            return datetime.fromtimestamp(x, UTC).isoformat(timespec="seconds")
+
+        raise InputError(
+            f"{got.path}: the track ({iso(t[0])} to {iso(t[-1])} UTC, read as {time_scale.upper()}"
+            f") does not cover the capture {drive.path.name} ({iso(start)} to {iso(end)} UTC)"
+        )
+    if len(drive.rmc):
+        from canopy_kit.geo import LocalFrame
+
+        lat, lon = float(drive.rmc[0, 1]), float(drive.rmc[0, 2])
+        i = int(np.argmin(np.abs(t - drive.rmc[0, 0])))
+        local = LocalFrame.at(lat, lon).to_local(
+            got.fixes.latitude[i : i + 1], got.fixes.longitude[i : i + 1]
+        )
+        distance = float(np.hypot(*local[0, :2]))
+        if distance > CRS_CHECK_M:
+            line = f", line {got.lines[i]}" if got.lines[i] else ""
+            raise InputError(
+                f"{got.path}{line}: this fix lies {distance / 1000:.1f} km from the position "
+                f"the capture's $GPRMC gives ({lat:.5f}, {lon:.5f}): is the track's CRS "
+                f"({got.crs}) right?"
+            )
+    return got, notes
+
+
+def check_drive_length(drive: PcapDrive, track: GnssTrack | None) -> None:
+    """Raise when the capture is too short, or the track shows it standing still."""
+    duration, rotations = drive.duration, drive.rotations
+    travel = None
+    if track is not None:
+        from canopy_kit.geo import LocalFrame
+
+        f = track.fixes
+        inside = (f.t >= drive.packet_times[0]) & (f.t <= drive.packet_times[-1])
+        if inside.sum() >= 2:
+            frame = LocalFrame.at(float(f.latitude[inside][0]), float(f.longitude[inside][0]))
+            xy = frame.to_local(f.latitude[inside], f.longitude[inside])[:, :2]
+            travel = float(np.sum(np.linalg.norm(np.diff(xy, axis=0), axis=1)))
+    moved = f", the GNSS track moves {travel:.2f} m during it" if travel is not None else ""
+    if duration < MIN_DRIVE_S or (travel is not None and travel < MIN_TRAVEL_M):
+        raise InputError(
+            f"{drive.path}: the capture is {duration:.2f} s long ({rotations} rotations){moved}; "
+            f"mapping needs a drive of at least {MIN_DRIVE_S:.0f} s covering at least "
+            f"{MIN_TRAVEL_M:.0f} m along the rows (this looks like a sample or a stationary "
+            "stretch: `canopy-kit info` describes it)"
+        )
+
+
+def import_key(pcap: Path, track: Path | None, crs: Any, time_scale: str) -> str:
+    """A short hash of what the imported bag depends on."""
+    from canopy_kit.cache import fingerprint
+
+    parts = {
+        "pcap": fingerprint(pcap),
+        "track": fingerprint(track) if track is not None else None,
+        "crs": str(crs),
+        "time_scale": time_scale,
+        "version": IMPORT_VERSION,
+    }
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def import_pcap_drive(
+    pcap: str | Path,
+    cache_dir: str | Path,
+    track: str | Path | None = None,
+    crs: int | str | None = None,
+    time_scale: str = "utc",
+) -> tuple[Path, dict[str, Any]]:
+    """The ROS1 bag of a pcap drive (made in ``cache_dir`` unless already there) and what
+    was read: ``{"pcap", "gnss_track", "gnss_crs", "time_scale", "clock", "notes"}``.
+
+    Checks the capture's length and the track before anything is written.
+    """
+    pcap = Path(pcap)
+    drive = read_pcap_drive(pcap)
+    got, notes = (None, []) if track is None else track_for(drive, track, crs, time_scale)
+    check_drive_length(drive, got)
+    info = {
+        "pcap": pcap.name,
+        "pcap_duration_s": round(drive.duration, 3),
+        "clock": drive.clock,
+        "gnss_track": Path(track).name if track is not None else "",
+        "gnss_track_format": got.format if got is not None else "",
+        "gnss_crs": got.crs if got is not None else "",
+        "gnss_time_scale": time_scale if got is not None else "",
+        "notes": notes,
+    }
+    key = import_key(pcap, Path(track) if track is not None else None, crs, time_scale)
+    bag = Path(cache_dir) / "pcap_import" / f"{pcap.stem}-{key}.bag"
+    if not bag.exists():
+        write_drive_bag(bag, drive, got)
+    return bag, info
+
+
+def write_drive_bag(bag: Path, drive: PcapDrive, track: GnssTrack | None) -> Path:
+    """A ROS1 bag of the drive: one VelodyneScan per rotation, the fixes over the capture."""
+    from canopy_kit.io.bag_writer import BagWriter
+
+    starts = rotation_starts(drive.packets)
+    ends = np.append(starts[1:], len(drive.packets))
+    fixes: list[int] = []
+    if track is not None:
+        t = track.fixes.t
+        fixes = list(
+            np.flatnonzero((t >= drive.packet_times[0] - 1.0) & (t <= drive.packet_times[-1] + 1.0))
+        )
+    with BagWriter(bag, "ros1") as writer:
+        k = 0
+        for a, b in zip(starts, ends, strict=True):
+            stamp = float(drive.packet_times[a])
+            while k < len(fixes) and track.fixes.t[fixes[k]] < stamp:  # type: ignore[union-attr]
+                _write_fix(writer, track, fixes[k])
+                k += 1
+            writer.write_velodyne_scan(
+                SCAN_TOPIC, drive.packet_times[a:b], drive.packets[a:b], FRAME
+            )
+        for i in fixes[k:]:
+            _write_fix(writer, track, i)
+    return bag
+
+
+def _write_fix(writer: Any, track: GnssTrack | None, i: int) -> None:
+    f = track.fixes  # type: ignore[union-attr]
+    writer.write_fix(
+        GNSS_TOPIC,
+        float(f.t[i]),
+        float(f.latitude[i]),
+        float(f.longitude[i]),
+        float(f.altitude[i]),
+        status=int(f.status[i]),
+        frame_id=FRAME,
+        covariance_type=0,  # a track file states no accuracy
+    )
+
+
+@dataclass(frozen=True)
+class GnssTrackOption:
+    """``run``'s GNSS track options for a pcap drive: the file, its CRS and time scale."""
+
+    path: Path | None = None
+    crs: int | str | None = None
+    time_scale: str = "utc"
+
+
+def drive_input(
+    source: Path, cache_dir: Path, gnss: GnssTrackOption | None
+) -> tuple[Path, dict[str, Any]]:
+    """The bag to map for ``source``: a pcap imported (:func:`import_pcap_drive`) with its
+    provenance entries, any other input unchanged with none. A GNSS track or CRS given for
+    a bag is an InputError (a bag carries its own GNSS)."""
+    gnss = gnss or GnssTrackOption()
+    if not is_pcap(source):
+        if gnss.path is not None or gnss.crs is not None:
+            raise InputError(
+                f"--gnss/--gnss-crs: only a pcap capture takes a GNSS track file; {source} is "
+                "not one (a bag's GNSS comes from its NavSatFix topic)"
+            )
+        return source, {}
+    bag, info = import_pcap_drive(source, cache_dir, gnss.path, gnss.crs, gnss.time_scale)
+    if gnss.path is not None:
+        info["gnss_track_sha256"] = hashlib.sha256(Path(gnss.path).read_bytes()).hexdigest()
+    return bag, {"pcap_import": info}
