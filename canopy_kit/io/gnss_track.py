@@ -296,7 +296,8 @@ def parse_rmc(sentence: str) -> tuple[float, float, float] | None:
     if len(fields) < 10 or fields[2] != "A" or not fields[1] or len(fields[9]) != 6:
         return None
     try:
-        day, month, year = int(fields[9][:2]), int(fields[9][2:4]), 2000 + int(fields[9][4:6])
+        day, month, yy = int(fields[9][:2]), int(fields[9][2:4]), int(fields[9][4:6])
+        year = 2000 + yy if yy < 80 else 1900 + yy  # GPS dates begin in 1980
         midnight = datetime(year, month, day, tzinfo=UTC).timestamp()
         t = midnight + hhmmss_seconds(float(fields[1]))
         return t, _nmea_degrees(fields[3], fields[4]), _nmea_degrees(fields[5], fields[6])

@@ -187,8 +187,12 @@ def check_drive_length(drive: PcapDrive, track: GnssTrack | None) -> None:
 
 
 def import_key(pcap: Path, track: Path | None, crs: Any, time_scale: str) -> str:
-    """A short hash of what the imported bag depends on."""
-    from canopy_kit.cache import fingerprint
+    """A short hash of what the imported bag depends on (files by path, size and mtime, as
+    canopy_kit.cache fingerprints inputs)."""
+
+    def fingerprint(p: Path) -> list:
+        st = p.resolve().stat()
+        return [str(p.resolve()), st.st_size, st.st_mtime_ns]
 
     parts = {
         "pcap": fingerprint(pcap),
