@@ -5,6 +5,7 @@ run's reader path, and the track readers against hand-computed and pyproj values
 from __future__ import annotations
 
 import json
+import struct
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -359,3 +360,26 @@ def test_gpx_and_csv(tmp_path):
     with pytest.raises(InputError, match=rf"{csv}, line 3: time does not increase"):
         csv.write_text("t,lat,lon\n1533110400,41.5,0.5\n1533110400,41.5,0.5\n")
         read_gnss_track(csv)
+
+
+def test_a_stationary_capture_without_track_is_refused(tmp_path, monkeypatch, capsys):
+    """The real sample's 20 turns played six times over (12 s, one place): no track to tell,
+    but its rotations coincide."""
+    from canopy_kit.io.pcap_drive import read_pcap_drive
+    from canopy_kit.sim.pcap_drive import write_pcap
+
+    drive = read_pcap_drive(sample_dir() / "velodyne_data_20frames_sample.pcap")
+    period = drive.duration + 0.0013
+    packets = []
+    for k in range(6):
+        for t, p in zip(drive.packet_times, drive.packets, strict=True):
+            counter = (
+                struct.unpack("<I", p[1200:1204])[0] + round(k * period * 1e6)
+            ) % 3_600_000_000
+            packets.append((t + k * period, p[:1200] + struct.pack("<I", counter) + p[1204:]))
+    pcap = write_pcap(tmp_path / "still.pcap", packets, None)
+    out = tmp_path / "run"
+    code, _, err = cli(monkeypatch, capsys, "run", pcap, "--out", out)
+    line = one_error_line(err)
+    assert code == 2 and "the capture is 12.07 s long" in line and "the sensor stood still" in line
+    assert not out.exists()

@@ -37,6 +37,8 @@ GNSS_TOPIC = "/gnss/fix"
 FRAME = "velodyne"
 MIN_DRIVE_S = 10.0  # shorter captures cannot show trees from both sides or close a pass
 MIN_TRAVEL_M = 5.0  # a drive must pass at least a tree spacing or two
+STILL_M = 0.05  # scans whose points lie this close to another scan's were taken in one place
+STILL_SHARE = 0.8  # ... for this share of their points (measured 0.95 on the stationary sample)
 CRS_CHECK_M = 500.0  # track vs the capture's $GPRMC position: further means a wrong CRS
 IMPORT_VERSION = 1  # bump when the bag layout changes: cached imports are remade
 
@@ -177,6 +179,12 @@ def check_drive_length(drive: PcapDrive, track: GnssTrack | None) -> None:
             xy = frame.to_local(f.latitude[inside], f.longitude[inside])[:, :2]
             travel = float(np.sum(np.linalg.norm(np.diff(xy, axis=0), axis=1)))
     moved = f", the GNSS track moves {travel:.2f} m during it" if travel is not None else ""
+    if travel is None and duration >= MIN_DRIVE_S and standing_still(drive):
+        moved = (
+            f"; its first, middle and last rotations coincide ({100 * STILL_SHARE:.0f} % of "
+            f"points within {100 * STILL_M:.0f} cm): the sensor stood still"
+        )
+        travel = 0.0
     if duration < MIN_DRIVE_S or (travel is not None and travel < MIN_TRAVEL_M):
         raise InputError(
             f"{drive.path}: the capture is {duration:.2f} s long ({rotations} rotations){moved}; "
@@ -184,6 +192,36 @@ def check_drive_length(drive: PcapDrive, track: GnssTrack | None) -> None:
             f"{MIN_TRAVEL_M:.0f} m along the rows (this looks like a sample or a stationary "
             "stretch: `canopy-kit info` describes it)"
         )
+
+
+def standing_still(drive: PcapDrive) -> bool:
+    """True when the first, middle and last full rotations were scanned from one place (the
+    drive has no track to tell): most of their points within :data:`STILL_M` of the first's."""
+    from scipy.spatial import cKDTree
+
+    from canopy_kit.io.velodyne_ros import scan_from_packets
+
+    starts = rotation_starts(drive.packets)
+    if len(starts) < 4:
+        return False
+
+    def rotation(k: int) -> np.ndarray:
+        a, b = starts[k], starts[k + 1]
+        scan = scan_from_packets(
+            drive.packet_times[a:b], b"".join(drive.packets[a:b]), FRAME, str(drive.path), k
+        )
+        near = np.linalg.norm(scan.xyz, axis=1) < 30.0
+        return scan.xyz[near]
+
+    first = rotation(1)
+    if len(first) < 100:
+        return False
+    tree = cKDTree(first)
+    for k in (len(starts) // 2, len(starts) - 2):
+        other = rotation(k)
+        if len(other) < 100 or np.mean(tree.query(other)[0] < STILL_M) < STILL_SHARE:
+            return False
+    return True
 
 
 def import_key(pcap: Path, track: Path | None, crs: Any, time_scale: str) -> str:
