@@ -178,6 +178,17 @@ def test_bad_tracks_exit_2_naming_the_file(sim_drive, tmp_path, monkeypatch, cap
         monkeypatch, capsys, "run", sim_drive["pcap"], "--gnss", shifted, "--out", tmp_path / "c"
     )
     assert code == 2 and "does not cover the capture drive.pcap" in one_error_line(err)
+    # a bag carries its own GNSS; a streamed run takes bags only
+    bag = Path(sim_drive["truth"]) / "session"
+    code, _, err = cli(
+        monkeypatch, capsys, "run", bag, "--gnss", sim_drive["mtls"], "--out", tmp_path / "d"
+    )
+    assert code == 2 and "only a pcap capture takes a GNSS track file" in one_error_line(err)
+    code, _, err = cli(
+        monkeypatch, capsys, "run", sim_drive["pcap"], "--stream", "--out", tmp_path / "e"
+    )
+    assert code == 2 and "--stream takes a bag" in one_error_line(err)
+    assert not any((tmp_path / name).exists() for name in "cde")
 
 
 # -- the real MTLS sample ---------------------------------------------------------------------

@@ -86,6 +86,10 @@ def run(
     config = load_preset(preset, overrides)
     if stream:
         from canopy_kit.cli.stream import run_streaming
+        from canopy_kit.io.pcap_drive import is_pcap
+
+        if is_pcap(bag):
+            raise InputError(f"{bag}: --stream takes a bag; run a pcap capture without --stream")
 
         with output_folder(out):
             run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
