@@ -35,7 +35,7 @@ def simulate(
         False,
         "--pcap",
         help="VLP-16 raw packets, also written as capture/drive.pcap with GNSS tracks "
-        "(MTLS text, CSV, NMEA, GPX) for `run DRIVE.pcap --gnss TRACK`",
+        "(MTLS text, CSV, NMEA, GPX) for: run DRIVE.pcap --gnss TRACK",
     ),
     set_: list[str] = typer.Option([], "--set", help="Override any parameter: section.key=value"),
     overwrite: bool = typer.Option(False, help="Replace a non-empty output folder"),
