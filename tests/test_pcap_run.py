@@ -383,7 +383,7 @@ def test_a_stationary_capture_without_track_is_refused(tmp_path, monkeypatch, ca
     period = drive.duration + 0.0013
     packets = []
     for k in range(6):
-        for t, p in zip(drive.packet_times, drive.packets, strict=True):
+        for t, p in zip(drive.packet_times, drive.payloads(), strict=True):
             counter = (
                 struct.unpack("<I", p[1200:1204])[0] + round(k * period * 1e6)
             ) % 3_600_000_000

@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,11 +55,13 @@ def is_pcap(path: str | Path) -> bool:
 
 @dataclass
 class PcapDrive:
-    """A capture's data packets with their UTC times, and its $GPRMC fixes."""
+    """A capture's data packets by their UTC times and first azimuths (the payloads stay in
+    the file: :meth:`payloads` reads them again, so a drive of hours fits in memory), and
+    its $GPRMC fixes."""
 
     path: Path
     packet_times: np.ndarray  # UTC epoch s of each data packet (its counter on the UTC hour)
-    packets: list[bytes]
+    azimuth: np.ndarray  # each data packet's first block azimuth, 0.01 degree
     rmc: np.ndarray  # (K, 3) UTC epoch s, latitude, longitude of the position packets' fixes
     clock: str  # "gprmc" or "capture time"
     capture_start: float = 0.0
@@ -66,11 +69,24 @@ class PcapDrive:
 
     @property
     def duration(self) -> float:
-        return float(self.packet_times[-1] - self.packet_times[0]) if len(self.packets) else 0.0
+        return float(self.packet_times[-1] - self.packet_times[0]) if len(self.azimuth) else 0.0
+
+    @property
+    def rotation_starts(self) -> np.ndarray:
+        """Index of each packet whose first block's azimuth wrapped past 0° (plus 0)."""
+        wraps = np.flatnonzero(np.diff(self.azimuth) < -18000.0) + 1
+        return np.concatenate([[0], wraps]).astype(int)
 
     @property
     def rotations(self) -> int:
-        return len(rotation_starts(self.packets))
+        return len(self.rotation_starts)
+
+    def payloads(self) -> Iterator[bytes]:
+        """The data packets' 1206-byte payloads, in capture order."""
+        with self.path.open("rb") as fh:
+            for _, port, payload in _udp_packets(fh, self.path):
+                if port == DATA_PORT and len(payload) == DATA_PACKET_BYTES:
+                    yield bytes(payload)
 
 
 def _nmea_in(payload: bytes) -> str | None:
@@ -86,37 +102,31 @@ def _nmea_in(payload: bytes) -> str | None:
 
 
 def read_pcap_drive(path: str | Path) -> PcapDrive:
-    """Every VLP-16 data packet of a capture with its UTC time, and the $GPRMC fixes."""
+    """Every VLP-16 data packet's UTC time and first azimuth, and the $GPRMC fixes."""
     path = check_input_file(path, "pcap file")
-    captures, counters, packets, rmc = [], [], [], []
+    captures, counters, azimuths, rmc = [], [], [], []
     with path.open("rb") as fh:
         for capture, port, payload in _udp_packets(fh, path):
             if port == DATA_PORT and len(payload) == DATA_PACKET_BYTES:
                 captures.append(capture)
                 counters.append(struct.unpack("<I", payload[1200:1204])[0])
-                packets.append(bytes(payload))
+                azimuths.append(struct.unpack("<H", payload[2:4])[0])
             elif port == POSITION_PORT:
                 sentence = _nmea_in(payload)
                 fix = parse_rmc(sentence) if sentence and sentence[3:6] == "RMC" else None
                 if fix is not None:
                     rmc.append(fix)
-    if not packets:
+    if not counters:
         raise InputError(f"{path}: no VLP-16 data packets (UDP port {DATA_PORT}, 1206 bytes)")
     counter = np.asarray(counters, float)
     # the counter restarts every hour: count on from the first packet's hour
     counter += HOUR_US * np.cumsum(np.diff(counter, prepend=counter[0]) < -HOUR_US / 2)
     clock = "gprmc" if rmc else "capture time"
     reference = rmc[0][0] if rmc else captures[0]
-    base = hour_base(reference, counter[0])
-    times = base + counter * 1e-6
-    return PcapDrive(path, times, packets, np.asarray(rmc).reshape(-1, 3), clock, captures[0])
-
-
-def rotation_starts(packets: list[bytes]) -> np.ndarray:
-    """Index of each packet whose first block's azimuth wrapped past 0° (plus 0)."""
-    azimuth = np.array([struct.unpack("<H", p[2:4])[0] for p in packets], float)
-    wraps = np.flatnonzero(np.diff(azimuth) < -18000.0) + 1
-    return np.concatenate([[0], wraps]).astype(int)
+    times = hour_base(reference, counter[0]) + counter * 1e-6
+    return PcapDrive(
+        path, times, np.asarray(azimuths, float), np.asarray(rmc).reshape(-1, 3), clock, captures[0]
+    )
 
 
 def track_for(
@@ -201,14 +211,21 @@ def standing_still(drive: PcapDrive) -> bool:
 
     from canopy_kit.io.velodyne_ros import scan_from_packets
 
-    starts = rotation_starts(drive.packets)
+    starts = drive.rotation_starts
     if len(starts) < 4:
         return False
+    picks = {1, len(starts) // 2, len(starts) - 2}
+    wanted = {k: [] for k in picks}  # rotation -> its payloads
+    owner = np.searchsorted(starts, np.arange(len(drive.azimuth)), side="right") - 1
+    for i, payload in enumerate(drive.payloads()):
+        if owner[i] in wanted:
+            wanted[owner[i]].append(payload)
 
     def rotation(k: int) -> np.ndarray:
-        a, b = starts[k], starts[k + 1]
+        a = starts[k]
+        data = wanted[k]
         scan = scan_from_packets(
-            drive.packet_times[a:b], b"".join(drive.packets[a:b]), FRAME, str(drive.path), k
+            drive.packet_times[a : a + len(data)], b"".join(data), FRAME, str(drive.path), k
         )
         near = np.linalg.norm(scan.xyz, axis=1) < 30.0
         return scan.xyz[near]
@@ -279,8 +296,7 @@ def write_drive_bag(bag: Path, drive: PcapDrive, track: GnssTrack | None) -> Pat
     """A ROS1 bag of the drive: one VelodyneScan per rotation, the fixes over the capture."""
     from canopy_kit.io.bag_writer import BagWriter
 
-    starts = rotation_starts(drive.packets)
-    ends = np.append(starts[1:], len(drive.packets))
+    starts = set(drive.rotation_starts.tolist())
     fixes: list[int] = []
     if track is not None:
         t = track.fixes.t
@@ -288,15 +304,23 @@ def write_drive_bag(bag: Path, drive: PcapDrive, track: GnssTrack | None) -> Pat
             np.flatnonzero((t >= drive.packet_times[0] - 1.0) & (t <= drive.packet_times[-1] + 1.0))
         )
     with BagWriter(bag, "ros1") as writer:
-        k = 0
-        for a, b in zip(starts, ends, strict=True):
-            stamp = float(drive.packet_times[a])
+        k, first, rotation = 0, 0, []
+
+        def flush(end: int) -> None:
+            nonlocal k
+            stamp = float(drive.packet_times[first])
             while k < len(fixes) and track.fixes.t[fixes[k]] < stamp:  # type: ignore[union-attr]
                 _write_fix(writer, track, fixes[k])
                 k += 1
-            writer.write_velodyne_scan(
-                SCAN_TOPIC, drive.packet_times[a:b], drive.packets[a:b], FRAME
-            )
+            writer.write_velodyne_scan(SCAN_TOPIC, drive.packet_times[first:end], rotation, FRAME)
+
+        for i, payload in enumerate(drive.payloads()):
+            if i in starts and rotation:
+                flush(i)
+                first, rotation = i, []
+            rotation.append(payload)
+        if rotation:
+            flush(first + len(rotation))
         for i in fixes[k:]:
             _write_fix(writer, track, i)
     return bag
