@@ -203,7 +203,7 @@ def test_real_sample_is_refused_as_too_short(tmp_path, monkeypatch, capsys):
     line = one_error_line(err)
     assert code == 2
     assert "the capture is 2.01 s long" in line and "at least 10 s" in line
-    assert "the GNSS track moves 0.02 m" in line  # standing still (read as UTC)
+    assert "the GNSS track spans 0.01 m" in line  # standing still (read as UTC)
     assert not out.exists()
     # read as GPS time the track is 18 s earlier, where the platform already drives
     code, _, err = cli(
@@ -220,7 +220,7 @@ def test_real_sample_is_refused_as_too_short(tmp_path, monkeypatch, capsys):
         "--out",
         out,
     )
-    assert code == 2 and "the GNSS track moves 0.49 m" in one_error_line(err)
+    assert code == 2 and "the GNSS track spans 0.47 m" in one_error_line(err)
     code, _, err = cli(monkeypatch, capsys, "run", pcap, "--out", out)
     assert code == 2 and "2.01 s long (21 rotations); mapping needs" in one_error_line(err)
 
