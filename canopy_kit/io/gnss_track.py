@@ -332,6 +332,8 @@ def _read_nmea(path: Path, text: str, reference_time: float | None) -> GnssTrack
                 rmc.append((number, *parsed))
     if gga:
         ref = rmc[0][1] if rmc else _need_reference(reference_time, path, "GGA times of day")
+        # a receiver logging several talkers ($GPGGA and $GNGGA) repeats an epoch: keep its first
+        gga = [g for k, g in enumerate(gga) if k == 0 or g[1] != gga[k - 1][1]]
         arr = np.array([g[1:] for g in gga])
         t = times_of_day_to_utc(arr[:, 0], ref, gps=False, where=str(path))
         lines = [g[0] for g in gga]
