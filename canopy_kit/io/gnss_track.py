@@ -44,6 +44,15 @@ import numpy as np
 
 from canopy_kit.errors import InputError
 from canopy_kit.io.bag import GnssSeries
+from canopy_kit.io.nmea import (
+    NMEA_POSITION,
+    hhmmss_seconds,
+    nmea_checksum_ok,
+    parse_gga,
+    parse_rmc,
+)
+
+__all__ = ["GnssTrack", "hhmmss_seconds", "leap_seconds", "parse_rmc", "read_gnss_track"]
 
 # (first UTC day in force, GPS - UTC seconds): IERS Bulletin C; none announced after 2017.
 GPS_UTC_LEAP_SECONDS = (
@@ -82,13 +91,6 @@ def leap_seconds(utc: float) -> int:
         if utc >= start:
             offset = leap
     return offset
-
-
-def hhmmss_seconds(value: float) -> float:
-    """Seconds of the day of a time written as the number hhmmss.ss (80150.95 -> 08:01:50.95)."""
-    hours, rest = divmod(float(value), 10000.0)
-    minutes, seconds = divmod(rest, 100.0)
-    return hours * 3600.0 + minutes * 60.0 + seconds
 
 
 def times_of_day_to_utc(
@@ -269,63 +271,23 @@ def _csv_times(
     return np.array(out)
 
 
-_NMEA = re.compile(r"^\$(GP|GN|GL|GA)(GGA|RMC),")
-
-
-def _nmea_degrees(value: str, hemisphere: str) -> float:
-    raw = float(value)
-    degrees = int(raw // 100)
-    out = degrees + (raw - 100 * degrees) / 60.0
-    return -out if hemisphere in ("S", "W") else out
-
-
-def nmea_checksum_ok(sentence: str) -> bool:
-    """True when the sentence has no ``*hh`` checksum or its checksum matches."""
-    if "*" not in sentence:
-        return True
-    body, _, given = sentence[1:].partition("*")
-    value = 0
-    for ch in body:
-        value ^= ord(ch)
-    return given[:2].upper() == f"{value:02X}"
-
-
-def parse_rmc(sentence: str) -> tuple[float, float, float] | None:
-    """(UTC epoch s, latitude, longitude) of a valid ``$xxRMC`` sentence, else None."""
-    fields = sentence.split("*")[0].split(",")
-    if len(fields) < 10 or fields[2] != "A" or not fields[1] or len(fields[9]) != 6:
-        return None
-    try:
-        day, month, yy = int(fields[9][:2]), int(fields[9][2:4]), int(fields[9][4:6])
-        year = 2000 + yy if yy < 80 else 1900 + yy  # GPS dates begin in 1980
-        midnight = datetime(year, month, day, tzinfo=UTC).timestamp()
-        t = midnight + hhmmss_seconds(float(fields[1]))
-        return t, _nmea_degrees(fields[3], fields[4]), _nmea_degrees(fields[5], fields[6])
-    except ValueError:
-        return None
-
-
 def _read_nmea(path: Path, text: str, reference_time: float | None) -> GnssTrack:
     gga: list[tuple[int, float, float, float, float]] = []  # line, tod, lat, lon, height
     rmc: list[tuple[int, float, float, float]] = []  # line, utc, lat, lon
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
-        match = _NMEA.match(line)
+        match = NMEA_POSITION.match(line)
         if not match:
             continue
         if not nmea_checksum_ok(line):
             raise InputError(f"{path}, line {number}: NMEA checksum does not match")
-        fields = line.split("*")[0].split(",")
         if match.group(2) == "GGA":
-            if len(fields) < 10 or not fields[2] or fields[6] in ("", "0"):
-                continue  # no fix
             try:
-                height = float(fields[9]) + (float(fields[11]) if fields[11:12] != [""] else 0.0)
-                lat = _nmea_degrees(fields[2], fields[3])
-                lon = _nmea_degrees(fields[4], fields[5])
-                gga.append((number, hhmmss_seconds(float(fields[1])), lat, lon, height))
+                fix = parse_gga(line)
             except (ValueError, IndexError):
                 raise InputError(f"{path}, line {number}: malformed GGA sentence") from None
+            if fix is not None:
+                gga.append((number, *fix))
         else:
             parsed = parse_rmc(line)
             if parsed is not None:

@@ -29,7 +29,8 @@ import numpy as np
 
 from canopy_kit.errors import InputError
 from canopy_kit.io.clouds import check_input_file
-from canopy_kit.io.gnss_track import GnssTrack, parse_rmc, read_gnss_track
+from canopy_kit.io.gnss_track import GnssTrack, read_gnss_track
+from canopy_kit.io.nmea import parse_rmc
 from canopy_kit.io.velodyne import DATA_PACKET_BYTES, HOUR_US, hour_base
 from canopy_kit.io.velodyne_pcap import DATA_PORT, PCAP_MAGICS, POSITION_PORT, _udp_packets
 
