@@ -143,6 +143,30 @@ def test_track_formats_of_one_drive_agree(sim_drive):
         assert np.abs(g.altitude - f.altitude).max() < 2e-3, name
 
 
+def test_a_track_on_gps_time_reads_back_with_gnss_time_gps(sim_drive, tmp_path):
+    """The simulator writes the MTLS text on GPS time (UTC + 18 s in 2023); read as gps it
+    gives the UTC times of the CSV track, read as utc 18 s late."""
+    from canopy_kit.io.bag import open_bag
+    from canopy_kit.io.pcap_drive import import_pcap_drive, read_pcap_drive
+    from canopy_kit.sim.pcap_drive import write_track
+
+    ref = read_pcap_drive(sim_drive["pcap"]).packet_times[0]
+    utc = read_gnss_track(sim_drive["csv"], None, ref).fixes
+    gps_file = write_track(tmp_path / "gps.txt", utc, "mtls", time_scale="gps")
+    got = read_gnss_track(gps_file, "EPSG:32610", ref, time_scale="gps").fixes
+    np.testing.assert_allclose(got.t, utc.t, atol=1e-6)
+    late = read_gnss_track(gps_file, "EPSG:32610", ref).fixes
+    np.testing.assert_allclose(late.t - utc.t, 18.0, atol=1e-6)
+    # the imported bag's fixes are the track's, on the capture's clock
+    bag, info = import_pcap_drive(sim_drive["pcap"], tmp_path, gps_file, 32610, "gps")
+    assert info["gnss_time_scale"] == "gps" and info["gnss_crs"] == "EPSG:32610"
+    with open_bag(bag) as session:
+        fixes = session.gnss()
+    inside = (utc.t >= ref - 1.0) & (utc.t <= fixes.t[-1])
+    np.testing.assert_allclose(fixes.t, utc.t[inside], atol=1e-6)
+    np.testing.assert_allclose(fixes.latitude, utc.latitude[inside], atol=1e-8)
+
+
 def test_bad_tracks_exit_2_naming_the_file(sim_drive, tmp_path, monkeypatch, capsys):
     lines = Path(sim_drive["mtls"]).read_text().splitlines()
     gap = tmp_path / "gap.txt"
