@@ -63,19 +63,24 @@ def run(
     progress: Progress | None = None,
     orchard: str | None = None,
     export_trees: bool = False,
+    gnss: Any = None,
 ) -> Results:
     """Run every stage on ``bag`` and write the outputs (all atomically) into ``out``.
 
     ``orchard`` names the orchard or block in the provenance (default: the bag's stem);
-    ``export_trees`` also writes each tree's points as ``trees/<tree_id>.laz``.
+    ``export_trees`` also writes each tree's points as ``trees/<tree_id>.laz``. ``bag`` may
+    be a Velodyne pcap, with ``gnss`` a :class:`canopy_kit.io.pcap_drive.GnssTrackOption`.
     """
+    from canopy_kit.io.pcap_drive import drive_input
     from canopy_kit.provenance import BagHash, provenance
 
     out = Path(out)
     report = progress or (lambda *_: None)
     started, t0 = time.time(), time.perf_counter()
+    source = Path(bag)
+    bag, imported = drive_input(source, out / ".cache", gnss)  # a pcap becomes a bag
     # Hashed once the map is made: the mapping keeps both cores busy, segmentation one.
-    bag_hash = BagHash(bag, start=False)
+    bag_hash = BagHash(source, start=False)
     try:
         ctx, cache = compute(
             config, bag, out, drone_images, truth, use_cache, report, on_mapped=bag_hash.start
@@ -89,6 +94,12 @@ def run(
     metrics["provenance"] = provenance(
         bag, config.name, started, time.perf_counter() - t0, orchard, drone_images, bag_hash
     )
+    if imported:
+        metrics["provenance"] |= {"bag": source.name, "orchard": orchard or source.stem}
+        metrics["provenance"] |= imported
+        # the mapping's warnings name the imported bag: name the capture the user gave
+        named = [str(w).replace(str(bag), str(source)) for w in metrics.get("warnings", [])]
+        metrics["warnings"] = named
     exported = {}
     if export_trees:  # before the outputs: metrics.json and report.html come last
         from canopy_kit.segment.tree_export import export_trees as write_tree_clouds

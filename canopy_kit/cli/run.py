@@ -12,7 +12,9 @@ CHECKS_FAILED_EXIT = 4  # run --strict: every output written, but a check failed
 
 
 def run(
-    bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
+    bag: Path = typer.Argument(
+        ..., help="ROS1 .bag file, ROS2 bag folder or Velodyne VLP-16 .pcap capture"
+    ),
     out: Path = typer.Option(..., "--out", help="Output folder"),
     preset: str = typer.Option("adaptive", help=preset_help()),
     drone_images: Path = typer.Option(
@@ -43,6 +45,15 @@ def run(
         "--export-trees",
         help="Also write each tree's points as trees/<tree_id>.laz (for canopy-kit volume)",
     ),
+    gnss: Path = typer.Option(
+        None, "--gnss", help="GNSS track of a pcap drive (MTLS text, CSV, NMEA or GPX)"
+    ),
+    gnss_crs: str = typer.Option(
+        None, "--gnss-crs", help="EPSG code of the track's easting/northing (e.g. 25831)"
+    ),
+    gnss_time: str = typer.Option(
+        "utc", "--gnss-time", help="Time scale of the track's times of day: utc or gps"
+    ),
     strict: bool = typer.Option(
         False,
         "--strict",
@@ -58,6 +69,7 @@ def run(
     from canopy_kit.cli.common import output_folder, parse_overrides, progress_bar
     from canopy_kit.config import load_preset, merge
     from canopy_kit.errors import InputError
+    from canopy_kit.io.pcap_drive import GnssTrackOption
     from canopy_kit.pipeline import run as run_pipeline
     from canopy_kit.rig import extrinsics_mode, rig_overrides
 
@@ -74,6 +86,10 @@ def run(
     config = load_preset(preset, overrides)
     if stream:
         from canopy_kit.cli.stream import run_streaming
+        from canopy_kit.io.pcap_drive import is_pcap
+
+        if is_pcap(bag):
+            raise InputError(f"{bag}: --stream takes a bag; run a pcap capture without --stream")
 
         with output_folder(out):
             run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
@@ -89,6 +105,7 @@ def run(
             progress=progress,
             orchard=orchard,
             export_trees=export_trees,
+            gnss=GnssTrackOption(gnss, gnss_crs, gnss_time),
         )
     print_results(results)
     if strict and results.metrics.get("checks_summary", {}).get("fail", 0):

@@ -31,6 +31,12 @@ def simulate(
     no_tf_static: bool = typer.Option(
         False, "--no-tf-static", help="Leave the rig's /tf_static out of the bag"
     ),
+    pcap: bool = typer.Option(
+        False,
+        "--pcap",
+        help="VLP-16 raw packets, also written as capture/drive.pcap with GNSS tracks "
+        "(MTLS text, CSV, NMEA, GPX) for: run DRIVE.pcap --gnss TRACK",
+    ),
     set_: list[str] = typer.Option([], "--set", help="Override any parameter: section.key=value"),
     overwrite: bool = typer.Option(False, help="Replace a non-empty output folder"),
 ) -> None:
@@ -56,6 +62,10 @@ def simulate(
         overrides.setdefault("rig", {})["name"] = rig if known else str(Path(rig).resolve())
     if no_tf_static:
         overrides.setdefault("rig", {})["write_tf_static"] = False
+    if pcap:  # a capture holds raw packets; the track comes in the LiDAR's frame
+        overrides.setdefault("lidar", {}).update(output="velodyne_packets", frame_id="velodyne")
+        overrides.setdefault("gnss", {})["frame_id"] = "velodyne"
+        sensor = sensor or "vlp16"
     config = load_sim_config(orchard, overrides, sensor=sensor)
     with output_folder(out, option=None), progress_bar() as progress:
         session = simulate_session(
@@ -66,6 +76,11 @@ def simulate(
             overwrite=overwrite,
             progress=progress,
         )
+    if pcap:
+        from canopy_kit.sim.pcap_drive import TRACK_FORMATS, export_pcap_drive
+
+        files = export_pcap_drive(session.bag, Path(out) / "capture", TRACK_FORMATS)
+        console.print(f"  capture: {files['pcap']} (tracks: {', '.join(TRACK_FORMATS)})")
     console.print(
         f"[green]simulated[/] {len(session.orchard.trees)} trees, {session.n_scans} scans, "
         f"{session.n_points:,} points, {session.trajectory.duration:.0f} s of driving\n"
