@@ -73,7 +73,7 @@ def render(work: Path, kind: str, form: str) -> Path:
 
 def process(work: Path, kind: str, form: str) -> Path:
     """SfM, surface, mosaic and crowns of one flight, seeded by the true positions (cached)."""
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
     from ground_truth import process_flight
 
     root = render(work, kind, form)
@@ -98,7 +98,7 @@ def process(work: Path, kind: str, form: str) -> Path:
 
 def measure(work: Path, kind: str, form: str) -> list[dict]:
     """Every model's bias and MAPE on one processed flight (crowns measured by the current code)."""
-    from canopy_kit.stats import agreement
+    from canopy_kit.evaluate.stats import agreement
     from ground_truth.match import assign
 
     root = flight_root(work, kind, form)

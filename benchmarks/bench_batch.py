@@ -54,7 +54,7 @@ def simulate(name: str, rows: int, trees_per_row: int, session_seed: int = 0) ->
 
 # -- throughput -------------------------------------------------------------------------------
 def throughput(args: argparse.Namespace) -> None:
-    from canopy_kit.batch import SessionSpec, run_batch
+    from canopy_kit.pipeline.batch import SessionSpec, run_batch
 
     sims = [
         simulate(f"tp_{args.rows}x{args.trees_per_row}_{k}", args.rows, args.trees_per_row, k)
@@ -174,7 +174,7 @@ def store(args: argparse.Namespace) -> None:
     import numpy as np
     import pandas as pd
 
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
     from canopy_kit.store import OrchardStore, SessionRecord, changes, export, growth, row_growth
 
     rng = np.random.default_rng(0)

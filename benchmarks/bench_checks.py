@@ -37,8 +37,8 @@ def row(label: str, run: Path) -> list[str]:
     """One table row for the run folder ``run``."""
     import pandas as pd
 
-    from canopy_kit.checks import run_checks, summary
     from canopy_kit.config import load_preset
+    from canopy_kit.results.checks import run_checks, summary
 
     metrics = json.loads((run / "metrics.json").read_text())
     trees = pd.read_csv(run / "trees.csv")

@@ -20,8 +20,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from canopy_kit.evaluate.volume_errors import (
+    MethodSpec,
+    error_table,
+    simulated_trees,
+    volume_errors,
+)
 from canopy_kit.sim.crown_forms import FORM_NAMES
-from canopy_kit.volume.truth_errors import MethodSpec, error_table, simulated_trees, volume_errors
 
 SPECS = [
     MethodSpec("convex_hull", "convex_hull"),
@@ -76,7 +81,7 @@ def main() -> None:
     )
     parser.add_argument("--cache", type=Path, default=Path("/tmp/canopy_kit_bench_crown_forms"))
     args = parser.parse_args()
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
 
     tables = []
     for form in args.forms:

@@ -44,12 +44,12 @@ def run_once(session: Path, preset: str) -> dict:
     import pandas as pd
 
     from canopy_kit.config import load_preset
-    from canopy_kit.mapping.trajectory_error import trajectory_errors
-    from canopy_kit.parallel import cpu_seconds
+    from canopy_kit.core.parallel import cpu_seconds
+    from canopy_kit.evaluate.segmentation_score import evaluate_run
+    from canopy_kit.evaluate.trajectory_error import trajectory_errors
+    from canopy_kit.evaluate.truth import load_truth
     from canopy_kit.pipeline import run
-    from canopy_kit.segmentation_score import evaluate_run
     from canopy_kit.sim.session import find_bag
-    from canopy_kit.truth import load_truth
     from canopy_kit.volume.verb import volume_column
 
     config = load_preset(preset)

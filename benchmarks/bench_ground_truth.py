@@ -55,7 +55,7 @@ def flight(work: Path, kind: str, rows: int, trees: int, seed: int) -> Path:
 
 
 def frame_of(root: Path):
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
 
     return LocalFrame.from_dict(json.loads((root / "truth" / "frame.json").read_text())["frame"])
 
@@ -107,10 +107,10 @@ def accuracy(work: Path, orchards: list[str] | None = None) -> None:
 
 def sphere_bias(n_rows: int = 10, n_trees: int = 20) -> None:
     """How wrong is the paper's sphere model, with a perfect diameter?"""
+    from canopy_kit.evaluate.stats import agreement
     from canopy_kit.sim import load_sim_config
     from canopy_kit.sim.orchard import generate_orchard
     from canopy_kit.sim.truth import tree_table
-    from canopy_kit.stats import agreement
 
     print("## sphere model against the exact crown volume (perfect diameters)")
     for kind in ("pistachio", "almond"):

@@ -75,7 +75,7 @@ PLANTING_DISTANCE_M = {"almond": 4.75, "pistachio": 5.0}
 
 def processed_flight(work: Path, name: str, preset: str, seed: int, orchard: dict) -> dict:
     """Render (cached) and process (cached) one flight; the processing's wall and CPU time."""
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
     from canopy_kit.sim import load_sim_config
     from canopy_kit.sim.drone import simulate_drone_session
     from ground_truth import process_flight

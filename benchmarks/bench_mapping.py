@@ -51,7 +51,7 @@ from pathlib import Path
 
 from _checkout import child_json
 
-from canopy_kit.parallel import cpu_seconds
+from canopy_kit.core.parallel import cpu_seconds
 
 DEFAULT = (
     "canopy-kit build_map (defaults: IMU + GNSS, every 3rd sweep registered, odometry in "
@@ -106,8 +106,8 @@ def _result(
 
 def run_canopy_kit(session: Path, overrides: dict) -> dict:
     from canopy_kit.config import MappingConfig
+    from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
     from canopy_kit.mapping import build_map
-    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
     from canopy_kit.sim.session import find_bag
 
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
@@ -137,9 +137,9 @@ def run_kiss_icp(session: Path) -> dict:
     from kiss_icp.config import load_config
     from kiss_icp.kiss_icp import KissICP
 
+    from canopy_kit.evaluate.trajectory_error import trajectory_errors
     from canopy_kit.io.bag import open_bag
     from canopy_kit.mapping.trajectory import pose_table
-    from canopy_kit.mapping.trajectory_error import trajectory_errors
     from canopy_kit.sim.session import find_bag
     from canopy_kit.sim.truth import load_truth
 
@@ -167,7 +167,7 @@ def run_rko_lio(session: Path, exe: Path) -> dict:
     """rko_lio's command on the session's bag; wall, CPU and max RSS of its process."""
     import pandas as pd
 
-    from canopy_kit.mapping.trajectory_error import trajectory_errors
+    from canopy_kit.evaluate.trajectory_error import trajectory_errors
     from canopy_kit.sim.session import find_bag
     from canopy_kit.sim.truth import load_truth
 
@@ -223,7 +223,7 @@ def _rko_extrinsics(rig: dict) -> str:
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from canopy_kit.frames import from_rpy
+    from canopy_kit.core.frames import from_rpy
 
     def mount(key: str) -> np.ndarray:
         m = rig.get(key, {"translation": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]})

@@ -81,8 +81,8 @@ def session_map(
     tag: str = "",
 ):
     """(map PointCloud with tree_id, sim dir): simulated once, then read from the cache."""
-    from canopy_kit.cloud import PointCloud
     from canopy_kit.config import merge
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.sim import load_sim_config, simulate_session
     from canopy_kit.sim.session import find_bag
     from canopy_kit.sim.truth import load_truth
@@ -111,14 +111,14 @@ def session_map(
 
 def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
     """Every method on one map: success by point and by footprint IoU, plus the ceiling."""
-    from canopy_kit.segment.rows import driving_direction_from_trajectory
-    from canopy_kit.segment.verb import segment
-    from canopy_kit.segmentation_score import (
+    from canopy_kit.evaluate.segmentation_score import (
         envelope_ceiling,
         score_footprints,
         score_point_labels,
         truth_footprints,
     )
+    from canopy_kit.segment.rows import driving_direction_from_trajectory
+    from canopy_kit.segment.verb import segment
     from canopy_kit.sim.truth import load_truth
 
     truth = load_truth(sim_dir)
@@ -273,7 +273,7 @@ def repeated_rows(cloud, sim_dir: Path, n_rows: int):
     across the rows (same point density, crowns, trunks and ground as simulated); the
     outermost copies keep the scanned margins.
     """
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.sim.truth import load_truth
 
     info = load_truth(sim_dir).info
@@ -361,10 +361,10 @@ def figures(args: argparse.Namespace) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
+    from canopy_kit.evaluate.segmentation_score import score_point_labels
     from canopy_kit.segment.plots import plot_failure_gallery, plot_top_view
     from canopy_kit.segment.rows import driving_direction_from_trajectory
     from canopy_kit.segment.verb import segment
-    from canopy_kit.segmentation_score import score_point_labels
     from canopy_kit.sim.truth import load_truth
 
     cache, out = Path(args.cache), Path(args.out)
@@ -391,9 +391,9 @@ def real(args: argparse.Namespace) -> None:
     from sklearn.metrics import adjusted_rand_score
 
     from canopy_kit.config import PreprocessConfig
+    from canopy_kit.evaluate.segmentation_score import score_point_labels
     from canopy_kit.io.clouds import read_cloud
     from canopy_kit.segment.verb import segment
-    from canopy_kit.segmentation_score import score_point_labels
 
     cloud = read_cloud(args.laz)
     tid = np.asarray(cloud.fields["treeID"], dtype=np.float64)

@@ -28,10 +28,10 @@ from bench_volume_matrix import session
 def session_rows(sim: Path, sensor: str, seed: int) -> list[dict]:
     """One row per sparse crown of ``sim`` the segmenter matched one-to-one."""
     from canopy_kit.config import load_preset
+    from canopy_kit.evaluate.volume_accuracy import segmented_session
     from canopy_kit.volume.ellipsoid import enclosing_ellipsoid
     from canopy_kit.volume.hull import sample_corrected_hull, thin_to_distance
     from canopy_kit.volume.verb import measure_trees, measured_points, volume_column
-    from canopy_kit.volume_accuracy import segmented_session
 
     config = load_preset("adaptive")
     truth, cloud, seg, score = segmented_session(sim, config)

@@ -18,7 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.volume.truth_errors import MethodSpec, error_table, simulated_trees, volume_errors
+from canopy_kit.evaluate.volume_errors import (
+    MethodSpec,
+    error_table,
+    simulated_trees,
+    volume_errors,
+)
 
 SPECS = [
     MethodSpec("convex_hull", "convex_hull"),
@@ -58,7 +63,7 @@ def session(cache: Path, orchard: str, rows: int, trees: int) -> Path:
 
 def load_map(root: Path):
     """The cached reference map as a PointCloud with tree_id and time."""
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
 
     data = np.load(root / "map.npz")
     return PointCloud(data["xyz"], {"tree_id": data["tree_id"], "time": data["time"]})

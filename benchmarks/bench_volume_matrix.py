@@ -10,7 +10,7 @@ volume stage of the pipeline (the same code and settings as trees.csv):
 
 - ``both``: the tree's segment as the pipeline cut it (the crown seen from both alleys);
 - ``one-sided``: the same segment as a drive along one alley alone would have mapped it:
-  the map of that alley's sweeps only (``canopy_kit.truth_map.alley_maps``), with the
+  the map of that alley's sweeps only (``canopy_kit.evaluate.truth_map.alley_maps``), with the
   segment's labels carried over (each side counted once). Until 2026-12-04 this was a split
   of the whole map by the alley of each kept point, which gave the alley driven first every
   voxel both alleys saw (docs/history/VOLUMES_LOG.md).
@@ -77,7 +77,7 @@ def evaluate_session(
     from dataclasses import replace
 
     from canopy_kit.config import load_preset
-    from canopy_kit.volume_accuracy import segmented_volume_errors
+    from canopy_kit.evaluate.volume_accuracy import segmented_volume_errors
 
     config = load_preset("adaptive")
     methods = list(dict.fromkeys([*ESTIMATORS, *extra]))

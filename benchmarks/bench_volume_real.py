@@ -14,9 +14,9 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit import plugins
+from canopy_kit.core.voxel import voxel_downsample
 from canopy_kit.io.clouds import read_cloud
 from canopy_kit.volume import estimate_volume, tree_metrics
-from canopy_kit.voxel import voxel_downsample
 
 
 def main() -> None:

@@ -38,20 +38,20 @@ _PUBLIC = {
     # the whole chain
     "run": "canopy_kit.pipeline:run",
     "compute": "canopy_kit.pipeline:compute",
-    "load_context": "canopy_kit.explore:load_context",
+    "load_context": "canopy_kit.pipeline.explore:load_context",
     # inputs
     "open_bag": "canopy_kit.io.bag:open_bag",
     "read_scan": "canopy_kit.io.bag:read_scan",
     "read_cloud": "canopy_kit.io.clouds:read_cloud",
     "write_cloud": "canopy_kit.io.clouds:write_cloud",
     "describe_path": "canopy_kit.io.info:describe_path",
-    "PointCloud": "canopy_kit.cloud:PointCloud",
-    "LocalFrame": "canopy_kit.geo:LocalFrame",
+    "PointCloud": "canopy_kit.core.cloud:PointCloud",
+    "LocalFrame": "canopy_kit.core.geo:LocalFrame",
     "local_frame_for": "canopy_kit.mapping.gnss:local_frame_for",
     # segmentation
     "make_segmenter": "canopy_kit.segment.verb:make_segmenter",
     "segment_trees": "canopy_kit.segment.verb:segment",  # canopy_kit.segment is the subpackage
-    "score_point_labels": "canopy_kit.segmentation_score:score_point_labels",
+    "score_point_labels": "canopy_kit.evaluate.segmentation_score:score_point_labels",
     # volumes
     "estimate_volume": "canopy_kit.volume:estimate_volume",
     "estimator": "canopy_kit.volume:estimator",
@@ -64,13 +64,13 @@ _PUBLIC = {
     "volume_column": "canopy_kit.volume.verb:volume_column",
     "volume_methods": "canopy_kit.volume.verb:volume_methods",
     "hull_mesh": "canopy_kit.volume.hull:hull_mesh",
-    "PAPER_ALPHA_M": "canopy_kit.params:PAPER_ALPHA_M",
+    "PAPER_ALPHA_M": "canopy_kit.plugins.params:PAPER_ALPHA_M",
     "ALPHA_COLUMN": "canopy_kit.volume.verb:ALPHA_COLUMN",
     "CONVEX_HULL_COLUMN": "canopy_kit.volume.verb:CONVEX_HULL_COLUMN",
     # accuracy and truth
     "accuracy_table": "canopy_kit.volume.accuracy:accuracy_table",
     "family_accuracy_table": "canopy_kit.volume.accuracy:family_accuracy_table",
-    "load_truth": "canopy_kit.truth:load_truth",
+    "load_truth": "canopy_kit.evaluate.truth:load_truth",
     # plugins and the orchard store
     "plugins": "canopy_kit.plugins",
     "store": "canopy_kit.store",

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 
 
 @dataclass

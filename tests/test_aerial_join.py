@@ -7,7 +7,7 @@ import pandas as pd
 from fixtures_aerial import aerial_result
 
 from canopy_kit.config import GroundTruthConfig
-from canopy_kit.tree_table import join_aerial
+from canopy_kit.results.tree_table import join_aerial
 
 
 def test_errors_against_the_sphere_and_flags_for_fragments_and_merges() -> None:

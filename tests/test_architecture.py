@@ -31,8 +31,8 @@ ALLOWED_MODULE_LEVEL_CYCLES: list[frozenset[str]] = []
 #: Counting the imports made inside functions too (issue 28: "hidden by imports made inside
 #: functions"): none. The loop pipeline -> report -> pipeline, segment/results ->
 #: paper/comparison -> segment/results and checks <-> pipeline was broken by moving the
-#: per-tree table and the run's files out of pipeline (canopy_kit.tree_table,
-#: canopy_kit.outputs) and the segmentation results table into canopy_kit.paper.
+#: per-tree table and the run's files out of pipeline (canopy_kit.results.tree_table,
+#: canopy_kit.results.outputs) and the segmentation results table into canopy_kit.paper.
 ALLOWED_CYCLES_THROUGH_FUNCTION_IMPORTS: list[frozenset[str]] = []
 
 
@@ -224,7 +224,8 @@ def test_no_library_stage_imports_the_simulator(imports: list[Import]) -> None:
     bad = forbidden_sim_imports(imports)
     assert not bad, (
         "library stages must not import the simulator (read truth and the session "
-        "layout through canopy_kit.truth / canopy_kit.session_layout):\n  " + "\n  ".join(bad)
+        "layout through canopy_kit.evaluate.truth / canopy_kit.io.session_layout):\n  "
+        + "\n  ".join(bad)
     )
 
 
@@ -278,15 +279,63 @@ def test_segment_and_volume_load_no_simulator_report_paper_or_cli() -> None:
 
 def test_evaluation_and_truth_modules_load_no_simulator() -> None:
     stages = [
-        "canopy_kit.truth",
-        "canopy_kit.truth_map",
-        "canopy_kit.session_layout",
-        "canopy_kit.segmentation_score",
-        "canopy_kit.validation",
-        "canopy_kit.mapping.trajectory_error",
-        "canopy_kit.volume.truth_errors",
-        "canopy_kit.explore",
+        "canopy_kit.evaluate.truth",
+        "canopy_kit.evaluate.truth_map",
+        "canopy_kit.io.session_layout",
+        "canopy_kit.evaluate.segmentation_score",
+        "canopy_kit.evaluate.validation",
+        "canopy_kit.evaluate.trajectory_error",
+        "canopy_kit.evaluate.volume_errors",
+        "canopy_kit.pipeline.explore",
         "canopy_kit.segment.export",
         "canopy_kit.paper.segmentation_results",
     ]
     assert _loaded_after(stages, ("canopy_kit.sim",)) == []
+
+
+#: The layers of canopy_kit, lowest first (docs/ARCHITECTURE.md). A part imports only parts
+#: of lower layers (or of its own, where the parts listed together never import each other):
+#: the stages (volume, segment, mapping) sit on io, config and core; evaluate scores the
+#: stages against truth; results holds what a run hands on; the report, the stream and the
+#: store read results; pipeline runs it all; paper, testing and cli stand on top.
+LAYERS: list[set[str]] = [
+    {"errors"},
+    {"core", "plugins"},
+    {"config"},
+    {"io"},
+    {"volume"},
+    {"segment"},
+    {"evaluate"},
+    {"mapping"},  # its plots compare a trajectory with the reference (evaluate)
+    {"sim"},
+    {"results"},
+    {"report", "streaming", "store"},
+    {"pipeline"},
+    {"paper", "testing"},
+    {"cli"},
+]
+
+
+def layer_of(part: str) -> int:
+    name = part.removeprefix("canopy_kit.")
+    return next(i for i, layer in enumerate(LAYERS) if name in layer)
+
+
+def test_every_part_has_a_layer_and_few_modules_stand_alone() -> None:
+    parts = {part_of(m) for m in modules() if part_of(m)}
+    named = {f"canopy_kit.{p}" for layer in LAYERS for p in layer}
+    assert parts == named, f"parts without a layer: {parts - named}; gone: {named - parts}"
+    loose = sorted(p.name for p in (ROOT / "canopy_kit").glob("*.py") if p.name != "__init__.py")
+    assert len(loose) <= 8, f"modules directly under canopy_kit/: {loose}"
+
+
+def test_imports_only_go_down_the_layers(imports: list[Import]) -> None:
+    upward = sorted(
+        f"{imp.module}:{imp.line} -> {imp.target}"
+        for imp in imports
+        if (a := part_of(imp.module))
+        and (b := part_of(imp.target))
+        and a != b
+        and layer_of(b) >= layer_of(a)
+    )
+    assert not upward, "imports up (or across) the layers of LAYERS:\n  " + "\n  ".join(upward)

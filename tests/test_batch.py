@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from canopy_kit.batch import load_manifest, run_batch
+from canopy_kit.pipeline.batch import load_manifest, run_batch
 from canopy_kit.store import OrchardStore, changes, consistency_problems, growth
 
 ORCHARD = {"rows": 2, "trees_per_row": 4}
@@ -265,7 +265,7 @@ def test_unreachable_scheduler_is_bad_input(tmp_path):
 def test_a_batch_session_without_report_can_be_scored_by_footprints(orchard_batch):
     """`canopy-kit evaluate SESSION_DIR --truth SIM --mode footprints` on a batch session
     folder (no map, no report): the crowns written beside its table are scored."""
-    from canopy_kit.segmentation_score import evaluate_run
+    from canopy_kit.evaluate.segmentation_score import evaluate_run
 
     report, sims, _, _ = orchard_batch
     outcome = report.outcomes["spring"]

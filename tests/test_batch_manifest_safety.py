@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from test_cli_foundation import run_cli
 
-from canopy_kit.batch import SessionSpec, load_manifest, run_batch, session_folder
 from canopy_kit.errors import ConfigError, InputError
+from canopy_kit.pipeline.batch import SessionSpec, load_manifest, run_batch, session_folder
 
 HEADER = "id,bag,orchard,date\n"
 

@@ -6,7 +6,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from canopy_kit.checks import (
+from canopy_kit.config import ChecksConfig, load_preset
+from canopy_kit.errors import ConfigError
+from canopy_kit.results.checks import (
     Check,
     aerial_checks,
     ceiling_check,
@@ -19,8 +21,6 @@ from canopy_kit.checks import (
     summary,
     trunk_checks,
 )
-from canopy_kit.config import ChecksConfig, load_preset
-from canopy_kit.errors import ConfigError
 
 ST = ChecksConfig()
 
@@ -286,8 +286,8 @@ def test_run_help_documents_the_strict_exit_code() -> None:
 def test_interval_check_counts_the_trees_whose_interval_holds_their_measurand() -> None:
     """Four matched trees, one outside its interval (cut at IoU 0.7), one unmatched: 3/4 held,
     a warning (the families hold ≥ 90 %) naming the miss's IoU; all held: a pass."""
-    from canopy_kit.checks import interval_check
-    from canopy_kit.validation import interval_holds
+    from canopy_kit.evaluate.validation import interval_holds
+    from canopy_kit.results.checks import interval_check
 
     trees = pd.DataFrame(
         {

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.io.bag_writer import BagWriter
 from canopy_kit.io.las import write_las
 
@@ -71,7 +71,7 @@ def test_the_check_above_would_see_a_heavy_import() -> None:
     """Guard against a vacuous test: reading a PLY really does import open3d."""
     code = (
         "import numpy as np, tempfile, os\n"
-        "from canopy_kit.cloud import PointCloud\n"
+        "from canopy_kit.core.cloud import PointCloud\n"
         "from canopy_kit.io.clouds import write_cloud\n"
         "d = tempfile.mkdtemp(); write_cloud(os.path.join(d, 'a.ply'), PointCloud(np.eye(3)))\n"
     )

@@ -86,7 +86,7 @@ def _commands_with_outputs(tmp_path: Path, bag: Path, a_file: Path) -> dict[str,
         f'[[session]]\nid = "a"\nbag = "{bag}"\norchard = "o"\ndate = "2024-05-01"\n'
     )
     cloud = tmp_path / "map.laz"
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.io.las import write_las
 
     write_las(cloud, PointCloud(np.random.default_rng(1).uniform(0, 10, (200, 3))))
@@ -260,7 +260,7 @@ def test_interrupt_of_a_command_that_writes_nothing(lidar_bag, monkeypatch, caps
 def test_an_interrupted_atomic_write_leaves_no_temporary(tmp_path, monkeypatch) -> None:
     """Ctrl-C inside the write, and between the temporary's creation and its use: the old
     file stays, no temporary is left."""
-    from canopy_kit.io.atomic import atomic_path
+    from canopy_kit.core.atomic import atomic_path
 
     path = tmp_path / "trees.csv"
     path.write_text("old\n")

@@ -116,7 +116,7 @@ def test_store_growth_at_80_columns_and_piped(terminal, tmp_path):
 
     import numpy as np
 
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
     from canopy_kit.store import OrchardStore, SessionRecord
 
     frame = LocalFrame.at(37.281, -120.42)

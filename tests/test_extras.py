@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from canopy_kit.core.extras import EXTRAS, extra_of, needs_extra
 from canopy_kit.errors import MissingExtraError
-from canopy_kit.extras import EXTRAS, extra_of, needs_extra
 from canopy_kit.io.las_write import write_las
 from tests.fixtures_sim import synthetic_orchard
 

@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 from fixtures_sim import synthetic_orchard
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.io.clouds import read_cloud
 
 PROVENANCE_KEYS = {
@@ -33,7 +33,7 @@ PROVENANCE_KEYS = {
 }
 
 
-# -- an RFC 7946 validator, independent of canopy_kit.geojson ------------------------------
+# -- an RFC 7946 validator, independent of canopy_kit.io.geojson ------------------------------
 def _positions(geometry: dict) -> list[list[float]]:
     kind, coords = geometry["type"], geometry["coordinates"]
     if kind == "Point":
@@ -335,7 +335,7 @@ def test_trees_csv_is_rounded_to_its_meaning_and_carries_its_provenance(gis_run)
 
 
 def test_evaluate_reads_the_renamed_truth_field(gis_run) -> None:
-    from canopy_kit.segmentation_score import evaluate_run
+    from canopy_kit.evaluate.segmentation_score import evaluate_run
 
     sim, out, _ = gis_run
     points = evaluate_run(out, sim.root, mode="points")
@@ -406,7 +406,7 @@ def test_a_map_without_crs_gets_no_geojson_and_says_why(tmp_path) -> None:
 
 
 def test_polygon_is_closed_and_counter_clockwise() -> None:
-    from canopy_kit.geojson import polygon
+    from canopy_kit.io.geojson import polygon
 
     clockwise = np.array([[0, 0], [0, 1], [1, 1], [1, 0]], float)
     ring = polygon(clockwise[:, 0], clockwise[:, 1])["coordinates"][0]
@@ -417,7 +417,7 @@ def test_polygon_is_closed_and_counter_clockwise() -> None:
 
 
 def test_bag_hash_streams_files_and_folders(tmp_path) -> None:
-    from canopy_kit.provenance import CHUNK, bag_sha256
+    from canopy_kit.results.provenance import CHUNK, bag_sha256
 
     data = np.random.default_rng(0).bytes(CHUNK * 2 + 17)  # more than one chunk
     (tmp_path / "a.bag").write_bytes(data)
@@ -434,7 +434,7 @@ def test_bag_hash_on_a_background_thread_is_the_hash_and_can_be_stopped(tmp_path
     import threading
 
     from canopy_kit.errors import InputError
-    from canopy_kit.provenance import CHUNK, BagHash, bag_sha256
+    from canopy_kit.results.provenance import CHUNK, BagHash, bag_sha256
 
     data = np.random.default_rng(1).bytes(CHUNK * 3 + 5)
     (tmp_path / "a.bag").write_bytes(data)
@@ -550,7 +550,7 @@ def test_cli_run_and_segment_export_trees(gis_run, tmp_path) -> None:
 def test_a_table_without_positions_gets_no_trees_geojson(tmp_path) -> None:
     """A run whose map has no CRS: trees.csv/parquet are written, no trees.geojson (and an
     earlier run's is removed), full-precision positions where there are some."""
-    from canopy_kit.outputs import trees_geojson, write_trees
+    from canopy_kit.results.outputs import trees_geojson, write_trees
 
     local = pd.DataFrame(
         {

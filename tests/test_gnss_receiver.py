@@ -16,8 +16,13 @@ import numpy as np
 import pytest
 
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import ConfigError
-from canopy_kit.geo import LocalFrame
+from canopy_kit.evaluate.trajectory_error import (
+    interpolate_reference,
+    se3_alignment,
+    trajectory_errors,
+)
 from canopy_kit.io.bag import GnssSeries, open_bag
 from canopy_kit.io.bag_writer import BagWriter
 from canopy_kit.mapping import build_map
@@ -35,11 +40,6 @@ from canopy_kit.mapping.gnss import (
 )
 from canopy_kit.mapping.gnss_jumps import odometry_outliers
 from canopy_kit.mapping.sensors import GnssBuffer
-from canopy_kit.mapping.trajectory_error import (
-    interpolate_reference,
-    se3_alignment,
-    trajectory_errors,
-)
 from canopy_kit.sim import load_sim_config
 from canopy_kit.sim.inertial import simulate_gnss
 from canopy_kit.sim.session import build_world
@@ -339,7 +339,7 @@ def _lateral(result, sim, window: list[float]) -> np.ndarray:
     reference = load_truth(sim.root).trajectory
     times = result.trajectory["time"].to_numpy()
     ref, inside = interpolate_reference(reference, times)
-    from canopy_kit.mapping.trajectory_error import _poses
+    from canopy_kit.evaluate.trajectory_error import _poses
 
     est = _poses(result.trajectory)[inside]
     aligned = se3_alignment(est, ref) @ est

@@ -20,8 +20,8 @@ import pytest
 from fixtures_aerial import NADIR, aerial_result, synthetic_hedgerows, two_photos_of_a_block
 
 from canopy_kit.config import GroundTruthConfig, PipelineConfig, load_preset
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import ConfigError, ProcessingError
-from canopy_kit.geo import LocalFrame
 
 FIELDS = [f.name for f in dataclasses.fields(GroundTruthConfig)]
 
@@ -169,7 +169,7 @@ def _seeded_markers(config: GroundTruthConfig, *_) -> float:
 
 def _flagged_crowns(config: GroundTruthConfig, *_) -> float:
     """Aerial crowns flagged as fragments or merges in the per-tree table."""
-    from canopy_kit.tree_table import join_aerial
+    from canopy_kit.results.tree_table import join_aerial
 
     d = np.array([2.0, 2.6, 3.2, 4.0, 4.8, 5.6, 6.4, 8.0])
     aerial = aerial_result(d)

@@ -170,7 +170,7 @@ def test_real_drone_photos_register_and_georeference(shared_data, tmp_path):
 def test_crown_positions_keep_full_precision(processed):
     """crowns.csv and trees.csv lat/lon hold each crown's position to the centimetre: converted
     back into the flight's frame they land on its x/y (rounded to 1e-4 deg they moved by up to 10 m)."""
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
 
     _, out, _ = processed
     frame = LocalFrame.from_dict(json.loads((out / "report.json").read_text())["frame"])

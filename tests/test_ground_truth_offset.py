@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from canopy_kit.geo import LocalFrame
+from canopy_kit.core.geo import LocalFrame
 
 pytestmark = pytest.mark.slow
 BOUND_M = 0.1  # on the mean signed offset per axis (east, north), 6 trees

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from fixtures_aerial import NADIR, two_photos_of_a_block
 
-from canopy_kit.geo import LocalFrame
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.sim.drone_render import PinholeView
 from ground_truth.camera import PosedCamera, camera_from_pose
 from ground_truth.crowns import CrownOptions, delineate_crowns, feret_extents, measure_crowns

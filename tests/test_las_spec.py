@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from canopy_kit import __version__
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.io.las import read_las, write_las
 
 laspy = pytest.importorskip("laspy")

@@ -9,10 +9,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from canopy_kit.config import MappingConfig
+from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
 from canopy_kit.mapping import build_map
 from canopy_kit.mapping.chunks import OVERLAP_SWEEPS, SKIP_COST, balanced_bounds, chunk_plan, tie
 from canopy_kit.mapping.passone import SweepRecord
-from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 from canopy_kit.sim import load_sim_config, simulate_session
 
 

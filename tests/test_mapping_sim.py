@@ -14,10 +14,10 @@ import pytest
 
 from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
+from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation, trajectory_errors
 from canopy_kit.io.bag import open_bag
 from canopy_kit.io.bag_writer import BagWriter
 from canopy_kit.mapping import TIME_FIELD, build_map, stream_map
-from canopy_kit.mapping.trajectory_error import evaluate_against_simulation, trajectory_errors
 from canopy_kit.sim import load_sim_config, simulate_session
 from canopy_kit.sim.truth import load_truth
 

@@ -9,9 +9,10 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError
+from canopy_kit.evaluate.trajectory_error import segment_drift, trajectory_errors
 from canopy_kit.io.bag import GnssSeries, ImuSeries
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
@@ -25,7 +26,6 @@ from canopy_kit.mapping.imu import GRAVITY, RotationTrack, detect_standstill, le
 from canopy_kit.mapping.kernels import rotate_and_shift
 from canopy_kit.mapping.outputs import read_tum, tum_text
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
-from canopy_kit.mapping.trajectory_error import segment_drift, trajectory_errors
 
 RNG = np.random.default_rng(7)
 
@@ -361,7 +361,7 @@ def test_heading_alignment_recovers_yaw_and_shift() -> None:
 def _gnss_series(
     frame_lat: float, frame_lon: float, local: np.ndarray, t: np.ndarray, sigma: float
 ) -> GnssSeries:
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
 
     frame = LocalFrame.at(frame_lat, frame_lon, 50.0)
     lat, lon, h = frame.to_wgs84(local)

@@ -11,7 +11,7 @@ import pytest
 import pyvista as pv
 from test_cli_foundation import run_cli
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError
 from canopy_kit.io.clouds import write_cloud
 from canopy_kit.testing import crown, unit_cube

@@ -85,8 +85,8 @@ def test_nonfinite_imu_sample_is_dropped_and_the_trajectory_unchanged(
     session, tmp_path: Path
 ) -> None:
     """Library: one (1e308, inf, 0) gyro sample is dropped and counted; the ATE is the clean drive's."""
+    from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
     from canopy_kit.mapping import build_map
-    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 
     bag = messages.rewrite_bag(session.bag, tmp_path / "nan", messages.imu_sample(4000, NAN_GYRO))
     res = build_map(bag, MappingConfig())
@@ -212,7 +212,7 @@ def test_batch_reports_input_faults_per_session_and_maps_the_nan_imu(
 ) -> None:
     """A session whose IMU has a NaN maps (with its warning); one whose PointCloud2 header lies
     fails alone, named with its stage and cause, without a retry or a killed worker."""
-    from canopy_kit.batch import load_manifest, run_batch
+    from canopy_kit.pipeline.batch import load_manifest, run_batch
 
     nan = messages.rewrite_bag(session.bag, tmp_path / "nan", messages.imu_sample(4000, NAN_GYRO))
     lie = messages.rewrite_bag(
@@ -243,7 +243,7 @@ def _crashing_worker() -> str:
     """Make this Dask worker's sessions die as a C++ assertion does (runs on the workers)."""
     import os as os_
 
-    import canopy_kit.batch as batch
+    import canopy_kit.pipeline.batch as batch
 
     def crash(spec, config, out, progress=None):
         progress("mapping: odometry", 0, 1)
@@ -262,7 +262,7 @@ def test_batch_worker_crash_is_reported_with_stage_and_signal_and_not_retried(
 
     from distributed import Client, LocalCluster
 
-    from canopy_kit.batch import load_manifest, run_batch
+    from canopy_kit.pipeline.batch import load_manifest, run_batch
 
     (tmp_path / "sessions.toml").write_text(
         f'orchard = "row"\nreport = false\n[[session]]\nid = "crash"\nbag = "{session.bag}"\ndate = 2025-04-01\n'

@@ -20,8 +20,8 @@ import pandas as pd
 import pytest
 from fixtures_sim import synthetic_orchard
 
-from canopy_kit.cloud import PointCloud
-from canopy_kit.outputs import write_trees
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.results.outputs import write_trees
 
 OGRINFO = shutil.which("ogrinfo")
 pytestmark = pytest.mark.skipif(

@@ -19,8 +19,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from canopy_kit import stats
 from canopy_kit.errors import InputError
+from canopy_kit.evaluate import stats
 from canopy_kit.paper import check_table1, load_table1, read_table1_text, summarise_table1
 from canopy_kit.paper.summary import implied_diameters, sphere_diameter, sphere_volume
 from canopy_kit.paper.table1 import PRINTED_HEADERS, VALUE_COLUMNS, default_table1_path

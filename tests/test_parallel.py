@@ -1,4 +1,4 @@
-"""Forked workers (``canopy_kit.parallel``): results, errors and progress come back to the parent."""
+"""Forked workers (``canopy_kit.core.parallel``): results, errors and progress come back to the parent."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import os
 
 import pytest
 
+from canopy_kit.core.parallel import run_forked
 from canopy_kit.errors import InputError, ProcessingError
-from canopy_kit.parallel import run_forked
 
 
 def _square_pid(x: int, tick) -> tuple[int, int]:
@@ -100,7 +100,7 @@ def _large_result(x: int, tick) -> dict:
 
 
 def _handover_folders() -> set[str]:
-    from canopy_kit import parallel
+    from canopy_kit.core import parallel
 
     if not os.path.isdir(parallel.SHARED_MEMORY_DIR):
         return set()
@@ -111,7 +111,7 @@ def _handover_folders() -> set[str]:
 def test_results_come_back_equal_through_shared_memory_or_the_pipe(monkeypatch, shared) -> None:
     import numpy as np
 
-    from canopy_kit import parallel
+    from canopy_kit.core import parallel
 
     if shared and parallel._handover_dir() is None:
         pytest.skip("no /dev/shm with 1 GiB free on this machine")

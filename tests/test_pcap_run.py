@@ -127,7 +127,7 @@ def test_track_formats_of_one_drive_agree(sim_drive):
 
     ref = read_pcap_drive(sim_drive["pcap"]).packet_times[0]
     tracks = {k: read_gnss_track(sim_drive[k], None, ref) for k in ("csv", "gpx", "nmea")}
-    from canopy_kit.geo import utm_epsg
+    from canopy_kit.core.geo import utm_epsg
 
     f = tracks["csv"].fixes
     tracks["mtls"] = read_gnss_track(

@@ -59,7 +59,7 @@ def test_end_to_end_against_truth(pistachio_run, tiny_pistachio):
 def test_a_run_folder_can_be_scored_by_evaluate(pistachio_run, tiny_pistachio):
     """`canopy-kit evaluate RUN --truth SIM` (the README's usage) on a `run` folder gives the
     scores the run itself recorded; by crown footprints too."""
-    from canopy_kit.segmentation_score import evaluate_run
+    from canopy_kit.evaluate.segmentation_score import evaluate_run
 
     recorded = pistachio_run.metrics["evaluation"]["segmentation"]
     points = evaluate_run(pistachio_run.out_dir, tiny_pistachio.root).to_dict()

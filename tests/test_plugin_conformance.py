@@ -15,7 +15,7 @@ from annotated_types import Ge
 
 from canopy_kit import plugins
 from canopy_kit.errors import ConfigError, InputError
-from canopy_kit.params import NonNegative, Positive, check_positive
+from canopy_kit.plugins.params import NonNegative, Positive, check_positive
 from canopy_kit.segment.base import Segmenter, check_points
 from canopy_kit.testing import (
     check_segmenter,
@@ -299,7 +299,7 @@ def test_annotation_checks_and_docstring_sections() -> None:
     from collections.abc import Sequence
     from typing import Literal
 
-    from canopy_kit.params import docstring_parameters, matches
+    from canopy_kit.plugins.params import docstring_parameters, matches
 
     assert matches(3, float) and matches(np.float32(1.5), float) and matches(np.int64(3), int)
     assert not matches(True, float) and not matches(3.0, int) and not matches("0.9", float)
@@ -344,7 +344,7 @@ def test_every_shipped_preset_passes_the_checks() -> None:
 def test_every_declared_range_is_enforced_by_create(kind, name):
     """Each parameter whose annotation declares a range (Positive, NonNegative, ...) is
     refused by plugins.create just outside it, with a ConfigError naming the parameter."""
-    from canopy_kit.params import constraints
+    from canopy_kit.plugins.params import constraints
 
     cls = plugins.load(kind, name)
     for param, found in constraints(cls).items():
@@ -369,7 +369,7 @@ class Ranged:
 
 
 def test_constraints_read_from_the_annotation_and_shown_in_params():
-    from canopy_kit.params import parameters_of, validate_types
+    from canopy_kit.plugins.params import parameters_of, validate_types
 
     validate_types(Ranged(margin=0.0))  # 0 is allowed where >= 0, None where Optional
     cases = {

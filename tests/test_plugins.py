@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from canopy_kit import plugins
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import PluginError
 
 READER_KINDS = {"cloud", "bag", "scans"}
@@ -60,12 +60,14 @@ def _fake_entry_points(*extra: EntryPoint):
 
 
 def test_registered_entry_point_is_found(monkeypatch: pytest.MonkeyPatch) -> None:
-    ep = EntryPoint(name="toy", value="canopy_kit.cloud:PointCloud", group="canopy_kit.segmenters")
+    ep = EntryPoint(
+        name="toy", value="canopy_kit.core.cloud:PointCloud", group="canopy_kit.segmenters"
+    )
     monkeypatch.setattr(plugins, "entry_points", _fake_entry_points(ep))
     assert "toy" in plugins.names("segmenters")
     assert plugins.load("segmenters", "toy") is PointCloud
     (row,) = [r for r in plugins.describe("segmenters") if r.name == "toy"]
-    assert row.error is None and row.value == "canopy_kit.cloud:PointCloud"
+    assert row.error is None and row.value == "canopy_kit.core.cloud:PointCloud"
 
 
 def test_broken_entry_point_gives_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -81,7 +83,9 @@ def test_broken_entry_point_gives_clear_error(monkeypatch: pytest.MonkeyPatch) -
 
 
 def test_entry_point_naming_a_missing_attribute(monkeypatch: pytest.MonkeyPatch) -> None:
-    ep = EntryPoint(name="typo", value="canopy_kit.cloud:PointClod", group="canopy_kit.volumes")
+    ep = EntryPoint(
+        name="typo", value="canopy_kit.core.cloud:PointClod", group="canopy_kit.volumes"
+    )
     monkeypatch.setattr(plugins, "entry_points", _fake_entry_points(ep))
     with pytest.raises(PluginError, match="AttributeError"):
         plugins.load("volumes", "typo")

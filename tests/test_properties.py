@@ -28,9 +28,9 @@ from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.voxel import voxel_downsample, voxel_keys
 from canopy_kit.errors import InputError
-from canopy_kit.voxel import voxel_downsample, voxel_keys
 
 FAST = settings(
     max_examples=40,
@@ -556,7 +556,7 @@ def test_damaged_las_is_read_or_refused_with_an_input_error(las_bytes, suffix, d
     offsets=hnp.arrays(np.float64, (5, 3), elements=st.floats(-2000, 2000)),
 )
 def test_local_frame_round_trips(lat, lon, h, offsets) -> None:
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
 
     frame = LocalFrame.at(lat, lon, h)
     assert LocalFrame.from_dict(frame.to_dict()) == frame
@@ -575,7 +575,7 @@ def test_local_frame_round_trips(lat, lon, h, offsets) -> None:
     suffix=st.sampled_from([".csv", ".laz", ""]),
 )
 def test_atomic_write_leaves_the_old_file_or_the_new_one(old, new, fail_after, suffix) -> None:
-    from canopy_kit.io.atomic import atomic_path
+    from canopy_kit.core.atomic import atomic_path
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"out{suffix}"
@@ -606,7 +606,7 @@ def test_atomic_write_leaves_the_old_file_or_the_new_one(old, new, fail_after, s
     seed=seeds,
 )
 def test_damaged_cache_entry_is_recomputed(value, damage, where, seed) -> None:
-    from canopy_kit.cache import StageCache
+    from canopy_kit.core.cache import StageCache
 
     calls = []
 
@@ -658,7 +658,7 @@ def test_damaged_cache_entry_is_recomputed(value, damage, where, seed) -> None:
 )
 def test_cache_entry_that_does_not_unpickle_is_recomputed(raw: bytes, tmp_path: Path) -> None:
     """Found by the property above: pickle raises more than UnpicklingError on bad bytes."""
-    from canopy_kit.cache import StageCache
+    from canopy_kit.core.cache import StageCache
 
     (tmp_path / "map-k.pkl").write_bytes(raw)
     cache = StageCache(tmp_path)

@@ -13,9 +13,9 @@ import pytest
 from conftest import SHARED_DATA
 
 from canopy_kit import plugins
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.atomic import atomic_path
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_path
 from canopy_kit.io.bag_writer import BAG_FORMATS, BagWriter
 from canopy_kit.testing import check_reader, checks_for, parametrize_with_checks, reader_checks
 

@@ -80,7 +80,7 @@ def test_mapping_map_is_coloured_by_height_above_the_ground() -> None:
     import matplotlib
 
     matplotlib.use("Agg")
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.mapping.plots import plot_map_top_view
 
     rng = np.random.default_rng(0)

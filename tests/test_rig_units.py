@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from canopy_kit.errors import ConfigError, InputError
-from canopy_kit.frames import (
+from canopy_kit.config.rig import (
+    extrinsics_mode,
+    load_rig,
+    parse_rig,
+    rig_overrides,
+    rig_preset_names,
+)
+from canopy_kit.core.frames import (
     FrameGraph,
     FrameTransform,
     from_rpy,
@@ -19,7 +25,7 @@ from canopy_kit.frames import (
     rotation_angle_deg,
     rpy_deg,
 )
-from canopy_kit.rig import extrinsics_mode, load_rig, parse_rig, rig_overrides, rig_preset_names
+from canopy_kit.errors import ConfigError, InputError
 
 
 # -- frames -------------------------------------------------------------------------------
@@ -107,7 +113,7 @@ def test_bad_rig_files_name_the_file_and_key(tmp_path: Path, text: str, message:
 
 
 def test_shipped_rigs_parse_and_name_their_sensors() -> None:
-    from canopy_kit.rig import rig_data
+    from canopy_kit.config.rig import rig_data
 
     assert {"tower", "imu-flipped", "yawed-lever", "side-tilt"} <= set(rig_preset_names())
     for name in rig_preset_names():
@@ -264,10 +270,10 @@ def test_shipped_presets_know_the_rig_settings() -> None:
 
 # -- the report ---------------------------------------------------------------------------
 def test_report_shows_the_rig_and_checks_the_imu_mount() -> None:
-    from canopy_kit.checks import imu_mount_check as rig_check
     from canopy_kit.mapping.extrinsics import SensorRig
     from canopy_kit.report.html import render_report
     from canopy_kit.report.rig import rig_section
+    from canopy_kit.results.checks import imu_mount_check as rig_check
 
     base_from_lidar = from_rpy([0.3, 0, 1.9], [0, 12, 180])
     base_from_imu = from_rpy([0.3, 0, 1.55], [180, 0, 90])

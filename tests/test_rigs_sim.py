@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.frames import from_rpy, invert, rotation_angle_deg
 from canopy_kit.errors import InputError
-from canopy_kit.frames import from_rpy, invert, rotation_angle_deg
+from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
 from canopy_kit.mapping import build_map
-from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 from canopy_kit.sim.truth import load_truth
 
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
@@ -98,7 +98,7 @@ def test_calibrate_extrinsics_estimates_the_imu_mount_within_a_degree(
 
 @pytest.mark.slow
 def test_a_rig_file_wrong_by_five_degrees_is_named_with_its_angle(sim_factory, tmp_path) -> None:
-    from canopy_kit.rig import rig_data, rig_overrides
+    from canopy_kit.config.rig import rig_data, rig_overrides
 
     sim = _session(sim_factory, "tower", write_tf_static=False)
     data, _ = rig_data("tower")

@@ -145,8 +145,8 @@ def _truth_onto_map(ctx, session_root):
     """The rigid transform (4x4) taking the truth's local frame onto the map's: the inverse
     of the SE(3) alignment of the estimated trajectory onto the true one (a georeferencing
     offset of a few decimetres is the mapping's error, not the row metrics')."""
-    from canopy_kit.mapping.trajectory_error import trajectory_errors
-    from canopy_kit.truth import load_truth
+    from canopy_kit.evaluate.trajectory_error import trajectory_errors
+    from canopy_kit.evaluate.truth import load_truth
 
     truth = load_truth(session_root)
     reference = truth.trajectory_of(getattr(ctx.mapping, "trajectory_frame", ""))

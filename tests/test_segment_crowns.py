@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from canopy_kit.evaluate.segmentation_score import score_point_labels
 from canopy_kit.segment.crowns import crown_split, fit_crowns, point_normals
-from canopy_kit.segmentation_score import score_point_labels
 
 
 def shell(

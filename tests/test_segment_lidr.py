@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from canopy_kit.config import PreprocessConfig
-from canopy_kit.segmentation_score import score_point_labels
+from canopy_kit.evaluate.segmentation_score import score_point_labels
 
 
 @pytest.fixture(scope="module")

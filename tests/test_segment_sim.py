@@ -18,9 +18,9 @@ import pytest
 from fixtures_sim import truth_map_of
 
 from canopy_kit.config import load_preset
+from canopy_kit.evaluate.segmentation_score import envelope_ceiling, score_point_labels
 from canopy_kit.segment.rows import driving_direction_from_trajectory
 from canopy_kit.segment.verb import make_segmenter, segment
-from canopy_kit.segmentation_score import envelope_ceiling, score_point_labels
 from canopy_kit.sim.truth import load_truth
 
 pytestmark = pytest.mark.slow

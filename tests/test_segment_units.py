@@ -13,9 +13,11 @@ from sklearn.cluster import DBSCAN
 from sklearn.metrics import adjusted_rand_score
 
 from canopy_kit import plugins
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import PreprocessConfig, RowsConfig
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.voxel import voxel_centroids
 from canopy_kit.errors import ConfigError, InputError, PluginError
+from canopy_kit.evaluate.segmentation_score import score_footprints, score_point_labels
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan, weighted_dbscan
 from canopy_kit.segment.ground import fit_ground, ransac_plane
 from canopy_kit.segment.preprocess import prepare
@@ -28,8 +30,6 @@ from canopy_kit.segment.rows import (
 from canopy_kit.segment.spectral import spectral_split
 from canopy_kit.segment.stems import detect_stems
 from canopy_kit.segment.verb import make_segmenter, segment
-from canopy_kit.segmentation_score import score_footprints, score_point_labels
-from canopy_kit.voxel import voxel_centroids
 
 
 def blobs(seed: int = 0, n: int = 400) -> np.ndarray:
@@ -247,7 +247,7 @@ def test_parts_split_in_forked_workers_give_the_labels_of_one_process(monkeypatc
     monkeypatch.setattr(adaptive, "PARALLEL_MIN_POINTS", 10**12)
     serial = segment(orch.cloud, make_segmenter("adaptive"))
     monkeypatch.setattr(adaptive, "PARALLEL_MIN_POINTS", 0)
-    monkeypatch.setattr("canopy_kit.parallel.worker_count", lambda setting, most: min(2, most))
+    monkeypatch.setattr("canopy_kit.core.parallel.worker_count", lambda setting, most: min(2, most))
     forked = segment(orch.cloud, make_segmenter("adaptive"))
     assert np.array_equal(forked.labels, serial.labels)
     assert score_point_labels(forked.labels, orch.cloud.fields["tree_id"]).success_rate == 1.0
@@ -648,7 +648,7 @@ def test_segment_colours_are_never_the_grey_of_unlabelled_points() -> None:
 
 
 def test_first_minimum_and_voxel_representatives_match_a_plain_loop() -> None:
-    from canopy_kit.voxel import first_minimum, voxel_representatives
+    from canopy_kit.core.voxel import first_minimum, voxel_representatives
 
     rng = np.random.default_rng(5)
     groups = rng.integers(0, 50, 2000)
@@ -674,7 +674,7 @@ def test_first_minimum_and_voxel_representatives_match_a_plain_loop() -> None:
 def test_first_minimum_skips_groups_without_a_minimum_as_numpy_does() -> None:
     """A group with a NaN value has no minimum (``np.minimum`` propagates NaN); an infinite
     value is one; a group number with no point has none."""
-    from canopy_kit.voxel import first_minimum
+    from canopy_kit.core.voxel import first_minimum
 
     groups = np.array([0, 0, 2, 2, 3, 3, 5])
     values = np.array([2.0, np.nan, np.inf, np.inf, -np.inf, 1.0, 4.0])
@@ -683,7 +683,7 @@ def test_first_minimum_skips_groups_without_a_minimum_as_numpy_does() -> None:
 
 
 def test_column_extremes_equal_numpys_reduction_over_rows() -> None:
-    from canopy_kit.cloud import column_max, column_min
+    from canopy_kit.core.cloud import column_max, column_min
 
     rng = np.random.default_rng(2)
     for a in (rng.normal(size=(1000, 3)), rng.integers(-50, 50, (1000, 2))):

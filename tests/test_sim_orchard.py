@@ -133,8 +133,8 @@ def test_preset_extends_another_and_lists_only_what_differs(tmp_path):
         2,
         [3.5, 5.0],
     )
+    from canopy_kit.evaluate.truth import DEFAULT_ORCHARD_KIND, orchard_kind
     from canopy_kit.sim.config import OrchardSpec, sim_preset_names
-    from canopy_kit.truth import DEFAULT_ORCHARD_KIND, orchard_kind
 
     assert [orchard_kind(o) for o in ("almond-paper", "pistachio", "walnut")] == [
         "almond",

@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame
 from canopy_kit.store import (
     MatchSettings,
     OrchardStore,

@@ -92,7 +92,7 @@ def test_trees_are_emitted_during_the_drive_from_a_window(streamed, tiny_pistach
 
 
 def test_window_thins_and_frees_voxels():
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
 
     w = PointWindow(0.1)
     pts = np.array([[0.0, 0.0, 0.0], [0.01, 0.01, 0.0], [1.0, 0.0, 0.0]])

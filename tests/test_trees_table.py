@@ -6,8 +6,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import ConfigError
 from canopy_kit.volume.verb import measure_trees
 
@@ -67,7 +67,7 @@ def test_volume_voxel_size_zero_measures_every_point_and_bad_settings_are_named(
 
 
 def test_flagged_counts_trees_with_a_note_and_not_missing_values() -> None:
-    from canopy_kit.tree_table import flagged
+    from canopy_kit.results.tree_table import flagged
 
     trees = pd.DataFrame(
         {

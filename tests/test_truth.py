@@ -1,4 +1,4 @@
-"""The truth format and session layout (canopy_kit.truth, canopy_kit.session_layout),
+"""The truth format and session layout (canopy_kit.evaluate.truth, canopy_kit.io.session_layout),
 read without the simulator."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import json
 import pandas as pd
 import pytest
 
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame
-from canopy_kit.session_layout import find_bag, sim_config_path, truth_dir
-from canopy_kit.truth import TREE_COLUMNS, load_truth, load_world, write_csv
+from canopy_kit.evaluate.truth import TREE_COLUMNS, load_truth, load_world, write_csv
+from canopy_kit.io.session_layout import find_bag, sim_config_path, truth_dir
 
 
 def _truth_folder(root):

@@ -526,8 +526,8 @@ def test_simulator_vlp16_settings_are_checked() -> None:
 def twin_maps(tmp_path_factory) -> dict:
     """One row of three pistachio trees seen by a simulated VLP-16, written as raw packets and as
     the PointCloud2 of the same packets (same seed), each mapped."""
+    from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
     from canopy_kit.mapping import build_map
-    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
 
     out = {}
     for output in ("velodyne_packets", "points"):

@@ -132,9 +132,9 @@ def test_the_measurand_truth_is_the_estimator_on_the_complete_foliage(
     """The run's ``true_measurand_m3`` (computed for the kind's measurand only) equals the
     recommended estimator on the matched tree's complete foliage computed from scratch."""
     from canopy_kit.config import load_preset
-    from canopy_kit.truth import load_truth
-    from canopy_kit.validation import MEASURAND_DENSITY
-    from canopy_kit.volume_accuracy import foliage_references, reference_volume
+    from canopy_kit.evaluate.truth import load_truth
+    from canopy_kit.evaluate.validation import MEASURAND_DENSITY
+    from canopy_kit.evaluate.volume_accuracy import foliage_references, reference_volume
 
     table = tiny_pistachio_run.trees
     matched = table[table["truth_tree_id"].notna()]
@@ -169,8 +169,8 @@ def test_recommended_estimator_on_trees_the_pipeline_segments(sim_factory) -> No
     enclosing ellipsoid, flagged sparse, and closer to their measurand than the hull is to
     its own (measured: the ellipsoid −8.8 % bias, MAPE 12.6 %; the hull −21.5 %)."""
     from canopy_kit.config import load_preset, merge
+    from canopy_kit.evaluate.volume_accuracy import segmented_volume_errors
     from canopy_kit.sim.crown_forms import FORM_NAMES
-    from canopy_kit.volume_accuracy import segmented_volume_errors
 
     config = load_preset("adaptive")
     recommended = config.volume.recommended
@@ -210,7 +210,7 @@ def test_the_interval_holds_deeply_lobed_crowns(sim_factory) -> None:
     measurand on the complete foliage and the interval holds it for ≥ 90 % of the scans;
     the leafless inside the shell is reported, not hidden."""
     from canopy_kit.config import load_preset, merge
-    from canopy_kit.volume_accuracy import segmented_volume_errors
+    from canopy_kit.evaluate.volume_accuracy import segmented_volume_errors
 
     config = load_preset("adaptive")
     harsh = {"crown_form": "lobed", "lobe_hollow_range": [0.25, 0.35], "leaf_penetration_m": 0.3}

@@ -173,8 +173,8 @@ def test_interval_covers_the_true_volume_on_every_dense_crown_form(sim_factory) 
     only (18 scans, one miss allowed); see docs/history/VOLUMES_LOG.md "One-sided scans from the alley
     maps" for what it measured."""
     from canopy_kit.config import merge
+    from canopy_kit.evaluate.volume_errors import simulated_trees
     from canopy_kit.sim.truth_map import truth_map
-    from canopy_kit.volume.truth_errors import simulated_trees
     from canopy_kit.volume.uncertainty import volume_interval
 
     inside, errors = [], []
@@ -212,9 +212,9 @@ def test_real_trees_are_ordered_hull_alpha_shell(shared_data, name: str) -> None
     hull corrected for its thin sample, between the hull and 1.1 × it (measured 1.008 ×:
     1 600 points 0.2 m apart, 41 of them on the hull). The interval is ordered and holds the
     estimate."""
+    from canopy_kit.core.voxel import voxel_downsample
     from canopy_kit.io.clouds import read_cloud
     from canopy_kit.volume.uncertainty import volume_interval
-    from canopy_kit.voxel import voxel_downsample
 
     xyz = voxel_downsample(read_cloud(shared_data / "real_trees" / name), 0.1).xyz
     vol = {
@@ -236,8 +236,8 @@ def test_real_trees_are_ordered_hull_alpha_shell(shared_data, name: str) -> None
 
 
 def test_the_table_bounds_the_recommended_estimator() -> None:
-    from canopy_kit.cloud import PointCloud
     from canopy_kit.config import VolumeConfig, load_preset
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.errors import ConfigError
     from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS
     from canopy_kit.volume.verb import measure_trees

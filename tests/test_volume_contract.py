@@ -78,7 +78,7 @@ def test_every_volume_plugin_honours_the_contract(name: str) -> None:
     shifted = est(pts + [631_000.0, 4_127_000.0, 85.0])
     assert shifted.volume_m3 == pytest.approx(result.volume_m3, rel=0.01)
     # a PointCloud is accepted as well as an array
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
 
     assert est(PointCloud(pts)).volume_m3 == result.volume_m3
 
@@ -235,7 +235,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_cli_volume_json_and_errors(tmp_path: Path) -> None:
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.io.clouds import write_cloud
 
     pts = blob(2000)
@@ -295,7 +295,7 @@ def test_alpha_hull_gap_to_the_complex_grows_with_the_spacing() -> None:
 def test_cli_volume_warns_when_the_file_holds_several_trees_or_ground(tmp_path: Path) -> None:
     """Two labelled crowns over a ground plane (class 2) in one LAS file: the volume is still
     computed, and the user is told the file is not one tree, naming the field and the ground."""
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.io.las_write import write_las
 
     rng = np.random.default_rng(3)

@@ -34,8 +34,8 @@ def test_convex_hull_matches_the_shipped_per_tree_hulls(shared_data) -> None:
 
 @pytest.mark.parametrize("name", ["pine", "spruce"])
 def test_every_method_measures_a_real_terrestrial_tree(shared_data, name: str) -> None:
+    from canopy_kit.core.voxel import voxel_downsample
     from canopy_kit.io.clouds import read_cloud
-    from canopy_kit.voxel import voxel_downsample
 
     cloud = voxel_downsample(read_cloud(shared_data / "treels" / f"{name}.laz"), 0.1)
     hull = estimate_volume(cloud.xyz, "convex_hull").volume_m3

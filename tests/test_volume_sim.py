@@ -6,7 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canopy_kit.volume.truth_errors import MethodSpec, error_table, simulated_trees, volume_errors
+from canopy_kit.evaluate.volume_errors import (
+    MethodSpec,
+    error_table,
+    simulated_trees,
+    volume_errors,
+)
 
 SPECS = [
     MethodSpec("hull", "convex_hull"),
@@ -64,8 +69,8 @@ def test_alley_maps_hold_what_one_alley_alone_saw(tiny_pistachio) -> None:
     sweeps that cross it in a headland turn) and nearer to it than the row spacing (true
     poses); the two sides of a row share no point time; and each
     side of a row sees every tree of that row."""
-    from canopy_kit.truth import load_truth, true_pose_interpolator
-    from canopy_kit.truth_map import alley_maps, row_lines
+    from canopy_kit.evaluate.truth import load_truth, true_pose_interpolator
+    from canopy_kit.evaluate.truth_map import alley_maps, row_lines
 
     trees = load_truth(tiny_pistachio.root).trees
     lines = row_lines(trees)

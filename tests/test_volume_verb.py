@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 from conftest import REPO
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import ConfigError
 from canopy_kit.volume import verb
 from canopy_kit.volume.verb import (
@@ -195,7 +195,7 @@ def test_build_estimators_names_a_bad_parameter() -> None:
 @pytest.fixture(scope="module")
 def run_context(tiny_pistachio, tiny_pistachio_run):
     """The stages of ``tiny_pistachio_run`` as a notebook loads them (from the run's cache)."""
-    from canopy_kit.explore import load_context
+    from canopy_kit.pipeline.explore import load_context
 
     return load_context(tiny_pistachio.root, run_dir=tiny_pistachio_run.out_dir, use_drone=False)
 

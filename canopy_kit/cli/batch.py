@@ -40,7 +40,6 @@ def batch(
     ),
 ) -> None:
     """Process every session of a manifest on Dask and track each tree in the store."""
-    from canopy_kit.batch import load_manifest, run_batch
     from canopy_kit.cli.common import (
         check_output_file,
         check_output_folder,
@@ -50,6 +49,7 @@ def batch(
         output_folder,
         progress_bar,
     )
+    from canopy_kit.pipeline.batch import load_manifest, run_batch
     from canopy_kit.store import MatchSettings
 
     specs = load_manifest(manifest, default_rig=rig)

@@ -90,7 +90,7 @@ def progress_bar(transient: bool = False) -> Iterator[ProgressCallback]:
 
 def print_json(data: Any) -> None:
     """Print data as indented JSON on stdout (numpy scalars converted)."""
-    from canopy_kit.io.atomic import to_json
+    from canopy_kit.core.atomic import to_json
 
     print(to_json(data), end="")
 

@@ -24,9 +24,9 @@ def demo(
     from canopy_kit.cli.common import console, output_folder, progress_bar
     from canopy_kit.cli.run import print_results
     from canopy_kit.config import load_preset
+    from canopy_kit.io.session_layout import drone_dir as drone_folder
+    from canopy_kit.io.session_layout import find_bag, truth_dir
     from canopy_kit.pipeline import run as run_pipeline
-    from canopy_kit.session_layout import drone_dir as drone_folder
-    from canopy_kit.session_layout import find_bag, truth_dir
     from canopy_kit.sim import load_sim_config, simulate_session
 
     reports = []
@@ -64,7 +64,7 @@ def demo(
 
 def _has_bag(sim_dir: Path) -> bool:
     from canopy_kit.errors import InputError
-    from canopy_kit.session_layout import find_bag
+    from canopy_kit.io.session_layout import find_bag
 
     try:
         find_bag(sim_dir)

@@ -20,7 +20,7 @@ def evaluate(
 ) -> None:
     """Per-tree segmentation success, over/under-segmentation, precision/recall, labels."""
     from canopy_kit.cli.common import print_json
-    from canopy_kit.segmentation_score import evaluate_run
+    from canopy_kit.evaluate.segmentation_score import evaluate_run
 
     score = evaluate_run(run_dir, truth, min_iou=min_iou, mode=mode)
     if json_output:

@@ -54,8 +54,8 @@ def ground_truth(
         progress_bar,
     )
     from canopy_kit.config import load_preset
+    from canopy_kit.core.geo import LocalFrame
     from canopy_kit.errors import ConfigError, InputError
-    from canopy_kit.geo import LocalFrame
     from ground_truth.pipeline import process_flight
 
     local = None

@@ -43,9 +43,9 @@ def map_bag(
         progress_bar,
     )
     from canopy_kit.config import MappingConfig, from_dict, load_preset, merge, to_dict
+    from canopy_kit.config.rig import extrinsics_mode, rig_overrides
     from canopy_kit.mapping import build_map
     from canopy_kit.mapping.outputs import write_mapping_outputs
-    from canopy_kit.rig import extrinsics_mode, rig_overrides
 
     overrides = merge(
         parse_overrides(set_), rig_overrides(rig, extrinsics_mode(assume_identity, calibrate))
@@ -69,13 +69,13 @@ def map_bag(
 
 
 def _evaluate(result, bag: Path, truth: Path | None, progress):
-    from canopy_kit.mapping.trajectory_error import (
+    from canopy_kit.evaluate.trajectory_error import (
         estimate_in_frame,
         evaluate_against_simulation,
         reference_from_bag,
         trajectory_errors,
     )
-    from canopy_kit.session_layout import truth_dir
+    from canopy_kit.io.session_layout import truth_dir
 
     reference = reference_from_bag(bag)
     sim_dir = truth
@@ -99,7 +99,7 @@ def _write_plots(result, out: Path, reference, evaluation) -> dict[str, Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from canopy_kit.io.atomic import atomic_path
+    from canopy_kit.core.atomic import atomic_path
     from canopy_kit.mapping.plots import mapping_figures
 
     paths = {}

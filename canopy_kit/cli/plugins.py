@@ -45,7 +45,7 @@ def _print_params(kind: str | None, name: str) -> None:
     from canopy_kit import plugins as registry
     from canopy_kit.cli.tables import Grid, print_grid
     from canopy_kit.errors import PluginError
-    from canopy_kit.params import REQUIRED
+    from canopy_kit.plugins.params import REQUIRED
 
     kinds = [kind] if kind else registry.kinds_of(name)
     if not kinds:

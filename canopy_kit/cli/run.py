@@ -68,10 +68,10 @@ def run(
     """
     from canopy_kit.cli.common import output_folder, parse_overrides, progress_bar
     from canopy_kit.config import load_preset, merge
+    from canopy_kit.config.rig import extrinsics_mode, rig_overrides
     from canopy_kit.errors import InputError
     from canopy_kit.io.pcap_drive import GnssTrackOption
     from canopy_kit.pipeline import run as run_pipeline
-    from canopy_kit.rig import extrinsics_mode, rig_overrides
 
     if stream and strict:  # a streamed run has no checks: --strict would pass it unchecked
         raise InputError(

@@ -56,7 +56,7 @@ def simulate(
     if gnss_mode:
         overrides.setdefault("gnss", {})["mode"] = gnss_mode
     if rig:
-        from canopy_kit.rig import rig_preset_names
+        from canopy_kit.config.rig import rig_preset_names
 
         known = rig in rig_preset_names() or rig == "identity"
         overrides.setdefault("rig", {})["name"] = rig if known else str(Path(rig).resolve())

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from canopy_kit.params import PAPER_ALPHA_M
+from canopy_kit.plugins.params import PAPER_ALPHA_M
 
 
 def volume(
@@ -71,7 +71,7 @@ def volume(
     points = read_cloud(cloud)
     measured = points.xyz
     if voxel_size > 0:  # as a run measures its trees
-        from canopy_kit.voxel import voxel_representatives
+        from canopy_kit.core.voxel import voxel_representatives
 
         measured = measured[voxel_representatives(measured, voxel_size)[0]]
     result, surface = est.with_surface(measured) if mesh is not None else (est(measured), None)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError, InputWarning
 from canopy_kit.io.clouds import local_origin
 

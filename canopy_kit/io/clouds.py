@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError, PluginError
 
 # Coordinates beyond this distance from zero (e.g. UTM) are moved to a local frame.

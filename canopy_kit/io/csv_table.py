@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.io.atomic import atomic_write_text
+from canopy_kit.core.atomic import atomic_write_text
 
 SIGNIFICANT_DIGITS = 6  # numbers without a unit the name states
 # (suffix of a column name, decimals, unit) in the order they are tried

@@ -17,8 +17,8 @@ from typing import Any
 
 import pandas as pd
 
+from canopy_kit.core.atomic import atomic_path
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_path
 
 GPKG_VERSION = "1.2"  # the GeoPackage version written: the one every reader knows
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError, InputWarning, foreign_message
 from canopy_kit.io.clouds import LOCAL_LIMIT_M, check_input_file, local_origin
 from canopy_kit.io.las_header import LAS_MAGIC, LasLayout, read_las_layout

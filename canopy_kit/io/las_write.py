@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.atomic import atomic_path
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError, foreign_message
-from canopy_kit.io.atomic import atomic_path
 
 # Point formats without waveform packets, smallest first.
 WRITABLE_FORMATS: tuple[int, ...] = (0, 1, 2, 3, 6, 7, 8)

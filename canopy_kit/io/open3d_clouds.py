@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.atomic import atomic_path
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError, foreign_message
 from canopy_kit.io import pcd, ply
-from canopy_kit.io.atomic import atomic_path
 from canopy_kit.io.clouds import check_input_file
 
 PLY_WRITABLE = {"u1", "u2", "i4", "f4", "f8"}

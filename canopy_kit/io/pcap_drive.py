@@ -136,7 +136,7 @@ def track_for(
     """The track read on the capture's date, checked against the capture's time and place."""
     notes = []
     if crs is None and len(drive.rmc):
-        from canopy_kit.geo import utm_epsg
+        from canopy_kit.core.geo import utm_epsg
 
         crs = utm_epsg(float(drive.rmc[0, 1]), float(drive.rmc[0, 2]))
         notes.append(
@@ -158,7 +158,7 @@ def track_for(
             f") does not cover the capture {drive.path.name} ({iso(start)} to {iso(end)} UTC)"
         )
     if len(drive.rmc):
-        from canopy_kit.geo import LocalFrame
+        from canopy_kit.core.geo import LocalFrame
 
         lat, lon = float(drive.rmc[0, 1]), float(drive.rmc[0, 2])
         i = int(np.argmin(np.abs(t - drive.rmc[0, 0])))
@@ -181,7 +181,7 @@ def check_drive_length(drive: PcapDrive, track: GnssTrack | None) -> None:
     duration, rotations = drive.duration, drive.rotations
     travel = None
     if track is not None:
-        from canopy_kit.geo import LocalFrame
+        from canopy_kit.core.geo import LocalFrame
 
         f = track.fixes
         inside = (f.t >= drive.packet_times[0]) & (f.t <= drive.packet_times[-1])
@@ -245,7 +245,7 @@ def standing_still(drive: PcapDrive) -> bool:
 
 def import_key(pcap: Path, track: Path | None, crs: Any, time_scale: str) -> str:
     """A short hash of what the imported bag depends on (files by path, size and mtime, as
-    canopy_kit.cache fingerprints inputs)."""
+    canopy_kit.core.cache fingerprints inputs)."""
 
     def fingerprint(p: Path) -> list:
         st = p.resolve().stat()

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError
 from canopy_kit.io.cloud_records import (
     ascii_rows,

@@ -2,7 +2,7 @@
 
 Every reader says what it reads (``name``, ``kind``, ``suffixes``), recognises its own files
 (``sniff``) and describes one (``describe``: JSON-able facts). A ``cloud`` reader also
-``read``s a file into a :class:`~canopy_kit.cloud.PointCloud` (and may ``write`` one); a
+``read``s a file into a :class:`~canopy_kit.core.cloud.PointCloud` (and may ``write`` one); a
 ``scans`` reader yields a drive's scans; a ``bag`` reader is opened by the mapping stage.
 A file it cannot read raises :class:`~canopy_kit.errors.InputError` naming the file.
 ``canopy_kit.testing.check_reader`` proves a reader keeps these promises.
@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 
 READER_KINDS = ("cloud", "bag", "scans")
 

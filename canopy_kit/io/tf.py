@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from canopy_kit.core.frames import FrameTransform, from_quaternion, rotation_angle_deg
 from canopy_kit.errors import InputError
-from canopy_kit.frames import FrameTransform, from_quaternion, rotation_angle_deg
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TF_MESSAGE_DEF = "geometry_msgs/TransformStamped[] transforms"

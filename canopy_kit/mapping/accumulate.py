@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError
 from canopy_kit.mapping.kernels import EMPTY, insert_keys, voxel_keys
 

@@ -19,13 +19,13 @@ from typing import TypeVar
 import numpy as np
 
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.parallel import run_jobs, worker_count
 from canopy_kit.io.bag import BagSession, Scan, open_bag
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
 from canopy_kit.mapping.filters import range_mask
 from canopy_kit.mapping.kernels import kept_time_span, place_kept_binned, transform_by_bin
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
-from canopy_kit.parallel import run_jobs, worker_count
 
 TIME_FIELD = "gps_time"  # absolute per-point time (bag clock, s); LAS's standard time dimension
 POSE_BINS = 64  # per-sweep time bins for per-point poses (1.6 ms apart at 10 Hz)

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.frames import rotation_angle_deg, rpy_deg
 from canopy_kit.errors import InputError
-from canopy_kit.frames import rotation_angle_deg, rpy_deg
 from canopy_kit.mapping.extrinsics import ESTIMATED, SensorRig
 from canopy_kit.mapping.handeye import RotationEstimate, estimate_imu_rotation
 from canopy_kit.mapping.imu import detect_standstill

@@ -22,12 +22,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.parallel import Tick, run_forked, worker_count
 from canopy_kit.io.bag import BagSession, open_bag
 from canopy_kit.io.message_log import MessageLog, merged
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass, scan_count
 from canopy_kit.mapping.sensors import resolve_topics
-from canopy_kit.parallel import Tick, run_forked, worker_count
 
 Progress = Callable[[str, float, float], None]
 OVERLAP_SWEEPS = 40  # scans each chunk after the first starts early

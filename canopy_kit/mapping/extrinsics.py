@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.config import MappingConfig
+from canopy_kit.config.rig import RigSpec, parse_rig, rig_tables
+from canopy_kit.core.frames import FrameGraph, FrameTransform, invert, rigid, rpy_deg
 from canopy_kit.errors import InputError
-from canopy_kit.frames import FrameGraph, FrameTransform, invert, rigid, rpy_deg
 from canopy_kit.io.tf import first_frame_id, read_transforms
 from canopy_kit.mapping.imu_mounting import ImuMounting
-from canopy_kit.rig import RigSpec, parse_rig, rig_tables
 
 DEFAULT_BASE_FRAME = "base_link"
 SAME_FRAME = "same frame"

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.errors import ProcessingError
-from canopy_kit.extras import needs_extra
 from canopy_kit.io.bag import ImuSeries
 from canopy_kit.mapping.gnss import GnssEpochs, quality_changed
 from canopy_kit.mapping.imu import GRAVITY, Standstill

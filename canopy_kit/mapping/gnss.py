@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from canopy_kit.core.geo import LocalFrame, utm_epsg
 from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame, utm_epsg
 from canopy_kit.io.bag import GnssSeries
 
 NO_FIX = -1  # sensor_msgs/NavSatStatus STATUS_NO_FIX

@@ -53,7 +53,7 @@ class RotationEstimate:
 
     def to_dict(self) -> dict:
         """Figures for mapping.json."""
-        from canopy_kit.frames import rpy_deg
+        from canopy_kit.core.frames import rpy_deg
 
         return {
             "rpy_deg": [round(v, 3) for v in rpy_deg(self.rotation)],

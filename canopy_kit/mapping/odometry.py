@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.errors import ProcessingError
-from canopy_kit.extras import needs_extra
 
 
 @dataclass

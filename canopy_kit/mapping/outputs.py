@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import write_config
-from canopy_kit.io.atomic import atomic_write_json, atomic_write_text
+from canopy_kit.core.atomic import atomic_write_json, atomic_write_text
 from canopy_kit.io.las import las_ready, write_las
 
 MAP_NAME = "map.laz"

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from canopy_kit.config import MappingConfig
-from canopy_kit.geo import LocalFrame
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.io.bag import BagSession, stray_times_warning
 from canopy_kit.io.message_log import MessageLog
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig

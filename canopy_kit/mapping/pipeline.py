@@ -18,10 +18,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.geo import LocalFrame
+from canopy_kit.core.parallel import cpu_seconds
 from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame
 from canopy_kit.io.bag import GnssSeries, open_bag
 from canopy_kit.mapping.assemble import TIME_FIELD, assemble_map, point_fields
 from canopy_kit.mapping.calibration import calibrate_rig, check_rig
@@ -44,7 +45,6 @@ from canopy_kit.mapping.kernels import warm_up
 from canopy_kit.mapping.passone import OdometryPass, PassOne, pass_warnings, quality_flags
 from canopy_kit.mapping.sensors import GnssBuffer, SensorTopics, resolve_topics
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
-from canopy_kit.parallel import cpu_seconds
 
 Progress = Callable[[str, float, float], None]
 
@@ -129,7 +129,7 @@ def _check_config(config: MappingConfig) -> None:
             f"mapping.extrinsic_tolerance_deg: must be positive, got {config.extrinsic_tolerance_deg}"
         )
     if config.rig:
-        from canopy_kit.rig import parse_rig
+        from canopy_kit.config.rig import parse_rig
 
         parse_rig(config.rig, config.rig_name or "mapping.rig")
     for name in (

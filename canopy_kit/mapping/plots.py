@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 
 
 def _figure(ax: Any, size: tuple[float, float]) -> tuple[Any, Any]:
@@ -30,7 +30,7 @@ def plot_trajectories(
     """Top view of the estimated trajectory and, when given, the reference, in the estimate's
     (the map's) frame: the frame of every other map figure.
 
-    ``alignment`` (4x4, e.g. from :func:`canopy_kit.mapping.trajectory_error.trajectory_errors`)
+    ``alignment`` (4x4, e.g. from :func:`canopy_kit.evaluate.trajectory_error.trajectory_errors`)
     maps the estimate onto the reference frame; its inverse brings the reference onto the
     map. Without it both are drawn as they are. Returns the matplotlib Figure.
     """
@@ -56,7 +56,7 @@ def plot_trajectory_errors(
     estimated: pd.DataFrame, reference: pd.DataFrame, alignment: np.ndarray, ax: Any = None
 ) -> Any:
     """Position error (x, y, z and norm) over time after the SE(3) alignment; the Figure."""
-    from canopy_kit.mapping.trajectory_error import interpolate_reference
+    from canopy_kit.evaluate.trajectory_error import interpolate_reference
 
     fig, ax = _figure(ax, (8, 3))
     t = estimated["time"].to_numpy()

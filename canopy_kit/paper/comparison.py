@@ -82,8 +82,8 @@ def compare(
 ) -> pd.DataFrame:
     """One row per orchard x method x mapping of ``config``: the paper's figure beside ours
     for segmentation success and volume errors."""
+    from canopy_kit.evaluate.truth import orchard_kind
     from canopy_kit.paper.segmentation_results import success_table
-    from canopy_kit.truth import orchard_kind
 
     rows = []
     ok_runs = runs[runs["error"] == ""] if "error" in runs else runs

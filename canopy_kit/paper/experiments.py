@@ -10,7 +10,7 @@ preset measures convex hull and alpha shape (alpha = 0.9 m). Optionally the same
 on a map built from the true poses separate mapping error from segmentation and volume
 error.
 
-Scored against the simulator's truth: segmentation success (:mod:`canopy_kit.segmentation_score`,
+Scored against the simulator's truth: segmentation success (:mod:`canopy_kit.evaluate.segmentation_score`,
 one-to-one point IoU >= 0.5), and, on the correctly segmented trees, volume errors against
 the aerial sphere ground truth as the paper computes it (``pi d^3 / 6`` of the widest true
 crown diameter: what a perfect aerial survey gives) and against the true crown volume,
@@ -255,7 +255,7 @@ def simulate(
     Returns the bag path. A ``.complete`` file marks a finished simulation.
     """
     from canopy_kit.config import to_dict
-    from canopy_kit.session_layout import find_bag
+    from canopy_kit.io.session_layout import find_bag
     from canopy_kit.sim import simulate_session
     from canopy_kit.sim.session import load_sim_config_of
 
@@ -281,9 +281,9 @@ def compute_on_map(
     progress: Progress,
 ) -> Any:
     """The pipeline's stages after mapping, on a given map, scored against the truth."""
+    from canopy_kit.evaluate.validation import evaluate_against_truth
     from canopy_kit.pipeline import RunContext, aerial_stage, segment_stage, volume_stage
-    from canopy_kit.tree_table import tree_table
-    from canopy_kit.validation import evaluate_against_truth
+    from canopy_kit.results.tree_table import tree_table
 
     ctx = RunContext(pipeline_config, mapping=mapping)
     ctx.segmentation = segment_stage(ctx, progress)
@@ -341,11 +341,11 @@ def run_mapping(
 
     ``pipeline``: the first method runs :func:`canopy_kit.pipeline.compute` (mapping and its
     evaluation included); the others reuse that map. ``true_poses``: a map from the true
-    poses (:func:`canopy_kit.truth_map.truth_mapping`).
+    poses (:func:`canopy_kit.evaluate.truth_map.truth_mapping`).
     """
     from canopy_kit.config import load_preset
+    from canopy_kit.evaluate.truth_map import truth_mapping
     from canopy_kit.pipeline import compute
-    from canopy_kit.truth_map import truth_mapping
 
     drone = root / "drone" if config.drone else None
     shared = truth_mapping(root, progress=progress) if mapping == "true_poses" else None
@@ -491,7 +491,7 @@ def save_checkpoint(
     tables: list[pd.DataFrame],
 ) -> None:
     """Keep a finished session x mapping's results in ``work`` for a rerun to resume after."""
-    from canopy_kit.io.atomic import atomic_write_text, json_default
+    from canopy_kit.core.atomic import atomic_write_text, json_default
 
     runs_path, trees_path = _checkpoint_paths(work, orchard, seed, mapping, config)
     trees = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
@@ -525,7 +525,7 @@ def write_results(
     Refuses (:func:`check_results_dir`) committed data and earlier results unless
     ``overwrite``.
     """
-    from canopy_kit.io.atomic import atomic_write_text, json_default
+    from canopy_kit.core.atomic import atomic_write_text, json_default
 
     out = check_results_dir(out_dir, overwrite)
     out.mkdir(parents=True, exist_ok=True)

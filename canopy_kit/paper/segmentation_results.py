@@ -91,8 +91,8 @@ TARGETS = {
 def reproduction_table(runs: pd.DataFrame, metric: str = "success_points") -> pd.DataFrame:
     """Method x orchard, flat: trees correct over all sessions (pooled), the per-session
     range, the paper's figure and our target beside; one row per method and orchard."""
+    from canopy_kit.evaluate.truth import orchard_kind
     from canopy_kit.paper.comparison import PAPER_SEGMENTATION
-    from canopy_kit.truth import orchard_kind
 
     if runs.empty:
         return pd.DataFrame()

@@ -14,9 +14,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import binomtest
 
 from canopy_kit.errors import InputError
+from canopy_kit.evaluate.stats import Agreement, agreement
 from canopy_kit.paper.consistency import METHODS, Table1Check, max_abs_residual
 from canopy_kit.paper.table1 import VALUE_COLUMNS, printed_half_units
-from canopy_kit.stats import Agreement, agreement
 
 
 def method_agreement(table: pd.DataFrame) -> dict[str, Agreement]:

@@ -144,7 +144,7 @@ def _encoded_surfaces(
     (``known``, per segment), the others drawn now (:func:`~canopy_kit.volume.verb.tree_surfaces`)
     in forked processes (``volume.workers``, as the volume stage): a tetrahedralisation
     per tree is the report's largest cost."""
-    from canopy_kit.parallel import run_jobs, worker_count
+    from canopy_kit.core.parallel import run_jobs, worker_count
     from canopy_kit.volume.verb import MIN_TREES_PER_WORKER, drawn_methods, tree_surfaces
 
     surfaces = [
@@ -251,7 +251,7 @@ def row_summary(trees: pd.DataFrame, volume: str = ALPHA_COLUMN) -> pd.DataFrame
 
 def _flagged(trees: pd.DataFrame) -> pd.Series:
     """Trees with a volume, segment or drone-crown flag."""
-    from canopy_kit.tree_table import flagged
+    from canopy_kit.results.tree_table import flagged
 
     return (
         flagged(trees, "volume_flags")

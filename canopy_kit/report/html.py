@@ -10,8 +10,8 @@ from typing import Any
 
 import pandas as pd
 
-from canopy_kit.checks import Check, failed
-from canopy_kit.io.atomic import atomic_write_text
+from canopy_kit.core.atomic import atomic_write_text
+from canopy_kit.results.checks import Check, failed
 
 __all__ = [
     "Check",

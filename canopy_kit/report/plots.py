@@ -45,7 +45,7 @@ def plot_agreement(
     """Scatter against the 1:1 line and a Bland-Altman plot, side by side."""
     import matplotlib.pyplot as plt
 
-    from canopy_kit import stats
+    from canopy_kit.evaluate import stats
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.5))
     est, ref = np.asarray(estimate, float), np.asarray(reference, float)

@@ -7,10 +7,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.checks import Check, format_value
 from canopy_kit.report.figures import figure_to_data_uri
 from canopy_kit.report.html import ReportSection, render_report
 from canopy_kit.report.mapdecor import add_north_arrow_and_scale
+from canopy_kit.results.checks import Check, format_value
 from canopy_kit.volume.metrics import POSITION_AND_SIZE
 from canopy_kit.volume.verb import ALPHA_COLUMN, CONVEX_HULL_COLUMN, volume_column
 
@@ -35,7 +35,7 @@ TABLE_COLUMNS = [
 
 def report_checks(metrics: dict[str, Any], trees: pd.DataFrame, config: Any) -> list[Check]:
     """The run's checks: those in ``metrics`` (metrics.json), else computed now."""
-    from canopy_kit.checks import run_checks
+    from canopy_kit.results.checks import run_checks
 
     if "checks" in metrics:
         return [Check(**c) for c in metrics["checks"]]
@@ -51,9 +51,9 @@ def session_report_page(
     """The report of a run as one self-contained HTML page (``details``: the drill-down's
     :func:`~canopy_kit.report.explorer.tree_details`, when made already)."""
     from canopy_kit.config import config_toml
-    from canopy_kit.outputs import config_used
     from canopy_kit.report import plots
-    from canopy_kit.tree_table import comparable_aerial_sphere
+    from canopy_kit.results.outputs import config_used
+    from canopy_kit.results.tree_table import comparable_aerial_sphere
 
     cloud, seg = ctx.mapping.map, ctx.segmentation
     traj = ctx.mapping.trajectory
@@ -100,8 +100,8 @@ def session_report_page(
     )
     mapping_eval = metrics.get("evaluation", {}).get("mapping")
     if mapping_eval and ctx.truth_dir is not None:
+        from canopy_kit.evaluate.truth import load_truth
         from canopy_kit.mapping.plots import mapping_figures
-        from canopy_kit.truth import load_truth
 
         truth = load_truth(ctx.truth_dir)
         reference = truth.trajectory_of(getattr(ctx.mapping, "trajectory_frame", ""))
@@ -203,7 +203,7 @@ def session_report_page(
                 )
             )
     if ctx.truth_matches is not None and "tree_id" in cloud.fields:
-        from canopy_kit.segmentation_score import score_point_labels
+        from canopy_kit.evaluate.segmentation_score import score_point_labels
 
         score = score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
         gallery = plot_failure_gallery(cloud, seg, score, np.asarray(cloud.fields["tree_id"]))
@@ -315,7 +315,7 @@ def report_downloads(
     """The files the page offers for download, made by the functions that write them beside
     it (with the run's ``provenance``); a GeoJSON the run does not write (no CRS) is left out."""
     from canopy_kit.io.csv_table import csv_text
-    from canopy_kit.outputs import trees_geojson
+    from canopy_kit.results.outputs import trees_geojson
     from canopy_kit.segment.export import crowns_geojson, rows_geojson
 
     geo = "application/geo+json"

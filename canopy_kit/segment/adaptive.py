@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from canopy_kit.params import Positive
+from canopy_kit.plugins.params import Positive
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.crowns import crown_split
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
@@ -48,7 +48,7 @@ def each_part(
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """``[split(i) for i in range(len(members))]``, the parts shared among forked workers
     (balanced by their points) when there are many points and more than one core."""
-    from canopy_kit.parallel import run_jobs, worker_count
+    from canopy_kit.core.parallel import run_jobs, worker_count
 
     sizes = np.array([len(m) for m in members])
     n_workers = worker_count(0, len(members))

@@ -19,7 +19,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, ClusterMixin
 
 from canopy_kit.errors import InputError
-from canopy_kit.params import check_positive, validate_types
+from canopy_kit.plugins.params import check_positive, validate_types
 
 __all__ = ["Segmenter", "check_points", "check_positive", "check_weight"]
 

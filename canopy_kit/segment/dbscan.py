@@ -7,7 +7,7 @@ from typing import Literal, get_args
 import numpy as np
 
 from canopy_kit.errors import InputError
-from canopy_kit.params import Positive
+from canopy_kit.plugins.params import Positive
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.density import grid_dbscan, weighted_dbscan
 

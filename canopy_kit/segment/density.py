@@ -19,7 +19,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from canopy_kit.cloud import column_max, column_min
+from canopy_kit.core.cloud import column_max, column_min
 from canopy_kit.errors import InputError
 
 Progress = Callable[[str, float, float], None]

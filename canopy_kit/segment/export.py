@@ -6,7 +6,7 @@
 positions), ``crowns.geojson`` (crown footprints), ``rows.geojson`` (row lines),
 ``trees.gpkg`` (the same three as layers in the map's projected CRS) and
 ``segmentation.json`` (summary). GeoJSON is RFC 7946: WGS84 lon/lat, no ``crs`` member
-(``canopy_kit.geojson``); a map without a CRS gets none, and segmentation.json says why
+(``canopy_kit.io.geojson``); a map without a CRS gets none, and segmentation.json says why
 (``geojson``). Every file is written atomically.
 
 A ``canopy-kit run`` folder is a segmentation folder too: it holds the summary, crowns and
@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit import geojson
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.atomic import atomic_write_text
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.geo import local_of, lonlat_of
 from canopy_kit.errors import InputError
-from canopy_kit.geo import local_of, lonlat_of
-from canopy_kit.io.atomic import atomic_write_text
+from canopy_kit.io import geojson
 from canopy_kit.io.gpkg import read_gpkg_layer, write_gpkg
 from canopy_kit.segment.result import Segmentation
 from canopy_kit.volume.metrics import POSITION_AND_SIZE

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from canopy_kit.cloud import column_max, column_min
+from canopy_kit.core.cloud import column_max, column_min
+from canopy_kit.core.voxel import first_minimum
 from canopy_kit.errors import InputError, ProcessingError
-from canopy_kit.voxel import first_minimum
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.segment.result import Segmentation
 
 TRUE_TREE_ID = "truth_tree_id"  # the simulator's truth id, as written

@@ -6,9 +6,9 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud, column_max, column_min
+from canopy_kit.core.cloud import PointCloud, column_max, column_min
+from canopy_kit.core.voxel import first_minimum
 from canopy_kit.segment.result import Segmentation
-from canopy_kit.voxel import first_minimum
 
 NOISE_RGBA = (0.75, 0.75, 0.75, 0.35)
 
@@ -93,7 +93,7 @@ def plot_failure_gallery(
 ) -> Any:
     """Side-by-side truth and segmentation around each tree that was not segmented correctly.
 
-    ``score`` is a point-mode :class:`canopy_kit.segmentation_score.SegmentationScore` of ``seg``
+    ``score`` is a point-mode :class:`canopy_kit.evaluate.segmentation_score.SegmentationScore` of ``seg``
     against the per-point true tree ids ``truth``. Returns the Figure (``None`` if every
     tree was correct).
     """

@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import PreprocessConfig
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.voxel import voxel_representatives
 from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.segment.ground import GroundModel, fit_ground
-from canopy_kit.voxel import voxel_representatives
 
 Progress = Callable[[str, float, float], None]
 

@@ -343,7 +343,7 @@ def segmentation_row_profiles(
     band = (float(lo) if np.isfinite(lo) else 0.8, float(hi) if np.isfinite(hi) else math.inf)
     profiles = row_profiles(xyz, seg.height, seg.rows, spacing, band, section_m)
     if seg.crs and len(profiles.sections):
-        from canopy_kit.geo import lonlat_of
+        from canopy_kit.core.geo import lonlat_of
 
         table = profiles.sections
         lon, lat = lonlat_of(table[["x", "y"]].to_numpy(), seg.crs, seg.origin)
@@ -359,8 +359,8 @@ def sections_geojson(
 ) -> str | None:
     """Every section as an RFC 7946 LineString along its row line (WGS84), its metrics as
     properties: a variable-rate sprayer's map. None when the map has no CRS."""
-    from canopy_kit import geojson
-    from canopy_kit.geo import lonlat_of
+    from canopy_kit.core.geo import lonlat_of
+    from canopy_kit.io import geojson
 
     if not crs:
         return None

@@ -17,12 +17,12 @@ import warnings
 
 import numpy as np
 
+from canopy_kit.core.voxel import voxel_centroids
 from canopy_kit.errors import ConfigError
-from canopy_kit.params import NonNegative, Positive, PositiveInt
+from canopy_kit.plugins.params import NonNegative, Positive, PositiveInt
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.dbscan import Algorithm, run_dbscan
 from canopy_kit.segment.density import first_appearance_order
-from canopy_kit.voxel import voxel_centroids
 
 
 def check_graph_cell(graph_cell: float) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.segment.labelled import labelled_map
 from canopy_kit.segment.result import Segmentation
 

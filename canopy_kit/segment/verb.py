@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from canopy_kit import plugins
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import PreprocessConfig, RowsConfig
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError, ProcessingError
 from canopy_kit.segment.classes import classify_points
 from canopy_kit.segment.density import first_appearance_order

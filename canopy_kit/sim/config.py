@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 from canopy_kit.config import from_dict, merge, read_toml
 from canopy_kit.errors import ConfigError
-from canopy_kit.truth import orchard_kind  # noqa: F401 - moved to canopy_kit.truth; kept here
+from canopy_kit.evaluate.truth import orchard_kind  # noqa: F401 - moved to canopy_kit.evaluate.truth; kept here
 
 
 @dataclass

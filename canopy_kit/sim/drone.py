@@ -22,14 +22,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from canopy_kit.extras import needs_extra
-from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
-from canopy_kit.session_layout import SIM_CONFIG, drone_dir, truth_dir
+from canopy_kit.core.atomic import atomic_write_bytes, atomic_write_text
+from canopy_kit.core.extras import needs_extra
+from canopy_kit.evaluate.truth import write_csv
+from canopy_kit.io.session_layout import SIM_CONFIG, drone_dir, truth_dir
 from canopy_kit.sim.config import DroneSpec
 from canopy_kit.sim.drone_render import DroneRenderer, PinholeView
 from canopy_kit.sim.orchard import Orchard
 from canopy_kit.sim.scene import Scene
-from canopy_kit.truth import write_csv
 
 Progress = Callable[[str, float, float], None]
 FLIGHT_START = datetime(2024, 6, 18, 11, 0, 0)

@@ -184,8 +184,8 @@ def scanned_trees(
     ``CLEARANCE`` and ``SPEED``) and thin every tree's clouds to ``voxel_size`` (one point
     per voxel, the one nearest its centre, as the volume stage measures trees).
     ``complete``: the thinned complete clouds when already made."""
+    from canopy_kit.core.voxel import voxel_representatives
     from canopy_kit.sim.alley import SIDES, drive_row
-    from canopy_kit.voxel import voxel_representatives
 
     def thin(xyz: np.ndarray) -> np.ndarray:
         return xyz[voxel_representatives(xyz, voxel_size)[0]] if voxel_size else xyz

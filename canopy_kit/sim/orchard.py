@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from canopy_kit.geo import LocalFrame
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.sim.config import OrchardSpec
 from canopy_kit.sim.crown import CrownEnvelope
 from canopy_kit.sim.crown_forms import FORM_NAMES, LobedForm, VaseForm, hedge_planes

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from canopy_kit.core.atomic import atomic_write_text
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_write_text
 from canopy_kit.io.bag import VELODYNE_SCAN, GnssSeries, open_bag
 
 POSITION_EVERY_S = 0.1
@@ -151,7 +151,7 @@ def write_track(
 ) -> Path:
     """The fixes as a track file of ``fmt`` (see the module docstring); ``time_scale`` gps
     writes the mtls time of day on GPS time (UTC + leap seconds)."""
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
     from canopy_kit.io.gnss_track import leap_seconds
 
     if fmt not in TRACK_FORMATS:

@@ -67,7 +67,7 @@ def splatted(
     """A specimen whose surfaces are splats on the cloud ``xyz`` thinned to ``cell``."""
     from scipy.spatial import cKDTree
 
-    from canopy_kit.voxel import voxel_representatives
+    from canopy_kit.core.voxel import voxel_representatives
 
     full = centred_cloud(xyz)
     thin = full[voxel_representatives(full, cell)[0]]

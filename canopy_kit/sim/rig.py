@@ -3,7 +3,7 @@
 The vehicle frame (the rig's ``base_frame``, REP 105's ``base_link``) has its origin on
 the ground midway between the wheels and turns with the vehicle's roll and pitch. A rig
 (``[rig] name``: a preset of ``canopy_kit/presets/rigs`` or a rig file, the format of
-:mod:`canopy_kit.rig`) places the LiDAR, the IMU and the GNSS antenna on it. The default
+:mod:`canopy_kit.config.rig`) places the LiDAR, the IMU and the GNSS antenna on it. The default
 ``identity`` is the simulator's first rig: every sensor in the LiDAR's frame at
 ``lidar.mount_height`` (pitched ``lidar.mount_pitch_deg``) and no ``/tf_static``.
 """
@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from canopy_kit.config.rig import parse_rig, rig_data
+from canopy_kit.core.frames import FrameGraph, FrameTransform, from_rpy, rigid
 from canopy_kit.errors import ConfigError
-from canopy_kit.frames import FrameGraph, FrameTransform, from_rpy, rigid
-from canopy_kit.rig import parse_rig, rig_data
 
 IDENTITY = "identity"
 

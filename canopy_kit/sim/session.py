@@ -12,11 +12,12 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import from_dict, read_toml, write_config
+from canopy_kit.core.atomic import atomic_write_text
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_write_text
+from canopy_kit.evaluate.truth import write_csv
 from canopy_kit.io.bag_writer import BagWriter, bag_path_for
-from canopy_kit.session_layout import BAG_NAME, SIM_CONFIG, find_bag, sim_config_path, truth_dir
-from canopy_kit.session_layout import drone_dir as drone_folder
+from canopy_kit.io.session_layout import BAG_NAME, SIM_CONFIG, find_bag, sim_config_path, truth_dir
+from canopy_kit.io.session_layout import drone_dir as drone_folder
 from canopy_kit.sim.config import SimConfig, validate
 from canopy_kit.sim.inertial import simulate_gnss, simulate_imu
 from canopy_kit.sim.lidar import SpinningLidar
@@ -25,7 +26,6 @@ from canopy_kit.sim.rig import SensorMounts, sensor_mounts
 from canopy_kit.sim.scene import Scene, build_scene
 from canopy_kit.sim.trajectory import Trajectory
 from canopy_kit.sim.truth import tree_table
-from canopy_kit.truth import write_csv
 
 __all__ = [
     "BAG_NAME",

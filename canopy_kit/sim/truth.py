@@ -1,6 +1,6 @@
 """The simulator's side of the truth tables: the per-tree table of a generated orchard.
 
-The format (columns, CSV writer, reader) lives in :mod:`canopy_kit.truth`; the simulator
+The format (columns, CSV writer, reader) lives in :mod:`canopy_kit.evaluate.truth`; the simulator
 writes through it. ``write_csv``, ``load_truth``, ``SessionTruth`` and ``TREE_COLUMNS`` are
 re-exported here for code that imported them from the simulator.
 """
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from canopy_kit.evaluate.truth import TREE_COLUMNS, SessionTruth, load_truth, write_csv
 from canopy_kit.sim.orchard import Orchard
-from canopy_kit.truth import TREE_COLUMNS, SessionTruth, load_truth, write_csv
 
 __all__ = [
     "TREE_COLUMNS",

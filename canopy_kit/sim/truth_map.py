@@ -1,7 +1,7 @@
-"""Moved to :mod:`canopy_kit.truth_map` (a reference map built from a session's data, not
+"""Moved to :mod:`canopy_kit.evaluate.truth_map` (a reference map built from a session's data, not
 from the simulator); these names stay here for code that imported them from the simulator."""
 
-from canopy_kit.truth import true_pose_interpolator
-from canopy_kit.truth_map import TruthMapping, truth_map, truth_mapping
+from canopy_kit.evaluate.truth import true_pose_interpolator
+from canopy_kit.evaluate.truth_map import TruthMapping, truth_map, truth_mapping
 
 __all__ = ["TruthMapping", "true_pose_interpolator", "truth_map", "truth_mapping"]

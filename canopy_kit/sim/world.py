@@ -1,6 +1,6 @@
-"""The simulator's world model of a session it wrote (:class:`canopy_kit.truth.WorldModel`).
+"""The simulator's world model of a session it wrote (:class:`canopy_kit.evaluate.truth.WorldModel`).
 
-Evaluation asks :meth:`canopy_kit.truth.SessionTruth.world` for exact geometry; the truth
+Evaluation asks :meth:`canopy_kit.evaluate.truth.SessionTruth.world` for exact geometry; the truth
 module names this class for folders holding ``truth/sim_config.toml``, so stages reach
 the simulator's geometry without importing it.
 """

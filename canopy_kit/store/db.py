@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.errors import InputError
-from canopy_kit.extras import needs_extra
 from canopy_kit.store.identity import MatchSettings, TreeMatch, match_trees
 from canopy_kit.store.schema import AERIAL_COLUMNS, SCHEMA_VERSION, TABLES
 
@@ -207,7 +207,7 @@ class OrchardStore:
         return report
 
     def _orchard_frame(self, orchard: str, trees: pd.DataFrame) -> Any:
-        from canopy_kit.geo import LocalFrame
+        from canopy_kit.core.geo import LocalFrame
 
         row = self.one(
             "SELECT epsg, origin_easting, origin_northing FROM orchards WHERE orchard = ?",

@@ -97,7 +97,7 @@ def export(
     The format follows the suffix (``.parquet`` or ``.csv``); written under a temporary
     name and renamed.
     """
-    from canopy_kit.io.atomic import atomic_path
+    from canopy_kit.core.atomic import atomic_path
 
     path = Path(path)
     fmt = {".parquet": "PARQUET", ".csv": "CSV"}.get(path.suffix.lower())

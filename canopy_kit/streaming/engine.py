@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import PipelineConfig
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError
 from canopy_kit.streaming.layout import DriveLayout, RegionState
 from canopy_kit.streaming.source import RunningGeoreference, SweepSource

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
-from canopy_kit.io.atomic import atomic_write_json
+from canopy_kit.core.atomic import atomic_write_json
 from canopy_kit.streaming.engine import StreamedTree, StreamSettings, TreeStream
 from canopy_kit.volume.metrics import POSITION_AND_SIZE
 
@@ -43,11 +43,11 @@ def run_stream(
     on_tree: Callable[[StreamedTree], None] | None = None,
     orchard: str | None = None,
 ) -> Any:
-    """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.outputs.Results`
+    """Stream ``bag`` through the pipeline; returns a :class:`canopy_kit.results.outputs.Results`
     (``orchard`` names the orchard in the provenance, default the bag's stem)."""
     from canopy_kit.io.bag import require_bag
-    from canopy_kit.outputs import Results, write_trees
-    from canopy_kit.provenance import provenance
+    from canopy_kit.results.outputs import Results, write_trees
+    from canopy_kit.results.provenance import provenance
 
     bag, out = require_bag(bag), Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -115,8 +115,8 @@ def _live_cells(tree: StreamedTree, t0: float) -> list[str]:
 
 def final_table(stream: TreeStream) -> pd.DataFrame:
     """Every emitted tree placed with the whole drive's GNSS fit and labelled as in batch."""
+    from canopy_kit.results.tree_table import FIRST_COLUMNS
     from canopy_kit.segment.rows import assign_rows, driving_direction_from_trajectory
-    from canopy_kit.tree_table import FIRST_COLUMNS
 
     if not stream.trees:
         return pd.DataFrame(columns=FIRST_COLUMNS)

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import MappingConfig
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame
 
 Progress = Callable[[str, float, float], None]
 

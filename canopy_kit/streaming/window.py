@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.errors import ConfigError, InputError
-from canopy_kit.params import annotations, init_parameters
+from canopy_kit.plugins.params import annotations, init_parameters
 
 __all__ = [
     "Check",
@@ -113,7 +113,9 @@ def _label(estimator: Any) -> str:
         text = repr(estimator)
     except Exception:  # a broken repr must not hide the rule
         text = type(estimator).__name__
-    return text if len(text) <= 60 else type(estimator).__name__
+    if len(text) > 60 or " object at 0x" in text:  # long, or the default repr's address
+        return type(estimator).__name__  # (stable ids: pytest-xdist workers must agree)
+    return text
 
 
 def _param_names(est: Any) -> list[str]:

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import InputError
 from canopy_kit.io.reader_contract import READER_KINDS, CloudReader, Reader, ScanReader
 from canopy_kit.testing.estimators import Check, _run
@@ -84,7 +84,7 @@ def check_other_content_is_an_input_error(reader: Any) -> None:
 
 
 def _json(facts: Any) -> None:
-    from canopy_kit.io.atomic import to_json
+    from canopy_kit.core.atomic import to_json
 
     assert isinstance(facts, dict), f"describe returned {type(facts).__name__}, not a dict"
     json.loads(to_json(facts))

@@ -41,7 +41,7 @@ from contextlib import suppress
 import numpy as np
 
 from canopy_kit.errors import ConfigError
-from canopy_kit.params import NonNegative, Positive
+from canopy_kit.plugins.params import NonNegative, Positive
 from canopy_kit.volume.alpha_hull import alpha_hull_volume, grid_step
 from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.convexity import HOLLOW_Z, is_hollowed_body, sample_convexity

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.params import PAPER_ALPHA_M, Positive
+from canopy_kit.plugins.params import PAPER_ALPHA_M, Positive
 from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.surface import Surface, boundary_triangles, compact_surface
 

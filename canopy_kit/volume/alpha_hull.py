@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from canopy_kit.params import Positive
+from canopy_kit.plugins.params import Positive
 from canopy_kit.volume.alpha import PAPER_ALPHA_M
 from canopy_kit.volume.base import VolumeEstimator
 

@@ -27,7 +27,7 @@ import numpy as np
 from sklearn.base import BaseEstimator
 
 from canopy_kit.errors import InputError
-from canopy_kit.params import check_choice, check_positive, validate_types
+from canopy_kit.plugins.params import check_choice, check_positive, validate_types
 from canopy_kit.volume.surface import Surface
 
 __all__ = [

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.params import Positive, PositiveInt
+from canopy_kit.plugins.params import Positive, PositiveInt
 from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.hull import qhull_reason
 

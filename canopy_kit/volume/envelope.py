@@ -40,7 +40,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from canopy_kit.params import Positive
+from canopy_kit.plugins.params import Positive
 from canopy_kit.volume.alpha_hull import alpha_hull_volume, grid_step
 from canopy_kit.volume.base import VolumeEstimator
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canopy_kit.params import AtLeastOne, Positive
+from canopy_kit.plugins.params import AtLeastOne, Positive
 from canopy_kit.volume.base import VolumeEstimator
 from canopy_kit.volume.surface import Surface, compact_surface, wound_away_from
 
@@ -70,7 +70,7 @@ def thin_to_distance(xyz: np.ndarray, distance: float) -> np.ndarray:
     neighbours), so that the result does not depend on the order of the input."""
     from scipy.spatial import cKDTree
 
-    from canopy_kit.voxel import voxel_representatives
+    from canopy_kit.core.voxel import voxel_representatives
 
     reps = voxel_representatives(xyz, distance)[0]  # in the order of the voxels' keys
     pts = xyz[reps]

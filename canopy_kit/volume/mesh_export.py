@@ -43,7 +43,7 @@ def surface_mesh(surface: Surface) -> Any:
 
 def write_surface(path: str | Path, surface: Surface) -> Path:
     """Write the oriented mesh in the format the suffix names, atomically."""
-    from canopy_kit.io.atomic import atomic_path
+    from canopy_kit.core.atomic import atomic_path
 
     path = Path(path)
     if path.suffix.lower() not in MESH_SUFFIXES:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
 
 # per-point tree labels written by canopy-kit (segment_id), lidR (treeID) and others (tree_id)
 TREE_LABEL_FIELDS = ("segment_id", "treeID", "tree_id")

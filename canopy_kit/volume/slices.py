@@ -12,7 +12,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from canopy_kit.params import Positive
+from canopy_kit.plugins.params import Positive
 from canopy_kit.volume.alpha import PAPER_ALPHA_M
 from canopy_kit.volume.base import VolumeEstimator
 

@@ -122,7 +122,7 @@ def calibrate_ratios(
 # - benchmarks/bench_adaptive_volume.py (the calibration it prints): 16 rings × 512 columns,
 #   trees cut by the simulator's labels (coarser scans: it sets most dense upper bounds).
 # Both take a one-sided scan as the map of that alley's sweeps alone
-# (canopy_kit.truth_map.alley_maps); every bound was set again on 2026-12-05 when they did
+# (canopy_kit.evaluate.truth_map.alley_maps); every bound was set again on 2026-12-05 when they did
 # (before, a split of the whole map gave the second alley a thinner scan than a real drive:
 # docs/history/VOLUMES_LOG.md, "One-sided scans from the alley maps").
 CALIBRATIONS: dict[str, Calibration] = {

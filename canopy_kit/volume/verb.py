@@ -19,12 +19,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.cloud import PointCloud
 from canopy_kit.config import VolumeConfig
-from canopy_kit.parallel import run_jobs, worker_count
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.parallel import run_jobs, worker_count
+from canopy_kit.core.voxel import voxel_representatives
 from canopy_kit.volume.metrics import crown_columns
 from canopy_kit.volume.surface import Surface
-from canopy_kit.voxel import voxel_representatives
 
 Progress = Callable[[str, float, float], None]
 GroundHeight = Callable[[np.ndarray], np.ndarray]

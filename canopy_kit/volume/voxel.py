@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from canopy_kit.params import Positive
+from canopy_kit.plugins.params import Positive
 from canopy_kit.volume.base import VolumeEstimator
 
 MAX_VOXELS = 50_000_000

@@ -31,7 +31,7 @@ def write_raw_las(
 
 def write_truncated_laz(path: Path, fraction: float = 0.6) -> Path:
     """A valid LAZ cut to ``fraction`` of its length."""
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.io.las import write_las
 
     rng = np.random.default_rng(1)

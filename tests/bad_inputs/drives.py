@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from canopy_kit.geo import LocalFrame
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.io.bag_writer import BagWriter
 
 T0 = 1_700_000_000.0

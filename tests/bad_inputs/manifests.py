@@ -31,7 +31,7 @@ def csv_manifest(root: Path, body: bytes) -> Path:
 
 def store_cut_short(root: Path, fraction: float = 0.4) -> Path:
     """A store with two sessions of 12 trees, copied up to ``fraction`` of its bytes."""
-    from canopy_kit.geo import LocalFrame
+    from canopy_kit.core.geo import LocalFrame
     from canopy_kit.store import OrchardStore, SessionRecord
 
     frame = LocalFrame.at(37.281, -120.42)

@@ -4,7 +4,7 @@ each method's error against the simulator's exact crown volume.
 A tree's points are those the simulator's ``tree_id`` field gives it in the reference map
 built with the true poses (so segmentation and odometry errors are left out). Its
 one-sided scans are its points in the map of only the sweeps driven in the alley on one side
-of its row line (:func:`canopy_kit.truth_map.alley_maps`): what a drive along that alley
+of its row line (:func:`canopy_kit.evaluate.truth_map.alley_maps`): what a drive along that alley
 alone would have mapped.
 """
 
@@ -37,7 +37,7 @@ class SimulatedTree:
 
 def row_directions(trees: Any) -> dict[int, np.ndarray]:
     """Unit along-row direction per row, fitted through the row's trunk positions."""
-    from canopy_kit.truth_map import row_lines
+    from canopy_kit.evaluate.truth_map import row_lines
 
     return {row: along for row, (_, along) in row_lines(trees).items()}
 
@@ -51,15 +51,15 @@ def simulated_trees(
 ) -> list[SimulatedTree]:
     """Per-tree clouds of a simulated session, voxel-thinned to ``voxel_size`` (paper: 0.1 m):
     complete (from ``reference_map``) and one-sided (``left``/``right`` of the row line, from
-    the alley maps, :func:`canopy_kit.truth_map.alley_maps`, on the same ``map_voxel_size``).
+    the alley maps, :func:`canopy_kit.evaluate.truth_map.alley_maps`, on the same ``map_voxel_size``).
 
     ``reference_map`` (a PointCloud with a ``tree_id`` field) is built from the session with
     the true poses when not given.
     """
-    from canopy_kit.cloud import PointCloud
-    from canopy_kit.truth import load_truth
-    from canopy_kit.truth_map import alley_maps, truth_map
-    from canopy_kit.voxel import voxel_downsample
+    from canopy_kit.core.cloud import PointCloud
+    from canopy_kit.core.voxel import voxel_downsample
+    from canopy_kit.evaluate.truth import load_truth
+    from canopy_kit.evaluate.truth_map import alley_maps, truth_map
 
     truth = load_truth(sim_dir)
     cloud = (

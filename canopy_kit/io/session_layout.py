@@ -4,7 +4,7 @@ A session folder, simulated or recorded and laid out alike, holds::
 
     session.bag | session/    the drive (ROS1 bag file, or a ROS2 bag folder)
     drone/                    geotagged drone photos (optional)
-    truth/                    per-tree truth tables (optional, see :mod:`canopy_kit.truth`)
+    truth/                    per-tree truth tables (optional, see :mod:`canopy_kit.evaluate.truth`)
 
 The simulator writes this layout and every stage reads it through this module, so neither
 owns it (issue 28).

@@ -2,7 +2,7 @@
 
 Used to study segmentation and volumes separately from mapping error, and as the yardstick
 the mapping stage is compared with. It reads the session's bag and truth trajectory
-(:mod:`canopy_kit.truth`), nothing of the simulator, so evaluation can build it (moved
+(:mod:`canopy_kit.evaluate.truth`), nothing of the simulator, so evaluation can build it (moved
 from ``canopy_kit.sim.truth_map``).
 """
 
@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from canopy_kit.cloud import PointCloud
-from canopy_kit.geo import LocalFrame
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.geo import LocalFrame
+from canopy_kit.core.voxel import voxel_downsample
+from canopy_kit.evaluate.truth import load_truth, true_pose_interpolator
 from canopy_kit.io.bag import open_bag
-from canopy_kit.session_layout import find_bag
-from canopy_kit.truth import load_truth, true_pose_interpolator
-from canopy_kit.voxel import voxel_downsample
+from canopy_kit.io.session_layout import find_bag
 
 
 def truth_map(

@@ -339,7 +339,7 @@ def score_footprints(
 def truth_footprints(sim_dir: str | Path) -> dict[int, np.ndarray]:
     """Exact crown footprints of a simulated session, regenerated from its stored config;
     discs of the mean crown diameter from ``trees.csv`` when it cannot be regenerated."""
-    from canopy_kit.truth import load_truth
+    from canopy_kit.evaluate.truth import load_truth
 
     truth = load_truth(sim_dir)
     try:
@@ -365,7 +365,7 @@ def envelope_ceiling(xyz: np.ndarray, sim_dir: str | Path, min_height: float = 0
     sees only point positions can do much better; scoring these labels shows the ceiling
     a session allows.
     """
-    from canopy_kit.truth import load_truth
+    from canopy_kit.evaluate.truth import load_truth
 
     orchard = load_truth(sim_dir).orchard()
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -397,9 +397,9 @@ def evaluate_run(
     ``mode``: ``points`` (needs the truth field ``truth_tree_id`` in the segmented map),
     ``footprints``, or ``auto`` (points when possible).
     """
+    from canopy_kit.evaluate.truth import load_truth
     from canopy_kit.segment.export import read_segmentation
     from canopy_kit.segment.labelled import truth_ids
-    from canopy_kit.truth import load_truth
 
     if mode not in ("auto", "points", "footprints"):
         raise InputError(f"evaluation mode must be auto, points or footprints, got {mode!r}")

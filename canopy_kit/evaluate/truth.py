@@ -1,6 +1,6 @@
 """Per-tree truth of a session: the tables the simulator writes and evaluation reads.
 
-A truth folder (``SESSION/truth``, see :mod:`canopy_kit.session_layout`) holds
+A truth folder (``SESSION/truth``, see :mod:`canopy_kit.io.session_layout`) holds
 ``trees.csv`` (one row per tree, :data:`TREE_COLUMNS`), ``trajectory.csv`` (the LiDAR's
 true poses: time, x, y, z, qx, qy, qz, qw), ``frame.json`` (the local frame and the rig's
 frame names), optionally ``base_trajectory.csv`` (the vehicle frame's poses), and files of
@@ -26,10 +26,10 @@ from typing import Any, Protocol
 import numpy as np
 import pandas as pd
 
+from canopy_kit.core.atomic import atomic_write_text
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame
-from canopy_kit.io.atomic import atomic_write_text
-from canopy_kit.session_layout import TRUTH_DIR
+from canopy_kit.io.session_layout import TRUTH_DIR
 
 TREE_COLUMNS = [
     "tree_id",

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin, get_type_hints
 
 from canopy_kit.errors import ConfigError, InputError
-from canopy_kit.params import check_choice
+from canopy_kit.plugins.params import check_choice
 
 T = TypeVar("T")
 
@@ -266,7 +266,7 @@ class GroundTruthConfig:
 
 @dataclass
 class ChecksConfig:
-    """Thresholds of the checks that need no truth (``canopy_kit.checks``, docs/VALIDATION.md).
+    """Thresholds of the checks that need no truth (``canopy_kit.results.checks``, docs/VALIDATION.md).
 
     Each pair is (warn, fail): a value beyond ``*_warn`` warns, beyond ``*_fail`` fails the
     run (``run --strict`` exits 4). Ratios are crown diameter over a spacing measured on
@@ -480,7 +480,7 @@ def check_plugin_param_types(config: PipelineConfig, where: str = "config") -> N
     registered are left to ``pipeline.check_settings``, which names them."""
     from canopy_kit import plugins
     from canopy_kit.errors import PluginError
-    from canopy_kit.params import check_types
+    from canopy_kit.plugins.params import check_types
 
     tables = [
         ("segmenters", config.segment.method, config.segment.params, f"{where}.segment.params")
@@ -554,7 +554,7 @@ def config_toml(config: Any) -> str:
 
 def write_config(config: Any, path: str | Path) -> Path:
     """Write a config dataclass as TOML, atomically."""
-    from canopy_kit.io.atomic import atomic_write_text
+    from canopy_kit.core.atomic import atomic_write_text
 
     return atomic_write_text(path, config_toml(config))
 

@@ -12,8 +12,8 @@ from typing import Any
 import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
-from canopy_kit.io.atomic import atomic_path
-from canopy_kit.tree_table import comparable_aerial_sphere, flagged
+from canopy_kit.core.atomic import atomic_path
+from canopy_kit.results.tree_table import comparable_aerial_sphere, flagged
 from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS
 
 
@@ -31,9 +31,9 @@ class Results:
 
 def run_metrics(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
     """Summary numbers of the run (mapping diagnostics, counts, agreement, evaluation)."""
-    from canopy_kit import stats
-    from canopy_kit.checks import Check, run_checks
-    from canopy_kit.checks import summary as checks_summary
+    from canopy_kit.evaluate import stats
+    from canopy_kit.results.checks import Check, run_checks
+    from canopy_kit.results.checks import summary as checks_summary
 
     m: dict[str, Any] = {
         "n_trees": int(len(trees)),
@@ -150,7 +150,7 @@ def write_trees(
 def trees_geojson(trees: pd.DataFrame, provenance: dict[str, Any] | None = None) -> str | None:
     """Tree positions as an RFC 7946 FeatureCollection (WGS84 ``[lon, lat]``, the table's
     columns as properties); None when no tree has a position (a map without a CRS)."""
-    from canopy_kit import geojson
+    from canopy_kit.io import geojson
 
     if "lat" not in trees or "lon" not in trees or not trees["lat"].notna().any():
         return None

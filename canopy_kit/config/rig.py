@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from canopy_kit.core.frames import FrameTransform, from_quaternion, from_rpy, rpy_deg
 from canopy_kit.errors import ConfigError
-from canopy_kit.frames import FrameTransform, from_quaternion, from_rpy, rpy_deg
 
 RIG_KEYS = {"base_frame", "lidar_frame", "imu_frame", "gnss_frame", "imu_time_offset_s"}
 FRAME_KEYS = {"parent", "translation", "rpy_deg", "quaternion"}

@@ -17,11 +17,12 @@ from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from canopy_kit.io.atomic import atomic_path
-from canopy_kit.parallel import cpu_seconds
+from canopy_kit.core.atomic import atomic_path
+from canopy_kit.core.parallel import cpu_seconds
 
 T = TypeVar("T")
-CACHE_VERSION = 3  # 2: segmentations keep a LAS class per point; 3: and their canopy band
+CACHE_VERSION = 4  # 2: segmentations keep a LAS class per point; 3: and their canopy band;
+# 4: modules moved into packages (pickled classes name their module)
 
 
 def fingerprint(path: str | Path) -> dict[str, Any]:

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from canopy_kit.io.atomic import json_default
+from canopy_kit.core.atomic import json_default
 
 
 def _finite(value: Any) -> Any:

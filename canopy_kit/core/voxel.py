@@ -9,7 +9,7 @@ from typing import Literal
 
 import numpy as np
 
-from canopy_kit.cloud import PointCloud, column_max, column_min
+from canopy_kit.core.cloud import PointCloud, column_max, column_min
 from canopy_kit.errors import InputError
 
 
@@ -39,7 +39,7 @@ def first_minimum(groups: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Per group (non-negative ints), in ascending group order: the index of its smallest
     value, the first such index on ties (a group with a NaN value has none). One compiled
     pass, no sort of all points (a lexsort of a 4 M-point map took 2 s)."""
-    from canopy_kit.voxel_kernels import first_minimum_per_group
+    from canopy_kit.core.voxel_kernels import first_minimum_per_group
 
     if len(groups) == 0:
         return np.zeros(0, np.int64)
@@ -55,7 +55,7 @@ def voxel_representatives(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.
     Points equally near the centre are told apart by their coordinates (smallest x, y, z), so
     the choice does not depend on the order of the points.
     """
-    from canopy_kit.voxel_kernels import nearest_per_group
+    from canopy_kit.core.voxel_kernels import nearest_per_group
 
     if len(xyz) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)

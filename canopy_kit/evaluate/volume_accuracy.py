@@ -26,11 +26,11 @@ def segmented_session(
     """A simulated session's map (true poses unless ``reference_map`` is given, on map.laz's
     grid) segmented with ``config``'s segmenter as ``canopy-kit run`` does: the truth, the
     map, the segmentation and its score against the simulator's ``tree_id``."""
+    from canopy_kit.evaluate.segmentation_score import score_point_labels
+    from canopy_kit.evaluate.truth import load_truth
+    from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.segment.verb import make_segmenter, segment
-    from canopy_kit.segmentation_score import score_point_labels
-    from canopy_kit.truth import load_truth
-    from canopy_kit.truth_map import truth_map
 
     truth = load_truth(sim_dir)
     cloud = on_las_grid(
@@ -193,14 +193,14 @@ def one_alley_scans(
     sim_dir: str | Path, cloud: Any, labels: np.ndarray, row_of_segment: dict[int, int]
 ) -> list[tuple[str, Any, np.ndarray]]:
     """``(scan, map, labels)`` per row and side: the map of that alley's sweeps alone
-    (:func:`canopy_kit.truth_map.alley_maps`, true poses, on map.laz's grid) with the segment
+    (:func:`canopy_kit.evaluate.truth_map.alley_maps`, true poses, on map.laz's grid) with the segment
     labels of ``cloud`` carried to its points (the nearest point of ``cloud`` within 0.1 m),
     kept for the segments of that row (``row_of_segment``) only. ``scan`` is ``left`` or
     ``right`` of the row line."""
     from scipy.spatial import cKDTree
 
+    from canopy_kit.evaluate.truth_map import alley_maps
     from canopy_kit.io.las_write import on_las_grid
-    from canopy_kit.truth_map import alley_maps
 
     labels = np.asarray(labels)
     index = cKDTree(cloud.xyz)

@@ -23,8 +23,8 @@ from typing import Any
 
 import pandas as pd
 
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.errors import CanopyKitError, ConfigError, InputError
-from canopy_kit.extras import needs_extra
 
 Progress = Callable[[str, float, float], None]
 SESSION_KEYS = {
@@ -252,7 +252,7 @@ def _spec(path: Path, number: int, entry: dict[str, Any]) -> SessionSpec:
         return p if p.is_absolute() else (path.parent / p)
 
     if "rig" in entry:  # a shipped rig's name, or a rig file relative to the manifest
-        from canopy_kit.rig import rig_overrides, rig_preset_names
+        from canopy_kit.config.rig import rig_overrides, rig_preset_names
 
         rig = str(entry["rig"])
         overrides = merge(
@@ -295,11 +295,16 @@ def process_session(
 ) -> SessionOutcome:
     """Run one session's pipeline; bad input is returned as a failed outcome (not retried),
     naming the stage. ``token`` (one per batch) marks the session's trail on disk
-    (:mod:`canopy_kit.session_log`): a session whose worker crashed is not run again."""
+    (:mod:`canopy_kit.pipeline.session_log`): a session whose worker crashed is not run again."""
     import socket
 
     from canopy_kit.config import load_preset
-    from canopy_kit.session_log import SessionTrail, crash_message, own_worker_process, read_trail
+    from canopy_kit.pipeline.session_log import (
+        SessionTrail,
+        crash_message,
+        own_worker_process,
+        read_trail,
+    )
 
     out = session_folder(out_root, spec.session_id)
     wall = time.perf_counter()
@@ -373,7 +378,7 @@ def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | Non
             progress=progress,
             orchard=spec.orchard,
         )
-    from canopy_kit.provenance import provenance
+    from canopy_kit.results.provenance import provenance
 
     started, t0 = time.time(), time.perf_counter()
     ctx, cache = pipeline.compute(
@@ -387,8 +392,8 @@ def _run_one(spec: SessionSpec, config: Any, out: Path, progress: Progress | Non
 
 def _write_tables(ctx: Any, cache: Any, out: Path, prov: dict[str, Any] | None = None) -> Any:
     """The per-tree table, metrics and config only (a batch that needs no report)."""
-    from canopy_kit.io.atomic import atomic_write_text
-    from canopy_kit.outputs import Results, run_metrics, write_tree_tables
+    from canopy_kit.core.atomic import atomic_write_text
+    from canopy_kit.results.outputs import Results, run_metrics, write_tree_tables
 
     metrics = run_metrics(ctx, ctx.table)
     metrics["stage_timings"] = cache.timings
@@ -479,7 +484,7 @@ def run_batch(
         n_live,
         scheduler or "LocalCluster",
     )
-    from canopy_kit.io.atomic import atomic_write_text
+    from canopy_kit.core.atomic import atomic_write_text
 
     atomic_write_text(
         out / "batch.json", json.dumps(result.to_dict(), indent=2, default=str) + "\n"
@@ -525,7 +530,7 @@ def _collect(
     with needs_extra("batch"):
         from distributed import as_completed
 
-    from canopy_kit.session_log import crash_message, read_trail
+    from canopy_kit.pipeline.session_log import crash_message, read_trail
 
     token = f"{os.getpid()}-{time.time_ns()}"  # marks this batch's session trails
     futures = {

@@ -7,7 +7,7 @@ from typing import Any
 
 from canopy_kit.config import load_preset
 from canopy_kit.errors import InputError
-from canopy_kit.session_layout import drone_dir, find_bag, truth_dir
+from canopy_kit.io.session_layout import drone_dir, find_bag, truth_dir
 
 
 def session_paths(session: str | Path) -> dict[str, Path | None]:

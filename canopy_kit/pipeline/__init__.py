@@ -1,11 +1,11 @@
 """The whole chain for one field session: bag → map → trees → volumes → checks → report.
 
-The per-tree table is assembled in ``canopy_kit.tree_table``, metrics and the table's files
-written by ``canopy_kit.outputs`` (shared with batch and streaming runs); this module runs
+The per-tree table is assembled in ``canopy_kit.results.tree_table``, metrics and the table's files
+written by ``canopy_kit.results.outputs`` (shared with batch and streaming runs); this module runs
 the stages in order and writes the report.
 
 ``run(config, bag, out)`` is the public entry point; each stage is a small function below and
-its result is cached by a hash of its inputs and settings (``canopy_kit.cache``), so changing
+its result is cached by a hash of its inputs and settings (``canopy_kit.core.cache``), so changing
 a segmentation parameter re-runs segmentation and what follows, not the mapping.
 """
 
@@ -20,12 +20,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.cache import StageCache, fingerprint, stage_key
 from canopy_kit.config import PipelineConfig
+from canopy_kit.core.atomic import atomic_write_json, atomic_write_text
+from canopy_kit.core.cache import StageCache, fingerprint, stage_key
 from canopy_kit.errors import InputError
-from canopy_kit.io.atomic import atomic_write_json, atomic_write_text
-from canopy_kit.outputs import Results, run_metrics, write_tree_tables
-from canopy_kit.tree_table import tree_table
+from canopy_kit.results.outputs import Results, run_metrics, write_tree_tables
+from canopy_kit.results.tree_table import tree_table
 
 if TYPE_CHECKING:
     from canopy_kit.volume.surface import Surface
@@ -72,7 +72,7 @@ def run(
     be a Velodyne pcap, with ``gnss`` a :class:`canopy_kit.io.pcap_drive.GnssTrackOption`.
     """
     from canopy_kit.io.pcap_drive import drive_input
-    from canopy_kit.provenance import BagHash, provenance
+    from canopy_kit.results.provenance import BagHash, provenance
 
     out = Path(out)
     report = progress or (lambda *_: None)
@@ -161,7 +161,7 @@ def compute(
     ctx.row_profiles = row_profile_stage(ctx)
     ctx.table = tree_table(ctx)
     if truth is not None:
-        from canopy_kit.validation import evaluate_against_truth
+        from canopy_kit.evaluate.validation import evaluate_against_truth
 
         ctx.truth_dir = Path(truth)
         ctx.evaluation = evaluate_against_truth(ctx, ctx.table, ctx.truth_dir)
@@ -236,7 +236,7 @@ def volume_stage(ctx: RunContext, progress: Progress, surfaces: bool = True) -> 
     With ``surfaces`` the solids of the drawn estimators come with it, for the report."""
     from dataclasses import replace
 
-    from canopy_kit.cloud import PointCloud
+    from canopy_kit.core.cloud import PointCloud
     from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.volume.verb import measure_trees_and_surfaces
 

@@ -18,9 +18,9 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation, Slerp
 
-from canopy_kit.cloud import PointCloud
+from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.errors import InputError
-from canopy_kit.extras import needs_extra
 
 SEGMENT_LENGTHS = (25.0, 50.0, 100.0, 200.0)
 
@@ -190,7 +190,7 @@ def evaluate_against_simulation(
     truth_map_sample: bool = True,
 ) -> dict[str, Any]:
     """Trajectory and map errors of a :class:`MappingResult` on a simulated session."""
-    from canopy_kit.truth import load_truth
+    from canopy_kit.evaluate.truth import load_truth
 
     truth = load_truth(sim_dir)
     if reference is None:

@@ -252,7 +252,7 @@ def ceiling_check(segmentation: dict[str, Any], st: ChecksConfig) -> list[Check]
 
 def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     """Trees found, volumes flagged unreliable, crowns unlike the others of their row."""
-    from canopy_kit.tree_table import flagged
+    from canopy_kit.results.tree_table import flagged
 
     n = len(trees)
     out = [Check("trees segmented", n > 0, str(n), "fail < 1")]
@@ -385,8 +385,8 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
     +28 % to +85 %) a large MAPE is expected of an honest run, so that row is information
     beside the ellipsoid and warns at most without it.
     """
-    from canopy_kit import stats
-    from canopy_kit.tree_table import comparable_aerial_sphere
+    from canopy_kit.evaluate import stats
+    from canopy_kit.results.tree_table import comparable_aerial_sphere
 
     aerial = metrics.get("aerial")
     if not aerial:

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit import stats
 from canopy_kit.errors import InputError
+from canopy_kit.evaluate import stats
 
 # Points per m² of leaf surface in the complete foliage a run's measurand truth is measured
 # on: a quarter of the benchmarks' 4000, which fills the same 0.1 m voxels (on a 3 x 6 almond
@@ -33,8 +33,12 @@ def truth_offset(
 
 def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
     """Segmentation score: per-point truth labels when the map carries them, else footprints."""
-    from canopy_kit.segmentation_score import score_footprints, score_point_labels, truth_footprints
-    from canopy_kit.truth import load_truth
+    from canopy_kit.evaluate.segmentation_score import (
+        score_footprints,
+        score_point_labels,
+        truth_footprints,
+    )
+    from canopy_kit.evaluate.truth import load_truth
 
     truth = load_truth(sim_dir)
     seg, cloud = ctx.segmentation, ctx.mapping.map
@@ -55,7 +59,7 @@ def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
 
 def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict[str, Any]:
     """Scores of a run against simulator truth, and the tree table with truth columns added."""
-    from canopy_kit.truth import load_truth
+    from canopy_kit.evaluate.truth import load_truth
     from canopy_kit.volume.verb import volume_column, volume_methods
 
     truth = load_truth(sim_dir)
@@ -162,8 +166,8 @@ def _measurand_truth(truth: Any, trees: pd.DataFrame, volume: Any) -> pd.Series 
     """Per row of ``trees``: the recommended estimator on the matched tree's complete foliage
     (as the measurand its estimate took: a sparse crown's ellipsoid), NaN where unmatched;
     None when the world model knows no complete foliage."""
+    from canopy_kit.evaluate.volume_accuracy import foliage_references, reference_volume
     from canopy_kit.volume.uncertainty import measurand_of_kind
-    from canopy_kit.volume_accuracy import foliage_references, reference_volume
 
     rec = volume.recommended
     kinds = trees["crown_kind"] if "crown_kind" in trees else pd.Series("", index=trees.index)
@@ -185,7 +189,7 @@ def _measurand_truth(truth: Any, trees: pd.DataFrame, volume: Any) -> pd.Series 
 
 def _mapping_evaluation(ctx: Any, sim_dir: Path) -> dict[str, Any]:
     """ATE, drift and map-to-surface distances of the mapping result against the truth."""
-    from canopy_kit.mapping.trajectory_error import evaluate_against_simulation
+    from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
 
     if not hasattr(ctx.mapping, "config"):  # a map made from the true poses: nothing to score
         return {}

@@ -4,7 +4,7 @@ Built-in plugins are registered through the same entry points (in pyproject.toml
 third-party package uses, so installing a package is all it takes to add a segmenter.
 :func:`create` is the one factory for every registry: load, check the keyword parameters
 against the class signature, instantiate, ``validate_params()``; :func:`parameters`
-describes a plugin's parameters (``canopy_kit.params``).
+describes a plugin's parameters (``canopy_kit.plugins.params``).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
 from canopy_kit.errors import ConfigError, PluginError
-from canopy_kit.params import (
+from canopy_kit.plugins.params import (
     ParamInfo,
     check_types,
     init_parameters,
