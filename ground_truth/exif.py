@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from canopy_kit.core.extras import needs_extra
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
-from canopy_kit.extras import needs_extra
-from canopy_kit.geo import LocalFrame
 
 JPEG_SUFFIXES = (".jpg", ".jpeg")
 MIN_IMAGES = 3

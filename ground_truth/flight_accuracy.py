@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from canopy_kit.stats import agreement
+from canopy_kit.evaluate.stats import agreement
 from ground_truth.match import assign
 from ground_truth.sfm import SparseModel
 

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
-from canopy_kit.geo import LocalFrame
 
 POSITION_COLUMNS = (("crown_x", "crown_y"), ("x", "y"))
 

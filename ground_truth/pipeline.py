@@ -13,9 +13,9 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
+from canopy_kit.core.atomic import atomic_write_bytes, atomic_write_text
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import ConfigError, ProcessingError
-from canopy_kit.geo import LocalFrame
-from canopy_kit.io.atomic import atomic_write_bytes, atomic_write_text
 from ground_truth.camera import PosedCamera
 from ground_truth.crowns import (
     CrownOptions,

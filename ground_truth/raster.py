@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from canopy_kit.core.atomic import atomic_write_bytes
+from canopy_kit.core.extras import needs_extra
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
-from canopy_kit.extras import needs_extra
-from canopy_kit.geo import LocalFrame
-from canopy_kit.io.atomic import atomic_write_bytes
 
 
 @dataclass(frozen=True)

@@ -23,9 +23,9 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
+from canopy_kit.core.extras import needs_extra
+from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import ProcessingError
-from canopy_kit.extras import needs_extra
-from canopy_kit.geo import LocalFrame
 from ground_truth.camera import PosedCamera
 from ground_truth.exif import Flight
 
