@@ -1,4 +1,4 @@
-"""``canopy-kit run``: the whole pipeline on one bag."""
+"""``canopy-kit run``: the whole pipeline on one bag, or on a map made elsewhere."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ CHECKS_FAILED_EXIT = 4  # run --strict: every output written, but a check failed
 
 
 def run(
-    bag: Path = typer.Argument(..., help="ROS1 .bag file or ROS2 bag folder"),
+    bag: Path = typer.Argument(
+        ..., help="ROS1 .bag file, ROS2 bag folder, or a finished map (LAS/LAZ/PCD/PLY)"
+    ),
     out: Path = typer.Option(..., "--out", help="Output folder"),
     preset: str = typer.Option("adaptive", help=preset_help()),
     drone_images: Path = typer.Option(
@@ -43,6 +45,15 @@ def run(
         "--export-trees",
         help="Also write each tree's points as trees/<tree_id>.laz (for canopy-kit volume)",
     ),
+    trajectory: Path = typer.Option(
+        None,
+        "--trajectory",
+        help="Map file only: the drive, CSV t,x,y[,z] or x,y, or TUM "
+        "'t x y z qx qy qz qw' lines, in the map's coordinates",
+    ),
+    crs: str = typer.Option(
+        None, "--crs", help="Map file only: its CRS (EPSG code) when the file names none"
+    ),
     strict: bool = typer.Option(
         False,
         "--strict",
@@ -58,6 +69,7 @@ def run(
     from canopy_kit.cli.common import output_folder, parse_overrides, progress_bar
     from canopy_kit.config import load_preset, merge
     from canopy_kit.errors import InputError
+    from canopy_kit.map_source import MapFile, run_input
     from canopy_kit.pipeline import run as run_pipeline
     from canopy_kit.rig import extrinsics_mode, rig_overrides
 
@@ -66,6 +78,9 @@ def run(
             "--strict: a --stream run has no checks to hold it to; run without "
             "--stream for the checks and the report"
         )
+    source = run_input(bag, trajectory, crs)  # a map file skips the mapping (map_source)
+    if stream and isinstance(source, MapFile):
+        raise InputError(f"--stream: {bag} is a finished map, not a drive; run without --stream")
     if stream and export_trees:  # a streamed run keeps no map to cut the trees from
         raise InputError("--export-trees: a --stream run keeps no map; run without --stream")
     overrides = merge(
@@ -81,7 +96,7 @@ def run(
     with output_folder(out), progress_bar(transient=True) as progress:
         results = run_pipeline(
             config,
-            bag,
+            source,
             out,
             drone_images=drone_images,
             truth=truth,
