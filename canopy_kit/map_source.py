@@ -256,8 +256,8 @@ def read_trajectory(path: str | Path, origin: np.ndarray) -> pd.DataFrame:
     table = _tum(path, lines) if _looks_tum(lines[0]) else _csv(path, text)
     if len(table) < 2:
         raise InputError(f"{path}: trajectory needs at least 2 poses, found {len(table)}")
-    values = table.to_numpy(float)
-    if not np.isfinite(values).all():
+    known = [c for c in table.columns if c != "z" or table[c].notna().any()]  # z: optional
+    if not np.isfinite(table[known].to_numpy(float)).all():
         raise InputError(f"{path}: trajectory holds non-finite values")
     table = table.copy()
     for k, c in enumerate("xyz"):
