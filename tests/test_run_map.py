@@ -5,6 +5,7 @@ as PCD without, a real forest plot, and the mistakes a user makes with map files
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -134,6 +135,18 @@ def test_pcd_map_without_crs_keeps_local_xy_warns_and_judges_a_tum_trajectory(
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["mapping"]["trajectory_file"] == "poses_tum.txt"
     assert metrics["mapping"]["path_length_m"] > 10
+    # The cache keys on the map file: unchanged, every stage is reused; touched, it is read anew.
+    from canopy_kit.config import load_preset
+    from canopy_kit.map_source import MapFile
+    from canopy_kit.pipeline import compute
+
+    source = MapFile(finished["pcd"], finished["tum"])
+    _, cache = compute(load_preset("adaptive"), source, out)
+    assert {"map", "segment", "volumes"} <= set(cache.hits)
+    stat = finished["pcd"].stat()
+    os.utime(finished["pcd"], ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000_000))
+    _, cache = compute(load_preset("adaptive"), source, out)
+    assert "map" in cache.misses
     assert any("not georeferenced" in w for w in metrics["warnings"])
 
 
