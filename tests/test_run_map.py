@@ -291,3 +291,37 @@ def test_a_tum_trajectory_is_judged_against_the_truth_and_none_is_not_judged(fin
     assert evaluate_finished_map(bare, finished["root"]) == {
         "not_judged": "not judged: no trajectory"
     }
+
+
+def test_a_pcd_in_utm_with_crs_flag_keeps_a_local_origin_and_gives_lat_lon(tmp_path):
+    """FAST-LIO-style map saved in absolute UTM coordinates (PCD has no CRS field) and a
+    trajectory CSV in the same coordinates: ``--crs`` georeferences it, float64 coordinates
+    stay local (round origin), and the trees' lat/lon are the known crown centres' (pyproj)."""
+    from fixtures_sim import synthetic_orchard
+    from pyproj import Transformer
+
+    from canopy_kit.config import load_preset
+    from canopy_kit.map_source import MapFile
+    from canopy_kit.pipeline import compute
+
+    orchard = synthetic_orchard(density=150)
+    utm = orchard.cloud.absolute_xyz
+    pcd = write_cloud(tmp_path / "fastlio_map.pcd", PointCloud(utm))  # no origin, no CRS
+    drive = orchard.centres[:4] + orchard.cloud.origin[:2] + np.array([3.0, 0.0])  # beside row 0
+    traj = tmp_path / "drive.csv"
+    pd.DataFrame({"t": np.arange(4.0), "x": drive[:, 0], "y": drive[:, 1]}).to_csv(
+        traj, index=False, float_format="%.3f"
+    )
+    ctx, _ = compute(
+        load_preset("adaptive"), MapFile(pcd, traj, "32610"), tmp_path / "out", use_cache=False
+    )
+    assert ctx.mapping.map.crs == "EPSG:32610"
+    assert np.all(np.abs(ctx.mapping.map.xyz[:, :2]) < 10_000)  # local, not raw UTM
+    assert np.abs(ctx.mapping.trajectory["x"]).max() < 10_000
+    trees = ctx.table
+    assert len(trees) == len(orchard.centres)
+    to_utm = Transformer.from_crs("EPSG:4326", "EPSG:32610", always_xy=True)
+    e, n = to_utm.transform(trees["lon"].to_numpy(), trees["lat"].to_numpy())
+    true_xy = orchard.centres + orchard.cloud.origin[:2]
+    d = np.linalg.norm(np.column_stack([e, n])[:, None] - true_xy[None], axis=2)
+    assert len(set(d.argmin(axis=1))) == len(true_xy) and d.min(axis=1).max() < 0.3
