@@ -28,6 +28,8 @@ GROUND_CELL_M = 2.0
 # A trajectory farther than this from the map's footprint is not in the map's frame.
 TRAJECTORY_REACH_M = 100.0
 NO_TRAJECTORY = "not judged: no trajectory"
+# A trajectory CSV without a header: its columns by their count.
+HEADLESS_CSV = {2: ["x", "y"], 3: ["time", "x", "y"], 4: ["time", "x", "y", "z"]}
 
 
 def is_map_file(path: str | Path) -> bool:
@@ -303,6 +305,9 @@ def _csv(path: Path, text: str) -> pd.DataFrame:
     except (ValueError, pd.errors.ParserError) as exc:
         raise InputError(f"{path}: trajectory CSV cannot be parsed ({exc})") from None
     table.columns = [str(c).strip().lower() for c in table.columns]
+    headless = HEADLESS_CSV.get(len(table.columns))
+    if headless and all(_is_number(c) for c in table.columns):  # no header: by column count
+        table = pd.read_csv(io.StringIO(text), comment="#", header=None, names=headless)
     table = table.rename(columns={"t": "time", "timestamp": "time", "stamp": "time"})
     if not {"x", "y"} <= set(table.columns):
         raise InputError(
@@ -322,6 +327,14 @@ def _csv(path: Path, text: str) -> pd.DataFrame:
     if "z" not in numeric:
         numeric["z"] = np.nan
     return numeric
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def check_trajectory_on_map(path: Path, trajectory: pd.DataFrame, cloud: PointCloud) -> None:

@@ -270,6 +270,13 @@ def test_a_trajectory_csv_in_the_map_files_coordinates_is_moved_with_the_map(tmp
     traj = read_trajectory(path, np.array([700000.0, 4100000.0, 50.0]))
     assert traj[["x", "y"]].to_numpy().tolist() == [[10.5, 20.25], [11.5, 21.25]]
     assert traj["z"].isna().all() and traj["time"].tolist() == [0.0, 1.0]
+    headless = tmp_path / "headless.csv"  # t, x, y, z without a header
+    headless.write_text("0,700010.5,4100020.25,51\n1,700011.5,4100021.25,52\n")
+    traj = read_trajectory(headless, np.array([700000.0, 4100000.0, 50.0]))
+    assert traj[["time", "x", "y", "z"]].to_numpy().tolist() == [
+        [0.0, 10.5, 20.25, 1.0],
+        [1.0, 11.5, 21.25, 2.0],
+    ]
 
 
 def _read(path: Path) -> PointCloud:
