@@ -117,7 +117,7 @@ def load_finished_map(
     report = progress or (lambda *_: None)
     report("map file", 0, 1)
     path = Path(source.path)
-    cloud = _read_map(path)
+    cloud, dropped = _read_map(path)
     crs = resolve_crs(path, cloud.crs, source.crs)
     check_points_above_ground(path, cloud)
     cloud.crs = crs
@@ -127,10 +127,13 @@ def load_finished_map(
         trajectory = read_trajectory(source.trajectory, cloud.origin)
         check_trajectory_on_map(source.trajectory, trajectory, cloud)
     warnings = []
+    if dropped:
+        warnings.append(f"{path}: {dropped} points with non-finite coordinates left out")
     if crs is None:
+        hint = "; its coordinates look projected: give --crs EPSG" if cloud.origin.any() else ""
         warnings.append(
             f"{path}: no CRS in the file and no --crs: the map is not georeferenced "
-            "(trees keep the map's local x/y, no latitude/longitude)"
+            f"(trees keep the map's local x/y, no latitude/longitude){hint}"
         )
     steps = np.linalg.norm(np.diff(trajectory[["x", "y"]].to_numpy(float), axis=0), axis=1)
     diagnostics = {
@@ -145,7 +148,8 @@ def load_finished_map(
     return FinishedMap(cloud, trajectory, frame, diagnostics, warnings, path.name)
 
 
-def _read_map(path: Path) -> PointCloud:
+def _read_map(path: Path) -> tuple[PointCloud, int]:
+    """The map file's points with finite coordinates, and how many were not."""
     from canopy_kit.errors import foreign_message
     from canopy_kit.io.clouds import read_cloud
 
@@ -163,7 +167,7 @@ def _read_map(path: Path) -> PointCloud:
         cloud = cloud.select(finite)
         if len(cloud) == 0:
             raise InputError(f"{path}: map file holds no finite points")
-    return cloud
+    return cloud, int((~finite).sum())
 
 
 def resolve_crs(path: Path, file_crs: str | None, given: str | None) -> str | None:

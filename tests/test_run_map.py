@@ -332,3 +332,8 @@ def test_a_pcd_in_utm_with_crs_flag_keeps_a_local_origin_and_gives_lat_lon(tmp_p
     true_xy = orchard.centres + orchard.cloud.origin[:2]
     d = np.linalg.norm(np.column_stack([e, n])[:, None] - true_xy[None], axis=2)
     assert len(set(d.argmin(axis=1))) == len(true_xy) and d.min(axis=1).max() < 0.3
+    # Without --crs the same file still runs, and the warning says what to give.
+    from canopy_kit.map_source import load_finished_map
+
+    bare = load_finished_map(MapFile(pcd))
+    assert bare.frame is None and any("give --crs EPSG" in w for w in bare.warnings)
