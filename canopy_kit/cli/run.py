@@ -1,4 +1,4 @@
-"""``canopy-kit run``: the whole pipeline on one bag."""
+"""``canopy-kit run``: the whole pipeline on one bag, or on a map made elsewhere."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ CHECKS_FAILED_EXIT = 4  # run --strict: every output written, but a check failed
 
 def run(
     bag: Path = typer.Argument(
-        ..., help="ROS1 .bag file, ROS2 bag folder or Velodyne VLP-16 .pcap capture"
+        ...,
+        help="ROS1 .bag file, ROS2 bag folder, Velodyne VLP-16 .pcap capture, or a finished "
+        "map (LAS/LAZ/PCD/PLY)",
     ),
     out: Path = typer.Option(..., "--out", help="Output folder"),
     preset: str = typer.Option("adaptive", help=preset_help()),
@@ -54,6 +56,15 @@ def run(
     gnss_time: str = typer.Option(
         "utc", "--gnss-time", help="Time scale of the track's times of day: utc or gps"
     ),
+    trajectory: Path = typer.Option(
+        None,
+        "--trajectory",
+        help="Map file only: the drive, CSV t,x,y[,z] or x,y, or TUM "
+        "'t x y z qx qy qz qw' lines, in the map's coordinates",
+    ),
+    crs: str = typer.Option(
+        None, "--crs", help="Map file only: its CRS (EPSG code) when the file names none"
+    ),
     strict: bool = typer.Option(
         False,
         "--strict",
@@ -63,6 +74,9 @@ def run(
 ) -> None:
     """Map, segment, measure and (optionally) validate one field session; write the report.
 
+    BAG may also be a finished map (LAS/LAZ/PCD/PLY): mapping is skipped
+    (docs/DATASETS_maps.md).
+
     Exit codes: 0 done (also when checks failed, unless --strict), 2 bad input, 3 processing
     failed, 4 with --strict: done, but a check failed (docs/RELIABILITY.md).
     """
@@ -71,6 +85,7 @@ def run(
     from canopy_kit.config.rig import extrinsics_mode, rig_overrides
     from canopy_kit.errors import InputError
     from canopy_kit.io.pcap_drive import GnssTrackOption
+    from canopy_kit.mapping.map_source import MapFile, run_input
     from canopy_kit.pipeline import run as run_pipeline
 
     if stream and strict:  # a streamed run has no checks: --strict would pass it unchecked
@@ -78,6 +93,9 @@ def run(
             "--strict: a --stream run has no checks to hold it to; run without "
             "--stream for the checks and the report"
         )
+    source = run_input(bag, trajectory, crs)  # a map file skips the mapping (map_source)
+    if stream and isinstance(source, MapFile):
+        raise InputError(f"--stream: {bag} is a finished map, not a drive; run without --stream")
     if stream and export_trees:  # a streamed run keeps no map to cut the trees from
         raise InputError("--export-trees: a --stream run keeps no map; run without --stream")
     overrides = merge(
@@ -97,7 +115,7 @@ def run(
     with output_folder(out), progress_bar(transient=True) as progress:
         results = run_pipeline(
             config,
-            bag,
+            source,
             out,
             drone_images=drone_images,
             truth=truth,

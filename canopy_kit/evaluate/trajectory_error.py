@@ -240,3 +240,24 @@ def reference_from_bag(bag_path: str | Path, topic: str | None = None) -> pd.Dat
     )
     table.attrs["frame"] = odo.child_frame_id  # the frame whose poses these are
     return table
+
+
+NO_TRAJECTORY = "not judged: no trajectory"
+POSE_COLUMNS = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")  # a trajectory with poses
+
+
+def finished_map_errors(mapping: Any, sim_dir: Path) -> dict[str, Any]:
+    """What a truth session can say of a map made elsewhere: its trajectory's ATE when it has
+    times and orientations; else why the mapping is not judged."""
+    if not mapping.has_trajectory:
+        return {"not_judged": NO_TRAJECTORY}
+    if not set(POSE_COLUMNS) <= set(mapping.trajectory.columns):
+        return {"not_judged": "not judged: the trajectory has no times and orientations"}
+    from canopy_kit.evaluate.truth import load_truth
+
+    reference = load_truth(sim_dir).trajectory
+    t = reference["time"].to_numpy()
+    inside = mapping.trajectory["time"].between(t[0], t[-1])
+    if inside.sum() < 10:  # trajectory_errors' own minimum
+        return {"not_judged": "not judged: the trajectory's times are outside the truth's"}
+    return trajectory_errors(mapping.trajectory[inside].reset_index(drop=True), reference)

@@ -191,6 +191,10 @@ def _mapping_evaluation(ctx: Any, sim_dir: Path) -> dict[str, Any]:
     """ATE, drift and map-to-surface distances of the mapping result against the truth."""
     from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
 
+    if getattr(ctx.mapping, "made_elsewhere", False):  # a finished map: its trajectory, if any
+        from canopy_kit.evaluate.trajectory_error import finished_map_errors
+
+        return finished_map_errors(ctx.mapping, sim_dir)
     if not hasattr(ctx.mapping, "config"):  # a map made from the true poses: nothing to score
         return {}
     return evaluate_against_simulation(ctx.mapping, sim_dir)

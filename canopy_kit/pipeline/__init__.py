@@ -72,15 +72,18 @@ def run(
     be a Velodyne pcap, with ``gnss`` a :class:`canopy_kit.io.pcap_drive.GnssTrackOption`.
     """
     from canopy_kit.io.pcap_drive import drive_input
+    from canopy_kit.mapping.map_source import MapFile, input_path
     from canopy_kit.results.provenance import BagHash, provenance
 
     out = Path(out)
     report = progress or (lambda *_: None)
     started, t0 = time.time(), time.perf_counter()
-    source = Path(bag)
-    bag, imported = drive_input(source, out / ".cache", gnss)  # a pcap becomes a bag
+    path = source = input_path(bag)  # the bag, the pcap, or the file of a map made elsewhere
+    imported: dict[str, Any] = {}
+    if not isinstance(bag, MapFile):
+        bag, imported = drive_input(source, out / ".cache", gnss)  # a pcap becomes a bag
     # Hashed once the map is made: the mapping keeps both cores busy, segmentation one.
-    bag_hash = BagHash(source, start=False)
+    bag_hash = BagHash(path, start=False)
     try:
         ctx, cache = compute(
             config, bag, out, drone_images, truth, use_cache, report, on_mapped=bag_hash.start
@@ -92,7 +95,13 @@ def run(
     metrics["stage_timings"] = cache.timings
     metrics["cached_stages"] = list(cache.hits)
     metrics["provenance"] = provenance(
-        bag, config.name, started, time.perf_counter() - t0, orchard, drone_images, bag_hash
+        bag if imported else path,  # an imported pcap's bag holds its session date
+        config.name,
+        started,
+        time.perf_counter() - t0,
+        orchard,
+        drone_images,
+        bag_hash,
     )
     if imported:
         metrics["provenance"] |= {"bag": source.name, "orchard": orchard or source.stem}
@@ -125,8 +134,11 @@ def compute(
     Notebooks call this to explore a run; :func:`run` adds the output files.
     """
     from canopy_kit.io.bag import require_bag
+    from canopy_kit.mapping.map_source import as_map_file, load_finished_map
 
-    bag, out = require_bag(bag), Path(out)
+    out = Path(out)
+    finished = as_map_file(bag)  # a map made elsewhere (LAS/LAZ/PCD/PLY): no mapping stage
+    bag = finished.path if finished is not None else require_bag(bag)
     if drone_images is not None and not Path(drone_images).is_dir():
         raise InputError(f"{drone_images}: drone image folder does not exist")
     if truth is not None and not Path(truth).is_dir():
@@ -140,8 +152,14 @@ def compute(
     cache = StageCache(out / ".cache", enabled=use_cache)
     report = progress or (lambda *_: None)
     ctx = RunContext(config, estimators=estimators)
-    map_key = stage_key("map", fingerprint(bag), config.mapping)
-    ctx.mapping = cache.get_or_compute("map", map_key, lambda: map_stage(bag, config, report))
+    if finished is not None:
+        map_key = stage_key("map file", finished.fingerprint())
+        ctx.mapping = cache.get_or_compute(
+            "map", map_key, lambda: load_finished_map(finished, report)
+        )
+    else:
+        map_key = stage_key("map", fingerprint(bag), config.mapping)
+        ctx.mapping = cache.get_or_compute("map", map_key, lambda: map_stage(bag, config, report))
     if on_mapped is not None:
         on_mapped()
     seg_key = stage_key(

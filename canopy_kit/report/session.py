@@ -63,10 +63,11 @@ def session_report_page(
     map_fig = plot_top_view(cloud, seg)
     map_fig.axes[0].plot(traj["x"], traj["y"], "-", color="0.4", lw=0.7)
     add_north_arrow_and_scale(map_fig.axes[0])
+    drive = "grey: the estimated drive." if len(traj) else "no drive known (map made elsewhere)."
     figs = [
         (
             "Map from above, each segmented tree in its own colour, labelled with its tree ID; "
-            "dashed: fitted rows; grey: the estimated drive.",
+            f"dashed: fitted rows; {drive}",
             figure_to_data_uri(map_fig),
         )
     ]
@@ -99,7 +100,11 @@ def session_report_page(
         accuracy_section(volume_cfg.recommended, volume_cfg.params.get(volume_cfg.recommended, {}))
     )
     mapping_eval = metrics.get("evaluation", {}).get("mapping")
-    if mapping_eval and ctx.truth_dir is not None:
+    if getattr(ctx.mapping, "made_elsewhere", False):
+        from canopy_kit.report.finished_map import finished_map_section
+
+        sections.append(finished_map_section(ctx.mapping, mapping_eval))
+    elif mapping_eval and ctx.truth_dir is not None:
         from canopy_kit.evaluate.truth import load_truth
         from canopy_kit.mapping.plots import mapping_figures
 

@@ -305,6 +305,18 @@ def map_checks(mapping: dict[str, Any], st: ChecksConfig) -> list[Check]:
     """Map quality from the mapping diagnostics: ICP registrations rejected, GNSS fixes
     rejected and the GNSS bias the pose graph had to absorb, the quality flags."""
     out = []
+    if mapping.get("source") == "map file":  # made elsewhere: no registration or GNSS to judge
+        trajectory = mapping.get("trajectory_file")
+        out.append(
+            Check(
+                "map made elsewhere (registration, GNSS, drive)",
+                None,
+                "not judged",
+                "",
+                f"map file {mapping.get('map_file', '')}; "
+                + (f"trajectory {trajectory}" if trajectory else "not judged: no trajectory"),
+            )
+        )
     registered = mapping.get("sweeps_registered")
     if registered:
         rejected = int(mapping.get("registrations_rejected", 0))
@@ -484,6 +496,16 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
     """Mapping, segmentation and volumes against a simulated session's truth."""
     out = []
     mapping = evaluation.get("mapping", {})
+    if "not_judged" in mapping:  # a map made elsewhere (canopy_kit.mapping.map_source)
+        out.append(
+            Check(
+                "trajectory ATE RMSE (vs true odometry)",
+                None,
+                "not judged",
+                "",
+                mapping["not_judged"],
+            )
+        )
     if "ate_rmse_m" in mapping:
         out.append(
             Check(

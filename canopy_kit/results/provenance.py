@@ -87,9 +87,12 @@ def utc_iso(seconds: float) -> str:
 
 
 def session_date(bag: str | Path) -> str:
-    """The time of the bag's first message, ISO 8601 UTC."""
+    """The time of the bag's first message, ISO 8601 UTC ("" for a map file: not known)."""
     from canopy_kit.io.bag import open_bag
+    from canopy_kit.mapping.map_source import is_map_file
 
+    if is_map_file(bag):
+        return ""
     with open_bag(bag) as session:
         return utc_iso(session.start_time)
 
