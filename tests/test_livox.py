@@ -1,0 +1,206 @@
+"""Livox LiDARs: the drivers' CustomMsg and driver2 PointCloud2 layout read, their IMU in g
+converted, and a simulated Mid-360 mapped and segmented against the simulator's truth.
+
+Truth comes from outside the reader: hand-built messages whose coordinates and times are
+computed here with integers, rosbags' own (de)serialiser of the drivers' message
+definitions, the livox_ros_driver2 source's PointCloud2 layout (offsets 0-18, 26 bytes a
+point) and the simulator's trees and trajectory.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from canopy_kit.errors import InputError
+from canopy_kit.io.bag import open_bag
+from canopy_kit.io.bag_writer import BagWriter
+from canopy_kit.io.livox import CUSTOM_MSG, CUSTOM_MSG_V1, POINT_RECORD
+from canopy_kit.mapping.sensors import ImuBuffer, resolve_topics, sensor_messages
+
+TOPIC = "/livox/lidar"
+TIMEBASE = 1_700_000_123_456_789_012  # ns
+
+
+def read_scans(path: Path) -> list:
+    """The scans the mapping reads (topic resolution, then ``decode_scan``)."""
+    with open_bag(path) as bag:
+        return list(sensor_messages(bag, resolve_topics(bag)))
+
+
+def hand_points(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    p = np.zeros(n, POINT_RECORD)
+    p["offset_time"] = np.sort(rng.integers(0, 100_000_000, n))  # a 0.1 s frame
+    p["x"], p["y"], p["z"] = (rng.uniform(-30, 30, (3, n))).astype(np.float32)
+    p["reflectivity"] = rng.integers(0, 256, n)
+    p["tag"] = rng.choice([0, 16, 32], n)
+    p["line"] = np.arange(n) % 4
+    return p
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2-mcap", "ros2-sqlite3"])
+@pytest.mark.parametrize("msgtype", [CUSTOM_MSG, CUSTOM_MSG_V1])
+def test_custom_msg_decodes_to_exact_coordinates_and_times(
+    tmp_path: Path, fmt: str, msgtype: str
+) -> None:
+    frames = [hand_points(n, seed) for seed, n in enumerate((5, 1, 0, 300))]
+    bases = [TIMEBASE + k * 100_000_000 for k in range(len(frames))]
+    with BagWriter(tmp_path / "b", fmt) as w:
+        for base, pts in zip(bases, frames):
+            w.write_livox_custom(TOPIC, base, pts, "livox_frame", msgtype)
+    scans = read_scans(w.path)
+    assert [s.index for s in scans] == [0, 1, 2, 3]
+    for scan, base, pts in zip(scans, bases, frames):
+        assert scan.frame_id == "livox_frame"
+        assert scan.stamp == pytest.approx(base * 1e-9, abs=1e-6)
+        xyz = np.column_stack([pts["x"], pts["y"], pts["z"]]).astype(np.float64)
+        assert np.array_equal(scan.xyz, xyz)  # float32 values carried exactly
+        # times: timebase + offset_time in integer ns, compared at float64's resolution
+        expected = np.array([(base + int(o)) / 1e9 for o in pts["offset_time"]])
+        assert scan.times is not None and np.all(np.abs(scan.times - expected) < 5e-7)
+        assert np.array_equal(scan.fields["line"], pts["line"])
+        assert np.array_equal(scan.fields["tag"], pts["tag"])
+        assert np.array_equal(scan.fields["intensity"], pts["reflectivity"].astype(np.float32))
+        assert "ring" not in scan.fields
+
+
+def test_custom_msg_topic_is_found_and_described(tmp_path: Path) -> None:
+    from canopy_kit.io.info import describe_path
+
+    with BagWriter(tmp_path / "b.bag", "ros1") as w:
+        w.write_livox_custom(TOPIC, TIMEBASE, hand_points(10, 0))
+    facts = describe_path(w.path)
+    assert facts["lidar_topic"] == TOPIC
+    assert facts["topics"] == [{"name": TOPIC, "type": CUSTOM_MSG, "count": 1, "role": "lidar"}]
+
+
+def test_rosbags_deserialised_custom_msg_decodes_alike(tmp_path: Path) -> None:
+    """The fallback (rosbags' objects, one per point) and the numpy view give one scan."""
+    from canopy_kit.io.livox import scan_fields
+
+    pts = hand_points(50, 3)
+    with BagWriter(tmp_path / "b", "ros2-mcap") as w:
+        w.write_livox_custom(TOPIC, TIMEBASE, pts)
+    with open_bag(w.path) as bag:
+        conn = next(c for c in bag.reader.connections if c.topic == TOPIC)
+        _, _, raw = next(iter(bag.reader.messages(connections=[conn])))
+        fast = scan_fields(bag.reader.deserialize(raw, CUSTOM_MSG), "x")
+        objects = bag.reader.typestore.deserialize_cdr(raw, CUSTOM_MSG)
+    # rosbags gives one object per point: the comparison is not numpy against itself
+    assert not isinstance(objects.points, np.ndarray)
+    slow = scan_fields(objects, "x")
+    assert fast[0] == slow[0]
+    assert np.array_equal(fast[1], slow[1]) and np.array_equal(fast[3], slow[3])
+    for key in fast[2]:
+        assert np.array_equal(fast[2][key], slow[2][key])
+
+
+@pytest.mark.parametrize("clock_start", [1_700_000_000.0, 100.0])
+def test_driver2_pointcloud2_layout_reads_exactly(tmp_path: Path, clock_start: float) -> None:
+    """livox_ros_driver2's PointCloud2 (PointXYZRTLT): 26-byte points, float64 ``timestamp``
+    in absolute ns, also on a bag clock started near zero (1e11 ns, not 1e11 s)."""
+    n = 40
+    pts = hand_points(n, 7)
+    base_ns = int(round(clock_start * 1e9))
+    ts_ns = (base_ns + pts["offset_time"].astype(np.int64)).astype(np.float64)
+    columns = {
+        "x": pts["x"],
+        "y": pts["y"],
+        "z": pts["z"],
+        "intensity": pts["reflectivity"].astype(np.float32),
+        "tag": pts["tag"],
+        "line": pts["line"],
+        "timestamp": ts_ns,
+    }
+    with BagWriter(tmp_path / "b", "ros2-mcap") as w:
+        w.write_points(TOPIC, clock_start, columns, "livox_frame")
+    with open_bag(w.path) as bag:
+        conn = next(c for c in bag.reader.connections if c.topic == TOPIC)
+        _, _, raw = next(iter(bag.reader.messages(connections=[conn])))
+        msg = bag.reader.deserialize(raw, conn.msgtype)
+    # the driver's layout (lddc.cpp InitPointcloud2MsgHeader)
+    assert msg.point_step == 26
+    assert [(f.name, f.offset, f.datatype) for f in msg.fields] == [
+        ("x", 0, 7),
+        ("y", 4, 7),
+        ("z", 8, 7),
+        ("intensity", 12, 7),
+        ("tag", 16, 2),
+        ("line", 17, 2),
+        ("timestamp", 18, 8),
+    ]
+    (scan,) = read_scans(w.path)
+    assert np.array_equal(scan.xyz[:, 0], pts["x"].astype(np.float64))
+    assert np.array_equal(scan.xyz[:, 2], pts["z"].astype(np.float64))
+    expected = np.array([(base_ns + int(o)) / 1e9 for o in pts["offset_time"]])
+    assert np.abs(scan.times - expected).max() < 5e-7
+    assert np.array_equal(scan.fields["line"], pts["line"])
+
+
+def test_point_num_disagreeing_with_the_points_stops_the_run(tmp_path: Path) -> None:
+    from test_cli_foundation import run_cli
+
+    with BagWriter(tmp_path / "b.bag", "ros1") as w:
+        for k in range(3):
+            base = TIMEBASE + k * 100_000_000
+            w.write_livox_custom(TOPIC, base, hand_points(20, k), point_num=25 if k == 1 else None)
+    bad_t = (TIMEBASE + 100_000_000) * 1e-9
+    with pytest.raises(InputError, match=rf"topic '{TOPIC}'.*t={bad_t:.3f} s.*point_num says 25"):
+        read_scans(w.path)
+    cli = run_cli("map", str(w.path), "--out", str(tmp_path / "m"))
+    assert cli.returncode == 2, cli.stderr
+    assert TOPIC in cli.stderr and "point_num" in cli.stderr
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_cut_custom_msg_is_an_input_error(tmp_path: Path) -> None:
+    from canopy_kit.io.livox import parse_custom_msg, serialize_custom_msg
+
+    raw = serialize_custom_msg(TIMEBASE, hand_points(30, 1), "livox_frame", ros2=True)
+    from canopy_kit.errors import MessageError
+
+    with pytest.raises(MessageError, match="end before the message does"):
+        parse_custom_msg(raw[:-40], ros2=True)
+
+
+# -- IMU in g ---------------------------------------------------------------------------------
+def _imu_buffer(accel: np.ndarray) -> ImuBuffer:
+    buf = ImuBuffer(source="bag: topic '/livox/imu'")
+    for k, a in enumerate(accel):
+        buf.append(k * 0.005, (0.0, 0.0, 0.0), tuple(a))
+    return buf
+
+
+def test_imu_in_g_is_converted_with_a_warning_naming_the_topic() -> None:
+    rng = np.random.default_rng(0)
+    g_units = np.array([0.02, -0.01, 1.0]) + rng.normal(0, 0.01, (400, 3))
+    buf = _imu_buffer(g_units)
+    series = buf.series()
+    assert np.allclose(series.linear_acceleration, g_units * 9.80665)
+    assert len(buf.warnings) == 1 and "'/livox/imu'" in buf.warnings[0] and " g" in buf.warnings[0]
+    assert np.allclose(buf.series(100).linear_acceleration, g_units[100:] * 9.80665)  # slices too
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 90.0, 180.0])
+def test_a_normal_imu_is_left_alone(tilt_deg: float) -> None:
+    """m/s² at rest in any orientation, and a drive that brakes and turns hard, stay as they are."""
+    rng = np.random.default_rng(1)
+    t = np.radians(tilt_deg)
+    gravity = 9.81 * np.array([np.sin(t), 0.0, np.cos(t)])
+    accel = gravity + rng.normal(0, 2.0, (400, 3))  # ±2 m/s² of vehicle motion
+    buf = _imu_buffer(accel)
+    assert np.array_equal(buf.series().linear_acceleration, accel)
+    assert buf.warnings == []
+
+
+def test_bag_imu_in_g_is_converted(tmp_path: Path) -> None:
+    with BagWriter(tmp_path / "b", "ros2-mcap") as w:
+        for k in range(50):
+            w.write_imu("/livox/imu", 1_700_000_000 + k * 0.005, (0, 0, 0), (0.0, 0.0, 1.0))
+    with open_bag(w.path) as bag:
+        imu = bag.imu()
+        assert np.allclose(imu.linear_acceleration, [0.0, 0.0, 9.80665])
+        assert any("'/livox/imu'" in x and "in g" in x for x in bag.warnings)
