@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from canopy_kit.errors import InputError
-from canopy_kit.io.bag import open_bag
+from canopy_kit.io.bag import POINTCLOUD2, open_bag
 from canopy_kit.io.bag_writer import BagWriter
 from canopy_kit.io.livox import CUSTOM_MSG, CUSTOM_MSG_V1, POINT_RECORD
 from canopy_kit.mapping.sensors import ImuBuffer, resolve_topics, sensor_messages
@@ -204,3 +204,116 @@ def test_bag_imu_in_g_is_converted(tmp_path: Path) -> None:
         imu = bag.imu()
         assert np.allclose(imu.linear_acceleration, [0.0, 0.0, 9.80665])
         assert any("'/livox/imu'" in x and "in g" in x for x in bag.warnings)
+
+
+# -- simulated Livox sensors --------------------------------------------------------------------
+def _angles(dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return (
+        np.degrees(np.arctan2(dirs[:, 1], dirs[:, 0])),
+        np.degrees(np.arcsin(np.clip(dirs[:, 2], -1, 1))),
+    )
+
+
+def test_mid360_pattern_fills_its_field_and_does_not_repeat() -> None:
+    from canopy_kit.sim.livox import PATTERNS, pattern_directions
+
+    p = PATTERNS["livox-mid360"]
+    t = np.arange(40_000) / p.point_rate  # two 0.1 s frames at 200,000 points/s
+    dirs, line = pattern_directions(p, t, (-7.0, 52.0))
+    assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
+    az, el = _angles(dirs)
+    assert el.min() >= -7.0 - 1e-9 and el.max() <= 52.0 + 1e-9
+    assert set(np.unique(line)) == {0, 1, 2, 3}
+    first, second = slice(0, 20_000), slice(20_000, 40_000)
+    # one frame reaches every 10° x 10° cell of the field, all the way round
+    cells = np.histogram2d(az[first], el[first], bins=[36, 6], range=[[-180, 180], [-7, 53]])[0]
+    assert (cells > 0).all()
+    # the next frame falls elsewhere: its points are not the first frame's again
+    from scipy.spatial import cKDTree
+
+    gap, _ = cKDTree(dirs[first]).query(dirs[second])
+    assert np.median(np.degrees(gap)) > 0.1
+    fine = [-180, 180], [-7, 53]
+    one = (np.histogram2d(az[first], el[first], bins=[720, 120], range=fine)[0] > 0).sum()
+    two = (np.histogram2d(az, el, bins=[720, 120], range=fine)[0] > 0).sum()
+    assert two > 1.5 * one  # coverage grows with integration time
+
+
+def test_avia_pattern_is_a_forward_rosette() -> None:
+    from canopy_kit.sim.livox import PATTERNS, pattern_directions
+
+    p = PATTERNS["livox-avia"]
+    t = np.arange(24_000) / p.point_rate
+    dirs, line = pattern_directions(p, t)
+    off_axis = np.degrees(np.arccos(np.clip(dirs[:, 0], -1, 1)))
+    assert off_axis.max() <= 35.2 + 1e-9 and np.percentile(off_axis, 99) > 30.0
+    assert set(np.unique(line)) == set(range(6))
+    # densest at the centre (petals cross there): points per solid angle fall outwards
+    inner = (off_axis < 10).sum() / (1 - np.cos(np.radians(10)))
+    outer = ((off_axis > 25) & (off_axis < 35)).sum() / (
+        np.cos(np.radians(25)) - np.cos(np.radians(35))
+    )
+    assert inner > 2 * outer
+
+
+def test_livox_settings_are_checked() -> None:
+    from canopy_kit.errors import ConfigError
+    from canopy_kit.sim import load_sim_config
+
+    cfg = load_sim_config("pistachio", sensor="livox-mid360")
+    assert cfg.lidar.output == "livox_custom" and cfg.imu.acceleration_unit == "g"
+    with pytest.raises(ConfigError, match="lidar.output"):
+        load_sim_config("pistachio", {"lidar": {"output": "livox_custom"}})
+    with pytest.raises(ConfigError, match="lidar.output"):
+        load_sim_config("pistachio", {"lidar": {"output": "velodyne_packets"}}, "livox-mid360")
+
+
+@pytest.mark.parametrize(
+    ("sensor", "output", "rate", "lines"),
+    [
+        ("livox-mid360", "livox_custom", 200_000, 4),
+        ("livox-mid360", "points", 200_000, 4),
+        ("livox-avia", "livox_custom", 240_000, 6),
+    ],
+)
+def test_simulated_livox_frames_read_back(
+    tmp_path: Path, sensor: str, output: str, rate: int, lines: int
+) -> None:
+    """A few frames of a simulated Livox (CustomMsg or driver2 PointCloud2) read back with
+    the driver's timing: points within their 0.1 s frame at the sensor's rate, IMU in g."""
+    from canopy_kit.sim import load_sim_config, simulate_session
+
+    cfg = load_sim_config(
+        "pistachio",
+        {
+            "seed": 3,
+            "orchard": {"rows": 1, "trees_per_row": 1},
+            "drive": {"start_still": 1.0, "end_still": 0.2},
+            "lidar": {"output": output},
+        },
+        sensor=sensor,
+    )
+    sim = simulate_session(tmp_path / "s", cfg)
+    with open_bag(sim.bag) as bag:
+        lidar = next(t for t in bag.topics() if t.name == "/livox/lidar")
+        assert lidar.msgtype == (CUSTOM_MSG if output == "livox_custom" else POINTCLOUD2)
+        topics = resolve_topics(bag)
+        buf = ImuBuffer(source="imu")
+        scans = []
+        for scan in sensor_messages(bag, topics, buf):
+            scans.append(scan)
+            if len(scans) == 5:
+                break
+    for scan in scans:
+        assert scan.frame_id == "livox_frame" and "ring" not in scan.fields
+        assert scan.times.min() >= scan.stamp - 1e-6 and scan.times.max() < scan.stamp + 0.1
+        # fired 1/rate apart (returns only), to float64's 0.24 µs at the epoch
+        steps = np.diff(scan.times - scan.stamp) * rate
+        assert np.all(np.abs(steps - np.round(steps)) < 0.15)
+        assert set(np.unique(scan.fields["line"])) <= set(range(lines))
+        assert ("tree_id" in scan.fields) == (output == "points")
+    assert np.allclose(np.diff([s.stamp for s in scans]), 0.1, atol=1e-6)
+    assert np.median(np.linalg.norm(buf.series().linear_acceleration, axis=1)) == pytest.approx(
+        9.81, abs=0.1
+    )
+    assert buf.warnings and "in g" in buf.warnings[0]
