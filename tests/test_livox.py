@@ -371,3 +371,23 @@ def test_mid360_maps_and_segments_as_well_as_a_vlp16_of_the_same_orchard(
     assert a["segmentation"]["success_rate"] >= b["segmentation"]["success_rate"]
     for method in ("convex_hull", "alpha_shape"):
         assert a["volumes"][method]["mape_pct"] <= b["volumes"][method]["mape_pct"] + 3.0
+
+
+def test_truth_map_reads_a_custom_msg_session(mid360_run) -> None:
+    """The map from true poses (the volume studies' yardstick) reads CustomMsg scans too:
+    every true crown holds mapped points, and no point floats far above the crowns."""
+    import pandas as pd
+
+    from canopy_kit.truth_map import truth_map
+
+    sim, _ = mid360_run
+    reference = truth_map(sim.root, voxel_size=0.1, every=5)
+    trees = pd.read_csv(sim.truth_dir / "trees.csv")
+    xyz = reference.xyz
+    for tree in trees.itertuples():
+        inside = (
+            np.hypot(xyz[:, 0] - tree.crown_x, xyz[:, 1] - tree.crown_y)
+            < 0.5 * tree.crown_diameter_m
+        ) & (xyz[:, 2] > tree.z_ground + tree.crown_base_height_m + 0.2)
+        assert inside.sum() > 500, tree.label
+    assert xyz[:, 2].max() < trees["z_ground"].max() + trees["tree_height_m"].max() + 0.5

@@ -304,9 +304,10 @@ class BagSession:
             ) from None
 
     def scans(self, topic: str | None = None) -> Iterator[Scan]:
-        """Stream the PointCloud2 scans of ``topic`` (auto-detected when None); malformed ones
-        are left out and counted (:attr:`log`), and too many of them are an error."""
-        name = self.find_topic(POINTCLOUD2, topic)
+        """Stream the scans of ``topic`` (auto-detected when None: a PointCloud2 topic, else
+        another of :data:`LIDAR_TYPES`); malformed ones are left out and counted
+        (:attr:`log`), and too many of them are an error."""
+        name = self.find_topic(LIDAR_TYPES, topic)
         assert name is not None
         for index, (_, msg) in enumerate(self._messages(name)):
             scan = self.decode_scan(name, msg, index)
@@ -538,7 +539,7 @@ def _stray_times(times: np.ndarray | None) -> np.ndarray | None:
 def read_scan(path: str | Path, index: int, topic: str | None = None) -> Scan:
     """The ``index``-th scan of a bag (streams up to it; negative counts from the end)."""
     with open_bag(path) as bag:
-        name = bag.find_topic(POINTCLOUD2, topic)
+        name = bag.find_topic(LIDAR_TYPES, topic)
         count = next(t.count for t in bag.topics() if t.name == name)
         wanted = index + count if index < 0 else index
         if not 0 <= wanted < count:
