@@ -184,6 +184,14 @@ def test_imu_in_g_is_converted_with_a_warning_naming_the_topic() -> None:
     assert np.allclose(buf.series(100).linear_acceleration, g_units[100:] * 9.80665)  # slices too
 
 
+def test_imu_in_g_is_known_after_a_start_up_of_zeros() -> None:
+    """A driver's first all-zero samples neither decide the unit nor count in the median."""
+    g_units = np.vstack([np.zeros((30, 3)), np.tile([0.0, 0.0, 1.0], (25, 1))])
+    buf = _imu_buffer(g_units)
+    assert np.array_equal(buf.series().linear_acceleration[30:], g_units[30:] * 9.80665)
+    assert len(buf.warnings) == 1 and "median magnitude 1.000" in buf.warnings[0]
+
+
 @pytest.mark.parametrize("tilt_deg", [0.0, 90.0, 180.0])
 def test_a_normal_imu_is_left_alone(tilt_deg: float) -> None:
     """m/s² at rest in any orientation, and a drive that brakes and turns hard, stay as they are."""
@@ -204,6 +212,24 @@ def test_bag_imu_in_g_is_converted(tmp_path: Path) -> None:
         imu = bag.imu()
         assert np.allclose(imu.linear_acceleration, [0.0, 0.0, 9.80665])
         assert any("'/livox/imu'" in x and "in g" in x for x in bag.warnings)
+
+
+def test_a_cut_ros1_bag_of_custom_msgs_is_recovered(tmp_path: Path) -> None:
+    """A ROS 1 bag cut short is read record by record (rosbags refuses it); its CustomMsgs
+    still decode through the numpy reader."""
+    frames = [hand_points(3000, k) for k in range(20)]
+    with BagWriter(tmp_path / "b.bag", "ros1") as w:
+        for k, pts in enumerate(frames):
+            w.write_livox_custom(TOPIC, TIMEBASE + k * 100_000_000, pts)
+    data = w.path.read_bytes()
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    with open_bag(cut) as bag:
+        scans = list(sensor_messages(bag, resolve_topics(bag)))
+        assert bag.recovered
+    assert 5 <= len(scans) < 20
+    for scan, pts in zip(scans, frames):
+        assert np.array_equal(scan.xyz[:, 1], pts["y"].astype(np.float64))
 
 
 # -- simulated Livox sensors --------------------------------------------------------------------

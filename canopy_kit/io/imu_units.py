@@ -20,9 +20,10 @@ MIN_SAMPLES = 20
 
 def acceleration_scale(acceleration: np.ndarray) -> float:
     """Factor that brings ``acceleration`` (N, 3) to m/s²: STANDARD_GRAVITY when its median
-    magnitude says g, else 1 (also with fewer than MIN_SAMPLES finite samples)."""
+    magnitude says g, else 1 (also with fewer than MIN_SAMPLES finite, non-zero samples)."""
     a = np.asarray(acceleration, float).reshape(-1, 3)
     magnitude = np.linalg.norm(a[np.isfinite(a).all(axis=1)], axis=1)
+    magnitude = magnitude[magnitude > 0]  # all-zero samples: a driver starting up, no reading
     if len(magnitude) < MIN_SAMPLES:
         return 1.0
     low, high = G_MEDIAN_RANGE

@@ -147,9 +147,11 @@ class ImuBuffer:
         """m/s² per recorded unit, decided once from the first samples (see io.imu_units)."""
         if self.accel_scale is None and len(self) >= MIN_SAMPLES:
             accel = self._rows.rows[:, 4:7]
-            self.accel_scale = acceleration_scale(accel)
-            if self.accel_scale != 1.0:
-                self.warnings.append(g_units_warning(self.source or "IMU", accel))
+            readings = accel[np.any(accel != 0, axis=1)]  # not a driver's all-zero start-up
+            if len(readings) >= MIN_SAMPLES:
+                self.accel_scale = acceleration_scale(readings)
+                if self.accel_scale != 1.0:
+                    self.warnings.append(g_units_warning(self.source or "IMU", readings))
         return self.accel_scale or 1.0
 
 
