@@ -40,7 +40,8 @@ class SimulatedScan:
         return self.packets.returns if self.packets is not None else len(self.columns["x"])
 
     def write(self, writer: BagWriter, topic: str, frame_id: str) -> None:
-        """Write the sweep to a bag: a PointCloud2, or the packets as one VelodyneScan."""
+        """Write the sweep to a bag: a PointCloud2, the packets as one VelodyneScan, or a Livox
+        CustomMsg."""
         if self.packets is not None:
             writer.write_velodyne_scan(topic, self.packets.stamps, self.packets.data, frame_id)
         elif self.livox is not None:
