@@ -16,7 +16,9 @@ def simulate(
     trees_per_row: int = typer.Option(None, "--trees-per-row", help="Trees per row"),
     seed: int = typer.Option(0, help="Random seed (same seed, same session)"),
     fmt: str = typer.Option("ros2-mcap", "--format", help="ros1, ros2-sqlite3 or ros2-mcap"),
-    sensor: str = typer.Option(None, help="Sensor model: vlp16, hdl32, os0-32, os1-64, os1-128"),
+    sensor: str = typer.Option(
+        None, help="Sensor model: vlp16, hdl32, os0-32, os1-64, os1-128, livox-mid360, livox-avia"
+    ),
     drone: bool = typer.Option(False, "--drone", help="Also render a drone photo flight"),
     no_truth_field: bool = typer.Option(
         False, "--no-truth-field", help="Do not add the per-point tree_id field"

@@ -19,7 +19,7 @@ from canopy_kit.core.cloud import PointCloud
 from canopy_kit.core.geo import LocalFrame
 from canopy_kit.core.voxel import voxel_downsample
 from canopy_kit.evaluate.truth import load_truth, true_pose_interpolator
-from canopy_kit.io.bag import open_bag
+from canopy_kit.io.bag import LIDAR_TYPES, open_bag
 from canopy_kit.io.session_layout import find_bag
 
 
@@ -54,8 +54,9 @@ def truth_maps(
     chunks: dict[Hashable, list[PointCloud]] = {}
     pending: dict[Hashable, int] = {}
     with open_bag(find_bag(sim_dir)) as bag:
-        total = next(t.count for t in bag.topics() if t.msgtype.endswith("PointCloud2"))
-        for scan in bag.scans():
+        lidar = bag.find_topic(LIDAR_TYPES)  # a PointCloud2, Velodyne or Livox topic
+        total = next(t.count for t in bag.topics() if t.name == lidar)
+        for scan in bag.scans(lidar):
             if scan.index % every:
                 continue
             keys = (

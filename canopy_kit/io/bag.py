@@ -3,7 +3,8 @@
 Scans stream out one at a time (:meth:`BagSession.scans`); IMU, GNSS and odometry are
 small and come out as whole arrays. Topics are found by message type when not named. The
 LiDAR is a PointCloud2 topic or, in a bag without one, the raw packets of the Velodyne
-driver (``velodyne_msgs/VelodyneScan``, decoded by :mod:`canopy_kit.io.velodyne_ros`).
+driver (``velodyne_msgs/VelodyneScan``, decoded by :mod:`canopy_kit.io.velodyne_ros`) or a
+Livox driver's ``CustomMsg`` (:mod:`canopy_kit.io.livox`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import numpy as np
 
 from canopy_kit.errors import InputError, MessageError
 from canopy_kit.io import pointcloud2 as pc2
+from canopy_kit.io.imu_units import acceleration_scale, g_units_warning
+from canopy_kit.io.livox import CUSTOM_MSG_TYPES as LIVOX_TYPES
 from canopy_kit.io.message_log import MessageLog, imu_sample_fault
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -24,11 +27,12 @@ IMU = "sensor_msgs/msg/Imu"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 ODOMETRY = "nav_msgs/msg/Odometry"
 VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
-LIDAR_TYPES = (POINTCLOUD2, VELODYNE_SCAN)  # in order of preference
-KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY, VELODYNE_SCAN)
+LIDAR_TYPES = (POINTCLOUD2, VELODYNE_SCAN, *LIVOX_TYPES)  # in order of preference
+KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY, VELODYNE_SCAN, *LIVOX_TYPES)
 TOPIC_ROLES = {
     POINTCLOUD2: "lidar",
     VELODYNE_SCAN: "lidar",
+    **dict.fromkeys(LIVOX_TYPES, "lidar"),
     IMU: "imu",
     NAVSATFIX: "gnss",
     ODOMETRY: "odometry",
@@ -171,14 +175,18 @@ class BagSession:
         if self.path.is_file() and self.path.suffix in (".db3", ".mcap"):
             target = self.path.parent
         from canopy_kit.io.bag_recovery import sqlite_cut_short
+        from canopy_kit.io.livox import LivoxAwareReader, register_livox_types
         from canopy_kit.io.velodyne_ros import register_velodyne_types
 
         if sqlite_cut_short(self.path):
             self._recover("the sqlite3 file is shorter than its header says")
             register_velodyne_types(self._reader.typestore)
+            register_livox_types(self._reader.typestore)
+            self._reader = LivoxAwareReader(self._reader)
             return self
         default = get_typestore(Stores.ROS2_HUMBLE)
         register_velodyne_types(default)  # for bags that carry no message definitions
+        register_livox_types(default)
         try:
             self._reader = AnyReader([target], default_typestore=default)
             self._reader.open()
@@ -191,6 +199,8 @@ class BagSession:
             self._reader = fast_mcap_reader(self._reader, target)
         # for bags that define their other types but not these (and for recovered bags)
         register_velodyne_types(self._reader.typestore)
+        register_livox_types(self._reader.typestore)
+        self._reader = LivoxAwareReader(self._reader)  # CustomMsg points read with numpy
         return self
 
     def _recover(self, reason: str) -> None:
@@ -294,9 +304,10 @@ class BagSession:
             ) from None
 
     def scans(self, topic: str | None = None) -> Iterator[Scan]:
-        """Stream the PointCloud2 scans of ``topic`` (auto-detected when None); malformed ones
-        are left out and counted (:attr:`log`), and too many of them are an error."""
-        name = self.find_topic(POINTCLOUD2, topic)
+        """Stream the scans of ``topic`` (auto-detected when None: a PointCloud2 topic, else
+        another of :data:`LIDAR_TYPES`); malformed ones are left out and counted
+        (:attr:`log`), and too many of them are an error."""
+        name = self.find_topic(LIDAR_TYPES, topic)
         assert name is not None
         for index, (_, msg) in enumerate(self._messages(name)):
             scan = self.decode_scan(name, msg, index)
@@ -316,6 +327,13 @@ class BagSession:
 
                 scan = scan_from_message(msg, where, index)
                 stamp, xyz, fields, times, unused = scan.stamp, scan.xyz, scan.fields, scan.times, 0
+            elif getattr(msg, "__msgtype__", "") in LIVOX_TYPES:
+                from canopy_kit.io.livox import scan_fields
+
+                stamp, xyz, fields, times = scan_fields(
+                    msg, f"{self.path}: topic {topic!r}: {where}"
+                )
+                unused = 0
             else:
                 points, unused = pc2.decode_checked(msg, where)
                 xyz = pc2.xyz_from(points, where)
@@ -406,10 +424,14 @@ class BagSession:
             )
             frame = msg.header.frame_id
         log.check()
+        acc_array = np.array(acc).reshape(-1, 3)
+        scale = acceleration_scale(acc_array)
+        if scale != 1.0:
+            self.warnings.append(g_units_warning(f"{self.path}: topic {name!r}", acc_array))
         return ImuSeries(
             np.array(t),
             np.array(gyro).reshape(-1, 3),
-            np.array(acc).reshape(-1, 3),
+            acc_array * scale,
             np.array(quat).reshape(-1, 4),
             frame,
         )
@@ -517,7 +539,7 @@ def _stray_times(times: np.ndarray | None) -> np.ndarray | None:
 def read_scan(path: str | Path, index: int, topic: str | None = None) -> Scan:
     """The ``index``-th scan of a bag (streams up to it; negative counts from the end)."""
     with open_bag(path) as bag:
-        name = bag.find_topic(POINTCLOUD2, topic)
+        name = bag.find_topic(LIDAR_TYPES, topic)
         count = next(t.count for t in bag.topics() if t.name == name)
         wanted = index + count if index < 0 else index
         if not 0 <= wanted < count:

@@ -201,6 +201,29 @@ class BagWriter:
         )
         self._write(topic, "velodyne_msgs/msg/VelodyneScan", msg, header_stamp)
 
+    def write_livox_custom(
+        self,
+        topic: str,
+        timebase_ns: int,
+        points: np.ndarray,
+        frame_id: str = "livox_frame",
+        msgtype: str = "livox_ros_driver2/msg/CustomMsg",
+        point_num: int | None = None,
+    ) -> None:
+        """One Livox CustomMsg (driver2, or ``livox_ros_driver/msg/CustomMsg``) of ``points``
+        (fields of :data:`canopy_kit.io.livox.POINT_RECORD`), serialised with numpy."""
+        from canopy_kit.io.livox import register_livox_types, serialize_custom_msg
+
+        register_livox_types(self.typestore)
+        seq = self._seq.get(topic, 0)
+        self._seq[topic] = seq + 1
+        data = serialize_custom_msg(
+            timebase_ns, points, frame_id, not self.ros1, seq, point_num=point_num
+        )
+        if topic not in self._conns:
+            self._connect(topic, msgtype)
+        self._writer.write(self._conns[topic], int(timebase_ns), data)
+
     def write_imu(
         self,
         topic: str,

@@ -6,7 +6,8 @@ absolute seconds:
 - Ouster ``t``: uint32 nanoseconds since the scan's header stamp;
 - Velodyne ``time``: float32 seconds relative to the header stamp (may be negative when
   the stamp marks the end of the sweep);
-- Hesai/Livox ``timestamp``: float64 absolute seconds, or integer absolute nanoseconds.
+- Hesai ``timestamp``: float64 absolute seconds; livox_ros_driver2 ``timestamp``: float64
+  absolute nanoseconds; integer absolute nanoseconds.
 """
 
 from __future__ import annotations
@@ -189,10 +190,12 @@ def point_times(values: np.ndarray, stamp: float) -> np.ndarray:
     v = values.astype(np.float64)
     finite = v[np.isfinite(v)]
     peak = np.max(np.abs(finite)) if finite.size else 0.0
-    if peak > 1e15:  # absolute nanoseconds stored as float
-        return v * 1e-9
-    if peak > 1e6:  # absolute seconds (Hesai, Livox)
-        return v
+    if peak > 1e6:  # absolute: seconds (Hesai) or nanoseconds as float64 (livox_ros_driver2)
+        # the unit whose times lie nearer the header stamp (a bag on a clock started near 0,
+        # 100 s in, holds 1e11 ns: larger than any plausible time in seconds near its stamp)
+        middle = float(np.median(finite))
+        nearer_ns = stamp > 0 and abs(middle * 1e-9 - stamp) < abs(middle - stamp)
+        return v * 1e-9 if peak > 1e15 or nearer_ns else v
     return stamp + v  # relative seconds (Velodyne)
 
 

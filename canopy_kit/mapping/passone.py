@@ -160,6 +160,7 @@ class PassOne:
             imu = None
         skip = self.bag.stray_warning_index
         bag_warnings = [w for i, w in enumerate(self.bag.warnings) if i != skip]
+        bag_warnings += self.imu.warnings if self.imu is not None else []  # e.g. IMU in g
         stray = [(i, n) for i, n in self.bag.stray_time_scans if i >= self.count_from]
         return OdometryPass(
             str(self.bag.path),

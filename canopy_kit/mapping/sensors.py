@@ -24,6 +24,7 @@ from canopy_kit.io.bag import (
     ImuSeries,
     Scan,
 )
+from canopy_kit.io.imu_units import MIN_SAMPLES, acceleration_scale, g_units_warning
 from canopy_kit.io.message_log import TopicLog
 from canopy_kit.mapping.imu_mounting import ImuMounting
 
@@ -111,6 +112,8 @@ class ImuBuffer:
         self.frame_id = frame_id
         self.source = source  # "<bag>: topic '<imu topic>'", to start errors about these samples
         self.mounting = None if mounting is None or mounting.is_identity else mounting
+        self.accel_scale: float | None = None  # m/s² per recorded unit, fixed once known
+        self.warnings: list[str] = []  # e.g. acceleration recorded in g
 
     def __len__(self) -> int:
         return self._rows.n
@@ -135,9 +138,21 @@ class ImuBuffer:
         r = self._rows.rows[start:]
         r = r[np.argsort(r[:, 0], kind="stable")]
         t, gyro, accel = r[:, 0].copy(), r[:, 1:4].copy(), r[:, 4:7].copy()
+        accel *= self._accel_scale()
         if self.mounting is not None:
             t, gyro, accel = self.mounting.apply(t, gyro, accel)
         return ImuSeries(t, gyro, accel, np.tile([0.0, 0.0, 0.0, 1.0], (len(r), 1)), self.frame_id)
+
+    def _accel_scale(self) -> float:
+        """m/s² per recorded unit, decided once from the first samples (see io.imu_units)."""
+        if self.accel_scale is None and len(self) >= MIN_SAMPLES:
+            accel = self._rows.rows[:, 4:7]
+            readings = accel[np.any(accel != 0, axis=1)]  # not a driver's all-zero start-up
+            if len(readings) >= MIN_SAMPLES:
+                self.accel_scale = acceleration_scale(readings)
+                if self.accel_scale != 1.0:
+                    self.warnings.append(g_units_warning(self.source or "IMU", readings))
+        return self.accel_scale or 1.0
 
 
 class GnssBuffer:

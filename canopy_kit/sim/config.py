@@ -84,7 +84,9 @@ class LidarSpec:
     ``vlp16`` (a VLP-16's firing sequence and laser table; ``rings``, ``vertical_fov``,
     ``columns`` and ``time_field`` are then unused). ``output``: ``points``
     (sensor_msgs/PointCloud2) or ``velodyne_packets`` (velodyne_msgs/VelodyneScan, the raw
-    packets; fires as a VLP-16).
+    packets; fires as a VLP-16). ``firing`` ``livox-mid360`` / ``livox-avia``: a Livox
+    non-repetitive pattern (:mod:`canopy_kit.sim.livox`; ``output`` ``livox_custom`` writes
+    livox_ros_driver2 CustomMsg, ``points`` the driver2 PointCloud2 layout).
     """
 
     rings: int = 32
@@ -100,8 +102,8 @@ class LidarSpec:
     time_field: Literal["t", "time", "timestamp"] = "t"
     frame_id: str = "lidar"
     topic: str = "/points"
-    firing: Literal["columns", "vlp16"] = "columns"
-    output: Literal["points", "velodyne_packets"] = "points"
+    firing: Literal["columns", "vlp16", "livox-mid360", "livox-avia"] = "columns"
+    output: Literal["points", "velodyne_packets", "livox_custom"] = "points"
 
 
 @dataclass
@@ -136,6 +138,7 @@ class ImuSpec:
     accel_bias_sigma: float = 0.05
     topic: str = "/imu/data"
     frame_id: str = "lidar"
+    acceleration_unit: Literal["m/s2", "g"] = "m/s2"  # g: as Livox drivers publish it
 
 
 @dataclass
@@ -284,6 +287,33 @@ SENSOR_MODELS: dict[str, dict[str, Any]] = {
 }
 
 
+# Livox sensors (canopy_kit.sim.livox): their driver's topics and frame, the built-in IMU in g.
+SENSOR_MODELS["livox-mid360"] = {
+    "rings": 4,
+    "vertical_fov": [-7.0, 52.0],
+    "firing": "livox-mid360",
+    "output": "livox_custom",
+    "time_field": "timestamp",
+    "min_range": 0.1,
+    "max_range": 40.0,
+    "range_noise": 0.02,
+    "topic": "/livox/lidar",
+    "frame_id": "livox_frame",
+}
+SENSOR_MODELS["livox-avia"] = {
+    **SENSOR_MODELS["livox-mid360"],
+    "rings": 6,
+    "vertical_fov": [-35.2, 35.2],
+    "firing": "livox-avia",
+    "min_range": 1.0,
+    "max_range": 190.0,
+}
+SENSOR_IMU: dict[str, dict[str, Any]] = {
+    name: {"topic": "/livox/imu", "acceleration_unit": "g"}
+    for name in ("livox-mid360", "livox-avia")
+}
+
+
 def sim_preset_names() -> list[str]:
     """Orchard presets shipped for the simulator."""
     files = resources.files("canopy_kit") / "presets" / "sim"
@@ -314,7 +344,7 @@ def load_sim_config(
     if sensor is not None:
         if sensor not in SENSOR_MODELS:
             raise ConfigError(f"sensor {sensor!r} is not one of {', '.join(SENSOR_MODELS)}")
-        data = merge(data, {"lidar": SENSOR_MODELS[sensor]})
+        data = merge(data, {"lidar": SENSOR_MODELS[sensor], "imu": SENSOR_IMU.get(sensor, {})})
     if overrides:
         data = merge(data, overrides)
     config = from_dict(SimConfig, data, where)
@@ -461,6 +491,13 @@ def validate(c: SimConfig) -> None:
             "lidar.max_range",
             f"a VLP-16 packet holds ranges up to 131.07 m, got {li.max_range}",
         )
+    livox = li.firing.startswith("livox")
+    _check(
+        livox == (li.output == "livox_custom") or (livox and li.output == "points"),
+        "lidar.output",
+        f"{li.output!r} does not go with firing {li.firing!r} (livox_custom needs a Livox "
+        "firing; a Livox firing writes livox_custom or points)",
+    )
     _check(
         d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive"
     )

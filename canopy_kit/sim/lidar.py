@@ -19,6 +19,7 @@ from canopy_kit.sim.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from canopy_kit.io.bag_writer import BagWriter
+    from canopy_kit.sim.livox import LivoxMessage
     from canopy_kit.sim.velodyne import VelodynePackets
 
 REFLECTIVITY = {GROUND: 0.30, GRASS: 0.45, WOOD: 0.35, FOLIAGE: 0.60}
@@ -32,15 +33,19 @@ class SimulatedScan:
     stamp: float
     columns: dict[str, np.ndarray]
     packets: VelodynePackets | None = None
+    livox: LivoxMessage | None = None  # a Livox CustomMsg (canopy_kit.sim.livox)
 
     @property
     def n_points(self) -> int:
         return self.packets.returns if self.packets is not None else len(self.columns["x"])
 
     def write(self, writer: BagWriter, topic: str, frame_id: str) -> None:
-        """Write the sweep to a bag: a PointCloud2, or the packets as one VelodyneScan."""
+        """Write the sweep to a bag: a PointCloud2, the packets as one VelodyneScan, or a Livox
+        CustomMsg."""
         if self.packets is not None:
             writer.write_velodyne_scan(topic, self.packets.stamps, self.packets.data, frame_id)
+        elif self.livox is not None:
+            self.livox.write(writer, topic, frame_id)
         else:
             writer.write_points(topic, self.stamp, self.columns, frame_id)
 
@@ -81,6 +86,10 @@ class SpinningLidar:
             from canopy_kit.sim.velodyne import Vlp16Firing
 
             self._vlp16 = Vlp16Firing(self)
+        if spec.firing.startswith("livox"):  # a non-repetitive Livox pattern instead
+            from canopy_kit.sim.livox import LivoxFiring
+
+            self._vlp16 = LivoxFiring(self)  # type: ignore[assignment]
 
     @property
     def sweep_period(self) -> float:

@@ -16,6 +16,7 @@ from canopy_kit.core.atomic import atomic_write_text
 from canopy_kit.errors import InputError
 from canopy_kit.evaluate.truth import write_csv
 from canopy_kit.io.bag_writer import BagWriter, bag_path_for
+from canopy_kit.io.imu_units import STANDARD_GRAVITY
 from canopy_kit.io.session_layout import BAG_NAME, SIM_CONFIG, find_bag, sim_config_path, truth_dir
 from canopy_kit.io.session_layout import drone_dir as drone_folder
 from canopy_kit.sim.config import SimConfig, validate
@@ -169,6 +170,7 @@ def _write_session(
                 trajectory.start_time, [(t.parent, t.child, t.matrix) for t in mounts.tf_static]
             )
         cursors = {"imu": 0, "gnss": 0, "odom": 0}
+        accel_unit = 1 / STANDARD_GRAVITY if config.imu.acceleration_unit == "g" else 1.0
 
         def flush(until: float) -> None:
             if imu is not None:
@@ -178,7 +180,7 @@ def _write_session(
                         config.imu.topic,
                         imu.t[i] + mounts.imu_time_offset,
                         imu.angular_velocity[i],
-                        imu.linear_acceleration[i],
+                        imu.linear_acceleration[i] * accel_unit,
                         None,
                         mounts.imu_frame,
                     )

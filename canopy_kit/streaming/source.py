@@ -113,6 +113,7 @@ class SweepSource:
                 yield OdometrySweep(scan.index, sweep.t_ref, pose, PointCloud(xyz, fields))
             require_sweeps(n_sweeps, where)
             self.warnings.extend(frontend.state.warnings + bag.log.warnings())
+            self.warnings.extend(imu.warnings if imu is not None else [])  # e.g. IMU in g
 
 
 class RunningGeoreference:
