@@ -84,7 +84,8 @@ class LidarSpec:
     ``vlp16`` (a VLP-16's firing sequence and laser table; ``rings``, ``vertical_fov``,
     ``columns`` and ``time_field`` are then unused). ``output``: ``points``
     (sensor_msgs/PointCloud2) or ``velodyne_packets`` (velodyne_msgs/VelodyneScan, the raw
-    packets; fires as a VLP-16).
+    packets; fires as a VLP-16) or ``ouster_packets`` (ouster_ros PacketMsg of lidar mode
+    ``columns`` x ``rate_hz`` and UDP profile ``ouster_profile``; see canopy_kit.sim.ouster).
     """
 
     rings: int = 32
@@ -101,7 +102,10 @@ class LidarSpec:
     frame_id: str = "lidar"
     topic: str = "/points"
     firing: Literal["columns", "vlp16"] = "columns"
-    output: Literal["points", "velodyne_packets"] = "points"
+    output: Literal["points", "velodyne_packets", "ouster_packets"] = "points"
+    ouster_profile: Literal["RNG19_RFL8_SIG16_NIR16", "LEGACY", "RNG15_RFL8_NIR8"] = (
+        "RNG19_RFL8_SIG16_NIR16"
+    )
 
 
 @dataclass
@@ -461,6 +465,11 @@ def validate(c: SimConfig) -> None:
             "lidar.max_range",
             f"a VLP-16 packet holds ranges up to 131.07 m, got {li.max_range}",
         )
+    if li.output == "ouster_packets":
+        from canopy_kit.sim.ouster import check_spec
+
+        for name, problem in check_spec(li):
+            _check(False, name, problem)
     _check(
         d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive"
     )

@@ -19,6 +19,7 @@ from canopy_kit.sim.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from canopy_kit.io.bag_writer import BagWriter
+    from canopy_kit.sim.ouster import OusterPackets
     from canopy_kit.sim.velodyne import VelodynePackets
 
 REFLECTIVITY = {GROUND: 0.30, GRASS: 0.45, WOOD: 0.35, FOLIAGE: 0.60}
@@ -31,7 +32,7 @@ class SimulatedScan:
 
     stamp: float
     columns: dict[str, np.ndarray]
-    packets: VelodynePackets | None = None
+    packets: VelodynePackets | OusterPackets | None = None
 
     @property
     def n_points(self) -> int:
@@ -39,7 +40,11 @@ class SimulatedScan:
 
     def write(self, writer: BagWriter, topic: str, frame_id: str) -> None:
         """Write the sweep to a bag: a PointCloud2, or the packets as one VelodyneScan."""
-        if self.packets is not None:
+        if self.packets is not None and hasattr(self.packets, "metadata"):  # sim.ouster
+            writer.write_ouster_packets(
+                topic, self.packets.stamps, self.packets.data, self.packets.metadata
+            )  # type: ignore[union-attr]
+        elif self.packets is not None:
             writer.write_velodyne_scan(topic, self.packets.stamps, self.packets.data, frame_id)
         else:
             writer.write_points(topic, self.stamp, self.columns, frame_id)
@@ -81,6 +86,11 @@ class SpinningLidar:
             from canopy_kit.sim.velodyne import Vlp16Firing
 
             self._vlp16 = Vlp16Firing(self)
+        self.ouster = None  # records Ouster packets (canopy_kit.sim.ouster)
+        if spec.output == "ouster_packets":
+            from canopy_kit.sim.ouster import OusterFiring
+
+            self.ouster = OusterFiring(self)
 
     @property
     def sweep_period(self) -> float:
@@ -138,6 +148,8 @@ class SpinningLidar:
         """Simulate the sweep that starts at ``stamp``."""
         if self._vlp16 is not None:
             return self._vlp16.sweep(stamp)
+        if self.ouster is not None:
+            return self.ouster.sweep(stamp)
         sp = self.spec
         n_col, n_ring = sp.columns, sp.rings
         _, _, idx, ranges, prim, intensity = self._cast_columns(stamp)

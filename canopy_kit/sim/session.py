@@ -228,6 +228,8 @@ def _write_session(
             scan.write(writer, config.lidar.topic, mounts.lidar_frame)
             report("LiDAR sweeps", k + 1, len(sweeps))
         flush(trajectory.end_time + 1.0)
+    if lidar.ouster is not None:  # the metadata beside the bag too, as older drivers kept it
+        atomic_write_text(root / "ouster_metadata.json", lidar.ouster.metadata + "\n")
     if config.drone.enabled:
         from canopy_kit.sim.drone import simulate_drone_flight
 
