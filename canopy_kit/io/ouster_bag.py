@@ -96,16 +96,36 @@ class OusterPacketReader:
         self._info: OusterInfo | None = None
         self._original: dict[int, Any] = {}
         self._lidar: dict[int, Any] = {}
+        self._connections: list[Any] | None = None
+
+    @property
+    def connections(self) -> list[Any]:
+        """The bag's connections, lidar-packet topics as :data:`OUSTER_LIDAR` with about as
+        many messages as rotations (packets over packets per rotation, when the metadata is
+        at hand: the mapping plans its chunks by it)."""
+        if self._connections is not None:
+            return self._connections
         conns = []
-        for c in reader.connections:
+        for c in self._reader.connections:
             if c.msgtype in PACKET_TYPES and "imu" not in c.topic.lower():
-                lidar = c._replace(msgtype=OUSTER_LIDAR)  # rosbags' Connection: a NamedTuple
-                self._original[id(lidar)] = c
+                lidar = c._replace(msgtype=OUSTER_LIDAR, msgcount=self._rotations(c))
+                self._original[id(lidar)] = c  # rosbags' Connection: a NamedTuple
                 self._lidar[id(c)] = lidar
                 conns.append(lidar)
             else:
                 conns.append(c)
-        self.connections = conns
+        self._connections = conns
+        return conns
+
+    def _rotations(self, conn: Any) -> int:
+        try:
+            info = self.info(conn.topic)
+        except InputError:  # no or bad metadata: said when the packets are decoded
+            return int(conn.msgcount)
+        first, last = info.column_window
+        columns = (last - first) % info.columns_per_frame + 1
+        per_rotation = -(-columns // info.columns_per_packet)
+        return -(-int(conn.msgcount) // per_rotation)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._reader, name)
@@ -138,6 +158,7 @@ class OusterPacketReader:
         """Like rosbags' ``messages``; a lidar-packets topic yields one :class:`_Pending` of
         packets per rotation (``deserialize`` makes it an :class:`OusterRotation`)."""
         wanted = list(connections) or list(self.connections)
+        _ = self.connections  # maps the lidar connections
         inner = [self._original.get(id(c), c) for c in wanted]
         seek = {k: v for k, v in (("start", start), ("stop", stop)) if v is not None}
         pending: dict[str, tuple[Any, int, _Pending]] = {}
