@@ -8,6 +8,7 @@ mesh and true trajectory, and its per-tree truth.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from canopy_kit.sim import load_sim_config
 REFERENCE = Path(__file__).parents[1] / "data" / "samples" / "ouster_sdk_reference.npz"
 TOPIC = "/ouster/lidar_packets"
 RNG19 = "RNG19_RFL8_SIG16_NIR16"
+OLD_TYPE = "ouster_ros/msg/PacketMsg"  # ouster_ros before 0.11
 
 
 def ouster_config(columns: int, rate_hz: int, profile: str, **lidar: object) -> object:
@@ -297,3 +299,46 @@ def test_simulated_ouster_session_maps_and_measures_its_trees(
     assert got["match_m"].max() < 0.5
     for col, pct in got["volume_pct"].items():
         assert pct.max() < 10.0, col
+
+
+def _flat_metadata(nested: str) -> str:
+    """The same sensor in the flat metadata layout of older firmware and drivers."""
+    meta = json.loads(nested)
+    flat = {
+        **meta["sensor_info"],
+        "lidar_mode": meta["config_params"]["lidar_mode"],
+        **meta["beam_intrinsics"],
+        **meta["lidar_intrinsics"],
+        **meta["imu_intrinsics"],
+        "data_format": meta["lidar_data_format"],
+    }
+    del flat["beam_to_lidar_transform"]
+    return json.dumps(flat)
+
+
+def test_older_driver_bag_with_flat_metadata_and_lost_packets(tmp_path: Path) -> None:
+    """A ROS 1 bag of ``ouster_ros/PacketMsg`` with the metadata as a flat JSON file and a
+    few packets lost: the same points as the complete bag, less the lost columns."""
+    sim, _, _ = rotations(512, 10, "LEGACY", n=3)
+    complete = read_scans(write_bag(tmp_path / "complete", "ros1", sim))
+    keep = np.ones(len(sim[1].data), bool)
+    keep[[3, 4, 20]] = False  # UDP packets the recorder never saw
+    with BagWriter(tmp_path / "old", "ros1") as w:
+        for k, p in enumerate(sim):
+            rows = keep if k == 1 else slice(None)
+            w.write_ouster_packets(TOPIC, p.stamps[rows], p.data[rows], None, msgtype=OLD_TYPE)
+    meta = tmp_path / "os-992109000123.json"
+    meta.write_text(_flat_metadata(sim[0].metadata))
+    info = parse_metadata(meta.read_text(), str(meta))
+    assert (info.lidar_mode, info.profile, info.beam_origin_mm) == ("512x10", "LEGACY", 27.67)
+    with open_bag(w.path) as bag:
+        assert {t.name: t.msgtype for t in bag.topics()} == {TOPIC: OUSTER_LIDAR}
+    old = read_scans(w.path, meta)
+    assert len(old) == 3
+    for k in (0, 2):
+        np.testing.assert_array_equal(old[k].xyz, complete[k].xyz)
+    lost_columns = np.flatnonzero(np.repeat(~keep, 16))
+    time_of = complete[1].times
+    column = np.rint((time_of - time_of.min()) * 512 * 10).astype(int)
+    assert len(old[1]) == np.isin(column, lost_columns, invert=True).sum() < len(complete[1])
+    np.testing.assert_array_equal(old[1].xyz, complete[1].xyz[~np.isin(column, lost_columns)])

@@ -208,11 +208,12 @@ class BagWriter:
         packets: Any,
         metadata: str | None = None,
         metadata_topic: str = "/ouster/metadata",
+        msgtype: str = "ouster_sensor_msgs/msg/PacketMsg",
     ) -> None:
-        """Ouster lidar packets, one ``ouster_sensor_msgs/PacketMsg`` each, logged at
-        ``packet_stamps`` (s); ``metadata`` (the sensor's JSON) goes once on ``metadata_topic``
-        as a latched std_msgs/String before the first packet."""
-        from canopy_kit.io.ouster_bag import PACKET_TYPES, register_ouster_types
+        """Ouster lidar packets, one ``PacketMsg`` each (``msgtype``: older drivers'
+        ``ouster_ros/msg/PacketMsg``), logged at ``packet_stamps`` (s); ``metadata`` (the
+        sensor's JSON) goes once on ``metadata_topic`` as a latched std_msgs/String first."""
+        from canopy_kit.io.ouster_bag import register_ouster_types
 
         register_ouster_types(self.typestore)
         t = self.typestore.types
@@ -222,7 +223,7 @@ class BagWriter:
             self._write(metadata_topic, "std_msgs/msg/String", msg, float(packet_stamps[0]))
         rows = np.asarray(packets, np.uint8).reshape(len(packet_stamps), -1)
         for stamp, row in zip(packet_stamps, rows, strict=True):
-            self._write(topic, PACKET_TYPES[0], t[PACKET_TYPES[0]](buf=row), float(stamp))
+            self._write(topic, msgtype, t[msgtype](buf=row), float(stamp))
 
     def write_imu(
         self,
