@@ -321,14 +321,15 @@ def test_no_lidar_topic_names_both_types(tmp_path: Path) -> None:
         w.write_imu("/imu", HOUR0, (0, 0, 0), (0, 0, 9.81))
     with open_bag(w.path) as bag, pytest.raises(InputError) as err:
         resolve_topics(bag)
-    assert "no sensor_msgs/msg/PointCloud2 topic (or velodyne_msgs/msg/VelodyneScan)" in str(
-        err.value
-    )
+    assert (
+        "no sensor_msgs/msg/PointCloud2 topic (or velodyne_msgs/msg/VelodyneScan, "
+        "ouster_sensor_msgs/msg/PacketMsg (lidar))"
+    ) in str(err.value)
     with open_bag(w.path) as bag, pytest.raises(InputError) as err:
         resolve_topics(bag, "/imu")
     assert (
         "carries sensor_msgs/msg/Imu, expected sensor_msgs/msg/PointCloud2 (or "
-        "velodyne_msgs/msg/VelodyneScan)"
+        "velodyne_msgs/msg/VelodyneScan, ouster_sensor_msgs/msg/PacketMsg (lidar))"
     ) in str(err.value)
 
 

@@ -39,11 +39,13 @@ class SimulatedScan:
         return self.packets.returns if self.packets is not None else len(self.columns["x"])
 
     def write(self, writer: BagWriter, topic: str, frame_id: str) -> None:
-        """Write the sweep to a bag: a PointCloud2, or the packets as one VelodyneScan."""
-        if self.packets is not None and hasattr(self.packets, "metadata"):  # sim.ouster
-            writer.write_ouster_packets(
-                topic, self.packets.stamps, self.packets.data, self.packets.metadata
-            )  # type: ignore[union-attr]
+        """Write the sweep to a bag: a PointCloud2, the packets as one VelodyneScan, or as
+        Ouster PacketMsgs (one a packet)."""
+        from canopy_kit.sim.ouster import OusterPackets
+
+        if isinstance(self.packets, OusterPackets):  # its frame is os_sensor, not in the packets
+            p = self.packets
+            writer.write_ouster_packets(topic, p.stamps, p.data, p.metadata)
         elif self.packets is not None:
             writer.write_velodyne_scan(topic, self.packets.stamps, self.packets.data, frame_id)
         else:

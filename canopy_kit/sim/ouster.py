@@ -22,6 +22,7 @@ import numpy as np
 from canopy_kit.io.ouster import OusterInfo, column_xyz_tables
 
 if TYPE_CHECKING:
+    from canopy_kit.sim.config import LidarSpec
     from canopy_kit.sim.lidar import SimulatedScan, SpinningLidar
 
 BOOT_S = 1234.5  # the sensor was switched on this long before the drive started
@@ -43,17 +44,17 @@ class OusterPackets:
     ring: np.ndarray
 
 
-def sensor_info(lidar_spec: object) -> OusterInfo:
+def sensor_info(lidar_spec: LidarSpec) -> OusterInfo:
     """The metadata of the simulated sensor (see the module notes)."""
-    rings = int(lidar_spec.rings)  # type: ignore[attr-defined]
-    lo, hi = lidar_spec.vertical_fov  # type: ignore[attr-defined]
-    width, fps = int(lidar_spec.columns), int(round(lidar_spec.rate_hz))  # type: ignore[attr-defined]
+    rings = int(lidar_spec.rings)
+    lo, hi = lidar_spec.vertical_fov
+    width, fps = int(lidar_spec.columns), int(round(lidar_spec.rate_hz))
     os0 = hi - lo > 80.0
     to_sensor = np.diag([-1.0, -1.0, 1.0, 1.0])
     to_sensor[2, 3] = 36.18
     return OusterInfo(
         lidar_mode=f"{width}x{fps}",
-        profile=lidar_spec.ouster_profile,  # type: ignore[attr-defined]
+        profile=lidar_spec.ouster_profile,
         columns_per_frame=width,
         fps=fps,
         columns_per_packet=COLUMNS_PER_PACKET,
@@ -119,10 +120,10 @@ def encode_packets(
     return out
 
 
-def check_spec(spec: object) -> list[tuple[str, str]]:
+def check_spec(spec: LidarSpec) -> list[tuple[str, str]]:
     """(setting, problem) for each ``lidar`` setting an Ouster cannot have."""
     problems = []
-    mode = f"{spec.columns}x{spec.rate_hz:g}"  # type: ignore[attr-defined]
+    mode = f"{spec.columns}x{spec.rate_hz:g}"
     if mode not in ("512x10", "512x20", "1024x10", "1024x20", "2048x10"):
         problems.append(
             (
@@ -131,15 +132,15 @@ def check_spec(spec: object) -> list[tuple[str, str]]:
                 f"(2048 at 10 only), got {mode}",
             )
         )
-    if spec.rings not in (16, 32, 64, 128):  # type: ignore[attr-defined]
-        problems.append(("lidar.rings", f"an Ouster has 16, 32, 64 or 128 beams, got {spec.rings}"))  # type: ignore[attr-defined]
-    if spec.frame_id != "os_sensor":  # type: ignore[attr-defined]
+    if spec.rings not in (16, 32, 64, 128):
+        problems.append(("lidar.rings", f"an Ouster has 16, 32, 64 or 128 beams, got {spec.rings}"))
+    if spec.frame_id != "os_sensor":
         problems.append(
             (
                 "lidar.frame_id",
                 "Ouster packets carry no frame; they decode in ouster_ros's "
                 f"'os_sensor': set lidar.frame_id = 'os_sensor' (got {spec.frame_id!r})",
-            )  # type: ignore[attr-defined]
+            )
         )
     return problems
 
@@ -197,4 +198,4 @@ class OusterFiring:
         packets = OusterPackets(
             stamps, data, len(idx), self.metadata, xyz, times[col], beam.astype(np.uint16)
         )
-        return SimulatedScan(float(times[0]), {}, packets)  # type: ignore[arg-type]
+        return SimulatedScan(float(times[0]), {}, packets)
