@@ -342,3 +342,45 @@ def test_older_driver_bag_with_flat_metadata_and_lost_packets(tmp_path: Path) ->
     column = np.rint((time_of - time_of.min()) * 512 * 10).astype(int)
     assert len(old[1]) == np.isin(column, lost_columns, invert=True).sum() < len(complete[1])
     np.testing.assert_array_equal(old[1].xyz, complete[1].xyz[~np.isin(column, lost_columns)])
+
+
+def test_imu_packets_read_as_imu_samples(tmp_path: Path) -> None:
+    """LEGACY IMU packets (layout checked against ouster-sdk 1.0.1's PacketFormat: sys, accel
+    and gyro times in ns, acceleration in g, angular velocity in deg/s, float32) become IMU
+    samples in SI units on the bag's clock, read by the mapping beside the packets' scans."""
+    import struct
+
+    from canopy_kit.mapping.sensors import ImuBuffer
+
+    sim, _, _ = rotations(512, 10, RNG19, n=2)
+    start, end = sim[0].stamps[0], sim[1].stamps[-1]
+    log = np.arange(start, end, 0.01)  # 100 Hz
+    delay_ns = 52_000  # from the gyro's reading to the packet's sending
+    gyro_deg = np.array([5.0, -10.0, 20.0])
+    acc_g = np.array([0.01, 0.02, 1.0])
+    with BagWriter(tmp_path / "bag", "ros2-mcap") as w:
+        for p in sim:
+            w.write_ouster_packets(TOPIC, p.stamps, p.data, p.metadata)
+        for k, t in enumerate(log):
+            gyro_ts = 7_000_000_000 + k * 10_000_000
+            packet = struct.pack(
+                "<QQQ6f", gyro_ts + delay_ns, gyro_ts - 1000, gyro_ts, *acc_g, *gyro_deg
+            )
+            w.write_ouster_packets("/ouster/imu_packets", [t], [np.frombuffer(packet, np.uint8)])
+    with open_bag(w.path) as bag:
+        topics = resolve_topics(bag)
+        assert topics.imu == "/ouster/imu_packets" and topics.scans == TOPIC
+        series = bag.imu()
+        buffer = ImuBuffer()
+        scans = list(sensor_messages(bag, topics, buffer))
+    assert len(scans) == 2 and series is not None and len(series.t) == len(log)
+    expected_t = np.array([round(t * 1e9) - delay_ns for t in log]) * 1e-9
+    assert np.abs(series.t - expected_t).max() < 1e-6
+    np.testing.assert_allclose(
+        series.angular_velocity, np.tile(np.deg2rad(gyro_deg), (len(log), 1)), rtol=1e-6
+    )
+    np.testing.assert_allclose(
+        series.linear_acceleration, np.tile(acc_g * 9.80665, (len(log), 1)), rtol=1e-6
+    )
+    assert series.frame_id == "os_sensor" == scans[0].frame_id
+    assert len(buffer) == len(log)

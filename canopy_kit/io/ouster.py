@@ -70,6 +70,7 @@ class OusterInfo:
 
     lidar_mode: str  # "1024x10"
     profile: str
+    imu_profile: str  # udp_profile_imu ("LEGACY": 48-byte packets)
     columns_per_frame: int
     fps: int
     columns_per_packet: int
@@ -161,6 +162,11 @@ def parse_metadata(text: str, source: str) -> OusterInfo:
     return OusterInfo(
         lidar_mode=mode,
         profile=profile,
+        imu_profile=str(
+            fmt.get("udp_profile_imu")
+            or _find(meta, "udp_profile_imu", ("config_params",))
+            or "LEGACY"
+        ),
         columns_per_frame=int(fmt.get("columns_per_frame", width)),
         fps=fps,
         columns_per_packet=int(fmt.get("columns_per_packet", 16)),
@@ -201,7 +207,7 @@ def metadata_json(info: OusterInfo) -> str:
             "config_params": {
                 "lidar_mode": info.lidar_mode,
                 "udp_profile_lidar": info.profile,
-                "udp_profile_imu": "LEGACY",
+                "udp_profile_imu": info.imu_profile,
                 "columns_per_packet": info.columns_per_packet,
                 "timestamp_mode": "TIME_FROM_INTERNAL_OSC",
             },
@@ -224,7 +230,7 @@ def metadata_json(info: OusterInfo) -> str:
                 "column_window": list(info.column_window),
                 "fps": info.fps,
                 "udp_profile_lidar": info.profile,
-                "udp_profile_imu": "LEGACY",
+                "udp_profile_imu": info.imu_profile,
             },
         },
         indent=1,

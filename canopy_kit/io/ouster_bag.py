@@ -37,6 +37,9 @@ from canopy_kit.io.ouster import (
 
 # The type the wrapped reader gives a lidar-packets topic (one message per rotation).
 OUSTER_LIDAR = "ouster_sensor_msgs/msg/PacketMsg (lidar)"
+IMU = "sensor_msgs/msg/Imu"  # the type an IMU-packets topic reads as (one sample a packet)
+IMU_PACKET_BYTES = 48  # the LEGACY IMU profile: 3 u64 times, accel (g), gyro (deg/s) f32
+STANDARD_GRAVITY = 9.80665
 PACKET_TYPES = ("ouster_sensor_msgs/msg/PacketMsg", "ouster_ros/msg/PacketMsg")
 STRING = "std_msgs/msg/String"
 PACKET_DEFINITION = "uint8[] buf\n"
@@ -80,6 +83,43 @@ class OusterRotation:
 
 
 @dataclasses.dataclass
+class _Vector:
+    x: float
+    y: float
+    z: float
+
+
+@dataclasses.dataclass
+class _Quaternion:
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+@dataclasses.dataclass
+class OusterImuSample:
+    """One LEGACY IMU packet as the fields of a ``sensor_msgs/Imu`` the mapping reads."""
+
+    header: _Header
+    angular_velocity: _Vector
+    linear_acceleration: _Vector
+    orientation: _Quaternion
+    __msgtype__: str = IMU
+
+
+class _ImuPacket:
+    """An IMU packet and its log time, yielded as a message's raw data (``bytes()`` of it is
+    empty, so the mapping's parser of serialized Imu messages leaves it to ``deserialize``)."""
+
+    def __init__(self, buf: bytes, log_ns: int) -> None:
+        self.buf, self.log_ns = buf, log_ns
+
+    def __bytes__(self) -> bytes:
+        return b""
+
+
+@dataclasses.dataclass
 class _Pending:
     log_ns: list[int]
     packets: list[bytes]
@@ -97,6 +137,7 @@ class OusterPacketReader:
         self._original: dict[int, Any] = {}
         self._lidar: dict[int, Any] = {}
         self._connections: list[Any] | None = None
+        self._imu: dict[int, Any] = {}
 
     @property
     def connections(self) -> list[Any]:
@@ -107,7 +148,12 @@ class OusterPacketReader:
             return self._connections
         conns = []
         for c in self._reader.connections:
-            if c.msgtype in PACKET_TYPES and "imu" not in c.topic.lower():
+            if c.msgtype in PACKET_TYPES and "imu" in c.topic.lower() and self._legacy_imu(c):
+                imu = c._replace(msgtype=IMU)
+                self._original[id(imu)] = c
+                self._imu[id(c)] = imu
+                conns.append(imu)
+            elif c.msgtype in PACKET_TYPES and "imu" not in c.topic.lower():
                 lidar = c._replace(msgtype=OUSTER_LIDAR, msgcount=self._rotations(c))
                 self._original[id(lidar)] = c  # rosbags' Connection: a NamedTuple
                 self._lidar[id(c)] = lidar
@@ -116,6 +162,13 @@ class OusterPacketReader:
                 conns.append(c)
         self._connections = conns
         return conns
+
+    def _legacy_imu(self, conn: Any) -> bool:
+        """Are the IMU packets of ``conn`` in the LEGACY profile (the one read)?"""
+        try:
+            return self.info(conn.topic).imu_profile == "LEGACY"
+        except InputError:
+            return False
 
     def _rotations(self, conn: Any) -> int:
         try:
@@ -165,7 +218,12 @@ class OusterPacketReader:
         for conn, log_ns, raw in self._reader.messages(connections=inner, **seek):
             lidar = self._lidar.get(id(conn))
             if lidar is None:
-                yield conn, log_ns, raw
+                imu = self._imu.get(id(conn))
+                if imu is not None:
+                    buf = bytes(self._reader.deserialize(raw, conn.msgtype).buf)
+                    yield imu, log_ns, _ImuPacket(buf, int(log_ns))
+                else:
+                    yield conn, log_ns, raw
                 continue
             buf = bytes(self._reader.deserialize(raw, conn.msgtype).buf)
             info = self.info(conn.topic)
@@ -185,6 +243,8 @@ class OusterPacketReader:
             yield lidar, group.log_ns[0], group
 
     def deserialize(self, raw: Any, msgtype: str) -> Any:
+        if isinstance(raw, _ImuPacket):
+            return imu_sample(raw.buf, raw.log_ns, self.info(""))
         if isinstance(raw, _Pending):
             topic = next(c.topic for c in self.connections if c.msgtype == msgtype)
             stamp = raw.log_ns[0]
@@ -192,6 +252,30 @@ class OusterPacketReader:
             info = self.info(topic)
             return OusterRotation(raw.log_ns, raw.packets, info, topic, header, raw.interior)
         return self._reader.deserialize(raw, msgtype)
+
+
+def imu_sample(buf: bytes, log_ns: int, info: OusterInfo) -> OusterImuSample:
+    """A LEGACY IMU packet logged at ``log_ns`` as a sample in ``os_sensor`` (rotated by the
+    metadata's ``imu_to_sensor_transform``; its 1-2 cm lever arm is left out), stamped on the
+    bag's clock: the log time less the time from the gyro's reading to the packet's sending
+    (the lidar's points carry the same recording delay). A packet of another size gives NaN
+    values, which the mapping drops and counts."""
+    if len(buf) == IMU_PACKET_BYTES:
+        words = np.frombuffer(buf, np.uint8)
+        sys_ts, _, gyro_ts = (int(v) for v in words[:24].view("<u8"))
+        values = words[24:48].view("<f4").astype(np.float64)
+        stamp = log_ns - (sys_ts - gyro_ts)
+    else:
+        values, stamp = np.full(6, np.nan), log_ns
+    rot = info.imu_to_sensor[:3, :3]
+    acc = rot @ values[:3] * STANDARD_GRAVITY
+    gyro = rot @ np.deg2rad(values[3:6])
+    return OusterImuSample(
+        _Header(_Stamp(stamp // 10**9, stamp % 10**9), "os_sensor"),
+        _Vector(*(float(v) for v in gyro)),
+        _Vector(*(float(v) for v in acc)),
+        _Quaternion(0.0, 0.0, 0.0, 1.0),
+    )
 
 
 def _frame_id(info: OusterInfo, buf: bytes) -> int:

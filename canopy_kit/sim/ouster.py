@@ -55,6 +55,7 @@ def sensor_info(lidar_spec: LidarSpec) -> OusterInfo:
     return OusterInfo(
         lidar_mode=f"{width}x{fps}",
         profile=lidar_spec.ouster_profile,
+        imu_profile="LEGACY",
         columns_per_frame=width,
         fps=fps,
         columns_per_packet=COLUMNS_PER_PACKET,
