@@ -230,7 +230,7 @@ def test_simulator_ouster_settings_are_checked() -> None:
 
 
 # -- simulated sessions through the pipeline ------------------------------------------------------
-def _session_run(tmp_path_factory, columns: int, rate_hz: int, profile: str):
+def _session_run(tmp_path_factory, columns: int, rate_hz: int, profile: str, imu_topic: str):
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run
     from canopy_kit.sim import simulate_session
@@ -240,6 +240,11 @@ def _session_run(tmp_path_factory, columns: int, rate_hz: int, profile: str):
         {
             "seed": 11,
             "orchard": {"rows": 1, "trees_per_row": 3},
+            "imu": {  # /ouster/imu_packets: the sensor's own IMU packets, at its 100 Hz
+                "topic": imu_topic,
+                "output": "ouster_packets" if "ouster" in imu_topic else "imu",
+                "rate_hz": 100.0 if "ouster" in imu_topic else 200.0,
+            },
             "lidar": {
                 "output": "ouster_packets",
                 "frame_id": "os_sensor",
@@ -283,16 +288,23 @@ def _judge(sim, result) -> dict:
 
 
 @pytest.mark.parametrize(
-    ("columns", "rate_hz", "profile"),
-    [(1024, 10, RNG19), pytest.param(512, 20, "LEGACY", marks=pytest.mark.slow)],
+    ("columns", "rate_hz", "profile", "imu_topic"),
+    [
+        (1024, 10, RNG19, "/ouster/imu_packets"),
+        pytest.param(512, 20, "LEGACY", "/imu/data", marks=pytest.mark.slow),
+    ],
 )
 def test_simulated_ouster_session_maps_and_measures_its_trees(
-    tmp_path_factory, columns: int, rate_hz: int, profile: str
+    tmp_path_factory, columns: int, rate_hz: int, profile: str, imu_topic: str
 ) -> None:
-    """An OS0-32 drive along one row of three pistachio trees, recorded as packets: ATE within
+    """An OS0-32 drive along one row of three pistachio trees, recorded as packets (the IMU too,
+    in the 1024x10 session), the IMU read and no warning: ATE within
     0.10 m, the three trees found one-to-one within 0.5 m, and each tree's convex-hull and alpha
     volume within 10 % of its true crown (test_pipeline's bound for the same estimators)."""
-    sim, result = _session_run(tmp_path_factory, columns, rate_hz, profile)
+    sim, result = _session_run(tmp_path_factory, columns, rate_hz, profile, imu_topic)
+    mapping = result.metrics["mapping"]
+    assert mapping["topics"]["imu"] == imu_topic and mapping["imu"]["standstill_found"]
+    assert result.metrics["warnings"] == []
     got = _judge(sim, result)
     assert got["ate"] <= 0.10
     assert got["found"] == got["truth"] == 3

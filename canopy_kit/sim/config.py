@@ -130,7 +130,9 @@ class DriveSpec:
 
 @dataclass
 class ImuSpec:
-    """IMU at the LiDAR (identity extrinsic); noise densities per √Hz."""
+    """IMU at the LiDAR (identity extrinsic); noise densities per √Hz. ``output``: ``imu``
+    (sensor_msgs/Imu) or ``ouster_packets`` (the Ouster's own IMU packets; needs
+    ``lidar.output = "ouster_packets"``, see canopy_kit.sim.ouster)."""
 
     enabled: bool = True
     rate_hz: float = 200.0
@@ -140,6 +142,7 @@ class ImuSpec:
     accel_bias_sigma: float = 0.05
     topic: str = "/imu/data"
     frame_id: str = "lidar"
+    output: Literal["imu", "ouster_packets"] = "imu"
 
 
 @dataclass
@@ -465,6 +468,11 @@ def validate(c: SimConfig) -> None:
             "lidar.max_range",
             f"a VLP-16 packet holds ranges up to 131.07 m, got {li.max_range}",
         )
+    _check(
+        c.imu.output != "ouster_packets" or li.output == "ouster_packets",
+        "imu.output",
+        "Ouster IMU packets need the Ouster's lidar packets (lidar.output = 'ouster_packets')",
+    )
     if li.output == "ouster_packets":
         from canopy_kit.sim.ouster import check_spec
 

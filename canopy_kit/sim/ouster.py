@@ -9,7 +9,9 @@ FOV over 80°) off the axis; ``lidar_to_sensor_transform`` is the OS sensors' (y
 angle ``2π(1 − m/W)``; every ray is cast from the beam origin along the direction the decoder
 (:mod:`canopy_kit.io.ouster`) reconstructs, so decoded points lie on the scene's surfaces,
 off only by the range noise and the 1 mm range unit. The sensor clock counts ns from a boot
-:data:`BOOT_S` before the drive; each packet is logged at its last column's time.
+:data:`BOOT_S` before the drive; each packet is logged at its last column's time. With
+``imu.output = "ouster_packets"`` the IMU samples go out as the sensor's LEGACY IMU packets,
+each logged :data:`IMU_SEND_NS` after its reading.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ if TYPE_CHECKING:
     from canopy_kit.sim.lidar import SimulatedScan, SpinningLidar
 
 BOOT_S = 1234.5  # the sensor was switched on this long before the drive started
+IMU_SEND_NS = 52_000  # from an IMU packet's gyro reading to its sending (and logging)
 COLUMNS_PER_PACKET = 16
 OS1_AZIMUTH_DEG = (3.164, 1.055, -1.055, -3.164)
 
@@ -159,6 +162,20 @@ class OusterFiring:
         self.start = lidar.trajectory.start_time
         self.direction, self.offset = column_xyz_tables(self.info)  # sensor frame, (W, H, 3)
         self.beam_origin_m = self.info.beam_origin_mm * 1e-3
+
+    def imu_packet(
+        self, t: float, angular_velocity: np.ndarray, linear_acceleration: np.ndarray
+    ) -> tuple[float, np.ndarray]:
+        """The LEGACY IMU packet of a sample taken at ``t`` (rad/s, m/s² in os_sensor, which
+        the simulated IMU's frame is): its log time and 48 bytes (times in ns on the sensor
+        clock, acceleration in g, angular velocity in deg/s, float32)."""
+        gyro_ts = int(round((t - self.start + BOOT_S) * 1e9))
+        times = np.array([gyro_ts + IMU_SEND_NS, gyro_ts, gyro_ts], "<u8")
+        values = np.concatenate(
+            [np.asarray(linear_acceleration) / 9.80665, np.rad2deg(angular_velocity)]
+        ).astype("<f4")
+        packet = np.concatenate([times.view(np.uint8), values.view(np.uint8)])
+        return t + IMU_SEND_NS * 1e-9, packet
 
     def sweep(self, stamp: float) -> SimulatedScan:
         """The packets of the rotation that starts at ``stamp``."""

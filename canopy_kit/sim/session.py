@@ -169,11 +169,21 @@ def _write_session(
                 trajectory.start_time, [(t.parent, t.child, t.matrix) for t in mounts.tf_static]
             )
         cursors = {"imu": 0, "gnss": 0, "odom": 0}
+        ouster_imu = config.imu.output == "ouster_packets"
 
         def flush(until: float) -> None:
             if imu is not None:
                 i = cursors["imu"]
                 while i < len(imu.t) and imu.t[i] < until:
+                    if ouster_imu:  # the Ouster's own IMU packets (canopy_kit.sim.ouster)
+                        stamp, packet = lidar.ouster.imu_packet(  # type: ignore[union-attr]
+                            imu.t[i] + mounts.imu_time_offset,
+                            imu.angular_velocity[i],
+                            imu.linear_acceleration[i],
+                        )
+                        writer.write_ouster_packets(config.imu.topic, [stamp], [packet])
+                        i += 1
+                        continue
                     writer.write_imu(
                         config.imu.topic,
                         imu.t[i] + mounts.imu_time_offset,
