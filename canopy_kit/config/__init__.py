@@ -78,6 +78,8 @@ class MappingConfig:
     gnss_lever_arm: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     # Topics (empty: the busiest topic of the type)
     pointcloud_topic: str = ""
+    # Ouster packet bags: the sensor's metadata JSON when the bag has no /ouster/metadata topic
+    ouster_metadata: str = ""
     imu_topic: str = ""
     gnss_topic: str = ""
     # Sensor rig (docs/MAPPING.md, "Sensor rigs"): extrinsics from the bag's /tf_static,

@@ -3,8 +3,9 @@
 Scans stream out one at a time (:meth:`BagSession.scans`); IMU, GNSS and odometry are
 small and come out as whole arrays. Topics are found by message type when not named. The
 LiDAR is a PointCloud2 topic or, in a bag without one, the raw packets of the Velodyne
-driver (``velodyne_msgs/VelodyneScan``, decoded by :mod:`canopy_kit.io.velodyne_ros`) or a
-Livox driver's ``CustomMsg`` (:mod:`canopy_kit.io.livox`).
+driver (``velodyne_msgs/VelodyneScan``, decoded by :mod:`canopy_kit.io.velodyne_ros`), a
+Livox driver's ``CustomMsg`` (:mod:`canopy_kit.io.livox`) or ouster_ros's ``PacketMsg``
+(grouped into rotations by :mod:`canopy_kit.io.ouster_bag`).
 """
 
 from __future__ import annotations
@@ -21,18 +22,20 @@ from canopy_kit.io import pointcloud2 as pc2
 from canopy_kit.io.imu_units import acceleration_scale, g_units_warning
 from canopy_kit.io.livox import CUSTOM_MSG_TYPES as LIVOX_TYPES
 from canopy_kit.io.message_log import MessageLog, imu_sample_fault
+from canopy_kit.io.ouster_bag import OUSTER_LIDAR
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMU = "sensor_msgs/msg/Imu"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 ODOMETRY = "nav_msgs/msg/Odometry"
 VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
-LIDAR_TYPES = (POINTCLOUD2, VELODYNE_SCAN, *LIVOX_TYPES)  # in order of preference
-KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY, VELODYNE_SCAN, *LIVOX_TYPES)
+LIDAR_TYPES = (POINTCLOUD2, VELODYNE_SCAN, *LIVOX_TYPES, OUSTER_LIDAR)  # in order of preference
+KNOWN_TYPES = (POINTCLOUD2, IMU, NAVSATFIX, ODOMETRY, VELODYNE_SCAN, *LIVOX_TYPES, OUSTER_LIDAR)
 TOPIC_ROLES = {
     POINTCLOUD2: "lidar",
     VELODYNE_SCAN: "lidar",
     **dict.fromkeys(LIVOX_TYPES, "lidar"),
+    OUSTER_LIDAR: "lidar",
     IMU: "imu",
     NAVSATFIX: "gnss",
     ODOMETRY: "odometry",
@@ -154,8 +157,9 @@ def stray_times_warning(path: str, topic: str, stray: list[tuple[int, int]]) -> 
 class BagSession:
     """An open bag. Use as a context manager: ``with open_bag(path) as bag: ...``."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, ouster_metadata: str | Path | None = None) -> None:
         self.path = require_bag(path)
+        self.ouster_metadata = ouster_metadata  # metadata JSON for Ouster packets (io.ouster_bag)
         if self.path.is_file() and self.path.stat().st_size == 0:
             raise InputError(f"{self.path}: file is empty, not a ROS bag")
         if bag_kind(self.path) is None:
@@ -176,6 +180,7 @@ class BagSession:
             target = self.path.parent
         from canopy_kit.io.bag_recovery import sqlite_cut_short
         from canopy_kit.io.livox import LivoxAwareReader, register_livox_types
+        from canopy_kit.io.ouster_bag import wrap_ouster_reader
         from canopy_kit.io.velodyne_ros import register_velodyne_types
 
         if sqlite_cut_short(self.path):
@@ -183,6 +188,7 @@ class BagSession:
             register_velodyne_types(self._reader.typestore)
             register_livox_types(self._reader.typestore)
             self._reader = LivoxAwareReader(self._reader)
+            self._reader = wrap_ouster_reader(self._reader, self.path, self.ouster_metadata)
             return self
         default = get_typestore(Stores.ROS2_HUMBLE)
         register_velodyne_types(default)  # for bags that carry no message definitions
@@ -201,6 +207,7 @@ class BagSession:
         register_velodyne_types(self._reader.typestore)
         register_livox_types(self._reader.typestore)
         self._reader = LivoxAwareReader(self._reader)  # CustomMsg points read with numpy
+        self._reader = wrap_ouster_reader(self._reader, self.path, self.ouster_metadata)
         return self
 
     def _recover(self, reason: str) -> None:
@@ -334,6 +341,11 @@ class BagSession:
                     msg, f"{self.path}: topic {topic!r}: {where}"
                 )
                 unused = 0
+            elif getattr(msg, "__msgtype__", "") == OUSTER_LIDAR:
+                from canopy_kit.io.ouster_bag import scan_from_rotation
+
+                scan = scan_from_rotation(msg, where, index, str(self.path))
+                stamp, xyz, fields, times, unused = scan.stamp, scan.xyz, scan.fields, scan.times, 0
             else:
                 points, unused = pc2.decode_checked(msg, where)
                 xyz = pc2.xyz_from(points, where)
@@ -550,9 +562,10 @@ def read_scan(path: str | Path, index: int, topic: str | None = None) -> Scan:
     raise InputError(f"{path}: scan {index} could not be read")
 
 
-def open_bag(path: str | Path) -> BagSession:
-    """Open a ROS1 or ROS2 bag for reading (use with ``with``)."""
-    return BagSession(path)
+def open_bag(path: str | Path, ouster_metadata: str | Path | None = None) -> BagSession:
+    """Open a ROS1 or ROS2 bag for reading (use with ``with``); ``ouster_metadata``: the
+    sensor's metadata JSON for a bag of Ouster packets without a metadata topic."""
+    return BagSession(path, ouster_metadata)
 
 
 class RosbagReader:

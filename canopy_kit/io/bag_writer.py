@@ -224,6 +224,30 @@ class BagWriter:
             self._connect(topic, msgtype)
         self._writer.write(self._conns[topic], int(timebase_ns), data)
 
+    def write_ouster_packets(
+        self,
+        topic: str,
+        packet_stamps: Any,
+        packets: Any,
+        metadata: str | None = None,
+        metadata_topic: str = "/ouster/metadata",
+        msgtype: str = "ouster_sensor_msgs/msg/PacketMsg",
+    ) -> None:
+        """Ouster lidar packets, one ``PacketMsg`` each (``msgtype``: older drivers'
+        ``ouster_ros/msg/PacketMsg``), logged at ``packet_stamps`` (s); ``metadata`` (the
+        sensor's JSON) goes once on ``metadata_topic`` as a latched std_msgs/String first."""
+        from canopy_kit.io.ouster_bag import register_ouster_types
+
+        register_ouster_types(self.typestore)
+        t = self.typestore.types
+        if metadata is not None and metadata_topic not in self._conns:
+            self._connect(metadata_topic, "std_msgs/msg/String", latched=True)
+            msg = t["std_msgs/msg/String"](data=metadata)
+            self._write(metadata_topic, "std_msgs/msg/String", msg, float(packet_stamps[0]))
+        rows = np.asarray(packets, np.uint8).reshape(len(packet_stamps), -1)
+        for stamp, row in zip(packet_stamps, rows, strict=True):
+            self._write(topic, msgtype, t[msgtype](buf=row), float(stamp))
+
     def write_imu(
         self,
         topic: str,

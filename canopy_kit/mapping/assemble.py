@@ -214,7 +214,7 @@ def _accumulate(
 ) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
     acc = MapAccumulator(job.config.map_voxel_size)
     last = max(job.sweeps, default=-1)
-    with open_bag(job.bag_path) as bag:
+    with open_bag(job.bag_path, job.config.ouster_metadata or None) as bag:
         scans = selected_scans(
             bag, job.topic, job.sweeps.__contains__, job.first, job.start_ns, job.stop_ns
         )

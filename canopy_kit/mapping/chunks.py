@@ -119,7 +119,7 @@ def _run_chunk(chunk: Chunk, tick: Tick) -> OdometryPass:
             counted += 1
             tick()
 
-    with open_bag(chunk.bag_path) as bag:
+    with open_bag(chunk.bag_path, chunk.config.ouster_metadata or None) as bag:
         return odometry_pass(
             bag,
             chunk.config,

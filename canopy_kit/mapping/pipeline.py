@@ -154,7 +154,7 @@ def build_map(
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
     warm_up()  # before the workers fork: they inherit the loaded kernels
     extrinsics: dict = {}
-    with open_bag(bag_path) as bag:
+    with open_bag(bag_path, config.ouster_metadata or None) as bag:
         topics = resolve_topics(
             bag,
             config.pointcloud_topic,
@@ -432,7 +432,7 @@ def stream_map(
     """
     config = config or MappingConfig()
     _check_config(config)
-    with open_bag(bag_path) as bag:
+    with open_bag(bag_path, config.ouster_metadata or None) as bag:
         one = PassOne(bag, config, progress, keep_all_points=True)
         georef = _RunningGeoreference(config) if one.gnss is not None else None
         pending: list[FrontendSweep] = []

@@ -84,9 +84,11 @@ class LidarSpec:
     ``vlp16`` (a VLP-16's firing sequence and laser table; ``rings``, ``vertical_fov``,
     ``columns`` and ``time_field`` are then unused). ``output``: ``points``
     (sensor_msgs/PointCloud2) or ``velodyne_packets`` (velodyne_msgs/VelodyneScan, the raw
-    packets; fires as a VLP-16). ``firing`` ``livox-mid360`` / ``livox-avia``: a Livox
-    non-repetitive pattern (:mod:`canopy_kit.sim.livox`; ``output`` ``livox_custom`` writes
-    livox_ros_driver2 CustomMsg, ``points`` the driver2 PointCloud2 layout).
+    packets; fires as a VLP-16) or ``ouster_packets`` (ouster_ros PacketMsg of lidar mode
+    ``columns`` x ``rate_hz`` and UDP profile ``ouster_profile``; see canopy_kit.sim.ouster).
+    ``firing`` ``livox-mid360`` / ``livox-avia``: a Livox non-repetitive pattern
+    (:mod:`canopy_kit.sim.livox`; ``output`` ``livox_custom`` writes livox_ros_driver2
+    CustomMsg, ``points`` the driver2 PointCloud2 layout).
     """
 
     rings: int = 32
@@ -103,7 +105,10 @@ class LidarSpec:
     frame_id: str = "lidar"
     topic: str = "/points"
     firing: Literal["columns", "vlp16", "livox-mid360", "livox-avia"] = "columns"
-    output: Literal["points", "velodyne_packets", "livox_custom"] = "points"
+    output: Literal["points", "velodyne_packets", "livox_custom", "ouster_packets"] = "points"
+    ouster_profile: Literal["RNG19_RFL8_SIG16_NIR16", "LEGACY", "RNG15_RFL8_NIR8"] = (
+        "RNG19_RFL8_SIG16_NIR16"
+    )
 
 
 @dataclass
@@ -128,7 +133,9 @@ class DriveSpec:
 
 @dataclass
 class ImuSpec:
-    """IMU at the LiDAR (identity extrinsic); noise densities per √Hz."""
+    """IMU at the LiDAR (identity extrinsic); noise densities per √Hz. ``output``: ``imu``
+    (sensor_msgs/Imu) or ``ouster_packets`` (the Ouster's own IMU packets; needs
+    ``lidar.output = "ouster_packets"``, see canopy_kit.sim.ouster)."""
 
     enabled: bool = True
     rate_hz: float = 200.0
@@ -139,6 +146,7 @@ class ImuSpec:
     topic: str = "/imu/data"
     frame_id: str = "lidar"
     acceleration_unit: Literal["m/s2", "g"] = "m/s2"  # g: as Livox drivers publish it
+    output: Literal["imu", "ouster_packets"] = "imu"
 
 
 @dataclass
@@ -498,6 +506,16 @@ def validate(c: SimConfig) -> None:
         f"{li.output!r} does not go with firing {li.firing!r} (livox_custom needs a Livox "
         "firing; a Livox firing writes livox_custom or points)",
     )
+    _check(
+        c.imu.output != "ouster_packets" or li.output == "ouster_packets",
+        "imu.output",
+        "Ouster IMU packets need the Ouster's lidar packets (lidar.output = 'ouster_packets')",
+    )
+    if li.output == "ouster_packets":
+        from canopy_kit.sim.ouster import check_spec
+
+        for name, problem in check_spec(li):
+            _check(False, name, problem)
     _check(
         d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive"
     )

@@ -20,6 +20,7 @@ from canopy_kit.sim.trajectory import Trajectory
 if TYPE_CHECKING:
     from canopy_kit.io.bag_writer import BagWriter
     from canopy_kit.sim.livox import LivoxMessage
+    from canopy_kit.sim.ouster import OusterPackets
     from canopy_kit.sim.velodyne import VelodynePackets
 
 REFLECTIVITY = {GROUND: 0.30, GRASS: 0.45, WOOD: 0.35, FOLIAGE: 0.60}
@@ -32,7 +33,7 @@ class SimulatedScan:
 
     stamp: float
     columns: dict[str, np.ndarray]
-    packets: VelodynePackets | None = None
+    packets: VelodynePackets | OusterPackets | None = None
     livox: LivoxMessage | None = None  # a Livox CustomMsg (canopy_kit.sim.livox)
 
     @property
@@ -40,9 +41,14 @@ class SimulatedScan:
         return self.packets.returns if self.packets is not None else len(self.columns["x"])
 
     def write(self, writer: BagWriter, topic: str, frame_id: str) -> None:
-        """Write the sweep to a bag: a PointCloud2, the packets as one VelodyneScan, or a Livox
-        CustomMsg."""
-        if self.packets is not None:
+        """Write the sweep to a bag: a PointCloud2, the packets as one VelodyneScan or as
+        Ouster PacketMsgs (one a packet), or a Livox CustomMsg."""
+        from canopy_kit.sim.ouster import OusterPackets
+
+        if isinstance(self.packets, OusterPackets):  # its frame is os_sensor, not in the packets
+            p = self.packets
+            writer.write_ouster_packets(topic, p.stamps, p.data, p.metadata)
+        elif self.packets is not None:
             writer.write_velodyne_scan(topic, self.packets.stamps, self.packets.data, frame_id)
         elif self.livox is not None:
             self.livox.write(writer, topic, frame_id)
@@ -90,6 +96,11 @@ class SpinningLidar:
             from canopy_kit.sim.livox import LivoxFiring
 
             self._vlp16 = LivoxFiring(self)  # type: ignore[assignment]
+        self.ouster = None  # records Ouster packets (canopy_kit.sim.ouster)
+        if spec.output == "ouster_packets":
+            from canopy_kit.sim.ouster import OusterFiring
+
+            self.ouster = OusterFiring(self)
 
     @property
     def sweep_period(self) -> float:
@@ -147,6 +158,8 @@ class SpinningLidar:
         """Simulate the sweep that starts at ``stamp``."""
         if self._vlp16 is not None:
             return self._vlp16.sweep(stamp)
+        if self.ouster is not None:
+            return self.ouster.sweep(stamp)
         sp = self.spec
         n_col, n_ring = sp.columns, sp.rings
         _, _, idx, ranges, prim, intensity = self._cast_columns(stamp)

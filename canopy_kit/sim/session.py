@@ -171,11 +171,21 @@ def _write_session(
             )
         cursors = {"imu": 0, "gnss": 0, "odom": 0}
         accel_unit = 1 / STANDARD_GRAVITY if config.imu.acceleration_unit == "g" else 1.0
+        ouster_imu = config.imu.output == "ouster_packets"
 
         def flush(until: float) -> None:
             if imu is not None:
                 i = cursors["imu"]
                 while i < len(imu.t) and imu.t[i] < until:
+                    if ouster_imu:  # the Ouster's own IMU packets (canopy_kit.sim.ouster)
+                        stamp, packet = lidar.ouster.imu_packet(  # type: ignore[union-attr]
+                            imu.t[i] + mounts.imu_time_offset,
+                            imu.angular_velocity[i],
+                            imu.linear_acceleration[i],
+                        )
+                        writer.write_ouster_packets(config.imu.topic, [stamp], [packet])
+                        i += 1
+                        continue
                     writer.write_imu(
                         config.imu.topic,
                         imu.t[i] + mounts.imu_time_offset,
@@ -230,6 +240,8 @@ def _write_session(
             scan.write(writer, config.lidar.topic, mounts.lidar_frame)
             report("LiDAR sweeps", k + 1, len(sweeps))
         flush(trajectory.end_time + 1.0)
+    if lidar.ouster is not None:  # the metadata beside the bag too, as older drivers kept it
+        atomic_write_text(root / "ouster_metadata.json", lidar.ouster.metadata + "\n")
     if config.drone.enabled:
         from canopy_kit.sim.drone import simulate_drone_flight
 

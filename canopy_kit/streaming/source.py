@@ -64,7 +64,7 @@ class SweepSource:
 
         cfg = self.config
         n_sweeps = 0
-        with open_bag(self.bag) as bag:
+        with open_bag(self.bag, self.config.ouster_metadata or None) as bag:
             topics = resolve_topics(
                 bag, cfg.pointcloud_topic, cfg.imu_topic, cfg.gnss_topic, cfg.use_imu, cfg.use_gnss
             )
