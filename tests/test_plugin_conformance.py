@@ -386,3 +386,29 @@ def test_constraints_read_from_the_annotation_and_shown_in_params():
     shown = {p.name: p.type_name for p in parameters_of(Ranged)}
     assert shown["size"] == "float, a positive number"
     assert shown["margin"] == "Optional[float], a number >= 0"
+
+
+def test_a_run_builds_its_segmenter_once_and_segments_with_that_instance(tmp_path, monkeypatch):
+    """pipeline.check_settings builds and validates the segmenter; the segment stage uses
+    that instance (it is fitted), and no other is built (docs/ARCHITECTURE.md)."""
+    from fixtures_sim import synthetic_orchard
+
+    from canopy_kit.config import load_preset
+    from canopy_kit.io.clouds import write_cloud
+    from canopy_kit.pipeline import compute
+
+    built: list[str] = []
+    real = plugins.create
+
+    def counting(kind, name, *args, **kwargs):
+        if kind == "segmenters":
+            built.append(name)
+        return real(kind, name, *args, **kwargs)
+
+    monkeypatch.setattr(plugins, "create", counting)
+    orchard = synthetic_orchard(rows=1, trees_per_row=3)
+    map_file = write_cloud(tmp_path / "map.laz", orchard.cloud)
+    ctx, _ = compute(load_preset("adaptive"), map_file, tmp_path / "run", use_cache=False)
+    assert built == ["adaptive"]
+    assert hasattr(ctx.segmenter, "labels_")  # the instance the stage fitted
+    assert ctx.segmentation.n_trees == 3  # the synthetic orchard's trees

@@ -49,6 +49,7 @@ class RunContext:
     truth_dir: Path | None = None  # simulated session the run was checked against
     layout: Any = None  # row and tree spacing, trunks per segment (segment.layout.Layout)
     row_profiles: Any = None  # per row and metre: height, width, TRV, LWA (segment.row_profile)
+    segmenter: Any = None  # the segmenter plugin, built and validated once per run
     estimators: dict[str, Any] | None = None  # the volume estimators, built once per run
     surfaces: dict[int, list[Surface]] = field(default_factory=dict)  # drawn solids per segment
 
@@ -143,7 +144,7 @@ def compute(
         raise InputError(f"{drone_images}: drone image folder does not exist")
     if truth is not None and not Path(truth).is_dir():
         raise InputError(f"{truth}: simulated session folder does not exist")
-    estimators = check_settings(config)
+    segmenter, estimators = check_settings(config)
     if drone_images is not None:
         from ground_truth.exif import read_flight
 
@@ -151,7 +152,7 @@ def compute(
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache(out / ".cache", enabled=use_cache)
     report = progress or (lambda *_: None)
-    ctx = RunContext(config, estimators=estimators)
+    ctx = RunContext(config, segmenter=segmenter, estimators=estimators)
     if finished is not None:
         map_key = stage_key("map file", finished.fingerprint())
         ctx.mapping = cache.get_or_compute(
@@ -188,19 +189,17 @@ def compute(
     return ctx, cache
 
 
-def check_settings(config: PipelineConfig) -> dict[str, Any]:
+def check_settings(config: PipelineConfig) -> tuple[Any, dict[str, Any]]:
     """Plugins, their parameters and the preprocessing ranges, checked before any stage runs
-    (a typo in a preset must not cost a mapping run first); the volume estimators, built
-    once here, are returned for the volume stage."""
-    from canopy_kit import plugins
+    (a typo in a preset must not cost a mapping run first). The segmenter and the volume
+    estimators are built and validated here, once; the stages use these instances."""
     from canopy_kit.segment.preprocess import check_preprocess_config
+    from canopy_kit.segment.verb import make_segmenter
     from canopy_kit.volume.verb import build_estimators
 
     check_preprocess_config(config.preprocess)
-    plugins.create(
-        "segmenters", config.segment.method, config.segment.params, where="segment.params"
-    )
-    return build_estimators(config.volume)
+    segmenter = make_segmenter(config.segment.method, config.segment.params)
+    return segmenter, build_estimators(config.volume)
 
 
 # -- stages ---------------------------------------------------------------------------------
@@ -225,7 +224,8 @@ def segment_stage(ctx: RunContext, progress: Progress) -> Any:
     from canopy_kit.segment.verb import make_segmenter, segment
 
     cfg = ctx.config
-    segmenter = make_segmenter(cfg.segment.method, cfg.segment.params)
+    # the instance check_settings built (a context made by hand builds its own)
+    segmenter = ctx.segmenter or make_segmenter(cfg.segment.method, cfg.segment.params)
     direction = driving_direction(ctx.mapping.trajectory)
     return segment(
         ctx.mapping.map,
