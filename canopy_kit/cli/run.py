@@ -75,7 +75,7 @@ def run(
     """Map, segment, measure and (optionally) validate one field session; write the report.
 
     BAG may also be a finished map (LAS/LAZ/PCD/PLY): mapping is skipped
-    (docs/DATASETS_maps.md).
+    (docs/DATASETS.md, "Maps made elsewhere").
 
     Exit codes: 0 done (also when checks failed, unless --strict), 2 bad input, 3 processing
     failed, 4 with --strict: done, but a check failed (docs/RELIABILITY.md).

@@ -24,7 +24,7 @@ ahead of UTC by the leap seconds since 1980 (:data:`GPS_UTC_LEAP_SECONDS`: 18 s 
 2017-01-01): UTC = GPS - leap. The default is UTC because the one real MTLS sample says so:
 its VLP-16 (clock set by the receiver's UTC $GPRMC) stands still to 6 mm over the whole
 capture, as the track read as UTC does (motion starts 0.1 s after the capture ends), while
-read as GPS time the track would have it moving at 0.25 m/s (docs/DATASETS_pcap.md).
+read as GPS time the track would have it moving at 0.25 m/s (docs/DATASETS.md, "Velodyne pcap drives").
 
 Checks, each an :class:`InputError` naming the file and line: no fixes; times that go
 back; a gap longer than :data:`GAP_FACTOR` × the median interval (and over 1 s); points

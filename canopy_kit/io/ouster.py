@@ -2,7 +2,7 @@
 
 Follows Ouster's published packet format (firmware user manual, "Lidar data format"; the
 same layout as ``ouster-sdk``'s ``PacketFormat``, checked against ouster-sdk 1.0.1 in
-docs/DATASETS_ouster.md). ``ouster-sdk`` itself is not used: its wheel pins rosbags 0.9,
+docs/DATASETS.md, "Ouster packet bags"). ``ouster-sdk`` itself is not used: its wheel pins rosbags 0.9,
 click < 8.1.8 and flask, which would downgrade this project's rosbags 0.11.
 
 A packet holds ``columns_per_packet`` columns (measurement blocks), each a column header
