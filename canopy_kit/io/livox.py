@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from canopy_kit.errors import InputError, MessageError
+from canopy_kit.io.ros_types import register_missing
 
 CUSTOM_MSG = "livox_ros_driver2/msg/CustomMsg"
 CUSTOM_MSG_V1 = "livox_ros_driver/msg/CustomMsg"
@@ -68,15 +69,7 @@ POINT_RECORD_CDR = np.dtype(  # CDR: the next record's uint32 starts on a multip
 
 def register_livox_types(typestore: Any) -> None:
     """Add the livox_ros_driver(2) types a rosbags typestore lacks (rosbags ships none)."""
-    from rosbags.typesys import get_types_from_msg
-
-    missing = [name for name in MESSAGE_DEFINITIONS if name not in typestore.fielddefs]
-    if not missing:
-        return
-    types: dict[str, Any] = {}
-    for name in missing:
-        types.update(get_types_from_msg(MESSAGE_DEFINITIONS[name], name))
-    typestore.register(types)
+    register_missing(typestore, MESSAGE_DEFINITIONS)
 
 
 @dataclass

@@ -34,6 +34,7 @@ from canopy_kit.io.ouster import (
     parse_metadata,
     read_metadata,
 )
+from canopy_kit.io.ros_types import register_missing
 
 # The type the wrapped reader gives a lidar-packets topic (one message per rotation).
 OUSTER_LIDAR = "ouster_sensor_msgs/msg/PacketMsg (lidar)"
@@ -47,14 +48,7 @@ PACKET_DEFINITION = "uint8[] buf\n"
 
 def register_ouster_types(typestore: Any) -> None:
     """Add the PacketMsg types a rosbags typestore lacks (rosbags ships none of them)."""
-    from rosbags.typesys import get_types_from_msg
-
-    types: dict[str, Any] = {}
-    for name in PACKET_TYPES:
-        if name not in typestore.fielddefs:
-            types.update(get_types_from_msg(PACKET_DEFINITION, name))
-    if types:
-        typestore.register(types)
+    register_missing(typestore, dict.fromkeys(PACKET_TYPES, PACKET_DEFINITION))
 
 
 @dataclasses.dataclass

@@ -25,6 +25,7 @@ import numpy as np
 
 from canopy_kit.errors import InputError, MessageError
 from canopy_kit.io.bag import VELODYNE_SCAN, Scan
+from canopy_kit.io.ros_types import register_missing
 from canopy_kit.io.velodyne import (
     DATA_PACKET_BYTES,
     HOUR_US,
@@ -45,15 +46,7 @@ MESSAGE_DEFINITIONS = {
 
 def register_velodyne_types(typestore: Any) -> None:
     """Add the velodyne_msgs types a rosbags typestore lacks (rosbags ships none of them)."""
-    from rosbags.typesys import get_types_from_msg
-
-    missing = [name for name in MESSAGE_DEFINITIONS if name not in typestore.fielddefs]
-    if not missing:
-        return
-    types: dict[str, Any] = {}
-    for name in missing:
-        types.update(get_types_from_msg(MESSAGE_DEFINITIONS[name], name))
-    typestore.register(types)
+    register_missing(typestore, MESSAGE_DEFINITIONS)
 
 
 def _seconds(stamp: Any) -> float:

@@ -27,7 +27,7 @@ from canopy_kit.io.bag import BagSession, open_bag
 from canopy_kit.io.message_log import MessageLog, merged
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass, scan_count
-from canopy_kit.mapping.sensors import resolve_topics
+from canopy_kit.mapping.sensors import topics_for
 
 Progress = Callable[[str, float, float], None]
 OVERLAP_SWEEPS = 40  # scans each chunk after the first starts early
@@ -243,14 +243,7 @@ def run_odometry(
 
     ``rig`` (resolved from the bag when None) says how the IMU sits in the LiDAR frame;
     ``lidar_only`` collects the IMU without using it (to estimate that mounting)."""
-    topics = resolve_topics(
-        bag,
-        config.pointcloud_topic,
-        config.imu_topic,
-        config.gnss_topic,
-        config.use_imu,
-        config.use_gnss,
-    )
+    topics = topics_for(bag, config)
     if rig is None:
         rig = resolve_rig(bag, topics, config)
     n_scans = scan_count(bag, topics.scans)

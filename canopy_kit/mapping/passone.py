@@ -32,8 +32,8 @@ from canopy_kit.mapping.sensors import (
     GnssBuffer,
     ImuBuffer,
     SensorTopics,
-    resolve_topics,
     sensor_messages,
+    topics_for,
 )
 
 Progress = Callable[[str, float, float], None]
@@ -101,14 +101,7 @@ class PassOne:
     ) -> None:
         self.bag = bag
         self.config = config
-        self.topics = resolve_topics(
-            bag,
-            config.pointcloud_topic,
-            config.imu_topic,
-            config.gnss_topic,
-            config.use_imu,
-            config.use_gnss,
-        )
+        self.topics = topics_for(bag, config)
         self.rig = rig if rig is not None else resolve_rig(bag, self.topics, config)
         # ``lidar_only``: the IMU is collected (as recorded) but the front end does not use it.
         self.lidar_only = lidar_only

@@ -43,7 +43,7 @@ from canopy_kit.mapping.gnss import (
 from canopy_kit.mapping.gnss_jumps import odometry_outliers
 from canopy_kit.mapping.kernels import warm_up
 from canopy_kit.mapping.passone import OdometryPass, PassOne, pass_warnings, quality_flags
-from canopy_kit.mapping.sensors import GnssBuffer, SensorTopics, resolve_topics
+from canopy_kit.mapping.sensors import GnssBuffer, SensorTopics, topics_for
 from canopy_kit.mapping.trajectory import ContinuousTrajectory, pose_table
 
 Progress = Callable[[str, float, float], None]
@@ -155,14 +155,7 @@ def build_map(
     warm_up()  # before the workers fork: they inherit the loaded kernels
     extrinsics: dict = {}
     with open_bag(bag_path, config.ouster_metadata or None) as bag:
-        topics = resolve_topics(
-            bag,
-            config.pointcloud_topic,
-            config.imu_topic,
-            config.gnss_topic,
-            config.use_imu,
-            config.use_gnss,
-        )
+        topics = topics_for(bag, config)
         rig = resolve_rig(bag, topics, config)
         rig_warnings = list(rig.warnings)
         if rig.calibrate:

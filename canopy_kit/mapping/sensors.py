@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 from canopy_kit.io import pointcloud2 as pc2
 from canopy_kit.io.bag import (
@@ -63,6 +64,18 @@ def resolve_topics(
         _choice_note(bag, topic, setting) for topic, named, setting in chosen if topic and not named
     ]
     return SensorTopics(scan_topic, imu_topic, gnss_topic, [n for n in notes if n])
+
+
+def topics_for(bag: BagSession, config: MappingConfig) -> SensorTopics:
+    """:func:`resolve_topics` with a mapping config's topic names and sensor switches."""
+    return resolve_topics(
+        bag,
+        config.pointcloud_topic,
+        config.imu_topic,
+        config.gnss_topic,
+        config.use_imu,
+        config.use_gnss,
+    )
 
 
 def _choice_note(bag: BagSession, topic: str, setting: str) -> str | None:

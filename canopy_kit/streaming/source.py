@@ -58,16 +58,14 @@ class SweepSource:
         from canopy_kit.mapping.sensors import (
             GnssBuffer,
             ImuBuffer,
-            resolve_topics,
             sensor_messages,
+            topics_for,
         )
 
         cfg = self.config
         n_sweeps = 0
         with open_bag(self.bag, self.config.ouster_metadata or None) as bag:
-            topics = resolve_topics(
-                bag, cfg.pointcloud_topic, cfg.imu_topic, cfg.gnss_topic, cfg.use_imu, cfg.use_gnss
-            )
+            topics = topics_for(bag, cfg)
             rig = resolve_rig(bag, topics, cfg)
             if rig.calibrate:
                 raise InputError(
