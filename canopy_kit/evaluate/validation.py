@@ -31,8 +31,13 @@ def truth_offset(
     return np.asarray(run_origin, float) - np.asarray(truth_origin, float)
 
 
-def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
-    """Segmentation score: per-point truth labels when the map carries them, else footprints."""
+def score_segmentation(ctx: Any, sim_dir: Path, alignment: Any = None) -> Any:
+    """Segmentation score: per-point truth labels when the map carries them, else footprints.
+
+    Footprints are placed in the truth's frame by ``alignment`` (4 x 4: the drive's best fit
+    to the true poses, the one ATE is measured after) when given, else by the map's
+    georeference: a metre-level receiver's offset would otherwise be scored as a
+    segmentation error (the georeference is judged on its own, mapping "georeferenced")."""
     from canopy_kit.evaluate.segmentation_score import (
         score_footprints,
         score_point_labels,
@@ -50,8 +55,12 @@ def score_segmentation(ctx: Any, sim_dir: Path) -> Any:
         return score_point_labels(
             seg.labels, field, truth_labels=truth_labels.loc[observed], pred_labels=pred_labels
         )
-    shift = truth_offset(cloud.origin, cloud.crs, truth.frame.origin, truth.frame.crs)[:2]
-    pred = {k: v + shift for k, v in seg.footprints.items()}
+    if alignment is not None:
+        a = np.asarray(alignment, dtype=float)
+        pred = {k: np.asarray(v) @ a[:2, :2].T + a[:2, 3] for k, v in seg.footprints.items()}
+    else:
+        shift = truth_offset(cloud.origin, cloud.crs, truth.frame.origin, truth.frame.crs)[:2]
+        pred = {k: v + shift for k, v in seg.footprints.items()}
     return score_footprints(
         pred, truth_footprints(sim_dir), truth_labels=truth_labels, pred_labels=pred_labels
     )
@@ -63,7 +72,8 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
     from canopy_kit.volume.verb import volume_column, volume_methods
 
     truth = load_truth(sim_dir)
-    score = score_segmentation(ctx, sim_dir)
+    mapping_eval = _mapping_evaluation(ctx, sim_dir)
+    score = score_segmentation(ctx, sim_dir, mapping_eval.get("alignment"))
     pairs = score.trees[score.trees["segment_id"] >= 0][["truth_id", "segment_id", "iou"]]
     t = truth.trees.set_index("tree_id")
     matched = pairs.join(
@@ -136,7 +146,6 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
         "segmentation_trees": score.trees,
         "trees": out,
     }
-    mapping_eval = _mapping_evaluation(ctx, sim_dir)
     if mapping_eval:
         result["mapping"] = mapping_eval
     return result
