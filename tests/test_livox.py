@@ -417,3 +417,22 @@ def test_truth_map_reads_a_custom_msg_session(mid360_run) -> None:
         ) & (xyz[:, 2] > tree.z_ground + tree.crown_base_height_m + 0.2)
         assert inside.sum() > 500, tree.label
     assert xyz[:, 2].max() < trees["z_ground"].max() + trees["tree_height_m"].max() + 0.5
+
+
+@pytest.mark.slow
+def test_mid360_pointcloud2_layout_session_maps_segments_and_measures(
+    sim_factory, tmp_path_factory
+) -> None:
+    """livox_ros_driver2's PointCloud2 layout (float64 ``timestamp`` per point, no rings)
+    through the whole run, scored by the per-point truth it can carry."""
+    overrides = {**E2E, "lidar": {"output": "points"}}
+    sim = sim_factory("pistachio", seed=5, overrides=overrides, sensor="livox-mid360")
+    with open_bag(sim.bag) as bag:
+        assert {t.name: t.msgtype for t in bag.topics()}["/livox/lidar"].endswith("PointCloud2")
+    r = _run(sim, tmp_path_factory.mktemp("mid360_points_run"))
+    ev = r.metrics["evaluation"]
+    assert ev["mapping"]["ate_rmse_m"] <= 0.10
+    seg = ev["segmentation"]
+    assert seg["n_truth"] == 3 and seg["success_rate"] >= 0.98 and seg["label_accuracy"] == 1.0
+    assert ev["volumes"]["convex_hull"]["mape_pct"] < 10.0
+    assert ev["volumes"]["alpha_shape"]["mape_pct"] < 10.0
