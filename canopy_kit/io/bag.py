@@ -179,16 +179,12 @@ class BagSession:
         if self.path.is_file() and self.path.suffix in (".db3", ".mcap"):
             target = self.path.parent
         from canopy_kit.io.bag_recovery import sqlite_cut_short
-        from canopy_kit.io.livox import LivoxAwareReader, register_livox_types
-        from canopy_kit.io.ouster_bag import wrap_ouster_reader
+        from canopy_kit.io.livox import register_livox_types
         from canopy_kit.io.velodyne_ros import register_velodyne_types
 
         if sqlite_cut_short(self.path):
             self._recover("the sqlite3 file is shorter than its header says")
-            register_velodyne_types(self._reader.typestore)
-            register_livox_types(self._reader.typestore)
-            self._reader = LivoxAwareReader(self._reader)
-            self._reader = wrap_ouster_reader(self._reader, self.path, self.ouster_metadata)
+            self._wrap_lidar_readers()
             return self
         default = get_typestore(Stores.ROS2_HUMBLE)
         register_velodyne_types(default)  # for bags that carry no message definitions
@@ -203,12 +199,20 @@ class BagSession:
             from canopy_kit.io.mcap_messages import fast_mcap_reader
 
             self._reader = fast_mcap_reader(self._reader, target)
-        # for bags that define their other types but not these (and for recovered bags)
-        register_velodyne_types(self._reader.typestore)
-        register_livox_types(self._reader.typestore)
-        self._reader = LivoxAwareReader(self._reader)  # CustomMsg points read with numpy
-        self._reader = wrap_ouster_reader(self._reader, self.path, self.ouster_metadata)
+        self._wrap_lidar_readers()
         return self
+
+    def _wrap_lidar_readers(self) -> None:
+        """The LiDAR types rosbags lacks registered (for bags that define their other types
+        but not these, and for recovered bags); Livox CustomMsgs read with numpy and Ouster
+        packets grouped into rotations, where the bag holds them."""
+        from canopy_kit.io.livox import wrap_livox_reader
+        from canopy_kit.io.ouster_bag import wrap_ouster_reader
+        from canopy_kit.io.velodyne_ros import register_velodyne_types
+
+        register_velodyne_types(self._reader.typestore)
+        self._reader = wrap_livox_reader(self._reader)
+        self._reader = wrap_ouster_reader(self._reader, self.path, self.ouster_metadata)
 
     def _recover(self, reason: str) -> None:
         """Fall back to reading the complete records of a damaged bag (partial data)."""

@@ -193,6 +193,15 @@ def scan_fields(
     return stamp, xyz, fields, times
 
 
+def wrap_livox_reader(reader: Any) -> Any:
+    """``reader`` with the Livox types registered, wrapped in a :class:`LivoxAwareReader` when
+    it holds CustomMsg topics (else returned as it is: other bags keep their own reader)."""
+    register_livox_types(reader.typestore)
+    if not any(c.msgtype in CUSTOM_MSG_TYPES for c in reader.connections):
+        return reader
+    return LivoxAwareReader(reader)
+
+
 class LivoxAwareReader:
     """An open bag reader whose ``deserialize`` reads Livox CustomMsgs with numpy
     (:func:`parse_custom_msg`); everything else is the wrapped reader's."""
