@@ -25,6 +25,21 @@ from canopy_kit.sim import load_sim_config
 
 REFERENCE = Path(__file__).parents[1] / "data" / "samples" / "ouster_sdk_reference.npz"
 TOPIC = "/ouster/lidar_packets"
+
+
+def packet_lidar(columns: int, rate_hz: float, profile: str, **more: object) -> dict:
+    """The simulator's lidar settings of an Ouster writing packets in a lidar mode/profile."""
+    return {
+        "output": "ouster_packets",
+        "frame_id": "os_sensor",
+        "topic": TOPIC,
+        "columns": columns,
+        "rate_hz": rate_hz,
+        "ouster_profile": profile,
+        **more,
+    }
+
+
 RNG19 = "RNG19_RFL8_SIG16_NIR16"
 OLD_TYPE = "ouster_ros/msg/PacketMsg"  # ouster_ros before 0.11
 
@@ -36,15 +51,7 @@ def ouster_config(columns: int, rate_hz: int, profile: str, **lidar: object) -> 
         {
             "seed": 5,
             "orchard": {"rows": 1, "trees_per_row": 2},
-            "lidar": {
-                "output": "ouster_packets",
-                "frame_id": "os_sensor",
-                "topic": TOPIC,
-                "columns": columns,
-                "rate_hz": rate_hz,
-                "ouster_profile": profile,
-                **lidar,
-            },
+            "lidar": packet_lidar(columns, rate_hz, profile, **lidar),
         },
         sensor="os0-32",
     )
@@ -245,14 +252,7 @@ def _session_run(tmp_path_factory, columns: int, rate_hz: int, profile: str, imu
                 "output": "ouster_packets" if "ouster" in imu_topic else "imu",
                 "rate_hz": 100.0 if "ouster" in imu_topic else 200.0,
             },
-            "lidar": {
-                "output": "ouster_packets",
-                "frame_id": "os_sensor",
-                "topic": TOPIC,
-                "columns": columns,
-                "rate_hz": rate_hz,
-                "ouster_profile": profile,
-            },
+            "lidar": packet_lidar(columns, rate_hz, profile),
         },
         sensor="os0-32",
     )
