@@ -18,8 +18,8 @@ def segment(
     method: str = typer.Option(None, help="Segmenter plugin, overriding the preset's"),
     trajectory: Path = typer.Option(
         None,
-        help="CSV with x, y columns (map frame): the drive, "
-        "whose first pass orders and labels the trees",
+        help="The drive (CSV t,x,y[,z] or x,y, or TUM lines), in the map file's coordinates; "
+        "its first pass orders and labels the trees",
     ),
     set_: list[str] = typer.Option([], "--set", help="Override any setting: section.key=value"),
     no_cloud: bool = typer.Option(False, "--no-cloud", help="Do not write segmented.laz"),
@@ -31,7 +31,6 @@ def segment(
 ) -> None:
     """Remove ground and trunks, segment the trees, find rows and label the trees."""
     import numpy as np
-    import pandas as pd
 
     from canopy_kit.cli.common import (
         check_output_folder,
@@ -41,7 +40,6 @@ def segment(
         progress_bar,
     )
     from canopy_kit.config import load_preset, write_config
-    from canopy_kit.errors import InputError
     from canopy_kit.io.clouds import read_cloud
     from canopy_kit.segment.export import write_segmentation
     from canopy_kit.segment.rows import driving_direction_from_trajectory
@@ -56,11 +54,9 @@ def segment(
     cloud = read_cloud(map_path)
     direction, source = None, None
     if trajectory is not None:
-        if not trajectory.exists():
-            raise InputError(f"{trajectory}: trajectory file does not exist")
-        traj = pd.read_csv(trajectory)
-        if not {"x", "y"} <= set(traj.columns):
-            raise InputError(f"{trajectory}: trajectory CSV needs x and y columns")
+        from canopy_kit.mapping.map_source import read_trajectory  # CSV or TUM, as run reads it
+
+        traj = read_trajectory(trajectory, cloud.origin)
         direction = driving_direction_from_trajectory(traj[["x", "y"]].to_numpy())
         source = f"trajectory {trajectory.name}"
     segmenter = make_segmenter(config.segment.method, config.segment.params)

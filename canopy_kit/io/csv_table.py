@@ -147,3 +147,12 @@ def write_csv_table(
     atomic_write_text(path, csv_text(table))
     atomic_write_text(sidecar, json.dumps(meta, indent=1, default=str) + "\n")
     return {path.name: path, sidecar.name: sidecar}
+
+
+def is_number_text(text: str) -> bool:
+    """Whether a table cell's text reads as a number (a headerless table's first row)."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True

@@ -44,6 +44,7 @@ import numpy as np
 
 from canopy_kit.errors import InputError
 from canopy_kit.io.bag import GnssSeries
+from canopy_kit.io.csv_table import is_number_text
 from canopy_kit.io.nmea import (
     NMEA_POSITION,
     hhmmss_seconds,
@@ -155,21 +156,13 @@ def _rows(text: str) -> list[tuple[int, list[str]]]:
     return out
 
 
-def _is_number(value: str) -> bool:
-    try:
-        float(value)
-    except ValueError:
-        return False
-    return True
-
-
 def _read_columns(
     path: Path, text: str, crs: int | str | None, reference_time: float | None, gps: bool
 ) -> GnssTrack:
     rows = _rows(text)
     if not rows:
         raise InputError(f"{path}: GNSS track has no rows")
-    if not all(_is_number(f) for f in rows[0][1]):
+    if not all(is_number_text(f) for f in rows[0][1]):
         return _read_csv(path, text, crs, reference_time, gps)
     lines, values = [], []
     for number, fields in rows:
@@ -254,7 +247,7 @@ def _read_csv(
 def _csv_times(
     path: Path, values: list[str], lines: list[int], reference_time: float | None, gps: bool
 ) -> np.ndarray:
-    if all(_is_number(v) for v in values):
+    if all(is_number_text(v) for v in values):
         numbers = np.array([float(v) for v in values])
         if np.nanmin(numbers) > 1e8:
             return numbers  # Unix epoch seconds, UTC

@@ -19,6 +19,7 @@ import pandas as pd
 
 from canopy_kit.core.cloud import PointCloud
 from canopy_kit.errors import CanopyKitError, InputError
+from canopy_kit.io.csv_table import is_number_text
 
 MAP_SUFFIXES = (".las", ".laz", ".pcd", ".ply")
 TRAJECTORY_COLUMNS = ["time", "x", "y", "z", "qx", "qy", "qz", "qw"]
@@ -273,13 +274,7 @@ def read_trajectory(path: str | Path, origin: np.ndarray) -> pd.DataFrame:
 
 def _looks_tum(line: str) -> bool:
     parts = line.split()
-    if len(parts) != 8:
-        return False
-    try:
-        [float(p) for p in parts]
-    except ValueError:
-        return False
-    return True
+    return len(parts) == 8 and all(is_number_text(p) for p in parts)
 
 
 def _tum(path: Path, lines: list[str]) -> pd.DataFrame:
@@ -309,7 +304,7 @@ def _csv(path: Path, text: str) -> pd.DataFrame:
         raise InputError(f"{path}: trajectory CSV cannot be parsed ({exc})") from None
     table.columns = [str(c).strip().lower() for c in table.columns]
     headless = HEADLESS_CSV.get(len(table.columns))
-    if headless and all(_is_number(c) for c in table.columns):  # no header: by column count
+    if headless and all(is_number_text(c) for c in table.columns):  # no header: by column count
         table = pd.read_csv(io.StringIO(text), comment="#", header=None, names=headless)
     table = table.rename(columns={"t": "time", "timestamp": "time", "stamp": "time"})
     if not {"x", "y"} <= set(table.columns):
@@ -330,14 +325,6 @@ def _csv(path: Path, text: str) -> pd.DataFrame:
     if "z" not in numeric:
         numeric["z"] = np.nan
     return numeric
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def check_trajectory_on_map(path: Path, trajectory: pd.DataFrame, cloud: PointCloud) -> None:
