@@ -54,7 +54,7 @@ def _register_commands() -> None:
 
     for name in plugins.names("commands"):
         try:
-            target = plugins.load("commands", name)
+            target = plugins.create("commands", name)
         except CanopyKitError as exc:
             # A broken third-party command must not take the whole CLI down.
             print(f"warning: {exc}", file=sys.stderr)

@@ -143,7 +143,9 @@ def load_world(session_dir: str | Path) -> WorldModel:
     markers = plugins.names(WORLD_GROUP)
     for marker in markers:
         if (truth / marker).exists():
-            return plugins.load(WORLD_GROUP, marker)(Path(session_dir))
+            return plugins.create(
+                WORLD_GROUP, marker, {"session_dir": Path(session_dir)}, where=str(truth)
+            )
     raise InputError(
         f"{truth}: no generator's files ({', '.join(markers) or 'no world plugin installed'}) "
         "to rebuild the exact world from"

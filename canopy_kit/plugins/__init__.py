@@ -4,7 +4,11 @@ Built-in plugins are registered through the same entry points (in pyproject.toml
 third-party package uses, so installing a package is all it takes to add a segmenter.
 :func:`create` is the one factory for every registry: load, check the keyword parameters
 against the class signature, instantiate, ``validate_params()``; :func:`parameters`
-describes a plugin's parameters (``canopy_kit.plugins.params``).
+describes a plugin's parameters (``canopy_kit.plugins.params``). Every kind is built there:
+segmenters and volume estimators from a preset's parameters, readers, world models from a
+session folder, commands (functions or typer groups, taken as they are). The rules each
+kind must keep are checked by ``canopy_kit.testing`` (``check_segmenter``,
+``check_volume_estimator``, ``check_reader``, ``check_world``, ``check_command``).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ LABELS: dict[str, str] = {
     "segmenters": "segmenter",
     "volumes": "volume method",
     "commands": "command",
+    "worlds": "world model",
 }
 
 __all__ = [

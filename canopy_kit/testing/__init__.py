@@ -1,7 +1,8 @@
 """Conformance suite for every plugin kind, shipped with the library.
 
 Modelled on scikit-learn's ``utils.estimator_checks``: every rule of a plugin contract is a
-named check. ``check_reader``, ``check_segmenter`` and ``check_volume_estimator`` run all of
+named check. ``check_reader``, ``check_segmenter``, ``check_volume_estimator``,
+``check_world`` (with a session folder its generator wrote) and ``check_command`` run all of
 a kind's rules on a plugin (a class, built with its defaults, or a configured instance) and
 raise one AssertionError naming each broken rule; :func:`parametrize_with_checks` makes one
 pytest test per (plugin, rule), choosing the rules by the plugin's kind::
@@ -13,6 +14,7 @@ pytest test per (plugin, rule), choosing the rules by the plugin's kind::
         check(estimator)
 """
 
+from canopy_kit.testing.commands import check_command, command_checks
 from canopy_kit.testing.estimators import (
     Check,
     blobs,
@@ -27,14 +29,18 @@ from canopy_kit.testing.estimators import (
     volume_checks,
 )
 from canopy_kit.testing.readers import check_reader, reader_checks
+from canopy_kit.testing.worlds import check_world, world_checks
 
 __all__ = [
     "Check",
     "blobs",
+    "check_command",
     "check_reader",
     "check_segmenter",
     "check_volume_estimator",
+    "check_world",
     "checks_for",
+    "command_checks",
     "coplanar",
     "crown",
     "parametrize_with_checks",
@@ -42,4 +48,5 @@ __all__ = [
     "segmenter_checks",
     "unit_cube",
     "volume_checks",
+    "world_checks",
 ]
