@@ -48,6 +48,23 @@ def test_import_is_cheap():
     assert loaded == ""
 
 
+def test_reading_a_finished_map_does_not_load_the_odometry():
+    """``mapping.map_source`` (a map made elsewhere) needs no odometry, KISS-ICP or numba."""
+    odometry = ("kiss_icp", "numba", "canopy_kit.mapping.pipeline", "canopy_kit.mapping.frontend")
+    code = (
+        "import sys, canopy_kit.mapping.map_source; "
+        f"print(','.join(m for m in {odometry!r} if m in sys.modules))"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert loaded == ""
+    from canopy_kit.mapping import build_map
+    from canopy_kit.mapping.pipeline import build_map as defined
+
+    assert build_map is defined
+
+
 # Modules a notebook may import from canopy_kit: the package's public names, the plotting
 # modules (figures are the notebooks' job) and the store's query layer.
 NOTEBOOK_MODULES = {
