@@ -3,7 +3,8 @@
 Every photo must be a readable JPEG with EXIF GPS latitude, longitude and altitude, all
 photos must have one size, and no photo may appear twice. The focal length in pixels
 comes from ``FocalLength`` with ``FocalPlaneXResolution`` (the sensor's pixel pitch) or,
-failing that, from ``FocalLengthIn35mmFilm`` (36 mm across the long side).
+failing that, from ``FocalLengthIn35mmFilm`` (36 mm across the long side). A DJI photo's
+gimbal attitude comes from its XMP packet (:mod:`ground_truth.xmp`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 from canopy_kit.core.extras import needs_extra
 from canopy_kit.core.geo import LocalFrame
 from canopy_kit.errors import InputError
+from ground_truth.xmp import DroneAttitude, read_drone_attitude
 
 JPEG_SUFFIXES = (".jpg", ".jpeg")
 MIN_IMAGES = 3
@@ -42,6 +44,7 @@ class FlightImage:
     make: str = ""
     model: str = ""
     timestamp: str = ""
+    attitude: DroneAttitude | None = None  # gimbal angles from a DJI XMP packet
 
     @property
     def name(self) -> str:
@@ -144,6 +147,7 @@ def read_image(path: str | Path) -> FlightImage:
             if im.format != "JPEG":
                 raise InputError(f"{path}: not a JPEG image (format {im.format})")
             width, height = im.size
+            xmp = im.info.get("xmp")
             im.draft("RGB", (max(width // 8, 1), max(height // 8, 1)))
             im.load()  # decodes the whole stream (at 1/8 scale): finds truncated files
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
@@ -187,6 +191,7 @@ def read_image(path: str | Path) -> FlightImage:
         _text(zeroth.get(piexif.ImageIFD.Make)),
         _text(zeroth.get(piexif.ImageIFD.Model)),
         _text(ex.get(piexif.ExifIFD.DateTimeOriginal)),
+        read_drone_attitude(xmp, path),
     )
 
 

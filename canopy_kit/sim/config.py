@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -188,9 +189,12 @@ class GnssSpec:
 
 @dataclass
 class DroneSpec:
-    """Nadir lawn-mower photo flight over the orchard (lengths in m, angles in degrees).
+    """Photo flight over the orchard (lengths in m, angles in degrees).
 
-    Flight lines run along the rows; the image's long side lies across the track.
+    ``pattern``: ``nadir`` (a lawn-mower survey, lines along the rows, the image's long side
+    across the track), ``double-grid`` (two grids, along and across the rows, the camera
+    pitched to ``gimbal_pitch_deg``) or ``orbit`` (a racetrack round each row, the camera at
+    that pitch aimed at the row); see :mod:`canopy_kit.sim.drone_patterns`.
     ``gps_sigma_*`` is the per-photo GNSS noise written to EXIF (defaults: an RTK drone);
     ``gps_offset_sigma_*`` a constant offset shared by the whole flight (metre-level for a
     drone without RTK). ``position_jitter_*`` and ``attitude_sigma_deg``/``yaw_sigma_deg``
@@ -198,6 +202,8 @@ class DroneSpec:
     """
 
     enabled: bool = False
+    pattern: Literal["nadir", "double-grid", "orbit"] = "nadir"
+    gimbal_pitch_deg: float = -60.0  # oblique patterns only; -90 looks straight down
     altitude: float = 35.0
     forward_overlap: float = 0.8
     side_overlap: float = 0.75
@@ -567,6 +573,26 @@ def validate(c: SimConfig) -> None:
         c.drone.flight_speed > 0,
         "drone.flight_speed",
         f"must be positive, got {c.drone.flight_speed}",
+    )
+    _validate_drone_pattern(c.drone)
+
+
+def _validate_drone_pattern(d: DroneSpec) -> None:
+    """The flight pattern and an oblique camera that sees the ground across its whole frame."""
+    _check(
+        d.pattern in ("nadir", "double-grid", "orbit"),
+        "drone.pattern",
+        f"must be nadir, double-grid or orbit, got {d.pattern!r}",
+    )
+    half_fov = math.degrees(
+        math.atan(d.image_height / 2 * d.sensor_width_mm / d.image_width / d.focal_length_mm)
+    )
+    _check(
+        -90.0 <= d.gimbal_pitch_deg <= -20.0 and d.gimbal_pitch_deg + half_fov <= -5.0,
+        "drone.gimbal_pitch_deg",
+        f"must be between -90 and -20 with the image's top edge at least 5 deg below the "
+        f"horizon (half the vertical field of view is {half_fov:.1f} deg), got "
+        f"{d.gimbal_pitch_deg}",
     )
 
 

@@ -1,10 +1,12 @@
-"""Simulated drone photo flight: a nadir lawn-mower survey over the orchard.
+"""Simulated drone photo flight: a nadir lawn-mower survey over the orchard (oblique
+patterns: :mod:`canopy_kit.sim.drone_patterns`).
 
 Flight lines run along the rows at a constant altitude above the take-off point, spaced
 for the side overlap; photos along a line are spaced for the forward overlap. Each
 photo is ray-cast from the same scene as the LiDAR (see ``drone_render``), saved as a
-JPEG with GPS (noisy, as a receiver reports it) and focal-length EXIF, and the true
-camera poses go to ``truth/drone_cameras.csv``.
+JPEG with GPS (noisy, as a receiver reports it) and focal-length EXIF and a DJI-style XMP
+packet (gimbal attitude, heading, height above take-off), and the true camera poses go to
+``truth/drone_cameras.csv``.
 
 Camera convention (as COLMAP): x right, y down, z along the viewing direction; the
 stored rotation maps camera to world (local frame: x east, y north, z up).
@@ -24,9 +26,11 @@ import pandas as pd
 
 from canopy_kit.core.atomic import atomic_write_bytes, atomic_write_text
 from canopy_kit.core.extras import needs_extra
+from canopy_kit.core.gimbal import gimbal_angles
 from canopy_kit.evaluate.truth import write_csv
 from canopy_kit.io.session_layout import SIM_CONFIG, drone_dir, truth_dir
 from canopy_kit.sim.config import DroneSpec
+from canopy_kit.sim.dji_xmp import dji_xmp
 from canopy_kit.sim.drone_render import DroneRenderer, PinholeView
 from canopy_kit.sim.orchard import Orchard
 from canopy_kit.sim.scene import Scene
@@ -67,7 +71,7 @@ def ground_footprint(spec: DroneSpec) -> tuple[float, float]:
     return spec.altitude * spec.image_width / f, spec.altitude * spec.image_height / f
 
 
-def _line_positions(lo: float, hi: float, step: float) -> np.ndarray:
+def line_positions(lo: float, hi: float, step: float) -> np.ndarray:
     """Positions spaced by at most ``step`` covering [lo, hi], centred on it."""
     n = max(int(np.ceil((hi - lo) / step - 1e-9)) + 1, 2)
     span = (n - 1) * step
@@ -87,8 +91,8 @@ def plan_flight(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> 
     a_lo, c_lo = ac.min(axis=0) - spec.area_margin
     a_hi, c_hi = ac.max(axis=0) + spec.area_margin
     across_size, along_size = ground_footprint(spec)
-    lines = _line_positions(c_lo, c_hi, across_size * (1 - spec.side_overlap))
-    stations = _line_positions(a_lo, a_hi, along_size * (1 - spec.forward_overlap))
+    lines = line_positions(c_lo, c_hi, across_size * (1 - spec.side_overlap))
+    stations = line_positions(a_lo, a_hi, along_size * (1 - spec.forward_overlap))
     centre = orchard.to_local(np.array((a_lo + a_hi) / 2), np.array((c_lo + c_hi) / 2))
     z_fly = float(orchard.terrain.height(centre[0], centre[1])) + spec.altitude
     f = focal_px(spec)
@@ -123,6 +127,16 @@ def plan_flight(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> 
             view = PinholeView(pos, rotation, f, spec.image_width, spec.image_height)
             shots.append(DroneShot(f"IMG_{len(shots) + 1:04d}.jpg", k, t, view))
     return shots
+
+
+def plan_shots(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> list[DroneShot]:
+    """The photos of ``spec.pattern``: the nadir survey, or an oblique double grid or orbits."""
+    if spec.pattern == "nadir":
+        return plan_flight(orchard, spec, rng)
+    from canopy_kit.sim import drone_patterns
+
+    planner = {"double-grid": drone_patterns.plan_double_grid, "orbit": drone_patterns.plan_orbits}
+    return planner[spec.pattern](orchard, spec, rng)
 
 
 def _rational(value: float, denominator: int) -> tuple[int, int]:
@@ -175,13 +189,31 @@ def exif_bytes(spec: DroneSpec, lat: float, lon: float, altitude: float, when: d
     return piexif.dump({"0th": zeroth, "Exif": exif, "GPS": gps, "1st": {}, "thumbnail": None})
 
 
-def encode_jpeg(image: np.ndarray, exif: bytes, quality: int) -> bytes:
-    """JPEG bytes of an (H, W, 3) uint8 image carrying ``exif``."""
+def encode_jpeg(image: np.ndarray, exif: bytes, quality: int, xmp: bytes = b"") -> bytes:
+    """JPEG bytes of an (H, W, 3) uint8 image carrying ``exif`` (and an ``xmp`` packet)."""
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(image).save(buf, format="JPEG", quality=quality, exif=exif, subsampling=0)
+    extra = {"xmp": xmp} if xmp else {}
+    Image.fromarray(image).save(
+        buf, format="JPEG", quality=quality, exif=exif, subsampling=0, **extra
+    )
     return buf.getvalue()
+
+
+def shot_xmp(
+    shot: DroneShot, previous: DroneShot | None, altitude: float, take_off_z: float
+) -> bytes:
+    """The DJI XMP of a photo: the true gimbal attitude, the heading flown from the photo
+    before (the gimbal's on the first), the height above take-off and ``altitude``."""
+    gimbal = gimbal_angles(shot.view.rotation)
+    heading = gimbal[0]
+    if previous is not None and previous.line == shot.line:
+        step = shot.view.position[:2] - previous.view.position[:2]
+        if np.hypot(*step) > 1e-6:
+            heading = float(np.degrees(np.arctan2(step[0], step[1])))
+    relative = float(shot.view.position[2] - take_off_z)
+    return dji_xmp(gimbal, (heading, 0.0, 0.0), relative, altitude)
 
 
 def simulate_drone_flight(
@@ -199,7 +231,7 @@ def simulate_drone_flight(
     report = progress or (lambda *_: None)
     drone_dir, truth_dir = Path(drone_dir), Path(truth_dir)
     drone_dir.mkdir(parents=True, exist_ok=True)
-    shots = plan_flight(orchard, spec, rng)
+    shots = plan_shots(orchard, spec, rng)
     renderer = DroneRenderer(
         scene,
         orchard.terrain,
@@ -214,6 +246,8 @@ def simulate_drone_flight(
         ]
     )
     rows = []
+    first = shots[0].view.position if shots else np.zeros(3)
+    take_off_z = float(orchard.terrain.height(first[0], first[1]))
     report("Drone photos", 0, len(shots))
     for k, shot in enumerate(shots):
         view = shot.view
@@ -232,7 +266,12 @@ def simulate_drone_flight(
         when = FLIGHT_START + timedelta(seconds=round(shot.time_s))
         atomic_write_bytes(
             drone_dir / shot.name,
-            encode_jpeg(image, exif_bytes(spec, lat, lon, alt, when), spec.jpeg_quality),
+            encode_jpeg(
+                image,
+                exif_bytes(spec, lat, lon, alt, when),
+                spec.jpeg_quality,
+                shot_xmp(shot, shots[k - 1] if k else None, alt, take_off_z),
+            ),
         )
         q = Rotation.from_matrix(view.rotation).as_quat()
         rows.append(
@@ -266,6 +305,9 @@ def simulate_drone_flight(
     write_csv(cameras, truth_dir / "drone_cameras.csv", float_format="%.9f")
     across, along = ground_footprint(spec)
     summary = {
+        "pattern": spec.pattern,
+        "gimbal_pitch_deg": -90.0 if spec.pattern == "nadir" else spec.gimbal_pitch_deg,
+        "flight_time_s": shots[-1].time_s if shots else 0.0,
         "images": len(shots),
         "lines": int(cameras["line"].max()) + 1 if len(cameras) else 0,
         "altitude_m": spec.altitude,

@@ -1,0 +1,42 @@
+"""A camera's attitude as a drone's gimbal reports it, and back (DJI's XMP convention).
+
+DJI drones write the gimbal's attitude into each photo's XMP as ``GimbalYawDegree`` (the
+heading the camera looks along, degrees clockwise from north), ``GimbalPitchDegree`` (-90:
+straight down, 0: at the horizon) and ``GimbalRollDegree`` (positive: the image's right side
+down). Camera rotations here follow COLMAP (x right, y down, z along the viewing direction;
+the matrix maps camera to world, world x east, y north, z up). With yaw ψ, pitch θ and
+roll 0 the viewing direction is ``(sin ψ cos θ, cos ψ cos θ, sin θ)`` and the image's right
+``(cos ψ, -sin ψ, 0)``: looking straight down, the top of the image points along ψ.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def camera_rotation(yaw_deg: float, pitch_deg: float, roll_deg: float = 0.0) -> np.ndarray:
+    """The camera-to-world rotation (3x3) of gimbal angles (degrees)."""
+    psi, theta = np.radians(yaw_deg), np.radians(pitch_deg)
+    forward = np.array([np.sin(psi) * np.cos(theta), np.cos(psi) * np.cos(theta), np.sin(theta)])
+    right = np.array([np.cos(psi), -np.sin(psi), 0.0])
+    up = np.cross(right, forward)
+    level = np.column_stack([right, -up, forward])
+    # roll about the viewing direction: positive turns the image's right side down
+    return level @ Rotation.from_rotvec([0.0, 0.0, np.radians(roll_deg)]).as_matrix()
+
+
+def gimbal_angles(rotation: np.ndarray) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in degrees of a camera-to-world rotation; yaw in (-180, 180]."""
+    rotation = np.asarray(rotation, float)
+    forward = rotation[:, 2]
+    pitch = float(np.degrees(np.arcsin(np.clip(forward[2], -1.0, 1.0))))
+    # the heading of the viewing direction; looking straight down, of the image's top (the
+    # roll is then part of the yaw, and reported as 0)
+    heading = forward if np.hypot(forward[0], forward[1]) > 1e-6 else -rotation[:, 1]
+    yaw = float(np.degrees(np.arctan2(heading[0], heading[1])))
+    level = camera_rotation(yaw, pitch, 0.0)
+    # what is left is a turn about the viewing direction: the roll
+    rest = level.T @ rotation
+    roll = float(np.degrees(np.arctan2(rest[1, 0], rest[0, 0])))
+    return yaw if yaw > -180.0 else 180.0, pitch, roll

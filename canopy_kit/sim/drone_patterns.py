@@ -1,0 +1,159 @@
+"""Oblique drone flights: a double grid with a tilted camera, and an orbit around each row.
+
+A nadir flight does not see what lies below a crown's widest level, nor the gaps between
+touching crowns along a row (docs/GROUND_TRUTH.md). Surveyors add oblique photos:
+
+- ``double-grid``: two lawn-mower grids, one along the rows and one across them, the camera
+  pitched to ``gimbal_pitch_deg`` (-90: straight down) and looking ahead along the flight
+  line; the lines are serpentine, so every side of every crown is seen. Photos are placed
+  so the image centre sweeps the nadir flight's area (each station is set back by the
+  distance the tilted view reaches ahead).
+- ``orbit``: per row, a racetrack around it (two straight legs beside the row, half
+  circles round its ends) at the distance from which the pitched camera's centre ray meets
+  the row's line at mid-crown height; the camera always aims at the nearest point of that
+  line.
+
+Spacing on a line is the nadir flight's (``forward_overlap``, ``side_overlap``), so an
+oblique photo overlaps its neighbours at least as much. Time per flight: cruise at
+``flight_speed`` plus 4 s per turn onto a new line, as for the nadir flight.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from canopy_kit.core.gimbal import camera_rotation
+from canopy_kit.sim.config import DroneSpec
+from canopy_kit.sim.drone import DroneShot, focal_px, ground_footprint, line_positions
+from canopy_kit.sim.drone_render import PinholeView
+from canopy_kit.sim.orchard import Orchard
+
+TURN_S = 4.0  # seconds to turn onto a new flight line
+
+
+def _heading_deg(direction_xy: np.ndarray) -> float:
+    """Compass heading (degrees clockwise from north) of a local (east, north) direction."""
+    return float(np.degrees(np.arctan2(direction_xy[0], direction_xy[1])))
+
+
+def _crown_area(orchard: Orchard, margin: float) -> tuple[float, float, float, float]:
+    """(along_lo, along_hi, across_lo, across_hi) of every crown plus ``margin``."""
+    corners = []
+    for tree in orchard.trees:
+        lo, hi = tree.crown.bounds
+        corners.extend([(lo[0], lo[1]), (lo[0], hi[1]), (hi[0], lo[1]), (hi[0], hi[1])])
+    ac = orchard.to_orchard(np.asarray(corners))
+    a_lo, c_lo = ac.min(axis=0) - margin
+    a_hi, c_hi = ac.max(axis=0) + margin
+    return float(a_lo), float(a_hi), float(c_lo), float(c_hi)
+
+
+class _Flight:
+    """Shots in flying order with the clock: cruise between photos, a turn per new line."""
+
+    def __init__(self, spec: DroneSpec, rng: np.random.Generator) -> None:
+        self.spec, self.rng = spec, rng
+        self.shots: list[DroneShot] = []
+        self.t = 0.0
+        self.prev: tuple[np.ndarray, int] | None = None
+
+    def add(self, position: np.ndarray, rotation: np.ndarray, line: int) -> None:
+        spec, rng = self.spec, self.rng
+        pos = np.array(position, float)
+        pos[:2] += rng.normal(0.0, spec.position_jitter_horizontal, 2)
+        pos[2] += rng.normal(0.0, spec.position_jitter_vertical)
+        tilt = np.radians(
+            [
+                rng.normal(0.0, spec.attitude_sigma_deg),
+                rng.normal(0.0, spec.attitude_sigma_deg),
+                rng.normal(0.0, spec.yaw_sigma_deg),
+            ]
+        )
+        rotation = rotation @ Rotation.from_rotvec(tilt).as_matrix()
+        if self.prev is not None:
+            self.t += float(np.linalg.norm(pos - self.prev[0])) / spec.flight_speed
+            self.t += TURN_S if self.prev[1] != line else 0.0
+        self.prev = (pos, line)
+        view = PinholeView(pos, rotation, focal_px(spec), spec.image_width, spec.image_height)
+        self.shots.append(DroneShot(f"IMG_{len(self.shots) + 1:04d}.jpg", line, self.t, view))
+
+
+def plan_double_grid(
+    orchard: Orchard, spec: DroneSpec, rng: np.random.Generator
+) -> list[DroneShot]:
+    """Two serpentine grids (along, then across the rows) with the camera pitched ahead."""
+    a_lo, a_hi, c_lo, c_hi = _crown_area(orchard, spec.area_margin)
+    centre = orchard.to_local(np.array((a_lo + a_hi) / 2), np.array((c_lo + c_hi) / 2))
+    z_fly = float(orchard.terrain.height(centre[0], centre[1])) + spec.altitude
+    reach = spec.altitude / np.tan(np.radians(-spec.gimbal_pitch_deg))  # centre ray, ahead
+    across_size, along_size = ground_footprint(spec)
+    flight = _Flight(spec, rng)
+    line = 0
+    # grid 1 flies along the rows (lines spaced across them), grid 2 across the rows
+    for along_rows in (True, False):
+        (s_lo, s_hi), (l_lo, l_hi) = ((a_lo, a_hi), (c_lo, c_hi))[:: 1 if along_rows else -1]
+        lines = line_positions(l_lo, l_hi, across_size * (1 - spec.side_overlap))
+        stations = line_positions(s_lo, s_hi, along_size * (1 - spec.forward_overlap))
+        for k, offset in enumerate(lines):
+            forward = 1.0 if k % 2 == 0 else -1.0
+            for s in stations if forward > 0 else stations[::-1]:
+                pos_s = s - forward * reach  # set back: the centre ray meets the ground at s
+                a, c = (pos_s, offset) if along_rows else (offset, pos_s)
+                xy = orchard.to_local(np.array(a), np.array(c))
+                direction = orchard.row_direction if along_rows else orchard.right_direction
+                yaw = _heading_deg(forward * direction)
+                rotation = camera_rotation(yaw, spec.gimbal_pitch_deg)
+                flight.add(np.array([xy[0], xy[1], z_fly]), rotation, line)
+            line += 1
+    return flight.shots
+
+
+def _stadium(a_lo: float, a_hi: float, radius: float, step: float) -> np.ndarray:
+    """(along, across) points every ``step`` round a segment on the along axis at ``radius``,
+    anticlockwise from its start's right-hand side."""
+    length = a_hi - a_lo
+    perimeter = 2 * length + 2 * np.pi * radius
+    n = max(int(np.ceil(perimeter / step)), 8)
+    s = np.arange(n) * perimeter / n
+    out = np.empty((n, 2))
+    for i, d in enumerate(s):
+        if d < length:  # leg on the right-hand side (across = +radius), forwards
+            out[i] = (a_lo + d, radius)
+        elif d < length + np.pi * radius:  # half circle round the end
+            phi = (d - length) / radius
+            out[i] = (a_hi + radius * np.sin(phi), radius * np.cos(phi))
+        elif d < 2 * length + np.pi * radius:  # leg on the left-hand side, back
+            out[i] = (a_hi - (d - length - np.pi * radius), -radius)
+        else:  # half circle round the start
+            phi = (d - 2 * length - np.pi * radius) / radius
+            out[i] = (a_lo - radius * np.sin(phi), -radius * np.cos(phi))
+    return out
+
+
+def plan_orbits(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> list[DroneShot]:
+    """A racetrack round each row, the camera aimed at the row's line at mid-crown height."""
+    flight = _Flight(spec, rng)
+    step = ground_footprint(spec)[1] * (1 - spec.forward_overlap)
+    rows = sorted({t.row for t in orchard.trees})
+    for line, row in enumerate(rows):
+        trees = [t for t in orchard.trees if t.row == row]
+        ac = orchard.to_orchard(np.array([t.base[:2] for t in trees]))
+        a_lo, a_hi = float(ac[:, 0].min()), float(ac[:, 0].max())
+        across = float(np.median(ac[:, 1]))
+        ground = np.array([t.base[2] for t in trees])
+        mid = np.array([np.mean(t.crown.z_range) for t in trees])
+        aim_height = float(np.median(mid - ground))
+        base = float(np.median(ground))
+        radius = max(spec.altitude - aim_height, 1.0) / np.tan(np.radians(-spec.gimbal_pitch_deg))
+        for a, c in _stadium(a_lo, a_hi, radius, step):
+            xy = orchard.to_local(np.array(a), np.array(across + c))
+            aim_a = float(np.clip(a, a_lo, a_hi))
+            aim_xy = orchard.to_local(np.array(aim_a), np.array(across))
+            z = float(orchard.terrain.height(xy[0], xy[1])) + spec.altitude
+            aim = np.array([aim_xy[0], aim_xy[1], base + aim_height])
+            look = aim - np.array([xy[0], xy[1], z])
+            yaw = _heading_deg(look[:2])
+            pitch = float(np.degrees(np.arctan2(look[2], np.hypot(look[0], look[1]))))
+            flight.add(np.array([xy[0], xy[1], z]), camera_rotation(yaw, pitch), line)
+    return flight.shots
