@@ -12,7 +12,8 @@ and docs/GROUND_TRUTH.md:
 * speed: SfM time per image and in total for about 20 and 50 photos, and the surface,
   orthomosaic and crown stages.
 
-Usage: ``python benchmarks/bench_ground_truth.py [--work DIR] [--only accuracy|sphere|speed]``.
+Usage: ``python benchmarks/bench_ground_truth.py [--work DIR] [--only accuracy|sphere|speed]
+[--orchard KIND] [--pattern nadir double-grid orbit]``.
 Flights are rendered once into ``--work`` (default ``work/bench_ground_truth``, git-ignored)
 and reused.
 """
@@ -20,6 +21,7 @@ and reused.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import time
@@ -33,19 +35,20 @@ ACCURACY_FLIGHTS = [("pistachio", 4, 10, 1), ("almond", 4, 10, 1)]
 SPEED_FLIGHTS = [("pistachio", 3, 7, 2), ("pistachio", 6, 12, 2)]  # about 20 and 50 photos
 
 
-def flight(work: Path, kind: str, rows: int, trees: int, seed: int) -> Path:
-    """A rendered drone-only session (cached)."""
+def flight(work: Path, kind: str, rows: int, trees: int, seed: int, pattern: str = "nadir") -> Path:
+    """A rendered drone-only session (cached) flown in ``pattern`` (nadir, double-grid, orbit)."""
     from canopy_kit.sim import load_sim_config
     from canopy_kit.sim.drone import simulate_drone_session
 
-    root = work / f"{kind}_{rows}x{trees}_s{seed}"
+    suffix = "" if pattern == "nadir" else f"_{pattern}"
+    root = work / f"{kind}_{rows}x{trees}_s{seed}{suffix}"
     if not (root / "truth" / "drone_cameras.csv").exists():
         cfg = load_sim_config(
             kind,
             {
                 "seed": seed,
                 "orchard": {"rows": rows, "trees_per_row": trees},
-                "drone": {"enabled": True},
+                "drone": {"enabled": True, "pattern": pattern},
             },
         )
         t0 = time.perf_counter()
@@ -60,15 +63,15 @@ def frame_of(root: Path):
     return LocalFrame.from_dict(json.loads((root / "truth" / "frame.json").read_text())["frame"])
 
 
-def accuracy(work: Path, orchards: list[str] | None = None) -> None:
+def accuracy(work: Path, orchards: list[str] | None = None, patterns: tuple = ("nadir",)) -> None:
     from ground_truth import process_flight
     from ground_truth.flight_accuracy import camera_errors, crown_agreement
 
     print("## accuracy against simulator truth")
-    for kind, rows, trees, seed in ACCURACY_FLIGHTS:
+    for (kind, rows, trees, seed), pattern in itertools.product(ACCURACY_FLIGHTS, patterns):
         if orchards and kind not in orchards:
             continue
-        root = flight(work, kind, rows, trees, seed)
+        root = flight(work, kind, rows, trees, seed, pattern)
         truth = pd.read_csv(root / "truth" / "trees.csv")
         result = None
         for seeding in ("imagery", "tree_positions"):  # imagery: the preset's crown_seeds
@@ -88,6 +91,7 @@ def accuracy(work: Path, orchards: list[str] | None = None) -> None:
             sfm = result.report["sfm"]
             line = {
                 "flight": root.name,
+                "pattern": pattern,
                 "seeding": result.report.get("crown_seeding", seeding),
                 "photos": sfm["total_images"],
                 "registered": sfm["registered_images"],
@@ -252,6 +256,13 @@ def main() -> None:
     parser.add_argument("--docs", type=Path, default=REPO / "docs" / "figures")
     parser.add_argument("--orchard", action="append", help="accuracy: only these orchards")
     parser.add_argument(
+        "--pattern",
+        nargs="+",
+        default=["nadir"],
+        choices=["nadir", "double-grid", "orbit"],
+        help="accuracy: the flight patterns (drone.pattern) to fly each orchard in",
+    )
+    parser.add_argument(
         "--figure-flight",
         nargs=4,
         action="append",
@@ -263,7 +274,7 @@ def main() -> None:
     if args.only in (None, "sphere"):
         sphere_bias()
     if args.only in (None, "accuracy"):
-        accuracy(args.work, args.orchard)
+        accuracy(args.work, args.orchard, tuple(args.pattern))
     if args.only in (None, "speed"):
         speed(args.work)
     if args.only in (None, "figures"):

@@ -111,14 +111,48 @@ def _grey(rgb: np.ndarray, sigma: float) -> np.ndarray:
     return gaussian_filter(grey, sigma) if sigma > 0 else grey
 
 
+# A photo pitched above this (degrees; -90 looks straight down) is oblique: it also sees
+# ground far ahead, at grazing angles, where the surface is noise.
+OBLIQUE_PITCH_DEG = -75.0
+AIMED_AREA_PAD_M = 2.0  # beyond the centre rays' ground points: the crowns at the area's edge
+
+
 def _survey_grid(model: SparseModel, resolution: float) -> Grid:
-    """The area the sparse points cover (2nd to 98th percentile, padded a little)."""
+    """The area the sparse points cover (2nd to 98th percentile, padded a little); for an
+    oblique flight cut to the area its photos are aimed at (:func:`looked_at_area`)."""
     xy = model.points[:, :2]
     if len(xy) < 10:
         raise ProcessingError(f"only {len(xy)} sparse points: the reconstruction is too thin")
     lo, hi = np.percentile(xy, 2, axis=0), np.percentile(xy, 98, axis=0)
     pad = 0.02 * float(np.max(hi - lo))
-    return Grid.covering(lo - pad, hi + pad, resolution)
+    lo, hi = lo - pad, hi + pad
+    area = looked_at_area(list(model.cameras.values()), float(np.median(model.points[:, 2])))
+    if area is not None:
+        cut_lo, cut_hi = np.maximum(lo, area[0]), np.minimum(hi, area[1])
+        if (cut_hi > cut_lo).all():
+            lo, hi = cut_lo, cut_hi
+    return Grid.covering(lo, hi, resolution)
+
+
+def looked_at_area(
+    cameras: list[PosedCamera], ground_z: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo, hi) corners of the ground an oblique flight's photos are aimed at: where the
+    centre rays meet the ground at ``ground_z`` (a planned flight sweeps them over its
+    area), padded by ``AIMED_AREA_PAD_M``. None for a nadir flight (every photo within
+    ``OBLIQUE_PITCH_DEG`` of straight down): its sparse points bound its area."""
+    hits, oblique = [], False
+    for cam in cameras:
+        forward = cam.rotation[2]  # the viewing direction in the world (world-to-camera rows)
+        height = float(cam.center[2] - ground_z)
+        if forward[2] > -0.2 or height <= 0:  # looking near the horizon: no defined aim
+            continue
+        oblique |= bool(forward[2] > -np.cos(np.radians(90.0 + OBLIQUE_PITCH_DEG)))
+        hits.append(cam.center[:2] + forward[:2] * (height / -forward[2]))
+    if not hits or not oblique:
+        return None
+    hits_xy = np.asarray(hits)
+    return hits_xy.min(axis=0) - AIMED_AREA_PAD_M, hits_xy.max(axis=0) + AIMED_AREA_PAD_M
 
 
 def _reconstruct(

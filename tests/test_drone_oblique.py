@@ -12,13 +12,13 @@ from scipy.spatial.transform import Rotation
 from canopy_kit.core.gimbal import camera_rotation, gimbal_angles
 from canopy_kit.errors import ConfigError, InputError
 from canopy_kit.sim import load_sim_config
-from canopy_kit.sim.drone import simulate_drone_session
+from canopy_kit.sim.drone import ground_footprint, simulate_drone_session
 from canopy_kit.sim.session import build_world
 from ground_truth.exif import read_flight
 from ground_truth.xmp import read_drone_attitude
 
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}}
-CAMERA = {"image_width": 240, "image_height": 180, "sensor_width_mm": 13.2 * 240 / 1200}
+CAMERA = {"image_width": 240, "image_height": 180}  # the default lens: the same field of view
 
 
 def _config(pattern: str, **drone):
@@ -88,7 +88,10 @@ def test_centre_rays_land_on_the_orchard(oblique) -> None:
         across = np.array([np.median(trees[[t.row == r for t in orchard.trees], 1]) for r in rows])
         off = np.abs(ac[:, 1] - across[cameras["line"].to_numpy()])
         assert np.median(off) < 4.0
-    margin = config.drone.area_margin + 6.0  # crowns' reach and the set-back's noise
+    # the planned area: the crowns plus area_margin, overshot by at most half a line or
+    # station spacing (lines are centred on it), plus the flight's position noise
+    spacing = max(ground_footprint(config.drone)) * (1 - min(config.drone.side_overlap, 0.75))
+    margin = config.drone.area_margin + 2.0 + spacing / 2 + 1.0
     lo, hi = trees.min(axis=0) - margin, trees.max(axis=0) + margin
     assert ((ac >= lo) & (ac <= hi)).all(axis=1).mean() > 0.95
 
@@ -149,3 +152,34 @@ def test_xmp_as_elements_and_without_dji_tags() -> None:
     assert (att.gimbal_yaw_deg, att.gimbal_pitch_deg, att.flight_yaw_deg) == (45.5, -60.0, None)
     assert read_drone_attitude(b"<x:xmpmeta><xmp:Rating>0</xmp:Rating></x:xmpmeta>", "b") is None
     assert read_drone_attitude(None, "c.jpg") is None
+
+
+@pytest.mark.slow
+def test_an_oblique_double_grid_finds_every_crown_and_nothing_else(tmp_path) -> None:
+    """Structure from motion with pitched photos, then the surface and crowns: every crown
+    one-to-one with the simulator's trees, none from the far field the photos also see."""
+    import json
+
+    from scipy.spatial import cKDTree
+
+    from canopy_kit.core.geo import LocalFrame
+    from ground_truth.pipeline import process_flight
+
+    config = _config("double-grid", image_width=600, image_height=450)
+    session = tmp_path / "session"
+    simulate_drone_session(session, config)
+    trees = pd.read_csv(session / "truth" / "trees.csv")
+    frame = LocalFrame.from_dict(
+        json.loads((session / "truth" / "frame.json").read_text())["frame"]
+    )
+    result = process_flight(session / "drone", tmp_path / "out", frame, threads=1)
+    report = result.report["sfm"]
+    assert report["registered_images"] == report["total_images"]
+    crowns = result.crowns
+    centres = trees[["crown_x", "crown_y"]].to_numpy()
+    distance, nearest = cKDTree(centres).query(crowns[["x", "y"]].to_numpy())
+    assert len(crowns) == len(trees) and len(set(nearest)) == len(trees)
+    assert distance.max() < 0.6
+    true_diameter = trees["crown_diameter_m"].to_numpy()[nearest]
+    diameter = crowns["diameter_max_m"].to_numpy() - true_diameter
+    assert np.abs(diameter).mean() < 0.25
