@@ -101,8 +101,17 @@ def test_core_install_segments_a_las_and_missing_extras_are_named(tmp_path):
         from ground_truth.sfm import run_sfm
         flight = SimpleNamespace(default_frame=lambda: None)  # SfM needs pycolmap first
         from canopy_kit.mapping.odometry import LidarOdometry, OdometrySettings
+        from canopy_kit.io.open3d_clouds import read_ply, write_ply
+        from canopy_kit.core.cloud import PointCloud
+        import numpy as np
+        ply = Path({str(tmp_path)!r}, "three.ply")
+        ply.write_text("ply\\nformat ascii 1.0\\nelement vertex 3\\nproperty float x\\n"
+                       "property float y\\nproperty float z\\nend_header\\n0 0 0\\n1 0 0\\n0 1 2\\n")
+        result["ply_points"] = read_ply(ply).absolute_xyz.tolist()  # reading is the core's
         for name, call in [("aerial", lambda: run_sfm(flight, {str(tmp_path)!r})),
-                           ("mapping", lambda: LidarOdometry(OdometrySettings()))]:
+                           ("mapping", lambda: LidarOdometry(OdometrySettings())),
+                           ("open3d", lambda: write_ply(Path({str(tmp_path)!r}, "w.ply"),
+                                                        PointCloud(np.zeros((2, 3)))))]:
             try:
                 call()
                 result[name] = "no error"
@@ -117,6 +126,9 @@ def test_core_install_segments_a_las_and_missing_extras_are_named(tmp_path):
     assert result["loaded"] == []
     assert "canopy-kit[aerial]" in result["aerial"] and "pycolmap" in result["aerial"]
     assert "canopy-kit[mapping]" in result["mapping"] and "kiss_icp" in result["mapping"]
+    assert "canopy-kit[open3d]" in result["open3d"] and "'open3d'" in result["open3d"]
+    assert result["ply_points"] == [[0, 0, 0], [1, 0, 0], [0, 1, 2]]  # the file's, by hand
+    assert not (tmp_path / "w.ply").exists()  # nothing half-written
     trees = pd.read_csv(out / "trees.csv")
     assert len(trees) == len(orchard.centres)  # every synthetic tree found and measured
     # Each crown is a dense shell sampled inside an ellipsoid of semi-axes 1.8, 1.8, 1.44 m:

@@ -19,6 +19,7 @@ EXTRAS: dict[str, tuple[tuple[str, ...], str]] = {
     "aerial": (("pycolmap", "piexif", "tifffile"), "drone photogrammetry (ground truth)"),
     "batch": (("dask", "distributed", "duckdb"), "batch runs and the result store"),
     "notebooks": (("marimo",), "the marimo notebooks"),
+    "open3d": (("open3d",), "the simulator, map-to-surface scoring and writing PLY/PCD files"),
 }
 
 

@@ -138,7 +138,8 @@ def absolute_errors(
 
 def surface_distances(points: np.ndarray, raycasting_scene: Any) -> np.ndarray:
     """Unsigned distance (m) from each point to the nearest triangle of an Open3D scene."""
-    import open3d as o3d
+    with needs_extra("open3d"):
+        import open3d as o3d
 
     query = o3d.core.Tensor(np.asarray(points, np.float32))
     return raycasting_scene.compute_distance(query).numpy().astype(np.float64)

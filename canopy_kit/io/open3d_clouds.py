@@ -23,6 +23,7 @@ import numpy as np
 
 from canopy_kit.core.atomic import atomic_path
 from canopy_kit.core.cloud import PointCloud
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.errors import InputError, foreign_message
 from canopy_kit.io import pcd, ply
 from canopy_kit.io.clouds import check_input_file
@@ -51,7 +52,8 @@ def _ply_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
 def _write_open3d(path: Path, cloud: PointCloud, fmt: str) -> Path:
     if len(cloud) == 0:
         raise InputError(f"{path}: refusing to write a point cloud with no points")
-    import open3d as o3d
+    with needs_extra("open3d"):
+        import open3d as o3d
 
     o3c = o3d.core
     pcd = o3d.t.geometry.PointCloud()

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, WOOD, Scene
 from canopy_kit.sim.terrain import Terrain
 
@@ -215,7 +216,8 @@ class DroneRenderer:
         vignetting: float = 0.22,
     ) -> np.ndarray:
         """An (H, W, 3) uint8 sRGB image seen from ``view``."""
-        import open3d as o3d
+        with needs_extra("open3d"):
+            import open3d as o3d
 
         dirs = view.ray_directions().reshape(-1, 3)
         n = len(dirs)
@@ -276,7 +278,8 @@ class DroneRenderer:
         return _SRGB_LUT[levels]
 
     def _visible(self, origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        import open3d as o3d
+        with needs_extra("open3d"):
+            import open3d as o3d
 
         rays = np.empty((len(origins), 6), np.float32)
         rays[:, :3] = origins

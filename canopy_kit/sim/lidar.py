@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.sim.config import LidarSpec
 from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, WOOD, Scene
 from canopy_kit.sim.trajectory import Trajectory
@@ -132,7 +133,8 @@ class SpinningLidar:
         """Cast (N, 6) float32 rays (origin, unit direction; ``world_dirs`` the directions in
         float64): indices of the rays that return, their noisy ranges, scene primitives and
         intensities (0-255). Range noise, range limits and dropouts are applied here."""
-        import open3d as o3d
+        with needs_extra("open3d"):
+            import open3d as o3d
 
         sp = self.spec
         hit = self._raycaster.cast_rays(o3d.core.Tensor(rays))

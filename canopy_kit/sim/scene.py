@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from canopy_kit.core.extras import needs_extra
 from canopy_kit.sim.orchard import Orchard, Tree
 
 GROUND, GRASS, WOOD, FOLIAGE = 0, 1, 2, 3
@@ -38,7 +39,8 @@ class Scene:
 
     def raycasting_scene(self):
         """An Open3D RaycastingScene holding the triangles (geometry id 0)."""
-        import open3d as o3d
+        with needs_extra("open3d"):
+            import open3d as o3d
 
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(
