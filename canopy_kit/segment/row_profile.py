@@ -36,9 +36,13 @@ the wall, and at both ends of the row) and wires (a few mm, along the row) would
 set a section's height and stretch the row past its trees. In the section's across-row x
 height grid (occupied cells, one-cell gaps across closed), a post is a column at most
 ``TRELLIS_MAX_WIDTH_M`` (0.3 m) wide standing at least ``POLE_MIN_HEIGHT_M`` (0.3 m) where no
-canopy is beside it, whose returns lie within 0.3 m along the row too (a wall's face seen
-without its inside is as narrow across, but runs the section's length); a wire seen end-on
-is an isolated blob at most 0.3 m across and high; both are left out. (A post's returns in
+canopy is beside it, and narrow along the row too (the middle half of its returns within
+0.15 m: a wall's face seen without its inside is as narrow across, but runs the section's
+length), and which does not go on into the neighbouring sections (returns as high as its top
+within 0.3 m beyond the section and farther than 0.15 m from it along the row: the tip of a
+crown reaching into a section is as narrow as a post within it); a wire seen end-on is an
+isolated blob at most 0.3 m across and high (unless, short along the row, it goes on beyond
+the section as a crown's tip does); both are left out. (A post's returns in
 the canopy's top cell layer still count, 0.1 m at most; a post sticking out of the wall by
 less than 0.3 m, or a wire touching the canopy, can raise a section's height by that much.
 A crown's top is far wider than 0.3 m for more than a few millimetres below its apex.)
@@ -188,11 +192,42 @@ def _reach(offset: np.ndarray, height: np.ndarray, cell_m: float, k: int) -> tup
     return float(-o[start + kk - 1].min()), float(o[start + count - kk].max())
 
 
+def _goes_on(
+    offset: np.ndarray,
+    height: np.ndarray,
+    along: np.ndarray,
+    beside: np.ndarray | None,
+    cell_m: float,
+) -> bool:
+    """Whether canopy goes on beyond the section from a narrow part of it (a crown's tip
+    reaching in): ``MIN_CELL_POINTS`` returns of ``beside`` as high as its top, within
+    ``TRELLIS_MAX_WIDTH_M`` of it across and more than half that from it along the row,
+    spread wider or higher than that (a wire going on is as thin as it is here)."""
+    if beside is None or len(beside) == 0 or len(offset) == 0:
+        return False
+    w = TRELLIS_MAX_WIDTH_M
+    near = beside[
+        (beside[:, 1] >= height.max() - cell_m)
+        & (beside[:, 0] >= offset.min() - w)
+        & (beside[:, 0] <= offset.max() + w)
+        & (np.abs(beside[:, 2] - np.median(along)) > w / 2)
+    ]
+    if len(near) < MIN_CELL_POINTS:
+        return False
+    return bool(np.ptp(near[:, 0]) > w or np.ptp(near[:, 1]) > w)
+
+
 def _without_trellis(
-    offset: np.ndarray, height: np.ndarray, along: np.ndarray, cell_m: float
+    offset: np.ndarray,
+    height: np.ndarray,
+    along: np.ndarray,
+    cell_m: float,
+    beside: np.ndarray | None = None,
 ) -> np.ndarray:
     """Which points are left when posts and wires are taken out of a section (module
-    docstring): a post is narrow across the row and along it, a wall's face only across."""
+    docstring): a post is narrow across the row and along it, a wall's face only across, and
+    a crown's tip reaching into the section goes on beyond it (``beside``: the points just
+    outside the section, as (offset, height, along) rows)."""
     keep = np.ones(len(offset), bool)
     if len(offset) == 0:
         return keep
@@ -211,15 +246,25 @@ def _without_trellis(
     for k, box in enumerate(ndimage.find_objects(parts), start=1):
         if (box[1].stop - box[1].start) * cell_m < POLE_MIN_HEIGHT_M - 1e-9:
             continue
-        a = along[part_of_point == k]
+        mine = part_of_point == k
+        a = along[mine]
         # most of its returns within half the width along the row: a post (a wire
         # meeting it adds a few); a face runs along the section
-        if len(a) and np.ptp(np.percentile(a, [25, 75])) <= TRELLIS_MAX_WIDTH_M / 2:
+        if len(a) == 0 or np.ptp(np.percentile(a, [25, 75])) > TRELLIS_MAX_WIDTH_M / 2:
+            continue
+        if not _goes_on(offset[mine], height[mine], a, beside, cell_m):
             trellis[box] |= parts[box] == k
     # what is left of a post, and wires end-on: small isolated blobs
     blobs, _ = ndimage.label(grid & ~trellis, structure=np.ones((3, 3), bool))
+    blob_of_point = blobs[i, j]
     for k, box in enumerate(ndimage.find_objects(blobs), start=1):
-        if box is not None and all(b.stop - b.start <= narrow_cells for b in box):
+        if box is None or any(b.stop - b.start > narrow_cells for b in box):
+            continue
+        mine = blob_of_point == k
+        a = along[mine]
+        # a wire runs along the section; a crown's tip reaching in is short and goes on
+        tip = len(a) and np.ptp(np.percentile(a, [25, 75])) <= TRELLIS_MAX_WIDTH_M / 2
+        if not (tip and _goes_on(offset[mine], height[mine], a, beside, cell_m)):
             trellis[box] |= blobs[box] == k
     return ~trellis[i, j]
 
@@ -243,12 +288,16 @@ def section_metrics(
         raise InputError("row profile: along, offset and height must have one value per point")
     if not (section_m > 0 and cell_m > 0):
         raise InputError(f"row profile: section ({section_m}) and cell ({cell_m}) must be > 0")
-    k = np.floor((along - start) / section_m).astype(np.int64)
-    keep = (k >= 0) & (k < n_sections)
-    k, offset, height, along = k[keep], offset[keep], height[keep], along[keep]
-    order = np.argsort(k, kind="stable")
-    k, offset, height, along = k[order], offset[order], height[order], along[order]
-    bounds = np.searchsorted(k, np.arange(n_sections + 1))
+    # sorted along the row; the points up to a post's width beyond the sections stay, so
+    # that a crown reaching across a section's end is not taken for a post
+    margin = TRELLIS_MAX_WIDTH_M
+    end = start + n_sections * section_m
+    keep = (along >= start - margin) & (along < end + margin)
+    order = np.argsort(along[keep], kind="stable")
+    along, offset, height = along[keep][order], offset[keep][order], height[keep][order]
+    edges = start + np.arange(n_sections + 1) * section_m
+    bounds = np.searchsorted(along, edges)
+    windows = np.searchsorted(along, np.column_stack([edges[:-1] - margin, edges[1:] + margin]))
     out = {
         name: np.zeros(n_sections)
         for name in ("height_m", "width_left_m", "width_right_m", "width_m", "cross_section_m2")
@@ -259,7 +308,10 @@ def section_metrics(
         o, h, a = offset[part], height[part], along[part]
         dense = _clustered(o, h, cell_m, min_cell_points)
         o, h, a = o[dense], h[dense], a[dense]
-        kept = _without_trellis(o, h, a, cell_m)
+        lo, hi = windows[s]
+        beside = np.r_[lo : bounds[s], bounds[s + 1] : hi]  # the neighbours' nearest points
+        near = np.column_stack([offset[beside], height[beside], along[beside]])
+        kept = _without_trellis(o, h, a, cell_m, near)
         o, h = o[kept], h[kept]
         if len(o) < min_points:
             continue
