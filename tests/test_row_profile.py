@@ -122,6 +122,20 @@ def test_posts_and_wires_set_no_height_and_no_width() -> None:
     assert table.loc[0, "width_m"] == pytest.approx(3.0, abs=0.05)
 
 
+def test_a_crown_tip_reaching_into_a_section_is_canopy_a_lone_post_is_not() -> None:
+    """A wall 2.5 m high ending 8 cm into the next section, where only its 0.2 m wide tip
+    lies: that section keeps the tip's height (the canopy goes on beside it); the same tip
+    with no wall beside it is a post and leaves no canopy."""
+    tip = _box(-0.1, 0.1, 4.0, 4.08, 1.0, 2.5, step=0.02)
+    wall = _box(-0.5, 0.5, 0.0, 4.0, 1.0, 2.5)
+    xyz = np.vstack([wall, tip])
+    table = section_metrics(xyz[:, 1], xyz[:, 0], xyz[:, 2], 0.0, 5)
+    assert table.loc[4, "height_m"] == pytest.approx(2.5, abs=0.03)
+    assert table.loc[4, "width_m"] == pytest.approx(0.2, abs=0.05)
+    alone = section_metrics(tip[:, 1], tip[:, 0], tip[:, 2], 0.0, 5)
+    assert alone.loc[4, "height_m"] == 0.0
+
+
 def test_range_noise_on_a_wall_face_widens_it_less_than_its_outermost_returns() -> None:
     """Faces of a 1 m wide wall with 1 cm noise across the row, 1000 returns a section (as on
     the simulated fruiting wall): the third-outermost return of each height level reads it
