@@ -10,7 +10,8 @@ import typer
 def simulate(
     out: Path = typer.Argument(..., help="Output folder for the session"),
     orchard: str = typer.Option(
-        "pistachio", help="Orchard preset (pistachio, almond, almond-paper) or a TOML file"
+        "pistachio",
+        help="Orchard preset (pistachio, almond, almond-paper, fruiting-wall) or a TOML file",
     ),
     rows: int = typer.Option(None, help="Number of tree rows"),
     trees_per_row: int = typer.Option(None, "--trees-per-row", help="Trees per row"),

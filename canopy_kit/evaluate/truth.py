@@ -54,6 +54,12 @@ TREE_COLUMNS = [
     "sphere_volume_m3",
     "doubled",
 ]
+#: Columns trees.csv adds for a continuous wall (a fruiting wall or hedgerow, issue 52), where
+#: a tree's true volume is its cut of the row's wall: the union of the row's crowns between
+#: the midpoints to its neighbours' trunks (``cut_start_m``/``cut_end_m`` along the row
+#: direction in the local frame, -inf/inf at the wall's ends); ``volume_truth`` names the
+#: definition ("trunk-midpoint cut"), ``young`` a young tree.
+WALL_COLUMNS = ["cut_volume_m3", "cut_start_m", "cut_end_m", "volume_truth", "young"]
 TRUTH_FILES = ("trees.csv", "trajectory.csv", "frame.json")
 
 

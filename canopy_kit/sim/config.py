@@ -75,6 +75,27 @@ class OrchardSpec:
     removed_trees: list[int] = field(default_factory=list)
     replanted_trees: list[int] = field(default_factory=list)
     replanted_crown_scale: float = 0.5
+    # Young trees among the old (e.g. replants in a hedgerow): drawn per tree with this
+    # probability (no draw at 0, so other layouts stay as they were), crowns scaled so.
+    young_probability: float = 0.0
+    young_crown_scale: float = 0.5
+    # Trellis of a fruiting wall (canopy_kit.sim.trellis), none when post_spacing is 0: posts
+    # (height above the ground, radius) along each row's line every ``trellis_post_spacing``
+    # m and at both ends, wires at ``trellis_wire_heights`` (m above the ground) from end
+    # post to end post, a drip irrigation line at ``drip_line_height`` (0: none). The LiDAR
+    # hits them; their per-point truth label is ``TRELLIS_ID`` (-2), never a tree.
+    trellis_post_spacing: float = 0.0
+    trellis_post_height: float = 3.6
+    trellis_post_radius: float = 0.05
+    trellis_end_overhang: float = 0.6  # end posts this far beyond the first and last tree
+    trellis_wire_heights: list[float] = field(default_factory=list)
+    trellis_wire_radius: float = 0.0015
+    drip_line_height: float = 0.0
+    drip_line_radius: float = 0.008
+    # What a tree's true volume is (trees.csv): ``crown`` (its own envelope) or
+    # ``trunk-midpoint`` (a continuous wall: the union of the row's crowns between the
+    # midpoints to its neighbours' trunks, canopy_kit.sim.wall_truth; adds cut_volume_m3).
+    tree_volume_truth: Literal["crown", "trunk-midpoint"] = "crown"
 
 
 @dataclass
@@ -421,7 +442,13 @@ def validate(c: SimConfig) -> None:
     for name in ("missing_probability", "double_probability"):
         p = getattr(o, name)
         _check(0.0 <= p < 1.0, f"orchard.{name}", f"must be in [0, 1), got {p}")
-    for name in ("crown_scale", "replanted_crown_scale"):
+    _check(
+        0.0 <= o.young_probability < 1.0,
+        "orchard.young_probability",
+        f"must be in [0, 1), got {o.young_probability}",
+    )
+    _validate_trellis(o)
+    for name in ("crown_scale", "replanted_crown_scale", "young_crown_scale"):
         _check(getattr(o, name) > 0, f"orchard.{name}", f"must be positive, got {getattr(o, name)}")
     _check(
         0 <= o.crown_irregularity < 0.5,
@@ -593,6 +620,34 @@ def _validate_drone_pattern(d: DroneSpec) -> None:
         f"must be between -90 and -20 with the image's top edge at least 5 deg below the "
         f"horizon (half the vertical field of view is {half_fov:.1f} deg), got "
         f"{d.gimbal_pitch_deg}",
+    )
+
+
+def _validate_trellis(o: OrchardSpec) -> None:
+    """The trellis settings of ``[orchard]``."""
+    _check(
+        o.trellis_post_spacing >= 0,
+        "orchard.trellis_post_spacing",
+        f"must not be negative (0: no trellis), got {o.trellis_post_spacing}",
+    )
+    for name in ("trellis_post_height", "trellis_post_radius", "trellis_wire_radius"):
+        _check(getattr(o, name) > 0, f"orchard.{name}", f"must be positive, got {getattr(o, name)}")
+    _check(
+        o.trellis_end_overhang >= 0,
+        "orchard.trellis_end_overhang",
+        f"must not be negative, got {o.trellis_end_overhang}",
+    )
+    _check(
+        all(0 < h < o.trellis_post_height for h in o.trellis_wire_heights),
+        "orchard.trellis_wire_heights",
+        f"wires hang between the ground and the post tops ({o.trellis_post_height} m), "
+        f"got {o.trellis_wire_heights}",
+    )
+    _check(
+        o.drip_line_height >= 0 and o.drip_line_radius > 0,
+        "orchard.drip_line_height/drip_line_radius",
+        f"height must not be negative and radius positive, got {o.drip_line_height}, "
+        f"{o.drip_line_radius}",
     )
 
 

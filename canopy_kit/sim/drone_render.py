@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from canopy_kit.core.extras import needs_extra
-from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, WOOD, Scene
+from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, TRELLIS, WOOD, Scene
 from canopy_kit.sim.terrain import Terrain
 
 _SEEDS = {
@@ -237,6 +237,7 @@ class DroneRenderer:
         flip = np.sum(normals * dirs, axis=1) > 0
         normals[flip] *= -1.0
         material = np.where(prim >= 0, self.scene.material[np.maximum(prim, 0)], GROUND)
+        material = np.where(material == TRELLIS, WOOD, material)  # posts look like bark
         shade = np.where(prim >= 0, self.scene.shade[np.maximum(prim, 0)], 1.0).astype(np.float32)
 
         albedo = np.zeros((n, 3), np.float32)

@@ -15,7 +15,7 @@ import numpy as np
 
 from canopy_kit.core.extras import needs_extra
 from canopy_kit.sim.config import LidarSpec
-from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, WOOD, Scene
+from canopy_kit.sim.scene import FOLIAGE, GRASS, GROUND, TRELLIS, WOOD, Scene
 from canopy_kit.sim.trajectory import Trajectory
 
 if TYPE_CHECKING:
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from canopy_kit.sim.ouster import OusterPackets
     from canopy_kit.sim.velodyne import VelodynePackets
 
-REFLECTIVITY = {GROUND: 0.30, GRASS: 0.45, WOOD: 0.35, FOLIAGE: 0.60}
+REFLECTIVITY = {GROUND: 0.30, GRASS: 0.45, WOOD: 0.35, FOLIAGE: 0.60, TRELLIS: 0.40}
 
 
 @dataclass
@@ -87,7 +87,9 @@ class SpinningLidar:
             ],
             axis=-1,
         )
-        self._reflectivity = np.array([REFLECTIVITY[m] for m in range(4)], np.float32)
+        self._reflectivity = np.array(
+            [REFLECTIVITY[m] for m in range(len(REFLECTIVITY))], np.float32
+        )
         self._vlp16 = None  # fires like a VLP-16 (canopy_kit.sim.velodyne) instead of in columns
         if spec.firing == "vlp16" or spec.output == "velodyne_packets":
             from canopy_kit.sim.velodyne import Vlp16Firing

@@ -18,13 +18,15 @@ from canopy_kit.sim.config import OrchardSpec
 from canopy_kit.sim.crown import CrownEnvelope
 from canopy_kit.sim.crown_forms import FORM_NAMES, LobedForm, VaseForm, hedge_planes
 from canopy_kit.sim.terrain import Terrain
+from canopy_kit.sim.trellis import RowTrellis, build_trellis
 
 
 @dataclass(frozen=True)
 class Tree:
     """One tree: identity, trunk base, crown envelope, woody parts, crown form and leaf density.
 
-    ``foliage_scale`` multiplies the orchard's foliage densities (sparse young trees).
+    ``foliage_scale`` multiplies the orchard's foliage densities (sparse young trees);
+    ``young``: drawn young (``OrchardSpec.young_probability``), its crown scaled down.
     """
 
     tree_id: int
@@ -39,6 +41,7 @@ class Tree:
     doubled: bool = False
     crown_form: str = "ellipsoid"
     foliage_scale: float = 1.0
+    young: bool = False
 
     @property
     def crown_base_height(self) -> float:
@@ -64,6 +67,7 @@ class Orchard:
     row_offsets: np.ndarray
     along_range: tuple[float, float]
     extra: dict = field(default_factory=dict)
+    trellis: list[RowTrellis] = field(default_factory=list)  # posts, wires, drip line per row
 
     def to_local(self, along: np.ndarray, across: np.ndarray) -> np.ndarray:
         """Orchard (along-row, across-row) coordinates to local (x, y)."""
@@ -109,8 +113,10 @@ def generate_orchard(spec: OrchardSpec, rng: np.random.Generator) -> Orchard:
             jitter = rng.normal(0.0, spec.position_jitter, 2)
             a, c = along + jitter[0], row_offsets[row] + bow + jitter[1]
             xy = a * d + c * right
+            # drawn only when asked for: other layouts keep their draws
+            young = spec.young_probability > 0 and rng.random() < spec.young_probability
             tree = _grow_tree(
-                spec, rng, len(trees) + len(row_trees), row, index, xy, d, terrain, doubled
+                spec, rng, len(trees) + len(row_trees), row, index, xy, d, terrain, doubled, young
             )
             row_trees.append(tree)
         row_trees = _fit_crowns(spec, row_trees, d, right, row_offsets[row])
@@ -118,7 +124,15 @@ def generate_orchard(spec: OrchardSpec, rng: np.random.Generator) -> Orchard:
     # Removal after the layout is drawn: the other trees keep their ids, places and shapes.
     removed = set(spec.removed_trees) - set(spec.replanted_trees)
     trees = [t for t in trees if t.tree_id not in removed]
-    return Orchard(spec, trees, terrain, frame, d, right, row_offsets, (0.0, along_max))
+    spans: dict[int, tuple[float, float]] = {}
+    for t in trees:
+        a = float(np.dot(t.base[:2], d))
+        lo, hi = spans.get(t.row, (a, a))
+        spans[t.row] = (min(lo, a), max(hi, a))
+    trellis = build_trellis(spec, spans, row_offsets, d, right, terrain)
+    return Orchard(
+        spec, trees, terrain, frame, d, right, row_offsets, (0.0, along_max), trellis=trellis
+    )
 
 
 def _row_stations(spec: OrchardSpec, rng: np.random.Generator) -> list[tuple[float, bool]]:
@@ -148,6 +162,7 @@ def _grow_tree(
     d: np.ndarray,
     terrain: Terrain,
     doubled: bool,
+    young: bool = False,
 ) -> Tree:
     form = spec.crown_form
     if form == "mix":  # drawn only for mixed orchards: the other forms keep their draws
@@ -155,6 +170,8 @@ def _grow_tree(
     diameter = rng.uniform(*spec.crown_diameter_range) * (rng.uniform(0.7, 0.9) if doubled else 1.0)
     # Growth scales the drawn crown (the draws stay the same, so the layout does too).
     diameter *= spec.replanted_crown_scale if tree_id in spec.replanted_trees else spec.crown_scale
+    if young:
+        diameter *= spec.young_crown_scale
     if form == "sparse":
         diameter *= spec.sparse_crown_scale
     a = diameter / 2.0
@@ -202,6 +219,7 @@ def _grow_tree(
             doubled,
             form,
             foliage,
+            young,
         ),
     )
 

@@ -3,7 +3,8 @@
 Foliage is many small leaf clusters (flattened octahedra) placed inside each crown
 envelope, denser towards the shell, so beams pass into and sometimes through a crown.
 Every triangle carries a material, the tree it belongs to (-1 for ground, grass and
-trunks below the crown) and a shade factor for rendering.
+trunks below the crown; ``TRELLIS_ID``, -2, for a fruiting wall's posts, wires and drip
+line) and a shade factor for rendering.
 """
 
 from __future__ import annotations
@@ -14,9 +15,16 @@ import numpy as np
 
 from canopy_kit.core.extras import needs_extra
 from canopy_kit.sim.orchard import Orchard, Tree
+from canopy_kit.sim.trellis import TRELLIS_ID, trellis_cylinders
 
-GROUND, GRASS, WOOD, FOLIAGE = 0, 1, 2, 3
-MATERIAL_NAMES = {GROUND: "ground", GRASS: "grass", WOOD: "wood", FOLIAGE: "foliage"}
+GROUND, GRASS, WOOD, FOLIAGE, TRELLIS = 0, 1, 2, 3, 4
+MATERIAL_NAMES = {
+    GROUND: "ground",
+    GRASS: "grass",
+    WOOD: "wood",
+    FOLIAGE: "foliage",
+    TRELLIS: "trellis",
+}
 
 _OCTAHEDRON_V = np.array(
     [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float
@@ -111,7 +119,9 @@ def build_scene(
             tree, rng, shell, core, spec.leaf_cluster_size_range, spec.leaf_penetration_m
         )
         _add_leaf_clusters(b, tree, verts, rng)
+    _add_trellis(b, orchard)
     top = max((t.crown.z_range[1] for t in orchard.trees), default=5.0)
+    top = max([top, *(float(t.post_tops[:, 2].max()) for t in orchard.trellis)])
     return b.build((np.array([lo[0], lo[1], -50.0]), np.array([hi[0], hi[1], top + 1.0])))
 
 
@@ -208,6 +218,13 @@ def cylinders(
     )
     faces = one[None, :, :] + 2 * sides * np.arange(len(p0))[:, None, None]
     return verts.reshape(-1, 3), faces.reshape(-1, 3)
+
+
+def _add_trellis(b: SceneBuilder, orchard: Orchard) -> None:
+    """Posts, wires and drip lines (``canopy_kit.sim.trellis``): never canopy."""
+    for p0, p1, radius in trellis_cylinders(orchard.trellis):
+        verts, faces = cylinders(p0, p1, radius, radius, sides=8)
+        b.add(verts, faces, TRELLIS, TRELLIS_ID)
 
 
 def _add_wood(b: SceneBuilder, tree: Tree) -> None:

@@ -12,11 +12,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from canopy_kit.evaluate.truth import TREE_COLUMNS, SessionTruth, load_truth, write_csv
+from canopy_kit.evaluate.truth import (
+    TREE_COLUMNS,
+    WALL_COLUMNS,
+    SessionTruth,
+    load_truth,
+    write_csv,
+)
 from canopy_kit.sim.orchard import Orchard
 
 __all__ = [
     "TREE_COLUMNS",
+    "WALL_COLUMNS",
     "SessionTruth",
     "crown_row_extents",
     "load_truth",
@@ -26,7 +33,9 @@ __all__ = [
 
 
 def tree_table(orchard: Orchard) -> pd.DataFrame:
-    """One row per tree with position, sizes, exact crown volume and the sphere-model volume."""
+    """One row per tree with position, sizes, exact crown volume and the sphere-model volume;
+    on a continuous wall (``tree_volume_truth = "trunk-midpoint"``) also each tree's cut of the
+    wall (:data:`WALL_COLUMNS`, :mod:`canopy_kit.sim.wall_truth`)."""
     rows = []
     for t in orchard.trees:
         lat, lon, _ = orchard.frame.to_wgs84(np.array([t.base]))
@@ -57,7 +66,18 @@ def tree_table(orchard: Orchard) -> pd.DataFrame:
                 "doubled": bool(t.doubled),
             }
         )
-    return pd.DataFrame(rows, columns=TREE_COLUMNS)
+    table = pd.DataFrame(rows, columns=TREE_COLUMNS)
+    if orchard.spec.tree_volume_truth == "trunk-midpoint":
+        from canopy_kit.sim.wall_truth import DEFINITION, trunk_midpoint_cuts
+
+        cuts = trunk_midpoint_cuts(orchard)
+        table["cut_volume_m3"] = [c.volume_m3 for c in cuts]
+        table["cut_start_m"] = [c.start_m for c in cuts]
+        table["cut_end_m"] = [c.end_m for c in cuts]
+        table["volume_truth"] = DEFINITION
+        table["young"] = [bool(t.young) for t in orchard.trees]
+        table = table[[*TREE_COLUMNS, *WALL_COLUMNS]]
+    return table
 
 
 def crown_row_extents(sim_dir: str | Path, samples: int = 4000) -> pd.DataFrame:

@@ -1,0 +1,110 @@
+"""Posts and wires out of a row section: a fruiting wall's trellis is not canopy (issue 52).
+
+A fruiting wall's posts (about 0.1 m thick, taller than the wall, and at both ends of the
+row) and wires (a few mm, along the row) would otherwise set a section's height and stretch
+the row past its trees. In the section's across-row x height grid (occupied cells, one-cell
+gaps across closed), a post is a column at most ``TRELLIS_MAX_WIDTH_M`` (0.3 m) wide
+standing at least ``POLE_MIN_HEIGHT_M`` (0.3 m) where no canopy is beside it, and narrow
+along the row too (the middle half of its returns within 0.15 m: a wall's face seen without
+its inside is as narrow across, but runs the section's length), and which does not go on
+into the neighbouring sections (returns as high as its top within 0.3 m beyond the section
+and farther than 0.15 m from it along the row: the tip of a crown reaching into a section is
+as narrow as a post within it); a wire seen end-on is an isolated blob at most 0.3 m across
+and high (unless, short along the row, it goes on beyond the section as a crown's tip does);
+both are left out. (A post's returns in the canopy's top cell layer still count, 0.1 m at
+most; a post sticking out of the wall by less than 0.3 m, or a wire touching the canopy, can
+raise a section's height by that much. A crown's top is far wider than 0.3 m for more than a
+few millimetres below its apex.)
+
+Used by :mod:`canopy_kit.segment.row_profile` on each 1 m section's points in the section's
+across-row x height grid.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+TRELLIS_MAX_WIDTH_M = 0.3  # posts and wires (end-on) are at most this wide in a section grid
+POLE_MIN_HEIGHT_M = 0.3  # a narrow column at least this tall is a post, not a crown's top
+MIN_RETURNS = 3  # returns that show canopy going on (row_profile.MIN_CELL_POINTS)
+
+
+def _goes_on(
+    offset: np.ndarray,
+    height: np.ndarray,
+    along: np.ndarray,
+    beside: np.ndarray | None,
+    cell_m: float,
+    min_points: int = MIN_RETURNS,
+) -> bool:
+    """Whether canopy goes on beyond the section from a narrow part of it (a crown's tip
+    reaching in): ``min_points`` returns of ``beside`` as high as its top, within
+    ``TRELLIS_MAX_WIDTH_M`` of it across and more than half that from it along the row,
+    spread wider or higher than that (a wire going on is as thin as it is here)."""
+    if beside is None or len(beside) == 0 or len(offset) == 0:
+        return False
+    w = TRELLIS_MAX_WIDTH_M
+    near = beside[
+        (beside[:, 1] >= height.max() - cell_m)
+        & (beside[:, 0] >= offset.min() - w)
+        & (beside[:, 0] <= offset.max() + w)
+        & (np.abs(beside[:, 2] - np.median(along)) > w / 2)
+    ]
+    if len(near) < min_points:
+        return False
+    return bool(np.ptp(near[:, 0]) > w or np.ptp(near[:, 1]) > w)
+
+
+def without_trellis(
+    offset: np.ndarray,
+    height: np.ndarray,
+    along: np.ndarray,
+    cell_m: float,
+    beside: np.ndarray | None = None,
+    min_points: int = MIN_RETURNS,
+) -> np.ndarray:
+    """Which points of a row section (across-row ``offset``, ``height`` above the ground,
+    ``along`` the row) are left when posts and wires are taken out (module docstring): a
+    post is narrow across the row and along it, a wall's face only across, and a crown's tip
+    reaching into the section goes on beyond it (``beside``: the points just outside the
+    section, as (offset, height, along) rows; ``min_points`` of them show it)."""
+    keep = np.ones(len(offset), bool)
+    if len(offset) == 0:
+        return keep
+    i = np.floor((offset - offset.min()) / cell_m).astype(np.int64) + 1
+    j = np.floor((height - height.min()) / cell_m).astype(np.int64) + 1
+    occupied = np.zeros((i.max() + 2, j.max() + 2), dtype=bool)  # a free border
+    occupied[i, j] = True
+    across = np.array([[0, 1, 0], [0, 1, 0], [0, 1, 0]], bool)  # neighbours across the row
+    grid = ndimage.binary_closing(occupied, structure=across) | occupied  # one-cell gaps
+    narrow_cells = max(1, round(TRELLIS_MAX_WIDTH_M / cell_m))
+    runs, _ = ndimage.label(grid, structure=across)  # per height level, runs across the row
+    narrow = grid & (np.bincount(runs.ravel())[runs] <= narrow_cells)
+    trellis = np.zeros_like(grid)
+    parts, _ = ndimage.label(narrow, structure=np.ones((3, 3), bool))
+    part_of_point = parts[i, j]
+    for k, box in enumerate(ndimage.find_objects(parts), start=1):
+        if (box[1].stop - box[1].start) * cell_m < POLE_MIN_HEIGHT_M - 1e-9:
+            continue
+        mine = part_of_point == k
+        a = along[mine]
+        # most of its returns within half the width along the row: a post (a wire
+        # meeting it adds a few); a face runs along the section
+        if len(a) == 0 or np.ptp(np.percentile(a, [25, 75])) > TRELLIS_MAX_WIDTH_M / 2:
+            continue
+        if not _goes_on(offset[mine], height[mine], a, beside, cell_m, min_points):
+            trellis[box] |= parts[box] == k
+    # what is left of a post, and wires end-on: small isolated blobs
+    blobs, _ = ndimage.label(grid & ~trellis, structure=np.ones((3, 3), bool))
+    blob_of_point = blobs[i, j]
+    for k, box in enumerate(ndimage.find_objects(blobs), start=1):
+        if box is None or any(b.stop - b.start > narrow_cells for b in box):
+            continue
+        mine = blob_of_point == k
+        a = along[mine]
+        # a wire runs along the section; a crown's tip reaching in is short and goes on
+        tip = len(a) and np.ptp(np.percentile(a, [25, 75])) <= TRELLIS_MAX_WIDTH_M / 2
+        if not (tip and _goes_on(offset[mine], height[mine], a, beside, cell_m, min_points)):
+            trellis[box] |= blobs[box] == k
+    return ~trellis[i, j]
