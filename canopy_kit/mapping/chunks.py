@@ -26,11 +26,12 @@ from canopy_kit.core.parallel import Tick, run_forked, worker_count
 from canopy_kit.io.bag import BagSession, open_bag
 from canopy_kit.io.message_log import MessageLog, merged
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
+from canopy_kit.mapping.ground import regrounded_poses
 from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass, scan_count
 from canopy_kit.mapping.sensors import topics_for
 
 Progress = Callable[[str, float, float], None]
-OVERLAP_SWEEPS = 40  # scans each chunk after the first starts early
+OVERLAP_SWEEPS = 150  # scans each chunk after the first starts early (see the docstring)
 MIN_TIE_SWEEPS = 5  # overlap sweeps both chunks registered, needed to tie them
 # Reading a scan undecoded (to reach a chunk's start) costs this share of processing one
 # (measured on a 32-ring MCAP session: 1.1 s for 1185 scans skipped, 12.5 s processed).
@@ -128,6 +129,7 @@ def _run_chunk(chunk: Chunk, tick: Tick) -> OdometryPass:
             count_from=chunk.own,
             rig=chunk.rig,
             lidar_only=chunk.lidar_only,
+            keep_ground=chunk.config.odometry_ground_refine,
         )
 
 
@@ -166,6 +168,7 @@ def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | Non
             for r in parts[k].records
             if chunks[k].own <= r.index < end
         ]
+    records, regrounded = _regrounded(records, chunks)
     states = [p.state for p in parts]
     origin = records[0].pose[:2, 3]
     state = replace(
@@ -177,7 +180,7 @@ def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | Non
         ),
         not_deskewed=sum(not r.deskewed for r in records),
         ground_fallbacks=sum(s.ground_fallbacks for s in states),
-        ground_corrections=sum(s.ground_corrections for s in states),
+        ground_corrections=sum(s.ground_corrections for s in states) + regrounded,
         out_of_order=sorted(
             {i for s, c in zip(states, chunks) for i in s.out_of_order if i >= c.own}
         ),
@@ -205,6 +208,19 @@ def stitch(chunks: list[Chunk], parts: list[OdometryPass]) -> OdometryPass | Non
         rig=first.rig,
         log=_stitched_log(chunks, parts),
     )
+
+
+def _regrounded(records: list[SweepRecord], chunks: list[Chunk]) -> tuple[list[SweepRecord], int]:
+    """The stitched records with the later chunks' heights and tilts corrected again against
+    the ground of the whole drive before them (:func:`regrounded_poses`), their ground points
+    dropped; and the number of sweeps corrected."""
+    if len(chunks) < 2 or not chunks[0].config.odometry_ground_refine:
+        return [r._replace(ground=None) for r in records], 0
+    fixed = sum(r.index < chunks[1].own for r in records)
+    poses, corrected = regrounded_poses(
+        [r.pose for r in records], [r.ground for r in records], fixed
+    )
+    return [r._replace(pose=p, ground=None) for r, p in zip(records, poses, strict=True)], corrected
 
 
 def _stitched_log(chunks: list[Chunk], parts: list[OdometryPass]) -> MessageLog | None:
