@@ -2,14 +2,15 @@
 
     .venv/bin/python benchmarks/bench_chunked_tilt.py [--rigs identity tower yawed-lever side-tilt]
         [--orchard pistachio] [--rows 4] [--trees-per-row 4] [--seed 701] [--sensor vlp16]
-        [--workers 2 3] [--chunk-sweeps 300] [--keep DIR]
+        [--workers 2 3] [--chunk-sweeps 300] [--overlap 150] [--keep DIR]
 
 For every rig the simulator drives the same path (same seed) and ``build_map`` maps the bag
 in one process and in ``--workers`` time chunks (``mapping.odometry_chunk_sweeps`` lowered
-so a short drive is cut), each chunked run twice: as stitched ("raw") and with the later
-chunks' ground-height correction repeated against the ground of the whole drive
-(``ground.regrounded_poses``, "regrounded"; what ``build_map`` does). The tilt rule
-(``chunks.MAX_CHUNKED_TILT_DEG``, where it still exists) is disabled for these runs.
+so a short drive is cut; the tilt rule ``chunks.MAX_CHUNKED_TILT_DEG`` disabled): as shipped
+(40 scans of overlap), with ``--overlap`` scans of overlap (a warm local map and ground grid
+at each chunk's start), and with that overlap plus the later chunks' ground-height
+correction repeated after stitching against the ground of the whole drive before them
+(``ground.regrounded_poses``, switched on with ``chunks.REGROUND_CHUNKS``; "regrounded").
 Printed per run: ATE of the reported trajectory, the map's median distance to the true
 surfaces, and per chunk (the scans each worker owned) the RMS height error of the LiDAR's
 poses (what lifts or sinks that chunk's alleys) and the RMS tilt error, both after the
@@ -51,21 +52,20 @@ def simulate(folder: Path, rig: str, args: argparse.Namespace) -> Path:
 
 
 @contextmanager
-def regrounding(on: bool) -> Iterator[None]:
-    """Chunked odometry with (as shipped) or without the ground re-correction after stitching."""
+def chunked_as(reground: bool, overlap: int | None) -> Iterator[None]:
+    """Chunked odometry with the tilt rule off, the ground re-correction after stitching on
+    or off (``chunks.REGROUND_CHUNKS``) and another overlap of the chunks (None: the shipped)."""
     from canopy_kit.mapping import chunks
 
-    saved = (getattr(chunks, "MAX_CHUNKED_TILT_DEG", None), chunks.regrounded_poses)
-    if saved[0] is not None:
-        chunks.MAX_CHUNKED_TILT_DEG = 180.0
-    if not on:
-        chunks.regrounded_poses = lambda poses, grounds, fixed: (list(poses), 0)
+    saved = (chunks.MAX_CHUNKED_TILT_DEG, chunks.REGROUND_CHUNKS, chunks.OVERLAP_SWEEPS)
+    chunks.MAX_CHUNKED_TILT_DEG = 180.0
+    chunks.REGROUND_CHUNKS = reground  # the forked workers inherit these
+    if overlap is not None:
+        chunks.OVERLAP_SWEEPS = overlap
     try:
         yield
     finally:
-        if saved[0] is not None:
-            chunks.MAX_CHUNKED_TILT_DEG = saved[0]
-        chunks.regrounded_poses = saved[1]
+        chunks.MAX_CHUNKED_TILT_DEG, chunks.REGROUND_CHUNKS, chunks.OVERLAP_SWEEPS = saved
 
 
 def chunk_errors(result: object, sim: Path, owned: list[int]) -> list[tuple[float, float]]:
@@ -94,7 +94,9 @@ def chunk_errors(result: object, sim: Path, owned: list[int]) -> list[tuple[floa
     return out
 
 
-def run(sim: Path, workers: int, chunk_sweeps: int, reground: bool, split: int) -> dict:
+def run(
+    sim: Path, workers: int, chunk_sweeps: int, reground: bool, split: int, overlap: int | None
+) -> dict:
     """Map ``sim`` on ``workers``; per-chunk errors over the ``split``-worker plan's chunks."""
     from canopy_kit.config import MappingConfig
     from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
@@ -103,7 +105,7 @@ def run(sim: Path, workers: int, chunk_sweeps: int, reground: bool, split: int) 
     from canopy_kit.sim.session import find_bag
 
     cfg = MappingConfig(workers=workers, odometry_chunk_sweeps=chunk_sweeps)
-    with regrounding(reground):
+    with chunked_as(reground, overlap):
         t0 = time.perf_counter()
         res = build_map(find_bag(sim), cfg)
         wall = time.perf_counter() - t0
@@ -134,6 +136,7 @@ def main() -> None:
     parser.add_argument("--sensor", default="vlp16")
     parser.add_argument("--workers", type=int, nargs="+", default=[2, 3])
     parser.add_argument("--chunk-sweeps", type=int, default=300)
+    parser.add_argument("--overlap", type=int, default=150, help="Scans of overlap to try")
     parser.add_argument(
         "--keep", type=Path, help="Keep the sessions in this folder (and reuse them)"
     )
@@ -145,11 +148,16 @@ def main() -> None:
     try:
         for rig in args.rigs:
             sim = simulate(base / f"{args.orchard}-{rig}", rig, args)
-            runs = [("one process", 1, True)]
+            runs = [("one process", 1, False, None)]
             for w in args.workers:
-                runs += [(f"{w} chunks, raw", w, False), (f"{w} chunks, regrounded", w, True)]
-            for name, w, on in runs:
-                r = run(sim, w, args.chunk_sweeps, on, w if w > 1 else args.workers[0])
+                runs += [
+                    (f"{w} chunks, as shipped (overlap 40)", w, False, None),
+                    (f"{w} chunks, overlap {args.overlap}", w, False, args.overlap),
+                    (f"{w} chunks, overlap {args.overlap}, regrounded", w, True, args.overlap),
+                ]
+            for name, w, on, overlap in runs:
+                split = w if w > 1 else args.workers[0]
+                r = run(sim, w, args.chunk_sweeps, on, split, overlap)
                 per = ", ".join(f"{100 * z:.1f} / {t:.2f}" for z, t in r["chunks"])
                 print(
                     f"| {rig} | {name} ({r['workers']}) | {r['ate_cm']:.1f} | {r['map_cm']:.2f} "

@@ -1,5 +1,6 @@
-"""Chunked odometry with a tilted LiDAR: the ground re-correction after stitching
-(``ground.regrounded_poses``) and chunked against one-process accuracy on the tower rig."""
+"""Chunked odometry and tilted LiDARs: the ground re-correction after stitching
+(``ground.regrounded_poses``, off by default: ``chunks.REGROUND_CHUNKS``) and the rule that
+keeps a tilted LiDAR's odometry in one process (``chunks.MAX_CHUNKED_TILT_DEG``)."""
 
 from __future__ import annotations
 
@@ -79,3 +80,42 @@ def test_ground_never_seen_before_leaves_the_later_poses_as_they_are() -> None:
     # pulls them towards ground they never saw.
     z = np.array([p[2, 3] for p in out[len(true) :]])
     assert np.abs(z - (SENSOR_HEIGHT + 0.06)).max() < 0.005
+
+
+@pytest.mark.slow
+def test_regrounded_chunks_map_a_level_drive_as_one_process(tiny_pistachio, monkeypatch) -> None:
+    """With the re-correction switched on, the chunks' ground points travel back from the
+    workers and the stitched drive maps as one process does (level LiDAR, simulator truth)."""
+    from canopy_kit.config import MappingConfig
+    from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
+    from canopy_kit.mapping import build_map, chunks
+
+    single = build_map(tiny_pistachio.bag, MappingConfig(workers=1))
+    monkeypatch.setattr(chunks, "REGROUND_CHUNKS", True)
+    res = build_map(tiny_pistachio.bag, MappingConfig(workers=2, odometry_chunk_sweeps=150))
+    assert res.diagnostics["odometry_workers"] == 2 and res.warnings == []
+    # The first chunk's sweeps, the second's and the second's repeated: more than one pass's.
+    assert res.diagnostics["ground_corrections"] > single.diagnostics["ground_corrections"]
+    one = evaluate_against_simulation(single, tiny_pistachio.root)
+    two = evaluate_against_simulation(res, tiny_pistachio.root)
+    assert two["ate_rmse_m"] < one["ate_rmse_m"] + 0.01
+    assert two["map_aligned"]["median_m"] < one["map_aligned"]["median_m"] + 0.002
+
+
+@pytest.mark.slow  # two simulated drives: 90 s on a machine shared by four jobs
+def test_a_tilted_lidar_still_maps_in_one_process(sim_factory) -> None:
+    """The rule stays (chunks.MAX_CHUNKED_TILT_DEG): the tower rig asks for two chunks and
+    gets one process; the same drive with a level LiDAR gets two."""
+    from conftest import MICRO
+
+    from canopy_kit.config import MappingConfig
+    from canopy_kit.io.bag import open_bag
+    from canopy_kit.mapping.chunks import run_odometry
+
+    workers = {}
+    for rig in ("tower", "identity"):
+        sim = sim_factory("pistachio", seed=3, overrides={**MICRO, "rig": {"name": rig}})
+        with open_bag(sim.bag) as bag:
+            cfg = MappingConfig(workers=2, odometry_chunk_sweeps=60)
+            workers[rig] = run_odometry(bag, cfg).workers
+    assert workers == {"tower": 1, "identity": 2}

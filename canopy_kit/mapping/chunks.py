@@ -31,7 +31,7 @@ from canopy_kit.mapping.passone import OdometryPass, SweepRecord, odometry_pass,
 from canopy_kit.mapping.sensors import topics_for
 
 Progress = Callable[[str, float, float], None]
-OVERLAP_SWEEPS = 150  # scans each chunk after the first starts early (see the docstring)
+OVERLAP_SWEEPS = 40  # scans each chunk after the first starts early
 MIN_TIE_SWEEPS = 5  # overlap sweeps both chunks registered, needed to tie them
 # Reading a scan undecoded (to reach a chunk's start) costs this share of processing one
 # (measured on a 32-ring MCAP session: 1.1 s for 1185 scans skipped, 12.5 s processed).
@@ -41,7 +41,19 @@ SKIP_COST = 0.085
 # ground grid of the whole drive so far, which a chunk starting mid-drive does not have
 # (measured on a LiDAR pitched 12 deg: alleys of the second chunk up to 5 cm high, map 2.3
 # against 1.5 cm from the true surfaces, volumes 3.5 against 2.3 % above the true-pose map's).
+# Tried to lift the rule (benchmarks/bench_chunked_tilt.py, pistachio, tower rig pitched 12
+# deg): 150 scans of overlap (warm local map and ground grid) and, after stitching, the later
+# chunks' ground correction repeated against the ground of the whole drive before them
+# (ground.regrounded_poses). On 4 x 4 trees, 2 chunks of 300 scans, that brought the map to a
+# single process's (1.14 against 1.15 cm from the true surfaces; 1.37 without the repeat),
+# and yawed-lever too (1.12 against 1.11), but side-tilt (rolled 20 deg) got worse (1.37
+# against 1.26, its second chunk's heights 1.5 against 0.5 cm RMS); on 4 x 10 trees (the
+# rigs benchmark's drive, 2 chunks of the default size) tower stayed apart (2.02 against 1.50
+# cm; 3.15 without the repeat). So the rule stays, and the repeat is off (REGROUND_CHUNKS).
 MAX_CHUNKED_TILT_DEG = 5.0
+# Repeat the later chunks' ground-height correction after stitching (see above; the chunks
+# then keep a thinned copy of each sweep's ground points). Off: it did not hold on every rig.
+REGROUND_CHUNKS = False
 
 
 @dataclass(frozen=True)
@@ -129,7 +141,7 @@ def _run_chunk(chunk: Chunk, tick: Tick) -> OdometryPass:
             count_from=chunk.own,
             rig=chunk.rig,
             lidar_only=chunk.lidar_only,
-            keep_ground=chunk.config.odometry_ground_refine,
+            keep_ground=REGROUND_CHUNKS and chunk.config.odometry_ground_refine,
         )
 
 
@@ -214,7 +226,7 @@ def _regrounded(records: list[SweepRecord], chunks: list[Chunk]) -> tuple[list[S
     """The stitched records with the later chunks' heights and tilts corrected again against
     the ground of the whole drive before them (:func:`regrounded_poses`), their ground points
     dropped; and the number of sweeps corrected."""
-    if len(chunks) < 2 or not chunks[0].config.odometry_ground_refine:
+    if len(chunks) < 2 or not (REGROUND_CHUNKS and chunks[0].config.odometry_ground_refine):
         return [r._replace(ground=None) for r in records], 0
     fixed = sum(r.index < chunks[1].own for r in records)
     poses, corrected = regrounded_poses(

@@ -11,7 +11,8 @@ updated; x, y and yaw stay as ICP found them.
 
 Time chunks of the drive (:mod:`canopy_kit.mapping.chunks`) each start with an empty grid;
 :func:`regrounded_poses` repeats the correction over the stitched drive against one grid of
-every sweep before it, so a later chunk rests on the ground the earlier ones saw.
+every sweep before it, so a later chunk rests on the ground the earlier ones saw (off by
+default: ``chunks.REGROUND_CHUNKS`` says what it did and did not fix).
 """
 
 from __future__ import annotations
