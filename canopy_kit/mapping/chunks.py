@@ -9,7 +9,8 @@ Each chunk's odometry lives in its own frame; chunk ``k`` is tied to chunk ``k -
 the mean of ``T_prev(i) · T_k(i)⁻¹`` over the overlap sweeps both registered, taken from
 the second half of the overlap (chunk ``k``'s local map needs a few sweeps to fill up).
 The stitched odometry then goes to the pose graph like a single process's: the seams are
-as good as one registration.
+as good as one registration. A LiDAR tilted from the vehicle's vertical keeps its odometry in
+one process (``MAX_CHUNKED_TILT_DEG``; what was tried to lift that rule is noted there).
 """
 
 from __future__ import annotations

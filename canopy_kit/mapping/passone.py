@@ -50,7 +50,7 @@ class SweepRecord(NamedTuple):
     deskewed: bool
     registered: bool  # False: a prediction only (``mapping.odometry_every``)
     # The ground points its height correction used (sensor frame, float32, thinned), kept for
-    # a time chunk's sweeps only (:func:`~canopy_kit.mapping.ground.regrounded_poses`).
+    # a time chunk's sweeps with ``chunks.REGROUND_CHUNKS`` on (:func:`~.ground.regrounded_poses`).
     ground: np.ndarray | None = None
 
 
