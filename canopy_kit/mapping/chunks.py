@@ -48,7 +48,7 @@ SKIP_COST = 0.085
 # (ground.regrounded_poses). On 4 x 4 trees, 2 chunks of 300 scans, that brought the map to a
 # single process's (1.14 against 1.15 cm from the true surfaces; 1.37 without the repeat),
 # and yawed-lever too (1.12 against 1.11), but side-tilt (rolled 20 deg) got worse (1.37
-# against 1.26, its second chunk's heights 1.5 against 0.5 cm RMS); on 4 x 10 trees (the
+# against 1.26, its second chunk's heights 1.4-1.5 against 0.5-0.6 cm RMS); on 4 x 10 (the
 # rigs benchmark's drive, 2 chunks of the default size) tower stayed apart (2.02 against 1.50
 # cm; 3.15 without the repeat). So the rule stays, and the repeat is off (REGROUND_CHUNKS).
 MAX_CHUNKED_TILT_DEG = 5.0
