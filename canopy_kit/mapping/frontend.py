@@ -19,7 +19,12 @@ from canopy_kit.errors import InputError
 from canopy_kit.io.bag import Scan
 from canopy_kit.mapping.deskew import deskew_points, reference_time
 from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
-from canopy_kit.mapping.ground import GroundHeightGrid, apply_ground_correction, ground_correction
+from canopy_kit.mapping.ground import (
+    GroundHeightGrid,
+    apply_ground_correction,
+    ground_correction,
+    refinement_points,
+)
 from canopy_kit.mapping.imu import RotationTrack, Standstill, detect_standstill, level_rotation
 from canopy_kit.mapping.odometry import LidarOdometry, OdometrySettings
 from canopy_kit.mapping.sensors import ImuBuffer
@@ -387,10 +392,7 @@ class LidarFrontend:
     def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """Height and tilt from the ground grid (see :mod:`.ground`); the grid grows with the sweep."""
         assert self._ground_grid is not None
-        r2 = np.einsum("ij,ij->i", ground[:, :2], ground[:, :2])
-        ground = ground[(r2 >= 4.0) & (r2 <= 400.0)]
-        if len(ground) > 3000:
-            ground = ground[:: int(np.ceil(len(ground) / 3000))]
+        ground = refinement_points(ground)
         world = ground @ pose[:3, :3].T + pose[:3, 3]
         coef = ground_correction(world, pose[:2, 3], self._ground_grid)
         if coef is not None:

@@ -8,6 +8,11 @@ LeGO-LOAM, the ground fixes only what it can: after ICP, the sweep's ground poin
 compared with a running grid of ground heights and a correction of height and tilt
 (``dz + a·dx + b·dy``, about the sensor position) is applied before the local map is
 updated; x, y and yaw stay as ICP found them.
+
+Time chunks of the drive (:mod:`canopy_kit.mapping.chunks`) each start with an empty grid;
+:func:`regrounded_poses` repeats the correction over the stitched drive against one grid of
+every sweep before it, so a later chunk rests on the ground the earlier ones saw (off by
+default: ``chunks.REGROUND_CHUNKS`` says what it did and did not fix).
 """
 
 from __future__ import annotations
@@ -132,6 +137,43 @@ def two_sided_axes(offsets: np.ndarray, min_share: float = 0.2) -> np.ndarray:
         if min(np.mean(proj > 0), np.mean(proj < 0)) >= min_share:
             keep.append(vectors[:, k])
     return np.array(keep).T.reshape(2, len(keep))
+
+
+def refinement_points(ground: np.ndarray, max_points: int = 3000) -> np.ndarray:
+    """The ground points (sensor frame) a sweep's correction uses: 2-20 m out, thinned evenly."""
+    r2 = np.einsum("ij,ij->i", ground[:, :2], ground[:, :2])
+    ground = ground[(r2 >= 4.0) & (r2 <= 400.0)]
+    if len(ground) > max_points:
+        ground = ground[:: int(np.ceil(len(ground) / max_points))]
+    return ground
+
+
+def regrounded_poses(
+    poses: list[np.ndarray], grounds: list[np.ndarray | None], fixed: int
+) -> tuple[list[np.ndarray], int]:
+    """The poses corrected again, in drive order, against one ground grid of every sweep before.
+
+    ``grounds[i]`` are sweep ``i``'s refinement points in its sensor frame (None: a sweep
+    without, e.g. one left unregistered). The first ``fixed`` sweeps only fill the grid; each
+    later one is corrected on its own (as the front end does), not carried on to the sweeps
+    after it: their own corrections already hold what the local map inherited, and carrying
+    each on (measured) doubled the height differences to a single process's odometry.
+    Returns the poses and the number of sweeps corrected.
+    """
+    grid = GroundHeightGrid()
+    out, corrected = [], 0
+    for i, (pose, ground) in enumerate(zip(poses, grounds, strict=True)):
+        if ground is not None and len(ground):
+            ground = np.asarray(ground, float)
+            world = ground @ pose[:3, :3].T + pose[:3, 3]
+            coef = ground_correction(world, pose[:2, 3], grid) if i >= fixed else None
+            if coef is not None:
+                pose = apply_ground_correction(pose, coef)
+                world = ground @ pose[:3, :3].T + pose[:3, 3]
+                corrected += 1
+            grid.add(world)
+        out.append(pose)
+    return out, corrected
 
 
 def apply_ground_correction(pose: np.ndarray, coef: np.ndarray) -> np.ndarray:

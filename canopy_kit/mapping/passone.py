@@ -27,6 +27,7 @@ from canopy_kit.mapping.frontend import (
     FrontendSweep,
     LidarFrontend,
 )
+from canopy_kit.mapping.ground import refinement_points
 from canopy_kit.mapping.imu import ImuSeries
 from canopy_kit.mapping.sensors import (
     GnssBuffer,
@@ -48,6 +49,9 @@ class SweepRecord(NamedTuple):
     uncertainty: float
     deskewed: bool
     registered: bool  # False: a prediction only (``mapping.odometry_every``)
+    # The ground points its height correction used (sensor frame, float32, thinned), kept for
+    # a time chunk's sweeps with ``chunks.REGROUND_CHUNKS`` on (:func:`~.ground.regrounded_poses`).
+    ground: np.ndarray | None = None
 
 
 @dataclass
@@ -175,8 +179,14 @@ class PassOne:
         )
 
 
-def record(sweep: FrontendSweep) -> SweepRecord:
-    """The :class:`SweepRecord` of a front-end sweep."""
+GROUND_KEPT = 1000  # ground points kept per sweep for the re-correction of chunks
+
+
+def record(sweep: FrontendSweep, keep_ground: bool = False) -> SweepRecord:
+    """The :class:`SweepRecord` of a front-end sweep (with its ground points if ``keep_ground``)."""
+    ground = None
+    if keep_ground and sweep.registered:
+        ground = refinement_points(sweep.xyz[sweep.ground], GROUND_KEPT).astype(np.float32)
     return SweepRecord(
         sweep.scan.index,
         sweep.t_ref,
@@ -184,6 +194,7 @@ def record(sweep: FrontendSweep) -> SweepRecord:
         sweep.uncertainty,
         sweep.deskewed,
         sweep.registered,
+        ground,
     )
 
 
@@ -195,8 +206,11 @@ def odometry_pass(
     count_from: int = 0,
     rig: SensorRig | None = None,
     lidar_only: bool = False,
+    keep_ground: bool = False,
 ) -> OdometryPass:
-    """Run the front end over the bag (or a range of its scans) in this process."""
+    """Run the front end over the bag (or a range of its scans) in this process.
+
+    ``keep_ground``: the records keep their ground points (a time chunk's, for stitching)."""
     one = PassOne(
         bag,
         config,
@@ -207,7 +221,7 @@ def odometry_pass(
         rig=rig,
         lidar_only=lidar_only,
     )
-    return one.result([record(s) for s in one.sweeps()])
+    return one.result([record(s, keep_ground) for s in one.sweeps()])
 
 
 def _input_warnings(topics: SensorTopics, config: MappingConfig, bag_path: str) -> list[str]:
