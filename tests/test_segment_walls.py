@@ -140,3 +140,35 @@ def test_the_run_scores_a_wall_against_the_trunk_midpoint_cuts(small_wall) -> No
         a, b = cut == p["truth_id"], seg.labels == p["segment_id"]
         iou = (a & b).sum() / (a | b).sum()
         assert p["iou"] == pytest.approx(iou, abs=0.01), p["truth_id"]
+
+
+def test_volume_accuracy_scores_a_wall_against_the_cuts(small_wall) -> None:
+    """``evaluate.volume_accuracy`` (the benchmarks' path, a map from the true poses) matches
+    segments with the cuts and takes ``cut_volume_m3`` as the envelope truth: every tree it
+    matched carries its cut's volume, and its IoUs are those of labels cut here."""
+    import pandas as pd
+
+    from canopy_kit.config import load_preset
+    from canopy_kit.evaluate.volume_accuracy import segmented_session, segmented_volume_errors
+
+    session, _ = small_wall
+    truth = pd.read_csv(session.root / "truth" / "trees.csv").set_index("tree_id")
+    config = load_preset("adaptive")
+    _, cloud, seg, score = segmented_session(session.root, config)
+    along = cloud.xyz[:, :2] @ session.orchard.row_direction
+    hit = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
+    cut = np.full(len(hit), -1)
+    for tree_id, t in truth.iterrows():
+        mine = (hit >= 0) & (truth["row"].reindex(hit).to_numpy() == t["row"])
+        cut[mine & (along >= t["cut_start_m"]) & (along < t["cut_end_m"])] = tree_id
+    pairs = score.trees[score.trees["segment_id"] >= 0]
+    assert len(pairs) >= 1
+    for _, p in pairs.iterrows():
+        a, b = cut == p["truth_id"], seg.labels == p["segment_id"]
+        assert p["iou"] == pytest.approx((a & b).sum() / (a | b).sum(), abs=0.01)
+    errors, _ = segmented_volume_errors(session.root, config, ["convex_hull"])
+    both = errors[(errors["scan"] == "both") & (errors["method"] == "convex_hull")]
+    assert len(both) >= 1
+    np.testing.assert_allclose(
+        both["true_volume_m3"].to_numpy(), truth.loc[both["tree"], "cut_volume_m3"].to_numpy()
+    )
