@@ -37,13 +37,16 @@ def score_segmentation(ctx: Any, sim_dir: Path, alignment: Any = None) -> Any:
     Footprints are placed in the truth's frame by ``alignment`` (4 x 4: the drive's best fit
     to the true poses, the one ATE is measured after) when given, else by the map's
     georeference: a metre-level receiver's offset would otherwise be scored as a
-    segmentation error (the georeference is judged on its own, mapping "georeferenced")."""
+    segmentation error (the georeference is judged on its own, mapping "georeferenced").
+    On a wall (trees.csv ``volume_truth`` "trunk-midpoint cut") a point hit on a crown is the
+    tree whose cut holds it (``evaluate.wall_cuts``)."""
     from canopy_kit.evaluate.segmentation_score import (
         score_footprints,
         score_point_labels,
         truth_footprints,
     )
     from canopy_kit.evaluate.truth import load_truth
+    from canopy_kit.evaluate.wall_cuts import cut_labels, is_wall_truth
 
     truth = load_truth(sim_dir)
     seg, cloud = ctx.segmentation, ctx.mapping.map
@@ -51,6 +54,8 @@ def score_segmentation(ctx: Any, sim_dir: Path, alignment: Any = None) -> Any:
     pred_labels = seg.table().set_index("segment_id")[["row", "label"]]
     if "tree_id" in cloud.fields:
         field = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
+        if is_wall_truth(truth.trees):  # a wall's tree is its trunk-midpoint cut (issue 52)
+            field = cut_labels(_in_truth_frame(cloud, truth, alignment), field, truth.trees)
         observed = sorted(set(np.unique(field[field >= 0]).tolist()) & set(truth_labels.index))
         return score_point_labels(
             seg.labels, field, truth_labels=truth_labels.loc[observed], pred_labels=pred_labels
@@ -66,16 +71,38 @@ def score_segmentation(ctx: Any, sim_dir: Path, alignment: Any = None) -> Any:
     )
 
 
+def _in_truth_frame(cloud: Any, truth: Any, alignment: Any) -> np.ndarray:
+    """The map's points x, y in the truth's local frame: by ``alignment`` (4 x 4, the drive's
+    best fit to the true poses) when given, else by the georeference (none: the same frame)."""
+    xyz = np.asarray(cloud.xyz, float)
+    if alignment is not None:
+        a = np.asarray(alignment, dtype=float)
+        return xyz[:, :2] @ a[:2, :2].T + xyz[:, 2:3] * a[:2, 2] + a[:2, 3]
+    if cloud.crs is None:
+        return xyz[:, :2]
+    return (
+        xyz[:, :2] + truth_offset(cloud.origin, cloud.crs, truth.frame.origin, truth.frame.crs)[:2]
+    )
+
+
 def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict[str, Any]:
-    """Scores of a run against simulator truth, and the tree table with truth columns added."""
+    """Scores of a run against simulator truth, and the tree table with truth columns added.
+
+    On a wall (trees.csv ``volume_truth`` "trunk-midpoint cut", issue 52) segments are matched
+    to the trees' cuts and volumes compared with ``cut_volume_m3`` (``true_crown_volume_m3``
+    then holds it); the measurand (one crown's complete foliage) is not a wall tree's."""
     from canopy_kit.evaluate.truth import load_truth
+    from canopy_kit.evaluate.wall_cuts import WALL_TRUTH, is_wall_truth
     from canopy_kit.volume.verb import volume_column, volume_methods
 
     truth = load_truth(sim_dir)
+    wall = is_wall_truth(truth.trees)
     mapping_eval = _mapping_evaluation(ctx, sim_dir)
     score = score_segmentation(ctx, sim_dir, mapping_eval.get("alignment"))
     pairs = score.trees[score.trees["segment_id"] >= 0][["truth_id", "segment_id", "iou"]]
     t = truth.trees.set_index("tree_id")
+    if wall:
+        t["crown_volume_m3"] = t["cut_volume_m3"]
     matched = pairs.join(
         t[
             [
@@ -125,7 +152,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
         volumes["diameter_mae_m"] = float(
             np.mean(np.abs(out.loc[ok, "crown_diameter_m"] - out.loc[ok, "true_crown_diameter_m"]))
         )
-    measurand = _measurand_truth(truth, out, ctx.config.volume)
+    measurand = None if wall else _measurand_truth(truth, out, ctx.config.volume)
     rec = ctx.config.volume.recommended
     if measurand is not None:
         out["true_measurand_m3"] = measurand
@@ -143,6 +170,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
         "segmentation": score.to_dict(),
         "volumes": volumes,
         "recommended_volume": ctx.config.volume.recommended,
+        "volume_truth": WALL_TRUTH if wall else "crown",
         "segmentation_trees": score.trees,
         "trees": out,
     }

@@ -25,10 +25,12 @@ def segmented_session(
 ) -> tuple[Any, Any, Any, Any]:
     """A simulated session's map (true poses unless ``reference_map`` is given, on map.laz's
     grid) segmented with ``config``'s segmenter as ``canopy-kit run`` does: the truth, the
-    map, the segmentation and its score against the simulator's ``tree_id``."""
+    map, the segmentation and its score against the simulator's ``tree_id`` (on a wall, the
+    trees' trunk-midpoint cuts: ``reference_map`` then in the truth's local frame)."""
     from canopy_kit.evaluate.segmentation_score import score_point_labels
     from canopy_kit.evaluate.truth import load_truth
     from canopy_kit.evaluate.truth_map import truth_map
+    from canopy_kit.evaluate.wall_cuts import cut_labels, is_wall_truth
     from canopy_kit.io.las_write import on_las_grid
     from canopy_kit.segment.verb import make_segmenter, segment
 
@@ -43,7 +45,10 @@ def segmented_session(
         config.rows,
         seed=config.seed,
     )
-    return truth, cloud, seg, score_point_labels(seg.labels, np.asarray(cloud.fields["tree_id"]))
+    field = np.asarray(cloud.fields["tree_id"])
+    if is_wall_truth(truth.trees):  # a wall's tree is its trunk-midpoint cut (issue 52)
+        field = cut_labels(cloud.xyz[:, :2], field, truth.trees)
+    return truth, cloud, seg, score_point_labels(seg.labels, field)
 
 
 def foliage_references(
@@ -121,17 +126,20 @@ def segmented_volume_errors(
     estimator's interval held the truth) and the segmentation score.
 
     ``reference``: ``envelope`` compares every method with the simulator's crown envelope
-    volume; ``foliage`` with the same method on the tree's complete foliage
-    (:func:`foliage_references`): the error the drive and the segmentation made.
+    volume (on a wall, the tree's trunk-midpoint cut ``cut_volume_m3``); ``foliage`` with the
+    same method on the tree's complete foliage (:func:`foliage_references`): the error the
+    drive and the segmentation made.
     """
     import pandas as pd
 
+    from canopy_kit.evaluate.wall_cuts import is_wall_truth
     from canopy_kit.volume.verb import measure_trees, volume_column
 
     truth, cloud, seg, score = segmented_session(sim_dir, config, reference_map)
     correct = score.trees[score.trees["status"] == "correct"]
     true_id_of = dict(zip(correct["segment_id"], correct["truth_id"], strict=True))
-    true_volume = truth.trees.set_index("tree_id")["crown_volume_m3"]
+    wall = is_wall_truth(truth.trees)
+    true_volume = truth.trees.set_index("tree_id")["cut_volume_m3" if wall else "crown_volume_m3"]
     row_of_tree = truth.trees.set_index("tree_id")["row"]
     row_of_segment = {s: int(row_of_tree[t]) for s, t in true_id_of.items()}
     scans = [

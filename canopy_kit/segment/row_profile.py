@@ -66,7 +66,11 @@ from scipy import ndimage
 
 from canopy_kit.errors import InputError
 from canopy_kit.segment.rows import RowAssignment, RowLine
-from canopy_kit.segment.trellis_filter import TRELLIS_MAX_WIDTH_M, without_trellis
+from canopy_kit.segment.trellis_filter import (
+    TRELLIS_MAX_WIDTH_M,
+    clustered,
+    trellis_along_row,
+)
 
 SECTION_M = 1.0  # section length along the row
 CELL_M = 0.1  # cross-section grid cell (across the row and in height)
@@ -155,18 +159,6 @@ def cross_section_area(offset: np.ndarray, height: np.ndarray, cell_m: float = C
     return float(grid.sum()) * cell_m**2
 
 
-def _clustered(
-    offset: np.ndarray, height: np.ndarray, cell_m: float, min_points: int
-) -> np.ndarray:
-    """Which points' ``cell_m`` cell of the across-row x height grid holds ``min_points``."""
-    i = np.floor(offset / cell_m).astype(np.int64)
-    j = np.floor(height / cell_m).astype(np.int64)
-    _, inverse, counts = np.unique(
-        np.column_stack([i, j]), axis=0, return_inverse=True, return_counts=True
-    )
-    return counts[inverse.ravel()] >= min_points
-
-
 def _reach(offset: np.ndarray, height: np.ndarray, cell_m: float, k: int) -> tuple[float, float]:
     """How far the canopy reaches left and right of the line: per ``cell_m`` height level the
     offset ``k`` returns reach (the k-th outermost), the farthest over the levels."""
@@ -206,7 +198,9 @@ def section_metrics(
     along, offset, height = along[keep][order], offset[keep][order], height[keep][order]
     edges = start + np.arange(n_sections + 1) * section_m
     bounds = np.searchsorted(along, edges)
-    windows = np.searchsorted(along, np.column_stack([edges[:-1] - margin, edges[1:] + margin]))
+    trellis = trellis_along_row(
+        along, offset, height, start, n_sections, section_m, cell_m, min_cell_points
+    )
     out = {
         name: np.zeros(n_sections)
         for name in ("height_m", "width_left_m", "width_right_m", "width_m", "cross_section_m2")
@@ -214,13 +208,8 @@ def section_metrics(
     counts = np.diff(bounds)
     for s in np.flatnonzero(counts >= min_points):
         part = slice(bounds[s], bounds[s + 1])
-        o, h, a = offset[part], height[part], along[part]
-        dense = _clustered(o, h, cell_m, min_cell_points)
-        o, h, a = o[dense], h[dense], a[dense]
-        lo, hi = windows[s]
-        beside = np.r_[lo : bounds[s], bounds[s + 1] : hi]  # the neighbours' nearest points
-        near = np.column_stack([offset[beside], height[beside], along[beside]])
-        kept = without_trellis(o, h, a, cell_m, near, min_cell_points)
+        o, h = offset[part], height[part]
+        kept = clustered(o, h, cell_m, min_cell_points) & ~trellis[part]
         o, h = o[kept], h[kept]
         if len(o) < min_points:
             continue

@@ -16,11 +16,15 @@ most; a post sticking out of the wall by less than 0.3 m, or a wire touching the
 raise a section's height by that much. A crown's top is far wider than 0.3 m for more than a
 few millimetres below its apex.)
 
-Used by :mod:`canopy_kit.segment.row_profile` on each 1 m section's points in the section's
-across-row x height grid.
+One rule for both users (:func:`trellis_along_row`): the row profile
+(:mod:`canopy_kit.segment.row_profile`) leaves the trellis out of each 1 m section, and the
+segmentation (:func:`trellis_in_segments`, called by ``segment.verb.segment``) takes it out
+of the tree segments, so that no post sets a tree's height or stretches an end tree.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -28,6 +32,18 @@ from scipy import ndimage
 TRELLIS_MAX_WIDTH_M = 0.3  # posts and wires (end-on) are at most this wide in a section grid
 POLE_MIN_HEIGHT_M = 0.3  # a narrow column at least this tall is a post, not a crown's top
 MIN_RETURNS = 3  # returns that show canopy going on (row_profile.MIN_CELL_POINTS)
+SECTION_M = 1.0  # row sections the rule looks at (row_profile.SECTION_M)
+CELL_M = 0.1  # across-row x height grid cell (row_profile.CELL_M)
+
+
+def clustered(offset: np.ndarray, height: np.ndarray, cell_m: float, min_points: int) -> np.ndarray:
+    """Which points' ``cell_m`` cell of the across-row x height grid holds ``min_points``."""
+    i = np.floor(offset / cell_m).astype(np.int64)
+    j = np.floor(height / cell_m).astype(np.int64)
+    _, inverse, counts = np.unique(
+        np.column_stack([i, j]), axis=0, return_inverse=True, return_counts=True
+    )
+    return counts[inverse.ravel()] >= min_points
 
 
 def _goes_on(
@@ -108,3 +124,91 @@ def without_trellis(
         if not (tip and _goes_on(offset[mine], height[mine], a, beside, cell_m, min_points)):
             trellis[box] |= blobs[box] == k
     return ~trellis[i, j]
+
+
+def trellis_along_row(
+    along: np.ndarray,
+    offset: np.ndarray,
+    height: np.ndarray,
+    start: float,
+    n_sections: int,
+    section_m: float = SECTION_M,
+    cell_m: float = CELL_M,
+    min_cell_points: int = MIN_RETURNS,
+) -> np.ndarray:
+    """Which of a row's points (``along`` the row, ``offset`` across it, ``height`` above the
+    ground) are posts or wires: per section of ``section_m`` from ``start``, the returns in
+    grid cells holding ``min_cell_points`` go through :func:`without_trellis`, with the points
+    up to a post's width beyond the section showing whether canopy goes on. Sparse returns
+    count with a post or wire found within one cell of them (the row profile ignores them);
+    points outside the sections are not judged (False)."""
+    along, offset, height = (np.asarray(v, float).ravel() for v in (along, offset, height))
+    trellis = np.zeros(len(along), bool)
+    if len(along) == 0 or n_sections <= 0:
+        return trellis
+    margin = TRELLIS_MAX_WIDTH_M
+    order = np.argsort(along, kind="stable")
+    a_sorted = along[order]
+    edges = start + np.arange(n_sections + 1) * section_m
+    bounds = np.searchsorted(a_sorted, edges)
+    windows = np.searchsorted(a_sorted, np.column_stack([edges[:-1] - margin, edges[1:] + margin]))
+    for s in np.flatnonzero(np.diff(bounds) > 0):
+        members = order[bounds[s] : bounds[s + 1]]
+        dense = members[clustered(offset[members], height[members], cell_m, min_cell_points)]
+        if len(dense) == 0:
+            continue
+        lo, hi = windows[s]
+        beside = order[np.r_[lo : bounds[s], bounds[s + 1] : hi]]
+        near = np.column_stack([offset[beside], height[beside], along[beside]])
+        kept = without_trellis(
+            offset[dense], height[dense], along[dense], cell_m, near, min_cell_points
+        )
+        trellis[dense[~kept]] = True
+        # sparse returns next to a post or wire (a post's cap) are part of it
+        cells = _cells(offset[dense[~kept]], height[dense[~kept]], cell_m)
+        if len(cells):
+            near_cells = (cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 2)
+            sparse = np.setdiff1d(members, dense)
+            mine = _cells(offset[sparse], height[sparse], cell_m)
+            trellis[sparse[_in(mine, near_cells)]] = True
+    return trellis
+
+
+_NEIGHBOURS = np.array([(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1)])
+
+
+def _cells(offset: np.ndarray, height: np.ndarray, cell_m: float) -> np.ndarray:
+    return np.column_stack([np.floor(offset / cell_m), np.floor(height / cell_m)]).astype(np.int64)
+
+
+def _in(cells: np.ndarray, of: np.ndarray) -> np.ndarray:
+    """Which rows of ``cells`` (K, 2) are among the rows of ``of``."""
+    key = lambda c: c[:, 0] * 1_000_003 + c[:, 1]  # noqa: E731
+    return np.isin(key(cells), key(of))
+
+
+def trellis_in_segments(
+    xy: np.ndarray,
+    height: np.ndarray,
+    labels: np.ndarray,
+    rows: Any,
+    segment_row: np.ndarray,
+    section_m: float = SECTION_M,
+) -> np.ndarray:
+    """Which labelled map points are posts or wires (:func:`trellis_along_row` per fitted row
+    of ``rows``, a ``segment.rows.RowAssignment``, on the points of the segments in it:
+    ``segment_row`` per segment label)."""
+    labels = np.asarray(labels)
+    trellis = np.zeros(len(labels), bool)
+    segment_row = np.asarray(segment_row)
+    for line in rows.lines:
+        mine = np.flatnonzero(labels >= 0)
+        mine = mine[segment_row[labels[mine]] == line.row]
+        if len(mine) == 0:
+            continue
+        along = xy[mine] @ line.direction
+        first = np.floor(along.min() / section_m) * section_m
+        n = int(np.floor((along.max() - first) / section_m)) + 1
+        found = trellis_along_row(along, line.offset(xy[mine]), height[mine], first, n, section_m)
+        trellis[mine[found]] = True
+    return trellis

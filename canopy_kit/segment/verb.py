@@ -2,7 +2,8 @@
 
 Preprocess (ground, bands, voxel grid), run the segmenter on height-normalised canopy
 points, carry its labels back to every map point, describe each tree, find the rows and
-label the trees. The segmenter only does the maths (lidR's verb/algorithm split).
+label the trees; a trellis's posts and wires (``segment.trellis_filter``) leave the trees.
+The segmenter only does the maths (lidR's verb/algorithm split).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from canopy_kit.segment.density import first_appearance_order
 from canopy_kit.segment.preprocess import prepare
 from canopy_kit.segment.result import Segmentation, TreeRecord
 from canopy_kit.segment.rows import assign_rows
+from canopy_kit.segment.trellis_filter import trellis_in_segments
 from canopy_kit.volume.metrics import horizontal_hull, polygon_area, widest_extents
 
 Progress = Callable[[str, float, float], None]
@@ -97,9 +99,16 @@ def segment(
     labels[prepared.canopy_index] = seen_labels[prepared.canopy_to_seen]
     labels = first_appearance_order(labels)
     t0 = time.perf_counter()
-    seg = _describe(
-        cloud, labels, prepared, segmenter, rows_config, driving_direction, direction_source
+    describe = (cloud, prepared, segmenter, rows_config, driving_direction, direction_source)
+    seg = _describe(labels, *describe)
+    # a fruiting wall's posts and wires are no tree (issue 52): the row profile's rule
+    segment_row = np.array([t.row for t in sorted(seg.trees, key=lambda t: t.segment_id)])
+    trellis = trellis_in_segments(
+        cloud.xyz[:, :2], prepared.height, seg.labels, seg.rows, segment_row
     )
+    if trellis.any():
+        labels = first_appearance_order(np.where(trellis, -1, seg.labels))
+        seg = _describe(labels, *describe)
     timings["rows"] = time.perf_counter() - t0
     seg.canopy_band_m = (float(pre.min_canopy_height), float(prepared.ceiling))
     seg.ceiling_source = "data" if pre.max_canopy_height is None else "preprocess.max_canopy_height"
@@ -158,8 +167,8 @@ MIN_POINTS_ABOVE = 10  # points above the ceiling in a footprint that make a cro
 
 
 def _describe(
-    cloud: PointCloud,
     labels: np.ndarray,
+    cloud: PointCloud,
     prepared: Any,
     segmenter: Any,
     rows_config: RowsConfig | None,
