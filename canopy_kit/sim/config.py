@@ -11,7 +11,6 @@ from typing import Any, Literal
 
 from canopy_kit.config import from_dict, merge, read_toml
 from canopy_kit.errors import ConfigError
-from canopy_kit.evaluate.truth import orchard_kind  # noqa: F401 - moved to canopy_kit.evaluate.truth; kept here
 
 
 @dataclass
