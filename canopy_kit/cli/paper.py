@@ -8,7 +8,6 @@ them beside the paper's figures.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import typer
 
@@ -152,6 +151,7 @@ def experiments(
         print_json,
         progress_bar,
     )
+    from canopy_kit.cli.experiments_report import print_experiments
     from canopy_kit.errors import InputError
     from canopy_kit.paper.experiments import (
         ExperimentConfig,
@@ -201,140 +201,6 @@ def experiments(
     if json_output:
         print_json(results.to_dict())
         return
-    _print_experiments(results)
+    print_experiments(results)
     if not show_saved:
         console.print("results: " + ", ".join(str(p) for p in files.values()))
-
-
-def _pct(value: Any, digits: int = 1) -> str:
-    import math
-
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "-"
-    return f"{value:.{digits}f}"
-
-
-def _print_experiments(results: Any) -> None:
-    import math
-
-    from canopy_kit.cli.common import console
-    from canopy_kit.cli.tables import Grid, print_grid
-
-    c, cfg = results.comparison, results.config
-    seeds = ", ".join(map(str, cfg.seeds))
-    runs_min = float(results.runs["seconds"].sum()) / 60 if "seconds" in results.runs else math.nan
-    console.print(
-        f"[bold]Abedi et al. 2025 re-run on simulated orchards[/]: "
-        f"{cfg.rows} rows x {cfg.trees_per_row} trees, seeds {seeds}, "
-        f"mapping: {', '.join(cfg.mappings)} (this command {results.seconds / 60:.1f} "
-        f"min; the runs, mapping included and simulation not, {runs_min:.0f} min "
-        f"in all, checkpointed ones included)"
-    )
-    seg = Grid(
-        [
-            "orchard",
-            "method",
-            "mapping",
-            "paper",
-            "ours",
-            "seed range",
-            "correct / trees",
-            "merged",
-            "split",
-            "missed",
-            "other",
-            "map pts/tree",
-        ],
-        title="Segmentation success (%): one-to-one point IoU >= 0.5 with a true tree",
-        keys=3,
-        right=set(range(3, 12)),
-    )
-    for r in c.to_dict("records"):
-        seg.add_row(
-            r["orchard"],
-            r["method"],
-            r["mapping"],
-            _pct(r["paper_success_pct"], 0),
-            _pct(r["success_pct"]),
-            f"{_pct(r['success_min_pct'], 0)}-{_pct(r['success_max_pct'], 0)}",
-            f"{r['n_correct']}/{r['n_truth']}",
-            str(r["n_merged"]),
-            str(r["n_split"]),
-            str(r["n_missed"]),
-            str(r["n_other"]),
-            _pct(r["map_points_per_tree_median"], 0),
-        )
-    print_grid(seg)
-    vol = Grid(
-        [
-            "orchard",
-            "method",
-            "mapping",
-            "trees",
-            "hull vs sphere paper",
-            "hull vs sphere ours",
-            "alpha vs sphere paper",
-            "alpha vs sphere ours",
-            "max alpha err paper",
-            "max alpha err ours",
-            "alpha better paper",
-            "alpha better ours",
-            "hull vs crown",
-            "alpha vs crown",
-            "hull bias crown",
-            "alpha bias crown",
-        ],
-        title="Volume error (%) on correctly segmented trees: MAPE vs the aerial sphere "
-        "π d³/6 (the paper's ground truth) and vs the true crown volume",
-        keys=3,
-        right=set(range(3, 16)),
-    )
-    for r in c.to_dict("records"):
-        n = r.get("n_trees_vs_sphere")
-        better = (
-            f"{int(r['alpha_better_vs_sphere'])}/{int(n)}"
-            if n is not None and not math.isnan(n)
-            else "-"
-        )
-        vol.add_row(
-            r["orchard"],
-            r["method"],
-            r["mapping"],
-            _pct(n, 0),
-            _pct(r["paper_convex_hull_mape_vs_sphere_pct"]),
-            _pct(r.get("convex_hull_mape_vs_sphere_pct")),
-            _pct(r["paper_alpha_shape_mape_vs_sphere_pct"]),
-            _pct(r.get("alpha_shape_mape_vs_sphere_pct")),
-            _pct(r["paper_alpha_shape_max_error_vs_sphere_pct"]),
-            _pct(r.get("alpha_shape_max_error_vs_sphere_pct")),
-            r["paper_alpha_better"] or "-",
-            better,
-            _pct(r.get("convex_hull_mape_vs_crown_pct")),
-            _pct(r.get("alpha_shape_mape_vs_crown_pct")),
-            _pct(r.get("convex_hull_bias_vs_crown_pct")),
-            _pct(r.get("alpha_shape_bias_vs_crown_pct")),
-        )
-    print_grid(vol)
-    if "aerial" in "".join(c.columns):
-        console.print(
-            "vs the drone photogrammetry sphere volumes: "
-            + "; ".join(
-                f"{r['orchard']}/{r['method']}/{r['mapping']} hull "
-                f"{_pct(r.get('convex_hull_mape_vs_aerial_pct'))}, alpha "
-                f"{_pct(r.get('alpha_shape_mape_vs_aerial_pct'))}"
-                for r in c.to_dict("records")
-            )
-        )
-    failed = (
-        results.runs[results.runs.get("error", "").astype(str) != ""]
-        if "error" in results.runs
-        else results.runs.iloc[:0]
-    )
-    for r in failed.to_dict("records"):
-        console.print(f"[red]failed[/]: {r['session']} {r['mapping']} {r['method']}: {r['error']}")
-    p = results.paper
-    console.print(
-        f"Paper: segmentation as printed (§II.C, §III); volume figures recomputed from "
-        f"Table I corrected ({p['n_trees']} pistachio trees, DBSCAN). "
-        f"Bias vs crown: mean signed error."
-    )
