@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -194,8 +195,6 @@ def simulate_drone_flight(
     progress: Progress | None = None,
 ) -> DroneFlight:
     """Fly, render and write the photos to ``drone_dir`` and the true cameras to ``truth_dir``."""
-    from scipy.spatial.transform import Rotation
-
     report = progress or (lambda *_: None)
     drone_dir, truth_dir = Path(drone_dir), Path(truth_dir)
     drone_dir.mkdir(parents=True, exist_ok=True)
@@ -216,57 +215,81 @@ def simulate_drone_flight(
     rows = []
     report("Drone photos", 0, len(shots))
     for k, shot in enumerate(shots):
-        view = shot.view
-        gps = (
-            view.position
-            + offset
-            + np.array(
-                [
-                    *rng.normal(0.0, spec.gps_sigma_horizontal, 2),
-                    rng.normal(0.0, spec.gps_sigma_vertical),
-                ]
-            )
-        )
-        lat, lon, alt = (float(v[0]) for v in orchard.frame.to_wgs84(gps[None, :]))
-        image = renderer.render(view, rng)
-        when = FLIGHT_START + timedelta(seconds=round(shot.time_s))
-        atomic_write_bytes(
-            drone_dir / shot.name,
-            encode_jpeg(image, exif_bytes(spec, lat, lon, alt, when), spec.jpeg_quality),
-        )
-        q = Rotation.from_matrix(view.rotation).as_quat()
-        rows.append(
-            {
-                "image": shot.name,
-                "line": shot.line,
-                "time_s": shot.time_s,
-                "x": view.position[0],
-                "y": view.position[1],
-                "z": view.position[2],
-                "qw": q[3],
-                "qx": q[0],
-                "qy": q[1],
-                "qz": q[2],
-                "gps_x": gps[0],
-                "gps_y": gps[1],
-                "gps_z": gps[2],
-                "lat": lat,
-                "lon": lon,
-                "altitude": alt,
-                "focal_px": view.focal_px,
-                "cx": view.width / 2.0,
-                "cy": view.height / 2.0,
-                "width": view.width,
-                "height": view.height,
-            }
-        )
+        rows.append(_take_photo(shot, renderer, orchard, spec, offset, rng, drone_dir))
         report("Drone photos", k + 1, len(shots))
     cameras = pd.DataFrame(rows)
     truth_dir.mkdir(parents=True, exist_ok=True)
     write_csv(cameras, truth_dir / "drone_cameras.csv", float_format="%.9f")
+    summary = _flight_summary(spec, cameras, offset, len(shots))
+    atomic_write_text(truth_dir / "drone_flight.json", json.dumps(summary, indent=2) + "\n")
+    return DroneFlight(drone_dir, cameras, summary)
+
+
+def _take_photo(
+    shot: DroneShot,
+    renderer: DroneRenderer,
+    orchard: Orchard,
+    spec: DroneSpec,
+    offset: np.ndarray,
+    rng: np.random.Generator,
+    drone_dir: Path,
+) -> dict[str, Any]:
+    """Render one shot and write it as a JPEG with the receiver's GPS position (the flight's
+    ``offset`` plus noise) in its EXIF; returns the true camera's row of drone_cameras.csv."""
+    from scipy.spatial.transform import Rotation
+
+    view = shot.view
+    gps = (
+        view.position
+        + offset
+        + np.array(
+            [
+                *rng.normal(0.0, spec.gps_sigma_horizontal, 2),
+                rng.normal(0.0, spec.gps_sigma_vertical),
+            ]
+        )
+    )
+    lat, lon, alt = (float(v[0]) for v in orchard.frame.to_wgs84(gps[None, :]))
+    image = renderer.render(view, rng)
+    when = FLIGHT_START + timedelta(seconds=round(shot.time_s))
+    atomic_write_bytes(
+        drone_dir / shot.name,
+        encode_jpeg(image, exif_bytes(spec, lat, lon, alt, when), spec.jpeg_quality),
+    )
+    q = Rotation.from_matrix(view.rotation).as_quat()
+    return {
+        "image": shot.name,
+        "line": shot.line,
+        "time_s": shot.time_s,
+        "x": view.position[0],
+        "y": view.position[1],
+        "z": view.position[2],
+        "qw": q[3],
+        "qx": q[0],
+        "qy": q[1],
+        "qz": q[2],
+        "gps_x": gps[0],
+        "gps_y": gps[1],
+        "gps_z": gps[2],
+        "lat": lat,
+        "lon": lon,
+        "altitude": alt,
+        "focal_px": view.focal_px,
+        "cx": view.width / 2.0,
+        "cy": view.height / 2.0,
+        "width": view.width,
+        "height": view.height,
+    }
+
+
+def _flight_summary(
+    spec: DroneSpec, cameras: pd.DataFrame, offset: np.ndarray, n_images: int
+) -> dict[str, Any]:
+    """What drone_flight.json records: images, flight lines, altitude, ground sampling,
+    footprint and overlaps, camera, the receiver's offset and the sun."""
     across, along = ground_footprint(spec)
-    summary = {
-        "images": len(shots),
+    return {
+        "images": n_images,
         "lines": int(cameras["line"].max()) + 1 if len(cameras) else 0,
         "altitude_m": spec.altitude,
         "gsd_m": spec.altitude / focal_px(spec),
@@ -280,8 +303,6 @@ def simulate_drone_flight(
         "sun_elevation_deg": spec.sun_elevation_deg,
         "sun_azimuth_deg": spec.sun_azimuth_deg,
     }
-    atomic_write_text(truth_dir / "drone_flight.json", json.dumps(summary, indent=2) + "\n")
-    return DroneFlight(drone_dir, cameras, summary)
 
 
 def simulate_drone_session(
