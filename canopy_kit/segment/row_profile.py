@@ -258,33 +258,7 @@ def row_profiles(
     pts, hts = xyz[canopy, :2], height[canopy]
     sections, summaries, geometry = [], [], {}
     for line in rows.lines:
-        offset = line.offset(pts) if len(pts) else np.zeros(0)
-        along = pts @ line.direction if len(pts) else np.zeros(0)
-        # the band across the line, and along it no further than half a spacing past the
-        # trees (not the headland's other rows or a U-turn's hedge)
-        a0, a1 = line.along_range
-        near = (np.abs(offset) <= half) & (along >= a0 - half) & (along <= a1 + half)
-        along, offset, h = along[near], offset[near], hts[near]
-        table = pd.DataFrame()
-        if len(along):
-            first = math.floor(along.min() / section_m) * section_m
-            n = int(math.floor((along.max() - first) / section_m)) + 1
-            table = section_metrics(along, offset, h, first, n, section_m, cell_m, min_points)
-            filled = np.flatnonzero(table["n_points"].to_numpy() >= min_points)
-            if len(filled):
-                table = table.iloc[filled[0] : filled[-1] + 1].reset_index(drop=True)
-                start = first + filled[0] * section_m
-                table["section"] = np.arange(len(table))
-                table["start_m"] = table["section"] * section_m
-                table["end_m"] = table["start_m"] + section_m
-                mid = start + (table["section"].to_numpy() + 0.5) * section_m
-                centre = _line_xy(line, mid)
-                table["x"], table["y"] = centre[:, 0], centre[:, 1]
-                for s in range(len(table)):
-                    ends = start + s * section_m + np.linspace(0.0, section_m, 3)
-                    geometry[(line.row, s)] = _line_xy(line, ends)
-            else:
-                table = pd.DataFrame()
+        table = _row_sections(line, pts, hts, half, section_m, cell_m, min_points, geometry)
         if len(table) == 0:
             warnings.append(
                 f"row {line.row}: no section holds {min_points} canopy points, no row metrics"
@@ -295,6 +269,55 @@ def row_profiles(
         table.insert(0, "row", line.row)
         sections.append(table)
         summaries.append(_summary(line.row, table, section_m, spacing))
+    summary = pd.DataFrame(summaries, columns=SUMMARY_COLUMNS)
+    return RowProfiles(_all_sections(sections), summary, spacing, section_m, warnings, geometry)
+
+
+def _row_sections(
+    line: RowLine,
+    pts: np.ndarray,
+    hts: np.ndarray,
+    half: float,
+    section_m: float,
+    cell_m: float,
+    min_points: int,
+    geometry: dict[tuple[int, int], np.ndarray],
+) -> pd.DataFrame:
+    """One row's sections from the first to the last holding ``min_points`` canopy points
+    (empty when none does), numbered from 0 with their centres; each section's line piece is
+    added to ``geometry``. Canopy points count within ``half`` across the line and, along
+    it, no further than ``half`` past the trees (not the headland's other rows or a U-turn's
+    hedge)."""
+    offset = line.offset(pts) if len(pts) else np.zeros(0)
+    along = pts @ line.direction if len(pts) else np.zeros(0)
+    a0, a1 = line.along_range
+    near = (np.abs(offset) <= half) & (along >= a0 - half) & (along <= a1 + half)
+    along, offset, h = along[near], offset[near], hts[near]
+    if not len(along):
+        return pd.DataFrame()
+    first = math.floor(along.min() / section_m) * section_m
+    n = int(math.floor((along.max() - first) / section_m)) + 1
+    table = section_metrics(along, offset, h, first, n, section_m, cell_m, min_points)
+    filled = np.flatnonzero(table["n_points"].to_numpy() >= min_points)
+    if not len(filled):
+        return pd.DataFrame()
+    table = table.iloc[filled[0] : filled[-1] + 1].reset_index(drop=True)
+    start = first + filled[0] * section_m
+    table["section"] = np.arange(len(table))
+    table["start_m"] = table["section"] * section_m
+    table["end_m"] = table["start_m"] + section_m
+    mid = start + (table["section"].to_numpy() + 0.5) * section_m
+    centre = _line_xy(line, mid)
+    table["x"], table["y"] = centre[:, 0], centre[:, 1]
+    for s in range(len(table)):
+        ends = start + s * section_m + np.linspace(0.0, section_m, 3)
+        geometry[(line.row, s)] = _line_xy(line, ends)
+    return table
+
+
+def _all_sections(sections: list[pd.DataFrame]) -> pd.DataFrame:
+    """Every row's sections in one table of ``SECTION_COLUMNS`` (lat/lon empty until the
+    writer fills them; counts as integers)."""
     if sections:
         all_sections = pd.concat(sections, ignore_index=True)
     else:
@@ -303,10 +326,7 @@ def row_profiles(
         all_sections[column] = np.nan
     for column in ("row", "section", "n_points"):
         all_sections[column] = all_sections[column].astype(np.int64)
-    summary = pd.DataFrame(summaries, columns=SUMMARY_COLUMNS)
-    return RowProfiles(
-        all_sections[SECTION_COLUMNS], summary, spacing, section_m, warnings, geometry
-    )
+    return all_sections[SECTION_COLUMNS]
 
 
 def _summary(row: int, table: pd.DataFrame, section_m: float, spacing: float) -> dict[str, Any]:
