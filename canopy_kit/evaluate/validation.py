@@ -69,13 +69,30 @@ def score_segmentation(ctx: Any, sim_dir: Path, alignment: Any = None) -> Any:
 def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict[str, Any]:
     """Scores of a run against simulator truth, and the tree table with truth columns added."""
     from canopy_kit.evaluate.truth import load_truth
-    from canopy_kit.volume.verb import volume_column, volume_methods
 
     truth = load_truth(sim_dir)
     mapping_eval = _mapping_evaluation(ctx, sim_dir)
     score = score_segmentation(ctx, sim_dir, mapping_eval.get("alignment"))
-    pairs = score.trees[score.trees["segment_id"] >= 0][["truth_id", "segment_id", "iou"]]
-    t = truth.trees.set_index("tree_id")
+    out = trees.merge(_matched_truth(score.trees, truth.trees), on="segment", how="left")
+    volumes = _volume_errors_vs_truth(out, ctx.config.volume)
+    volumes |= _measurand_errors(out, truth, ctx.config.volume)
+    result: dict[str, Any] = {
+        "segmentation": score.to_dict(),
+        "volumes": volumes,
+        "recommended_volume": ctx.config.volume.recommended,
+        "segmentation_trees": score.trees,
+        "trees": out,
+    }
+    if mapping_eval:
+        result["mapping"] = mapping_eval
+    return result
+
+
+def _matched_truth(scored: pd.DataFrame, truth_trees: pd.DataFrame) -> pd.DataFrame:
+    """For each segment matched to a true tree: the true tree's id, label, row, volumes,
+    diameter and height, and the IoU of the match (columns named ``truth_*`` / ``true_*``)."""
+    pairs = scored[scored["segment_id"] >= 0][["truth_id", "segment_id", "iou"]]
+    t = truth_trees.set_index("tree_id")
     matched = pairs.join(
         t[
             [
@@ -89,7 +106,7 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
         ],
         on="truth_id",
     )
-    matched = matched.rename(
+    return matched.rename(
         columns={
             "truth_id": "truth_tree_id",
             "segment_id": "segment",
@@ -102,10 +119,17 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
             "iou": "truth_iou",
         }
     )
-    out = trees.merge(matched, on="segment", how="left")
+
+
+def _volume_errors_vs_truth(out: pd.DataFrame, volume_config: Any) -> dict[str, Any]:
+    """Each estimator's error against the true crown volume, added to ``out`` per tree
+    (``error_<method>_vs_true_pct``) and returned as agreement statistics, with the sphere
+    from the LiDAR diameter and the diameter's mean absolute error."""
+    from canopy_kit.volume.verb import volume_column, volume_methods
+
     volumes: dict[str, Any] = {}
     ok = out["true_crown_volume_m3"].notna()
-    for method in volume_methods(ctx.config.volume):
+    for method in volume_methods(volume_config):
         col = volume_column(method)
         if col not in out:
             continue
@@ -125,30 +149,32 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
         volumes["diameter_mae_m"] = float(
             np.mean(np.abs(out.loc[ok, "crown_diameter_m"] - out.loc[ok, "true_crown_diameter_m"]))
         )
-    measurand = _measurand_truth(truth, out, ctx.config.volume)
-    rec = ctx.config.volume.recommended
-    if measurand is not None:
-        out["true_measurand_m3"] = measurand
-        col = volume_column(rec)
-        out[f"error_{rec}_vs_measurand_pct"] = 100 * (out[col] - measurand) / measurand
-        good = measurand.notna() & out[col].notna() & (measurand > 0)
-        if good.sum() >= 2:
-            volumes["recommended_vs_measurand"] = stats.agreement(
-                out.loc[good, col].to_numpy(), measurand[good].to_numpy()
-            ).as_dict()
-        held = interval_holds(out, measurand)
-        if held is not None:
-            volumes["recommended_interval"] = held
-    result: dict[str, Any] = {
-        "segmentation": score.to_dict(),
-        "volumes": volumes,
-        "recommended_volume": ctx.config.volume.recommended,
-        "segmentation_trees": score.trees,
-        "trees": out,
-    }
-    if mapping_eval:
-        result["mapping"] = mapping_eval
-    return result
+    return volumes
+
+
+def _measurand_errors(out: pd.DataFrame, truth: Any, volume_config: Any) -> dict[str, Any]:
+    """The recommended estimator against its own measurand on the complete foliage, added to
+    ``out`` per tree and returned as agreement statistics, with how often its interval holds
+    the measurand (empty when the simulator gives no measurand)."""
+    from canopy_kit.volume.verb import volume_column
+
+    measurand = _measurand_truth(truth, out, volume_config)
+    if measurand is None:
+        return {}
+    volumes: dict[str, Any] = {}
+    rec = volume_config.recommended
+    out["true_measurand_m3"] = measurand
+    col = volume_column(rec)
+    out[f"error_{rec}_vs_measurand_pct"] = 100 * (out[col] - measurand) / measurand
+    good = measurand.notna() & out[col].notna() & (measurand > 0)
+    if good.sum() >= 2:
+        volumes["recommended_vs_measurand"] = stats.agreement(
+            out.loc[good, col].to_numpy(), measurand[good].to_numpy()
+        ).as_dict()
+    held = interval_holds(out, measurand)
+    if held is not None:
+        volumes["recommended_interval"] = held
+    return volumes
 
 
 def interval_holds(trees: pd.DataFrame, measurand: pd.Series) -> dict[str, Any] | None:
