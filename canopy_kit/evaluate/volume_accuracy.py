@@ -8,7 +8,7 @@ package itself must not import (tests/test_architecture.py).
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -126,7 +126,7 @@ def segmented_volume_errors(
     """
     import pandas as pd
 
-    from canopy_kit.volume.verb import measure_trees, volume_column
+    from canopy_kit.volume.verb import measure_trees
 
     truth, cloud, seg, score = segmented_session(sim_dir, config, reference_map)
     correct = score.trees[score.trees["status"] == "correct"]
@@ -159,34 +159,45 @@ def segmented_volume_errors(
                     return float(true_volume[true_id])
                 return reference_volume(refs[true_id], method, kind)
 
-            base = {"scan": scan, "tree": int(true_id)}
-            for method in methods:
-                v, t = float(getattr(tree, volume_column(method))), truth_of(method)
-                rows.append(
-                    {
-                        **base,
-                        "true_volume_m3": t,
-                        "method": method,
-                        "volume_m3": v,
-                        "error": v / t - 1,
-                    }
-                )
-            truth_v = truth_of(recommended)
-            rows.append(
-                {
-                    **base,
-                    "true_volume_m3": truth_v,
-                    "method": "interval",
-                    "volume_m3": np.nan,
-                    "error": np.nan,
-                    "covered": bool(tree.volume_low_m3 <= truth_v <= tree.volume_high_m3),
-                    "coverage": float(tree.scan_coverage),
-                    "fill": float(tree.surface_fill),
-                    "flags": str(tree.volume_interval_flags),
-                    "kind": str(tree.crown_kind),
-                }
-            )
+            rows += _tree_error_rows(tree, scan, int(true_id), methods, recommended, truth_of)
     return pd.DataFrame(rows), score
+
+
+def _tree_error_rows(
+    tree: Any,
+    scan: str,
+    true_id: int,
+    methods: list[str],
+    recommended: str,
+    truth_of: Callable[[str], float],
+) -> list[dict[str, Any]]:
+    """One measured tree's rows: each method's volume against its truth (``truth_of``), and
+    whether the recommended estimator's interval held its truth (``interval``)."""
+    from canopy_kit.volume.verb import volume_column
+
+    base = {"scan": scan, "tree": true_id}
+    rows = []
+    for method in methods:
+        v, t = float(getattr(tree, volume_column(method))), truth_of(method)
+        rows.append(
+            {**base, "true_volume_m3": t, "method": method, "volume_m3": v, "error": v / t - 1}
+        )
+    truth_v = truth_of(recommended)
+    rows.append(
+        {
+            **base,
+            "true_volume_m3": truth_v,
+            "method": "interval",
+            "volume_m3": np.nan,
+            "error": np.nan,
+            "covered": bool(tree.volume_low_m3 <= truth_v <= tree.volume_high_m3),
+            "coverage": float(tree.scan_coverage),
+            "fill": float(tree.surface_fill),
+            "flags": str(tree.volume_interval_flags),
+            "kind": str(tree.crown_kind),
+        }
+    )
+    return rows
 
 
 def one_alley_scans(
