@@ -41,9 +41,9 @@ def variant_name(orchard: dict | None) -> str:
 def trees_of(cache: Path, form: str, seed: int, orchard: dict | None = None) -> list:
     """The session's SimulatedTree list (complete and one-sided clouds, 0.1 m voxels), cached;
     ``orchard``: extra ``[orchard]`` settings (harsher crowns)."""
+    from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.evaluate.volume_errors import simulated_trees
     from canopy_kit.sim import load_sim_config, simulate_session
-    from canopy_kit.sim.truth_map import truth_map
 
     suffix = "" if not orchard else "_" + variant_name(orchard)
     root = cache / f"{form}_s{seed}{suffix}"

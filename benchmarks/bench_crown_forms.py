@@ -38,8 +38,8 @@ SPECS = [
 
 def session(cache: Path, form: str, rows: int, trees: int, seed: int, penetration: float) -> Path:
     """A cached simulated session of one crown form with its reference map (map.npz)."""
+    from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.sim import load_sim_config, simulate_session
-    from canopy_kit.sim.truth_map import truth_map
 
     root = cache / f"{form}_{rows}x{trees}_s{seed}_p{penetration:g}"
     if not (root / "map.npz").exists():

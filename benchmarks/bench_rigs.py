@@ -87,10 +87,10 @@ def run_session(sim: Path, out: Path, preset: str, overrides: dict | None = None
 
 def true_pose_trees(sim: Path, config) -> pd.DataFrame:
     """The same session's trees measured on a map built with the true poses (same range limit)."""
+    from canopy_kit.evaluate.truth_map import truth_mapping
     from canopy_kit.evaluate.validation import evaluate_against_truth
     from canopy_kit.pipeline import RunContext, segment_stage, volume_stage
     from canopy_kit.results.tree_table import tree_table
-    from canopy_kit.sim.truth_map import truth_mapping
 
     def quiet(*_: object) -> None:
         return None

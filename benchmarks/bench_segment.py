@@ -83,10 +83,10 @@ def session_map(
     """(map PointCloud with tree_id, sim dir): simulated once, then read from the cache."""
     from canopy_kit.config import merge
     from canopy_kit.core.cloud import PointCloud
+    from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.sim import load_sim_config, simulate_session
     from canopy_kit.sim.session import find_bag
     from canopy_kit.sim.truth import load_truth
-    from canopy_kit.sim.truth_map import truth_map
 
     name = f"{orchard}_{rows}x{trees}_s{seed}{tag}"
     sim_dir, npz = cache / name, cache / f"{name}.npz"

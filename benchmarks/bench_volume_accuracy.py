@@ -39,8 +39,8 @@ SPECS = [
 
 def session(cache: Path, orchard: str, rows: int, trees: int) -> Path:
     """A cached simulated session folder with its reference map saved as map.npz."""
+    from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.sim import load_sim_config, simulate_session
-    from canopy_kit.sim.truth_map import truth_map
 
     root = cache / f"{orchard}_{rows}x{trees}"
     if not (root / "map.npz").exists():

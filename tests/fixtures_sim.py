@@ -104,7 +104,7 @@ def synthetic_orchard(
 
 def truth_map_of(session, voxel_size: float = 0.05) -> PointCloud:
     """The map of a simulated session built with its true poses."""
-    from canopy_kit.sim.truth_map import truth_map
+    from canopy_kit.evaluate.truth_map import truth_map
 
     return truth_map(session.root, voxel_size=voxel_size)
 

@@ -77,9 +77,9 @@ def test_segmentation_rescored_independently(tiny):
     """Segment the kept session again with the almond preset and score it by hand."""
     from canopy_kit.config import load_preset
     from canopy_kit.evaluate.segmentation_score import score_point_labels
+    from canopy_kit.evaluate.truth_map import truth_mapping
     from canopy_kit.pipeline import driving_direction
     from canopy_kit.segment.verb import make_segmenter, segment
-    from canopy_kit.sim.truth_map import truth_mapping
 
     results, work, _ = tiny
     run = results.runs.query("orchard == 'almond' and method == 'dbscan_spectral'").iloc[0]

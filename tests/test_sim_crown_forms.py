@@ -231,9 +231,9 @@ def test_session_of_each_form_scans_its_envelopes(sim_factory, form):
     """A small session per form: labelled points on/inside their tree's envelope, leaves within
     ``leaf_penetration_m`` of it, and the truth table holding the forms' exact volumes."""
     from canopy_kit.config import merge
+    from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.sim import load_truth
     from canopy_kit.sim.scene import depth_below_envelope
-    from canopy_kit.sim.truth_map import truth_map
 
     pen = 0.4
     session = sim_factory(

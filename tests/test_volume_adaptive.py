@@ -173,8 +173,8 @@ def test_interval_covers_the_true_volume_on_every_dense_crown_form(sim_factory) 
     only (18 scans, one miss allowed); see docs/history/VOLUMES_LOG.md "One-sided scans from the alley
     maps" for what it measured."""
     from canopy_kit.config import merge
+    from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.evaluate.volume_errors import simulated_trees
-    from canopy_kit.sim.truth_map import truth_map
     from canopy_kit.volume.uncertainty import volume_interval
 
     inside, errors = [], []

@@ -17,7 +17,7 @@ import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from canopy_kit.errors import InputError
 
@@ -218,40 +218,11 @@ def _ros1_records(data: bytes, start: int = 0) -> Iterator[tuple[dict[str, bytes
 
 
 def _recover_ros1(path: Path) -> RecoveredBag:
-    from rosbags.interfaces import (
-        Connection,
-        ConnectionExtRosbag1,
-        MessageDefinition,
-        MessageDefinitionFormat,
-    )
-    from rosbags.typesys.msg import normalize_msgtype
-
     conns: dict[int, Any] = {}
     chunks: list[_Block] = []
     messages: list[_Message] = []
     size = path.stat().st_size
     stopped = f"read to the end of the file ({size} bytes)"
-
-    def add_connection(header: dict[str, bytes], body: bytes) -> None:
-        cid = struct.unpack("<I", header["conn"])[0]
-        if cid in conns:
-            return
-        info = _ros1_header(body)
-        msgtype = normalize_msgtype(info["type"].decode())
-        msgdef = MessageDefinition(
-            MessageDefinitionFormat.MSG, info.get("message_definition", b"").decode()
-        )
-        conns[cid] = Connection(
-            cid,
-            header["topic"].decode(),
-            msgtype,
-            msgdef,
-            info.get("md5sum", b"").decode(),
-            0,
-            ConnectionExtRosbag1(None, None),
-            None,
-        )
-
     with path.open("rb") as fh:
         pos = len(ROS1_MAGIC)
         fh.seek(pos)
@@ -269,24 +240,7 @@ def _recover_ros1(path: Path) -> RecoveredBag:
             data_pos = fh.tell()
             present = min(dlen, size - data_pos)
             try:
-                header = _ros1_header(blob)
-                op = header["op"][0]
-                if op == _OP_CHUNK:
-                    compression = header.get("compression", b"none").decode()
-                    body = _inflate(compression, fh.read(present), present == dlen)
-                    chunks.append(_Block(data_pos, present, compression, present == dlen))
-                    for inner, begin, length in _ros1_records(body):
-                        inner_op = inner["op"][0]
-                        if inner_op == _OP_CONNECTION:
-                            add_connection(inner, body[begin : begin + length])
-                        elif inner_op == _OP_MSGDATA:
-                            sec, nsec = struct.unpack("<II", inner["time"])
-                            cid = struct.unpack("<I", inner["conn"])[0]
-                            messages.append(
-                                _Message(cid, sec * 10**9 + nsec, len(chunks) - 1, begin, length)
-                            )
-                elif op == _OP_CONNECTION and present == dlen:
-                    add_connection(header, fh.read(dlen))
+                _read_ros1_record(fh, blob, data_pos, present, dlen, conns, chunks, messages)
             except (
                 ValueError,
                 KeyError,
@@ -311,6 +265,67 @@ def _recover_ros1(path: Path) -> RecoveredBag:
     stamps = [m.time for m in messages]
     times = (len(stamps), min(stamps, default=0), max(stamps, default=-1) + 1)
     return RecoveredBag(path, "ros1", connections, times, stopped, chunks, messages)
+
+
+def _read_ros1_record(
+    fh: BinaryIO,
+    blob: bytes,
+    data_pos: int,
+    present: int,
+    dlen: int,
+    conns: dict[int, Any],
+    chunks: list[_Block],
+    messages: list[_Message],
+) -> None:
+    """One top-level record (header ``blob``, ``present`` of its ``dlen`` data bytes at
+    ``data_pos``): a chunk's connections and messages, or a connection, added to ``conns``,
+    ``chunks`` and ``messages``; other records are skipped."""
+    header = _ros1_header(blob)
+    op = header["op"][0]
+    if op == _OP_CHUNK:
+        compression = header.get("compression", b"none").decode()
+        body = _inflate(compression, fh.read(present), present == dlen)
+        chunks.append(_Block(data_pos, present, compression, present == dlen))
+        for inner, begin, length in _ros1_records(body):
+            inner_op = inner["op"][0]
+            if inner_op == _OP_CONNECTION:
+                _add_ros1_connection(conns, inner, body[begin : begin + length])
+            elif inner_op == _OP_MSGDATA:
+                sec, nsec = struct.unpack("<II", inner["time"])
+                cid = struct.unpack("<I", inner["conn"])[0]
+                messages.append(_Message(cid, sec * 10**9 + nsec, len(chunks) - 1, begin, length))
+    elif op == _OP_CONNECTION and present == dlen:
+        _add_ros1_connection(conns, header, fh.read(dlen))
+
+
+def _add_ros1_connection(conns: dict[int, Any], header: dict[str, bytes], body: bytes) -> None:
+    """The connection a connection record describes, unless its id is known already."""
+    from rosbags.interfaces import (
+        Connection,
+        ConnectionExtRosbag1,
+        MessageDefinition,
+        MessageDefinitionFormat,
+    )
+    from rosbags.typesys.msg import normalize_msgtype
+
+    cid = struct.unpack("<I", header["conn"])[0]
+    if cid in conns:
+        return
+    info = _ros1_header(body)
+    msgtype = normalize_msgtype(info["type"].decode())
+    msgdef = MessageDefinition(
+        MessageDefinitionFormat.MSG, info.get("message_definition", b"").decode()
+    )
+    conns[cid] = Connection(
+        cid,
+        header["topic"].decode(),
+        msgtype,
+        msgdef,
+        info.get("md5sum", b"").decode(),
+        0,
+        ConnectionExtRosbag1(None, None),
+        None,
+    )
 
 
 # -- MCAP ------------------------------------------------------------------------------------

@@ -283,12 +283,33 @@ class LidarFrontend:
         # "Up" in the sensor frame from the predicted attitude (gravity-aligned odometry frame),
         # never the sensor's own z axis: a tilted LiDAR keeps its ground filter right.
         ground = ground_mask(xyz, cfg.odometry_ground_band, up=guess[2, :3])
+        pose, uncertainty = self._register(self._odometry_points(xyz, ground), guess)
+        if self._ground_grid is not None:
+            pose = self._refine_with_ground(pose, xyz[ground])
+        self._odometry.commit(pose)
+        self._update_motion(t_ref, pose)
+        st.sweeps += 1
+        st.max_displacement = max(st.max_displacement, float(np.hypot(*pose[:2, 3])))
+        return FrontendSweep(scan, t_ref, pose, keep, xyz, ground, deskewed, uncertainty)
+
+    def _odometry_points(self, xyz: np.ndarray, ground: np.ndarray) -> np.ndarray:
+        """The deskewed points the registration uses: those off the ground (all of them when
+        nothing but ground is in view), thinned by the stride when every point is kept."""
+        cfg = self.config
         odo_points = xyz[~ground]
         if len(odo_points) < max(cfg.min_points_per_scan // 4, 50):
             odo_points = xyz  # nothing but ground in view: better the trap than no odometry
-            st.ground_fallbacks += 1
+            self.state.ground_fallbacks += 1
         if self.keep_all_points and cfg.odometry_point_stride > 1:
             odo_points = odo_points[:: cfg.odometry_point_stride]
+        return odo_points
+
+    def _register(self, odo_points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, float]:
+        """The sweep's pose by ICP from the prediction ``guess``, and how weak it is (1: a
+        normal registration); the prediction stands in where ICP failed or, with a gyro,
+        jumped further than a vehicle moves in a sweep."""
+        cfg, st = self.config, self.state
+        assert self._odometry is not None
         # Few points above the ground (an open headland) make ICP weak: say so to the graph.
         uncertainty = float(
             np.clip(STRUCTURE_POINTS / max(len(odo_points), 1), 1.0, WEAK_REGISTRATION_MAX)
@@ -297,39 +318,32 @@ class LidarFrontend:
         if self._odometry.failed:  # no valid pose from ICP (non-finite): the prediction stands in
             st.rejected_registrations += 1
             uncertainty = WEAK_REGISTRATION_MAX
-        if self._prev_t is not None:
-            shift, turn = self._correction(guess, pose)
-            # The limits below are per sweep of prediction: registering every n-th sweep
-            # predicts n sweeps ahead.
-            shift, turn = shift / self.register_every, turn / self.register_every
-            # Large corrections of a good prediction mean a weak registration (measured: 99 % of
-            # corrections stay under 5 cm and 0.35 deg in a structured orchard).
-            uncertainty = max(uncertainty, min(WEAK_REGISTRATION_MAX, shift / 0.05, turn / 0.35))
-            # Only a gyro-based prediction is good enough to overrule ICP, and only once the
-            # velocity is known (not at the first sweeps of a chunk that starts while driving).
-            gyro = st.rotations is not None and self._motion_known
-            if gyro and (
-                shift > cfg.odometry_max_correction or turn > cfg.odometry_max_correction_deg
-            ):
-                # ICP jumped further from the prediction than a vehicle moves in one sweep (e.g.
-                # a U-turn on an open headland). After a few in a row the prediction itself is
-                # suspect and ICP is trusted again.
-                self._rejected_run += 1
-                if self._rejected_run <= MAX_REJECTED_RUN:
-                    pose = guess
-                    st.rejected_registrations += 1
-                    uncertainty = WEAK_REGISTRATION_MAX
-                else:
-                    self._rejected_run = 0
+        if self._prev_t is None:
+            return pose, uncertainty
+        shift, turn = self._correction(guess, pose)
+        # The limits below are per sweep of prediction: registering every n-th sweep
+        # predicts n sweeps ahead.
+        shift, turn = shift / self.register_every, turn / self.register_every
+        # Large corrections of a good prediction mean a weak registration (measured: 99 % of
+        # corrections stay under 5 cm and 0.35 deg in a structured orchard).
+        uncertainty = max(uncertainty, min(WEAK_REGISTRATION_MAX, shift / 0.05, turn / 0.35))
+        # Only a gyro-based prediction is good enough to overrule ICP, and only once the
+        # velocity is known (not at the first sweeps of a chunk that starts while driving).
+        gyro = st.rotations is not None and self._motion_known
+        if gyro and (shift > cfg.odometry_max_correction or turn > cfg.odometry_max_correction_deg):
+            # ICP jumped further from the prediction than a vehicle moves in one sweep (e.g.
+            # a U-turn on an open headland). After a few in a row the prediction itself is
+            # suspect and ICP is trusted again.
+            self._rejected_run += 1
+            if self._rejected_run <= MAX_REJECTED_RUN:
+                pose = guess
+                st.rejected_registrations += 1
+                uncertainty = WEAK_REGISTRATION_MAX
             else:
                 self._rejected_run = 0
-        if self._ground_grid is not None:
-            pose = self._refine_with_ground(pose, xyz[ground])
-        self._odometry.commit(pose)
-        self._update_motion(t_ref, pose)
-        st.sweeps += 1
-        st.max_displacement = max(st.max_displacement, float(np.hypot(*pose[:2, 3])))
-        return FrontendSweep(scan, t_ref, pose, keep, xyz, ground, deskewed, uncertainty)
+        else:
+            self._rejected_run = 0
+        return pose, uncertainty
 
     @property
     def _prev_t(self) -> float | None:

@@ -335,7 +335,7 @@ def fuse_trajectory(
     """
     with needs_extra("mapping"):
         import gtsam
-        from gtsam.symbol_shorthand import B, G, V, X
+        from gtsam.symbol_shorthand import X
 
     if len(times) < 2:
         raise ProcessingError(f"pose graph needs at least 2 sweeps, got {len(times)}")
@@ -346,33 +346,96 @@ def fuse_trajectory(
     values = gtsam.Values()
     diag: dict = {"keyframes": int(n)}
 
-    align = initial_alignment(times, odometry, gnss) if gnss is not None else None
-    if align is None and gnss is not None:
-        extent = float(np.ptp(odometry[:, :2, 3], axis=0).max())
-        diag["no_heading"] = (
-            f"the robot moved {extent:.1f} m, too little for a heading from GNSS"
-            if extent < MIN_HEADING_BASELINE
-            else "GNSS fixes do not overlap the LiDAR sweeps"
-        )
-    if align is None:
-        gnss = None
-        align = np.eye(4)
-    else:
-        diag["initial_heading_deg"] = float(np.degrees(np.arctan2(align[1, 0], align[0, 0])))
+    align, gnss, why = _frame_alignment(times, odometry, gnss)
+    diag.update(why)
     init = np.einsum("ij,njk->nik", align, odometry[kidx])
     for j in range(n):
         values.insert(X(j), gtsam.Pose3(init[j]))
+    _add_first_pose_prior(graph, init[0], settings, georeferenced=gnss is not None)
+    diag.update(_add_odometry_factors(graph, times, odometry, kidx, settings, uncertainty))
+
+    use_imu = imu is not None and len(imu.t) > 10
+    vel_init = (
+        np.gradient(init[:, :3, 3], axis=0) / np.gradient(kt)[:, None]
+        if n > 1
+        else np.zeros((n, 3))
+    )
+    if use_imu:
+        assert imu is not None
+        diag.update(_add_imu_factors(graph, values, imu, standstill, kt, vel_init, settings))
+
+    n_gnss = 0
+    if gnss is not None:
+        diag.update(_add_gnss_factors(graph, values, gnss, kt, init, vel_init, settings))
+        n_gnss = diag["gnss_factors"]
+
+    diag["initial_error"] = float(graph.error(values))
+    result, iterations, method = optimize(graph, values, settings.max_iterations)
+    diag["final_error"] = float(graph.error(result))
+    diag["iterations"] = iterations
+    diag["optimizer"] = method
+    return _fusion_result(result, kidx, kt, diag, use_imu, gnss if n_gnss else None)
+
+
+def _frame_alignment(
+    times: np.ndarray, odometry: np.ndarray, gnss: GnssEpochs | None
+) -> tuple[np.ndarray, GnssEpochs | None, dict]:
+    """The yaw + translation (4x4) taking the odometry frame onto the GNSS positions; the
+    GNSS epochs to use (None when they give no heading: the first pose is then held); and
+    the diagnostics saying which (the heading found, or why there is none)."""
+    align = initial_alignment(times, odometry, gnss) if gnss is not None else None
+    if align is not None:
+        return (
+            align,
+            gnss,
+            {"initial_heading_deg": float(np.degrees(np.arctan2(align[1, 0], align[0, 0])))},
+        )
+    if gnss is None:
+        return np.eye(4), None, {}
+    extent = float(np.ptp(odometry[:, :2, 3], axis=0).max())
+    why = (
+        f"the robot moved {extent:.1f} m, too little for a heading from GNSS"
+        if extent < MIN_HEADING_BASELINE
+        else "GNSS fixes do not overlap the LiDAR sweeps"
+    )
+    return np.eye(4), None, {"no_heading": why}
+
+
+def _add_first_pose_prior(
+    graph, pose: np.ndarray, settings: FusionSettings, georeferenced: bool
+) -> None:
+    """Prior on the first keyframe: roll and pitch from gravity; position and yaw held
+    without GNSS, loose with it (the fixes place and turn the drive)."""
+    with needs_extra("mapping"):
+        import gtsam
+        from gtsam.symbol_shorthand import X
 
     tilt = settings.initial_tilt_sigma
     sig0 = (
-        np.r_[tilt, tilt, 1e-4, np.full(3, 1e-4)]
-        if gnss is None
-        else np.r_[tilt, tilt, 3.0, np.full(3, 50.0)]
+        np.r_[tilt, tilt, 3.0, np.full(3, 50.0)]
+        if georeferenced
+        else np.r_[tilt, tilt, 1e-4, np.full(3, 1e-4)]
     )
     graph.add(
-        gtsam.PriorFactorPose3(X(0), gtsam.Pose3(init[0]), gtsam.noiseModel.Diagonal.Sigmas(sig0))
+        gtsam.PriorFactorPose3(X(0), gtsam.Pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sig0))
     )
 
+
+def _add_odometry_factors(
+    graph,
+    times: np.ndarray,
+    odometry: np.ndarray,
+    kidx: np.ndarray,
+    settings: FusionSettings,
+    uncertainty: np.ndarray | None,
+) -> dict:
+    """LiDAR odometry factors between keyframes each of ``settings.odometry_lags`` apart, their
+    noise grown with the distance and with the weakest sweep they span. Returns diagnostics."""
+    with needs_extra("mapping"):
+        import gtsam
+        from gtsam.symbol_shorthand import X
+
+    n = len(kidx)
     steps = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(odometry[kidx, :3, 3], axis=0), axis=1))]
     weak = np.ones(len(times)) if uncertainty is None else np.asarray(uncertainty, float)
     # Worst sweep between consecutive keyframes, then the worst over each factor's span.
@@ -391,92 +454,98 @@ def fuse_trajectory(
                 )
             )
             n_odo += 1
-    diag["weak_spans"] = int((seg_weak > 1.5).sum())
-    diag["odometry_factors"] = n_odo
+    return {"weak_spans": int((seg_weak > 1.5).sum()), "odometry_factors": n_odo}
 
-    use_imu = imu is not None and len(imu.t) > 10
-    vel_init = (
-        np.gradient(init[:, :3, 3], axis=0) / np.gradient(kt)[:, None]
-        if n > 1
-        else np.zeros((n, 3))
-    )
-    if use_imu:
-        assert imu is not None
-        params = imu_params(settings)
-        gyro_bias0 = standstill.gyro_bias if standstill is not None else np.zeros(3)
-        bias0 = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_bias0)
-        graph.add(
-            gtsam.PriorFactorConstantBias(
-                B(0),
-                bias0,
-                gtsam.noiseModel.Diagonal.Sigmas(
-                    np.r_[
-                        np.full(3, settings.initial_accel_bias_sigma),
-                        np.full(3, settings.initial_gyro_bias_sigma),
-                    ]
-                ),
-            )
-        )
-        still_end = standstill.end if standstill is not None and standstill.found else -np.inf
-        zero_v = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
-        n_imu = 0
-        for j in range(n):
-            values.insert(V(j), vel_init[j] if kt[j] > still_end else np.zeros(3))
-            values.insert(B(j), bias0)
-            if kt[j] <= still_end:
-                graph.add(gtsam.PriorFactorVector(V(j), np.zeros(3), zero_v))
-            if j == 0:
-                continue
-            pim = gtsam.PreintegratedCombinedMeasurements(params, bias0)
-            if (
-                kt[j - 1] >= imu.t[0]
-                and kt[j] <= imu.t[-1]
-                and preintegrate(imu, kt[j - 1], kt[j], pim)
-            ):
-                graph.add(
-                    gtsam.CombinedImuFactor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim)
-                )
-                n_imu += 1
-            else:  # a gap in the IMU data: keep the bias chain and velocity defined
-                dt = kt[j] - kt[j - 1]
-                walk = np.r_[
-                    np.full(3, settings.accel_bias_walk), np.full(3, settings.gyro_bias_walk)
+
+def _add_imu_factors(
+    graph,
+    values,
+    imu: ImuSeries,
+    standstill: Standstill | None,
+    kt: np.ndarray,
+    vel_init: np.ndarray,
+    settings: FusionSettings,
+) -> dict:
+    """Velocity and bias states per keyframe, a preintegrated IMU factor between consecutive
+    keyframes (a bias random walk and a loose velocity prior across gaps in the IMU data),
+    zero-velocity priors during the first standstill. Returns diagnostics."""
+    with needs_extra("mapping"):
+        import gtsam
+        from gtsam.symbol_shorthand import B, V, X
+
+    params = imu_params(settings)
+    gyro_bias0 = standstill.gyro_bias if standstill is not None else np.zeros(3)
+    bias0 = gtsam.imuBias.ConstantBias(np.zeros(3), gyro_bias0)
+    graph.add(
+        gtsam.PriorFactorConstantBias(
+            B(0),
+            bias0,
+            gtsam.noiseModel.Diagonal.Sigmas(
+                np.r_[
+                    np.full(3, settings.initial_accel_bias_sigma),
+                    np.full(3, settings.initial_gyro_bias_sigma),
                 ]
-                graph.add(
-                    gtsam.BetweenFactorConstantBias(
-                        B(j - 1),
-                        B(j),
-                        gtsam.imuBias.ConstantBias(),
-                        gtsam.noiseModel.Diagonal.Sigmas(walk * np.sqrt(dt) + 1e-6),
-                    )
+            ),
+        )
+    )
+    still_end = standstill.end if standstill is not None and standstill.found else -np.inf
+    zero_v = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
+    walk = np.r_[np.full(3, settings.accel_bias_walk), np.full(3, settings.gyro_bias_walk)]
+    n_imu = 0
+    for j in range(len(kt)):
+        values.insert(V(j), vel_init[j] if kt[j] > still_end else np.zeros(3))
+        values.insert(B(j), bias0)
+        if kt[j] <= still_end:
+            graph.add(gtsam.PriorFactorVector(V(j), np.zeros(3), zero_v))
+        if j == 0:
+            continue
+        pim = gtsam.PreintegratedCombinedMeasurements(params, bias0)
+        if (
+            kt[j - 1] >= imu.t[0]
+            and kt[j] <= imu.t[-1]
+            and preintegrate(imu, kt[j - 1], kt[j], pim)
+        ):
+            graph.add(gtsam.CombinedImuFactor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
+            n_imu += 1
+        else:  # a gap in the IMU data: keep the bias chain and velocity defined
+            dt = kt[j] - kt[j - 1]
+            graph.add(
+                gtsam.BetweenFactorConstantBias(
+                    B(j - 1),
+                    B(j),
+                    gtsam.imuBias.ConstantBias(),
+                    gtsam.noiseModel.Diagonal.Sigmas(walk * np.sqrt(dt) + 1e-6),
                 )
-                graph.add(
-                    gtsam.PriorFactorVector(
-                        V(j), vel_init[j], gtsam.noiseModel.Isotropic.Sigma(3, 2.0)
-                    )
-                )
-        diag["imu_factors"] = n_imu
+            )
+            graph.add(
+                gtsam.PriorFactorVector(V(j), vel_init[j], gtsam.noiseModel.Isotropic.Sigma(3, 2.0))
+            )
+    return {"imu_factors": n_imu}
 
-    n_gnss = 0
-    if gnss is not None:
-        diag.update(_add_gnss_factors(graph, values, gnss, kt, init, vel_init, settings))
-        n_gnss = diag["gnss_factors"]
 
-    diag["initial_error"] = float(graph.error(values))
-    result, iterations, method = optimize(graph, values, settings.max_iterations)
-    diag["final_error"] = float(graph.error(result))
-    diag["iterations"] = iterations
-    diag["optimizer"] = method
+def _fusion_result(
+    result,
+    kidx: np.ndarray,
+    kt: np.ndarray,
+    diag: dict,
+    with_imu: bool,
+    gnss: GnssEpochs | None,
+) -> FusionResult:
+    """The keyframe states read out of the optimised values: poses, and with the IMU the
+    velocities and biases, with GNSS (``gnss``: epochs that made factors) each epoch's bias."""
+    with needs_extra("mapping"):
+        from gtsam.symbol_shorthand import B, G, V, X
 
+    n = len(kidx)
     out = FusionResult(
         kidx, kt, np.array([result.atPose3(X(j)).matrix() for j in range(n)]), diagnostics=diag
     )
-    if use_imu:
+    if with_imu:
         out.velocities = np.array([result.atVector(V(j)) for j in range(n)])
         biases = [result.atConstantBias(B(j)) for j in range(n)]
         out.accel_bias = np.array([b.accelerometer() for b in biases])
         out.gyro_bias = np.array([b.gyroscope() for b in biases])
-    if gnss is not None and n_gnss:
+    if gnss is not None:
         out.gnss_bias = np.full((len(gnss.t), 3), np.nan)
         for m in range(len(gnss.t)):
             if result.exists(G(m)):

@@ -29,7 +29,12 @@ from canopy_kit.mapping.calibration import calibrate_rig, check_rig
 from canopy_kit.mapping.chunks import run_odometry
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
 from canopy_kit.mapping.frontend import FrontendSweep, require_sweeps
-from canopy_kit.mapping.fusion import FusionSettings, fuse_trajectory, heading_alignment
+from canopy_kit.mapping.fusion import (
+    FusionResult,
+    FusionSettings,
+    fuse_trajectory,
+    heading_alignment,
+)
 from canopy_kit.mapping.gnss import (
     GnssEpochs,
     fix_report,
@@ -153,6 +158,63 @@ def build_map(
     timing: dict[str, float] = {}
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
     warm_up()  # before the workers fork: they inherit the loaded kernels
+    one, rig, extrinsics, warnings = _odometry_pass(bag_path, config, progress)
+    timing["odometry_cpu_s"] = cpu_seconds() - cpu0
+    timing["odometry_wall_s"] = time.perf_counter() - wall0
+    if not extrinsics:
+        extrinsics, more = check_rig(one, rig, config)
+        warnings += more
+    fused, trajectory, frame, gnss_diag = _fuse_drive(one, rig, config, warnings, timing)
+
+    cpu2, wall2 = cpu_seconds(), time.perf_counter()
+    xyz, fields, offered = assemble_map(
+        str(bag_path),
+        one.topics.scans,
+        {r.index: r.deskewed for r in one.records},
+        trajectory,
+        config,
+        progress,
+        None if one.recovered else one.scan_log_ns,
+    )
+    timing["map_cpu_s"] = cpu_seconds() - cpu2
+    timing["map_wall_s"] = time.perf_counter() - wall2
+
+    cloud = PointCloud(
+        xyz,
+        fields,
+        crs=frame.crs if frame is not None else None,
+        origin=frame.origin if frame is not None else np.zeros(3),
+    )
+    t_ref = np.array([r.t_ref for r in one.records])
+    poses = trajectory.matrices(t_ref)  # the LiDAR's
+    base_poses = poses @ rig.lidar_from_base
+    timing["total_cpu_s"] = cpu_seconds() - cpu0
+    timing["total_wall_s"] = time.perf_counter() - wall0
+    diagnostics = {
+        "bag": str(bag_path),
+        **_drive_diagnostics(one, rig, extrinsics, frame, base_poses),
+        "map_points": len(cloud),
+        "points_offered": offered,
+        **_estimate_diagnostics(one, frame, fused, gnss_diag, timing),
+    }
+    return MappingResult(
+        cloud,
+        pose_table(t_ref, base_poses),
+        frame,
+        diagnostics,
+        warnings,
+        config_used(config, one.topics),
+        rig,
+        pose_table(t_ref, poses),
+    )
+
+
+def _odometry_pass(
+    bag_path: str | Path, config: MappingConfig, progress: Progress | None
+) -> tuple[OdometryPass, SensorRig, dict, list[str]]:
+    """Pass 1 over the bag: the sensors' rig (calibrated when asked), the odometry front end,
+    IMU and GNSS collected; returns the pass, the rig, the calibrated extrinsics (empty when
+    not calibrated) and the warnings so far."""
     extrinsics: dict = {}
     with open_bag(bag_path, config.ouster_metadata or None) as bag:
         topics = topics_for(bag, config)
@@ -162,23 +224,25 @@ def build_map(
             rig, extrinsics, more = calibrate_rig(bag, config, rig, progress)
             rig_warnings += more
         one = run_odometry(bag, config, progress, rig)
-    records = one.records
-    registered = [r for r in records if r.registered]
-    require_sweeps(len(registered), f"{one.bag_path}: topic {one.topics.scans!r}")
-    timing["odometry_cpu_s"] = cpu_seconds() - cpu0
-    timing["odometry_wall_s"] = time.perf_counter() - wall0
-    # The pose graph takes the registered sweeps; every sweep gets a pose and a map pass.
+    registered = sum(1 for r in one.records if r.registered)
+    require_sweeps(registered, f"{one.bag_path}: topic {one.topics.scans!r}")
+    return one, rig, extrinsics, rig_warnings + pass_warnings(one, config)
+
+
+def _fuse_drive(
+    one: OdometryPass,
+    rig: SensorRig,
+    config: MappingConfig,
+    warnings: list[str],
+    timing: dict[str, float],
+) -> tuple[FusionResult, ContinuousTrajectory, LocalFrame | None, dict]:
+    """The pose graph over the registered sweeps with the IMU and the GNSS epochs; returns the
+    fused states, the continuous trajectory every sweep is deskewed with, the local frame
+    (None: not georeferenced) and the GNSS diagnostics. Adds to ``warnings``, and the graph's
+    CPU time (not the GNSS preparation's) to ``timing``."""
+    registered = [r for r in one.records if r.registered]
     odo_times = np.array([r.t_ref for r in registered])
     odometry = np.array([r.pose for r in registered])
-    uncertainty = np.array([r.uncertainty for r in registered])
-    t_ref = np.array([r.t_ref for r in records])
-    deskewed = {r.index: r.deskewed for r in records}
-    warnings = rig_warnings + pass_warnings(one, config)
-    if not extrinsics:
-        extrinsics, more = check_rig(one, rig, config)
-        warnings += more
-    imu = one.imu
-    st = one.state
     antenna = (
         odometry[:, :3, 3] + odometry[:, :3, :3] @ rig.gnss_lever_arm
     )  # where the fixes are taken
@@ -195,71 +259,76 @@ def build_map(
         odo_times,
         odometry,
         fusion_settings(config, rig),
-        imu=imu,
-        standstill=st.standstill,
+        imu=one.imu,
+        standstill=one.state.standstill,
         gnss=epochs,
-        uncertainty=uncertainty,
+        uncertainty=np.array([r.uncertainty for r in registered]),
     )
     if epochs is not None and "initial_heading_deg" not in fused.diagnostics:
         why = fused.diagnostics.get("no_heading", "GNSS fixes do not overlap the LiDAR sweeps")
         warnings.append(f"{why}; the map is not georeferenced")
         frame = None
-    trajectory = ContinuousTrajectory(fused.times, fused.poses, odo_times, odometry, st.rotations)
+    trajectory = ContinuousTrajectory(
+        fused.times, fused.poses, odo_times, odometry, one.state.rotations
+    )
     timing["fusion_cpu_s"] = cpu_seconds() - cpu1
+    return fused, trajectory, frame, gnss_diag
 
-    cpu2, wall2 = cpu_seconds(), time.perf_counter()
-    xyz, fields, offered = assemble_map(
-        str(bag_path),
-        one.topics.scans,
-        deskewed,
-        trajectory,
-        config,
-        progress,
-        None if one.recovered else one.scan_log_ns,
-    )
-    timing["map_cpu_s"] = cpu_seconds() - cpu2
-    timing["map_wall_s"] = time.perf_counter() - wall2
 
-    cloud = PointCloud(
-        xyz,
-        fields,
-        crs=frame.crs if frame is not None else None,
-        origin=frame.origin if frame is not None else np.zeros(3),
-    )
-    poses = trajectory.matrices(t_ref)  # the LiDAR's
-    base_poses = poses @ rig.lidar_from_base
-    table = pose_table(t_ref, base_poses)
-    timing["total_cpu_s"] = cpu_seconds() - cpu0
-    timing["total_wall_s"] = time.perf_counter() - wall0
-    duration = float(one.last_stamp - one.first_stamp + 0.1) if one.n_scans else 0.0
-    diagnostics = {
-        "bag": str(bag_path),
+def _drive_diagnostics(
+    one: OdometryPass,
+    rig: SensorRig,
+    extrinsics: dict,
+    frame: LocalFrame | None,
+    base_poses: np.ndarray,
+) -> dict:
+    """What was read and mapped: topics, inputs, sweeps, duration, path length and rig."""
+    records = one.records
+    return {
         "topics": {
             "pointcloud": one.topics.scans,
-            "imu": one.topics.imu if imu is not None else None,
+            "imu": one.topics.imu if one.imu is not None else None,
             "gnss": one.topics.gnss if frame is not None else None,
         },
         "inputs": input_summary(one),
         "scans": one.n_scans,
         "sweeps_mapped": len(records),
-        "sweeps_registered": len(registered),
-        "scans_skipped_sparse": len(st.skipped_sparse),
+        "sweeps_registered": sum(1 for r in records if r.registered),
+        "scans_skipped_sparse": len(one.state.skipped_sparse),
         "scans_without_point_time": one.n_without_time,
-        "sweeps_deskewed": int(sum(deskewed.values())),
-        "duration_s": duration,
+        "sweeps_deskewed": int(sum({r.index: r.deskewed for r in records}.values())),
+        "duration_s": _duration(one),
         "path_length_m": float(
             np.sum(np.linalg.norm(np.diff(base_poses[:, :3, 3], axis=0), axis=1))
         ),
         "trajectory_frame": rig.base_name,
         "rig": rig.to_dict(),
         "extrinsics": extrinsics,
-        "map_points": len(cloud),
-        "points_offered": offered,
+    }
+
+
+def _duration(one: OdometryPass) -> float:
+    """Seconds of drive the scans span (one sweep's worth after the last stamp)."""
+    return float(one.last_stamp - one.first_stamp + 0.1) if one.n_scans else 0.0
+
+
+def _estimate_diagnostics(
+    one: OdometryPass,
+    frame: LocalFrame | None,
+    fused: FusionResult,
+    gnss_diag: dict,
+    timing: dict[str, float],
+) -> dict:
+    """How the estimate went: odometry corrections, quality flags, the pose graph, timing and
+    real-time factors, then the IMU's and the GNSS's own findings."""
+    st = one.state
+    duration = _duration(one)
+    out = {
         "up_source": st.up_source,
         "registrations_rejected": st.rejected_registrations,
         "ground_corrections": st.ground_corrections,
         "georeferenced": frame is not None,
-        "quality_flags": quality_flags(one, frame, imu) + gnss_flags(gnss_diag),
+        "quality_flags": quality_flags(one, frame, one.imu) + gnss_flags(gnss_diag),
         "odometry_workers": one.workers,
         "fusion": fused.diagnostics,
         "timing": timing,
@@ -271,29 +340,20 @@ def build_map(
         else None,
     }
     if st.standstill is not None:
-        diagnostics["imu"] = {
+        out["imu"] = {
             "standstill_s": st.standstill.duration,
             "standstill_found": st.standstill.found,
             "gyro_bias_start": st.standstill.gyro_bias.tolist(),
         }
         if fused.accel_bias is not None:
-            diagnostics["imu"]["accel_bias_end"] = fused.accel_bias[-1].tolist()
-            diagnostics["imu"]["gyro_bias_end"] = fused.gyro_bias[-1].tolist()
+            out["imu"]["accel_bias_end"] = fused.accel_bias[-1].tolist()
+            out["imu"]["gyro_bias_end"] = fused.gyro_bias[-1].tolist()
     if gnss_diag:
         gnss_diag["mode_changes"] = int(fused.diagnostics.get("gnss_mode_changes", 0))
         if fused.gnss_bias is not None:
             gnss_diag["bias_rms_m"] = float(np.sqrt(np.nanmean(np.sum(fused.gnss_bias**2, axis=1))))
-        diagnostics["gnss"] = gnss_diag
-    return MappingResult(
-        cloud,
-        table,
-        frame,
-        diagnostics,
-        warnings,
-        config_used(config, one.topics),
-        rig,
-        pose_table(t_ref, poses),
-    )
+        out["gnss"] = gnss_diag
+    return out
 
 
 def gnss_flags(gnss_diag: dict) -> list[str]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -293,13 +294,7 @@ def sensor_messages(
                     _add_imu(bag, imu, imu_log, n_imu, timestamp, *fields)  # type: ignore[arg-type]
                     n_imu += 1
                     continue
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except Exception as exc:  # rosbags raises several unrelated types
-                raise InputError(
-                    f"{bag.path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} message "
-                    f"at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})"
-                ) from None
+            msg = _deserialize(bag, conn, timestamp, raw)
             if conn.topic == topics.scans:
                 scan_log.watch_clock(index, pc2.stamp_seconds(msg.header), timestamp)
                 scan = bag.decode_scan(conn.topic, msg, index)
@@ -309,38 +304,61 @@ def sensor_messages(
                 if end_scan is not None and index >= end_scan:
                     break
             elif imu_log is not None and conn.topic == topics.imu:
-                w, a = msg.angular_velocity, msg.linear_acceleration
-                _add_imu(
-                    bag,
-                    imu,
-                    imu_log,
-                    n_imu,
-                    timestamp,
-                    pc2.stamp_seconds(msg.header),  # type: ignore[arg-type]
-                    msg.header.frame_id,
-                    (w.x, w.y, w.z),
-                    (a.x, a.y, a.z),
-                )
+                _add_imu_message(bag, imu, imu_log, n_imu, timestamp, msg)  # type: ignore[arg-type]
                 n_imu += 1
             elif gnss_log is not None and conn.topic == topics.gnss:
-                stamp = pc2.stamp_seconds(msg.header)
-                gnss_log.watch_clock(n_gnss, stamp, timestamp)
-                gnss_log.use(n_gnss, stamp, msg.header.frame_id)
+                _add_fix(gnss, gnss_log, n_gnss, timestamp, msg)  # type: ignore[arg-type]
                 n_gnss += 1
-                gnss.append(
-                    stamp,
-                    msg.latitude,
-                    msg.longitude,
-                    msg.altitude,  # type: ignore[union-attr]
-                    int(msg.status.status),
-                    np.asarray(msg.position_covariance, float),
-                    int(msg.position_covariance_type),
-                )
     except InputError:
         raise
     except Exception as exc:
         raise InputError(f"{bag.path}: reading failed ({type(exc).__name__}: {exc})") from None
     bag.log.check()
+
+
+def _deserialize(bag: BagSession, conn: Any, timestamp: int, raw: bytes) -> Any:
+    """A message decoded, or an error naming the bag, topic, type and time."""
+    try:
+        return bag.reader.deserialize(raw, conn.msgtype)
+    except Exception as exc:  # rosbags raises several unrelated types
+        raise InputError(
+            f"{bag.path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} message "
+            f"at t={timestamp * 1e-9:.3f} s ({type(exc).__name__}: {exc})"
+        ) from None
+
+
+def _add_imu_message(
+    bag: BagSession, imu: ImuBuffer, log: TopicLog, index: int, timestamp: int, msg: Any
+) -> None:
+    """A decoded sensor_msgs/Imu appended to ``imu`` (the path when reading in place failed)."""
+    w, a = msg.angular_velocity, msg.linear_acceleration
+    _add_imu(
+        bag,
+        imu,
+        log,
+        index,
+        timestamp,
+        pc2.stamp_seconds(msg.header),  # type: ignore[arg-type]
+        msg.header.frame_id,
+        (w.x, w.y, w.z),
+        (a.x, a.y, a.z),
+    )
+
+
+def _add_fix(gnss: GnssBuffer, log: TopicLog, index: int, timestamp: int, msg: Any) -> None:
+    """A decoded NavSatFix appended to ``gnss``, its clock and frame watched by ``log``."""
+    stamp = pc2.stamp_seconds(msg.header)
+    log.watch_clock(index, stamp, timestamp)
+    log.use(index, stamp, msg.header.frame_id)
+    gnss.append(
+        stamp,
+        msg.latitude,
+        msg.longitude,
+        msg.altitude,  # type: ignore[union-attr]
+        int(msg.status.status),
+        np.asarray(msg.position_covariance, float),
+        int(msg.position_covariance_type),
+    )
 
 
 def _add_imu(

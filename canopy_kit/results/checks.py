@@ -397,16 +397,35 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
     +28 % to +85 %) a large MAPE is expected of an honest run, so that row is information
     beside the ellipsoid and warns at most without it.
     """
-    from canopy_kit.evaluate import stats
     from canopy_kit.results.tree_table import comparable_aerial_sphere
 
     aerial = metrics.get("aerial")
     if not aerial:
         return []
-    n = len(trees)
+    out = aerial_match_checks(aerial, len(trees), st)
+    if ALPHA_COLUMN not in trees or "aerial_sphere_volume_m3" not in trees:
+        return out
+    usable = comparable_aerial_sphere(trees).notna() & trees[ALPHA_COLUMN].notna()
+    for column, model in (
+        ("aerial_ellipsoid_volume_m3", "height-aware ellipsoid"),
+        ("aerial_sphere_volume_m3", "paper's sphere"),
+    ):
+        if column in trees:
+            out.append(
+                aerial_volume_check(trees, usable & trees[column].notna(), column, model, st)
+            )
+    return out
+
+
+def aerial_match_checks(aerial: dict[str, Any], n: int, st: ChecksConfig) -> list[Check]:
+    """Shares of the ``n`` LiDAR trees matched to an aerial crown, and of the matched crowns
+    of a plausible size (the others are fragments or merged neighbours)."""
     matched = int(aerial.get("matched_trees", 0))
     compared = int(aerial.get("compared_trees", matched))
-    out = [
+    threshold = _thresholds(
+        100 * st.aerial_matched_share_warn, 100 * st.aerial_matched_share_fail, " %", 0, below=True
+    )
+    return [
         Check(
             "LiDAR trees matched to an aerial crown",
             grade(
@@ -416,13 +435,7 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
                 lower_is_worse=True,
             ),
             f"{matched}/{n}",
-            _thresholds(
-                100 * st.aerial_matched_share_warn,
-                100 * st.aerial_matched_share_fail,
-                " %",
-                0,
-                below=True,
-            ),
+            threshold,
         ),
         Check(
             "matched aerial crowns of plausible size",
@@ -433,69 +446,55 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
                 lower_is_worse=True,
             ),
             f"{compared}/{matched}",
-            _thresholds(
-                100 * st.aerial_matched_share_warn,
-                100 * st.aerial_matched_share_fail,
-                " %",
-                0,
-                below=True,
-            ),
+            threshold,
             "others are fragments or merged neighbours: flagged in the table, left out of the "
             "comparison"
             if compared < matched
             else "",
         ),
     ]
-    if ALPHA_COLUMN not in trees or "aerial_sphere_volume_m3" not in trees:
-        return out
-    usable = comparable_aerial_sphere(trees).notna() & trees[ALPHA_COLUMN].notna()
-    for column, model in (
-        ("aerial_ellipsoid_volume_m3", "height-aware ellipsoid"),
-        ("aerial_sphere_volume_m3", "paper's sphere"),
-    ):
-        if column not in trees:
-            continue
-        ok = usable & trees[column].notna()
-        if ok.sum() < 2:
-            out.append(
-                Check(
-                    f"alpha shape vs aerial {model} volume (MAPE)",
-                    "info",
-                    "n/a",
-                    "",
-                    f"{int(ok.sum())} trees comparable",
-                )
-            )
-            continue
-        lidar, drone = trees.loc[ok, ALPHA_COLUMN].to_numpy(), trees.loc[ok, column].to_numpy()
-        mape = stats.mape(lidar, drone)
-        status = grade(mape, st.aerial_mape_warn_pct, st.aerial_mape_fail_pct)
-        note = f"{int(ok.sum())} trees, bias {stats.mean_percent_bias(lidar, drone):+.1f} %"
-        threshold = _thresholds(st.aerial_mape_warn_pct, st.aerial_mape_fail_pct, " %", 0)
-        if column == "aerial_sphere_volume_m3":  # biased itself: never fails a run
-            if "aerial_ellipsoid_volume_m3" in trees:
-                status, threshold = "info", "none (the ellipsoid is held to it)"
-                note += "; the sphere itself is biased +28 % to +85 %: for information"
-            else:
-                status = "warn" if status == "fail" else status
-                note += "; the sphere itself is biased +28 % to +85 %: warns at most"
-        out.append(
-            Check(
-                f"alpha shape vs aerial {model} volume (MAPE)",
-                status,
-                format_value(mape, " %", 1),
-                threshold,
-                note,
-            )
-        )
-    return out
+
+
+def aerial_volume_check(
+    trees: pd.DataFrame, ok: pd.Series, column: str, model: str, st: ChecksConfig
+) -> Check:
+    """MAPE of the alpha-shape volume against one aerial volume ``column`` on the trees ``ok``
+    (information with fewer than two). The paper's sphere, biased itself, never fails a run:
+    beside the ellipsoid it is information, alone it warns at most."""
+    from canopy_kit.evaluate import stats
+
+    name = f"alpha shape vs aerial {model} volume (MAPE)"
+    if ok.sum() < 2:
+        return Check(name, "info", "n/a", "", f"{int(ok.sum())} trees comparable")
+    lidar, drone = trees.loc[ok, ALPHA_COLUMN].to_numpy(), trees.loc[ok, column].to_numpy()
+    mape = stats.mape(lidar, drone)
+    status = grade(mape, st.aerial_mape_warn_pct, st.aerial_mape_fail_pct)
+    note = f"{int(ok.sum())} trees, bias {stats.mean_percent_bias(lidar, drone):+.1f} %"
+    threshold = _thresholds(st.aerial_mape_warn_pct, st.aerial_mape_fail_pct, " %", 0)
+    if column == "aerial_sphere_volume_m3":  # biased itself: never fails a run
+        if "aerial_ellipsoid_volume_m3" in trees:
+            status, threshold = "info", "none (the ellipsoid is held to it)"
+            note += "; the sphere itself is biased +28 % to +85 %: for information"
+        else:
+            status = "warn" if status == "fail" else status
+            note += "; the sphere itself is biased +28 % to +85 %: warns at most"
+    return Check(name, status, format_value(mape, " %", 1), threshold, note)
 
 
 # -- against simulator truth ----------------------------------------------------------------
 def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
     """Mapping, segmentation and volumes against a simulated session's truth."""
+    return (
+        mapping_truth_checks(evaluation.get("mapping", {}))
+        + segmentation_truth_checks(evaluation.get("segmentation"))
+        + volume_truth_checks(evaluation)
+    )
+
+
+def mapping_truth_checks(mapping: dict[str, Any]) -> list[Check]:
+    """The trajectory's ATE and drift, the map against the true surfaces, the absolute
+    position error (``evaluation["mapping"]``)."""
     out = []
-    mapping = evaluation.get("mapping", {})
     if "not_judged" in mapping:  # a map made elsewhere (canopy_kit.mapping.map_source)
         out.append(
             Check(
@@ -546,25 +545,34 @@ def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
                 f"vertical {format_value(g['vertical_rmse_m'], ' m', 2)}",
             )
         )
-    seg = evaluation.get("segmentation")
-    if seg:
-        out.append(
-            Check(
-                "trees segmented one-to-one (IoU ≥ 0.5)",
-                seg["success_rate"] >= 0.95,
-                f"{seg['n_correct']}/{seg['n_truth']} ({100 * seg['success_rate']:.0f} %)",
-                "fail < 95 %",
-                f"merged {seg['n_merged']}, split {seg['n_split']}, missed {seg['n_missed']}",
-            )
-        )
-        out.append(
-            Check(
-                "row and label correct",
-                seg["label_accuracy"] >= 0.95,
-                f"{100 * seg['label_accuracy']:.0f} %",
-                "fail < 95 % of matched trees",
-            )
-        )
+    return out
+
+
+def segmentation_truth_checks(seg: dict[str, Any] | None) -> list[Check]:
+    """Trees segmented one-to-one, and rows and labels right (``evaluation["segmentation"]``)."""
+    if not seg:
+        return []
+    return [
+        Check(
+            "trees segmented one-to-one (IoU ≥ 0.5)",
+            seg["success_rate"] >= 0.95,
+            f"{seg['n_correct']}/{seg['n_truth']} ({100 * seg['success_rate']:.0f} %)",
+            "fail < 95 %",
+            f"merged {seg['n_merged']}, split {seg['n_split']}, missed {seg['n_missed']}",
+        ),
+        Check(
+            "row and label correct",
+            seg["label_accuracy"] >= 0.95,
+            f"{100 * seg['label_accuracy']:.0f} %",
+            "fail < 95 % of matched trees",
+        ),
+    ]
+
+
+def volume_truth_checks(evaluation: dict[str, Any]) -> list[Check]:
+    """The recommended volume against its measurand and its interval's coverage, then the
+    alpha shape's, convex hull's and recommended volume's errors against the true crowns."""
+    out = []
     recommended = evaluation.get("recommended_volume")
     own = evaluation.get("volumes", {}).get("recommended_vs_measurand")
     if isinstance(own, dict) and "mape_pct" in own:

@@ -13,6 +13,7 @@ DBSCAN's, except that a border point joins the cluster of its nearest core point
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
@@ -203,9 +204,6 @@ def grid_dbscan(
     about 12 eps) carry an ``eps`` margin, and labels are joined across tiles through the
     core cells they share, so memory grows with the tile, not with the map.
     """
-    from scipy import ndimage
-    from scipy.signal import fftconvolve
-
     xyz = np.asarray(xyz, dtype=np.float64)
     n = len(xyz)
     if not eps > 0:
@@ -217,25 +215,47 @@ def grid_dbscan(
     if n == 0:
         return labels, np.zeros(0, bool)
     h = eps / 8.0 if cell is None else float(cell)
-    lo = column_min(xyz)
-    keys = np.floor((xyz - lo) / h).astype(np.int64)
-    span = column_max(keys) + 1
-    lin = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    cells, point_cell = np.unique(lin, return_inverse=True)
-    point_cell = point_cell.ravel()
-    cw = np.bincount(point_cell, weights=w)
-    ck = np.column_stack(
-        [cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]]
-    )
+    lattice = _CellLattice.of(xyz, w, h)
     m = int(np.ceil(eps / h))
-    kernel = _ball_kernel(eps / h)
-    volume_ratio = 4.0 / 3.0 * np.pi * (eps / h) ** 3 / kernel.sum()  # lattice ball -> ball
-    core = np.zeros(len(cells), bool)
     tile = max(int(round((tile_size or 12.0 * eps) / h)), 4 * m)
+    span = lattice.span
     tiles = [(tx, ty) for tx in range(0, int(span[0]), tile) for ty in range(0, int(span[1]), tile)]
-    owned_in = []
-    # Pass 1: core cells (the owned cells of each tile, with an eps margin for the sums).
-    for k, (tx, ty) in enumerate(tiles):
+    core, owned_in = _core_cells(lattice, tiles, tile, m, eps, min_samples, progress)
+    cell_label = _label_cells(lattice, core, tiles, owned_in, tile, m, eps, progress)
+    if cell_label is None:
+        return labels, core[lattice.point_cell]
+    labels = cell_label[lattice.point_cell]
+    return first_appearance_order(labels), core[lattice.point_cell]
+
+
+@dataclass
+class _CellLattice:
+    """The occupied cells of a lattice of edge ``h``: each point's cell and each cell's
+    summed weight and integer coordinates (x, y, z from the cloud's minimum corner)."""
+
+    edge: float  # cell edge h, m
+    point_cell: np.ndarray  # (N,) index of each point's cell
+    weight: np.ndarray  # (C,) summed weight of the points in each cell
+    ijk: np.ndarray  # (C, 3) cell coordinates
+    span: np.ndarray  # (3,) cells along x, y, z
+
+    @classmethod
+    def of(cls, xyz: np.ndarray, w: np.ndarray, h: float) -> _CellLattice:
+        lo = column_min(xyz)
+        keys = np.floor((xyz - lo) / h).astype(np.int64)
+        span = column_max(keys) + 1
+        lin = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+        cells, point_cell = np.unique(lin, return_inverse=True)
+        point_cell = point_cell.ravel()
+        ijk = np.column_stack(
+            [cells // (span[1] * span[2]), (cells // span[2]) % span[1], cells % span[2]]
+        )
+        return cls(h, point_cell, np.bincount(point_cell, weights=w), ijk, span)
+
+    def in_tile(self, tx: int, ty: int, tile: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """Cells of the tile at (``tx``, ``ty``) with a margin of ``m`` cells, and those it owns
+        (without the margin)."""
+        ck = self.ijk
         sel = np.flatnonzero(
             (ck[:, 0] >= tx - m)
             & (ck[:, 0] < tx + tile + m)
@@ -248,52 +268,80 @@ def grid_dbscan(
             & (ck[sel, 1] >= ty)
             & (ck[sel, 1] < ty + tile)
         ]
+        return sel, own
+
+
+def _core_cells(
+    lattice: _CellLattice,
+    tiles: list[tuple[int, int]],
+    tile: int,
+    m: int,
+    eps: float,
+    min_samples: float,
+    progress: Progress | None,
+) -> tuple[np.ndarray, list[int]]:
+    """Pass 1: which cells are core (the owned cells of each tile, with an ``eps`` margin for
+    the sums), and how many cells each tile owns."""
+    from scipy.signal import fftconvolve
+
+    h = lattice.edge
+    kernel = _ball_kernel(eps / h)
+    volume_ratio = 4.0 / 3.0 * np.pi * (eps / h) ** 3 / kernel.sum()  # lattice ball -> ball
+    core = np.zeros(len(lattice.weight), bool)
+    owned_in = []
+    for k, (tx, ty) in enumerate(tiles):
+        sel, own = lattice.in_tile(tx, ty, tile, m)
         owned_in.append(len(own))
         if len(own) == 0:
             continue
         base = np.array([tx - m, ty - m, 0])
-        shape = (tile + 2 * m, tile + 2 * m, int(span[2]))
-        grid = np.zeros(shape)
-        loc = ck[sel] - base
-        grid[loc[:, 0], loc[:, 1], loc[:, 2]] = cw[sel]
+        grid = np.zeros((tile + 2 * m, tile + 2 * m, int(lattice.span[2])))
+        loc = lattice.ijk[sel] - base
+        grid[loc[:, 0], loc[:, 1], loc[:, 2]] = lattice.weight[sel]
         dens = fftconvolve(grid, kernel, mode="same") * volume_ratio
-        lo_own = ck[own] - base
+        lo_own = lattice.ijk[own] - base
         core[own] = dens[lo_own[:, 0], lo_own[:, 1], lo_own[:, 2]] >= min_samples - 1e-6
         if progress:
             progress("DBSCAN", k + 1, 2 * len(tiles))
-    # Pass 2: link core cells and label cells near them, per tile; join labels across tiles.
-    cell_label = np.full(len(cells), -1, dtype=np.int64)
+    return core, owned_in
+
+
+def _label_cells(
+    lattice: _CellLattice,
+    core: np.ndarray,
+    tiles: list[tuple[int, int]],
+    owned_in: list[int],
+    tile: int,
+    m: int,
+    eps: float,
+    progress: Progress | None,
+) -> np.ndarray | None:
+    """Pass 2: link core cells and label the cells near them, tile by tile, then join the
+    labels of clusters that share a core cell across tiles. Returns each cell's cluster
+    (-1: noise), or None when no cell is core."""
+    from scipy import ndimage
+
+    h = lattice.edge
+    cell_label = np.full(len(lattice.weight), -1, dtype=np.int64)
     core_pairs: list[np.ndarray] = []  # (global component, core cell) seen in each tile
     next_comp = 0
     for k, (tx, ty) in enumerate(tiles):
         if owned_in[k] == 0:
             continue
-        sel = np.flatnonzero(
-            (ck[:, 0] >= tx - m)
-            & (ck[:, 0] < tx + tile + m)
-            & (ck[:, 1] >= ty - m)
-            & (ck[:, 1] < ty + tile + m)
-        )
+        sel, own = lattice.in_tile(tx, ty, tile, m)
         csel = sel[core[sel]]
         if len(csel) == 0:
             continue
         base = np.array([tx - m, ty - m, 0])
-        shape = (tile + 2 * m, tile + 2 * m, int(span[2]))
-        is_core = np.ones(shape, bool)
-        loc = ck[csel] - base
+        is_core = np.ones((tile + 2 * m, tile + 2 * m, int(lattice.span[2])), bool)
+        loc = lattice.ijk[csel] - base
         is_core[loc[:, 0], loc[:, 1], loc[:, 2]] = False
         dist, (ii, jj, kk) = ndimage.distance_transform_edt(is_core, return_indices=True)
         blobs, _ = ndimage.label(dist <= 0.5 * eps / h + 1e-9)
         comp_of_core = blobs[loc[:, 0], loc[:, 1], loc[:, 2]] + next_comp
         next_comp += int(blobs.max()) + 1
         core_pairs.append(np.column_stack([comp_of_core, csel]))
-        own = sel[
-            (ck[sel, 0] >= tx)
-            & (ck[sel, 0] < tx + tile)
-            & (ck[sel, 1] >= ty)
-            & (ck[sel, 1] < ty + tile)
-        ]
-        lo_own = ck[own] - base
+        lo_own = lattice.ijk[own] - base
         near = dist[lo_own[:, 0], lo_own[:, 1], lo_own[:, 2]] <= eps / h + 1e-9
         src = (
             ii[lo_own[near, 0], lo_own[near, 1], lo_own[near, 2]],
@@ -304,15 +352,15 @@ def grid_dbscan(
         if progress:
             progress("DBSCAN", len(tiles) + k + 1, 2 * len(tiles))
     if not core_pairs:
-        return labels, core[point_cell]
+        return None
     pairs = np.concatenate(core_pairs)
+    n_cells = len(cell_label)
     # Components seen through the same core cell in two tiles are one cluster.
     graph = sparse.coo_matrix(
         (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1] + next_comp)),
-        shape=(next_comp + len(cells), next_comp + len(cells)),
+        shape=(next_comp + n_cells, next_comp + n_cells),
     )
     _, joined = connected_components(graph, directed=False)
     ok = cell_label >= 0
     cell_label[ok] = joined[cell_label[ok]]
-    labels = cell_label[point_cell]
-    return first_appearance_order(labels), core[point_cell]
+    return cell_label

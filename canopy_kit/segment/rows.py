@@ -249,7 +249,48 @@ def assign_rows(
     # on both sides of the first alley first): with so few, a known driving direction is the
     # better guess of the row axis.
     trust_direction = driving_direction is not None and n < MIN_TREES_FOR_AXIS
-    if n >= 2 and not trust_direction:
+    d, source = _row_direction(xy, driving_direction, direction_source, trust_direction)
+    right = np.array([d[1], -d[0]])
+    along, across = xy @ d, xy @ right
+    gap = config.max_distance_to_row
+    groups, coefs = _group_into_rows(along, across, gap, config.curved_rows)
+    mean_offset = {g: np.median(across[groups == g]) for g in coefs}
+    # Where rows exist, trees in an alley between two of them (stray segments) are in no
+    # row: numbering them as a row would shift the numbers, L/R sides and spacing of the
+    # real rows.
+    strays = _stray_groups(groups, mean_offset, config.min_trees_per_row)
+    row, index, lines, resid = _number_rows(groups, coefs, mean_offset, strays, along, across, d)
+    warnings: list[str] = []
+    not_rows = _why_not_rows(row, lines, resid, along, across, config)
+    if n >= 3 and not trust_direction and not_rows:
+        warnings.append(
+            f"no rows detected: {'; '.join(not_rows)}; trees are labelled T0, T1, ... instead"
+        )
+        order_xy = np.lexsort((xy[:, 0], xy[:, 1]))
+        idx = np.empty(n, dtype=np.int64)
+        idx[order_xy] = np.arange(n)
+        return RowAssignment(np.full(n, -1), idx, [f"T{i}" for i in idx], [], d, source, warnings)
+    n_off_rows = int(np.sum(row < 0))
+    if n_off_rows:
+        warnings.append(
+            f"{n_off_rows} of {n} trees stand in the alleys between the {len(lines)} rows "
+            f"(groups of fewer than rows.min_trees_per_row = {config.min_trees_per_row} or half a "
+            "row's trees, where the rows on both sides stand no further apart than rows do "
+            "elsewhere): labelled T0, T1, ... along the driving direction, in no row"
+        )
+    labels = [row_label(int(r), int(i)) if r >= 0 else f"T{i}" for r, i in zip(row, index)]
+    return RowAssignment(row, index, labels, lines, d, source, warnings)
+
+
+def _row_direction(
+    xy: np.ndarray,
+    driving_direction: np.ndarray | None,
+    direction_source: str | None,
+    trust_direction: bool,
+) -> tuple[np.ndarray, str]:
+    """The unit direction rows are read along (the row axis, pointed the way the robot first
+    drove when that is known) and where its sense came from."""
+    if len(xy) >= 2 and not trust_direction:
         axis = row_axis(xy)
     else:
         axis = (
@@ -261,20 +302,23 @@ def assign_rows(
     if driving_direction is not None:
         dd = np.asarray(driving_direction, float)[:2]
         dd = dd / np.linalg.norm(dd)
-        d = axis if axis @ dd >= 0 else -axis
-        source = direction_source or "given"
-    else:
-        d = default_direction(axis)
-        source = "default (row axis pointing north of east-west)"
-    right = np.array([d[1], -d[0]])
-    along, across = xy @ d, xy @ right
-    gap = config.max_distance_to_row
+        return (axis if axis @ dd >= 0 else -axis), direction_source or "given"
+    return default_direction(axis), "default (row axis pointing north of east-west)"
+
+
+def _group_into_rows(
+    along: np.ndarray, across: np.ndarray, gap: float, curved: bool
+) -> tuple[np.ndarray, dict]:
+    """Groups of trees by their offset across the rows, refined (up to 3 times) by moving each
+    tree to the nearest fitted row line; trees further than ``gap`` from every line start
+    rows of their own. Returns each tree's group and each group's line coefficients."""
+    n = len(along)
     groups = _group_by_offset(across, gap)
     for _ in range(3):
         coefs = {}
         for g in np.unique(groups):
             m = groups == g
-            coefs[g] = _fit_row(along[m], across[m], config.curved_rows)
+            coefs[g] = _fit_row(along[m], across[m], curved)
         keys = list(coefs)
         resid = np.stack(
             [across - (coefs[g][0] + coefs[g][1] * along + coefs[g][2] * along**2) for g in keys],
@@ -290,14 +334,24 @@ def assign_rows(
             break
         groups = new
     coefs = {
-        g: _fit_row(along[groups == g], across[groups == g], config.curved_rows)
-        for g in np.unique(groups)
+        g: _fit_row(along[groups == g], across[groups == g], curved) for g in np.unique(groups)
     }
-    mean_offset = {g: np.median(across[groups == g]) for g in coefs}
-    # Where rows exist, trees in an alley between two of them (stray segments) are in no
-    # row: numbering them as a row would shift the numbers, L/R sides and spacing of the
-    # real rows.
-    strays = _stray_groups(groups, mean_offset, config.min_trees_per_row)
+    return groups, coefs
+
+
+def _number_rows(
+    groups: np.ndarray,
+    coefs: dict,
+    mean_offset: dict,
+    strays: set,
+    along: np.ndarray,
+    across: np.ndarray,
+    d: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, list[RowLine], np.ndarray]:
+    """Rows numbered left to right as seen along ``d`` (strays: row -1), trees numbered along
+    each row (strays along ``d`` among themselves). Returns each tree's row, index and offset
+    from its row's line, and the rows' lines."""
+    n = len(groups)
     # Rows left to right as seen along d: increasing offset to the right.
     order = sorted(set(coefs) - strays, key=lambda g: mean_offset[g])
     row_of_group = {g: r for r, g in enumerate(order)} | {g: -1 for g in strays}
@@ -322,15 +376,28 @@ def assign_rows(
         )
     off_rows = np.flatnonzero(row < 0)
     index[off_rows[np.argsort(along[off_rows], kind="stable")]] = np.arange(len(off_rows))
-    warnings: list[str] = []
+    return row, index, lines, resid
+
+
+def _why_not_rows(
+    row: np.ndarray,
+    lines: list[RowLine],
+    resid: np.ndarray,
+    along: np.ndarray,
+    across: np.ndarray,
+    config: RowsConfig,
+) -> list[str]:
+    """Why the candidate rows are not an orchard's (empty when they are): in an orchard most
+    trees stand in rows, on their row's line, and closer together along a row than the rows
+    stand apart."""
+    n = len(row)
+    gap = config.max_distance_to_row
     in_rows = np.isin(row, [ln.row for ln in lines if ln.n_trees >= config.min_trees_per_row])
     spread = np.median(np.abs(resid[in_rows])) if in_rows.any() else np.inf
     centres = np.sort([np.median(across[row == ln.row]) for ln in lines])
     spacing = np.median(np.diff(centres)) if len(centres) > 1 else np.inf
     steps = [np.diff(np.sort(along[row == ln.row])) for ln in lines if ln.n_trees >= 2]
     in_row = np.median(np.concatenate(steps)) if steps else np.inf
-    # In an orchard most trees stand in rows, on their row's line, and closer together
-    # along a row than the rows stand apart.
     off_line = min(gap / 3, 0.15 * spacing)
     not_rows = []
     if in_rows.mean() < 0.8:
@@ -348,20 +415,4 @@ def assign_rows(
             f"the candidate rows are {spacing:.1f} m apart, closer than their trees stand "
             f"along them ({in_row:.1f} m): in an orchard the trees of a row stand closer"
         )
-    if n >= 3 and not trust_direction and not_rows:
-        warnings.append(
-            f"no rows detected: {'; '.join(not_rows)}; trees are labelled T0, T1, ... instead"
-        )
-        order_xy = np.lexsort((xy[:, 0], xy[:, 1]))
-        idx = np.empty(n, dtype=np.int64)
-        idx[order_xy] = np.arange(n)
-        return RowAssignment(np.full(n, -1), idx, [f"T{i}" for i in idx], [], d, source, warnings)
-    if len(off_rows):
-        warnings.append(
-            f"{len(off_rows)} of {n} trees stand in the alleys between the {len(lines)} rows "
-            f"(groups of fewer than rows.min_trees_per_row = {config.min_trees_per_row} or half a "
-            "row's trees, where the rows on both sides stand no further apart than rows do "
-            "elsewhere): labelled T0, T1, ... along the driving direction, in no row"
-        )
-    labels = [row_label(int(r), int(i)) if r >= 0 else f"T{i}" for r, i in zip(row, index)]
-    return RowAssignment(row, index, labels, lines, d, source, warnings)
+    return not_rows

@@ -12,7 +12,6 @@ from typing import Any, Literal
 
 from canopy_kit.config import from_dict, merge, read_toml
 from canopy_kit.errors import ConfigError
-from canopy_kit.evaluate.truth import orchard_kind  # noqa: F401 - moved to canopy_kit.evaluate.truth; kept here
 
 
 @dataclass
@@ -422,14 +421,32 @@ def _check_range(values: list[float], name: str, low: float = 0.0, strict: bool 
 
 
 def validate(c: SimConfig) -> None:
-    """Reject impossible parameters with an error naming the parameter."""
-    o, li, d = c.orchard, c.lidar, c.drive
+    """Reject impossible parameters with an error naming the parameter (the first found, in
+    the order of the sections: orchard, lidar, drive, imu/gnss, rig, drone)."""
+    _validate_orchard_grid(c.orchard)
+    _validate_trees(c.orchard)
+    _validate_orchard_room(c.orchard)
+    _validate_lidar(c.lidar, c.imu)
+    _validate_drive(c.drive)
+    _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")
+    _validate_gnss(c.gnss)
+    _validate_rig(c)
+    _validate_drone(c.drone)
+
+
+def _validate_orchard_grid(o: OrchardSpec) -> None:
+    """Rows, trees per row and their spacings."""
     _check(o.rows >= 1, "orchard.rows", f"must be at least 1, got {o.rows}")
     _check(
         o.trees_per_row >= 1, "orchard.trees_per_row", f"must be at least 1, got {o.trees_per_row}"
     )
     _check_range(o.spacing_range, "orchard.spacing_range")
     _check(o.row_spacing > 0, "orchard.row_spacing", f"must be positive, got {o.row_spacing}")
+
+
+def _validate_trees(o: OrchardSpec) -> None:
+    """The trees: crown, trunk and branch sizes, missing and double trees, crown forms and
+    foliage."""
     _check_range(o.crown_diameter_range, "orchard.crown_diameter_range")
     _check_range(o.crown_across_ratio_range, "orchard.crown_across_ratio_range")
     _check_range(o.crown_height_ratio_range, "orchard.crown_height_ratio_range")
@@ -487,6 +504,10 @@ def validate(c: SimConfig) -> None:
         "orchard.foliage_density_*",
         "densities must be positive",
     )
+
+
+def _validate_orchard_room(o: OrchardSpec) -> None:
+    """Headlands and margins, and room in the alleys and the orchard for the crowns."""
     _check(o.headland >= 0 and o.margin >= 0, "orchard.headland/margin", "must not be negative")
     lane = o.row_spacing - 2 * o.alley_clearance
     _check(
@@ -501,6 +522,11 @@ def validate(c: SimConfig) -> None:
         "orchard.crown_diameter_range",
         f"crowns up to {o.crown_diameter_range[1]} m are larger than the orchard",
     )
+
+
+def _validate_lidar(li: LidarSpec, imu: ImuSpec) -> None:
+    """The LiDAR: beams, rate, ranges, mount, and the firing and output formats that go
+    together (Velodyne, Livox and Ouster limits)."""
     _check(li.rings >= 1, "lidar.rings", f"must be at least 1, got {li.rings}")
     _check(li.columns >= 16, "lidar.columns", f"must be at least 16, got {li.columns}")
     _check(
@@ -540,7 +566,7 @@ def validate(c: SimConfig) -> None:
         "firing; a Livox firing writes livox_custom or points)",
     )
     _check(
-        c.imu.output != "ouster_packets" or li.output == "ouster_packets",
+        imu.output != "ouster_packets" or li.output == "ouster_packets",
         "imu.output",
         "Ouster IMU packets need the Ouster's lidar packets (lidar.output = 'ouster_packets')",
     )
@@ -549,6 +575,10 @@ def validate(c: SimConfig) -> None:
 
         for name, problem in check_spec(li):
             _check(False, name, problem)
+
+
+def _validate_drive(d: DriveSpec) -> None:
+    """The robot's speeds and acceleration."""
     _check(
         d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive"
     )
@@ -559,8 +589,11 @@ def validate(c: SimConfig) -> None:
         "drive.speed_variation",
         "must be below cruise_speed",
     )
-    _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")
-    _validate_gnss(c.gnss)
+
+
+def _validate_rig(c: SimConfig) -> None:
+    """The sensors' rig: the IMU's mounting error and clock offset, and a named rig that
+    exists."""
     _check(
         len(c.rig.tf_imu_error_rpy_deg) == 3,
         "rig.tf_imu_error_rpy_deg",
@@ -575,33 +608,37 @@ def validate(c: SimConfig) -> None:
         from canopy_kit.sim.rig import sensor_mounts
 
         sensor_mounts(c)  # the rig exists and names its frames
+
+
+def _validate_drone(dr: DroneSpec) -> None:
+    """The drone flight: overlaps, altitude, camera and photos, speed."""
     _check(
-        0 < c.drone.forward_overlap < 1 and 0 < c.drone.side_overlap < 1,
+        0 < dr.forward_overlap < 1 and 0 < dr.side_overlap < 1,
         "drone.*_overlap",
         "must be in (0, 1)",
     )
-    _check(c.drone.altitude > 0, "drone.altitude", f"must be positive, got {c.drone.altitude}")
+    _check(dr.altitude > 0, "drone.altitude", f"must be positive, got {dr.altitude}")
     _check(
-        c.drone.image_width >= 64 and c.drone.image_height >= 64,
+        dr.image_width >= 64 and dr.image_height >= 64,
         "drone.image_width/image_height",
-        f"must be at least 64 px, got {c.drone.image_width}x{c.drone.image_height}",
+        f"must be at least 64 px, got {dr.image_width}x{dr.image_height}",
     )
     _check(
-        c.drone.focal_length_mm > 0 and c.drone.sensor_width_mm > 0,
+        dr.focal_length_mm > 0 and dr.sensor_width_mm > 0,
         "drone.focal_length_mm/sensor_width_mm",
         "must be positive",
     )
     _check(
-        1 <= c.drone.jpeg_quality <= 100,
+        1 <= dr.jpeg_quality <= 100,
         "drone.jpeg_quality",
-        f"must be in [1, 100], got {c.drone.jpeg_quality}",
+        f"must be in [1, 100], got {dr.jpeg_quality}",
     )
     _check(
-        c.drone.flight_speed > 0,
+        dr.flight_speed > 0,
         "drone.flight_speed",
-        f"must be positive, got {c.drone.flight_speed}",
+        f"must be positive, got {dr.flight_speed}",
     )
-    _validate_drone_pattern(c.drone)
+    _validate_drone_pattern(dr)
 
 
 def _validate_drone_pattern(d: DroneSpec) -> None:

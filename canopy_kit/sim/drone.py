@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -202,10 +203,10 @@ def encode_jpeg(image: np.ndarray, exif: bytes, quality: int, xmp: bytes = b"") 
 
 
 def shot_xmp(
-    shot: DroneShot, previous: DroneShot | None, altitude: float, take_off_z: float
-) -> bytes:
-    """The DJI XMP of a photo: the true gimbal attitude, the heading flown from the photo
-    before (the gimbal's on the first), the height above take-off and ``altitude``."""
+    shot: DroneShot, previous: DroneShot | None, take_off_z: float
+) -> Callable[[float], bytes]:
+    """The DJI XMP of a photo, given its GPS altitude: the true gimbal attitude, the heading
+    flown from the photo before (the gimbal's on the first) and the height above take-off."""
     gimbal = gimbal_angles(shot.view.rotation)
     heading = gimbal[0]
     if previous is not None and previous.line == shot.line:
@@ -213,7 +214,7 @@ def shot_xmp(
         if np.hypot(*step) > 1e-6:
             heading = float(np.degrees(np.arctan2(step[0], step[1])))
     relative = float(shot.view.position[2] - take_off_z)
-    return dji_xmp(gimbal, (heading, 0.0, 0.0), relative, altitude)
+    return lambda altitude: dji_xmp(gimbal, (heading, 0.0, 0.0), relative, altitude)
 
 
 def simulate_drone_flight(
@@ -226,8 +227,6 @@ def simulate_drone_flight(
     progress: Progress | None = None,
 ) -> DroneFlight:
     """Fly, render and write the photos to ``drone_dir`` and the true cameras to ``truth_dir``."""
-    from scipy.spatial.transform import Rotation
-
     report = progress or (lambda *_: None)
     drone_dir, truth_dir = Path(drone_dir), Path(truth_dir)
     drone_dir.mkdir(parents=True, exist_ok=True)
@@ -250,61 +249,83 @@ def simulate_drone_flight(
     take_off_z = float(orchard.terrain.height(first[0], first[1]))
     report("Drone photos", 0, len(shots))
     for k, shot in enumerate(shots):
-        view = shot.view
-        gps = (
-            view.position
-            + offset
-            + np.array(
-                [
-                    *rng.normal(0.0, spec.gps_sigma_horizontal, 2),
-                    rng.normal(0.0, spec.gps_sigma_vertical),
-                ]
-            )
-        )
-        lat, lon, alt = (float(v[0]) for v in orchard.frame.to_wgs84(gps[None, :]))
-        image = renderer.render(view, rng)
-        when = FLIGHT_START + timedelta(seconds=round(shot.time_s))
-        atomic_write_bytes(
-            drone_dir / shot.name,
-            encode_jpeg(
-                image,
-                exif_bytes(spec, lat, lon, alt, when),
-                spec.jpeg_quality,
-                shot_xmp(shot, shots[k - 1] if k else None, alt, take_off_z),
-            ),
-        )
-        q = Rotation.from_matrix(view.rotation).as_quat()
-        rows.append(
-            {
-                "image": shot.name,
-                "line": shot.line,
-                "time_s": shot.time_s,
-                "x": view.position[0],
-                "y": view.position[1],
-                "z": view.position[2],
-                "qw": q[3],
-                "qx": q[0],
-                "qy": q[1],
-                "qz": q[2],
-                "gps_x": gps[0],
-                "gps_y": gps[1],
-                "gps_z": gps[2],
-                "lat": lat,
-                "lon": lon,
-                "altitude": alt,
-                "focal_px": view.focal_px,
-                "cx": view.width / 2.0,
-                "cy": view.height / 2.0,
-                "width": view.width,
-                "height": view.height,
-            }
-        )
+        xmp = shot_xmp(shot, shots[k - 1] if k else None, take_off_z)
+        rows.append(_take_photo(shot, renderer, orchard, spec, offset, rng, drone_dir, xmp))
         report("Drone photos", k + 1, len(shots))
     cameras = pd.DataFrame(rows)
     truth_dir.mkdir(parents=True, exist_ok=True)
     write_csv(cameras, truth_dir / "drone_cameras.csv", float_format="%.9f")
+    summary = _flight_summary(spec, cameras, offset, shots)
+    atomic_write_text(truth_dir / "drone_flight.json", json.dumps(summary, indent=2) + "\n")
+    return DroneFlight(drone_dir, cameras, summary)
+
+
+def _take_photo(
+    shot: DroneShot,
+    renderer: DroneRenderer,
+    orchard: Orchard,
+    spec: DroneSpec,
+    offset: np.ndarray,
+    rng: np.random.Generator,
+    drone_dir: Path,
+    xmp: Callable[[float], bytes],
+) -> dict[str, Any]:
+    """Render one shot and write it as a JPEG with the receiver's GPS position (the flight's
+    ``offset`` plus noise) in its EXIF and ``xmp(altitude)`` as its XMP packet; returns the
+    true camera's row of drone_cameras.csv."""
+    from scipy.spatial.transform import Rotation
+
+    view = shot.view
+    gps = (
+        view.position
+        + offset
+        + np.array(
+            [
+                *rng.normal(0.0, spec.gps_sigma_horizontal, 2),
+                rng.normal(0.0, spec.gps_sigma_vertical),
+            ]
+        )
+    )
+    lat, lon, alt = (float(v[0]) for v in orchard.frame.to_wgs84(gps[None, :]))
+    image = renderer.render(view, rng)
+    when = FLIGHT_START + timedelta(seconds=round(shot.time_s))
+    atomic_write_bytes(
+        drone_dir / shot.name,
+        encode_jpeg(image, exif_bytes(spec, lat, lon, alt, when), spec.jpeg_quality, xmp(alt)),
+    )
+    q = Rotation.from_matrix(view.rotation).as_quat()
+    return {
+        "image": shot.name,
+        "line": shot.line,
+        "time_s": shot.time_s,
+        "x": view.position[0],
+        "y": view.position[1],
+        "z": view.position[2],
+        "qw": q[3],
+        "qx": q[0],
+        "qy": q[1],
+        "qz": q[2],
+        "gps_x": gps[0],
+        "gps_y": gps[1],
+        "gps_z": gps[2],
+        "lat": lat,
+        "lon": lon,
+        "altitude": alt,
+        "focal_px": view.focal_px,
+        "cx": view.width / 2.0,
+        "cy": view.height / 2.0,
+        "width": view.width,
+        "height": view.height,
+    }
+
+
+def _flight_summary(
+    spec: DroneSpec, cameras: pd.DataFrame, offset: np.ndarray, shots: list[DroneShot]
+) -> dict[str, Any]:
+    """What drone_flight.json records: images, flight lines, altitude, ground sampling,
+    footprint and overlaps, camera, the receiver's offset and the sun."""
     across, along = ground_footprint(spec)
-    summary = {
+    return {
         "pattern": spec.pattern,
         "gimbal_pitch_deg": -90.0 if spec.pattern == "nadir" else spec.gimbal_pitch_deg,
         "flight_time_s": shots[-1].time_s if shots else 0.0,
@@ -322,8 +343,6 @@ def simulate_drone_flight(
         "sun_elevation_deg": spec.sun_elevation_deg,
         "sun_azimuth_deg": spec.sun_azimuth_deg,
     }
-    atomic_write_text(truth_dir / "drone_flight.json", json.dumps(summary, indent=2) + "\n")
-    return DroneFlight(drone_dir, cameras, summary)
 
 
 def simulate_drone_session(

@@ -20,7 +20,7 @@ from canopy_kit.io.imu_units import STANDARD_GRAVITY
 from canopy_kit.io.session_layout import BAG_NAME, SIM_CONFIG, find_bag, sim_config_path, truth_dir
 from canopy_kit.io.session_layout import drone_dir as drone_folder
 from canopy_kit.sim.config import SimConfig, validate
-from canopy_kit.sim.inertial import simulate_gnss, simulate_imu
+from canopy_kit.sim.inertial import GnssFixes, ImuSamples, simulate_gnss, simulate_imu
 from canopy_kit.sim.lidar import SpinningLidar
 from canopy_kit.sim.orchard import Orchard, generate_orchard
 from canopy_kit.sim.rig import SensorMounts, sensor_mounts
@@ -160,86 +160,20 @@ def _write_session(
         atomic_write_text(
             truth_folder / "gnss_events.json", json.dumps(gnss.events, indent=2) + "\n"
         )
-    odo_t = np.arange(
-        trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz
-    )
     n_points = 0
     with BagWriter(bag_path, fmt) as writer:
         if mounts.tf_static:
             writer.write_tf_static(
                 trajectory.start_time, [(t.parent, t.child, t.matrix) for t in mounts.tf_static]
             )
-        cursors = {"imu": 0, "gnss": 0, "odom": 0}
-        accel_unit = 1 / STANDARD_GRAVITY if config.imu.acceleration_unit == "g" else 1.0
-        ouster_imu = config.imu.output == "ouster_packets"
-
-        def flush(until: float) -> None:
-            if imu is not None:
-                i = cursors["imu"]
-                while i < len(imu.t) and imu.t[i] < until:
-                    if ouster_imu:  # the Ouster's own IMU packets (canopy_kit.sim.ouster)
-                        stamp, packet = lidar.ouster.imu_packet(  # type: ignore[union-attr]
-                            imu.t[i] + mounts.imu_time_offset,
-                            imu.angular_velocity[i],
-                            imu.linear_acceleration[i],
-                        )
-                        writer.write_ouster_packets(config.imu.topic, [stamp], [packet])
-                        i += 1
-                        continue
-                    writer.write_imu(
-                        config.imu.topic,
-                        imu.t[i] + mounts.imu_time_offset,
-                        imu.angular_velocity[i],
-                        imu.linear_acceleration[i] * accel_unit,
-                        None,
-                        mounts.imu_frame,
-                    )
-                    i += 1
-                cursors["imu"] = i
-            if gnss is not None:
-                i = cursors["gnss"]
-                while i < len(gnss.t) and gnss.t[i] < until:
-                    lat, lon, h = orchard.frame.to_wgs84(gnss.local_xyz[i : i + 1])
-                    writer.write_fix(
-                        config.gnss.topic,
-                        gnss.t[i],
-                        lat[0],
-                        lon[0],
-                        h[0],
-                        gnss.sigma_horizontal[i],
-                        gnss.sigma_vertical[i],
-                        gnss.status[i],
-                        mounts.gnss_frame,
-                        gnss.covariance_type,
-                    )
-                    i += 1
-                cursors["gnss"] = i
-            i = cursors["odom"]
-            j = i
-            while j < len(odo_t) and odo_t[j] < until:
-                j += 1
-            if j > i:
-                pos, rot = trajectory.poses(odo_t[i:j])
-                quat = rot.as_quat()
-                for k in range(j - i):
-                    writer.write_odometry(
-                        config.drive.odometry_topic,
-                        odo_t[i + k],
-                        pos[k],
-                        quat[k],
-                        "map",
-                        mounts.lidar_frame,
-                    )
-            cursors["odom"] = j
-
+        streams = _SensorStreams(writer, config, mounts, orchard, trajectory, lidar, imu, gnss)
         for k, stamp in enumerate(sweeps):
-            end = stamp + lidar.sweep_period
-            flush(end)
+            streams.write_until(stamp + lidar.sweep_period)
             scan = lidar.sweep(stamp)
             n_points += scan.n_points
             scan.write(writer, config.lidar.topic, mounts.lidar_frame)
             report("LiDAR sweeps", k + 1, len(sweeps))
-        flush(trajectory.end_time + 1.0)
+        streams.write_until(trajectory.end_time + 1.0)
     if lidar.ouster is not None:  # the metadata beside the bag too, as older drivers kept it
         atomic_write_text(root / "ouster_metadata.json", lidar.ouster.metadata + "\n")
     if config.drone.enabled:
@@ -249,6 +183,101 @@ def _write_session(
             orchard, scene, config.drone, drone_folder(root), truth_folder, rngs["drone"], report
         )
     return orchard, trajectory, len(sweeps), n_points
+
+
+class _SensorStreams:
+    """The IMU, GNSS and odometry messages of a drive, written in time order between the
+    LiDAR sweeps: each call writes those stamped before ``until`` not written yet."""
+
+    def __init__(
+        self,
+        writer: BagWriter,
+        config: SimConfig,
+        mounts: SensorMounts,
+        orchard: Orchard,
+        trajectory: Trajectory,
+        lidar: SpinningLidar,
+        imu: ImuSamples | None,
+        gnss: GnssFixes | None,
+    ) -> None:
+        self.writer, self.config, self.mounts = writer, config, mounts
+        self.orchard, self.trajectory, self.lidar = orchard, trajectory, lidar
+        self.imu, self.gnss = imu, gnss
+        self.odo_t = np.arange(
+            trajectory.start_time, trajectory.end_time, 1.0 / config.drive.odometry_rate_hz
+        )
+        self.next_imu = self.next_gnss = self.next_odom = 0
+
+    def write_until(self, until: float) -> None:
+        """Every message stamped before ``until`` not written yet: IMU, GNSS, odometry."""
+        if self.imu is not None:
+            self._write_imu(until)
+        if self.gnss is not None:
+            self._write_gnss(until)
+        self._write_odometry(until)
+
+    def _write_imu(self, until: float) -> None:
+        imu, mounts, config = self.imu, self.mounts, self.config
+        accel_unit = 1 / STANDARD_GRAVITY if config.imu.acceleration_unit == "g" else 1.0
+        i = self.next_imu
+        while i < len(imu.t) and imu.t[i] < until:
+            if config.imu.output == "ouster_packets":  # the Ouster's own IMU packets (sim.ouster)
+                stamp, packet = self.lidar.ouster.imu_packet(  # type: ignore[union-attr]
+                    imu.t[i] + mounts.imu_time_offset,
+                    imu.angular_velocity[i],
+                    imu.linear_acceleration[i],
+                )
+                self.writer.write_ouster_packets(config.imu.topic, [stamp], [packet])
+            else:
+                self.writer.write_imu(
+                    config.imu.topic,
+                    imu.t[i] + mounts.imu_time_offset,
+                    imu.angular_velocity[i],
+                    imu.linear_acceleration[i] * accel_unit,
+                    None,
+                    mounts.imu_frame,
+                )
+            i += 1
+        self.next_imu = i
+
+    def _write_gnss(self, until: float) -> None:
+        gnss = self.gnss
+        i = self.next_gnss
+        while i < len(gnss.t) and gnss.t[i] < until:
+            lat, lon, h = self.orchard.frame.to_wgs84(gnss.local_xyz[i : i + 1])
+            self.writer.write_fix(
+                self.config.gnss.topic,
+                gnss.t[i],
+                lat[0],
+                lon[0],
+                h[0],
+                gnss.sigma_horizontal[i],
+                gnss.sigma_vertical[i],
+                gnss.status[i],
+                self.mounts.gnss_frame,
+                gnss.covariance_type,
+            )
+            i += 1
+        self.next_gnss = i
+
+    def _write_odometry(self, until: float) -> None:
+        odo_t = self.odo_t
+        i = j = self.next_odom
+        while j < len(odo_t) and odo_t[j] < until:
+            j += 1
+        if j > i:
+            pos, rot = self.trajectory.poses(odo_t[i:j])
+            quat = rot.as_quat()
+            for k in range(j - i):
+                self.writer.write_odometry(
+                    self.config.drive.odometry_topic,
+                    odo_t[i + k],
+                    pos[k],
+                    quat[k],
+                    "map",
+                    self.mounts.lidar_frame,
+                )
+        self.next_odom = j
 
 
 def _pose_frame(t: np.ndarray, pos: np.ndarray, rot: object) -> pd.DataFrame:

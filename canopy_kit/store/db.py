@@ -242,13 +242,57 @@ class OrchardStore:
     ) -> IngestReport:
         sid = record.session_id
         methods = volume_methods(trees)
+        ids, kind, dist, report = self._identify(record, trees, known, match, methods)
+        obs = observations_frame(sid, trees, ids, kind, dist, xy, match.aligned)
+        self._insert("observations", obs)
+        _fault("observations")
+        vols = [
+            pd.DataFrame(
+                {
+                    "session_id": sid,
+                    "tree_id": ids,
+                    "method": m,
+                    "volume_m3": trees[c].to_numpy(float),
+                }
+            )
+            for c, m in methods.items()
+        ]
+        if vols:
+            self._insert("volumes", pd.concat(vols, ignore_index=True))
+        self._write_aerial(sid, trees, ids)
+        _fault("volumes")
+        self._update_trees(record, obs, report)
+        self._write_events(report)
+        self._write_session_row(record, report, match)
+        _fault("sessions")
+        return report
+
+    def _identify(
+        self,
+        record: SessionRecord,
+        trees: pd.DataFrame,
+        known: pd.DataFrame,
+        match: TreeMatch,
+        methods: dict[str, str],
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, IngestReport]:
+        """Each session tree's tree_id, kind (matched, found_again, replanted, new) and match
+        distance, and the ingest report listing them. A missing tree found again with less
+        than half its last volume is a replant: a new tree that replaces it."""
         primary = self._primary_column(methods)
         next_id = int(self.one("SELECT coalesce(max(tree_id), 0) + 1 FROM trees")[0])
         ids = np.full(len(trees), -1, dtype=np.int64)
         kind = np.full(len(trees), "new", dtype=object)
         dist = np.full(len(trees), np.nan)
         report = IngestReport(
-            sid, record.orchard, len(trees), {}, [], [], [], [], asdict(match.alignment)
+            record.session_id,
+            record.orchard,
+            len(trees),
+            {},
+            [],
+            [],
+            [],
+            [],
+            asdict(match.alignment),
         )
         last_volume = self._last_volumes(known["tree_id"].tolist(), primary, methods)
         for (si, kj), d in zip(match.pairs, match.distances):
@@ -272,53 +316,11 @@ class OrchardStore:
             report.new.append(next_id)
             next_id += 1
         report.missing = [int(known["tree_id"].iat[k]) for k in match.missing]
-        aligned = match.aligned
-        obs = pd.DataFrame(
-            {
-                "session_id": sid,
-                "tree_id": ids,
-                "kind": kind,
-                "segment": trees.get("segment", pd.Series(np.arange(len(trees)))).to_numpy(),
-                "label": trees.get("label", pd.Series([""] * len(trees))).astype(str).to_numpy(),
-                "row": trees.get("row", pd.Series(np.full(len(trees), -1))).to_numpy(),
-                "x": aligned[:, 0],
-                "y": aligned[:, 1],
-                "x_session": xy[:, 0],
-                "y_session": xy[:, 1],
-                "lat": trees["lat"].to_numpy(float),
-                "lon": trees["lon"].to_numpy(float),
-                "match_distance_m": dist,
-                "n_points": trees["n_points"].to_numpy(),
-                "height_m": trees.get(
-                    "height_m", pd.Series(np.full(len(trees), np.nan))
-                ).to_numpy(),
-                "crown_diameter_m": trees.get(
-                    "crown_diameter_m", pd.Series(np.full(len(trees), np.nan))
-                ).to_numpy(),
-                "flags": trees.get("volume_flags", pd.Series([""] * len(trees)))
-                .fillna("")
-                .astype(str)
-                .to_numpy(),
-            }
-        )
-        self._insert("observations", obs)
-        _fault("observations")
-        vols = [
-            pd.DataFrame(
-                {
-                    "session_id": sid,
-                    "tree_id": ids,
-                    "method": m,
-                    "volume_m3": trees[c].to_numpy(float),
-                }
-            )
-            for c, m in methods.items()
-        ]
-        if vols:
-            self._insert("volumes", pd.concat(vols, ignore_index=True))
-        self._write_aerial(sid, trees, ids)
-        _fault("volumes")
-        self._update_trees(record, obs, report)
+        return ids, kind, dist, report
+
+    def _write_events(self, report: IngestReport) -> None:
+        """The session's events: trees new, missing, replanted and found again."""
+        sid = report.session_id
         events = (
             [(sid, t, "new", "") for t in report.new]
             + [(sid, t, "missing", "") for t in report.missing]
@@ -329,17 +331,22 @@ class OrchardStore:
             self._insert(
                 "events", pd.DataFrame(events, columns=["session_id", "tree_id", "kind", "detail"])
             )
+
+    def _write_session_row(
+        self, record: SessionRecord, report: IngestReport, match: TreeMatch
+    ) -> None:
+        """The session's row: its record, the counts of the report and the alignment."""
         a = match.alignment
         self.run(
             "INSERT INTO sessions VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, now(), ?)",
             [
-                sid,
+                record.session_id,
                 record.orchard,
                 record.date,
                 record.bag,
                 record.preset,
                 record.run_dir,
-                len(trees),
+                report.n_trees,
                 len(report.matched),
                 len(report.new),
                 len(report.missing),
@@ -352,8 +359,6 @@ class OrchardStore:
                 json.dumps(record.metrics, default=str),
             ],
         )
-        _fault("sessions")
-        return report
 
     def _primary_column(self, methods: dict[str, str]) -> str | None:
         by_method = {m: c for c, m in methods.items()}
@@ -434,6 +439,46 @@ class OrchardStore:
             self.run(f"INSERT INTO {table} ({cols}) SELECT {cols} FROM _incoming")
         finally:
             self.con.unregister("_incoming")
+
+
+def observations_frame(
+    sid: str,
+    trees: pd.DataFrame,
+    ids: np.ndarray,
+    kind: np.ndarray,
+    dist: np.ndarray,
+    xy: np.ndarray,
+    aligned: np.ndarray,
+) -> pd.DataFrame:
+    """One observation row per session tree: its tree_id and kind, position in the orchard's
+    frame (``aligned``) and the session's (``xy``), match distance, size and flags."""
+    n = len(trees)
+    return pd.DataFrame(
+        {
+            "session_id": sid,
+            "tree_id": ids,
+            "kind": kind,
+            "segment": trees.get("segment", pd.Series(np.arange(n))).to_numpy(),
+            "label": trees.get("label", pd.Series([""] * n)).astype(str).to_numpy(),
+            "row": trees.get("row", pd.Series(np.full(n, -1))).to_numpy(),
+            "x": aligned[:, 0],
+            "y": aligned[:, 1],
+            "x_session": xy[:, 0],
+            "y_session": xy[:, 1],
+            "lat": trees["lat"].to_numpy(float),
+            "lon": trees["lon"].to_numpy(float),
+            "match_distance_m": dist,
+            "n_points": trees["n_points"].to_numpy(),
+            "height_m": trees.get("height_m", pd.Series(np.full(n, np.nan))).to_numpy(),
+            "crown_diameter_m": trees.get(
+                "crown_diameter_m", pd.Series(np.full(n, np.nan))
+            ).to_numpy(),
+            "flags": trees.get("volume_flags", pd.Series([""] * n))
+            .fillna("")
+            .astype(str)
+            .to_numpy(),
+        }
+    )
 
 
 def damaged_store_error(path: Path, exc: BaseException) -> InputError | None:

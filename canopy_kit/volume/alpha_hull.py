@@ -27,6 +27,9 @@ round fillet of radius α where the complex fills them with straight tetrahedra.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 
 from canopy_kit.plugins.params import Positive
@@ -117,31 +120,55 @@ def alpha_hull_volume(
     open to the outside (a vase's open centre) is not a void and stays empty. ``info["void_m3"]``
     is then the volume those enclosed empty balls would have carved (on the grid's voxels).
     """
-    from scipy import ndimage
     from scipy.spatial import cKDTree
 
     h = float(step)
     pad = alpha + 2 * h
     origin = xyz.min(axis=0) - pad
     shape = tuple(int(s) for s in np.ceil((xyz.max(axis=0) + pad - origin) / h) + 1)
+    if tree is None:
+        tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
+    grid = _Grid(origin, shape, h)
+    empty, boundary, info = _empty_ball_centres(xyz, alpha, grid, tree, fill_voids)
+    if len(boundary) == 0:
+        return 0.0, info
+    return _hull_volume(empty, boundary, alpha - offset, grid), info
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """The lattice the hull is measured on: corner, nodes per axis, step."""
+
+    origin: np.ndarray
+    shape: tuple[int, ...]
+    h: float
+
+    def centres(self, flat: np.ndarray) -> np.ndarray:
+        return _node_centres(flat, self.shape, self.origin, self.h)
+
+
+def _empty_ball_centres(
+    xyz: np.ndarray, alpha: float, grid: _Grid, tree: Any, fill_voids: bool
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Step 1: the nodes at least ``alpha`` from every point (E, the centres of empty α-balls;
+    with ``fill_voids`` only those reachable from outside), the sub-voxel points where the
+    distance to the points crosses ``alpha``, and the grid's info. Distances are exact
+    (k-d tree) wherever the side of α is uncertain."""
+    from scipy import ndimage
+
+    origin, shape, h = grid.origin, grid.shape, grid.h
     ijk = ((xyz - origin) / h).astype(np.intp)
     occupied = np.zeros(shape, bool)
     occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-
-    # 1. distance to the points; exact (k-d tree) wherever the side of α is uncertain
     dist_p = ndimage.distance_transform_edt(~occupied, sampling=h)
     snap = np.sqrt(3.0) / 2.0 * h
-    if tree is None:
-        tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
     sample = xyz[:: max(1, len(xyz) // 2000)]
     spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
     info = {"grid_step": h, "grid_cells": int(np.prod(shape)), "spacing_ratio": spacing / alpha}
     # every node queried below is within α + 2·snap + h of a point: the bound only prunes
     bound = alpha + 2.0 * snap + h
     near = np.flatnonzero(np.abs(dist_p - alpha) <= snap)
-    dist_p.flat[near] = tree.query(
-        _node_centres(near, shape, origin, h), distance_upper_bound=bound
-    )[0]
+    dist_p.flat[near] = tree.query(grid.centres(near), distance_upper_bound=bound)[0]
     exact = np.zeros(shape, bool)
     exact.flat[near] = True
     empty = dist_p >= alpha  # E: centres of empty α-balls
@@ -155,29 +182,30 @@ def alpha_hull_volume(
             empty &= ~voids
             dist_p[voids] = 0.0  # no α-level crossing on a void's wall
     ends = np.flatnonzero(_crossing_ends(empty) & ~exact)
-    dist_p.flat[ends] = tree.query(
-        _node_centres(ends, shape, origin, h), distance_upper_bound=bound
-    )[0]
-    boundary = _crossing_points(dist_p, alpha, origin, h)
-    if len(boundary) == 0:
-        return 0.0, info
+    dist_p.flat[ends] = tree.query(grid.centres(ends), distance_upper_bound=bound)[0]
+    return empty, _crossing_points(dist_p, alpha, origin, h), info
 
-    # 2. distance to E; exact (to the sub-voxel boundary points) near the level α - offset
-    level = alpha - offset
+
+def _hull_volume(empty: np.ndarray, boundary: np.ndarray, level: float, grid: _Grid) -> float:
+    """Steps 2 and 3: the volume of the nodes at least ``level`` from E, the distance to E
+    exact (to the sub-voxel ``boundary`` points) near that level: whole voxels inside,
+    partial voxels along the boundary."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    h = grid.h
+    snap = np.sqrt(3.0) / 2.0 * h
     dist_e = ndimage.distance_transform_edt(~empty, sampling=h)
     top = level + h + 2.0 * snap
     band = np.flatnonzero((dist_e >= level - h) & (dist_e < top))
     # depths beyond h count whole under any ±h/2 shift: no need to find them exactly (inf)
     depth = (
-        cKDTree(boundary, leafsize=32).query(
-            _node_centres(band, shape, origin, h), distance_upper_bound=level + h
-        )[0]
+        cKDTree(boundary, leafsize=32).query(grid.centres(band), distance_upper_bound=level + h)[0]
         - level
     )
-
-    # 3. whole voxels inside, partial voxels along the boundary; the ramp is exact for a
-    # plane and over-counts a curved boundary by M h²/12 (M: integrated mean curvature),
-    # removed with the second difference of the count under a ±h/2 shift of the boundary.
+    # The ramp is exact for a plane and over-counts a curved boundary by M h²/12 (M:
+    # integrated mean curvature), removed with the second difference of the count under a
+    # ±h/2 shift of the boundary.
     inner = np.count_nonzero(dist_e >= top)
 
     def count(shift: float) -> float:
@@ -185,7 +213,7 @@ def alpha_hull_volume(
 
     mid = count(0.0)
     cells = mid - (count(0.5 * h) + count(-0.5 * h) - 2.0 * mid) / 6.0
-    return float(cells * h**3), info
+    return float(cells * h**3)
 
 
 class AlphaHullVolume(VolumeEstimator):
