@@ -79,55 +79,75 @@ def line_positions(lo: float, hi: float, step: float) -> np.ndarray:
     return (lo + hi) / 2 + np.linspace(-span / 2, span / 2, n)
 
 
-def plan_flight(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> list[DroneShot]:
-    """Lawn-mower photo positions over the crowns (plus ``area_margin``), with true-pose noise."""
-    from scipy.spatial.transform import Rotation
+TURN_S = 4.0  # seconds to turn onto a new flight line
 
-    d = orchard.row_direction
+
+def crown_area(orchard: Orchard, margin: float) -> tuple[float, float, float, float]:
+    """(along_lo, along_hi, across_lo, across_hi) of every crown plus ``margin``."""
     corners = []
     for tree in orchard.trees:
         lo, hi = tree.crown.bounds
         corners.extend([(lo[0], lo[1]), (lo[0], hi[1]), (hi[0], lo[1]), (hi[0], hi[1])])
     ac = orchard.to_orchard(np.asarray(corners))
-    a_lo, c_lo = ac.min(axis=0) - spec.area_margin
-    a_hi, c_hi = ac.max(axis=0) + spec.area_margin
+    a_lo, c_lo = ac.min(axis=0) - margin
+    a_hi, c_hi = ac.max(axis=0) + margin
+    return float(a_lo), float(a_hi), float(c_lo), float(c_hi)
+
+
+class FlightRecorder:
+    """Shots in flying order, each as flown (the plan plus position and attitude noise), with
+    the clock: cruise at ``flight_speed`` between photos, ``TURN_S`` per turn onto a new line."""
+
+    def __init__(self, spec: DroneSpec, rng: np.random.Generator) -> None:
+        self.spec, self.rng = spec, rng
+        self.shots: list[DroneShot] = []
+        self.t = 0.0
+        self.prev: tuple[np.ndarray, int] | None = None
+
+    def add(self, position: np.ndarray, rotation: np.ndarray, line: int) -> None:
+        """Fly to the planned ``position`` with the planned camera ``rotation`` and shoot."""
+        from scipy.spatial.transform import Rotation
+
+        spec, rng = self.spec, self.rng
+        pos = np.array(position, float)
+        pos[:2] += rng.normal(0.0, spec.position_jitter_horizontal, 2)
+        pos[2] += rng.normal(0.0, spec.position_jitter_vertical)
+        tilt = np.radians(
+            [
+                rng.normal(0.0, spec.attitude_sigma_deg),
+                rng.normal(0.0, spec.attitude_sigma_deg),
+                rng.normal(0.0, spec.yaw_sigma_deg),
+            ]
+        )
+        rotation = rotation @ Rotation.from_rotvec(tilt).as_matrix()
+        if self.prev is not None:
+            self.t += float(np.linalg.norm(pos - self.prev[0])) / spec.flight_speed + (
+                TURN_S if self.prev[1] != line else 0.0
+            )
+        self.prev = (pos, line)
+        view = PinholeView(pos, rotation, focal_px(spec), spec.image_width, spec.image_height)
+        self.shots.append(DroneShot(f"IMG_{len(self.shots) + 1:04d}.jpg", line, self.t, view))
+
+
+def plan_flight(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> list[DroneShot]:
+    """Lawn-mower photo positions over the crowns (plus ``area_margin``), with true-pose noise."""
+    a_lo, a_hi, c_lo, c_hi = crown_area(orchard, spec.area_margin)
     across_size, along_size = ground_footprint(spec)
     lines = line_positions(c_lo, c_hi, across_size * (1 - spec.side_overlap))
     stations = line_positions(a_lo, a_hi, along_size * (1 - spec.forward_overlap))
     centre = orchard.to_local(np.array((a_lo + a_hi) / 2), np.array((c_lo + c_hi) / 2))
     z_fly = float(orchard.terrain.height(centre[0], centre[1])) + spec.altitude
-    f = focal_px(spec)
-    shots: list[DroneShot] = []
-    t = 0.0
-    prev = None
+    flight = FlightRecorder(spec, rng)
     for k, across in enumerate(lines):
         forward = 1.0 if k % 2 == 0 else -1.0
-        heading = forward * np.append(d, 0.0)
+        heading = forward * np.append(orchard.row_direction, 0.0)
         x_cam = np.cross(heading, [0.0, 0.0, 1.0])  # image right: to the right of the heading
         y_cam = -heading  # image down: backwards, so the image top looks ahead
-        z_cam = np.array([0.0, 0.0, -1.0])
-        nominal = np.column_stack([x_cam, y_cam, z_cam])
+        nominal = np.column_stack([x_cam, y_cam, [0.0, 0.0, -1.0]])
         for along in stations if forward > 0 else stations[::-1]:
             xy = orchard.to_local(np.array(along), np.array(across))
-            pos = np.array([xy[0], xy[1], z_fly])
-            pos[:2] += rng.normal(0.0, spec.position_jitter_horizontal, 2)
-            pos[2] += rng.normal(0.0, spec.position_jitter_vertical)
-            tilt = np.radians(
-                [
-                    rng.normal(0.0, spec.attitude_sigma_deg),
-                    rng.normal(0.0, spec.attitude_sigma_deg),
-                    rng.normal(0.0, spec.yaw_sigma_deg),
-                ]
-            )
-            rotation = nominal @ Rotation.from_rotvec(tilt).as_matrix()
-            if prev is not None:  # cruise between photos, plus a few seconds to turn
-                t += float(np.linalg.norm(pos - prev[0])) / spec.flight_speed + (
-                    4.0 if prev[1] != k else 0.0
-                )
-            prev = (pos, k)
-            view = PinholeView(pos, rotation, f, spec.image_width, spec.image_height)
-            shots.append(DroneShot(f"IMG_{len(shots) + 1:04d}.jpg", k, t, view))
-    return shots
+            flight.add(np.array([xy[0], xy[1], z_fly]), nominal, k)
+    return flight.shots
 
 
 def plan_shots(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> list[DroneShot]:

@@ -21,15 +21,17 @@ oblique photo overlaps its neighbours at least as much. Time per flight: cruise 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from canopy_kit.core.gimbal import camera_rotation
 from canopy_kit.sim.config import DroneSpec
-from canopy_kit.sim.drone import DroneShot, focal_px, ground_footprint, line_positions
-from canopy_kit.sim.drone_render import PinholeView
+from canopy_kit.sim.drone import (
+    DroneShot,
+    FlightRecorder,
+    crown_area,
+    ground_footprint,
+    line_positions,
+)
 from canopy_kit.sim.orchard import Orchard
-
-TURN_S = 4.0  # seconds to turn onto a new flight line
 
 
 def _heading_deg(direction_xy: np.ndarray) -> float:
@@ -37,58 +39,16 @@ def _heading_deg(direction_xy: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(direction_xy[0], direction_xy[1])))
 
 
-def _crown_area(orchard: Orchard, margin: float) -> tuple[float, float, float, float]:
-    """(along_lo, along_hi, across_lo, across_hi) of every crown plus ``margin``."""
-    corners = []
-    for tree in orchard.trees:
-        lo, hi = tree.crown.bounds
-        corners.extend([(lo[0], lo[1]), (lo[0], hi[1]), (hi[0], lo[1]), (hi[0], hi[1])])
-    ac = orchard.to_orchard(np.asarray(corners))
-    a_lo, c_lo = ac.min(axis=0) - margin
-    a_hi, c_hi = ac.max(axis=0) + margin
-    return float(a_lo), float(a_hi), float(c_lo), float(c_hi)
-
-
-class _Flight:
-    """Shots in flying order with the clock: cruise between photos, a turn per new line."""
-
-    def __init__(self, spec: DroneSpec, rng: np.random.Generator) -> None:
-        self.spec, self.rng = spec, rng
-        self.shots: list[DroneShot] = []
-        self.t = 0.0
-        self.prev: tuple[np.ndarray, int] | None = None
-
-    def add(self, position: np.ndarray, rotation: np.ndarray, line: int) -> None:
-        spec, rng = self.spec, self.rng
-        pos = np.array(position, float)
-        pos[:2] += rng.normal(0.0, spec.position_jitter_horizontal, 2)
-        pos[2] += rng.normal(0.0, spec.position_jitter_vertical)
-        tilt = np.radians(
-            [
-                rng.normal(0.0, spec.attitude_sigma_deg),
-                rng.normal(0.0, spec.attitude_sigma_deg),
-                rng.normal(0.0, spec.yaw_sigma_deg),
-            ]
-        )
-        rotation = rotation @ Rotation.from_rotvec(tilt).as_matrix()
-        if self.prev is not None:
-            self.t += float(np.linalg.norm(pos - self.prev[0])) / spec.flight_speed
-            self.t += TURN_S if self.prev[1] != line else 0.0
-        self.prev = (pos, line)
-        view = PinholeView(pos, rotation, focal_px(spec), spec.image_width, spec.image_height)
-        self.shots.append(DroneShot(f"IMG_{len(self.shots) + 1:04d}.jpg", line, self.t, view))
-
-
 def plan_double_grid(
     orchard: Orchard, spec: DroneSpec, rng: np.random.Generator
 ) -> list[DroneShot]:
     """Two serpentine grids (along, then across the rows) with the camera pitched ahead."""
-    a_lo, a_hi, c_lo, c_hi = _crown_area(orchard, spec.area_margin)
+    a_lo, a_hi, c_lo, c_hi = crown_area(orchard, spec.area_margin)
     centre = orchard.to_local(np.array((a_lo + a_hi) / 2), np.array((c_lo + c_hi) / 2))
     z_fly = float(orchard.terrain.height(centre[0], centre[1])) + spec.altitude
     reach = spec.altitude / np.tan(np.radians(-spec.gimbal_pitch_deg))  # centre ray, ahead
     across_size, along_size = ground_footprint(spec)
-    flight = _Flight(spec, rng)
+    flight = FlightRecorder(spec, rng)
     line = 0
     # grid 1 flies along the rows (lines spaced across them), grid 2 across the rows
     for along_rows in (True, False):
@@ -133,7 +93,7 @@ def _stadium(a_lo: float, a_hi: float, radius: float, step: float) -> np.ndarray
 
 def plan_orbits(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> list[DroneShot]:
     """A racetrack round each row, the camera aimed at the row's line at mid-crown height."""
-    flight = _Flight(spec, rng)
+    flight = FlightRecorder(spec, rng)
     step = ground_footprint(spec)[1] * (1 - spec.forward_overlap)
     rows = sorted({t.row for t in orchard.trees})
     for line, row in enumerate(rows):
