@@ -31,24 +31,13 @@ import numpy as np
 
 
 def simulate(folder: Path, rig: str, args: argparse.Namespace) -> Path:
-    from canopy_kit.errors import InputError
-    from canopy_kit.sim import load_sim_config, simulate_session
-    from canopy_kit.sim.session import find_bag
+    """The rig's session (the rigs benchmark's, kept across runs in ``folder``)."""
+    import sys
 
-    try:
-        find_bag(folder)  # a complete session from an earlier run
-        return folder
-    except InputError:
-        pass
-    overrides = {
-        "seed": args.seed,
-        "orchard": {"rows": args.rows, "trees_per_row": args.trees_per_row},
-        "rig": {"name": rig},
-    }
-    simulate_session(
-        folder, load_sim_config(args.orchard, overrides, sensor=args.sensor), overwrite=True
-    )
-    return folder
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_rigs import simulate as simulate_rig
+
+    return simulate_rig(folder, args.orchard, rig, args)
 
 
 @contextmanager
