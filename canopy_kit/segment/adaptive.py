@@ -18,6 +18,12 @@ stand are read from the data:
    them closest to its shell (``segment.crowns``: a border that follows a small crown
    sitting half inside a big one), starting from the nearest tree position; crown tops of
    a stand seen from above keep the nearest top (shells need crowns seen from the side).
+   With ``cut="trunk-midpoints"`` (fruiting walls and hedgerows, where a tree is defined
+   as the wall between the midpoints to its neighbours' trunks) a point goes to the tree
+   whose position is nearest along the row instead.
+
+Trellis posts are columns in the stem band like trunks; one standing above the canopy is
+left out of the trunks (``segment.posts``).
 
 All lengths derive from the point spacing and the measured tree scale; nothing is set per
 orchard.
@@ -27,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -35,6 +42,7 @@ from canopy_kit.plugins.params import Positive
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.crowns import crown_split
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
+from canopy_kit.segment.posts import without_posts
 from canopy_kit.segment.profile import along_axis, chm_peaks, chm_spacing, principal_axis
 from canopy_kit.segment.stems import StemDetections, detect_stems, no_stems
 
@@ -99,6 +107,16 @@ def connected_parts(xyz: np.ndarray, link: float, weight: np.ndarray | None = No
     return labels
 
 
+def nearest_along_row(xy: np.ndarray, w: np.ndarray, markers: np.ndarray) -> np.ndarray:
+    """Per point: the marker nearest to it along the part's row line (its principal axis),
+    so that each tree owns the row between the midpoints to its neighbours."""
+    centre, axis = principal_axis(xy, w)
+    marker_along = (markers - centre) @ axis
+    order = np.argsort(marker_along, kind="stable")
+    cuts = 0.5 * (marker_along[order][1:] + marker_along[order][:-1])
+    return order[np.searchsorted(cuts, (xy - centre) @ axis)]
+
+
 def _extent(a: np.ndarray) -> float:
     return float(np.percentile(a, 99) - np.percentile(a, 1)) if len(a) else 0.0
 
@@ -121,6 +139,9 @@ class AdaptiveSegmenter(Segmenter):
     crown_split : bool, default True
         Split a part between its trees by fitted crowns (``segment.crowns``); else by the
         nearest tree position in the horizontal plane.
+    cut : {"crowns", "trunk-midpoints"}, default "crowns"
+        What a tree is where crowns touch: its own crown (``crown_split`` decides how it is
+        found), or the row between the midpoints to its neighbours' trunks (fruiting walls).
     random_state : int, default 0
         Seed of the point-spacing sample.
     """
@@ -133,10 +154,12 @@ class AdaptiveSegmenter(Segmenter):
         use_stems: bool = True,
         stem_search_radius: Positive = 1.0,
         crown_split: bool = True,
+        cut: Literal["crowns", "trunk-midpoints"] = "crowns",
         random_state: int = 0,
     ) -> None:
         self.link_factor = link_factor
         self.crown_split = crown_split
+        self.cut = cut
         self.crumb_fraction = crumb_fraction
         self.crumb_reach = crumb_reach
         self.use_stems = use_stems
@@ -168,7 +191,11 @@ class AdaptiveSegmenter(Segmenter):
             self.n_clusters_ = 0
             return self
         parts = connected_parts(xyz, self.link_factor * self.point_spacing_, w)
-        stems = detect_stems(stem_xyz) if (self.use_stems and stem_xyz is not None) else no_stems()
+        stems = (
+            without_posts(detect_stems(stem_xyz, close_trunks=self.cut == "trunk-midpoints"), xyz)
+            if (self.use_stems and stem_xyz is not None)
+            else no_stems()
+        )
         stem_part = self._stems_to_parts(xyz, w, parts, stems)
         keep = stem_part >= 0
         stems = StemDetections(
@@ -211,6 +238,8 @@ class AdaptiveSegmenter(Segmenter):
         markers, tops = self._markers(xyz, w, stems, scale)
         if len(markers) <= 1:
             return markers, np.zeros(len(xyz), dtype=np.int64)
+        if self.cut == "trunk-midpoints" and not tops:
+            return markers, nearest_along_row(xyz[:, :2], w, markers)
         if self.crown_split and not tops:
             # Crown shells need crowns seen from the side (trunks, rows); crown tops of
             # a stand seen from above keep the nearest top.
@@ -348,6 +377,11 @@ class AdaptiveSegmenter(Segmenter):
             n = max(1, int(round((hi - lo - scale.length) / s)) + 1)
             spots = [0.5 * (lo + hi)] if n == 1 else np.linspace(lo + half, hi - half, n)
             return self._on_canopy(xyz, w, along, np.asarray(spots, float), s), False
+        if self.cut == "trunk-midpoints":
+            # On a wall a tree is its trunk: a stretch without one is a missing tree (the
+            # detector sees the wall's foot from both alleys) or the wall's end, not a
+            # hidden trunk.
+            return stems, False
         stem_along = np.sort((stems - centre) @ axis)
         spots: list[float] = []
         for a, b in zip(stem_along[:-1], stem_along[1:]):

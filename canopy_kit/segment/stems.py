@@ -45,11 +45,12 @@ def detect_stems(
     cell: float = 0.05,
     max_radius: float = 0.3,
     min_coverage: float = 0.6,
-    merge_distance: float = 0.8,
+    merge_distance: float | None = None,
     foot_height: float = 0.1,
     min_share: float = 0.4,
     ring_radius: float = 0.7,
     max_clutter: float = 0.1,
+    close_trunks: bool = False,
 ) -> StemDetections:
     """Trunks among height-normalised stem-band points ``(x, y, height above ground)``.
 
@@ -59,41 +60,53 @@ def detect_stems(
     stands free at its foot (the ring around it out to ``ring_radius`` has at most
     ``max_clutter`` of the foot's point density) and has at least ``min_share`` of the
     median trunk's points and foot radius.
+
+    ``close_trunks`` (a fruiting wall: trunks 0.6-1.5 m apart, a drip line along their feet,
+    leaves hanging low): the foot holds only points standing in a column from the slice's
+    bottom layer up (:func:`column_run`), a wide group is split into its columns that fill
+    the slice, the next trunk (a group of its own) is no clutter, and trunks merge within
+    ``merge_distance`` = 0.4 m (the pieces of one trunk) instead of 0.8 m.
     """
     if stem_xyz is None or len(stem_xyz) < 3:
         return no_stems()
     p = np.asarray(stem_xyz, dtype=np.float64)
     z0 = np.percentile(p[:, 2], 1)
     p = p[(p[:, 2] >= z0) & (p[:, 2] < z0 + slice_height)]
-    foot = p[p[:, 2] < z0 + foot_height]
-    if len(foot) < 3:
-        return no_stems()
-    lo = foot[:, :2].min(axis=0) - 2 * cell
-    keys = np.floor((foot[:, :2] - lo) / cell).astype(np.int64)
-    occ = np.zeros(tuple(keys.max(axis=0) + 3), bool)
-    occ[keys[:, 0], keys[:, 1]] = True
-    # Cells one apart belong together (a sparse trunk seen from two sides).
-    blobs, n = ndimage.label(
-        ndimage.binary_dilation(occ, np.ones((3, 3), bool)), np.ones((3, 3), bool)
-    )
-    lab = blobs[keys[:, 0], keys[:, 1]] - 1
     n_layers = max(int(round(slice_height / 0.05)), 1)
     layer = np.minimum(((p[:, 2] - z0) / 0.05).astype(int), n_layers - 1)
+    if merge_distance is None:
+        merge_distance = 0.4 if close_trunks else 0.8
+    run = column_run(p, layer, n_layers, cell) if close_trunks else np.full(len(p), n_layers)
+    in_foot = (p[:, 2] < z0 + foot_height) & (run >= min_coverage * n_layers)
+    foot, foot_run = p[in_foot], run[in_foot]
+    if len(foot) < 3:
+        return no_stems()
     column_tree = cKDTree(p[:, :2])
+    groups = []  # (foot indices, centre, radius) of the compact groups
+    for g, alone in _foot_groups(foot, foot_run, n_layers, cell, max_radius):
+        core = g[foot_run[g] >= n_layers]  # the columns that fill the slice: the trunk
+        g = core if len(core) >= 2 else g
+        c = foot[g, :2].mean(axis=0)
+        r = float(np.percentile(np.linalg.norm(foot[g, :2] - c, axis=1), 90))
+        if r <= max_radius:
+            groups.append((g, c, r, alone))
+    # Clutter is foliage standing on the ground all round a foot (a skirt); not the next
+    # trunk of a close row (a group of its own; columns split out of a wide group stand in
+    # foliage and count).
+    owner = np.full(len(foot), -1)
+    for k, (g, _, _, alone) in enumerate(groups):
+        owner[g] = k if (alone and close_trunks) else -1
     foot_tree = cKDTree(foot[:, :2])
     xy, npts, rad, cov = [], [], [], []
-    for b in range(n):
-        q = foot[lab == b]
-        if len(q) < 2:
-            continue
-        c = q[:, :2].mean(axis=0)
-        r = float(np.percentile(np.linalg.norm(q[:, :2] - c, axis=1), 90))
-        if r > max_radius:
-            continue
+    for k, (_, c, r, _) in enumerate(groups):
         reach = max(2 * r, 0.1) + cell
         column = column_tree.query_ball_point(c, reach)
         coverage = len(np.unique(layer[column])) / n_layers
-        if coverage >= min_coverage and _clutter(foot_tree, c, reach, ring_radius) <= max_clutter:
+        foliage = (owner < 0) | (owner == k)
+        if (
+            coverage >= min_coverage
+            and _clutter(foot_tree, foliage, c, reach, ring_radius) <= max_clutter
+        ):
             xy.append(c)
             npts.append(len(column))
             rad.append(r)
@@ -111,13 +124,79 @@ def detect_stems(
     )
 
 
-def _clutter(foot_tree: cKDTree, centre: np.ndarray, reach: float, ring_radius: float) -> float:
-    """Point density in the ring ``reach``..``ring_radius`` around a foot, relative to the
-    foot's own (0: free-standing; about 1: inside foliage)."""
+def _blobs(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
+    """Labels of the groups of ``cell`` cells that points occupy (cells one apart belong
+    together: a sparse trunk seen from two sides)."""
+    lo = points[:, :2].min(axis=0) - 2 * cell
+    keys = np.floor((points[:, :2] - lo) / cell).astype(np.int64)
+    occ = np.zeros(tuple(keys.max(axis=0) + 3), bool)
+    occ[keys[:, 0], keys[:, 1]] = True
+    blobs, n = ndimage.label(
+        ndimage.binary_dilation(occ, np.ones((3, 3), bool)), np.ones((3, 3), bool)
+    )
+    return blobs[keys[:, 0], keys[:, 1]] - 1, n
+
+
+def _foot_groups(
+    foot: np.ndarray, run: np.ndarray, n_layers: int, cell: float, max_radius: float
+) -> list[tuple[np.ndarray, bool]]:
+    """The trunk candidates among the foot points (index arrays, and whether the group stands
+    alone): groups of cells, and where a group is wider than ``max_radius`` (a skirt, or
+    trunks joined by low leaves), the groups of its columns that fill every layer."""
+    out = []
+    lab, n = _blobs(foot, cell)
+    for b in range(n):
+        idx = np.flatnonzero(lab == b)
+        if len(idx) < 2:
+            continue
+        q = foot[idx, :2]
+        if np.percentile(np.linalg.norm(q - q.mean(axis=0), axis=1), 90) <= max_radius:
+            out.append((idx, True))
+            continue
+        full = idx[run[idx] >= n_layers]
+        if len(full) < 2:
+            continue
+        sub, k = _blobs(foot[full], cell)
+        out.extend((g, False) for g in (full[sub == j] for j in range(k)) if len(g) >= 2)
+    return out
+
+
+def column_run(p: np.ndarray, layer: np.ndarray, n_layers: int, cell: float) -> np.ndarray:
+    """Per point: how many of the slice's ``n_layers`` layers, from the bottom one up without a
+    break, its ``cell`` (with the cells around it) holds points in. A trunk stands on the
+    ground and fills them all.
+
+    A drip line, a low wire or a fallen branch runs through the foot of the slice but fills
+    one or two layers, and a crown hanging low above it fills the layers above: such a
+    column does not start at the bottom layer (without this rule a drip line under a low
+    wall joins every trunk along a row into one blob).
+    """
+    keys = np.floor((p[:, :2] - p[:, :2].min(axis=0)) / cell).astype(np.int64) + 1
+    shape = tuple(keys.max(axis=0) + 2)
+    bits = np.zeros(shape, np.int64)
+    np.bitwise_or.at(bits, (keys[:, 0], keys[:, 1]), np.left_shift(1, layer.astype(np.int64)))
+    spread = np.zeros_like(bits)  # OR over the 3 x 3 cells around each cell
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            spread |= np.roll(np.roll(bits, dx, axis=0), dy, axis=1)
+    standing = np.ones(shape, bool)
+    run = np.zeros(shape, np.int64)
+    for k in range(n_layers):
+        standing &= ((spread >> k) & 1).astype(bool)
+        run += standing
+    return run[keys[:, 0], keys[:, 1]]
+
+
+def _clutter(
+    tree: cKDTree, counted: np.ndarray, centre: np.ndarray, reach: float, ring_radius: float
+) -> float:
+    """Density of the ``counted`` points of ``tree`` in the ring ``reach``..``ring_radius``
+    around a foot, relative to the foot's own (0: free-standing; about 1: inside foliage)."""
     if ring_radius <= reach:
         return 0.0
-    n_foot = foot_tree.query_ball_point(centre, reach, return_length=True)
-    n_ring = foot_tree.query_ball_point(centre, ring_radius, return_length=True) - n_foot
+    foot = tree.query_ball_point(centre, reach)
+    ring = np.setdiff1d(tree.query_ball_point(centre, ring_radius), foot).astype(np.int64)
+    n_foot, n_ring = len(foot), int(counted[ring].sum())
     ring_area = np.pi * (ring_radius**2 - reach**2)
     return float((n_ring / ring_area) / max(n_foot / (np.pi * reach**2), 1e-12))
 
