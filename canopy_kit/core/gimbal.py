@@ -14,6 +14,16 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+# A photo pitched above this (degrees; -90 looks straight down) is oblique: it sees the
+# crowns' sides and ground far ahead at grazing angles. 15 degrees off nadir: a nadir mapping
+# flight's gimbal holds -90 within a few degrees, a planned oblique flight pitches to -45..-70.
+OBLIQUE_PITCH_DEG = -75.0
+
+
+def is_oblique(pitch_deg: float) -> bool:
+    """Whether a camera pitched ``pitch_deg`` (-90: straight down) looks obliquely."""
+    return pitch_deg > OBLIQUE_PITCH_DEG
+
 
 def compass_heading_deg(direction_xy: np.ndarray) -> float:
     """Compass heading (degrees clockwise from north, in [-180, 180]) of a local
