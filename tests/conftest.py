@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -16,6 +20,10 @@ SHARED_DATA = Path(os.environ.get("CANOPY_KIT_SHARED_DATA", REPO.parent / "share
 TINY = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
 # The smallest session that still has a U-turn: for format and determinism checks.
 MICRO = {"orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {"columns": 256, "rings": 16}}
+# TINY with a drone flight (12 photos): the session and the adaptive run with its photos,
+# made once per test run for every file that needs them (the SfM is most of the time).
+TINY_DRONE = {**TINY, "drone": {"enabled": True}}
+TINY_DRONE_SEED = 4
 
 
 # The files whose module fixtures take longest (simulated drives, flights, whole runs), as
@@ -132,3 +140,81 @@ def tiny_pistachio_run(tiny_pistachio, tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
     _KEPT.add(out)
     return run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root)
+
+
+# -- made once per test run, shared by every xdist worker --------------------------------------
+def shared_base(tmp_path_factory) -> Path:
+    """A folder every worker of this test run sees: the run's base temporary folder (each
+    xdist worker's own base is a subfolder of it); without xdist, this process's base."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@contextmanager
+def _exclusive(lock: Path) -> Iterator[None]:
+    with lock.open("a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def built_once(folder: Path, build: Callable[[Path], None]) -> Path:
+    """``folder`` as ``build(folder)`` makes it, built by the first worker that asks while the
+    others wait on a file lock; a build that failed leaves no folder behind, so the next
+    worker tries again (and fails the same way, in its own test)."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    done = folder / ".built"
+    with _exclusive(folder.with_name(f".{folder.name}.lock")):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            try:
+                build(folder)
+            except BaseException:
+                shutil.rmtree(folder, ignore_errors=True)
+                raise
+            done.touch()
+    return folder
+
+
+@dataclass(frozen=True)
+class SharedDroneSession:
+    """A simulated session with a drone flight (``root``, ``bag``, ``drone_dir``: read only)
+    and the adaptive pipeline run on it with its photos (``run_dir``, its stage cache too)."""
+
+    root: Path
+    bag: Path
+    drone_dir: Path
+    run_dir: Path
+
+    def run_into(self, out: Path):
+        """``canopy_kit.pipeline.run`` of the adaptive preset on this session with its photos
+        into ``out``, starting from a copy of the shared run's folder: every stage comes from
+        its cache (the same keys: the same bag, photos and preset), every output is written
+        anew."""
+        from canopy_kit.config import load_preset
+        from canopy_kit.pipeline import run
+
+        shutil.copytree(self.run_dir, out, dirs_exist_ok=True)
+        return run(load_preset("adaptive"), self.bag, out, drone_images=self.drone_dir)
+
+
+@pytest.fixture(scope="session")
+def tiny_drone_session(tmp_path_factory) -> SharedDroneSession:
+    """The 2 x 3 pistachio session with a drone flight (seed 4) and its adaptive run, made
+    once per test run and shared by every worker (the run's SfM is most of the time)."""
+
+    def build(folder: Path) -> None:
+        from canopy_kit.config import load_preset, merge
+        from canopy_kit.pipeline import run
+        from canopy_kit.sim import load_sim_config, simulate_session
+
+        cfg = load_sim_config("pistachio", merge({"seed": TINY_DRONE_SEED}, TINY_DRONE))
+        sim = simulate_session(folder / "sim", cfg)
+        run(load_preset("adaptive"), sim.bag, folder / "run", drone_images=sim.drone_dir)
+
+    folder = built_once(shared_base(tmp_path_factory) / "tiny_drone_session", build)
+    sim = folder / "sim"
+    bag = next(p for p in sim.iterdir() if p.name.startswith("session"))
+    return SharedDroneSession(sim, bag, sim / "drone", folder / "run")
