@@ -5,7 +5,7 @@ preset, untuned for walls, on ``fruiting-wall`` sessions of 2 rows x 10 tree sta
 512-column sensor, every alley driven, the run's own odometry), scored by the run's truth
 evaluation (segments and volumes against each tree's trunk-midpoint cut) and the row metrics
 against the exact crowns cut into the same 1 m sections (the tests' definition,
-tests/fixtures_sim.py ``true_row_sections``). Also the share of trellis returns at canopy
+``canopy_kit.evaluate.row_truth.true_row_sections``). Also the share of trellis returns at canopy
 height left in tree segments. Seeds 0, 1, 2 were looked at; 7, 11, 13 are held out.
 
 Usage: ``python benchmarks/bench_fruiting_wall.py [--work DIR] [SEED ...]`` (one JSON line per
@@ -16,16 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from fixtures_sim import true_row_sections
-
 from canopy_kit.config import load_preset, merge
+from canopy_kit.evaluate.row_truth import true_row_sections
 from canopy_kit.io.session_layout import find_bag
 from canopy_kit.pipeline import compute
 from canopy_kit.sim import load_sim_config, simulate_session

@@ -15,6 +15,7 @@ import pandas as pd
 from canopy_kit.config import GroundTruthConfig
 from canopy_kit.core.atomic import atomic_write_bytes, atomic_write_text
 from canopy_kit.core.geo import LocalFrame
+from canopy_kit.core.gimbal import is_oblique
 from canopy_kit.errors import ConfigError, ProcessingError
 from ground_truth.camera import PosedCamera
 from ground_truth.crowns import (
@@ -111,9 +112,6 @@ def _grey(rgb: np.ndarray, sigma: float) -> np.ndarray:
     return gaussian_filter(grey, sigma) if sigma > 0 else grey
 
 
-# A photo pitched above this (degrees; -90 looks straight down) is oblique: it also sees
-# ground far ahead, at grazing angles, where the surface is noise.
-OBLIQUE_PITCH_DEG = -75.0
 AIMED_AREA_PAD_M = 2.0  # beyond the centre rays' ground points: the crowns at the area's edge
 
 
@@ -139,15 +137,17 @@ def looked_at_area(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(lo, hi) corners of the ground an oblique flight's photos are aimed at: where the
     centre rays meet the ground at ``ground_z`` (a planned flight sweeps them over its
-    area), padded by ``AIMED_AREA_PAD_M``. None for a nadir flight (every photo within
-    ``OBLIQUE_PITCH_DEG`` of straight down): its sparse points bound its area."""
+    area), padded by ``AIMED_AREA_PAD_M``. None for a nadir flight (no photo
+    :func:`~canopy_kit.core.gimbal.is_oblique`): its sparse points bound its area."""
     hits, oblique = [], False
     for cam in cameras:
         forward = cam.rotation[2]  # the viewing direction in the world (world-to-camera rows)
         height = float(cam.center[2] - ground_z)
         if forward[2] > -0.2 or height <= 0:  # looking near the horizon: no defined aim
             continue
-        oblique |= bool(forward[2] > -np.cos(np.radians(90.0 + OBLIQUE_PITCH_DEG)))
+        # an oblique photo also sees ground far ahead, at grazing angles, where the surface
+        # is noise
+        oblique |= is_oblique(float(np.degrees(np.arcsin(np.clip(forward[2], -1.0, 1.0)))))
         hits.append(cam.center[:2] + forward[:2] * (height / -forward[2]))
     if not hits or not oblique:
         return None

@@ -15,6 +15,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from canopy_kit.core.gimbal import is_oblique
 from canopy_kit.errors import InputError
 
 _TAG = r"drone-dji:{name}\s*(?:=\s*[\"']([^\"']*)[\"']|>\s*([^<]*)<)"
@@ -40,8 +41,9 @@ class DroneAttitude:
 
     @property
     def oblique(self) -> bool:
-        """Whether the camera looks more than 10 degrees away from straight down."""
-        return self.gimbal_pitch_deg > -80.0
+        """Whether the gimbal is pitched above ``core.gimbal.OBLIQUE_PITCH_DEG`` (more than 15 degrees
+        away from straight down)."""
+        return is_oblique(self.gimbal_pitch_deg)
 
 
 def _value(text: str, name: str, path: Path) -> float | None:

@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
+import pickle
 import shutil
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -16,6 +22,13 @@ SHARED_DATA = Path(os.environ.get("CANOPY_KIT_SHARED_DATA", REPO.parent / "share
 TINY = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
 # The smallest session that still has a U-turn: for format and determinism checks.
 MICRO = {"orchard": {"rows": 1, "trees_per_row": 2}, "lidar": {"columns": 256, "rings": 16}}
+# sim_factory keys (orchard, format, seed, repr(overrides), truth field, sensor) of sessions
+# that many files use: simulated once per test run, shared by every xdist worker.
+SHARED_SESSIONS = {("pistachio", "ros2-mcap", 0, repr(TINY), True, None): "tiny_pistachio"}
+# TINY with a drone flight (12 photos): the session and the adaptive run with its photos,
+# made once per test run for every file that needs them (the SfM is most of the time).
+TINY_DRONE = {**TINY, "drone": {"enabled": True}}
+TINY_DRONE_SEED = 4
 
 
 # The files whose module fixtures take longest (simulated drives, flights, whole runs), as
@@ -50,7 +63,8 @@ def pytest_collection_modifyitems(config, items):
 # Disk: simulated sessions are 20-160 MB each and the suite makes dozens (5.4 GB by the end
 # when every folder was kept, and a CI machine once ran out of space). Each test file's
 # temporary folders are removed when the file is done, unless one of its tests failed;
-# folders of session-wide fixtures (``_KEPT``) stay for the whole run.
+# folders of session-wide fixtures (``_KEPT``, and those every worker shares: shared_base)
+# stay for the whole run.
 _KEPT: set[Path] = set()
 _FAILED_FILES: set[str] = set()
 
@@ -92,10 +106,19 @@ def sim_factory(tmp_path_factory):
         key = (orchard, fmt, seed, repr(overrides), truth_field, sensor)
         if key not in cache:
             cfg = load_sim_config(orchard, merge({"seed": seed}, overrides or {}), sensor=sensor)
-            out = tmp_path_factory.mktemp(f"sim_{orchard}_{seed}")
-            cache[key] = simulate_session(
-                out, cfg, fmt=fmt, truth_field=truth_field, overwrite=True
-            )
+            if key in SHARED_SESSIONS:  # made once for every worker
+                cache[key] = shared_object(
+                    tmp_path_factory,
+                    SHARED_SESSIONS[key],
+                    lambda folder: simulate_session(
+                        folder / "sim", cfg, fmt=fmt, truth_field=truth_field
+                    ),
+                )
+            else:
+                out = tmp_path_factory.mktemp(f"sim_{orchard}_{seed}")
+                cache[key] = simulate_session(
+                    out, cfg, fmt=fmt, truth_field=truth_field, overwrite=True
+                )
         return cache[key]
 
     def forget_removed() -> None:
@@ -109,10 +132,9 @@ def sim_factory(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_pistachio(sim_factory):
-    """A 2-row x 3-tree pistachio session (ROS2 mcap, truth field on)."""
-    session = sim_factory("pistachio", overrides=TINY)
-    _KEPT.add(Path(session.root))
-    return session
+    """A 2-row x 3-tree pistachio session (ROS2 mcap, truth field on), made once per test
+    run for every worker (read only)."""
+    return sim_factory("pistachio", overrides=TINY)
 
 
 @pytest.fixture(scope="session")
@@ -125,10 +147,109 @@ def shared_data() -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_pistachio_run(tiny_pistachio, tmp_path_factory):
-    """The adaptive pipeline run on ``tiny_pistachio``, checked against its truth (cached)."""
+    """The adaptive pipeline run on ``tiny_pistachio``, checked against its truth, made once
+    per test run for every worker (read only: a test that writes runs into its own folder)."""
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run
 
-    out = tmp_path_factory.mktemp("run")
-    _KEPT.add(out)
-    return run(load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root)
+    def build(folder: Path):
+        return run(
+            load_preset("adaptive"), tiny_pistachio.bag, folder / "run", truth=tiny_pistachio.root
+        )
+
+    return shared_object(tmp_path_factory, "tiny_pistachio_run", build)
+
+
+# -- made once per test run, shared by every xdist worker --------------------------------------
+def shared_base(tmp_path_factory) -> Path:
+    """A folder every worker of this test run sees, in the run's base temporary folder (each
+    xdist worker's own base is a subfolder of it, emptied file by file); without xdist, in
+    this process's base, kept for the whole run."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return base.parent / "shared"
+    _KEPT.add(base / "shared")  # kept when each file's folders are removed
+    return base / "shared"
+
+
+@contextmanager
+def _exclusive(lock: Path) -> Iterator[None]:
+    with lock.open("a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def built_once(folder: Path, build: Callable[[Path], None]) -> Path:
+    """``folder`` as ``build(folder)`` makes it, built by the first worker that asks while the
+    others wait on a file lock; a build that failed leaves no folder behind, so the next
+    worker tries again (and fails the same way, in its own test)."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    done = folder / ".built"
+    with _exclusive(folder.with_name(f".{folder.name}.lock")):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            try:
+                build(folder)
+            except BaseException:
+                shutil.rmtree(folder, ignore_errors=True)
+                raise
+            done.touch()
+    return folder
+
+
+def shared_object(tmp_path_factory, name: str, make: Callable[[Path], Any]) -> Any:
+    """What ``make(folder)`` returns (a simulated session, a run's results: files in
+    ``folder`` and the object naming them), made once per test run for every worker and
+    handed to each as a pickled copy."""
+
+    def build(folder: Path) -> None:
+        (folder / "object.pickle").write_bytes(pickle.dumps(make(folder)))
+
+    folder = built_once(shared_base(tmp_path_factory) / name, build)
+    return pickle.loads((folder / "object.pickle").read_bytes())
+
+
+@dataclass(frozen=True)
+class SharedDroneSession:
+    """A simulated session with a drone flight (``root``, ``bag``, ``drone_dir``: read only)
+    and the adaptive pipeline run on it with its photos (``run_dir``, its stage cache too)."""
+
+    root: Path
+    bag: Path
+    drone_dir: Path
+    run_dir: Path
+
+    def run_into(self, out: Path):
+        """``canopy_kit.pipeline.run`` of the adaptive preset on this session with its photos
+        into ``out``, starting from a copy of the shared run's folder: every stage comes from
+        its cache (the same keys: the same bag, photos and preset), every output is written
+        anew."""
+        from canopy_kit.config import load_preset
+        from canopy_kit.pipeline import run
+
+        shutil.copytree(self.run_dir, out, dirs_exist_ok=True)
+        return run(load_preset("adaptive"), self.bag, out, drone_images=self.drone_dir)
+
+
+@pytest.fixture(scope="session")
+def tiny_drone_session(tmp_path_factory) -> SharedDroneSession:
+    """The 2 x 3 pistachio session with a drone flight (seed 4) and its adaptive run, made
+    once per test run and shared by every worker (the run's SfM is most of the time)."""
+
+    def build(folder: Path) -> None:
+        from canopy_kit.config import load_preset, merge
+        from canopy_kit.pipeline import run
+        from canopy_kit.sim import load_sim_config, simulate_session
+
+        cfg = load_sim_config("pistachio", merge({"seed": TINY_DRONE_SEED}, TINY_DRONE))
+        sim = simulate_session(folder / "sim", cfg)
+        run(load_preset("adaptive"), sim.bag, folder / "run", drone_images=sim.drone_dir)
+
+    folder = built_once(shared_base(tmp_path_factory) / "tiny_drone_session", build)
+    sim = folder / "sim"
+    bag = next(p for p in sim.iterdir() if p.name.startswith("session"))
+    return SharedDroneSession(sim, bag, sim / "drone", folder / "run")

@@ -118,14 +118,20 @@ def processed_simulated_flight(root, preset: str, overrides: dict, seeded: bool)
     """A simulated drone flight (``load_sim_config(preset, overrides)``, drone on) processed by
     ``canopy-kit ground-truth`` in the simulator's frame, with the true trees as ``--seeds``
     when ``seeded``: (session folder, output folder, CLI stdout)."""
-    import subprocess
-
     from canopy_kit.sim import load_sim_config
     from canopy_kit.sim.drone import simulate_drone_session
 
     cfg = load_sim_config(preset, {**overrides, "drone": {"enabled": True}})
     sim, out = root / "sim", root / "out"
     simulate_drone_session(sim, cfg)
+    return sim, out, ground_truth_cli(sim, out, seeded)
+
+
+def ground_truth_cli(sim, out, seeded: bool) -> str:
+    """``canopy-kit ground-truth`` on a simulated session's photos (``sim/drone``) in the
+    simulator's frame into ``out``, the true trees as ``--seeds`` when ``seeded``: its stdout."""
+    import subprocess
+
     seeds = ["--seeds", str(sim / "truth" / "trees.csv")] if seeded else []
     result = subprocess.run(
         [
@@ -146,4 +152,4 @@ def processed_simulated_flight(root, preset: str, overrides: dict, seeded: bool)
         timeout=900,
     )
     assert result.returncode == 0, result.stderr
-    return sim, out, result.stdout
+    return result.stdout

@@ -165,5 +165,5 @@ def test_drone_parameters_are_checked():
         load_sim_config("pistachio", {"drone": {"image_width": 10}})
     with pytest.raises(ConfigError, match="drone.altitude"):
         load_sim_config("pistachio", {"drone": {"altitude": -5.0}})
-    with pytest.raises(ConfigError, match=r"drone.\*_overlap"):
+    with pytest.raises(ConfigError, match=r"drone.forward_overlap: must be in \(0, 1\), got 1.2"):
         load_sim_config("pistachio", {"drone": {"forward_overlap": 1.2}})

@@ -585,7 +585,7 @@ def test_tree_file_names_are_safe() -> None:
 
 
 @pytest.mark.slow
-def test_drone_crowns_carry_the_lidar_tree_id(sim_factory, tmp_path) -> None:
+def test_drone_crowns_carry_the_lidar_tree_id(tiny_drone_session, tmp_path) -> None:
     """With drone photos: each aerial crown matched to a LiDAR tree carries its tree_id in
     crowns.csv (lat/lon to >= 7 decimals) and on the orthomosaic figure, and trees.csv's
     aerial columns are that crown's."""
@@ -593,21 +593,14 @@ def test_drone_crowns_carry_the_lidar_tree_id(sim_factory, tmp_path) -> None:
 
     matplotlib.use("Agg")
     from canopy_kit.config import load_preset
-    from canopy_kit.pipeline import compute, run
+    from canopy_kit.pipeline import compute
     from ground_truth.plots import plot_crowns
 
-    sim = sim_factory(
-        "pistachio",
-        seed=4,
-        overrides={
-            "orchard": {"rows": 2, "trees_per_row": 3},
-            "lidar": {"columns": 512},
-            "drone": {"enabled": True},
-        },
-    )
-    drone = sim.root / "drone"
+    # the 2 x 3 pistachio session with drone photos (seed 4), shared with other files
+    sim = tiny_drone_session
+    drone = sim.drone_dir
     out = tmp_path / "run"
-    results = run(load_preset("adaptive"), sim.bag, out, drone_images=drone)
+    results = sim.run_into(out)
     assert results.metrics["provenance"]["drone_images"] == str(drone)
     trees = pd.read_csv(out / "trees.csv", dtype={"tree_id": str}).set_index("tree_id")
     text = (out / "aerial" / "crowns.csv").read_text().splitlines()

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from fixtures_aerial import canopy_kit_cli, processed_simulated_flight
+from fixtures_aerial import canopy_kit_cli, ground_truth_cli
 
 from ground_truth.flight_accuracy import crown_agreement
 from ground_truth.raster import read_geotiff
@@ -19,14 +19,11 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def processed(tmp_path_factory):
-    """A 2 x 3 pistachio flight (12 photos), processed by ``canopy-kit ground-truth``."""
-    return processed_simulated_flight(
-        tmp_path_factory.mktemp("gt_flight"),
-        "pistachio",
-        {"seed": 4, "orchard": {"rows": 2, "trees_per_row": 3}},
-        seeded=True,
-    )
+def processed(tiny_drone_session, tmp_path_factory):
+    """A 2 x 3 pistachio flight (12 photos, seed 4: the photos of the drone session other
+    files share, conftest.py), processed by ``canopy-kit ground-truth``."""
+    sim, out = tiny_drone_session.root, tmp_path_factory.mktemp("gt_flight") / "out"
+    return sim, out, ground_truth_cli(sim, out, seeded=True)
 
 
 def test_all_photos_registered_and_georeferenced(processed):

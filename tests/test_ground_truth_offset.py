@@ -25,23 +25,12 @@ BOUND_M = 0.1  # on the mean signed offset per axis (east, north), 6 trees
 
 
 @pytest.fixture(scope="module")
-def drone_run(sim_factory, tmp_path_factory):
-    """The 2 x 3 pistachio session with drone photos (seed 4), run with its photos."""
-    from canopy_kit.config import load_preset
-    from canopy_kit.pipeline import run
-
-    sim = sim_factory(
-        "pistachio",
-        seed=4,
-        overrides={
-            "orchard": {"rows": 2, "trees_per_row": 3},
-            "lidar": {"columns": 512},
-            "drone": {"enabled": True},
-        },
-    )
+def drone_run(tiny_drone_session, tmp_path_factory):
+    """The 2 x 3 pistachio session with drone photos (seed 4), run with its photos (the
+    session and the run's stages shared with the other files that use them, conftest.py)."""
     out = tmp_path_factory.mktemp("offset_run")
-    results = run(load_preset("adaptive"), sim.bag, out, drone_images=sim.root / "drone")
-    return sim.root, out, results.metrics
+    results = tiny_drone_session.run_into(out)
+    return tiny_drone_session.root, out, results.metrics
 
 
 def _truth(sim):

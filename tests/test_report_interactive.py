@@ -430,25 +430,10 @@ def test_row_summary_counts_sums_and_flags_per_row() -> None:
 
 
 @pytest.fixture(scope="module")
-def tiny_drone_run(sim_factory, tmp_path_factory):
-    """A 2-row x 3-tree pistachio session with a drone flight, run with its photos."""
-    from canopy_kit.config import load_preset
-    from canopy_kit.pipeline import run
-
-    sim = sim_factory(
-        "pistachio",
-        overrides={
-            "orchard": {"rows": 2, "trees_per_row": 3},
-            "lidar": {"columns": 512},
-            "drone": {"enabled": True},
-        },
-    )
-    return run(
-        load_preset("adaptive"),
-        sim.bag,
-        tmp_path_factory.mktemp("drone_run"),
-        drone_images=sim.drone_dir,
-    )
+def tiny_drone_run(tiny_drone_session, tmp_path_factory):
+    """A 2-row x 3-tree pistachio session with a drone flight (seed 4), run with its photos
+    (the session and the run's stages shared with the other files that use them)."""
+    return tiny_drone_session.run_into(tmp_path_factory.mktemp("drone_run"))
 
 
 @pytest.mark.slow

@@ -207,9 +207,8 @@ def test_row_metrics_match_the_simulators_exact_crowns(tiny_pistachio, tiny_pist
     1-3 % low (a 3 x 4 almond session, seed 1, not run here: 0.02 m, 0.04 m, 0.8-0.9 %
     low). Since widths take the third-outermost return per height level: height 0.03 m,
     width 0.08 m, TRV 3-4 % low. Fruiting walls (issue 52's 5 %): test_row_profile_walls.py."""
-    from fixtures_sim import true_row_sections
-
     from canopy_kit.config import load_preset
+    from canopy_kit.evaluate.row_truth import true_row_sections
     from canopy_kit.pipeline import compute
 
     run = tiny_pistachio_run

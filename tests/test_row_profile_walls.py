@@ -20,9 +20,8 @@ WALL = {"orchard": {"rows": 2, "trees_per_row": 10}, "lidar": {"columns": 512}}
 @pytest.fixture(scope="module")
 def wall_run(sim_factory, tmp_path_factory):
     """The session, the run's context (cached stages) and the truth of the row metrics."""
-    from fixtures_sim import true_row_sections
-
     from canopy_kit.config import load_preset
+    from canopy_kit.evaluate.row_truth import true_row_sections
     from canopy_kit.pipeline import compute, run
 
     session = sim_factory("fruiting-wall", overrides=WALL)

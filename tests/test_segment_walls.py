@@ -112,7 +112,8 @@ def test_the_run_scores_a_wall_against_the_trunk_midpoint_cuts(small_wall) -> No
     those of labels cut independently here, with the simulator's exact row direction and
     the drive's alignment) and compares volumes with trees.csv ``cut_volume_m3``."""
     import pandas as pd
-    from fixtures_sim import truth_onto_map
+
+    from canopy_kit.evaluate.row_truth import truth_onto_map
 
     session, ctx = small_wall
     truth = pd.read_csv(session.root / "truth" / "trees.csv").set_index("tree_id")

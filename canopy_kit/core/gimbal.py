@@ -14,6 +14,22 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+# A photo pitched above this (degrees; -90 looks straight down) is oblique: it sees the
+# crowns' sides and ground far ahead at grazing angles. 15 degrees off nadir: a nadir mapping
+# flight's gimbal holds -90 within a few degrees, a planned oblique flight pitches to -45..-70.
+OBLIQUE_PITCH_DEG = -75.0
+
+
+def is_oblique(pitch_deg: float) -> bool:
+    """Whether a camera pitched ``pitch_deg`` (-90: straight down) looks obliquely."""
+    return pitch_deg > OBLIQUE_PITCH_DEG
+
+
+def compass_heading_deg(direction_xy: np.ndarray) -> float:
+    """Compass heading (degrees clockwise from north, in [-180, 180]) of a local
+    (east, north) direction."""
+    return float(np.degrees(np.arctan2(direction_xy[0], direction_xy[1])))
+
 
 def camera_rotation(yaw_deg: float, pitch_deg: float, roll_deg: float = 0.0) -> np.ndarray:
     """The camera-to-world rotation (3x3) of gimbal angles (degrees)."""
@@ -34,7 +50,7 @@ def gimbal_angles(rotation: np.ndarray) -> tuple[float, float, float]:
     # the heading of the viewing direction; looking straight down, of the image's top (the
     # roll is then part of the yaw, and reported as 0)
     heading = forward if np.hypot(forward[0], forward[1]) > 1e-6 else -rotation[:, 1]
-    yaw = float(np.degrees(np.arctan2(heading[0], heading[1])))
+    yaw = compass_heading_deg(heading)
     level = camera_rotation(yaw, pitch, 0.0)
     # what is left is a turn about the viewing direction: the roll
     rest = level.T @ rotation

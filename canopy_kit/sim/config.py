@@ -12,6 +12,7 @@ from typing import Any, Literal
 
 from canopy_kit.config import from_dict, merge, read_toml
 from canopy_kit.errors import ConfigError
+from canopy_kit.sim.config_fields import check_fields
 
 
 @dataclass
@@ -422,13 +423,16 @@ def _check_range(values: list[float], name: str, low: float = 0.0, strict: bool 
 
 def validate(c: SimConfig) -> None:
     """Reject impossible parameters with an error naming the parameter (the first found, in
-    the order of the sections: orchard, lidar, drive, imu/gnss, rig, drone)."""
+    the order of the sections: orchard, lidar, drive, imu/gnss, rig, drone), after each
+    number alone (finite, sign: :mod:`canopy_kit.sim.config_fields`)."""
+    check_fields(c)
     _validate_orchard_grid(c.orchard)
     _validate_trees(c.orchard)
     _validate_orchard_room(c.orchard)
     _validate_lidar(c.lidar, c.imu)
     _validate_drive(c.drive)
-    _check(c.imu.rate_hz > 0 and c.gnss.rate_hz > 0, "imu.rate_hz/gnss.rate_hz", "must be positive")
+    _check(c.imu.rate_hz > 0, "imu.rate_hz", f"must be positive, got {c.imu.rate_hz}")
+    _check(c.gnss.rate_hz > 0, "gnss.rate_hz", f"must be positive, got {c.gnss.rate_hz}")
     _validate_gnss(c.gnss)
     _validate_rig(c)
     _validate_drone(c.drone)
@@ -500,15 +504,25 @@ def _validate_trees(o: OrchardSpec) -> None:
         f"must be positive (inf: leaves through the whole crown), got {o.leaf_penetration_m}",
     )
     _check(
-        o.foliage_density_shell > 0 and o.foliage_density_core >= 0,
-        "orchard.foliage_density_*",
-        "densities must be positive",
+        o.foliage_density_shell > 0,
+        "orchard.foliage_density_shell",
+        f"must be positive, got {o.foliage_density_shell}",
+    )
+    _check(
+        o.foliage_density_core >= 0,
+        "orchard.foliage_density_core",
+        f"must not be negative, got {o.foliage_density_core}",
     )
 
 
 def _validate_orchard_room(o: OrchardSpec) -> None:
     """Headlands and margins, and room in the alleys and the orchard for the crowns."""
-    _check(o.headland >= 0 and o.margin >= 0, "orchard.headland/margin", "must not be negative")
+    for name in ("headland", "margin"):
+        _check(
+            getattr(o, name) >= 0,
+            f"orchard.{name}",
+            f"must not be negative, got {getattr(o, name)}",
+        )
     lane = o.row_spacing - 2 * o.alley_clearance
     _check(
         lane > 0.5,
@@ -530,6 +544,11 @@ def _validate_lidar(li: LidarSpec, imu: ImuSpec) -> None:
     _check(li.rings >= 1, "lidar.rings", f"must be at least 1, got {li.rings}")
     _check(li.columns >= 16, "lidar.columns", f"must be at least 16, got {li.columns}")
     _check(
+        len(li.vertical_fov) == 2,
+        "lidar.vertical_fov",
+        f"expected [lowest, highest] beam elevation, got {li.vertical_fov}",
+    )
+    _check(
         li.vertical_fov[0] < li.vertical_fov[1] or li.rings == 1,
         "lidar.vertical_fov",
         f"lowest beam {li.vertical_fov[0]} must be below highest {li.vertical_fov[1]}",
@@ -545,7 +564,8 @@ def _validate_lidar(li: LidarSpec, imu: ImuSpec) -> None:
         "lidar.min_range/max_range",
         f"need 0 < min_range < max_range, got {li.min_range}, {li.max_range}",
     )
-    _check(li.range_noise >= 0 and 0 <= li.dropout < 1, "lidar.range_noise/dropout", "out of range")
+    _check(li.range_noise >= 0, "lidar.range_noise", f"must not be negative, got {li.range_noise}")
+    _check(0 <= li.dropout < 1, "lidar.dropout", f"must be in [0, 1), got {li.dropout}")
     _check(li.mount_height > 0, "lidar.mount_height", f"must be positive, got {li.mount_height}")
     if li.firing == "vlp16" or li.output == "velodyne_packets":  # canopy_kit.sim.velodyne
         _check(
@@ -579,9 +599,8 @@ def _validate_lidar(li: LidarSpec, imu: ImuSpec) -> None:
 
 def _validate_drive(d: DriveSpec) -> None:
     """The robot's speeds and acceleration."""
-    _check(
-        d.cruise_speed > 0 and d.turn_speed > 0, "drive.cruise_speed/turn_speed", "must be positive"
-    )
+    for name in ("cruise_speed", "turn_speed"):
+        _check(getattr(d, name) > 0, f"drive.{name}", f"must be positive, got {getattr(d, name)}")
     _check(d.lead_in >= 0, "drive.lead_in", f"must not be negative, got {d.lead_in}")
     _check(d.acceleration > 0, "drive.acceleration", f"must be positive, got {d.acceleration}")
     _check(
@@ -612,22 +631,20 @@ def _validate_rig(c: SimConfig) -> None:
 
 def _validate_drone(dr: DroneSpec) -> None:
     """The drone flight: overlaps, altitude, camera and photos, speed."""
-    _check(
-        0 < dr.forward_overlap < 1 and 0 < dr.side_overlap < 1,
-        "drone.*_overlap",
-        "must be in (0, 1)",
-    )
+    for name in ("forward_overlap", "side_overlap"):
+        _check(
+            0 < getattr(dr, name) < 1,
+            f"drone.{name}",
+            f"must be in (0, 1), got {getattr(dr, name)}",
+        )
     _check(dr.altitude > 0, "drone.altitude", f"must be positive, got {dr.altitude}")
     _check(
         dr.image_width >= 64 and dr.image_height >= 64,
         "drone.image_width/image_height",
         f"must be at least 64 px, got {dr.image_width}x{dr.image_height}",
     )
-    _check(
-        dr.focal_length_mm > 0 and dr.sensor_width_mm > 0,
-        "drone.focal_length_mm/sensor_width_mm",
-        "must be positive",
-    )
+    for name in ("focal_length_mm", "sensor_width_mm"):
+        _check(getattr(dr, name) > 0, f"drone.{name}", f"must be positive, got {getattr(dr, name)}")
     _check(
         1 <= dr.jpeg_quality <= 100,
         "drone.jpeg_quality",
@@ -702,11 +719,6 @@ def _validate_gnss(g: GnssSpec) -> None:
                 f"gnss.{name}[{i}]",
                 f"start must be >= 0 and duration positive, got {item}",
             )
-    _check(
-        g.outage_count >= 0 and g.jump_count >= 0,
-        "gnss.outage_count/jump_count",
-        "must not be negative",
-    )
     _check_range(g.outage_duration_range, "gnss.outage_duration_range")
     _check_range(g.jump_duration_range, "gnss.jump_duration_range")
     _check_range(g.jump_offset_range, "gnss.jump_offset_range", strict=False)

@@ -27,7 +27,7 @@ import pandas as pd
 
 from canopy_kit.core.atomic import atomic_write_bytes, atomic_write_text
 from canopy_kit.core.extras import needs_extra
-from canopy_kit.core.gimbal import gimbal_angles
+from canopy_kit.core.gimbal import compass_heading_deg, gimbal_angles
 from canopy_kit.evaluate.truth import write_csv
 from canopy_kit.io.session_layout import SIM_CONFIG, drone_dir, truth_dir
 from canopy_kit.sim.config import DroneSpec
@@ -232,7 +232,7 @@ def shot_xmp(
     if previous is not None and previous.line == shot.line:
         step = shot.view.position[:2] - previous.view.position[:2]
         if np.hypot(*step) > 1e-6:
-            heading = float(np.degrees(np.arctan2(step[0], step[1])))
+            heading = compass_heading_deg(step)
     relative = float(shot.view.position[2] - take_off_z)
     return lambda altitude: dji_xmp(gimbal, (heading, 0.0, 0.0), relative, altitude)
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from canopy_kit.core.gimbal import camera_rotation
+from canopy_kit.core.gimbal import camera_rotation, compass_heading_deg
 from canopy_kit.sim.config import DroneSpec
 from canopy_kit.sim.drone import (
     DroneShot,
@@ -32,11 +32,6 @@ from canopy_kit.sim.drone import (
     line_positions,
 )
 from canopy_kit.sim.orchard import Orchard
-
-
-def _heading_deg(direction_xy: np.ndarray) -> float:
-    """Compass heading (degrees clockwise from north) of a local (east, north) direction."""
-    return float(np.degrees(np.arctan2(direction_xy[0], direction_xy[1])))
 
 
 def plan_double_grid(
@@ -62,7 +57,7 @@ def plan_double_grid(
                 a, c = (pos_s, offset) if along_rows else (offset, pos_s)
                 xy = orchard.to_local(np.array(a), np.array(c))
                 direction = orchard.row_direction if along_rows else orchard.right_direction
-                yaw = _heading_deg(forward * direction)
+                yaw = compass_heading_deg(forward * direction)
                 rotation = camera_rotation(yaw, spec.gimbal_pitch_deg)
                 flight.add(np.array([xy[0], xy[1], z_fly]), rotation, line)
             line += 1
@@ -113,7 +108,7 @@ def plan_orbits(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> 
             z = float(orchard.terrain.height(xy[0], xy[1])) + spec.altitude
             aim = np.array([aim_xy[0], aim_xy[1], base + aim_height])
             look = aim - np.array([xy[0], xy[1], z])
-            yaw = _heading_deg(look[:2])
+            yaw = compass_heading_deg(look[:2])
             pitch = float(np.degrees(np.arctan2(look[2], np.hypot(look[0], look[1]))))
             flight.add(np.array([xy[0], xy[1], z]), camera_rotation(yaw, pitch), line)
     return flight.shots
