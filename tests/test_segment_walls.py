@@ -252,4 +252,23 @@ def test_the_wall_preset_finds_the_small_walls_trees(small_wall) -> None:
     seg = ctx.evaluation["segmentation"]
     assert seg["n_correct"] == seg["n_truth"] == len(session.orchard.trees)
     assert seg["n_predicted"] == seg["n_truth"]
+    # the interval takes the ratios measured on wall cuts, and holds each tree's cut volume
+    from canopy_kit.volume.uncertainty import CALIBRATIONS
+
     assert ctx.config.volume.recommended == "adaptive_alpha"
+    lo, hi = CALIBRATIONS["adaptive_alpha"].kinds["wall"]
+    t = ctx.table
+    assert (t["crown_kind"] == "wall").all()
+    np.testing.assert_allclose(t["volume_low_m3"], lo * t["volume_adaptive_alpha_m3"], rtol=1e-9)
+    np.testing.assert_allclose(t["volume_high_m3"], hi * t["volume_adaptive_alpha_m3"], rtol=1e-9)
+    truth = t["true_crown_volume_m3"]
+    held = (t["volume_low_m3"] <= truth) & (truth <= t["volume_high_m3"])
+    assert held.sum() >= len(t) - 1, t[["label", "volume_low_m3", "volume_high_m3"]].join(truth)
+
+
+def test_an_unknown_interval_kind_is_a_config_error() -> None:
+    from canopy_kit.config import VolumeConfig
+    from canopy_kit.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="volume.interval_kind"):
+        VolumeConfig(interval_kind="hedge")

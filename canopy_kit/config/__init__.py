@@ -156,6 +156,11 @@ class VolumeConfig:
     (``volume_low_m3``, ``volume_high_m3``, ``canopy_kit.volume.uncertainty``) bound; it is
     run even when not in ``methods``. Default the paper's ``alpha_shape``; the ``adaptive``
     preset recommends ``foliage_envelope`` (docs/VOLUMES.md, "Tree families").
+
+    ``interval_kind``: the kind of tree whose calibrated ratios the interval takes for every
+    tree ("": each tree's own kind of crown, from its points); ``"wall"`` for trees cut from
+    a fruiting wall at their trunks (the ``wall`` preset: a slab of the wall, whatever its
+    surface fill says).
     """
 
     methods: list[str] = field(default_factory=lambda: ["convex_hull", "alpha_shape"])
@@ -163,6 +168,7 @@ class VolumeConfig:
     voxel_size: float = 0.1
     workers: int = 0  # processes measuring trees (0: one per core; 1: this process only)
     recommended: str = "alpha_shape"
+    interval_kind: str = ""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.workers, int) and self.workers >= 0):
@@ -177,6 +183,11 @@ class VolumeConfig:
         if not (isinstance(self.recommended, str) and self.recommended):
             raise ConfigError(
                 f"volume.recommended: must be the name of a volume method, got {self.recommended!r}"
+            )
+        if self.interval_kind not in ("", "wall"):
+            raise ConfigError(
+                "volume.interval_kind: must be '' (each tree's own kind of crown) or 'wall' "
+                f"(trees cut from a fruiting wall at their trunks), got {self.interval_kind!r}"
             )
 
 

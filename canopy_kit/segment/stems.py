@@ -97,20 +97,28 @@ def detect_stems(
     for k, (g, _, _, alone) in enumerate(groups):
         owner[g] = k if (alone and close_trunks) else -1
     foot_tree = cKDTree(foot[:, :2])
-    xy, npts, rad, cov = [], [], [], []
+    xy, npts, rad, cov, free = [], [], [], [], []
     for k, (_, c, r, _) in enumerate(groups):
         reach = max(2 * r, 0.1) + cell
         column = column_tree.query_ball_point(c, reach)
         coverage = len(np.unique(layer[column])) / n_layers
+        if coverage < min_coverage:
+            continue
         foliage = (owner < 0) | (owner == k)
-        if (
-            coverage >= min_coverage
-            and _clutter(foot_tree, foliage, c, reach, ring_radius) <= max_clutter
-        ):
-            xy.append(c)
-            npts.append(len(column))
-            rad.append(r)
-            cov.append(coverage)
+        xy.append(c)
+        npts.append(len(column))
+        rad.append(r)
+        cov.append(coverage)
+        free.append(_clutter(foot_tree, foliage, c, reach, ring_radius) <= max_clutter)
+    keep = np.array(free, bool)
+    if close_trunks and len(xy):
+        # A wall tree's trunk in a skirt that reaches the ground: the densest column of its
+        # skirt (none denser within ``ring_radius``) is the trunk; a stretch without a trunk
+        # would otherwise join two trees.
+        centres, weight = np.array(xy), np.array(npts)
+        for i, near in enumerate(cKDTree(centres).query_ball_point(centres, ring_radius)):
+            keep[i] |= weight[i] >= weight[near].max()
+    xy, npts, rad, cov = (list(np.array(v)[keep]) for v in (xy, npts, rad, cov))
     if not xy:
         return no_stems()
     npts_a, rad_a = np.array(npts), np.array(rad)

@@ -152,8 +152,16 @@ CALIBRATIONS: dict[str, Calibration] = {
             "measurand": "auto",
         },
     ),
+    # ``wall``: trees cut from a fruiting wall at their trunks (the ``wall`` preset), against
+    # their trunk-midpoint cut; looked-at seeds 0-2 of the fruiting-wall simulator, 2 x 10,
+    # 59 trees one-to-one (benchmarks/bench_fruiting_wall.py; held-out seeds: docs/SEGMENTATION.md)
     "adaptive_alpha": Calibration(
-        {"dense": (0.96, 1.064), "mixed": (0.903, 2.941), "sparse": (0.815, 2.307)},
+        {
+            "dense": (0.96, 1.064),
+            "mixed": (0.903, 2.941),
+            "sparse": (0.815, 2.307),
+            "wall": (0.934, 1.171),
+        },
         params={
             "alpha_factor": 4.0,
             "offset_factor": 0.425,

@@ -221,7 +221,7 @@ def _measure_tree(
             recommended,
             volume.recommended,
             fill=extra.get("surface_fill"),
-            kind=extra.get("crown_kind"),
+            kind=volume.interval_kind or extra.get("crown_kind"),
             params=best.params,
             extra=extra,
             others=others,
