@@ -181,31 +181,35 @@ def test_a_hull_switch_that_is_not_a_bool_is_named(value: object) -> None:
         from_dict(PipelineConfig, {"ground_truth": {"hull_volume": value}})
 
 
-def test_process_flight_writes_the_hull_and_recommends_it(double_grid: Path, tmp_path) -> None:
-    """Photos to crowns with structure from motion (one thread; crowns seeded by the true
-    trees; about 15 s): crowns.csv and trees.csv carry each crown's hull, within ±15 % of the
-    matched true crown (measured: -8 … +8 %), and report.json names the hull as this oblique
-    flight's reference."""
+def test_the_cli_writes_the_hull_and_recommends_it(double_grid: Path, tmp_path) -> None:
+    """``canopy-kit ground-truth`` from photos to crowns (structure from motion on one thread;
+    crowns seeded by the true trees; about 15 s): crowns.csv and trees.csv carry each crown's
+    hull, within ±15 % of the matched true crown (measured: -8 … +8 %), and report.json and
+    the printed summary name the hull as this oblique flight's aerial reference."""
     import json
+    import subprocess
 
-    from canopy_kit.core.geo import LocalFrame
+    from fixtures_aerial import canopy_kit_cli
+
     from ground_truth.flight_accuracy import crown_agreement
-    from ground_truth.pipeline import process_flight
 
-    frame = LocalFrame.from_dict(
-        json.loads((double_grid / "truth" / "frame.json").read_text())["frame"]
-    )
-    trees = double_grid / "truth" / "trees.csv"  # seeds: the test is of the hull, not the crowns
-    result = process_flight(double_grid / "drone", tmp_path / "out", frame, trees, threads=1)
-    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    truth_dir, out = double_grid / "truth", tmp_path / "out"
+    run = subprocess.run(
+        [
+            *canopy_kit_cli(), "ground-truth", str(double_grid / "drone"), "--out", str(out),
+            "--seeds", str(truth_dir / "trees.csv"), "--threads", "1",
+            "--frame", str(truth_dir / "frame.json"),
+        ],
+        check=False, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert "aerial volume hull_volume_m3 recommended: oblique flight" in run.stdout
+    report = json.loads((out / "report.json").read_text())
     assert report["aerial_volume_model"]["recommended"] == "hull_volume_m3"
     assert report["flight_views"]["views"] == "oblique" and "hull" in report["timings_s"]
-    crowns = pd.read_csv(tmp_path / "out" / "crowns.csv")
-    assert crowns["hull_volume_m3"].tolist() == pytest.approx(result.crowns["hull_volume_m3"])
-    per_tree = pd.read_csv(tmp_path / "out" / "trees.csv")
-    assert per_tree["aerial_hull_volume_m3"].notna().all()
-    truth = pd.read_csv(double_grid / "truth" / "trees.csv")
-    table, metrics = crown_agreement(crowns, truth, exclude_border=False)
+    assert pd.read_csv(out / "trees.csv")["aerial_hull_volume_m3"].notna().all()
+    truth = pd.read_csv(truth_dir / "trees.csv")
+    table, metrics = crown_agreement(pd.read_csv(out / "crowns.csv"), truth, exclude_border=False)
     assert metrics["matched"] == len(truth)
     error = table["hull_volume_m3"] / table["volume_true_m3"] - 1
     assert (error.abs() < 0.15).all(), error.round(3).tolist()
