@@ -3,9 +3,11 @@ against the simulator's exact crown volume (``crown_volume_m3``), and the flight
 
     .venv/bin/python benchmarks/bench_hull_flights.py --orchard pistachio --seed 51
     .venv/bin/python benchmarks/bench_hull_flights.py --orchard almond --seed 51
+    .venv/bin/python benchmarks/bench_hull_flights.py --orchard pistachio --seed 52 --crown-form lobed
 
 Renders (once, into ``--work``, default ``work/bench_hull``) a ``--rows`` x ``--trees`` flight
-flown in ``--pattern`` (default 4 x 8, double grid), processes it with the default
+flown in ``--pattern`` (default 4 x 8, double grid; ``--crown-form``: the orchard's crown
+form, default the preset's), processes it with the default
 ``[ground_truth]`` settings (crowns from the imagery alone, every core) and prints one JSON line:
 crowns one-to-one with the true trees (within 1.5 m, crowns cut by the mosaic border left out),
 each model's bias and MAPE over those crowns, the recommended model, and the wall and CPU time
@@ -31,6 +33,22 @@ MODELS = (
 )
 
 
+def flight_of_form(
+    work: Path, kind: str, rows: int, trees: int, seed: int, pattern: str, form: str
+) -> Path:
+    """A rendered drone-only session (cached) of crowns of ``form``."""
+    from canopy_kit.sim import load_sim_config
+    from canopy_kit.sim.drone import simulate_drone_session
+
+    root = work / f"{kind}_{form}_{rows}x{trees}_s{seed}_{pattern}"
+    if not (root / "truth" / "drone_cameras.csv").exists():
+        orchard = {"rows": rows, "trees_per_row": trees, "crown_form": form}
+        drone = {"enabled": True, "pattern": pattern}
+        cfg = load_sim_config(kind, {"seed": seed, "orchard": orchard, "drone": drone})
+        simulate_drone_session(root, cfg)
+    return root
+
+
 def main() -> None:
     from bench_ground_truth import flight, frame_of
 
@@ -45,9 +63,11 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=4)
     parser.add_argument("--trees", type=int, default=8)
     parser.add_argument("--pattern", default="double-grid")
+    parser.add_argument("--crown-form", help="the orchard's crown form (default: the preset's)")
     args = parser.parse_args()
 
-    root = flight(args.work, args.orchard, args.rows, args.trees, args.seed, args.pattern)
+    shape = (args.work, args.orchard, args.rows, args.trees, args.seed, args.pattern)
+    root = flight_of_form(*shape, args.crown_form) if args.crown_form else flight(*shape)
     t0, c0 = time.perf_counter(), time.process_time()
     result = process_flight(root / "drone", root / "gt_imagery", frame=frame_of(root))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0

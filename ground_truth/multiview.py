@@ -4,7 +4,8 @@ A flight's views are **oblique** when at least ``OBLIQUE_SHARE`` of its register
 look more than 15° off straight down (pitch above ``OBLIQUE_PITCH_DEG``; a double grid
 with the gimbal at −60° or an orbit), else **nadir**. The visual hull
 (``ground_truth.visual_hull``) runs when ``[ground_truth] hull_volume`` is on and at least
-``HullOptions.min_views`` photos are registered; a crown seen by fewer has no hull (NaN).
+``HullOptions.min_views`` photos are registered; a crown whose centre fewer photos see has
+no hull (NaN).
 
 The recommended aerial reference (``report.json`` → ``aerial_volume_model``) is the hull
 (``hull_volume_m3``) on an oblique flight, where the photos see below the crowns' widest
