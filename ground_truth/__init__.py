@@ -5,7 +5,9 @@
 georeferenced to the camera GPS positions) → ``dsm`` (surface and ground models from
 multi-view height matching) → ``ortho`` (orthomosaic, GeoTIFF) → ``crowns`` (crown
 masks, watershed, diameters and volumes; ``rows``: the row direction and the extents along
-and across it; ``envelope``: the 2.5-D envelope volume) → ``match`` (one row per LiDAR tree).
+and across it; ``envelope``: the 2.5-D envelope volume) → ``match`` (one row per LiDAR tree)
+→ ``multiview`` (the visual hull of each crown from its ``silhouettes`` in every photo, and
+the flight's recommended aerial volume).
 """
 
 from __future__ import annotations

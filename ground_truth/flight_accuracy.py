@@ -74,6 +74,7 @@ def crown_agreement(
             "ellipsoid_volume_m3": m["ellipsoid_volume_m3"],
             "chm_volume_m3": m["chm_volume_m3"],
             "envelope_volume_m3": m.get("envelope_volume_m3", pd.Series(np.nan, index=m.index)),
+            "hull_volume_m3": m.get("hull_volume_m3", pd.Series(np.nan, index=m.index)),
         }
     )
     if "extent_along_row_m" in t and "diameter_along_row_m" in m:
@@ -117,10 +118,15 @@ def crown_agreement(
             ("ellipsoid_aerial", "ellipsoid_volume_m3"),
             ("chm_aerial", "chm_volume_m3"),
             ("envelope_aerial", "envelope_volume_m3"),
+            ("hull_aerial", "hull_volume_m3"),
         ):
-            if table[col].notna().sum() < 2:  # crowns measured before the model existed
+            known = table[col].notna()  # NaN: a model not measured (or a hull with too few views)
+            if known.sum() < 2:
                 continue
-            a = agreement(table[col].to_numpy(float), table["volume_true_m3"].to_numpy(float))
+            a = agreement(
+                table.loc[known, col].to_numpy(float),
+                table.loc[known, "volume_true_m3"].to_numpy(float),
+            )
             metrics[f"volume_{name}_bias_pct"] = a.bias_pct
             metrics[f"volume_{name}_mape_pct"] = a.mape_pct
     return table, metrics

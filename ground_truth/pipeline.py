@@ -38,6 +38,7 @@ from ground_truth.dsm import (
 )
 from ground_truth.exif import Flight, read_flight
 from ground_truth.match import crown_tree_ids, match_crowns, read_trees, seed_offset, tree_positions
+from ground_truth.multiview import OBLIQUE_PITCH_DEG, multiview_stage
 from ground_truth.ortho import Orthomosaic, orthomosaic
 from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
 from ground_truth.rows import RowDirection
@@ -302,6 +303,11 @@ def process_flight(
     seg, crowns, matched, offset = crowns_stage(mosaic, surface, trees, frame, opts)
     timings["crowns"] = time.perf_counter() - t0
 
+    cameras = [model.cameras[n] for n in sorted(model.cameras)]
+    multiview = multiview_stage(flight, cameras, seg, crowns, matched, surface, opts, report)
+    if multiview["hull_s"] is not None:
+        timings["hull"] = multiview["hull_s"]
+
     summary = {
         "images": str(Path(images_dir)),
         "frame": frame.to_dict(),
@@ -316,6 +322,8 @@ def process_flight(
         "trees_matched": int(matched["matched"].sum()) if matched is not None else None,
         "trees": int(len(matched)) if matched is not None else None,
         "sphere_diameter": "diameter_max_m (widest extent)",
+        "flight_views": multiview["flight_views"],
+        "aerial_volume_model": multiview["aerial_volume_model"],
         "timings_s": timings,
     }
     summary["crown_seeding"] = seg.seeding

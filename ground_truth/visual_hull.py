@@ -13,11 +13,16 @@ Photos carry the crown's silhouette against the ground (soil and grass behind a 
 obliquely); green grass behind the skirt keeps voxels there, which the ``min_fraction`` rule
 (a voxel stays when at least that share of its views are vegetation) does not remove: a
 hull over grass is an upper bound.
+
+A crown whose centre (its voxels' mean position at mid-height) fewer than ``min_views``
+photos see has no hull (NaN): too few views to carve it. A voxel is dropped as soon as it can
+no longer stay, which gives the same volume as carving every voxel in every photo, faster.
+``ground_truth.multiview`` runs it in ``process_flight``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,12 +34,14 @@ from ground_truth.raster import Grid
 
 @dataclass(frozen=True)
 class HullOptions:
-    """Voxel size (m), share of a voxel's views that must show vegetation, fewest views."""
+    """Voxel size (m), share of a voxel's views that must show vegetation, fewest views, and
+    the longest side (px) of the photos the silhouettes are drawn on."""
 
     voxel_m: float = 0.1
     min_fraction: float = 0.95
     min_views: int = 3
     headroom_m: float = 0.3  # above the crown's top
+    image_size: int = 800
 
 
 def crown_hull_volumes(
@@ -46,19 +53,24 @@ def crown_hull_volumes(
     ground: np.ndarray,
     ground_grid: Grid,
     options: HullOptions | None = None,
+    progress: Callable[[str, float, float], None] | None = None,
 ) -> np.ndarray:
     """Visual-hull volume (m³) of each crown of ``crowns`` (rows in order, ``crown_id``).
 
     ``vegetation`` are per-photo masks (bool or 0/1, the size of each camera's image);
     ``labels`` the crown label raster on ``grid`` (0: no crown); ``ground`` the terrain
     heights on ``ground_grid``; ``crowns`` needs ``crown_id`` and ``height_m`` (top above
-    the ground)."""
+    the ground). NaN for a crown whose centre fewer than ``min_views`` photos see;
+    ``progress(stage, done, total)`` after each crown."""
     opts = options or HullOptions()
+    report = progress or (lambda *_: None)
     x, y = grid.centers()
     out = np.zeros(len(crowns))
     for k, crown in enumerate(crowns.itertuples()):
+        report("Visual hull", k, len(crowns))
         cells = labels == crown.crown_id
         if not cells.any():
+            out[k] = np.nan
             continue
         # voxel columns on a regular xy lattice over the crown's outline in the labels
         ax = np.arange(x[cells].min(), x[cells].max() + opts.voxel_m, opts.voxel_m)
@@ -74,17 +86,72 @@ def crown_hull_volumes(
             [np.tile(cx, len(levels)), np.tile(cy, len(levels)), np.repeat(levels, len(cx))]
         )
         pts = pts[pts[:, 2] >= np.tile(z0, len(levels))]
-        green, seen = np.zeros(len(pts), np.int32), np.zeros(len(pts), np.int32)
-        for cam, mask in zip(cameras, vegetation, strict=True):
-            uv, depth = cam.project(pts)
-            col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-            ok = (depth > 0) & (col >= 0) & (row >= 0)
-            ok &= (col < mask.shape[1]) & (row < mask.shape[0])
-            seen += ok
-            green[ok] += mask[row[ok], col[ok]] > 0.5
-        kept = (seen >= opts.min_views) & (green >= opts.min_fraction * seen)
-        out[k] = kept.sum() * opts.voxel_m**3
+        out[k] = _carve(pts, cameras, vegetation, opts) * opts.voxel_m**3
+    report("Visual hull", len(crowns), len(crowns))
     return out
+
+
+def _carve(
+    pts: np.ndarray,
+    cameras: Sequence[PosedCamera],
+    vegetation: Sequence[np.ndarray],
+    opts: HullOptions,
+) -> float:
+    """How many voxel centres ``pts`` stay (NaN when fewer than ``min_views`` photos see the
+    crown's centre). A voxel stays when at least ``min_views`` photos see it and at least
+    ``min_fraction`` of them show vegetation there. Photos whose view misses the crown's box
+    are skipped, and a voxel is dropped as soon as more photos showed no vegetation there
+    than ``1 - min_fraction`` of every photo that can see the box: it can no longer stay,
+    so the result is the same as carving every voxel in every photo, only faster."""
+    if len(pts) == 0:
+        return float("nan")
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    views = [
+        (cam, mask)
+        for cam, mask in zip(cameras, vegetation, strict=True)
+        if _box_in_view(cam, mask.shape, lo, hi)
+    ]
+    centre = np.array([[*pts[:, :2].mean(axis=0), (lo[2] + hi[2]) / 2]])
+    if sum(_visible(cam, mask.shape, centre)[0] for cam, mask in views) < opts.min_views:
+        return float("nan")
+    limit = (1.0 - opts.min_fraction) * len(views) + 1e-9
+    alive = pts
+    seen = np.zeros(len(pts), np.int32)
+    bare = np.zeros(len(pts), np.int32)  # photos showing no vegetation at the voxel
+    for cam, mask in views:
+        ok, row, col = _visible(cam, mask.shape, alive, with_pixels=True)
+        seen += ok
+        bare[ok] += mask[row[ok], col[ok]] <= 0.5
+        keep = bare <= limit
+        if not keep.all():
+            alive, seen, bare = alive[keep], seen[keep], bare[keep]
+    green = seen - bare
+    return float(((seen >= opts.min_views) & (green >= opts.min_fraction * seen)).sum())
+
+
+def _visible(
+    cam: PosedCamera, shape: tuple[int, ...], pts: np.ndarray, with_pixels: bool = False
+) -> tuple[np.ndarray, ...]:
+    """Which points project inside the image in front of the camera (and their pixels)."""
+    uv, depth = cam.project(pts)
+    col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < shape[1]) & (row < shape[0])
+    return (ok, row, col) if with_pixels else (ok,)
+
+
+def _box_in_view(cam: PosedCamera, shape: tuple[int, ...], lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether any of an axis-aligned box can project into the image: False only when every
+    corner is in front of the camera and their pixel bounds miss the image by a margin (a box
+    projects inside the hull of its corners' projections; the margin covers lens distortion)."""
+    corners = np.array(np.meshgrid(*zip(lo, hi, strict=True))).reshape(3, -1).T
+    uv, depth = cam.project(corners)
+    if (depth <= 0).any():
+        return True
+    margin = 0.05 * max(shape[:2])
+    lo_uv, hi_uv = uv.min(axis=0), uv.max(axis=0)
+    return bool(
+        (hi_uv >= -margin).all() and lo_uv[0] < shape[1] + margin and lo_uv[1] < shape[0] + margin
+    )
 
 
 def _sample(values: np.ndarray, grid: Grid, x: np.ndarray, y: np.ndarray) -> np.ndarray:

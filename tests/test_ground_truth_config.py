@@ -209,6 +209,14 @@ def _hedgerow_crown_count(config: GroundTruthConfig, *_) -> float:
     return float(len(_hedgerow_crowns(config)[0]))
 
 
+def _hull_crowns(config: GroundTruthConfig, flight_dir: Path, _) -> float:
+    """Crowns given a visual-hull volume on the tiny flight (true camera poses)."""
+    from tests.test_multiview_hull import _stage
+
+    _, crowns, _, _, _ = _stage(flight_dir.parent, config)
+    return float(crowns["hull_volume_m3"].notna().sum()) if "hull_volume_m3" in crowns else 0.0
+
+
 Measure = Callable[[GroundTruthConfig, Path, Path], float]
 # key -> (changed value, what it changes, expected sign of changed minus default: -1, +1, 0 any)
 CASES: dict[str, tuple[object, Measure, int]] = {
@@ -225,6 +233,7 @@ CASES: dict[str, tuple[object, Measure, int]] = {
     "register_seeds": (False, _seed_error, +1),
     "min_diameter_ratio": (0.9, _flagged_crowns, +1),
     "max_diameter_ratio": (1.1, _flagged_crowns, +1),
+    "hull_volume": (False, _hull_crowns, -1),
 }
 
 
@@ -276,6 +285,7 @@ def test_an_unknown_key_fails_naming_it(tmp_path: Path) -> None:
         {"ortho_resolution": 0.0},
         {"crown_seeds": "watershed"},
         {"tree_spacing_m": -4.0},
+        {"hull_volume": "no"},
     ],
 )
 def test_impossible_values_are_named(table: dict) -> None:

@@ -88,5 +88,32 @@ def test_oblique_views_carve_the_hull_towards_the_sphere() -> None:
 
 
 def test_a_crown_no_camera_sees_has_no_hull_volume() -> None:
+    """Not carved is not empty: a crown no photo sees has no volume (NaN), not zero."""
     away = [_camera(np.array([100.0, 100.0, 40.0]), 0.0, -90.0) for _ in range(3)]
-    assert _hull(away) == 0.0
+    assert np.isnan(_hull(away))
+
+
+def test_dropping_voxels_early_carves_the_same_hull_as_every_voxel_in_every_photo() -> None:
+    """The early drop (a voxel leaves once it can no longer stay) against the plain rule
+    evaluated over every voxel and every photo, with masks that disagree (noisy pixels)."""
+    from ground_truth.visual_hull import _carve
+
+    rng = np.random.default_rng(5)
+    cameras = [
+        _looking_at_sphere(CENTRE + 25.0 * np.array([np.cos(a), np.sin(a), 1.2]))
+        for a in np.radians(np.arange(0, 360, 24))
+    ]
+    masks = [_silhouette(c) ^ (rng.random((SIZE, SIZE)) < 0.02) for c in cameras]
+    axis = np.arange(-1.8, 1.8, 0.1)
+    pts = np.stack(np.meshgrid(axis, axis, axis + 2.5), -1).reshape(-1, 3)
+    options = HullOptions(min_fraction=0.9)
+    green, seen = np.zeros(len(pts)), np.zeros(len(pts))
+    for cam, mask in zip(cameras, masks, strict=True):
+        uv, depth = cam.project(pts)
+        col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < SIZE) & (row < SIZE)
+        seen += ok
+        green[ok] += mask[row[ok], col[ok]]
+    plain = ((seen >= options.min_views) & (green >= options.min_fraction * seen)).sum()
+    assert 0 < plain < len(pts)
+    assert _carve(pts, cameras, masks, options) == plain

@@ -116,6 +116,12 @@ def ground_truth(
     else:
         line += f", seeded by {result.report.get('crown_seeding', 'tree positions')}"
     console.print(line)
+    model, views = result.report.get("aerial_volume_model"), result.report.get("flight_views")
+    if model and views:
+        console.print(
+            f"[green]aerial volume[/] {model['recommended']} recommended: {views['views']} "
+            f"flight ({views['oblique_photos']} of {views['photos']} photos oblique)"
+        )
     offset = result.report.get("seed_offset") or {}
     if offset.get("significant"):
         console.print(

@@ -233,8 +233,15 @@ class GroundTruthConfig:
     # fragment or a merge of neighbours: kept in the table, flagged, left out of the statistics.
     min_diameter_ratio: float = 0.6
     max_diameter_ratio: float = 1.6
+    # Carve each crown's visual hull from its silhouettes in every registered photo
+    # (hull_volume_m3; the recommended aerial volume of an oblique flight); false: skip it.
+    hull_volume: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.hull_volume, bool):
+            raise ConfigError(
+                f"ground_truth.hull_volume: expected true or false, got {self.hull_volume!r}"
+            )
         for name in ("max_image_size", "work_image_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 64:

@@ -54,6 +54,7 @@ COLUMN_LABELS: dict[str, str] = {
     "aerial_ellipsoid_volume_m3": "Drone ellipsoid volume [m³]",
     "aerial_chm_volume_m3": "Drone canopy-height-model volume [m³]",
     "aerial_envelope_volume_m3": "Drone 2.5-D envelope volume [m³]",
+    "aerial_hull_volume_m3": "Drone visual-hull volume [m³]",
     "aerial_height_m": "Drone tree height [m]",
     "aerial_match_distance_m": "Drone crown match distance [m]",
     "aerial_flag": "Drone crown flag",

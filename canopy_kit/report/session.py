@@ -12,6 +12,7 @@ from canopy_kit.evaluate.segmentation_score import score_point_labels
 from canopy_kit.evaluate.truth import load_truth
 from canopy_kit.io.csv_table import csv_text
 from canopy_kit.report import plots
+from canopy_kit.report.aerial import aerial_reference_text, recommended_aerial_column
 from canopy_kit.report.columns import column_label
 from canopy_kit.report.explorer import explorer_data, row_summary
 from canopy_kit.report.figures import figure_to_data_uri
@@ -199,10 +200,17 @@ AERIAL_REFERENCES = [
         "aerial_ellipsoid_volume_m3",
         "aerial ellipsoid",
         "Alpha-shape volume against the aerial height-aware ellipsoid (both crown "
-        "extents and the CHM crown depth), the recommended aerial reference: the "
+        "extents and the CHM crown depth), the nadir flight's aerial reference: the "
         "paper's sphere of the widest extent overstates crowns that are flatter or "
         "longer than wide (docs/GROUND_TRUTH.md gives both models' measured bias "
         "per crown form).",
+    ),
+    (
+        "aerial_hull_volume_m3",
+        "aerial visual hull",
+        "Alpha-shape volume against the aerial visual hull (each crown carved from its "
+        "silhouettes in every photo), the oblique flight's aerial reference: oblique photos "
+        "see below the crowns' widest level, which no nadir model can.",
     ),
 ]
 
@@ -216,9 +224,12 @@ def aerial_section(ctx: Any, trees: pd.DataFrame) -> ReportSection | None:
     figs = []
     if ok.sum() >= 2:
         sub = trees[ok]
+        recommended = recommended_aerial_column(ctx.aerial.report)
         for column, name, caption in AERIAL_REFERENCES:
             if column not in sub or sub[column].notna().sum() < 2:
                 continue
+            if column == recommended:
+                caption += " Recommended aerial reference for this flight."
             figure = plots.plot_agreement(
                 sub[ALPHA_COLUMN].to_numpy(),
                 sub[column].to_numpy(),
@@ -236,7 +247,11 @@ def aerial_section(ctx: Any, trees: pd.DataFrame) -> ReportSection | None:
             figure_to_data_uri(ax.figure),
         )
     )
-    return ReportSection("LiDAR against drone photogrammetry", figs)
+    return ReportSection(
+        "LiDAR against drone photogrammetry",
+        figs,
+        text=aerial_reference_text(ctx.aerial.report),
+    )
 
 
 def truth_volume_section(trees: pd.DataFrame) -> ReportSection | None:

@@ -57,6 +57,7 @@ AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tr
     "aerial_ellipsoid_volume_m3": "aerial_ellipsoid_volume_m3",
     "aerial_chm_volume_m3": "aerial_chm_volume_m3",
     "aerial_envelope_volume_m3": "aerial_envelope_volume_m3",
+    "aerial_hull_volume_m3": "aerial_hull_volume_m3",
     "aerial_height_m": "aerial_height_m",
     "aerial_distance_m": "aerial_match_distance_m",
 }
