@@ -1,7 +1,7 @@
 """The multi-view crown volume stage of ``process_flight`` and the flight's recommended model.
 
 A flight's views are **oblique** when at least ``OBLIQUE_SHARE`` of its registered photos
-look more than 15° off straight down (pitch above ``OBLIQUE_PITCH_DEG``; a double grid
+look more than 15° off straight down (``canopy_kit.core.gimbal.is_oblique``; a double grid
 with the gimbal at −60° or an orbit), else **nadir**. The visual hull
 (``ground_truth.visual_hull``) runs when ``[ground_truth] hull_volume`` is on and at least
 ``HullOptions.min_views`` photos are registered; a crown whose centre fewer photos see has
@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
+from canopy_kit.core.gimbal import is_oblique
 from ground_truth.camera import PosedCamera
 from ground_truth.crowns import CrownSegmentation
 from ground_truth.dsm import SurfaceModel
@@ -30,9 +31,6 @@ from ground_truth.exif import Flight
 from ground_truth.silhouettes import crown_silhouettes
 from ground_truth.visual_hull import HullOptions, crown_hull_volumes
 
-# A photo pitched above this (degrees; -90 looks straight down) is oblique: it also sees
-# ground far ahead, at grazing angles, where the surface is noise.
-OBLIQUE_PITCH_DEG = -75.0
 OBLIQUE_SHARE = 0.25  # share of oblique photos that makes a flight oblique
 HULL_COLUMN = "hull_volume_m3"
 NADIR_COLUMN = "ellipsoid_volume_m3"
@@ -47,7 +45,7 @@ def camera_pitch_deg(camera: PosedCamera) -> float:
 def flight_views(cameras: Sequence[PosedCamera]) -> dict:
     """What the registered photos look at: counts, median pitch, ``oblique`` or ``nadir``."""
     pitch = np.array([camera_pitch_deg(c) for c in cameras])
-    oblique = int((pitch > OBLIQUE_PITCH_DEG).sum())
+    oblique = int(sum(is_oblique(float(a)) for a in pitch))
     views = "oblique" if len(pitch) and oblique >= OBLIQUE_SHARE * len(pitch) else "nadir"
     return {
         "views": views,

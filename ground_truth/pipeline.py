@@ -38,7 +38,7 @@ from ground_truth.dsm import (
 )
 from ground_truth.exif import Flight, read_flight
 from ground_truth.match import crown_tree_ids, match_crowns, read_trees, seed_offset, tree_positions
-from ground_truth.multiview import OBLIQUE_PITCH_DEG, multiview_stage
+from ground_truth.multiview import multiview_stage
 from ground_truth.ortho import Orthomosaic, orthomosaic
 from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
 from ground_truth.rows import RowDirection
