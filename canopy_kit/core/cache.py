@@ -1,14 +1,18 @@
 """A stage cache keyed by a hash of each stage's inputs and settings.
 
 Re-running after a parameter change recomputes only the stages whose key changed (and those
-after them, whose keys include the upstream key). Entries are pickles written atomically, so
+after them, whose keys include the upstream key). Every key includes a hash of the code that
+computes the stages (:func:`code_fingerprint`): after an upgrade, or an edit of the library,
+no stage comes from the cache of older code. Entries are pickles written atomically, so
 an interrupted run never leaves a half-written entry; the next run resumes from the last
 complete stage.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib.util
 import json
 import pickle
 import time
@@ -52,9 +56,32 @@ def _canonical(value: Any) -> Any:
     return value
 
 
+def source_fingerprint(roots: list[Path]) -> str:
+    """Hash of the Python sources (paths relative to their root, and contents) under
+    ``roots``."""
+    digest = hashlib.sha256()
+    for root in roots:
+        for path in sorted(root.rglob("*.py")):
+            digest.update(str(path.relative_to(root)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:20]
+
+
+@functools.cache
+def code_fingerprint() -> str:
+    """Hash of the code of the stages: the ``canopy_kit`` package and the ``ground_truth``
+    package beside it (found without importing it)."""
+    roots = [Path(__file__).resolve().parents[1]]
+    spec = importlib.util.find_spec("ground_truth")
+    if spec is not None and spec.origin is not None:
+        roots.append(Path(spec.origin).resolve().parent)
+    return source_fingerprint(roots)
+
+
 def stage_key(stage: str, *parts: Any) -> str:
-    """Hash of a stage name and everything its result depends on."""
-    text = json.dumps([CACHE_VERSION, stage, _canonical(list(parts))], sort_keys=True, default=str)
+    """Hash of a stage name, everything its result depends on and the code that computes it."""
+    key = [CACHE_VERSION, code_fingerprint(), stage, _canonical(list(parts))]
+    text = json.dumps(key, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
