@@ -194,6 +194,26 @@ def test_aerial_disagreement_against_the_ellipsoid() -> None:
     assert [c.status for c in alone][-1] == "warn"
 
 
+def test_an_oblique_flight_holds_the_lidar_to_its_visual_hull() -> None:
+    """The flight recommends its visual hull (metrics' reference column): the hull's row can
+    fail the run, the ellipsoid beside it is information, whatever its MAPE; a run whose
+    reference column is missing falls back on the ellipsoid."""
+    metrics, trees = _aerial_table([10.0, 20.0, 30.0], [40.0, 80.0, 120.0])  # ellipsoid 75 % off
+    trees["aerial_hull_volume_m3"] = [10.5, 19.0, 31.0]  # hull within 5 %
+    metrics["aerial"]["reference_column"] = "aerial_hull_volume_m3"
+    checks = aerial_checks(metrics, trees, ST)
+    hull = _by_name(checks, "alpha shape vs aerial visual hull")
+    assert hull.status == "pass" and "recommended" in hull.note
+    ell = _by_name(checks, "alpha shape vs aerial height-aware")
+    assert ell.value == "75.0 %" and ell.status == "info"
+    trees["aerial_hull_volume_m3"] = [40.0, 80.0, 120.0]
+    assert _by_name(aerial_checks(metrics, trees, ST), "alpha shape vs aerial visual").status == (
+        "fail"
+    )
+    fallback = aerial_checks(metrics, trees.drop(columns="aerial_hull_volume_m3"), ST)
+    assert _by_name(fallback, "alpha shape vs aerial height-aware").status == "fail"
+
+
 def test_few_trees_matched_to_the_drone_fails() -> None:
     metrics, trees = _aerial_table([10.0] * 10, [10.0] * 10)
     metrics["aerial"]["matched_trees"] = 8

@@ -5,22 +5,13 @@ from __future__ import annotations
 
 from typing import Any
 
-#: The aerial models a flight can recommend, by crowns-table column: the name the report uses.
-MODEL_NAMES = {
-    "hull_volume_m3": "visual hull",
-    "ellipsoid_volume_m3": "height-aware ellipsoid",
-}
-DEFAULT_MODEL = "ellipsoid_volume_m3"  # results made before flights recommended a model
+from canopy_kit.results.aerial_reference import (
+    MODEL_NAMES,
+    recommended_aerial_column,
+    recommended_model,
+)
 
-
-def recommended_model(report: dict[str, Any]) -> str:
-    """The crowns-table column of the flight's recommended aerial volume."""
-    return (report.get("aerial_volume_model") or {}).get("recommended", DEFAULT_MODEL)
-
-
-def recommended_aerial_column(report: dict[str, Any]) -> str:
-    """The per-tree table's column of the flight's recommended aerial volume."""
-    return "aerial_" + recommended_model(report)
+__all__ = ["aerial_reference_text", "recommended_aerial_column", "recommended_model"]
 
 
 def aerial_reference_text(report: dict[str, Any]) -> str:

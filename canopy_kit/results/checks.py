@@ -392,11 +392,14 @@ def imu_mount_check(mapping: dict[str, Any]) -> Check | None:
 def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     """LiDAR trees matched to drone crowns, crowns of plausible size, volume disagreement.
 
-    The disagreement is the MAPE of the alpha-shape volume against the aerial height-aware
-    ellipsoid (bias -4 % to +1 % against true crowns); against the paper's sphere (biased
-    +28 % to +85 %) a large MAPE is expected of an honest run, so that row is information
-    beside the ellipsoid and warns at most without it.
+    The disagreement is the MAPE of the alpha-shape volume against the flight's recommended
+    aerial volume (``metrics["aerial"]["reference_column"]``: the visual hull of an oblique
+    flight, else the height-aware ellipsoid, bias -4 % to +1 % against true crowns); the
+    other aerial models are information beside it. Against the paper's sphere (biased +28 %
+    to +85 %) a large MAPE is expected of an honest run, so that row is information beside a
+    reference and warns at most without one.
     """
+    from canopy_kit.results.aerial_reference import DEFAULT_MODEL, MODEL_NAMES
     from canopy_kit.results.tree_table import comparable_aerial_sphere
 
     aerial = metrics.get("aerial")
@@ -406,14 +409,15 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
     if ALPHA_COLUMN not in trees or "aerial_sphere_volume_m3" not in trees:
         return out
     usable = comparable_aerial_sphere(trees).notna() & trees[ALPHA_COLUMN].notna()
-    for column, model in (
-        ("aerial_ellipsoid_volume_m3", "height-aware ellipsoid"),
-        ("aerial_sphere_volume_m3", "paper's sphere"),
-    ):
+    reference = aerial.get("reference_column", "aerial_" + DEFAULT_MODEL)
+    if reference not in trees:
+        reference = "aerial_" + DEFAULT_MODEL
+    models = [(f"aerial_{m}", name) for m, name in MODEL_NAMES.items()]
+    models.sort(key=lambda m: m[0] != reference)  # the reference first
+    for column, model in [*models, ("aerial_sphere_volume_m3", "paper's sphere")]:
         if column in trees:
-            out.append(
-                aerial_volume_check(trees, usable & trees[column].notna(), column, model, st)
-            )
+            ok = usable & trees[column].notna()
+            out.append(aerial_volume_check(trees, ok, column, model, st, reference))
     return out
 
 
@@ -456,11 +460,17 @@ def aerial_match_checks(aerial: dict[str, Any], n: int, st: ChecksConfig) -> lis
 
 
 def aerial_volume_check(
-    trees: pd.DataFrame, ok: pd.Series, column: str, model: str, st: ChecksConfig
+    trees: pd.DataFrame,
+    ok: pd.Series,
+    column: str,
+    model: str,
+    st: ChecksConfig,
+    reference: str = "aerial_ellipsoid_volume_m3",
 ) -> Check:
     """MAPE of the alpha-shape volume against one aerial volume ``column`` on the trees ``ok``
-    (information with fewer than two). The paper's sphere, biased itself, never fails a run:
-    beside the ellipsoid it is information, alone it warns at most."""
+    (information with fewer than two). Only the flight's ``reference`` model can fail a run;
+    another model beside it is information, and the paper's sphere, biased itself, warns at
+    most when there is no reference."""
     from canopy_kit.evaluate import stats
 
     name = f"alpha shape vs aerial {model} volume (MAPE)"
@@ -471,13 +481,19 @@ def aerial_volume_check(
     status = grade(mape, st.aerial_mape_warn_pct, st.aerial_mape_fail_pct)
     note = f"{int(ok.sum())} trees, bias {stats.mean_percent_bias(lidar, drone):+.1f} %"
     threshold = _thresholds(st.aerial_mape_warn_pct, st.aerial_mape_fail_pct, " %", 0)
+    has_reference = reference in trees
     if column == "aerial_sphere_volume_m3":  # biased itself: never fails a run
-        if "aerial_ellipsoid_volume_m3" in trees:
-            status, threshold = "info", "none (the ellipsoid is held to it)"
+        if has_reference:
+            status, threshold = "info", "none (the flight's reference is held to it)"
             note += "; the sphere itself is biased +28 % to +85 %: for information"
         else:
             status = "warn" if status == "fail" else status
             note += "; the sphere itself is biased +28 % to +85 %: warns at most"
+    elif column != reference and has_reference:
+        status, threshold = "info", "none (the flight's reference is held to it)"
+        note += "; not the flight's recommended aerial model: for information"
+    elif column == reference:
+        note += "; the flight's recommended aerial reference"
     return Check(name, status, format_value(mape, " %", 1), threshold, note)
 
 

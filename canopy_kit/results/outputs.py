@@ -13,6 +13,7 @@ import pandas as pd
 
 from canopy_kit.config import PipelineConfig, write_config
 from canopy_kit.core.atomic import atomic_path
+from canopy_kit.results.aerial_reference import recommended_aerial_column
 from canopy_kit.results.tree_table import comparable_aerial_sphere, flagged
 from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS
 
@@ -57,7 +58,9 @@ def run_metrics(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
             "implausible_crowns": int((matched & ~ok).sum()),
             **dict(getattr(ctx.aerial, "diagnostics", {})),
         }
-        offset = (getattr(ctx.aerial, "report", None) or {}).get("seed_offset")
+        report = getattr(ctx.aerial, "report", None) or {}
+        m["aerial"]["reference_column"] = recommended_aerial_column(report)
+        offset = report.get("seed_offset")
         if offset:  # the LiDAR map's georeferencing against the drone's (docs/GROUND_TRUTH.md)
             m["aerial"]["seed_offset"] = offset  # crowns minus LiDAR trees
         for col in PAPER_VOLUME_COLUMNS:

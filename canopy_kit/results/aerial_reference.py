@@ -1,0 +1,23 @@
+"""Which drone volume a run holds the LiDAR to: the flight's recommended aerial model, as
+``ground_truth.multiview`` wrote it in the aerial report (``aerial_volume_model``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+#: The aerial models a flight can recommend, by crowns-table column: the name runs use.
+MODEL_NAMES = {
+    "hull_volume_m3": "visual hull",
+    "ellipsoid_volume_m3": "height-aware ellipsoid",
+}
+DEFAULT_MODEL = "ellipsoid_volume_m3"  # results made before flights recommended a model
+
+
+def recommended_model(report: dict[str, Any]) -> str:
+    """The crowns-table column of the flight's recommended aerial volume."""
+    return (report.get("aerial_volume_model") or {}).get("recommended", DEFAULT_MODEL)
+
+
+def recommended_aerial_column(report: dict[str, Any]) -> str:
+    """The per-tree table's column of the flight's recommended aerial volume."""
+    return "aerial_" + recommended_model(report)
