@@ -30,15 +30,14 @@ from canopy_kit.sim import load_sim_config, simulate_session
 LOOKED_AT, HELD_OUT = (0, 1, 2), (7, 11, 13)
 
 
-def measure(seed: int, work: Path, preset: str = "adaptive") -> dict:
-    """Simulate (once, cached in ``work``) and run one seed; its figures."""
-    root = work / f"wall{seed}"
-    cfg = load_sim_config(
-        "fruiting-wall",
-        merge(
-            {"seed": seed}, {"orchard": {"rows": 2, "trees_per_row": 10}, "lidar": {"columns": 512}}
-        ),
-    )
+def measure(seed: int, work: Path, preset: str = "adaptive", sensor: str | None = None) -> dict:
+    """Simulate (once, cached in ``work``) and run one seed; its figures. ``sensor``: one of
+    the simulator's sensor models instead of the default 32-ring, 512-column one."""
+    root = work / (f"wall{seed}" + (f"_{sensor}" if sensor else ""))
+    layout = {"orchard": {"rows": 2, "trees_per_row": 10}}
+    if sensor is None:
+        layout["lidar"] = {"columns": 512}
+    cfg = load_sim_config("fruiting-wall", merge({"seed": seed}, layout), sensor=sensor)
     if not (root / "sim").exists():
         simulate_session(root / "sim", cfg, fmt="ros2-mcap", truth_field=True, overwrite=True)
     t0 = time.time()
@@ -85,6 +84,7 @@ def measure(seed: int, work: Path, preset: str = "adaptive") -> dict:
     out = {
         "seed": seed,
         "preset": preset,
+        "sensor": sensor or "32 rings x 512",
         "n_truth": seg["n_truth"],
         "one_to_one": seg["n_correct"],
         "n_segments": seg["n_predicted"],
@@ -106,10 +106,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=Path("/tmp/bench_fruiting_wall"))
     parser.add_argument("--preset", default="wall", help="processing preset (adaptive: untuned)")
+    parser.add_argument(
+        "--sensor", default=None, help="a simulator sensor model (vlp16, os1-128...)"
+    )
     parser.add_argument("seeds", type=int, nargs="*", default=list(LOOKED_AT))
     args = parser.parse_args()
     for seed in args.seeds:
-        print(json.dumps(measure(seed, args.work, args.preset)), flush=True)
+        print(json.dumps(measure(seed, args.work, args.preset, args.sensor)), flush=True)
 
 
 if __name__ == "__main__":

@@ -272,3 +272,20 @@ def test_an_unknown_interval_kind_is_a_config_error() -> None:
 
     with pytest.raises(ConfigError, match="volume.interval_kind"):
         VolumeConfig(interval_kind="hedge")
+
+
+def test_a_wall_runs_report_says_what_its_trees_are() -> None:
+    """The wall preset's accuracy statement: a tree is the wall between the midpoints to its
+    neighbours' trunks, and its interval ratios are the wall calibration's; a crown preset's
+    statement does not say so."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.report.volumes import accuracy_section
+    from canopy_kit.volume.uncertainty import CALIBRATIONS
+
+    volume = load_preset("wall").volume
+    text = accuracy_section(volume.recommended, {}, volume.interval_kind).text
+    lo, hi = CALIBRATIONS["adaptive_alpha"].kinds["wall"]
+    assert "between the midpoints to its neighbours' trunks" in text
+    assert f"{lo:.3f}-{hi:.3f}" in text
+    crowns = load_preset("adaptive").volume
+    assert "midpoints" not in accuracy_section(crowns.recommended, {}, crowns.interval_kind).text

@@ -133,9 +133,12 @@ def run(
 def print_results(results) -> None:
     """One screen of what a run found and where its files are."""
     from canopy_kit.cli.common import console
+    from canopy_kit.results.checks import true_volume_name
 
     m = results.metrics
-    console.print(f"[green]done[/]: {m['n_trees']} trees ({m['segmenter']})")
+    console.print(
+        f"[green]done[/]: {m['n_trees']} trees ({m['segmenter']}, preset {m.get('preset', '?')})"
+    )
     ev = m.get("evaluation", {})
     mapping = ev.get("mapping", {})
     if "ate_rmse_m" in mapping:
@@ -151,7 +154,7 @@ def print_results(results) -> None:
         )
     for method, a in ev.get("volumes", {}).items():
         if isinstance(a, dict) and "mape_pct" in a:
-            against = "true crown volume (drawn envelope)"
+            against = true_volume_name(ev)
             if method == "recommended_vs_measurand":
                 method, against = ev.get("recommended_volume", method), "its measurand"
             console.print(

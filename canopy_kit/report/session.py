@@ -71,7 +71,11 @@ def session_report_page(
     if profiles is not None and len(profiles.summary):
         sections.append(row_metrics_section(profiles))
     sections.append(
-        accuracy_section(volume_cfg.recommended, volume_cfg.params.get(volume_cfg.recommended, {}))
+        accuracy_section(
+            volume_cfg.recommended,
+            volume_cfg.params.get(volume_cfg.recommended, {}),
+            volume_cfg.interval_kind,
+        )
     )
     optional = (
         mapping_section(ctx, metrics.get("evaluation", {}).get("mapping")),

@@ -498,6 +498,14 @@ def aerial_volume_check(
 
 
 # -- against simulator truth ----------------------------------------------------------------
+def true_volume_name(evaluation: dict[str, Any]) -> str:
+    """What a simulated session's true volume is: the drawn crown, or on a fruiting wall each
+    tree's cut between the midpoints to its neighbours' trunks."""
+    if evaluation.get("volume_truth", "crown") == "crown":
+        return "true crown volume, the simulator's drawn envelope"
+    return "true volume, the wall between the midpoints to the neighbours' trunks"
+
+
 def truth_checks(evaluation: dict[str, Any]) -> list[Check]:
     """Mapping, segmentation and volumes against a simulated session's truth."""
     return (
@@ -613,8 +621,8 @@ def volume_truth_checks(evaluation: dict[str, Any]) -> list[Check]:
         ):
             out.append(
                 Check(
-                    f"{method}{' (recommended)' if method == recommended else ''} volume vs true "
-                    "crown volume, the simulator's drawn envelope (MAPE)",
+                    f"{method}{' (recommended)' if method == recommended else ''} volume vs "
+                    f"{true_volume_name(evaluation)} (MAPE)",
                     None,
                     format_value(v["mape_pct"], " %", 1),
                     "",

@@ -106,7 +106,8 @@ class AdaptiveAlphaVolume(VolumeEstimator):
     measures = (
         "the alpha-hull at alpha = 4 point spacings, grown outwards by 0.425 spacings: fitted"
         " to the envelopes the simulator draws round its leaves, so its scale follows the "
-        "scan's density (not recommended since 2026-12-06)"
+        "scan's density (recommended for a wall's trunk-midpoint cuts; for free crowns "
+        "foliage_envelope replaced it on 2026-12-06)"
     )
 
     def __init__(
