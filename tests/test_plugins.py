@@ -70,6 +70,28 @@ def test_registered_entry_point_is_found(monkeypatch: pytest.MonkeyPatch) -> Non
     assert row.error is None and row.value == "canopy_kit.core.cloud:PointCloud"
 
 
+def test_entry_points_are_read_once_per_search_path(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A run asks for a kind's entry points many times: the installed distributions are
+    scanned once; a new entry on sys.path (a package installed since) is scanned again."""
+    calls = []
+    real = plugins.entry_points
+
+    def counting(group: str):
+        calls.append(group)
+        return real(group=group)
+
+    monkeypatch.setattr(plugins, "entry_points", counting)
+    first = plugins.names("volumes")
+    for _ in range(5):
+        assert plugins.names("volumes") == first
+    assert calls == ["canopy_kit.volumes"]
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert plugins.names("volumes") == first
+    assert calls == ["canopy_kit.volumes"] * 2
+
+
 def test_broken_entry_point_gives_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
     ep = EntryPoint(name="ghost", value="no_such_module:Thing", group="canopy_kit.segmenters")
     monkeypatch.setattr(plugins, "entry_points", _fake_entry_points(ep))
