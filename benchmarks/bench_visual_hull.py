@@ -74,6 +74,7 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("flights", nargs="*", type=Path, default=DEFAULT)
+    parser.add_argument("--outline-margin-m", type=float, default=None)
     args = parser.parse_args()
     for root in args.flights:
         gt = root / "gt_imagery"
@@ -83,7 +84,14 @@ def main() -> None:
         t0 = time.perf_counter()
         seg, surface = result.segmentation, result.surface
         crowns = result.crowns.copy()
-        crowns["hull_volume_m3"] = hull_stage(flight, cameras, seg, crowns, surface)
+        from ground_truth.visual_hull import HullOptions
+
+        opts = (
+            HullOptions()
+            if args.outline_margin_m is None
+            else HullOptions(outline_margin_m=args.outline_margin_m)
+        )
+        crowns["hull_volume_m3"] = hull_stage(flight, cameras, seg, crowns, surface, opts)
         seconds = time.perf_counter() - t0
         views = flight_views(cameras)["views"]
         print(
