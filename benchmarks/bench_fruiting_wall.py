@@ -66,9 +66,12 @@ def measure(seed: int, work: Path, preset: str = "adaptive", sensor: str | None 
     truth_v = tab.loc[ok, "true_crown_volume_m3"]
     inside = (tab.loc[ok, "volume_low_m3"] <= truth_v) & (truth_v <= tab.loc[ok, "volume_high_m3"])
     cloud = ctx.mapping.map
-    truth = np.asarray(cloud.fields["tree_id"]).astype(int)
-    lo, hi = ctx.segmentation.canopy_band_m
-    tr = (truth == -2) & (ctx.segmentation.height >= lo) & (ctx.segmentation.height <= hi)
+    trellis_in_trees = None  # a sensor whose messages carry no per-point truth (Livox)
+    if "tree_id" in cloud.fields:
+        truth = np.asarray(cloud.fields["tree_id"]).astype(int)
+        lo, hi = ctx.segmentation.canopy_band_m
+        tr = (truth == -2) & (ctx.segmentation.height >= lo) & (ctx.segmentation.height <= hi)
+        trellis_in_trees = round(100 * float((ctx.segmentation.labels[tr] >= 0).mean()), 1)
     band = ctx.segmentation.canopy_band_m
     d = true_row_sections(ctx.row_profiles, ctx, root / "sim", band[0], surface=True)
     spacing = cfg.orchard.row_spacing
@@ -92,7 +95,7 @@ def measure(seed: int, work: Path, preset: str = "adaptive", sensor: str | None 
         "merged": seg["n_merged"],
         "split": seg["n_split"],
         "ate_m": round(ev.get("mapping", {}).get("ate_rmse_m", float("nan")), 3),
-        "trellis_in_trees_pct": round(100 * float((ctx.segmentation.labels[tr] >= 0).mean()), 1),
+        "trellis_in_trees_pct": trellis_in_trees,
         "recommended": rec,
         "volumes": vol,
         "interval_holds": f"{int(inside.sum())}/{int(ok.sum())}",
