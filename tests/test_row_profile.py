@@ -253,3 +253,23 @@ def test_row_metrics_match_the_simulators_exact_crowns(tiny_pistachio, tiny_pist
     assert lat == pytest.approx(written.loc[0, "lat"], abs=1e-6)
     assert first["properties"]["height_m"] == pytest.approx(written.loc[0, "height_m"], abs=1e-3)
     assert "Row metrics" in (run.out_dir / "report.html").read_text()
+
+
+def test_clustered_counts_points_per_cell_by_hand() -> None:
+    """Cells of 0.1 m: three points in one cell, one alone, two in a cell a kilometre off
+    (the sparse path) and a negative offset: each point knows its cell's count."""
+    from canopy_kit.segment.trellis_filter import clustered
+
+    offset = np.array([0.01, 0.05, 0.09, 0.15, 1000.01, 1000.02, -0.05])
+    height = np.array([0.01, 0.02, 0.03, 0.01, 0.55, 0.56, 0.01])
+    assert clustered(offset, height, 0.1, 2).tolist() == [
+        True,
+        True,
+        True,
+        False,
+        True,
+        True,
+        False,
+    ]
+    assert clustered(offset, height, 0.1, 3).tolist() == [True] * 3 + [False] * 4
+    assert clustered(offset[:0], height[:0], 0.1, 1).shape == (0,)

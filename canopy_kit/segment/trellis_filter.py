@@ -38,12 +38,17 @@ CELL_M = 0.1  # across-row x height grid cell (row_profile.CELL_M)
 
 def clustered(offset: np.ndarray, height: np.ndarray, cell_m: float, min_points: int) -> np.ndarray:
     """Which points' ``cell_m`` cell of the across-row x height grid holds ``min_points``."""
+    if len(offset) == 0:
+        return np.zeros(0, bool)
     i = np.floor(offset / cell_m).astype(np.int64)
     j = np.floor(height / cell_m).astype(np.int64)
-    _, inverse, counts = np.unique(
-        np.column_stack([i, j]), axis=0, return_inverse=True, return_counts=True
-    )
-    return counts[inverse.ravel()] >= min_points
+    i -= i.min()
+    j -= j.min()
+    key = i * (int(j.max()) + 1) + j  # one integer per cell: a 1-D count, not rows of pairs
+    if key.max() <= 8 * len(key) + 1_000_000:
+        return np.bincount(key)[key] >= min_points
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return counts[inverse] >= min_points
 
 
 def _goes_on(
