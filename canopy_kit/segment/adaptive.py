@@ -198,9 +198,7 @@ class AdaptiveSegmenter(Segmenter):
         )
         stem_part = self._stems_to_parts(xyz, w, parts, stems)
         keep = stem_part >= 0
-        stems = StemDetections(
-            stems.xy[keep], stems.n_points[keep], stems.radius[keep], stems.coverage[keep]
-        )
+        stems = stems.select(keep)
         stem_part = stem_part[keep]
         n_parts = int(parts.max()) + 1
         part_weight = np.bincount(parts[parts >= 0], weights=w[parts >= 0], minlength=n_parts)

@@ -49,7 +49,4 @@ def is_post(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
 
 def without_posts(stems: StemDetections, canopy_xyz: np.ndarray) -> StemDetections:
     """The detections that are not posts (:func:`is_post`)."""
-    keep = ~is_post(stems, canopy_xyz)
-    return StemDetections(
-        stems.xy[keep], stems.n_points[keep], stems.radius[keep], stems.coverage[keep]
-    )
+    return stems.select(~is_post(stems, canopy_xyz))

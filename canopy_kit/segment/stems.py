@@ -33,6 +33,12 @@ class StemDetections:
     def __len__(self) -> int:
         return len(self.xy)
 
+    def select(self, keep: np.ndarray) -> StemDetections:
+        """The detections where ``keep`` (a boolean mask or indices) says."""
+        return StemDetections(
+            self.xy[keep], self.n_points[keep], self.radius[keep], self.coverage[keep]
+        )
+
 
 def no_stems() -> StemDetections:
     """An empty detection."""
@@ -83,7 +89,7 @@ def detect_stems(
         return no_stems()
     column_tree = cKDTree(p[:, :2])
     groups = []  # (foot indices, centre, radius) of the compact groups
-    for g, alone in _foot_groups(foot, foot_run, n_layers, cell, max_radius):
+    for g, alone in _foot_groups(foot, foot_run, n_layers, cell, max_radius, close_trunks):
         core = g[foot_run[g] >= n_layers]  # the columns that fill the slice: the trunk
         g = core if len(core) >= 2 else g
         c = foot[g, :2].mean(axis=0)
@@ -146,11 +152,17 @@ def _blobs(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
 
 
 def _foot_groups(
-    foot: np.ndarray, run: np.ndarray, n_layers: int, cell: float, max_radius: float
+    foot: np.ndarray,
+    run: np.ndarray,
+    n_layers: int,
+    cell: float,
+    max_radius: float,
+    split_wide: bool,
 ) -> list[tuple[np.ndarray, bool]]:
     """The trunk candidates among the foot points (index arrays, and whether the group stands
-    alone): groups of cells, and where a group is wider than ``max_radius`` (a skirt, or
-    trunks joined by low leaves), the groups of its columns that fill every layer."""
+    alone): groups of cells, and with ``split_wide``, where a group is wider than
+    ``max_radius`` (a skirt, or trunks joined by low leaves), the groups of its columns that
+    fill every layer (without, a wide group is left out)."""
     out = []
     lab, n = _blobs(foot, cell)
     for b in range(n):
@@ -160,6 +172,8 @@ def _foot_groups(
         q = foot[idx, :2]
         if np.percentile(np.linalg.norm(q - q.mean(axis=0), axis=1), 90) <= max_radius:
             out.append((idx, True))
+            continue
+        if not split_wide:
             continue
         full = idx[run[idx] >= n_layers]
         if len(full) < 2:
