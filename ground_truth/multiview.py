@@ -24,6 +24,8 @@ import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
 from canopy_kit.core.gimbal import is_oblique
+from canopy_kit.results.aerial_reference import DEFAULT_MODEL as NADIR_COLUMN
+from canopy_kit.results.aerial_reference import HULL_MODEL as HULL_COLUMN
 from ground_truth.camera import PosedCamera
 from ground_truth.crowns import CrownSegmentation
 from ground_truth.dsm import SurfaceModel
@@ -32,8 +34,6 @@ from ground_truth.silhouettes import crown_silhouettes
 from ground_truth.visual_hull import HullOptions, crown_hull_volumes
 
 OBLIQUE_SHARE = 0.25  # share of oblique photos that makes a flight oblique
-HULL_COLUMN = "hull_volume_m3"
-NADIR_COLUMN = "ellipsoid_volume_m3"
 
 
 def camera_pitch_deg(camera: PosedCamera) -> float:

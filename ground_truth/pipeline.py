@@ -38,7 +38,7 @@ from ground_truth.dsm import (
 )
 from ground_truth.exif import Flight, read_flight
 from ground_truth.match import crown_tree_ids, match_crowns, read_trees, seed_offset, tree_positions
-from ground_truth.multiview import multiview_stage
+from ground_truth.multiview import camera_pitch_deg, multiview_stage
 from ground_truth.ortho import Orthomosaic, orthomosaic
 from ground_truth.raster import Grid, colorize, png_bytes, sample_bilinear, write_geotiff
 from ground_truth.rows import RowDirection
@@ -148,7 +148,7 @@ def looked_at_area(
             continue
         # an oblique photo also sees ground far ahead, at grazing angles, where the surface
         # is noise
-        oblique |= is_oblique(float(np.degrees(np.arcsin(np.clip(forward[2], -1.0, 1.0)))))
+        oblique |= is_oblique(camera_pitch_deg(cam))
         hits.append(cam.center[:2] + forward[:2] * (height / -forward[2]))
     if not hits or not oblique:
         return None

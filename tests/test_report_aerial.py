@@ -11,7 +11,8 @@ import pandas as pd
 import pytest
 from fixtures_aerial import aerial_result
 
-from canopy_kit.report.aerial import aerial_reference_text, recommended_aerial_column
+from canopy_kit.report.aerial import aerial_reference_text
+from canopy_kit.results.aerial_reference import recommended_aerial_column
 from canopy_kit.results.tree_table import join_aerial
 from canopy_kit.volume.verb import ALPHA_COLUMN
 

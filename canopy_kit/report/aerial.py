@@ -5,13 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from canopy_kit.results.aerial_reference import (
-    MODEL_NAMES,
-    recommended_aerial_column,
-    recommended_model,
-)
-
-__all__ = ["aerial_reference_text", "recommended_aerial_column", "recommended_model"]
+from canopy_kit.results.aerial_reference import MODEL_NAMES, recommended_model
 
 
 def aerial_reference_text(report: dict[str, Any]) -> str:

@@ -12,7 +12,7 @@ from canopy_kit.evaluate.segmentation_score import score_point_labels
 from canopy_kit.evaluate.truth import load_truth
 from canopy_kit.io.csv_table import csv_text
 from canopy_kit.report import plots
-from canopy_kit.report.aerial import aerial_reference_text, recommended_aerial_column
+from canopy_kit.report.aerial import aerial_reference_text
 from canopy_kit.report.columns import column_label
 from canopy_kit.report.explorer import explorer_data, row_summary
 from canopy_kit.report.figures import figure_to_data_uri
@@ -21,6 +21,7 @@ from canopy_kit.report.html import ReportSection, render_report
 from canopy_kit.report.mapdecor import add_north_arrow_and_scale
 from canopy_kit.report.rig import rig_section
 from canopy_kit.report.volumes import accuracy_section
+from canopy_kit.results.aerial_reference import recommended_aerial_column
 from canopy_kit.results.checks import Check, format_value, run_checks
 from canopy_kit.results.outputs import config_used, trees_geojson
 from canopy_kit.results.tree_table import comparable_aerial_sphere

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from typing import Any
 
+HULL_MODEL = "hull_volume_m3"  # an oblique flight's recommendation (ground_truth.multiview)
+DEFAULT_MODEL = "ellipsoid_volume_m3"  # a nadir flight's, and results made before flights
+# recommended a model
+
 #: The aerial models a flight can recommend, by crowns-table column: the name runs use.
-MODEL_NAMES = {
-    "hull_volume_m3": "visual hull",
-    "ellipsoid_volume_m3": "height-aware ellipsoid",
-}
-DEFAULT_MODEL = "ellipsoid_volume_m3"  # results made before flights recommended a model
+MODEL_NAMES = {HULL_MODEL: "visual hull", DEFAULT_MODEL: "height-aware ellipsoid"}
 
 
 def recommended_model(report: dict[str, Any]) -> str:

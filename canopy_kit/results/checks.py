@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.config import ChecksConfig
+from canopy_kit.results.aerial_reference import DEFAULT_MODEL
 from canopy_kit.volume.verb import ALPHA_COLUMN
 
 Status = Literal["pass", "warn", "fail", "info"]
@@ -399,7 +400,7 @@ def aerial_checks(metrics: dict[str, Any], trees: pd.DataFrame, st: ChecksConfig
     to +85 %) a large MAPE is expected of an honest run, so that row is information beside a
     reference and warns at most without one.
     """
-    from canopy_kit.results.aerial_reference import DEFAULT_MODEL, MODEL_NAMES
+    from canopy_kit.results.aerial_reference import MODEL_NAMES
     from canopy_kit.results.tree_table import comparable_aerial_sphere
 
     aerial = metrics.get("aerial")
@@ -465,7 +466,7 @@ def aerial_volume_check(
     column: str,
     model: str,
     st: ChecksConfig,
-    reference: str = "aerial_ellipsoid_volume_m3",
+    reference: str = "aerial_" + DEFAULT_MODEL,
 ) -> Check:
     """MAPE of the alpha-shape volume against one aerial volume ``column`` on the trees ``ok``
     (information with fewer than two). Only the flight's ``reference`` model can fail a run;
