@@ -251,6 +251,36 @@ def ceiling_check(segmentation: dict[str, Any], st: ChecksConfig) -> list[Check]
     ]
 
 
+def trunk_feet_check(segmentation: dict[str, Any]) -> list[Check]:
+    """Rows of a wall cut at its trunks' midpoints whose stem band's foot holds too few
+    points beside their canopy: trunks probably missed, trees joined to their neighbours
+    (``segment.trunk_feet``; only with ``cut = "trunk-midpoints"``). Warns, never fails:
+    the rule reads the sampling, not the trunks themselves."""
+    feet = segmentation.get("trunk_feet")
+    if not feet or not feet.get("rows"):
+        return []
+    rows = feet["rows"]
+    missed = [r for r in rows if r.get("trunks_missed")]
+    share = 100 * float(feet.get("min_foot_share", float("nan")))
+    lo, hi = feet.get("foot_band_m", (float("nan"), float("nan")))
+    shares = ", ".join(
+        f"r{r['row']} {format_value(100 * r['foot_share'] if r['foot_share'] is not None else None, ' %', 1)}"
+        for r in rows
+    )
+    note = f"foot points ({lo:g}-{hi:g} m) per canopy point: {shares}"
+    if missed:
+        note += f"; trees of these rows flagged in trunk_flags: {_listed(feet.get('flagged_trees', []))}"
+    return [
+        Check(
+            "rows whose trunks' feet are barely sampled (trunks missed, trees joined?)",
+            "warn" if missed else "pass",
+            f"{len(missed)} of {len(rows)}",
+            f"warn: a row's foot below {share:g} % of its canopy",
+            note,
+        )
+    ]
+
+
 def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
     """Trees found, volumes flagged unreliable, crowns unlike the others of their row."""
     from canopy_kit.results.tree_table import flagged
@@ -644,11 +674,18 @@ def run_checks(
     checks += trunk_checks(trees, layout, st)
     checks += split_crown_check(trees, layout, st)
     checks += ceiling_check(metrics.get("segmentation", {}), st)
+    checks += trunk_feet_check(metrics.get("segmentation", {}))
     checks += map_edge_check(trees, layout, st)
     checks += map_checks(metrics.get("mapping", {}), st)
     checks += aerial_checks(metrics, trees, st)
     checks += truth_checks(metrics.get("evaluation", {}))
-    checks += [Check("warning", "warn", "", "", str(w)) for w in metrics.get("warnings", [])]
+    # a warning a check of its own carries is not repeated
+    carried = {metrics.get("segmentation", {}).get("trunk_feet", {}).get("warning")}
+    checks += [
+        Check("warning", "warn", "", "", str(w))
+        for w in metrics.get("warnings", [])
+        if w not in carried
+    ]
     return checks
 
 

@@ -34,6 +34,9 @@ def tree_table(ctx: Any) -> pd.DataFrame:
         trunks = ctx.layout.trunks_per_segment(trees["segment"].to_numpy())
         trees["segment_flags"] = crown_outliers(trees.assign(n_trunks=trunks))
         trees["n_trunks"] = trunks
+    feet = getattr(ctx.segmentation, "trunk_feet", None) or {}
+    if feet:  # a wall cut at its trunks' midpoints: the rows whose trunks were probably missed
+        trees["trunk_flags"] = trunk_flags(trees, feet)
     frame = getattr(ctx.mapping, "frame", None)
     if frame is not None and len(trees):
         xyz = np.column_stack([trees["x"], trees["y"], np.zeros(len(trees))])
@@ -46,6 +49,20 @@ def tree_table(ctx: Any) -> pd.DataFrame:
         trees = join_aerial(trees, ctx.aerial, ctx.config.ground_truth)
     rest = [c for c in trees.columns if c not in FIRST_COLUMNS]
     return trees[[c for c in FIRST_COLUMNS if c in trees.columns] + rest].reset_index(drop=True)
+
+
+TRUNKS_MISSED_NOTE = (
+    "its row's trunk feet barely sampled: trunks probably missed, the tree may hold a "
+    "neighbour (volume too large)"
+)
+
+
+def trunk_flags(trees: pd.DataFrame, feet: dict[str, Any]) -> pd.Series:
+    """Per tree: a note when it stands in a row whose trunks were probably missed
+    (``segment.trunk_feet``), else empty."""
+    bad = set(feet.get("flagged_trees", []))
+    ids = trees["tree_id"] if "tree_id" in trees else pd.Series("", index=trees.index)
+    return pd.Series(np.where(ids.isin(bad), TRUNKS_MISSED_NOTE, ""), index=trees.index)
 
 
 AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tree table

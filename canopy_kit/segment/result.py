@@ -52,6 +52,7 @@ class Segmentation:
     ceiling_source: str = ""  # "data" or the setting that fixed the band's top
     cut_at_ceiling: list[str] = field(default_factory=list)  # trees whose tops it cut
     ceiling_warning: str = ""  # the warning naming them (a run's check carries it instead)
+    trunk_feet: dict[str, Any] = field(default_factory=dict)  # trunk-midpoint cut: trunks seen?
 
     @property
     def n_trees(self) -> int:
@@ -79,5 +80,6 @@ class Segmentation:
             "canopy_band_m": [round(float(v), 3) for v in self.canopy_band_m],
             "canopy_ceiling_source": self.ceiling_source,
             "cut_at_ceiling": list(self.cut_at_ceiling),
+            **({"trunk_feet": self.trunk_feet} if self.trunk_feet else {}),
             "timings_s": dict(self.timings),
         }

@@ -25,6 +25,7 @@ from canopy_kit.segment.preprocess import prepare
 from canopy_kit.segment.result import Segmentation, TreeRecord
 from canopy_kit.segment.rows import assign_rows
 from canopy_kit.segment.trellis_filter import trellis_in_segments
+from canopy_kit.segment.trunk_feet import TrunkFeet, trunk_feet
 from canopy_kit.volume.metrics import horizontal_hull, polygon_area, widest_extents
 
 Progress = Callable[[str, float, float], None]
@@ -120,11 +121,29 @@ def segment(
             seg.cut_at_ceiling = cut
             seg.ceiling_warning = ceiling_warning(cut, lost, prepared.ceiling)
             seg.warnings.append(seg.ceiling_warning)
+    if getattr(segmenter, "cut", None) == "trunk-midpoints" and hasattr(segmenter, "stems_"):
+        feet = wall_trunk_feet(seg, cloud.xyz, segmenter.stems_.xy)
+        seg.trunk_feet = feet.as_dict()
+        if feet.warning:
+            seg.warnings.append(feet.warning)
     seg.timings = timings
     seg.classification = classify_points(
         seg.labels, seg.height, pre.ground_ransac_threshold, pre.min_canopy_height
     )
     return seg
+
+
+def wall_trunk_feet(seg: Segmentation, xyz: np.ndarray, trunks_xy: np.ndarray) -> TrunkFeet:
+    """Whether the trunks ``trunks_xy`` of a wall cut at their midpoints are complete, row
+    by row (``segment.trunk_feet``), from the map points ``xyz`` and their heights."""
+    return trunk_feet(
+        xyz,
+        seg.height,
+        trunks_xy,
+        seg.rows,
+        [t.tree_id for t in seg.trees],
+        np.array([t.row for t in seg.trees], dtype=np.int64),
+    )
 
 
 def crowns_cut_at_the_ceiling(
