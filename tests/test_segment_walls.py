@@ -252,6 +252,11 @@ def test_the_wall_preset_finds_the_small_walls_trees(small_wall) -> None:
     seg = ctx.evaluation["segmentation"]
     assert seg["n_correct"] == seg["n_truth"] == len(session.orchard.trees)
     assert seg["n_predicted"] == seg["n_truth"]
+    # every trunk found: no row of it says its trunks' feet were barely sampled
+    feet = ctx.segmentation.trunk_feet
+    assert len(feet["rows"]) == 2 and not any(r["trunks_missed"] for r in feet["rows"])
+    assert feet["warning"] == ""
+    assert "trunk_feet" not in adaptive_ctx.segmentation.summary()  # a crown cut: not asked
     # the interval takes the ratios measured on wall cuts, and holds each tree's cut volume
     from canopy_kit.volume.uncertainty import CALIBRATIONS
 
