@@ -6,7 +6,9 @@ preset, untuned for walls, on ``fruiting-wall`` sessions of 2 rows x 10 tree sta
 evaluation (segments and volumes against each tree's trunk-midpoint cut) and the row metrics
 against the exact crowns cut into the same 1 m sections (the tests' definition,
 ``canopy_kit.evaluate.row_truth.true_row_sections``). Also the share of trellis returns at canopy
-height left in tree segments. Seeds 0, 1, 2 were looked at; 7, 11, 13 are held out.
+height left in tree segments, and per row the share of the stem band's foot against the
+canopy that decides whether a wall run warns of missed trunks (``segment.trunk_feet``).
+Seeds 0, 1, 2 were looked at; 7, 11, 13 are held out.
 
 Usage: ``python benchmarks/bench_fruiting_wall.py [--work DIR] [SEED ...]`` (one JSON line per
 seed).
@@ -77,6 +79,7 @@ def measure(seed: int, work: Path, preset: str = "adaptive", sensor: str | None 
     spacing = cfg.orchard.row_spacing
     summ = ctx.row_profiles.summary.set_index("row")
     rows = {}
+    feet = {r["row"]: r for r in ctx.segmentation.trunk_feet.get("rows", [])}
     for row, sec in d.groupby("row"):
         true_trv = (sec["true_height_m"] * sec["true_width_m"]).mean() * 1e4 / spacing
         true_lwa = 2 * sec["true_height_m"].mean() * 1e4 / spacing
@@ -84,6 +87,10 @@ def measure(seed: int, work: Path, preset: str = "adaptive", sensor: str | None 
             "trv_err_pct": round(100 * (summ.loc[row, "trv_m3_per_ha"] / true_trv - 1), 1),
             "lwa_err_pct": round(100 * (summ.loc[row, "lwa_m2_per_ha"] / true_lwa - 1), 1),
         }
+        if int(row) in feet:  # the trunk-midpoint cut: the foot's points per canopy point
+            share = feet[int(row)]["foot_share"]
+            rows[int(row)]["foot_share_pct"] = None if share is None else round(100 * share, 2)
+            rows[int(row)]["trunks_missed"] = feet[int(row)]["trunks_missed"]
     out = {
         "seed": seed,
         "preset": preset,
