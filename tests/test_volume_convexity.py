@@ -99,3 +99,28 @@ def test_a_skeleton_of_branches_is_not_a_hollowed_body() -> None:
     assert alpha_hull < 0.1 * hull_volume(xyz)  # ... but no body: measured 2 %
     assert not is_hollowed_body(test, alpha_hull, hull_volume(xyz))
     assert estimate_volume(xyz, "adaptive_alpha").extra["estimate"] == "sample_corrected_hull"
+
+
+def test_points_drawn_in_the_hull_are_scipys_points_inside_it_and_uniform() -> None:
+    """Every point drawn lies in the hull by scipy's own point location (a Delaunay
+    triangulation of the hull's corners), and none of the bounding box's points that scipy
+    places inside is rejected: the same batch, the same points. Drawn in a cube's hull, their
+    mean and spread are a uniform cube's (centre 0.5, variance 1/12 per axis)."""
+    from scipy.spatial import ConvexHull, Delaunay
+
+    from canopy_kit.volume.convexity import uniform_in_hull
+
+    rng = np.random.default_rng(11)
+    points = rng.normal(size=(300, 3)) * [2.0, 1.0, 0.5]
+    drawn = uniform_in_hull(points, 2000, np.random.default_rng(3))
+    located = Delaunay(points[ConvexHull(points).vertices])
+    assert drawn.shape == (2000, 3) and (located.find_simplex(drawn) >= 0).all()
+    # the same generator's first batch, located by scipy: the draw keeps exactly those points
+    batch = np.random.default_rng(3).uniform(points.min(axis=0), points.max(axis=0), (8000, 3))
+    kept = batch[located.find_simplex(batch) >= 0]
+    assert len(kept) >= 2000 and np.array_equal(drawn, kept[:2000])
+
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    cube = uniform_in_hull(corners, 20_000, np.random.default_rng(4))
+    assert np.allclose(cube.mean(axis=0), 0.5, atol=0.01)
+    assert np.allclose(cube.var(axis=0), 1 / 12, rtol=0.03)
