@@ -84,9 +84,7 @@ def run(
     from canopy_kit.config import load_preset, merge
     from canopy_kit.config.rig import extrinsics_mode, rig_overrides
     from canopy_kit.errors import InputError
-    from canopy_kit.io.pcap_drive import GnssTrackOption
     from canopy_kit.mapping.map_source import MapFile, run_input
-    from canopy_kit.pipeline import run as run_pipeline
 
     if stream and strict:  # a streamed run has no checks: --strict would pass it unchecked
         raise InputError(
@@ -112,6 +110,10 @@ def run(
         with output_folder(out):
             run_streaming(config, bag, out, extra_inputs=drone_images or truth, orchard=orchard)
         return
+    # Imported once the inputs are checked: the pipeline loads scikit-learn and SciPy (1-2 s)
+    from canopy_kit.io.pcap_drive import GnssTrackOption
+    from canopy_kit.pipeline import run as run_pipeline
+
     with output_folder(out), progress_bar(transient=True) as progress:
         results = run_pipeline(
             config,

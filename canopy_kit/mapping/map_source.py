@@ -343,7 +343,8 @@ def check_trajectory_on_map(path: Path, trajectory: pd.DataFrame, cloud: PointCl
 
 def run_input(path: Path, trajectory: Path | None = None, crs: str | None = None) -> Any:
     """What ``canopy-kit run`` hands the pipeline: a :class:`MapFile` for a map file, else the
-    bag's path; InputError when ``--trajectory`` or ``--crs`` come with a bag."""
+    bag's path; InputError when ``--trajectory`` or ``--crs`` come with a bag, or when the bag
+    (or pcap capture) does not exist."""
     if is_map_file(path):
         return MapFile(Path(path), trajectory, crs)
     given = [name for name, v in (("--trajectory", trajectory), ("--crs", crs)) if v is not None]
@@ -351,4 +352,7 @@ def run_input(path: Path, trajectory: Path | None = None, crs: str | None = None
         raise InputError(
             f"{' and '.join(given)}: only for a map file (LAS/LAZ/PCD/PLY), not for {path}"
         )
+    from canopy_kit.io.bag import require_bag
+
+    require_bag(path)  # before the preset loads its plugins (scikit-learn, SciPy: 1-2 s)
     return path
