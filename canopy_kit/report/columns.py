@@ -45,6 +45,7 @@ COLUMN_LABELS: dict[str, str] = {
     "crown_kind": "Crown kind the interval took (dense, thin, mixed, sparse)",
     "volume_flags": "Volume flags",
     "segment_flags": "Segment flags",
+    "crown_contact": "Crown touching a neighbour's (share; ≥ 0.08: border uncertain)",
     "n_trunks": "Trunks detected",
     "aerial_diameter_m": "Drone crown diameter (max) [m]",
     "aerial_diameter_mean_m": "Drone crown diameter (mean) [m]",

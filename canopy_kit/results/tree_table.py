@@ -34,6 +34,9 @@ def tree_table(ctx: Any) -> pd.DataFrame:
         trunks = ctx.layout.trunks_per_segment(trees["segment"].to_numpy())
         trees["segment_flags"] = crown_outliers(trees.assign(n_trunks=trunks))
         trees["n_trunks"] = trunks
+    contact = _crown_contact(ctx, trees)
+    if contact is not None:  # interwoven crowns: the border, not the drive, sets the error
+        trees["crown_contact"] = contact
     feet = getattr(ctx.segmentation, "trunk_feet", None) or {}
     if feet:  # a wall cut at its trunks' midpoints: the rows whose trunks were probably missed
         trees["trunk_flags"] = trunk_flags(trees, feet)
@@ -49,6 +52,20 @@ def tree_table(ctx: Any) -> pd.DataFrame:
         trees = join_aerial(trees, ctx.aerial, ctx.config.ground_truth)
     rest = [c for c in trees.columns if c not in FIRST_COLUMNS]
     return trees[[c for c in FIRST_COLUMNS if c in trees.columns] + rest].reset_index(drop=True)
+
+
+def _crown_contact(ctx: Any, trees: pd.DataFrame) -> np.ndarray | None:
+    """Per tree: the share of its crown touching another tree's (``segment.contact``); None
+    without a labelled map of the same points (a wall, cut at its trunks, touches by design)."""
+    from canopy_kit.segment.contact import crown_contact
+
+    seg, cloud = ctx.segmentation, getattr(ctx.mapping, "map", None)
+    if cloud is None or "segment" not in trees or len(seg.labels) != len(cloud):
+        return None
+    if getattr(ctx.config.volume, "interval_kind", "") == "wall":
+        return None
+    share = crown_contact(cloud.xyz, seg.labels)
+    return np.array([share.get(int(s), np.nan) for s in trees["segment"]], dtype=float)
 
 
 TRUNKS_MISSED_NOTE = (

@@ -1,0 +1,58 @@
+"""Crown contact (``segment.contact``): the share of a tree's crown within reach of another
+tree's points, on hand-made crowns whose answer is known by construction, and the run check
+that names the interwoven trees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from canopy_kit.segment.contact import CELL_M, REACH_M, TOUCHING_CONTACT, crown_contact
+
+
+def lattice_cube(x0: float, n: int = 10) -> np.ndarray:
+    """n³ points, one per CELL_M voxel (cell centres), the cube's x starting at ``x0``."""
+    i = (np.arange(n) + 0.5) * CELL_M
+    x, y, z = np.meshgrid(i + x0, i, i, indexing="ij")
+    return np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+
+
+def test_two_cubes_touch_by_their_facing_layers_and_a_lone_one_not_at_all() -> None:
+    """Cube B starts 0.2 m beyond cube A's last layer: only that layer (100 of 1000 points)
+    lies within 0.3 m of B (the next is 0.35 m away), and B's first layer of A: 0.1 each. A
+    third cube 5 m away touches nothing; ground points (label -1) beside it are no tree, and
+    a crown scanned twice as densely keeps the same shares (the contact counts voxels)."""
+    assert REACH_M == pytest.approx(0.3) and CELL_M == pytest.approx(0.15)
+    a = lattice_cube(0.0)
+    b = lattice_cube(a[:, 0].max() + 0.2 - 0.5 * CELL_M)
+    c = lattice_cube(8.0)
+    ground = c.copy()
+    ground[:, 2] -= 0.1  # just under the lone cube: no tree's points
+    xyz = np.vstack([a, b, c, ground])
+    labels = np.repeat([0, 1, 2, -1], 1000)
+    share = crown_contact(xyz, labels)
+    assert share == pytest.approx({0: 0.1, 1: 0.1, 2: 0.0})
+    denser = np.vstack([xyz, xyz + 0.01])  # two returns per voxel
+    assert crown_contact(denser, np.concatenate([labels, labels])) == pytest.approx(share)
+
+
+def test_bad_input_names_the_shapes() -> None:
+    with pytest.raises(ValueError, match="crown_contact"):
+        crown_contact(np.zeros((4, 2)), np.zeros(4, int))
+    with pytest.raises(ValueError, match="one label per point"):
+        crown_contact(np.zeros((4, 3)), np.zeros(3, int))
+    assert crown_contact(np.zeros((3, 3)), np.full(3, -1)) == {}
+
+
+def test_the_check_names_the_interwoven_trees_for_information() -> None:
+    from canopy_kit.results.checks import touching_crowns_check
+
+    trees = pd.DataFrame(
+        {"tree_id": ["r0-L0", "r0-L1", "r0-L2"], "crown_contact": [0.0, 0.12, TOUCHING_CONTACT]}
+    )
+    check = touching_crowns_check(trees)
+    assert check.status == "info" and check.value == "2 (67 %)"
+    assert "r0-L1, r0-L2" in check.note and "r0-L0" not in check.note
+    free = touching_crowns_check(trees.assign(crown_contact=0.0))
+    assert free.value == "0 (0 %)" and free.note == ""
