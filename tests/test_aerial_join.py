@@ -88,6 +88,7 @@ def test_new_aerial_columns_have_labels() -> None:
     assert COLUMN_LABELS["aerial_diameter_across_row_m"] == "Drone crown extent across the row [m]"
     assert COLUMN_LABELS["aerial_diameter_along_row_m"] == "Drone crown extent along the row [m]"
     assert "envelope" in COLUMN_LABELS["aerial_envelope_volume_m3"]
+    assert "imagery" in COLUMN_LABELS["aerial_crown_flag"]
 
 
 def test_crowns_flagged_from_the_imagery_leave_the_agreement() -> None:
