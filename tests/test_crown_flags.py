@@ -145,3 +145,39 @@ def test_bad_input_names_the_parameter():
     with pytest.raises(ConfigError, match="fragment_area"):
         FlagOptions(fragment_area=3.0)
     assert flag_crowns(crowns.iloc[:0], 4.0).empty
+
+
+def test_the_cli_says_how_many_crowns_are_flagged(tmp_path, monkeypatch, capsys):
+    """``canopy-kit ground-truth`` prints the report's ``crown_flags`` (the flight's processing
+    replaced by a made-up result)."""
+    import sys
+    from types import SimpleNamespace
+
+    import ground_truth.pipeline as gp
+    from canopy_kit.cli import main
+
+    sfm = {
+        "registered_images": 5,
+        "total_images": 5,
+        "mean_reprojection_error_px": 0.5,
+        "gps_residual_rms_horizontal_m": 0.1,
+        "gps_residual_rms_vertical_m": 0.1,
+    }
+    flags = {"merged": 2, "fragment": 1, "tree_spacing_m": 4.72, "tree_spacing_source": "given"}
+    result = SimpleNamespace(
+        report={"sfm": sfm, "crown_flags": flags},
+        crowns=pd.DataFrame({"crown_id": [1, 2, 3]}),
+        trees=None,
+        paths={},
+    )
+    monkeypatch.setattr(gp, "process_flight", lambda *a, **k: result)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    argv = ["canopy-kit", "ground-truth", str(photos), "--out", str(tmp_path / "out")]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    out = " ".join(capsys.readouterr().out.split())
+    assert exit_info.value.code in (0, None), out
+    assert "crowns flagged from the imagery (crown_flag): 2 probably two trees, 1 fragments" in out
+    assert "4.72 m (given)" in out
