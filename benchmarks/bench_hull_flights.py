@@ -11,7 +11,9 @@ form, default the preset's), processes it with the default
 ``[ground_truth]`` settings (crowns from the imagery alone, every core) and prints one JSON line:
 crowns one-to-one with the true trees (within 1.5 m, crowns cut by the mosaic border left out),
 each model's bias and MAPE over those crowns, the recommended model, and the wall and CPU time
-per stage. Run flights one at a time: each uses every core for minutes.
+per stage; the crowns flagged from the imagery (``crown_flag``), how many of them hold two or
+more true crown centres or none (``trees_per_crown``, the simulator's truth), and the hull's
+bias and MAPE over the unflagged crowns alone. Run flights one at a time: each uses every core for minutes.
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ def main() -> None:
 
     from canopy_kit.evaluate.stats import agreement
     from ground_truth import process_flight
-    from ground_truth.flight_accuracy import crown_agreement
+    from ground_truth.crown_flags import FLAG_COLUMN
+    from ground_truth.flight_accuracy import crown_agreement, trees_per_crown
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=REPO / "work" / "bench_hull")
@@ -85,6 +88,17 @@ def main() -> None:
             "range_pct": [round(float(errors.min())), round(float(errors.max()))],
         }
     report = result.report
+    flags = result.crowns[FLAG_COLUMN].fillna("")
+    seg = result.segmentation
+    inside = trees_per_crown(seg.labels, seg.grid, result.crowns, truth)
+    inner = ~result.crowns["touches_border"].to_numpy(bool)
+    flagged = (flags != "").to_numpy()
+    _, m_kept = crown_agreement(result.crowns[flags == ""], truth)
+    hull_kept = {
+        "n": m_kept["matched"],
+        "bias_pct": round(m_kept.get("volume_hull_aerial_bias_pct", float("nan")), 1),
+        "mape_pct": round(m_kept.get("volume_hull_aerial_mape_pct", float("nan")), 1),
+    }
     line = {
         "flight": root.name,
         "photos": report["sfm"]["total_images"],
@@ -96,6 +110,17 @@ def main() -> None:
         "flight_views": report["flight_views"],
         "aerial_volume_model": report["aerial_volume_model"]["recommended"],
         "models": models,
+        "crown_flags": report["crown_flags"],
+        "flagged": {
+            "crowns": int(flagged.sum()),
+            "of_them_two_trees": int((flagged & (inside >= 2)).sum()),
+            "of_them_no_tree_centre": int((flagged & (inside == 0)).sum()),
+            "of_them_one_tree": int((flagged & (inside == 1)).sum()),
+            "inner_crowns_two_trees": int((inner & (inside >= 2)).sum()),
+            "inner_crowns_no_tree_centre": int((inner & (inside == 0)).sum()),
+            "flagged_ids": [int(i) for i in result.crowns.loc[flagged, "crown_id"]],
+        },
+        "hull_unflagged": hull_kept,
         "wall_s": round(wall, 1),
         "cpu_s": round(cpu, 1),
         "stage_s": {k: round(v, 1) for k, v in report["timings_s"].items()},

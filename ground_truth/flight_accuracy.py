@@ -14,6 +14,7 @@ import pandas as pd
 
 from canopy_kit.evaluate.stats import agreement
 from ground_truth.match import assign
+from ground_truth.raster import Grid
 from ground_truth.sfm import SparseModel
 
 
@@ -77,6 +78,8 @@ def crown_agreement(
             "hull_volume_m3": m.get("hull_volume_m3", pd.Series(np.nan, index=m.index)),
         }
     )
+    if "crown_id" in m:
+        table["crown_id"] = m["crown_id"].to_numpy()
     if "extent_along_row_m" in t and "diameter_along_row_m" in m:
         table["along_row_true_m"] = t["extent_along_row_m"].to_numpy()
         table["along_row_m"] = m["diameter_along_row_m"].to_numpy()
@@ -130,3 +133,18 @@ def crown_agreement(
             metrics[f"volume_{name}_bias_pct"] = a.bias_pct
             metrics[f"volume_{name}_mape_pct"] = a.mape_pct
     return table, metrics
+
+
+def trees_per_crown(
+    labels: np.ndarray, grid: Grid, crowns: pd.DataFrame, truth: pd.DataFrame
+) -> np.ndarray:
+    """How many true crown centres (``crown_x``, ``crown_y`` of the simulator's trees) lie in
+    each crown's label: 1 for a crown of one tree, 2 or more for trees merged into one
+    label, 0 for a fragment (or a crown of no tree)."""
+    r, c = grid.index(truth["crown_x"].to_numpy(float), truth["crown_y"].to_numpy(float))
+    r, c = np.round(r).astype(int), np.round(c).astype(int)
+    inside = (r >= 0) & (r < labels.shape[0]) & (c >= 0) & (c < labels.shape[1])
+    hit = labels[r[inside], c[inside]]
+    counts = pd.Series(hit[hit > 0]).value_counts()
+    ids = crowns["crown_id"].astype(int)
+    return ids.map(counts).fillna(0).astype(int).to_numpy()

@@ -18,6 +18,13 @@ from canopy_kit.core.geo import LocalFrame
 from canopy_kit.core.gimbal import is_oblique
 from canopy_kit.errors import ConfigError, ProcessingError
 from ground_truth.camera import PosedCamera
+from ground_truth.crown_flags import (
+    FLAG_COLUMN,
+    crown_rows,
+    flag_crowns,
+    flag_spacing,
+    flag_summary,
+)
 from ground_truth.crowns import (
     CrownOptions,
     CrownSegmentation,
@@ -329,6 +336,7 @@ def process_flight(
     summary["crown_seeding"] = seg.seeding
     if seg.row_layout is not None:
         summary["crown_rows"] = seg.row_layout.to_dict()
+    summary["crown_flags"] = crowns.attrs.get("crown_flags")
     row_dir = crowns.attrs.get("row_direction")
     if row_dir is not None:
         summary["row_direction"] = row_dir.to_dict()
@@ -370,6 +378,10 @@ def crowns_stage(
     for attempt in range(2):
         seg = delineate_crowns(mosaic.rgb, mosaic.valid, chm, mosaic.grid, seeds_xy, crown_opts)
         crowns = measure_crowns(seg, chm, row_direction)
+        spacing, source = flag_spacing(crowns, seg.row_layout, opts.tree_spacing_m)
+        rows = crown_rows(crowns[["x", "y"]].to_numpy(), seg.row_layout)
+        crowns[FLAG_COLUMN] = flag_crowns(crowns, spacing, rows)
+        crowns.attrs["crown_flags"] = flag_summary(crowns[FLAG_COLUMN], spacing, source)
         lat, lon, _ = frame.to_wgs84(crowns[["x", "y"]].to_numpy()) if len(crowns) else ([], [], [])
         crowns.insert(3, "lat", lat)
         crowns.insert(4, "lon", lon)

@@ -88,3 +88,28 @@ def test_new_aerial_columns_have_labels() -> None:
     assert COLUMN_LABELS["aerial_diameter_across_row_m"] == "Drone crown extent across the row [m]"
     assert COLUMN_LABELS["aerial_diameter_along_row_m"] == "Drone crown extent along the row [m]"
     assert "envelope" in COLUMN_LABELS["aerial_envelope_volume_m3"]
+    assert "imagery" in COLUMN_LABELS["aerial_crown_flag"]
+
+
+def test_crowns_flagged_from_the_imagery_leave_the_agreement() -> None:
+    """A crown the drone side flagged (``aerial_crown_flag``) keeps its numbers, but its tree gets
+    ``aerial_flag`` and no error, even where the diameters agree; read back from a CSV, an
+    empty flag is NaN and stays no flag."""
+    lidar = pd.DataFrame(
+        {
+            "segment": [0, 1, 2],
+            "crown_diameter_m": [4.0, 4.0, 4.0],
+            "volume_convex_hull_m3": [30.0, 30.0, 30.0],
+            "volume_alpha_m3": [20.0, 20.0, 20.0],
+        }
+    )
+    aerial = aerial_result([4.0, 4.0, 0.4])
+    aerial.trees["aerial_crown_flag"] = [np.nan, "merged", "fragment"]
+    out = join_aerial(lidar, aerial, GroundTruthConfig())
+    sphere = np.pi * 4.0**3 / 6  # hand-computed: 33.51 m³
+    assert out.loc[0, "aerial_flag"] == ""
+    assert np.isclose(out.loc[0, "error_alpha_vs_aerial_pct"], 100 * (20 - sphere) / sphere)
+    assert out.loc[1, "aerial_flag"] == "aerial crown flagged from the drone imagery (merged)"
+    assert "fragment (diameter below" in out.loc[2, "aerial_flag"]  # the LiDAR's reason first
+    assert out.loc[1, "aerial_sphere_volume_m3"] > 0
+    assert out.loc[[1, 2], "error_alpha_vs_aerial_pct"].isna().all()

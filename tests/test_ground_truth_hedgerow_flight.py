@@ -65,3 +65,29 @@ def test_rows_beat_chm_maxima_on_the_same_rasters(hedgerow_flight):
         )
         found[mode] = crown_agreement(measure_crowns(seg, chm), truth)[1]["matched"]
     assert found["rows"] > found["chm_maxima"], found
+
+
+def test_no_correctly_delineated_crown_is_flagged(hedgerow_flight):
+    """``crown_flag`` (from the imagery alone) leaves every crown that holds exactly one true
+    crown centre and is one-to-one with that tree unflagged, and the CLI and report count it."""
+    from ground_truth.crown_flags import FLAG_COLUMN
+    from ground_truth.flight_accuracy import trees_per_crown
+    from ground_truth.pipeline import load_result
+
+    sim, out, stdout = hedgerow_flight
+    result = load_result(out)
+    report = result.report
+    crowns = result.crowns
+    flags = crowns[FLAG_COLUMN].fillna("").astype(str)
+    counts = report["crown_flags"]
+    assert counts["merged"] == int((flags == "merged").sum())
+    assert counts["fragment"] == int((flags == "fragment").sum())
+    assert counts["tree_spacing_source"].startswith("crown_rows")
+    assert ("crowns flagged" in stdout) == bool(counts["merged"] + counts["fragment"])
+    truth = pd.read_csv(sim / "truth" / "trees.csv")
+    inside = trees_per_crown(result.segmentation.labels, result.segmentation.grid, crowns, truth)
+    table, _ = crown_agreement(crowns, truth)
+    one_to_one = crowns["crown_id"].isin(table["crown_id"]).to_numpy()
+    correct = (inside == 1) & one_to_one & ~crowns["touches_border"].to_numpy(bool)
+    assert correct.sum() >= 8, (inside, table)
+    assert (flags[correct] == "").all(), crowns.loc[correct, ["crown_id", "area_m2", FLAG_COLUMN]]

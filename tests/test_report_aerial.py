@@ -85,3 +85,21 @@ def test_the_drone_section_marks_the_flights_reference(
     recommended = [c for c in captions if "Recommended aerial reference" in c]
     assert len(recommended) == 1 and marked in recommended[0]
     plt.close("all")
+
+
+def test_the_text_counts_the_crowns_flagged_from_the_imagery() -> None:
+    flagged = {
+        **OBLIQUE,
+        "crown_flags": {
+            "merged": 2,
+            "fragment": 1,
+            "tree_spacing_m": 4.72,
+            "tree_spacing_source": "crown_rows (hedge_width)",
+        },
+    }
+    text = aerial_reference_text(flagged)
+    assert "2 drone crown(s) probably hold two trees and 1 look like fragments" in text
+    assert "4.72 m" in text and "agreement statistics" in text
+    none = {**OBLIQUE, "crown_flags": {**flagged["crown_flags"], "merged": 0, "fragment": 0}}
+    assert "No drone crown is flagged" in aerial_reference_text(none)
+    assert "flagged" not in aerial_reference_text(OBLIQUE)  # made before the flags

@@ -116,6 +116,18 @@ def ground_truth(
     else:
         line += f", seeded by {result.report.get('crown_seeding', 'tree positions')}"
     console.print(line)
+    flags = result.report.get("crown_flags") or {}
+    if flags.get("merged") or flags.get("fragment"):
+        spacing = flags.get("tree_spacing_m")
+        console.print(
+            f"[yellow]crowns flagged[/] from the imagery (crown_flag): {flags['merged']} "
+            f"probably two trees, {flags['fragment']} fragments"
+            + (
+                f", against a tree spacing of {spacing:.2f} m ({flags['tree_spacing_source']})"
+                if spacing
+                else ""
+            )
+        )
     model, views = result.report.get("aerial_volume_model"), result.report.get("flight_views")
     if model and views:
         console.print(

@@ -59,6 +59,7 @@ COLUMN_LABELS: dict[str, str] = {
     "aerial_height_m": "Drone tree height [m]",
     "aerial_match_distance_m": "Drone crown match distance [m]",
     "aerial_flag": "Drone crown flag",
+    "aerial_crown_flag": "Drone crown flag from the imagery alone",
     "truth_id": "Simulator tree",
     "truth_tree_id": "Simulator tree",
     "truth_label": "Simulator label",

@@ -94,6 +94,7 @@ AERIAL_COLUMNS = {  # ground_truth's per-tree columns -> the names of the per-tr
     "aerial_hull_volume_m3": "aerial_hull_volume_m3",
     "aerial_height_m": "aerial_height_m",
     "aerial_distance_m": "aerial_match_distance_m",
+    "aerial_crown_flag": "aerial_crown_flag",
 }
 
 
@@ -104,7 +105,9 @@ def join_aerial(
 
     ``aerial_flag`` names an aerial crown that cannot be the same tree's crown (its diameter
     far from the LiDAR crown's: a fragment, or neighbours merged); such trees keep their
-    aerial columns but get no error and stay out of the agreement statistics.
+    aerial columns but get no error and stay out of the agreement statistics. So do trees
+    whose crown the drone side flagged from the imagery alone (``aerial_crown_flag``,
+    ``ground_truth.crown_flags``: probably two trees in one label, or a fragment).
     """
     st = settings or GroundTruthConfig()
     # A result made before a column existed (reused, read back from disk) lacks it.
@@ -122,6 +125,13 @@ def join_aerial(
         ],
         default="",
     )
+    if "aerial_crown_flag" in out:
+        imagery = out["aerial_crown_flag"].fillna("").astype(str)
+        out["aerial_flag"] = np.where(
+            (out["aerial_flag"] == "") & (imagery != ""),
+            "aerial crown flagged from the drone imagery (" + imagery + ")",
+            out["aerial_flag"],
+        )
     usable = comparable_aerial_sphere(out)
     for col in PAPER_VOLUME_COLUMNS:
         if col in out:
