@@ -55,6 +55,8 @@ def _side_phrase(r: pd.Series, name: str) -> str:
 def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = None) -> str:
     """One paragraph: the recommended estimator, what it measures, and its measured errors on
     the tree families (``table``: :func:`family_accuracy_table`, read when not given)."""
+    from canopy_kit.segment.contact import FREE_HELD, TOUCHING_CONTACT, TOUCHING_HELD
+
     table = family_accuracy_table() if table is None else table
     mine = table[table["method"] == recommended]
     shown = (
@@ -101,7 +103,11 @@ def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = 
         )
     return text + (
         " These are the errors of the drive; a crown the segmentation cuts wrongly (touching "
-        "crowns) errs beyond them, which a run checked against a simulated session counts. "
+        "crowns) errs beyond them, which a run checked against a simulated session counts: on "
+        "simulated almond runs the interval held "
+        f"{FREE_HELD} trees whose crown touches little of a neighbour's (crown_contact below "
+        f"{TOUCHING_CONTACT:g}) but {TOUCHING_HELD} for interwoven ones, whose volume follows "
+        "the border the segmentation drew (the checks name them). "
         "A crown volume also depends on its definition: "
         "an envelope drawn round the leaves' tips, or the convex hull, is larger (the table "
         "gives the paper's estimators on the same trees)."
