@@ -56,3 +56,32 @@ def test_the_check_names_the_interwoven_trees_for_information() -> None:
     assert "r0-L1, r0-L2" in check.note and "r0-L0" not in check.note
     free = touching_crowns_check(trees.assign(crown_contact=0.0))
     assert free.value == "0 (0 %)" and free.note == ""
+
+
+def test_an_interwoven_trees_interval_is_widened_and_says_so() -> None:
+    """Trees of 10 m³ with the families' interval 9.8-11: the free one keeps it; the
+    interwoven one (contact 0.12) spans 0.964-1.942 x its estimate and is flagged; one whose
+    interval was already wider below (9.0-30, one-sided) keeps those bounds and gets the flag
+    after its own; one without an interval (NaN) keeps none; another estimator is unchanged."""
+    from canopy_kit.volume.interwoven import INTERWOVEN_RATIOS, widen_for_contact
+
+    lo_r, hi_r = INTERWOVEN_RATIOS["foliage_envelope"]
+    trees = pd.DataFrame(
+        {
+            "volume_foliage_envelope_m3": [10.0, 10.0, 10.0, 10.0],
+            "volume_low_m3": [9.8, 9.8, 9.0, np.nan],
+            "volume_high_m3": [11.0, 11.0, 30.0, np.nan],
+            "crown_contact": [0.0, 0.12, 0.2, 0.3],
+            "volume_interval_flags": ["", "", "one-sided scan", ""],
+        }
+    )
+    out = widen_for_contact(trees, "foliage_envelope", "volume_foliage_envelope_m3", 0.08)
+    assert out["volume_low_m3"].tolist()[:3] == pytest.approx([9.8, 10 * lo_r, 9.0])
+    assert out["volume_high_m3"].tolist()[:3] == pytest.approx([11.0, 10 * hi_r, 30.0])
+    assert np.isnan(out["volume_low_m3"][3]) and np.isnan(out["volume_high_m3"][3])
+    flags = out["volume_interval_flags"].tolist()
+    assert flags[0] == "" and flags[3] == ""
+    assert flags[1].startswith("interwoven crown (contact 0.12)")
+    assert flags[2].startswith("one-sided scan; interwoven crown (contact 0.20)")
+    same = widen_for_contact(trees, "convex_hull", "volume_convex_hull_m3", 0.08)
+    assert same.equals(trees)

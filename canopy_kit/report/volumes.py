@@ -55,8 +55,6 @@ def _side_phrase(r: pd.Series, name: str) -> str:
 def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = None) -> str:
     """One paragraph: the recommended estimator, what it measures, and its measured errors on
     the tree families (``table``: :func:`family_accuracy_table`, read when not given)."""
-    from canopy_kit.segment.contact import FREE_HELD, TOUCHING_CONTACT, TOUCHING_HELD
-
     table = family_accuracy_table() if table is None else table
     mine = table[table["method"] == recommended]
     shown = (
@@ -103,14 +101,35 @@ def estimator_text(recommended: str, params: dict, table: pd.DataFrame | None = 
         )
     return text + (
         " These are the errors of the drive; a crown the segmentation cuts wrongly (touching "
-        "crowns) errs beyond them, which a run checked against a simulated session counts: on "
-        "simulated almond runs the interval held "
-        f"{FREE_HELD} trees whose crown touches little of a neighbour's (crown_contact below "
-        f"{TOUCHING_CONTACT:g}) but {TOUCHING_HELD} for interwoven ones, whose volume follows "
-        "the border the segmentation drew (the checks name them). "
-        "A crown volume also depends on its definition: "
+        "crowns) errs beyond them, which a run checked against a simulated session counts"
+        + touching_text(recommended)
+        + " A crown volume also depends on its definition: "
         "an envelope drawn round the leaves' tips, or the convex hull, is larger (the table "
         "gives the paper's estimators on the same trees)."
+    )
+
+
+def touching_text(recommended: str) -> str:
+    """The end of a sentence: how the interval fared on interwoven crowns, and that it is
+    widened for them (``volume.interwoven``), where that was measured for ``recommended``."""
+    from canopy_kit.segment.contact import TOUCHING_CONTACT
+    from canopy_kit.volume.interwoven import (
+        FREE_HELD,
+        INTERWOVEN_RATIOS,
+        UNWIDENED_HELD,
+        WIDENED_HELD,
+    )
+
+    ratios = INTERWOVEN_RATIOS.get(recommended)
+    if ratios is None:
+        return "."
+    return (
+        f": on simulated almond runs the interval held {FREE_HELD} trees whose crown touches "
+        f"little of a neighbour's (crown_contact below {TOUCHING_CONTACT:g}); an interwoven "
+        "one's volume follows the border the segmentation drew, so its interval is widened for "
+        f"it ({ratios[0]:g}-{ratios[1]:g} × the estimate, measured there), which then held "
+        f"{WIDENED_HELD} held-out interwoven trees ({UNWIDENED_HELD} before; the checks name "
+        "them)."
     )
 
 

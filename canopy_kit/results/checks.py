@@ -337,9 +337,10 @@ def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
 def touching_crowns_check(trees: pd.DataFrame) -> Check:
     """Trees whose crowns interweave with a neighbour's (``crown_contact`` at or above
     ``segment.contact.TOUCHING_CONTACT``): information, naming them. Where the segmentation
-    draws their border sets their volume's error, which their interval (the drive's) does not
-    cover (docs/VOLUMES.md "Touching crowns")."""
-    from canopy_kit.segment.contact import FREE_HELD, TOUCHING_CONTACT, TOUCHING_HELD
+    draws their border sets their volume's error; their interval is widened for it
+    (``volume.interwoven``; docs/VOLUMES.md "Touching crowns")."""
+    from canopy_kit.segment.contact import TOUCHING_CONTACT
+    from canopy_kit.volume.interwoven import UNWIDENED_HELD, WIDENED_HELD
 
     touching = (trees["crown_contact"] >= TOUCHING_CONTACT).to_numpy()
     names = _names(trees, touching, 12)
@@ -348,8 +349,9 @@ def touching_crowns_check(trees: pd.DataFrame) -> Check:
         None,
         f"{int(touching.sum())} ({100 * _share(int(touching.sum()), len(trees)):.0f} %)",
         f"crown_contact >= {TOUCHING_CONTACT:g}",
-        f"{names}: their interval covers the drive, not where the segmentation put the border "
-        f"(on simulated almond runs such trees held it {TOUCHING_HELD}, the others {FREE_HELD})"
+        f"{names}: their interval is widened for where the segmentation drew the border (on "
+        f"held-out simulated almond runs it then held {WIDENED_HELD} such trees, "
+        f"{UNWIDENED_HELD} before)"
         if names
         else "",
     )

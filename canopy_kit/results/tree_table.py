@@ -11,7 +11,7 @@ import pandas as pd
 
 from canopy_kit.config import GroundTruthConfig
 from canopy_kit.volume.metrics import POSITION_AND_SIZE
-from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS
+from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS, volume_column
 
 FIRST_COLUMNS = [
     "tree_id",
@@ -36,7 +36,12 @@ def tree_table(ctx: Any) -> pd.DataFrame:
         trees["n_trunks"] = trunks
     contact = _crown_contact(ctx, trees)
     if contact is not None:  # interwoven crowns: the border, not the drive, sets the error
+        from canopy_kit.segment.contact import TOUCHING_CONTACT
+        from canopy_kit.volume.interwoven import widen_for_contact
+
         trees["crown_contact"] = contact
+        rec = ctx.config.volume.recommended
+        trees = widen_for_contact(trees, rec, volume_column(rec), TOUCHING_CONTACT)
     feet = getattr(ctx.segmentation, "trunk_feet", None) or {}
     if feet:  # a wall cut at its trunks' midpoints: the rows whose trunks were probably missed
         trees["trunk_flags"] = trunk_flags(trees, feet)

@@ -8,7 +8,7 @@ crown cut from an interwoven almond row, a tenth or more. Measured on simulated 
 trees with contact up to 0.03 held their volume interval 33 of 33 times, between 0.03 and
 0.08 41 of 46, at or above ``TOUCHING_CONTACT`` (0.08, chosen on seeds 8101-8106) 26 of 50
 (14 of 29 on the held-out seeds 8107-8112): the segmentation's border, not the drive, sets
-their error, and the interval covers only the drive.
+their error; their interval is widened for it (``volume.interwoven``).
 """
 
 from __future__ import annotations
@@ -18,11 +18,6 @@ import numpy as np
 CELL_M = 0.15  # canopy thinned to one point per voxel of this size (a map's density apart)
 REACH_M = 0.3  # a point this close to another tree's touches it (two cells)
 TOUCHING_CONTACT = 0.08  # at or above: the tree's border with its neighbours is uncertain
-#: The recommended volume's interval on simulated almond runs (2 x 6 trees, seeds 8101-8112,
-#: the last six held out and run once): how often it held trees at or above
-#: ``TOUCHING_CONTACT``, and the others (the run's check and the report say it).
-TOUCHING_HELD = "26 of 50 times"
-FREE_HELD = "74 of 79"
 
 
 def crown_contact(xyz: np.ndarray, labels: np.ndarray) -> dict[int, float]:
