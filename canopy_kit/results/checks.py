@@ -322,7 +322,7 @@ def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
         note = _names(trees, wide, 12)
         out.append(
             Check(
-                "volumes with a wide interval (sparse or deeply lobed crowns)",
+                "volumes with a wide interval (sparse, deeply lobed or interwoven crowns)",
                 None,
                 f"{int(wide.sum())} ({100 * _share(int(wide.sum()), n):.0f} %)",
                 "",
