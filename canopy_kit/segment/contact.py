@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from canopy_kit.core.voxel import linear_keys, voxel_keys
+
 CELL_M = 0.15  # canopy thinned to one point per voxel of this size (a map's density apart)
 REACH_M = 0.3  # a point this close to another tree's touches it (two cells)
 TOUCHING_CONTACT = 0.08  # at or above: the tree's border with its neighbours is uncertain
@@ -35,11 +37,8 @@ def crown_contact(xyz: np.ndarray, labels: np.ndarray) -> dict[int, float]:
     trees = np.flatnonzero(labels >= 0)
     if len(trees) == 0:
         return {}
-    cells = np.floor(xyz[trees] / CELL_M).astype(np.int64)
-    cells -= cells.min(axis=0)
-    size = cells.max(axis=0) + 1
-    key = (cells[:, 0] * size[1] + cells[:, 1]) * size[2] + cells[:, 2]  # one integer per cell
-    _, first = np.unique(key, return_index=True)
+    cells = voxel_keys(xyz[trees], CELL_M, origin=np.zeros(3))  # a grid fixed to the frame
+    _, first = np.unique(linear_keys(cells - cells.min(axis=0)), return_index=True)
     points, owner = xyz[trees[first]], labels[trees[first]]
     pairs = cKDTree(points).query_pairs(REACH_M, output_type="ndarray")
     across = pairs[owner[pairs[:, 0]] != owner[pairs[:, 1]]]
