@@ -227,3 +227,102 @@ def test_trees_outside_the_visited_area_are_not_missing():
     gone = np.delete(half, 3, axis=0)
     m = match_trees(gone, LAYOUT, MatchSettings())
     assert m.missing.tolist() == [3]
+
+
+def _with_interval(table: pd.DataFrame, contact: float = 0.1) -> pd.DataFrame:
+    """A visit's table with what a run adds: the alpha shape's interval, the void-free
+    volume, crown contact, trunk flags and the aerial check with its crown flag."""
+    v = table["volume_alpha_m3"].to_numpy()
+    n = len(table)
+    return table.assign(
+        volume_method="alpha_shape",
+        volume_low_m3=0.9 * v,
+        volume_high_m3=1.2 * v,
+        volume_without_voids_m3=0.8 * v,
+        volume_interval_flags=["interwoven crown" if i % 2 else "" for i in range(n)],
+        crown_contact=np.linspace(0.0, contact, n),
+        trunk_flags="",
+        aerial_diameter_m=3.4,
+        aerial_sphere_volume_m3=20.6,
+        aerial_crown_flag=["merged" if i == 0 else "" for i in range(n)],
+    )
+
+
+def test_intervals_contact_and_crown_flags_are_stored_and_bounds_are_no_method(tmp_path):
+    spring = _with_interval(visit(seed=1))
+    with OrchardStore(tmp_path / "o.duckdb") as store:
+        store.ingest(record("spring", 4), spring)
+        methods = set(store.query("SELECT DISTINCT method FROM volumes")["method"])
+        assert methods == {"alpha_shape", "convex_hull"}  # not 'low', 'high', 'without_voids'
+        g = growth(store).sort_values("tree_id").reset_index(drop=True)
+        # tree ids are given in the table's order on a first session
+        assert np.allclose(g["low_m3"], spring["volume_low_m3"])
+        assert np.allclose(g["high_m3"], spring["volume_high_m3"])
+        assert g["interval_flags"].tolist() == spring["volume_interval_flags"].tolist()
+        assert np.allclose(g["crown_contact"], spring["crown_contact"])
+        hull = growth(store, method="convex_hull")
+        assert hull["low_m3"].isna().all() and hull["high_m3"].isna().all()
+        flags = store.query("SELECT crown_flag FROM aerial ORDER BY tree_id")["crown_flag"]
+        assert flags.tolist() == spring["aerial_crown_flag"].tolist()
+
+
+def test_a_version_1_store_is_upgraded_when_written_and_refused_when_read(tmp_path):
+    """A store as version 1 wrote it (no interval columns; the interval's bounds stored as
+    methods 'low' and 'high'): read only it is refused with the command that upgrades it;
+    `canopy-kit store upgrade` adds the columns, drops the pseudo-methods, keeps the rest."""
+    from test_cli_foundation import run_cli
+
+    path = tmp_path / "old.duckdb"
+    with OrchardStore(path) as store:
+        store.ingest(record("spring", 4), visit(seed=1))
+        n_volumes = store.one("SELECT count(*) FROM volumes")[0]
+        for table, column in (
+            ("observations", "crown_contact"),
+            ("observations", "trunk_flags"),
+            ("volumes", "low_m3"),
+            ("volumes", "high_m3"),
+            ("volumes", "interval_flags"),
+            ("aerial", "crown_flag"),
+        ):
+            store.run(f"ALTER TABLE {table} DROP COLUMN {column}")
+        store.run(
+            "INSERT INTO volumes SELECT session_id, tree_id, m.method, 1.0 FROM "
+            "(SELECT DISTINCT session_id, tree_id FROM volumes), "
+            "(SELECT unnest(['low', 'high']) AS method) m"
+        )
+        store.run("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
+    with pytest.raises(InputError, match=r"old\.duckdb: store schema version 1; upgrade it with "):
+        OrchardStore(path, read_only=True)
+    result = run_cli("store", "upgrade", str(path))
+    assert result.returncode == 0, result.stderr
+    assert "schema version 1 -> 2" in result.stdout
+    assert f"removed {2 * len(LAYOUT)} volume rows" in result.stdout
+    with OrchardStore(path, read_only=True) as store:
+        assert store.one("SELECT count(*) FROM volumes")[0] == n_volumes
+        g = growth(store)
+        assert len(g) == len(LAYOUT) and g["low_m3"].isna().all()
+    with OrchardStore(path) as store:  # the upgraded store takes new sessions with intervals
+        store.ingest(record("summer", 6), _with_interval(visit(seed=2)))
+        assert store.upgraded_from is None
+        assert growth(store)["low_m3"].notna().sum() == len(LAYOUT)
+    again = run_cli("store", "upgrade", str(path))
+    assert again.returncode == 0 and "already schema version 2" in again.stdout
+
+
+def test_a_real_runs_table_stores_its_estimators_and_its_interval(tiny_pistachio_run, tmp_path):
+    """The pipeline's own per-tree table: every configured estimator is a method, nothing
+    else is, and the interval lands on the recommended estimator's rows."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.volume.verb import volume_methods as configured
+
+    trees = tiny_pistachio_run.trees
+    recommended = load_preset("adaptive").volume.recommended
+    with OrchardStore(tmp_path / "o.duckdb") as store:
+        store.ingest(record("spring", 4), trees)
+        stored = store.query("SELECT method, low_m3, high_m3, volume_m3 FROM volumes")
+    assert set(stored["method"]) == set(configured(load_preset("adaptive").volume))
+    bounded = stored[stored["low_m3"].notna()]
+    assert set(bounded["method"]) == {recommended}
+    assert len(bounded) == trees["volume_low_m3"].notna().sum() > 0
+    assert (bounded["low_m3"] <= bounded["volume_m3"]).all()
+    assert (bounded["volume_m3"] <= bounded["high_m3"]).all()

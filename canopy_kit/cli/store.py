@@ -146,6 +146,30 @@ def add(
     )
 
 
+@app.command("upgrade")
+def upgrade(store: Path = typer.Argument(..., help="Store file")) -> None:
+    """Bring a store written by an older canopy-kit to this version's schema."""
+    from canopy_kit.cli.common import console
+    from canopy_kit.errors import InputError
+    from canopy_kit.store import OrchardStore
+    from canopy_kit.store.schema import SCHEMA_VERSION
+
+    if not store.exists():
+        raise InputError(f"{store}: store does not exist")
+    with OrchardStore(store) as db:
+        old, dropped = db.upgraded_from, db.upgrade_dropped
+    if old is None:
+        console.print(f"{store}: already schema version {SCHEMA_VERSION}")
+        return
+    console.print(f"[green]upgraded[/] {store}: schema version {old} -> {SCHEMA_VERSION}")
+    if dropped:
+        console.print(
+            f"removed {dropped} volume rows that version {old} stored as methods 'low', 'high' "
+            "and 'without_voids' (the interval's bounds and the void-free volume; add the "
+            "sessions again to keep their intervals)"
+        )
+
+
 @app.command("check")
 def check(store: Path = typer.Argument(..., help="Store file")) -> None:
     """Check the store's references and counts; exit code 3 when something is wrong."""

@@ -20,7 +20,14 @@ import pandas as pd
 from canopy_kit.core.extras import needs_extra
 from canopy_kit.errors import InputError
 from canopy_kit.store.identity import MatchSettings, TreeMatch, match_trees
-from canopy_kit.store.schema import AERIAL_COLUMNS, SCHEMA_VERSION, TABLES
+from canopy_kit.store.schema import (
+    AERIAL_COLUMNS,
+    AERIAL_TEXT_COLUMNS,
+    SCHEMA_VERSION,
+    TABLES,
+    UPGRADES,
+    V1_PSEUDO_METHODS,
+)
 
 _FAULT: Callable[[str], None] | None = None  # tests: called between the writes of an ingest
 
@@ -69,15 +76,36 @@ class IngestReport:
 
 
 def volume_methods(trees: pd.DataFrame) -> dict[str, str]:
-    """Volume column -> method name of a per-tree table (``volume_alpha_m3`` is alpha_shape)."""
-    from canopy_kit.volume.verb import VOLUME_COLUMN
+    """Volume column -> method name of a per-tree table (``volume_alpha_m3`` is alpha_shape);
+    the interval's bounds and the void-free volume are not methods."""
+    from canopy_kit.volume.verb import DERIVED_VOLUME_COLUMNS, VOLUME_COLUMN
 
     reverse = {v: k for k, v in VOLUME_COLUMN.items()}
     return {
         c: reverse.get(c, c[len("volume_") : -len("_m3")])
         for c in trees.columns
-        if c.startswith("volume_") and c.endswith("_m3")
+        if c.startswith("volume_") and c.endswith("_m3") and c not in DERIVED_VOLUME_COLUMNS
     }
+
+
+def interval_frame(trees: pd.DataFrame, methods: dict[str, str]) -> pd.DataFrame:
+    """Per tree: the method its interval bounds (``volume_method``), ``low_m3``, ``high_m3``
+    and ``interval_flags``; no rows when the table has no interval columns."""
+    from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS as IC
+
+    if not {IC["method"], IC["low"], IC["high"]} <= set(trees.columns):
+        return pd.DataFrame(columns=["row", "method", "low_m3", "high_m3", "interval_flags"])
+    flags = trees[IC["flags"]] if IC["flags"] in trees else pd.Series("", index=trees.index)
+    frame = pd.DataFrame(
+        {
+            "row": np.arange(len(trees)),
+            "method": trees[IC["method"]].astype(str).to_numpy(),
+            "low_m3": trees[IC["low"]].to_numpy(float),
+            "high_m3": trees[IC["high"]].to_numpy(float),
+            "interval_flags": flags.fillna("").astype(str).to_numpy(),
+        }
+    )
+    return frame[frame["method"].isin(set(methods.values()))]
 
 
 class OrchardStore:
@@ -101,7 +129,15 @@ class OrchardStore:
         except duckdb.Error as exc:
             raise InputError(f"{self.path}: cannot open the store ({exc})") from None
         self.volume_method = volume_method
-        if not read_only:
+        self.upgraded_from: str | None = None  # the version this open upgraded the store from
+        self.upgrade_dropped = 0  # volume rows of version 1's pseudo-methods the upgrade removed
+        if read_only:
+            try:
+                self._check_version()
+            except Exception as exc:
+                self.__exit__(type(exc), exc, None)
+                raise
+        else:
             try:
                 self._create()
             except Exception as exc:
@@ -115,11 +151,37 @@ class OrchardStore:
             found = self.one("SELECT value FROM meta WHERE key = 'schema_version'")
             if found is None:
                 self.run("INSERT INTO meta VALUES ('schema_version', ?)", [SCHEMA_VERSION])
+            elif found[0] in UPGRADES:
+                self.upgraded_from = found[0]
+                self.upgrade_dropped = self.one(
+                    "SELECT count(*) FROM volumes WHERE method IN (SELECT unnest(?))",
+                    [list(V1_PSEUDO_METHODS)],
+                )[0]
+                for statement in UPGRADES[found[0]]:
+                    self.run(statement)
+                self.run("UPDATE meta SET value = ? WHERE key = 'schema_version'", [SCHEMA_VERSION])
             elif found[0] != SCHEMA_VERSION:
                 raise InputError(
                     f"{self.path}: store schema version {found[0]}, this canopy-kit "
                     f"reads version {SCHEMA_VERSION}"
                 )
+
+    def _check_version(self) -> None:
+        """Opened read only: an InputError unless the store is of this version."""
+        has_meta = self.one(
+            "SELECT count(*) FROM information_schema.tables WHERE table_name = 'meta'"
+        )
+        if not has_meta or not has_meta[0]:
+            raise InputError(f"{self.path}: not an orchard store (it has no 'meta' table)")
+        found = self.one("SELECT value FROM meta WHERE key = 'schema_version'")
+        if found is None or found[0] == SCHEMA_VERSION:
+            return
+        how = (
+            f"upgrade it with 'canopy-kit store upgrade {self.path}'"
+            if found[0] in UPGRADES
+            else f"this canopy-kit reads version {SCHEMA_VERSION}"
+        )
+        raise InputError(f"{self.path}: store schema version {found[0]}; {how}")
 
     def close(self) -> None:
         """Close the file (committed data is already on disk)."""
@@ -253,12 +315,16 @@ class OrchardStore:
                     "tree_id": ids,
                     "method": m,
                     "volume_m3": trees[c].to_numpy(float),
+                    "row": np.arange(len(trees)),
                 }
             )
             for c, m in methods.items()
         ]
         if vols:
-            self._insert("volumes", pd.concat(vols, ignore_index=True))
+            table = pd.concat(vols, ignore_index=True).merge(
+                interval_frame(trees, methods), on=["row", "method"], how="left"
+            )
+            self._insert("volumes", table.drop(columns="row"))
         self._write_aerial(sid, trees, ids)
         _fault("volumes")
         self._update_trees(record, obs, report)
@@ -387,6 +453,10 @@ class OrchardStore:
         table = pd.DataFrame({"session_id": sid, "tree_id": ids[ok]})
         for col, name in AERIAL_COLUMNS.items():
             table[name] = trees.loc[ok, col].to_numpy(float) if col in trees else np.nan
+        for col, name in AERIAL_TEXT_COLUMNS.items():
+            table[name] = (
+                trees.loc[ok, col].fillna("").astype(str).to_numpy() if col in trees else ""
+            )
         self._insert("aerial", table)
 
     def _update_trees(self, record: SessionRecord, obs: pd.DataFrame, report: IngestReport) -> None:
@@ -473,12 +543,20 @@ def observations_frame(
             "crown_diameter_m": trees.get(
                 "crown_diameter_m", pd.Series(np.full(n, np.nan))
             ).to_numpy(),
-            "flags": trees.get("volume_flags", pd.Series([""] * n))
-            .fillna("")
-            .astype(str)
-            .to_numpy(),
+            "flags": _text(trees, "volume_flags"),
+            "crown_contact": trees.get("crown_contact", pd.Series(np.full(n, np.nan))).to_numpy(
+                float
+            ),
+            "trunk_flags": _text(trees, "trunk_flags"),
         }
     )
+
+
+def _text(trees: pd.DataFrame, column: str) -> np.ndarray:
+    """A text column of the per-tree table, empty strings where absent or missing."""
+    if column not in trees:
+        return np.full(len(trees), "", dtype=object)
+    return trees[column].fillna("").astype(str).to_numpy()
 
 
 def damaged_store_error(path: Path, exc: BaseException) -> InputError | None:

@@ -9,12 +9,13 @@ import pandas as pd
 
 from canopy_kit.errors import InputError
 
-# Per tree and session: the volume and how it changed since the tree's first and previous
-# observation (dates in session order).
+# Per tree and session: the volume (with its interval where the run gave one for this method,
+# and the crown's contact with its neighbours') and how it changed since the tree's first and
+# previous observation (dates in session order).
 GROWTH_SQL = """
 SELECT t.orchard, v.tree_id, t."row" AS tree_row, t.label AS tree_label, t.status,
        s.session_id, s.date, o.x, o.y, o.height_m, o.crown_diameter_m, o.kind,
-       v.method, v.volume_m3,
+       v.method, v.volume_m3, v.low_m3, v.high_m3, v.interval_flags, o.crown_contact,
        first_value(v.volume_m3) OVER w AS first_volume_m3,
        v.volume_m3 / nullif(first_value(v.volume_m3) OVER w, 0) - 1 AS growth_since_first,
        v.volume_m3 / nullif(lag(v.volume_m3) OVER w, 0) - 1 AS growth_since_previous,

@@ -37,6 +37,9 @@ CONVEX_HULL_COLUMN = VOLUME_COLUMN["convex_hull"]
 ALPHA_COLUMN = VOLUME_COLUMN["alpha_shape"]
 #: The paper's two volume columns, in the table's order.
 PAPER_VOLUME_COLUMNS = (CONVEX_HULL_COLUMN, ALPHA_COLUMN)
+#: Per-tree table columns named like a volume that no estimator measured: the recommended
+#: estimator's volume without enclosed voids and the bounds of its interval.
+DERIVED_VOLUME_COLUMNS = ("volume_without_voids_m3", "volume_low_m3", "volume_high_m3")
 #: The estimators whose solids the report draws, when a run measures them: the paper's two.
 DRAWN_METHODS = ("convex_hull", "alpha_shape")
 
