@@ -85,3 +85,36 @@ def test_an_interwoven_trees_interval_is_widened_and_says_so() -> None:
     assert flags[2].startswith("one-sided scan; interwoven crown (contact 0.20)")
     same = widen_for_contact(trees, "convex_hull", "volume_convex_hull_m3", 0.08)
     assert same.equals(trees)
+
+
+def test_the_tables_contact_and_widening_come_from_the_labelled_points() -> None:
+    """``with_crown_contact`` (the batch tree table and the stream both use it): two touching
+    lattice cubes (contact 0.1 each, above TOUCHING_CONTACT) get their contact and the
+    widened interval, the lone cube neither; on a wall (cut at its trunks) nothing changes."""
+    from canopy_kit.config import load_preset
+    from canopy_kit.results.tree_table import with_crown_contact
+    from canopy_kit.volume.interwoven import INTERWOVEN_RATIOS
+
+    a = lattice_cube(0.0)
+    b = lattice_cube(a[:, 0].max() + 0.2 - 0.5 * CELL_M)
+    xyz = np.vstack([a, b, lattice_cube(8.0)])
+    labels = np.repeat([0, 1, 2], 1000)
+    trees = pd.DataFrame(
+        {
+            "segment": [2, 0, 1],
+            "volume_foliage_envelope_m3": [3.0, 3.0, 3.0],
+            "volume_low_m3": [2.9, 2.9, 2.9],
+            "volume_high_m3": [3.3, 3.3, 3.3],
+            "volume_interval_flags": ["", "", ""],
+        }
+    )
+    volume = load_preset("adaptive").volume
+    assert volume.recommended == "foliage_envelope" and 0.1 >= TOUCHING_CONTACT
+    out = with_crown_contact(trees, xyz, labels, volume)
+    assert out["crown_contact"].tolist() == pytest.approx([0.0, 0.1, 0.1])
+    lo_r, hi_r = INTERWOVEN_RATIOS["foliage_envelope"]
+    assert out["volume_low_m3"].tolist() == pytest.approx([2.9, 3 * lo_r, 3 * lo_r])
+    assert out["volume_high_m3"].tolist() == pytest.approx([3.3, 3 * hi_r, 3 * hi_r])
+    wall = load_preset("wall").volume
+    assert wall.interval_kind == "wall"
+    assert with_crown_contact(trees, xyz, labels, wall).equals(trees)

@@ -71,6 +71,8 @@ def test_stream_finds_the_batch_trees_with_volumes_within_2_percent(streamed, ti
     # estimators 0.4-0.8 %.
     limits = {col: 0.05 if col == "volume_mirror_m3" else 0.02 for col in diffs}
     assert all(d <= limits[col] for col, d in diffs.items()), diffs
+    # the crowns' contact with their neighbours', from each stretch's labelled points
+    assert (both["crown_contact_stream"] - both["crown_contact_batch"]).abs().max() <= 0.02
 
 
 @pytest.mark.slow

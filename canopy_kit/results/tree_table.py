@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from canopy_kit.config import GroundTruthConfig
+from canopy_kit.config import GroundTruthConfig, VolumeConfig
 from canopy_kit.volume.metrics import POSITION_AND_SIZE
 from canopy_kit.volume.verb import PAPER_VOLUME_COLUMNS, volume_column
 
@@ -34,14 +34,9 @@ def tree_table(ctx: Any) -> pd.DataFrame:
         trunks = ctx.layout.trunks_per_segment(trees["segment"].to_numpy())
         trees["segment_flags"] = crown_outliers(trees.assign(n_trunks=trunks))
         trees["n_trunks"] = trunks
-    contact = _crown_contact(ctx, trees)
-    if contact is not None:  # interwoven crowns: the border, not the drive, sets the error
-        from canopy_kit.segment.contact import TOUCHING_CONTACT
-        from canopy_kit.volume.interwoven import widen_for_contact
-
-        trees["crown_contact"] = contact
-        rec = ctx.config.volume.recommended
-        trees = widen_for_contact(trees, rec, volume_column(rec), TOUCHING_CONTACT)
+    seg, cloud = ctx.segmentation, getattr(ctx.mapping, "map", None)
+    if cloud is not None and len(seg.labels) == len(cloud):
+        trees = with_crown_contact(trees, cloud.xyz, seg.labels, ctx.config.volume)
     feet = getattr(ctx.segmentation, "trunk_feet", None) or {}
     if feet:  # a wall cut at its trunks' midpoints: the rows whose trunks were probably missed
         trees["trunk_flags"] = trunk_flags(trees, feet)
@@ -59,18 +54,25 @@ def tree_table(ctx: Any) -> pd.DataFrame:
     return trees[[c for c in FIRST_COLUMNS if c in trees.columns] + rest].reset_index(drop=True)
 
 
-def _crown_contact(ctx: Any, trees: pd.DataFrame) -> np.ndarray | None:
-    """Per tree: the share of its crown touching another tree's (``segment.contact``); None
-    without a labelled map of the same points (a wall, cut at its trunks, touches by design)."""
-    from canopy_kit.segment.contact import crown_contact
+def with_crown_contact(
+    trees: pd.DataFrame, xyz: np.ndarray, labels: np.ndarray, volume: VolumeConfig
+) -> pd.DataFrame:
+    """``trees`` with ``crown_contact`` (the share of each crown touching another tree's,
+    ``segment.contact``, from the points ``xyz`` and their segment ``labels``) and the
+    recommended interval of interwoven crowns widened for their border
+    (``volume.interwoven``): there the border, not the drive, sets the error. Unchanged
+    without a ``segment`` column or on a wall (cut at its trunks, it touches by design)."""
+    from canopy_kit.segment.contact import TOUCHING_CONTACT, crown_contact
+    from canopy_kit.volume.interwoven import widen_for_contact
 
-    seg, cloud = ctx.segmentation, getattr(ctx.mapping, "map", None)
-    if cloud is None or "segment" not in trees or len(seg.labels) != len(cloud):
-        return None
-    if getattr(ctx.config.volume, "interval_kind", "") == "wall":
-        return None
-    share = crown_contact(cloud.xyz, seg.labels)
-    return np.array([share.get(int(s), np.nan) for s in trees["segment"]], dtype=float)
+    if "segment" not in trees or getattr(volume, "interval_kind", "") == "wall":
+        return trees
+    share = crown_contact(xyz, labels)
+    trees = trees.assign(
+        crown_contact=np.array([share.get(int(s), np.nan) for s in trees["segment"]], float)
+    )
+    rec = volume.recommended
+    return widen_for_contact(trees, rec, volume_column(rec), TOUCHING_CONTACT)
 
 
 TRUNKS_MISSED_NOTE = (

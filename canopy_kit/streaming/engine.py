@@ -205,6 +205,7 @@ class TreeStream:
         self, sub: PointCloud, state: RegionState, progress: np.ndarray
     ) -> tuple[list[tuple[StreamedTree, np.ndarray]], float]:
         """Segment a finished stretch; the trees to emit and where the waiting ones begin."""
+        from canopy_kit.results.tree_table import with_crown_contact
         from canopy_kit.segment.verb import make_segmenter, segment
         from canopy_kit.volume.verb import build_estimators, measure_trees
 
@@ -246,6 +247,8 @@ class TreeStream:
         table = measure_trees(
             sub, only, cfg.volume, ground_height=seg.ground.height, estimators=self._estimators
         )
+        # against every tree of the stretch, the waiting ones and those already emitted too
+        table = with_crown_contact(table, sub.xyz, labels, cfg.volume)
         out = []
         for rec in table.to_dict("records"):
             sid = int(rec["segment"])
