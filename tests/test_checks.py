@@ -110,6 +110,14 @@ def test_a_trunkless_piece_beside_its_tree_is_a_split_crown() -> None:
     assert info.status == "info" and "not judged" in info.note
     assert split_crown_check(split, {**layout, "tree_spacing_source": "segments"}, ST) == []
     assert _by_name(run_checks({"layout": layout}, split), "segments on no trunk").status == "fail"
+    # in a row whose trunks' feet the sensor barely saw (segment.trunk_feet), the note says
+    # that missed trunks are the likelier cause; the grade stays
+    feet = split.assign(trunk_flags=["", "", "", "", "its row's trunk feet barely sampled"])
+    (missed,) = split_crown_check(feet, layout, ST)
+    assert (
+        missed.status == "fail" and "1 of them in rows whose trunks' feet are barely" in missed.note
+    )
+    assert "barely sampled" not in cut.note
 
 
 def test_crowns_cut_at_a_set_canopy_top_fail_and_a_band_from_the_data_passes() -> None:

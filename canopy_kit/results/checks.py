@@ -194,6 +194,14 @@ def split_crown_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksCon
     if split.any():
         note += f"; on no trunk, a neighbour within {st.trunkless_neighbour_ratio:g}x: "
         note += _names(trees, split)
+        from canopy_kit.results.tree_table import flagged
+
+        missed = split & flagged(trees, "trunk_flags").to_numpy() if "trunk_flags" in trees else 0
+        if np.any(missed):  # segment.trunk_feet: a row whose trunks the sensor barely saw
+            note += (
+                f"; {int(np.sum(missed))} of them in rows whose trunks' feet are barely "
+                "sampled: there trunks were more likely missed (trees joined) than crowns split"
+            )
     return [
         Check(
             name,
