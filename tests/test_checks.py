@@ -344,3 +344,28 @@ def test_crowns_at_the_maps_edge_warn_and_many_fail() -> None:
     edge = [f"r0-L{i}" for i in (0, 1, 6, 7)]
     assert map_edge_check(trees, {"trees_at_map_edge": edge}, ST)[0].status == "fail"
     assert map_edge_check(trees, {}, ST) == []  # a run from before the outline was measured
+
+
+def test_a_warning_a_check_carries_is_listed_once_and_not_repeated_as_a_check() -> None:
+    """The run keeps every warning in metrics["warnings"] (the CLI prints them); the ones a
+    check of their own carries (the canopy ceiling's, the trunk feet's: the segmentation
+    names them) get no second "warning" check, any other warning does."""
+    from canopy_kit.segment.result import Segmentation
+
+    ceiling = "2 tree(s) reach preprocess.max_canopy_height (3.5 m): r0-L0, r0-L1"
+    feet = "row r0: 13 points per metre at the stem band's foot"
+    seg = Segmentation.__new__(Segmentation)
+    seg.ceiling_warning, seg.trunk_feet = ceiling, {"warning": feet}
+    assert seg.carried_warnings() == [ceiling, feet]
+    seg.ceiling_warning, seg.trunk_feet = "", {}
+    assert seg.carried_warnings() == []
+    other = "odometry: 3 sweeps skipped"
+    metrics = {
+        "segmentation": {"carried_warnings": [ceiling, feet]},
+        "warnings": [other, ceiling, feet],
+    }
+    warned = [c.note for c in run_checks(metrics, _row([4.0] * 4)) if c.name == "warning"]
+    assert warned == [other]
+    # metrics.json of a run from before the list: the trunk feet's warning still carried
+    old = {"segmentation": {"trunk_feet": {"warning": feet}}, "warnings": [feet, other]}
+    assert [c.note for c in run_checks(old, _row([4.0] * 4)) if c.name == "warning"] == [other]

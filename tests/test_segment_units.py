@@ -740,6 +740,7 @@ def test_crowns_reaching_max_canopy_height_are_named_in_a_warning() -> None:
     cut = [w for w in low.warnings if "max_canopy_height" in w]
     assert len(cut) == 1 and cut[0].startswith("3 tree(s) reach preprocess.max_canopy_height")
     assert all(t.tree_id in cut[0] for t in low.trees)
+    assert low.summary()["carried_warnings"] == cut  # its check carries it (results.checks)
     assert not [w for w in segment(orch.cloud, "adaptive").warnings if "max_canopy_height" in w]
     # a wire above the ceiling beside the row, outside every crown: the same points counted
     wire = np.column_stack([np.linspace(-3, 13, 400), np.full(400, 3.0), np.full(400, 4.5)])

@@ -712,8 +712,10 @@ def run_checks(
     checks += map_checks(metrics.get("mapping", {}), st)
     checks += aerial_checks(metrics, trees, st)
     checks += truth_checks(metrics.get("evaluation", {}))
-    # a warning a check of its own carries is not repeated
-    carried = {metrics.get("segmentation", {}).get("trunk_feet", {}).get("warning")}
+    # a warning that a check of its own carries (Segmentation.carried_warnings) is not repeated
+    segmentation = metrics.get("segmentation", {})
+    carried = set(segmentation.get("carried_warnings", []))
+    carried.add(segmentation.get("trunk_feet", {}).get("warning"))  # runs from before the list
     checks += [
         Check("warning", "warn", "", "", str(w))
         for w in metrics.get("warnings", [])

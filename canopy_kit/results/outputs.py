@@ -42,9 +42,7 @@ def run_metrics(ctx: Any, trees: pd.DataFrame) -> dict[str, Any]:
         "segmenter": ctx.config.segment.method,
     }
     warnings = list(getattr(ctx.mapping, "warnings", []))
-    # The crowns cut at a set canopy ceiling are a check of their own (checks.ceiling_check).
-    cut_note = getattr(ctx.segmentation, "ceiling_warning", "")
-    warnings += [w for w in getattr(ctx.segmentation, "warnings", []) if w != cut_note]
+    warnings += list(getattr(ctx.segmentation, "warnings", []))
     m["mapping"] = dict(getattr(ctx.mapping, "diagnostics", {}))
     m["segmentation"] = ctx.segmentation.summary()
     m["flagged_volumes"] = int(flagged(trees, "volume_flags").sum())

@@ -51,7 +51,7 @@ class Segmentation:
     canopy_band_m: tuple[float, float] = (float("nan"), float("nan"))  # heights segmented
     ceiling_source: str = ""  # "data" or the setting that fixed the band's top
     cut_at_ceiling: list[str] = field(default_factory=list)  # trees whose tops it cut
-    ceiling_warning: str = ""  # the warning naming them (a run's check carries it instead)
+    ceiling_warning: str = ""  # the warning naming them (a run's check carries it too)
     trunk_feet: dict[str, Any] = field(default_factory=dict)  # trunk-midpoint cut: trunks seen?
 
     @property
@@ -62,6 +62,12 @@ class Segmentation:
         """One row per tree, in row and label order."""
         columns = list(TreeRecord.__dataclass_fields__)
         return pd.DataFrame([asdict(t) for t in self.trees], columns=columns)
+
+    def carried_warnings(self) -> list[str]:
+        """The warnings that a run's check of their own carries (the canopy ceiling's, the
+        trunk feet's): the run lists them among its warnings but adds no check for them."""
+        feet = self.trunk_feet.get("warning", "") if self.trunk_feet else ""
+        return [w for w in (self.ceiling_warning, feet) if w]
 
     def summary(self) -> dict[str, Any]:
         """Counts, settings, warnings and timings as plain data (for JSON)."""
@@ -81,5 +87,6 @@ class Segmentation:
             "canopy_ceiling_source": self.ceiling_source,
             "cut_at_ceiling": list(self.cut_at_ceiling),
             **({"trunk_feet": self.trunk_feet} if self.trunk_feet else {}),
+            "carried_warnings": self.carried_warnings(),
             "timings_s": dict(self.timings),
         }
