@@ -329,7 +329,9 @@ def test_interval_check_counts_the_trees_whose_interval_holds_their_measurand() 
     assert held == {"held": 3, "n": 4, "missed_iou": [0.7]}
     check = interval_check("foliage_envelope", held)
     assert check.status == "warn" and check.value == "3/4 (75 %)"
-    assert "0.70-0.70" in check.note
+    assert "1 missed, its IoU with the true tree 0.70 " in check.note
+    two = interval_check("foliage_envelope", {"held": 2, "n": 4, "missed_iou": [0.7, 0.55]})
+    assert "2 missed, their IoU with the true tree 0.55-0.70" in two.note
     measurand[2] = 30.0
     assert interval_check("foliage_envelope", interval_holds(trees, measurand)).status == "pass"
     assert interval_holds(trees.drop(columns="volume_low_m3"), measurand) is None

@@ -115,7 +115,7 @@ def summary_items(ctx: Any, trees: pd.DataFrame, metrics: dict[str, Any]) -> dic
         "segmenter": metrics.get("segmenter", ""),
         "map points": f"{len(ctx.mapping.map):,}",
         "drive": format_value(metrics.get("mapping", {}).get("path_length_m"), " m", 0),
-        f"median {recommended} volume": format_value(
+        f"median volume ({recommended.replace('_', ' ')})": format_value(
             float(trees[rec_column].median()) if len(trees) and rec_column in trees else None,
             " m³",
             1,

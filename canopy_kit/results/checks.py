@@ -739,8 +739,10 @@ def interval_check(recommended: str, held: dict[str, Any]) -> Check:
     ious = [v for v in held.get("missed_iou", []) if np.isfinite(v)]
     note = ""
     if ious:
+        span = f"{min(ious):.2f}-{max(ious):.2f}" if len(ious) > 1 else f"{ious[0]:.2f}"
+        whose = "their IoU" if len(ious) > 1 else "its IoU"
         note = (
-            f"{len(ious)} missed, their IoU with the true tree {min(ious):.2f}-{max(ious):.2f} "
+            f"{len(ious)} missed, {whose} with the true tree {span} "
             "(the interval covers what the drive loses and an interwoven crown's border, not "
             "every segmentation cut)"
         )
