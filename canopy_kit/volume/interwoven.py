@@ -10,7 +10,11 @@ families' calibration) run from 0.96 to 1.94: such a tree is mostly measured sho
 its crown went to a neighbour). The interval of an interwoven tree spans at least
 ``INTERWOVEN_RATIOS`` × its estimate; on the held-out seeds 8107-8112, run once, it then held
 27 of 29 interwoven trees (14 of 29 before). One simulator's almond rows set these ratios
-(doubled trees 1.6-2.4 m apart among them): another orchard's interweaving may differ.
+(doubled trees 1.6-2.4 m apart among them). Checked once on sets they were not set on
+(docs/VOLUMES.md "Touching crowns"): the ``almond-paper`` orchard (seeds 8301-8306) 15 of 15
+(6 of 15 before), ``almond`` under a VLP-16 (8311-8314) 19 of 19 (11 of 19) and an HDL-32
+(8315-8318) 21 of 21 (13 of 21); their ratios 0.97-1.73, mostly well inside these. The
+independent generator's interweaving is not measured.
 """
 
 from __future__ import annotations
