@@ -115,6 +115,7 @@ def touching_text(recommended: str) -> str:
     from canopy_kit.segment.contact import TOUCHING_CONTACT
     from canopy_kit.volume.interwoven import (
         FREE_HELD,
+        HELD_OUT_RUNS,
         INTERWOVEN_RATIOS,
         UNWIDENED_HELD,
         WIDENED_HELD,
@@ -128,8 +129,8 @@ def touching_text(recommended: str) -> str:
         f"little of a neighbour's (crown_contact below {TOUCHING_CONTACT:g}); an interwoven "
         "one's volume follows the border the segmentation drew, so its interval is widened for "
         f"it ({ratios[0]:g}-{ratios[1]:g} × the estimate, measured there), which then held "
-        f"{WIDENED_HELD} held-out interwoven trees ({UNWIDENED_HELD} before; the checks name "
-        "them)."
+        f"{WIDENED_HELD} interwoven trees of {HELD_OUT_RUNS} ({UNWIDENED_HELD} before; the "
+        "checks name them)."
     )
 
 

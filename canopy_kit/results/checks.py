@@ -348,7 +348,7 @@ def touching_crowns_check(trees: pd.DataFrame) -> Check:
     draws their border sets their volume's error; their interval is widened for it
     (``volume.interwoven``; docs/VOLUMES.md "Touching crowns")."""
     from canopy_kit.segment.contact import TOUCHING_CONTACT
-    from canopy_kit.volume.interwoven import UNWIDENED_HELD, WIDENED_HELD
+    from canopy_kit.volume.interwoven import HELD_OUT_RUNS, UNWIDENED_HELD, WIDENED_HELD
 
     touching = (trees["crown_contact"] >= TOUCHING_CONTACT).to_numpy()
     names = _names(trees, touching, 12)
@@ -358,8 +358,7 @@ def touching_crowns_check(trees: pd.DataFrame) -> Check:
         f"{int(touching.sum())} ({100 * _share(int(touching.sum()), len(trees)):.0f} %)",
         f"crown_contact >= {TOUCHING_CONTACT:g}",
         f"{names}: their interval is widened for where the segmentation drew the border (on "
-        f"held-out simulated almond runs it then held {WIDENED_HELD} such trees, "
-        f"{UNWIDENED_HELD} before)"
+        f"{HELD_OUT_RUNS} it then held {WIDENED_HELD} such trees, {UNWIDENED_HELD} before)"
         if names
         else "",
     )
