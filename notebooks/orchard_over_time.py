@@ -72,7 +72,10 @@ def _(OrchardStore, mo, np, stored_sessions):
                 keep = np.setdiff1d(np.arange(len(layout)), absent)
                 t = pd.DataFrame({"segment": np.arange(len(xy)), "label": "", "row": layout[:, 0] // 6,
                                   "lat": lat, "lon": lon, "n_points": 5000, "height_m": 4.0,
-                                  "crown_diameter_m": 4.0, ALPHA_COLUMN: vol}).iloc[keep]
+                                  "crown_diameter_m": 4.0, ALPHA_COLUMN: vol,
+                                  # the interval a run gives its recommended estimator
+                                  "volume_method": "alpha_shape", "volume_low_m3": 0.9 * vol,
+                                  "volume_high_m3": 1.15 * vol}).iloc[keep]
                 db.ingest(SessionRecord(sid, "demo", dt.date(2025, month, 1)), t)
         return path
 
@@ -123,6 +126,9 @@ def _(changes, db, g, mo, np, orchard, orchard_trees, plt):
         t = trees[trees["status"] == status]
         style = {"color": "red"} if marker == "x" else {"facecolors": "none", "edgecolors": "red"}
         ax.scatter(t["x"], t["y"], marker=marker, s=120, label=status, **style)
+    grew = last[last["change_since_first"] == "grew"]  # intervals apart: measurably grown
+    ax.scatter(grew["x"], grew["y"], s=220, facecolors="none", edgecolors="black", lw=1.2,
+               label="grew beyond the intervals")
     young = last[last["kind"] == "replanted"]
     ax.scatter(young["x"], young["y"], marker="*", color="orange", s=160, label="replanted")
     ax.set(title=f"Change by the last visit ({g['date'].max()})", xlabel="x (m)", ylabel="y (m)",
@@ -131,6 +137,12 @@ def _(changes, db, g, mo, np, orchard, orchard_trees, plt):
     ev = changes(db, orchard.value)
     summary = (f"{len(trees)} trees known, median growth since first visit "
                f"{100 * np.nanmedian(last['growth_since_first']):.0f} %")
+    told = last["change_since_first"].dropna()
+    if len(told):  # the method carries the runs' intervals
+        counts = told.value_counts()
+        summary += (f"; by their volume intervals {counts.get('grew', 0)} of {len(told)} trees "
+                    f"grew measurably, {counts.get('shrank', 0)} shrank, "
+                    f"{counts.get('within the intervals', 0)} changed within the intervals")
     mo.vstack([fig2, mo.md(summary), ev])
     return
 

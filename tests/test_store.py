@@ -326,3 +326,29 @@ def test_a_real_runs_table_stores_its_estimators_and_its_interval(tiny_pistachio
     assert len(bounded) == trees["volume_low_m3"].notna().sum() > 0
     assert (bounded["low_m3"] <= bounded["volume_m3"]).all()
     assert (bounded["volume_m3"] <= bounded["high_m3"]).all()
+
+
+def test_growth_says_when_the_intervals_tell_it_from_the_measurement(tmp_path):
+    """Intervals 0.9-1.2 x the volume: a visit 1.2 x larger overlaps the first (not told
+    apart), 1.4 x larger lies wholly above it (grew); the first visit and a method without
+    intervals say nothing; the CLI shows the bounds and the verdict for that method."""
+    from test_cli_foundation import run_cli
+
+    path = tmp_path / "o.duckdb"
+    with OrchardStore(path) as store:
+        for sid, month, factor in (("spring", 4, 1.0), ("summer", 6, 1.2), ("autumn", 9, 1.4)):
+            table = _with_interval(visit(growth_factor=factor, seed=month))
+            store.ingest(record(sid, month), table)
+        g = growth(store)
+        verdict = g.groupby("session_id")["change_since_first"].agg(lambda c: set(c.dropna()))
+        assert verdict.to_dict() == {
+            "spring": set(),
+            "summer": {"within the intervals"},
+            "autumn": {"grew"},
+        }
+        assert growth(store, method="convex_hull")["change_since_first"].isna().all()
+    shown = run_cli("store", "growth", str(path), "--tree", "1")
+    assert shown.returncode == 0 and "change_since_first" in shown.stdout, shown.stdout
+    assert "grew" in shown.stdout and "low_m3" in shown.stdout
+    plain = run_cli("store", "growth", str(path), "--method", "convex_hull", "--tree", "1")
+    assert plain.returncode == 0 and "change_since_first" not in plain.stdout

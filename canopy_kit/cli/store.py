@@ -86,6 +86,9 @@ def growth(
             "growth_since_first",
             "growth_since_previous",
         ]
+        if table["low_m3"].notna().any():  # the method the runs' intervals bound
+            cols[cols.index("volume_m3") + 1 : cols.index("volume_m3") + 1] = ["low_m3", "high_m3"]
+            cols.append("change_since_first")
     if len(table):
         print_grid(frame_grid(table[cols], keys=2))
     else:

@@ -11,7 +11,10 @@ from canopy_kit.errors import InputError
 
 # Per tree and session: the volume (with its interval where the run gave one for this method,
 # and the crown's contact with its neighbours') and how it changed since the tree's first and
-# previous observation (dates in session order).
+# previous observation (dates in session order). change_since_first: 'grew' / 'shrank' when
+# this visit's interval lies wholly above / below the first visit's, 'within the intervals'
+# when they overlap (the change is not told from the measurement's error), NULL without
+# intervals or on the first visit.
 GROWTH_SQL = """
 SELECT t.orchard, v.tree_id, t."row" AS tree_row, t.label AS tree_label, t.status,
        s.session_id, s.date, o.x, o.y, o.height_m, o.crown_diameter_m, o.kind,
@@ -19,7 +22,12 @@ SELECT t.orchard, v.tree_id, t."row" AS tree_row, t.label AS tree_label, t.statu
        first_value(v.volume_m3) OVER w AS first_volume_m3,
        v.volume_m3 / nullif(first_value(v.volume_m3) OVER w, 0) - 1 AS growth_since_first,
        v.volume_m3 / nullif(lag(v.volume_m3) OVER w, 0) - 1 AS growth_since_previous,
-       date_diff('day', first_value(s.date) OVER w, s.date) AS days_since_first
+       date_diff('day', first_value(s.date) OVER w, s.date) AS days_since_first,
+       CASE WHEN row_number() OVER w = 1 OR v.low_m3 IS NULL
+                 OR first_value(v.low_m3) OVER w IS NULL THEN NULL
+            WHEN v.low_m3 > first_value(v.high_m3) OVER w THEN 'grew'
+            WHEN v.high_m3 < first_value(v.low_m3) OVER w THEN 'shrank'
+            ELSE 'within the intervals' END AS change_since_first
 FROM volumes v
 JOIN sessions s USING (session_id)
 JOIN trees t USING (tree_id)
