@@ -206,6 +206,16 @@ def test_measured_growth_matches_simulated_growth(orchard_batch):
     for sid, part in later.groupby("session_id"):
         ratio = (1 + part["growth_since_first"]).median() / (1 + part["true_growth"]).median()
         assert abs(ratio - 1) <= VOLUME_ERROR, sid
+    # The recommended estimator's intervals tell the simulated growth from the measurement:
+    # no tree reads as shrunk, and by autumn (crowns 1.22 x wider) every persistent tree's
+    # interval lies wholly above its spring one.
+    from canopy_kit.config import load_preset
+
+    with OrchardStore(report.store, read_only=True) as db:
+        told = growth(db, method=load_preset("adaptive").volume.recommended)
+    told = told[(told.days_since_first > 0) & (told.kind == "matched")]
+    assert len(told) == len(later) and (told["change_since_first"] != "shrank").all()
+    assert (told[told.session_id == "autumn"]["change_since_first"] == "grew").all(), told
 
 
 @pytest.mark.slow
