@@ -156,6 +156,17 @@ def test_trees_with_a_wide_volume_interval_are_named_for_information() -> None:
     assert check.note.startswith(", ".join(names))
     none = _by_name(run_checks({}, trees.assign(volume_interval_flags="")), "volumes with a wide")
     assert none.value == "0 (0 %)" and none.note == ""
+    # a tree with no interval at all (NaN bounds) is named apart from the wide ones
+    bounds = np.where(np.arange(10) == 7, np.nan, 1.0)
+    apart = _by_name(
+        run_checks({}, trees.assign(volume_interval_flags=flags, volume_low_m3=bounds)),
+        "volumes with a wide",
+    )
+    assert apart.value == "2 (20 %)"
+    assert (
+        apart.note
+        == f"{names[0]}: see volume_low_m3 / volume_high_m3; no interval: {names[1]} (volume_interval_flags says why)"
+    )
 
 
 def test_map_quality_from_the_mapping_diagnostics() -> None:

@@ -139,3 +139,34 @@ def test_trunk_flags_name_the_trees_of_the_thin_rows() -> None:
     trees = pd.DataFrame({"tree_id": ["a", "b", "c"]})
     got = trunk_flags(trees, {"flagged_trees": ["b"]})
     assert (got != "").tolist() == [False, True, False]
+
+
+def test_a_tree_of_a_row_whose_trunks_were_missed_claims_no_interval() -> None:
+    """Its volume may hold a missed neighbour: the bounds become NaN with the reason after
+    any earlier flag; the other trees keep theirs; a table without the columns is unchanged."""
+    from canopy_kit.results.tree_table import (
+        NO_INTERVAL_NOTE,
+        no_interval_where_trunks_missed,
+        trunk_flags,
+    )
+
+    trees = pd.DataFrame(
+        {
+            "tree_id": ["a", "b", "c"],
+            "volume_low_m3": [1.0, 2.0, 3.0],
+            "volume_high_m3": [1.2, 2.4, 3.6],
+            "volume_interval_flags": ["", "one-sided scan", ""],
+        }
+    )
+    trees["trunk_flags"] = trunk_flags(trees, {"flagged_trees": ["b", "c"]})
+    out = no_interval_where_trunks_missed(trees)
+    assert out["volume_low_m3"].tolist()[0] == 1.0 and out["volume_high_m3"].tolist()[0] == 1.2
+    assert out[["volume_low_m3", "volume_high_m3"]].iloc[1:].isna().all().all()
+    assert out["volume_interval_flags"].tolist() == [
+        "",
+        f"one-sided scan; {NO_INTERVAL_NOTE}",
+        NO_INTERVAL_NOTE,
+    ]
+    assert no_interval_where_trunks_missed(trees.drop(columns="trunk_flags")).equals(
+        trees.drop(columns="trunk_flags")
+    )

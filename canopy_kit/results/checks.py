@@ -326,15 +326,23 @@ def table_checks(trees: pd.DataFrame, st: ChecksConfig) -> list[Check]:
             )
         )
     if "volume_interval_flags" in trees:  # not an error of the run: trees to trust less
-        wide = flagged(trees, "volume_interval_flags").to_numpy()
-        note = _names(trees, wide, 12)
+        marked = flagged(trees, "volume_interval_flags").to_numpy()
+        bounds = trees.get("volume_low_m3", pd.Series(0.0, index=trees.index))
+        none = marked & bounds.isna().to_numpy()  # no interval at all (the flag says why)
+        wide = marked & ~none
+        notes = []
+        if wide.any():
+            notes.append(f"{_names(trees, wide, 12)}: see volume_low_m3 / volume_high_m3")
+        if none.any():
+            notes.append(f"no interval: {_names(trees, none, 12)} (volume_interval_flags says why)")
         out.append(
             Check(
-                "volumes with a wide interval (sparse, deeply lobed or interwoven crowns)",
+                "volumes with a wide interval or none (sparse, deeply lobed or interwoven "
+                "crowns, missed trunks)",
                 None,
-                f"{int(wide.sum())} ({100 * _share(int(wide.sum()), n):.0f} %)",
+                f"{int(marked.sum())} ({100 * _share(int(marked.sum()), n):.0f} %)",
                 "",
-                f"{note}: see volume_low_m3 / volume_high_m3" if note else "",
+                "; ".join(notes),
             )
         )
     if "crown_contact" in trees:
