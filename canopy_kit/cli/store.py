@@ -142,6 +142,7 @@ def add(
         session_id or f"{orchard}-{day.isoformat()}", orchard, day, run_dir=str(run_dir)
     )
     with output_file(store, None), OrchardStore(store) as db:
+        _say_upgraded(store, db)
         rep = db.ingest(record, pd.read_parquet(table), MatchSettings(gate_m=gate)).summary()
     console.print(
         f"[green]stored[/] {rep['session_id']}: {rep['n_matched']} known trees, "
@@ -160,10 +161,18 @@ def upgrade(store: Path = typer.Argument(..., help="Store file")) -> None:
     if not store.exists():
         raise InputError(f"{store}: store does not exist")
     with OrchardStore(store) as db:
-        old, dropped = db.upgraded_from, db.upgrade_dropped
+        if not _say_upgraded(store, db):
+            console.print(f"{store}: already schema version {SCHEMA_VERSION}")
+
+
+def _say_upgraded(store: Path, db: object) -> bool:
+    """Print what opening ``db`` for writing upgraded, if anything; whether it did."""
+    from canopy_kit.cli.common import console
+    from canopy_kit.store.schema import SCHEMA_VERSION
+
+    old, dropped = getattr(db, "upgraded_from", None), getattr(db, "upgrade_dropped", 0)
     if old is None:
-        console.print(f"{store}: already schema version {SCHEMA_VERSION}")
-        return
+        return False
     console.print(f"[green]upgraded[/] {store}: schema version {old} -> {SCHEMA_VERSION}")
     if dropped:
         console.print(
@@ -171,6 +180,7 @@ def upgrade(store: Path = typer.Argument(..., help="Store file")) -> None:
             "and 'without_voids' (the interval's bounds and the void-free volume; add the "
             "sessions again to keep their intervals)"
         )
+    return True
 
 
 @app.command("check")
