@@ -267,14 +267,25 @@ def test_intervals_contact_and_crown_flags_are_stored_and_bounds_are_no_method(t
 
 
 def test_a_version_1_store_is_upgraded_when_written_and_refused_when_read(tmp_path):
-    """A store as version 1 wrote it (no interval columns; the interval's bounds stored as
-    methods 'low' and 'high'): read only it is refused with the command that upgrades it;
-    `canopy-kit store upgrade` adds the columns, drops the pseudo-methods, keeps the rest."""
+    """Two sessions as version 1 stored them (no interval columns; the interval's bounds and
+    the void-free volume stored as methods 'low', 'high', 'without_voids'), one whose run
+    folder still holds its trees.parquet, one whose folder is gone. Read only, the store is
+    refused with the command that upgrades it; `canopy-kit store upgrade` adds the columns,
+    drops the pseudo-methods, refills the first session's columns from its run (equal to the
+    table's) and says which session stays empty."""
     from test_cli_foundation import run_cli
 
+    from canopy_kit.store.schema import V1_PSEUDO_METHODS
+
     path = tmp_path / "old.duckdb"
+    tables = {"spring": _with_interval(visit(seed=1)), "summer": _with_interval(visit(seed=2))}
+    runs = {sid: tmp_path / f"run_{sid}" for sid in tables}
+    runs["spring"].mkdir()
+    tables["spring"].to_parquet(runs["spring"] / "trees.parquet")
     with OrchardStore(path) as store:
-        store.ingest(record("spring", 4), visit(seed=1))
+        for sid, month in (("spring", 4), ("summer", 6)):
+            rec = SessionRecord(sid, "block-a", dt.date(2025, month, 1), run_dir=str(runs[sid]))
+            store.ingest(rec, tables[sid])
         n_volumes = store.one("SELECT count(*) FROM volumes")[0]
         for table, column in (
             ("observations", "crown_contact"),
@@ -288,25 +299,63 @@ def test_a_version_1_store_is_upgraded_when_written_and_refused_when_read(tmp_pa
         store.run(
             "INSERT INTO volumes SELECT session_id, tree_id, m.method, 1.0 FROM "
             "(SELECT DISTINCT session_id, tree_id FROM volumes), "
-            "(SELECT unnest(['low', 'high']) AS method) m"
+            "(SELECT unnest(?) AS method) m",
+            [list(V1_PSEUDO_METHODS)],
         )
         store.run("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
     with pytest.raises(InputError, match=r"old\.duckdb: store schema version 1; upgrade it with "):
         OrchardStore(path, read_only=True)
+    copy = tmp_path / "copy.duckdb"  # the library's account of the same upgrade
+    copy.write_bytes(path.read_bytes())
+    with OrchardStore(copy) as store:
+        assert store.upgrade is not None and store.upgrade.as_dict() == {
+            "from_version": "1",
+            "to_version": "2",
+            "dropped_rows": 3 * 2 * len(LAYOUT),
+            "refilled_sessions": ["spring"],
+            "sessions_left_empty": ["summer"],
+        }
     result = run_cli("store", "upgrade", str(path))
     assert result.returncode == 0, result.stderr
     assert "schema version 1 -> 2" in result.stdout
-    assert f"removed {2 * len(LAYOUT)} volume rows" in result.stdout
+    assert f"removed {3 * 2 * len(LAYOUT)} volume rows" in result.stdout
+    assert "filled from the runs of 1 session" in result.stdout
+    assert "left empty for 1 session whose run folder is gone: summer" in result.stdout
     with OrchardStore(path, read_only=True) as store:
         assert store.one("SELECT count(*) FROM volumes")[0] == n_volumes
-        g = growth(store)
-        assert len(g) == len(LAYOUT) and g["low_m3"].isna().all()
+        g = growth(store).set_index("session_id")
+        spring = g.loc["spring"].sort_values("tree_id")
+        assert np.allclose(spring["low_m3"], tables["spring"]["volume_low_m3"])
+        assert np.allclose(spring["high_m3"], tables["spring"]["volume_high_m3"])
+        assert np.allclose(spring["crown_contact"], tables["spring"]["crown_contact"])
+        assert g.loc["summer", "low_m3"].isna().all()
+        flags = store.query("SELECT session_id, crown_flag FROM aerial ORDER BY tree_id")
+        assert (flags[flags.session_id == "spring"]["crown_flag"] == "merged").sum() == 1
+        assert flags[flags.session_id == "summer"]["crown_flag"].isna().all()
     with OrchardStore(path) as store:  # the upgraded store takes new sessions with intervals
-        store.ingest(record("summer", 6), _with_interval(visit(seed=2)))
-        assert store.upgraded_from is None
-        assert growth(store)["low_m3"].notna().sum() == len(LAYOUT)
+        store.ingest(record("autumn", 9), _with_interval(visit(seed=3)))
+        assert store.upgrade is None
+        assert growth(store)["low_m3"].notna().sum() == 2 * len(LAYOUT)
     again = run_cli("store", "upgrade", str(path))
     assert again.returncode == 0 and "already schema version 2" in again.stdout
+
+
+def test_a_duckdb_file_of_another_program_is_not_taken_for_a_store(tmp_path):
+    """Opened for writing, a DuckDB file with tables but no store 'meta' table is refused and
+    left as it was (no store tables added); read only, it is refused too."""
+    import duckdb
+
+    path = tmp_path / "other.duckdb"
+    with duckdb.connect(str(path)) as con:
+        con.execute("CREATE TABLE foo (x INTEGER)")
+    for read_only in (False, True):
+        with pytest.raises(InputError, match=r"other\.duckdb: not an orchard store"):
+            OrchardStore(path, read_only=read_only)
+    with duckdb.connect(str(path), read_only=True) as con:
+        names = {
+            r[0] for r in con.execute("SELECT table_name FROM information_schema.tables").fetchall()
+        }
+    assert names == {"foo"}
 
 
 def test_a_real_runs_table_stores_its_estimators_and_its_interval(tiny_pistachio_run, tmp_path):
@@ -352,3 +401,16 @@ def test_growth_says_when_the_intervals_tell_it_from_the_measurement(tmp_path):
     assert "grew" in shown.stdout and "low_m3" in shown.stdout
     plain = run_cli("store", "growth", str(path), "--method", "convex_hull", "--tree", "1")
     assert plain.returncode == 0 and "change_since_first" not in plain.stdout
+
+
+def test_change_is_told_against_the_first_visit_that_had_an_interval(tmp_path):
+    """A first visit without an interval (as an upgraded store keeps it): the verdicts start
+    from the next visit with one; that visit itself says nothing."""
+    with OrchardStore(tmp_path / "o.duckdb") as store:
+        store.ingest(record("spring", 4), visit(seed=4))
+        store.ingest(record("summer", 6), _with_interval(visit(growth_factor=1.2, seed=6)))
+        store.ingest(record("autumn", 9), _with_interval(visit(growth_factor=1.8, seed=9)))
+        g = growth(store)
+    verdict = g.groupby("session_id")["change_since_first"].agg(lambda c: set(c.dropna()))
+    # autumn / summer = 1.5: 0.9 x 1.5 > 1.2, wholly above summer's interval
+    assert verdict.to_dict() == {"spring": set(), "summer": set(), "autumn": {"grew"}}

@@ -84,6 +84,13 @@ def batch(
             progress=progress,
             on_session=show,
         )
+    if result.store_upgrade:
+        u = result.store_upgrade
+        console.print(
+            f"  upgraded the store from schema version {u['from_version']} to "
+            f"{u['to_version']}; columns left empty for sessions whose run folder is gone: "
+            f"{', '.join(u['sessions_left_empty']) or 'none'}"
+        )
     for sid in result.skipped:
         console.print(f"  skipped {sid}: already in the store")
     for sid, ing in result.ingests.items():

@@ -170,17 +170,32 @@ def _say_upgraded(store: Path, db: object) -> bool:
     from canopy_kit.cli.common import console
     from canopy_kit.store.schema import SCHEMA_VERSION
 
-    old, dropped = getattr(db, "upgraded_from", None), getattr(db, "upgrade_dropped", 0)
-    if old is None:
+    done = getattr(db, "upgrade", None)
+    if done is None:
         return False
+    old = done.from_version
     console.print(f"[green]upgraded[/] {store}: schema version {old} -> {SCHEMA_VERSION}")
-    if dropped:
+    if done.dropped_rows:
         console.print(
-            f"removed {dropped} volume rows that version {old} stored as methods 'low', 'high' "
-            "and 'without_voids' (the interval's bounds and the void-free volume; add the "
-            "sessions again to keep their intervals)"
+            f"removed {done.dropped_rows} volume rows that version {old} stored as methods "
+            "'low', 'high' and 'without_voids' (the interval's bounds and the void-free volume)"
+        )
+    if done.refilled:
+        console.print(
+            f"new columns (intervals, crown contact, trunk and crown flags) filled from the runs "
+            f"of {_sessions(len(done.refilled))}"
+        )
+    if done.not_refilled:
+        console.print(
+            f"[yellow]left empty[/] for {_sessions(len(done.not_refilled))} whose run folder is "
+            f"gone: {', '.join(done.not_refilled)} (to have them, ingest their runs into a new "
+            "store)"
         )
     return True
+
+
+def _sessions(n: int) -> str:
+    return f"{n} session" if n == 1 else f"{n} sessions"
 
 
 @app.command("check")

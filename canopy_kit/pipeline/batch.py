@@ -89,6 +89,7 @@ class BatchReport:
     wall_s: float
     n_workers: int
     scheduler: str
+    store_upgrade: dict[str, Any] | None = None  # what opening an older store upgraded
 
     @property
     def ok(self) -> bool:
@@ -112,6 +113,7 @@ class BatchReport:
             "ingests": self.ingests,
             "failures": self.failures,
             "skipped": self.skipped,
+            **({"store_upgrade": self.store_upgrade} if self.store_upgrade else {}),
         }
 
 
@@ -437,6 +439,7 @@ def run_batch(
     report = progress or (lambda *_: None)
     store_path = out / "orchard.duckdb" if store is None else (Path(store) if store else None)
     db = OrchardStore(store_path) if store_path is not None else None
+    upgraded = db.upgrade.as_dict() if db is not None and db.upgrade is not None else None
     wall = time.perf_counter()
     skipped = [
         s.session_id
@@ -483,6 +486,7 @@ def run_batch(
         time.perf_counter() - wall,
         n_live,
         scheduler or "LocalCluster",
+        upgraded,
     )
     from canopy_kit.core.atomic import atomic_write_text
 

@@ -26,8 +26,8 @@ from canopy_kit.store.schema import (
     SCHEMA_VERSION,
     TABLES,
     UPGRADES,
-    V1_PSEUDO_METHODS,
 )
+from canopy_kit.store.upgrade import UpgradeReport, upgrade_store
 
 _FAULT: Callable[[str], None] | None = None  # tests: called between the writes of an ingest
 
@@ -129,8 +129,7 @@ class OrchardStore:
         except duckdb.Error as exc:
             raise InputError(f"{self.path}: cannot open the store ({exc})") from None
         self.volume_method = volume_method
-        self.upgraded_from: str | None = None  # the version this open upgraded the store from
-        self.upgrade_dropped = 0  # volume rows of version 1's pseudo-methods the upgrade removed
+        self.upgrade: UpgradeReport | None = None  # what opening it for writing upgraded
         if read_only:
             try:
                 self._check_version()
@@ -146,20 +145,18 @@ class OrchardStore:
 
     def _create(self) -> None:
         with self.transaction():
+            tables = {r[0] for r in self.run("SELECT table_name FROM information_schema.tables")}
+            if tables and "meta" not in tables:  # another program's DuckDB file: leave it be
+                raise InputError(
+                    f"{self.path}: not an orchard store (it holds tables but no 'meta' table)"
+                )
             for name, columns in TABLES.items():
                 self.run(f"CREATE TABLE IF NOT EXISTS {name} ({columns})")
             found = self.one("SELECT value FROM meta WHERE key = 'schema_version'")
             if found is None:
                 self.run("INSERT INTO meta VALUES ('schema_version', ?)", [SCHEMA_VERSION])
             elif found[0] in UPGRADES:
-                self.upgraded_from = found[0]
-                self.upgrade_dropped = self.one(
-                    "SELECT count(*) FROM volumes WHERE method IN (SELECT unnest(?))",
-                    [list(V1_PSEUDO_METHODS)],
-                )[0]
-                for statement in UPGRADES[found[0]]:
-                    self.run(statement)
-                self.run("UPDATE meta SET value = ? WHERE key = 'schema_version'", [SCHEMA_VERSION])
+                self.upgrade = upgrade_store(self, found[0])
             elif found[0] != SCHEMA_VERSION:
                 raise InputError(
                     f"{self.path}: store schema version {found[0]}, this canopy-kit "
@@ -544,9 +541,18 @@ def observations_frame(
                 "crown_diameter_m", pd.Series(np.full(n, np.nan))
             ).to_numpy(),
             "flags": _text(trees, "volume_flags"),
-            "crown_contact": trees.get("crown_contact", pd.Series(np.full(n, np.nan))).to_numpy(
-                float
-            ),
+            **observation_extras(trees),
+        }
+    )
+
+
+def observation_extras(trees: pd.DataFrame) -> pd.DataFrame:
+    """Per tree of a per-tree table: ``crown_contact`` (NaN where absent) and ``trunk_flags``
+    (empty where absent), as the store's observations keep them."""
+    contact = trees["crown_contact"] if "crown_contact" in trees else np.nan
+    return pd.DataFrame(
+        {
+            "crown_contact": pd.Series(contact, index=trees.index, dtype=float).to_numpy(),
             "trunk_flags": _text(trees, "trunk_flags"),
         }
     )

@@ -12,9 +12,10 @@ from canopy_kit.errors import InputError
 # Per tree and session: the volume (with its interval where the run gave one for this method,
 # and the crown's contact with its neighbours') and how it changed since the tree's first and
 # previous observation (dates in session order). change_since_first: 'grew' / 'shrank' when
-# this visit's interval lies wholly above / below the first visit's, 'within the intervals'
-# when they overlap (the change is not told from the measurement's error), NULL without
-# intervals or on the first visit.
+# this visit's interval lies wholly above / below that of the first visit that had one (a
+# store upgraded from version 1 may hold early visits without), 'within the intervals' when
+# they overlap (the change is not told from the measurement's error), NULL on a visit without
+# an interval and on the first one with.
 GROWTH_SQL = """
 SELECT t.orchard, v.tree_id, t."row" AS tree_row, t.label AS tree_label, t.status,
        s.session_id, s.date, o.x, o.y, o.height_m, o.crown_diameter_m, o.kind,
@@ -23,10 +24,9 @@ SELECT t.orchard, v.tree_id, t."row" AS tree_row, t.label AS tree_label, t.statu
        v.volume_m3 / nullif(first_value(v.volume_m3) OVER w, 0) - 1 AS growth_since_first,
        v.volume_m3 / nullif(lag(v.volume_m3) OVER w, 0) - 1 AS growth_since_previous,
        date_diff('day', first_value(s.date) OVER w, s.date) AS days_since_first,
-       CASE WHEN row_number() OVER w = 1 OR v.low_m3 IS NULL
-                 OR first_value(v.low_m3) OVER w IS NULL THEN NULL
-            WHEN v.low_m3 > first_value(v.high_m3) OVER w THEN 'grew'
-            WHEN v.high_m3 < first_value(v.low_m3) OVER w THEN 'shrank'
+       CASE WHEN v.low_m3 IS NULL OR v.high_m3 IS NULL OR count(v.low_m3) OVER w < 2 THEN NULL
+            WHEN v.low_m3 > first_value(v.high_m3 IGNORE NULLS) OVER w THEN 'grew'
+            WHEN v.high_m3 < first_value(v.low_m3 IGNORE NULLS) OVER w THEN 'shrank'
             ELSE 'within the intervals' END AS change_since_first
 FROM volumes v
 JOIN sessions s USING (session_id)

@@ -51,15 +51,20 @@ AERIAL_TEXT_COLUMNS = {"aerial_crown_flag": "crown_flag"}
 # they were volume methods ("low", "high", "without_voids"): they are not (volume_methods).
 V1_PSEUDO_METHODS = ("low", "high", "without_voids")
 
-# What brings a store of an older version to this one, statement by statement.
-UPGRADES = {
-    "1": [
-        "ALTER TABLE observations ADD COLUMN crown_contact DOUBLE",
-        "ALTER TABLE observations ADD COLUMN trunk_flags VARCHAR",
-        "ALTER TABLE volumes ADD COLUMN low_m3 DOUBLE",
-        "ALTER TABLE volumes ADD COLUMN high_m3 DOUBLE",
-        "ALTER TABLE volumes ADD COLUMN interval_flags VARCHAR",
-        "ALTER TABLE aerial ADD COLUMN crown_flag VARCHAR",
-        "DELETE FROM volumes WHERE method IN ('low', 'high', 'without_voids')",
-    ]
+# Each version's step to the next: (next version, statements); store.upgrade chains them.
+UPGRADES: dict[str, tuple[str, list[str]]] = {
+    "1": (
+        "2",
+        [
+            "ALTER TABLE observations ADD COLUMN crown_contact DOUBLE",
+            "ALTER TABLE observations ADD COLUMN trunk_flags VARCHAR",
+            "ALTER TABLE volumes ADD COLUMN low_m3 DOUBLE",
+            "ALTER TABLE volumes ADD COLUMN high_m3 DOUBLE",
+            "ALTER TABLE volumes ADD COLUMN interval_flags VARCHAR",
+            "ALTER TABLE aerial ADD COLUMN crown_flag VARCHAR",
+            "DELETE FROM volumes WHERE method IN ("
+            + ", ".join(f"'{m}'" for m in V1_PSEUDO_METHODS)
+            + ")",
+        ],
+    )
 }
