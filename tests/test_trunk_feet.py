@@ -170,3 +170,24 @@ def test_a_tree_of_a_row_whose_trunks_were_missed_claims_no_interval() -> None:
     assert no_interval_where_trunks_missed(trees.drop(columns="trunk_flags")).equals(
         trees.drop(columns="trunk_flags")
     )
+
+
+def test_trunk_flags_follow_the_ids_of_the_segmentation_that_measured_the_feet() -> None:
+    """A streamed stretch's table has segments, not the run's tree ids: the flags and the
+    withdrawn interval follow the ids given for its rows."""
+    from canopy_kit.results.tree_table import NO_INTERVAL_NOTE, with_trunk_flags
+
+    table = pd.DataFrame(
+        {
+            "segment": [4, 7],
+            "volume_low_m3": [1.0, 2.0],
+            "volume_high_m3": [1.2, 2.4],
+            "volume_interval_flags": ["", ""],
+        }
+    )
+    ids = table["segment"].map({4: "r0-L0", 7: "r0-L1"})
+    out = with_trunk_flags(table, {"flagged_trees": ["r0-L1"]}, ids)
+    assert (out["trunk_flags"] != "").tolist() == [False, True]
+    assert out["volume_low_m3"].tolist()[0] == 1.0 and np.isnan(out["volume_low_m3"][1])
+    assert out["volume_interval_flags"].tolist() == ["", NO_INTERVAL_NOTE]
+    assert "tree_id" not in out  # the run names its trees later

@@ -39,8 +39,7 @@ def tree_table(ctx: Any) -> pd.DataFrame:
         trees = with_crown_contact(trees, cloud.xyz, seg.labels, ctx.config.volume)
     feet = getattr(ctx.segmentation, "trunk_feet", None) or {}
     if feet:  # a wall cut at its trunks' midpoints: the rows whose trunks were probably missed
-        trees["trunk_flags"] = trunk_flags(trees, feet)
-        trees = no_interval_where_trunks_missed(trees)
+        trees = with_trunk_flags(trees, feet)
     frame = getattr(ctx.mapping, "frame", None)
     if frame is not None and len(trees):
         xyz = np.column_stack([trees["x"], trees["y"], np.zeros(len(trees))])
@@ -88,6 +87,18 @@ def trunk_flags(trees: pd.DataFrame, feet: dict[str, Any]) -> pd.Series:
     bad = set(feet.get("flagged_trees", []))
     ids = trees["tree_id"] if "tree_id" in trees else pd.Series("", index=trees.index)
     return pd.Series(np.where(ids.isin(bad), TRUNKS_MISSED_NOTE, ""), index=trees.index)
+
+
+def with_trunk_flags(
+    trees: pd.DataFrame, feet: dict[str, Any], tree_ids: pd.Series | None = None
+) -> pd.DataFrame:
+    """``trees`` with ``trunk_flags`` (:func:`trunk_flags`: the trees of the rows whose trunks
+    were probably missed, ``feet`` as ``segment.trunk_feet`` gives them) and no volume interval
+    for those trees (:func:`no_interval_where_trunks_missed`). ``tree_ids``: each row's id in
+    the segmentation that measured the feet (default: the ``tree_id`` column)."""
+    ids = trees["tree_id"] if tree_ids is None else tree_ids
+    named = pd.DataFrame({"tree_id": np.asarray(ids)}, index=trees.index)
+    return no_interval_where_trunks_missed(trees.assign(trunk_flags=trunk_flags(named, feet)))
 
 
 NO_INTERVAL_NOTE = (

@@ -205,7 +205,7 @@ class TreeStream:
         self, sub: PointCloud, state: RegionState, progress: np.ndarray
     ) -> tuple[list[tuple[StreamedTree, np.ndarray]], float]:
         """Segment a finished stretch; the trees to emit and where the waiting ones begin."""
-        from canopy_kit.results.tree_table import with_crown_contact
+        from canopy_kit.results.tree_table import with_crown_contact, with_trunk_flags
         from canopy_kit.segment.verb import make_segmenter, segment
         from canopy_kit.volume.verb import build_estimators, measure_trees
 
@@ -249,6 +249,12 @@ class TreeStream:
         )
         # against every tree of the stretch, the waiting ones and those already emitted too
         table = with_crown_contact(table, sub.xyz, labels, cfg.volume)
+        if seg.trunk_feet:  # a wall cut at its trunks: rows whose trunks were probably missed
+            ids = table["segment"].map({t.segment_id: t.tree_id for t in seg.trees})
+            table = with_trunk_flags(table, seg.trunk_feet, ids)
+            warning = seg.trunk_feet.get("warning", "")
+            if warning and table["trunk_flags"].astype(bool).any():
+                self.warnings.append(f"region {state.key}: {warning}")
         out = []
         for rec in table.to_dict("records"):
             sid = int(rec["segment"])
