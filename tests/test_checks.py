@@ -337,7 +337,7 @@ def test_interval_check_counts_the_trees_whose_interval_holds_their_measurand() 
     )
     measurand = pd.Series([10.0, 21.9, 40.0, 36.0, np.nan])
     held = interval_holds(trees, measurand)
-    assert held == {"held": 3, "n": 4, "missed_iou": [0.7]}
+    assert held == {"held": 3, "n": 4, "missed_iou": [0.7], "no_interval": 0}
     check = interval_check("foliage_envelope", held)
     assert check.status == "warn" and check.value == "3/4 (75 %)"
     assert "1 missed, its IoU with the true tree 0.70 " in check.note
@@ -346,6 +346,16 @@ def test_interval_check_counts_the_trees_whose_interval_holds_their_measurand() 
     measurand[2] = 30.0
     assert interval_check("foliage_envelope", interval_holds(trees, measurand)).status == "pass"
     assert interval_holds(trees.drop(columns="volume_low_m3"), measurand) is None
+    # trees that claim no interval (a wall row whose trunks were missed) are not counted, and
+    # said; with none left the check only informs
+    withdrawn = trees.assign(volume_low_m3=[9.0, np.nan, 27.0, 36.0, 5.0])
+    part = interval_holds(withdrawn, measurand)
+    assert part["n"] == 3 and part["no_interval"] == 1
+    assert "1 tree claims no interval, not counted" in interval_check("x", part).note
+    empty = interval_holds(trees.assign(volume_low_m3=np.nan), measurand)
+    assert empty["n"] == 0 and empty["no_interval"] == 4
+    info = interval_check("x", empty)
+    assert info.status == "info" and info.value == "0/0"
 
 
 def test_crowns_at_the_maps_edge_warn_and_many_fail() -> None:

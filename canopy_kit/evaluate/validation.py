@@ -182,12 +182,14 @@ def evaluate_against_truth(ctx: Any, trees: pd.DataFrame, sim_dir: Path) -> dict
 def interval_holds(trees: pd.DataFrame, measurand: pd.Series) -> dict[str, Any] | None:
     """How many trees' interval (``volume_low_m3`` … ``volume_high_m3``) holds their
     measurand, and the IoU with their true tree of those it misses (a crown the segmentation
-    cut wrongly is outside what the interval covers); None without bounds."""
+    cut wrongly is outside what the interval covers), and how many trees with a measurand
+    claim no interval (``no_interval``: not counted); None without bounds or measurands."""
     if "volume_low_m3" not in trees or "volume_high_m3" not in trees:
         return None
     low, high = trees["volume_low_m3"], trees["volume_high_m3"]
-    known = measurand.notna() & low.notna() & high.notna()
-    if not known.any():
+    bounded = low.notna() & high.notna()
+    known = measurand.notna() & bounded
+    if not measurand.notna().any():
         return None
     inside = (low <= measurand) & (measurand <= high)
     missed = known & ~inside
@@ -196,6 +198,7 @@ def interval_holds(trees: pd.DataFrame, measurand: pd.Series) -> dict[str, Any] 
         "held": int((known & inside).sum()),
         "n": int(known.sum()),
         "missed_iou": [round(float(v), 3) for v in iou[missed]],
+        "no_interval": int((measurand.notna() & ~bounded).sum()),
     }
 
 

@@ -682,7 +682,7 @@ def volume_truth_checks(evaluation: dict[str, Any]) -> list[Check]:
             )
         )
     held = evaluation.get("volumes", {}).get("recommended_interval")
-    if isinstance(held, dict) and held.get("n"):
+    if isinstance(held, dict) and (held.get("n") or held.get("no_interval")):
         out.append(interval_check(recommended, held))
     for method, v in evaluation.get("volumes", {}).items():
         if (
@@ -741,22 +741,32 @@ def interval_check(recommended: str, held: dict[str, Any]) -> Check:
     tree families it holds ≥ 90 % (docs/VOLUMES.md), below that a run warns (never fails: on
     a few trees one miss is 10-30 %). The interval covers what the drive loses and, on an
     interwoven crown, where the border was drawn (``volume.interwoven``), not every crown the
-    segmentation cut wrongly: the note gives the misses' IoU with their true tree."""
-    share = held["held"] / held["n"]
+    segmentation cut wrongly: the note gives the misses' IoU with their true tree, and how
+    many trees claim no interval (not counted; information only when none does)."""
+    name = f"{recommended} (recommended) interval holds its measurand"
+    notes = []
     ious = [v for v in held.get("missed_iou", []) if np.isfinite(v)]
-    note = ""
     if ious:
         span = f"{min(ious):.2f}-{max(ious):.2f}" if len(ious) > 1 else f"{ious[0]:.2f}"
         whose = "their IoU" if len(ious) > 1 else "its IoU"
-        note = (
+        notes.append(
             f"{len(ious)} missed, {whose} with the true tree {span} "
             "(the interval covers what the drive loses and an interwoven crown's border, not "
             "every segmentation cut)"
         )
+    if held.get("no_interval"):
+        k = held["no_interval"]
+        notes.append(
+            f"{k} {'tree claims' if k == 1 else 'trees claim'} no interval, not counted "
+            "(volume_interval_flags says why)"
+        )
+    if not held["n"]:
+        return Check(name, None, "0/0", "warn < 90 %", "; ".join(notes))
+    share = held["held"] / held["n"]
     return Check(
-        f"{recommended} (recommended) interval holds its measurand",
+        name,
         "warn" if share < 0.9 else "pass",
         f"{held['held']}/{held['n']} ({100 * share:.0f} %)",
         "warn < 90 %",
-        note,
+        "; ".join(notes),
     )
