@@ -36,11 +36,12 @@ CONTACT_CLASSES = ((0.0, 0.03), (0.03, 0.08), (0.08, 1.01))  # crown_contact cla
 def unwidened_interval(out: Path) -> pd.DataFrame | None:
     """Per segment: the volume stage's interval (``volume_low_m3``, ``volume_high_m3``), as
     the tree families' calibration set it before the table widened interwoven crowns; read
-    from the run's stage cache (one entry per stage), None without one."""
-    entries = sorted((out / ".cache").glob("volumes-*.pkl"))
-    if len(entries) != 1:
+    from the run's stage cache (the newest entry: the run just made it, older ones are other
+    code's), None without one."""
+    entries = sorted((out / ".cache").glob("volumes-*.pkl"), key=lambda e: e.stat().st_mtime)
+    if not entries:
         return None
-    with entries[0].open("rb") as fh:
+    with entries[-1].open("rb") as fh:
         volumes = pickle.load(fh)
     return volumes.table.set_index("segment")[["volume_low_m3", "volume_high_m3"]]
 

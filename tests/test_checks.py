@@ -112,7 +112,7 @@ def test_a_trunkless_piece_beside_its_tree_is_a_split_crown() -> None:
     assert _by_name(run_checks({"layout": layout}, split), "segments on no trunk").status == "fail"
     # in a row whose trunks' feet the sensor barely saw (segment.trunk_feet), the note says
     # that missed trunks are the likelier cause; the grade stays
-    feet = split.assign(trunk_flags=["", "", "", "", "its row's trunk feet barely sampled"])
+    feet = split.assign(trunk_flags="its row's trunk feet barely sampled")  # every tree's row
     (missed,) = split_crown_check(feet, layout, ST)
     assert (
         missed.status == "fail" and "1 of them in rows whose trunks' feet are barely" in missed.note

@@ -71,7 +71,9 @@ def test_stream_finds_the_batch_trees_with_volumes_within_2_percent(streamed, ti
     # estimators 0.4-0.8 %.
     limits = {col: 0.05 if col == "volume_mirror_m3" else 0.02 for col in diffs}
     assert all(d <= limits[col] for col, d in diffs.items()), diffs
-    # the crowns' contact with their neighbours', from each stretch's labelled points
+    # Wiring: the streamed table carries the crowns' contact as the batch one does (these
+    # pistachio crowns touch nothing, so both are about 0; the contact and the widening on
+    # touching crowns: tests/test_crown_contact.py, and docs/OUTPUTS.md for an almond stream)
     assert (both["crown_contact_stream"] - both["crown_contact_batch"]).abs().max() <= 0.02
 
 

@@ -179,6 +179,8 @@ def split_crown_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksCon
         return []
     if layout.get("tree_spacing_source") != "trunks" or not spacing or not np.isfinite(spacing):
         return []
+    from canopy_kit.results.tree_table import flagged
+
     n = trees["n_trunks"].to_numpy(int)
     name = "segments on no trunk, closer to a neighbour than the tree spacing (split crowns?)"
     counted = f"{layout['trunks']} trunks found in the stem band under {len(trees)} trees"
@@ -194,10 +196,8 @@ def split_crown_check(trees: pd.DataFrame, layout: dict[str, Any], st: ChecksCon
     if split.any():
         note += f"; on no trunk, a neighbour within {st.trunkless_neighbour_ratio:g}x: "
         note += _names(trees, split)
-        from canopy_kit.results.tree_table import flagged
-
-        missed = split & flagged(trees, "trunk_flags").to_numpy() if "trunk_flags" in trees else 0
-        if np.any(missed):  # segment.trunk_feet: a row whose trunks the sensor barely saw
+        missed = split & flagged(trees, "trunk_flags").to_numpy()
+        if missed.any():  # segment.trunk_feet: a row whose trunks the sensor barely saw
             note += (
                 f"; {int(np.sum(missed))} of them in rows whose trunks' feet are barely "
                 "sampled: there trunks were more likely missed (trees joined) than crowns split"

@@ -25,6 +25,7 @@ from canopy_kit.core.parallel import run_jobs, worker_count
 from canopy_kit.core.voxel import voxel_representatives
 from canopy_kit.volume.metrics import crown_columns
 from canopy_kit.volume.surface import Surface
+from canopy_kit.volume.uncertainty import INTERVAL_COLUMNS
 
 Progress = Callable[[str, float, float], None]
 GroundHeight = Callable[[np.ndarray], np.ndarray]
@@ -39,7 +40,11 @@ ALPHA_COLUMN = VOLUME_COLUMN["alpha_shape"]
 PAPER_VOLUME_COLUMNS = (CONVEX_HULL_COLUMN, ALPHA_COLUMN)
 #: Per-tree table columns named like a volume that no estimator measured: the recommended
 #: estimator's volume without enclosed voids and the bounds of its interval.
-DERIVED_VOLUME_COLUMNS = ("volume_without_voids_m3", "volume_low_m3", "volume_high_m3")
+DERIVED_VOLUME_COLUMNS = (
+    "volume_without_voids_m3",
+    INTERVAL_COLUMNS["low"],
+    INTERVAL_COLUMNS["high"],
+)
 #: The estimators whose solids the report draws, when a run measures them: the paper's two.
 DRAWN_METHODS = ("convex_hull", "alpha_shape")
 
