@@ -18,7 +18,13 @@ from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 from canopy_kit.io.bag import Scan
 from canopy_kit.mapping.deskew import deskew_points, reference_time
-from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
+from canopy_kit.mapping.filters import (
+    check_point_count,
+    first_per_voxel,
+    fit_ground_plane,
+    ground_mask,
+    range_mask,
+)
 from canopy_kit.mapping.ground import (
     GroundHeightGrid,
     apply_ground_correction,
@@ -396,12 +402,43 @@ class LidarFrontend:
             return None
         if not deskewed:
             self.state.not_deskewed += 1
+        if self.config.odometry_map_skipped:
+            self._extend_local_map(scan, keep, t_ref if deskewed else None, guess)
         self._unregistered_run += 1
         self.state.sweeps += 1
         empty = np.zeros((0, 3))
         return FrontendSweep(
             scan, t_ref, guess, keep, empty, np.zeros(0, bool), deskewed, registered=False
         )
+
+    def _extend_local_map(
+        self, scan: Scan, keep: np.ndarray, t_ref: float | None, guess: np.ndarray
+    ) -> None:
+        """An unregistered sweep's off-ground points into the local map at the predicted pose.
+
+        Without them the map lags the sensor by the sweeps between registrations, and
+        point-to-point ICP pulls each registration back toward where the map was last
+        extended: the distance driven came out 0.23 % short on a Livox Mid-360 alley drive
+        registered every third sweep (0.07 % every sweep). Only one point per cell of the
+        map's own resolution is deskewed (KISS-ICP keeps no more). ``t_ref``: the sweep's
+        reference time when it is deskewed, else None.
+        """
+        st = self.state
+        assert self._odometry is not None
+        idx = np.flatnonzero(keep)
+        idx = idx[first_per_voxel(scan.xyz[idx], 0.5 * self.config.kiss_voxel_size)]
+        xyz = scan.xyz[idx]
+        if t_ref is not None and len(idx):  # deskewed to the instant ``guess`` is for
+            assert scan.times is not None
+            times = scan.times[idx]
+            use_gyro = st.rotations is not None and st.rotations.covers(
+                float(times.min()), float(times.max())
+            )
+            xyz = deskew_points(
+                xyz, times, t_ref, self._velocity, self._omega, st.rotations if use_gyro else None
+            )
+        ground = ground_mask(xyz, self.config.odometry_ground_band, up=guess[2, :3])
+        self._odometry.extend_map(xyz[~ground], guess)
 
     def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """Height and tilt from the ground grid (see :mod:`.ground`); the grid grows with the sweep."""

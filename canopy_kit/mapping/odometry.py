@@ -83,6 +83,14 @@ class LidarOdometry:
             return self._guess.copy()
         return checked_pose(pose, "the registration")
 
+    def extend_map(self, points: np.ndarray, pose: np.ndarray) -> None:
+        """Add deskewed sensor-frame ``points`` seen from ``pose`` to the local map without
+        registering them (the threshold model and the last pose stay as they are)."""
+        kiss = self._kiss
+        points = np.asarray(points, np.float64)
+        frame_downsample, _ = kiss.voxelize(points[np.isfinite(points).all(axis=1)])
+        kiss.local_map.update(frame_downsample, checked_pose(pose, "the predicted pose"))
+
     def commit(self, pose: np.ndarray) -> None:
         """Accept ``pose`` for the last aligned sweep: threshold model and local map updated."""
         kiss = self._kiss
