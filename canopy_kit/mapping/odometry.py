@@ -85,11 +85,11 @@ class LidarOdometry:
 
     def extend_map(self, points: np.ndarray, pose: np.ndarray) -> None:
         """Add deskewed sensor-frame ``points`` seen from ``pose`` to the local map without
-        registering them (the threshold model and the last pose stay as they are)."""
-        kiss = self._kiss
+        registering them (the threshold model and the last pose stay as they are). The caller
+        thins them to the map's resolution (KISS-ICP's voxelisation is not repeated)."""
         points = np.asarray(points, np.float64)
-        frame_downsample, _ = kiss.voxelize(points[np.isfinite(points).all(axis=1)])
-        kiss.local_map.update(frame_downsample, checked_pose(pose, "the predicted pose"))
+        points = points[np.isfinite(points).all(axis=1)]
+        self._kiss.local_map.update(points, checked_pose(pose, "the predicted pose"))
 
     def commit(self, pose: np.ndarray) -> None:
         """Accept ``pose`` for the last aligned sweep: threshold model and local map updated."""
