@@ -492,7 +492,10 @@ def test_sweeps_are_left_unregistered_only_while_the_predicted_motion_is_small()
     from canopy_kit.mapping.frontend import SKIP_MAX_SHIFT_M, SKIP_MAX_TURN_DEG, LidarFrontend
 
     front = LidarFrontend(MappingConfig(odometry_every=3), imu=None, keep_all_points=False)
-    front._odometry = SimpleNamespace(pose=np.eye(4))
+    added: list[np.ndarray] = []  # the poses sweeps were added to the local map at
+    front._odometry = SimpleNamespace(
+        pose=np.eye(4), extend_map=lambda points, pose: added.append(pose)
+    )
     front._history.append((0.0, np.eye(4)))  # last registered sweep at t = 0
     n = 1000
     scan = Scan(0.1, RNG.uniform(-10, 10, (n, 3)), {}, np.linspace(0.05, 0.15, n), "lidar", 1)
@@ -508,3 +511,5 @@ def test_sweeps_are_left_unregistered_only_while_the_predicted_motion_is_small()
     assert not skipped(1.05 * SKIP_MAX_SHIFT_M / dt, 0.0)  # too fast: register it
     assert not skipped(0.5, 1.05 * SKIP_MAX_TURN_DEG / dt)  # a tight turn: register it
     assert front.state.sweeps == 1  # only the skipped sweep was counted
+    # and only it went into the local map, at its predicted pose (1.5 m/s for 0.1 s)
+    assert len(added) == 1 and np.allclose(added[0][:3, 3], [0.15, 0.0, 0.0])

@@ -41,6 +41,10 @@ class MappingConfig:
     # the sweeps between are placed by the fused continuous trajectory (odometry
     # interpolated, gyro rotation) in the map pass.
     odometry_every: int = 3
+    # The sweeps left unregistered still go into KISS-ICP's local map, at their predicted
+    # pose, so the map does not lag the sensor by the sweeps between registrations (a lag
+    # that made the odometry under-measure the distance driven, docs/MAPPING.md).
+    odometry_map_skipped: bool = True
     # Long drives: the odometry runs in consecutive chunks of at least this many scans on
     # ``workers`` processes (mapping.chunks), tied together where they overlap.
     odometry_chunk_sweeps: int = 600

@@ -19,6 +19,18 @@ def range_mask(xyz: np.ndarray, min_range: float, max_range: float) -> np.ndarra
     return in_range(np.ascontiguousarray(xyz, np.float64), min_range**2, max_range**2)
 
 
+def first_per_voxel(xyz: np.ndarray, size: float) -> np.ndarray:
+    """Indices of the first point in each occupied cubic voxel of edge ``size`` (in order)."""
+    from canopy_kit.mapping.kernels import EMPTY, insert_keys, voxel_keys
+
+    if len(xyz) == 0:
+        return np.zeros(0, np.int64)
+    keys, _ = voxel_keys(np.ascontiguousarray(xyz, np.float64), float(size), 20)
+    bits = max(4, int(np.ceil(np.log2(2 * len(keys)))))
+    table = np.full(1 << bits, EMPTY, np.int64)
+    return np.flatnonzero(insert_keys(keys, table, bits))
+
+
 def check_point_count(n_points: int, minimum: int, where: str) -> None:
     """Raise an :class:`InputError` naming the scan when it has fewer than ``minimum`` points."""
     if n_points < minimum:

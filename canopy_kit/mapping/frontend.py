@@ -18,7 +18,13 @@ from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 from canopy_kit.io.bag import Scan
 from canopy_kit.mapping.deskew import deskew_points, reference_time
-from canopy_kit.mapping.filters import check_point_count, fit_ground_plane, ground_mask, range_mask
+from canopy_kit.mapping.filters import (
+    check_point_count,
+    first_per_voxel,
+    fit_ground_plane,
+    ground_mask,
+    range_mask,
+)
 from canopy_kit.mapping.ground import (
     GroundHeightGrid,
     apply_ground_correction,
@@ -120,6 +126,8 @@ class LidarFrontend:
         self._motion_known = False  # a velocity has been measured between two registered sweeps
         self._history: deque[tuple[float, np.ndarray]] = deque(maxlen=8)  # registered (t_ref, pose)
         self._ground_grid = GroundHeightGrid() if config.odometry_ground_refine else None
+        # The last registered sweep's ground plane in the odometry frame (n, d), or None.
+        self._ground_plane: np.ndarray | None = None
 
     # -- start-up --------------------------------------------------------------------------
     def _ready_to_start(self, final: bool) -> bool:
@@ -282,11 +290,13 @@ class LidarFrontend:
         guess = self._predict(t_ref)
         # "Up" in the sensor frame from the predicted attitude (gravity-aligned odometry frame),
         # never the sensor's own z axis: a tilted LiDAR keeps its ground filter right.
-        ground = ground_mask(xyz, cfg.odometry_ground_band, up=guess[2, :3])
+        plane = fit_ground_plane(xyz, up=guess[2, :3])
+        ground = ground_mask(xyz, cfg.odometry_ground_band, plane)
         pose, uncertainty = self._register(self._odometry_points(xyz, ground), guess)
         if self._ground_grid is not None:
             pose = self._refine_with_ground(pose, xyz[ground])
         self._odometry.commit(pose)
+        self._ground_plane = None if plane is None else plane_to_world(plane, pose)
         self._update_motion(t_ref, pose)
         st.sweeps += 1
         st.max_displacement = max(st.max_displacement, float(np.hypot(*pose[:2, 3])))
@@ -396,12 +406,49 @@ class LidarFrontend:
             return None
         if not deskewed:
             self.state.not_deskewed += 1
+        if self.config.odometry_map_skipped:
+            self._extend_local_map(scan, keep, t_ref if deskewed else None, guess)
         self._unregistered_run += 1
         self.state.sweeps += 1
         empty = np.zeros((0, 3))
         return FrontendSweep(
             scan, t_ref, guess, keep, empty, np.zeros(0, bool), deskewed, registered=False
         )
+
+    def _extend_local_map(
+        self, scan: Scan, keep: np.ndarray, t_ref: float | None, guess: np.ndarray
+    ) -> None:
+        """An unregistered sweep's off-ground points into the local map at the predicted pose.
+
+        Without them the map lags the sensor by the sweeps between registrations, and
+        point-to-point ICP pulls each registration back toward where the map was last
+        extended: the distance driven came out 0.23 % short on a Livox Mid-360 alley drive
+        registered every third sweep (0.07 % every sweep). Only one point per cell of the
+        map's own resolution is deskewed (KISS-ICP keeps no more), and the ground is the last
+        registered sweep's plane (a sweep or two away), not fitted again. ``t_ref``: the sweep's
+        reference time when it is deskewed, else None.
+        """
+        st, band = self.state, self.config.odometry_ground_band
+        assert self._odometry is not None
+        idx = np.flatnonzero(keep)
+        idx = idx[first_per_voxel(scan.xyz[idx], 0.5 * self.config.kiss_voxel_size)]
+        xyz = scan.xyz[idx]
+        if t_ref is not None and len(idx):  # deskewed to the instant ``guess`` is for
+            assert scan.times is not None
+            times = scan.times[idx]
+            use_gyro = st.rotations is not None and st.rotations.covers(
+                float(times.min()), float(times.max())
+            )
+            xyz = deskew_points(
+                xyz, times, t_ref, self._velocity, self._omega, st.rotations if use_gyro else None
+            )
+        if self._ground_plane is not None:  # the last registered sweep's, seen from here
+            ground = ground_mask(
+                xyz, band, plane_to_world(self._ground_plane, np.linalg.inv(guess))
+            )
+        else:
+            ground = ground_mask(xyz, band, up=guess[2, :3])
+        self._odometry.extend_map(xyz[~ground], guess)
 
     def _refine_with_ground(self, pose: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """Height and tilt from the ground grid (see :mod:`.ground`); the grid grows with the sweep."""
@@ -438,6 +485,13 @@ class LidarFrontend:
             delta[:3, :3] = Rotation.from_rotvec(self._omega * dt).as_matrix()
         delta[:3, 3] = self._velocity * dt
         return pose @ delta
+
+
+def plane_to_world(plane: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """A plane ``(n, d)`` (``n·p + d = 0``) given in a frame, expressed in the frame ``pose``
+    maps that frame into."""
+    n = pose[:3, :3] @ plane[:3]
+    return np.concatenate([n, [plane[3] - n @ pose[:3, 3]]])
 
 
 def _vehicle_heading_zero(world_from_lidar: np.ndarray, lidar_from_base: np.ndarray) -> np.ndarray:

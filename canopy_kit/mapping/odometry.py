@@ -83,6 +83,14 @@ class LidarOdometry:
             return self._guess.copy()
         return checked_pose(pose, "the registration")
 
+    def extend_map(self, points: np.ndarray, pose: np.ndarray) -> None:
+        """Add deskewed sensor-frame ``points`` seen from ``pose`` to the local map without
+        registering them (the threshold model and the last pose stay as they are). The caller
+        thins them to the map's resolution (KISS-ICP's voxelisation is not repeated)."""
+        points = np.asarray(points, np.float64)
+        points = points[np.isfinite(points).all(axis=1)]
+        self._kiss.local_map.update(points, checked_pose(pose, "the predicted pose"))
+
     def commit(self, pose: np.ndarray) -> None:
         """Accept ``pose`` for the last aligned sweep: threshold model and local map updated."""
         kiss = self._kiss
