@@ -491,7 +491,8 @@ def test_sweeps_are_left_unregistered_only_while_the_predicted_motion_is_small()
     from canopy_kit.io.bag import Scan
     from canopy_kit.mapping.frontend import SKIP_MAX_SHIFT_M, SKIP_MAX_TURN_DEG, LidarFrontend
 
-    front = LidarFrontend(MappingConfig(odometry_every=3), imu=None, keep_all_points=False)
+    config = MappingConfig(odometry_every=3, odometry_map_skipped=True)
+    front = LidarFrontend(config, imu=None, keep_all_points=False)
     added: list[np.ndarray] = []  # the poses sweeps were added to the local map at
     front._odometry = SimpleNamespace(
         pose=np.eye(4), extend_map=lambda points, pose: added.append(pose)
