@@ -21,6 +21,7 @@ from canopy_kit.store import (
     consistency_problems,
     export,
     growth,
+    interval_method,
     match_trees,
     row_growth,
 )
@@ -375,6 +376,13 @@ def test_a_real_runs_table_stores_its_estimators_and_its_interval(tiny_pistachio
     assert len(bounded) == trees["volume_low_m3"].notna().sum() > 0
     assert (bounded["low_m3"] <= bounded["volume_m3"]).all()
     assert (bounded["volume_m3"] <= bounded["high_m3"]).all()
+    # the growth CLI defaults to that method (not the paper's alpha_shape) and shows the bounds
+    with OrchardStore(tmp_path / "o.duckdb", read_only=True) as store:
+        assert interval_method(store) == recommended != "alpha_shape"
+    from test_cli_foundation import run_cli
+
+    shown = run_cli("store", "growth", str(tmp_path / "o.duckdb"))
+    assert shown.returncode == 0 and "low_m3" in shown.stdout, shown.stderr
 
 
 def test_growth_says_when_the_intervals_tell_it_from_the_measurement(tmp_path):
@@ -396,7 +404,7 @@ def test_growth_says_when_the_intervals_tell_it_from_the_measurement(tmp_path):
             "autumn": {"grew"},
         }
         assert growth(store, method="convex_hull")["change_since_first"].isna().all()
-    shown = run_cli("store", "growth", str(path), "--tree", "1")
+    shown = run_cli("store", "growth", str(path), "--tree", "1")  # the intervals' method
     assert shown.returncode == 0 and "change_since_first" in shown.stdout, shown.stdout
     assert "grew" in shown.stdout and "low_m3" in shown.stdout
     plain = run_cli("store", "growth", str(path), "--method", "convex_hull", "--tree", "1")

@@ -50,18 +50,24 @@ def changes(
 def growth(
     store: Path = typer.Argument(..., help="Store file"),
     orchard: str = typer.Option(None, help="Only this orchard"),
-    method: str = typer.Option(None, help="Volume method (default: alpha_shape)"),
+    method: str = typer.Option(
+        None,
+        help="Volume method (default: the one the runs' intervals bound, else alpha_shape)",
+    ),
     tree: int = typer.Option(None, "--tree", help="Only this tree_id"),
     rows: bool = typer.Option(False, "--rows", help="Per row instead of per tree"),
 ) -> None:
     """Volume and growth per tree (or per row) over the sessions of a store."""
     from canopy_kit.cli.common import console
     from canopy_kit.cli.tables import frame_grid, print_grid
-    from canopy_kit.store import OrchardStore, row_growth
+    from canopy_kit.store import OrchardStore, interval_method, row_growth
     from canopy_kit.store import growth as growth_of
 
     with OrchardStore(store, read_only=True) as db:
+        method = method or interval_method(db)
         table = (row_growth if rows else growth_of)(db, method=method, orchard=orchard)
+    if len(table):  # a session's date, not a midnight timestamp
+        table["date"] = table["date"].astype(str).str.slice(0, 10)
     if rows:
         cols = [
             "orchard",

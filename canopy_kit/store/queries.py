@@ -91,6 +91,16 @@ def stored_methods(store: Any) -> list[str]:
     return [r[0] for r in rows]
 
 
+def interval_method(store: Any) -> str | None:
+    """The volume method whose rows carry the runs' intervals (the runs' recommended
+    estimator; the most common one if the runs differ), None when no row has one."""
+    row = store.one(
+        "SELECT method FROM volumes WHERE low_m3 IS NOT NULL "
+        "GROUP BY method ORDER BY count(*) DESC, method LIMIT 1"
+    )
+    return row[0] if row else None
+
+
 def orchard_trees(store: Any, orchard: str) -> pd.DataFrame:
     """The orchard's known trees: id, position (orchard frame) and status."""
     return store.con.execute(
