@@ -113,6 +113,8 @@ def no_interval_where_trunks_missed(trees: pd.DataFrame) -> pd.DataFrame:
     missed: a wall tree that took in a missed neighbour reads up to twice its cut (truth /
     estimate 0.53-1.03 on a Livox Mid-360 wall, seed 0), and an interval claiming to cover it
     would be false. Unchanged without those columns."""
+    from canopy_kit.volume.uncertainty import appended_flags
+
     needed = ("trunk_flags", "volume_low_m3", "volume_high_m3", "volume_interval_flags")
     if any(c not in trees for c in needed):
         return trees
@@ -121,10 +123,10 @@ def no_interval_where_trunks_missed(trees: pd.DataFrame) -> pd.DataFrame:
         return trees
     out = trees.copy()
     out.loc[missed, ["volume_low_m3", "volume_high_m3"]] = np.nan
-    before = out.loc[missed, "volume_interval_flags"].fillna("").astype(str)
-    out.loc[missed, "volume_interval_flags"] = [
-        f"{b}; {NO_INTERVAL_NOTE}" if b else NO_INTERVAL_NOTE for b in before
-    ]
+    before = list(out.loc[missed, "volume_interval_flags"].fillna("").astype(str))
+    out.loc[missed, "volume_interval_flags"] = appended_flags(
+        before, [NO_INTERVAL_NOTE] * len(before)
+    )
     return out
 
 

@@ -22,6 +22,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from canopy_kit.volume.uncertainty import appended_flags
+
 #: truth / estimate ratios (low, high) of interwoven trees, per recommended estimator
 INTERWOVEN_RATIOS: dict[str, tuple[float, float]] = {"foliage_envelope": (0.964, 1.942)}
 #: On simulated almond runs: the trees below the touching contact whose interval held
@@ -71,6 +73,6 @@ def widen_for_contact(
         else pd.Series("", index=out.index)
     )
     notes = [interwoven_note(c, ratios) for c in out.loc[woven, "crown_contact"]]
-    flags.loc[woven] = [f"{f}; {n}" if f else n for f, n in zip(flags[woven], notes, strict=True)]
+    flags.loc[woven] = appended_flags(list(flags[woven]), notes)
     out["volume_interval_flags"] = flags
     return out

@@ -40,6 +40,12 @@ INTERVAL_COLUMNS = {
 }
 SECTORS = 16
 MIN_COVERAGE = 0.75
+
+
+def appended_flags(flags: list[str], notes: list[str]) -> list[str]:
+    """Each tree's ``volume_interval_flags`` text with its note added after "; " (the note
+    alone where the text was empty), as the interval's own flags are joined."""
+    return [f"{f}; {n}" if f else n for f, n in zip(flags, notes, strict=True)]
 MIN_FILL = 2.0  # at or above: a dense crown
 # below SPARSE_FILL: a sparse crown (adaptive_alpha then takes the sample-corrected hull);
 # between the two: either
