@@ -46,6 +46,8 @@ def appended_flags(flags: list[str], notes: list[str]) -> list[str]:
     """Each tree's ``volume_interval_flags`` text with its note added after "; " (the note
     alone where the text was empty), as the interval's own flags are joined."""
     return [f"{f}; {n}" if f else n for f, n in zip(flags, notes, strict=True)]
+
+
 MIN_FILL = 2.0  # at or above: a dense crown
 # below SPARSE_FILL: a sparse crown (adaptive_alpha then takes the sample-corrected hull);
 # between the two: either
