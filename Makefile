@@ -5,7 +5,7 @@ VENV ?= .venv
 STAMP := $(VENV)/.installed
 OUT ?= out/demo
 
-.PHONY: setup demo test test-fast lint system-deps clean
+.PHONY: setup demo test test-durations test-fast lint system-deps clean
 
 system-deps:
 	@scripts/system-deps.sh
@@ -21,8 +21,10 @@ setup: system-deps $(STAMP)
 demo: setup
 	$(VENV)/bin/canopy-kit demo --out $(OUT)
 
-# Test files run in parallel, one whole file per worker (its module fixtures are made once).
-PARALLEL = -n auto --maxprocesses=4 --dist loadfile
+# Test files run in parallel, one whole file per worker (its module fixtures are made once),
+# the longest first (tests/conftest.py orders them by tests/file_seconds.json; xdist would
+# otherwise hand out the files with the most tests first and leave a long one for the end).
+PARALLEL = -n auto --maxprocesses=4 --dist loadfile --no-loadscope-reorder
 
 test: setup
 	$(VENV)/bin/python -m pytest $(PARALLEL)
@@ -31,6 +33,10 @@ test: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+
+# Measures each test file's seconds (the whole suite) into the order make test follows.
+test-durations: setup
+	$(VENV)/bin/python -m pytest $(PARALLEL) --record-file-seconds tests/file_seconds.json
 
 test-fast: setup
 	$(VENV)/bin/python -m pytest $(PARALLEL) -m "not slow"

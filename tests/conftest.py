@@ -31,33 +31,50 @@ TINY_DRONE = {**TINY, "drone": {"enabled": True}}
 TINY_DRONE_SEED = 4
 
 
-# The files whose module fixtures take longest (simulated drives, flights, whole runs), as
-# measured with --durations: they go first, so that with one file per worker (make test)
-# no worker is left finishing a long file after the others are done.
-LONG_FILES = [
-    "test_rigs_sim.py",
-    "test_checks_runs.py",
-    "test_ground_truth_flight.py",
-    "test_ground_truth_hedgerow_flight.py",
-    "test_message_faults.py",
-    "test_segment_sim.py",
-    "test_reliability_catalogue.py",
-    "test_interrupted_run.py",
-    "test_notebooks.py",
-    "test_batch.py",
-    "test_pipeline.py",
-    "test_mapping_sim.py",
-    "test_stream.py",
-    "test_paper_experiments.py",
-    "test_sim_crown_forms.py",
-    "test_report_interactive.py",
-    "test_gis_outputs.py",
-]
+# Each test file's seconds (setup + call + teardown of its tests, one worker) as last
+# measured: ``make test-durations`` rewrites it. The longest files go first, so that with one
+# file per worker (make test: --dist loadfile, --no-loadscope-reorder) no worker is left
+# finishing a long file after the others are done; a file not yet measured counts as the
+# median one.
+FILE_SECONDS = Path(__file__).with_name("file_seconds.json")
+_seconds_by_file: dict[str, float] = {}
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--record-file-seconds",
+        metavar="PATH",
+        help="write each test file's seconds (setup + call + teardown) to PATH as JSON",
+    )
 
 
 def pytest_collection_modifyitems(config, items):
-    rank = {name: i for i, name in enumerate(LONG_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order kept within
+    import json
+    import statistics
+
+    seconds = json.loads(FILE_SECONDS.read_text())["seconds"] if FILE_SECONDS.exists() else {}
+    typical = statistics.median(seconds.values()) if seconds else 0.0
+
+    def longest_first(item) -> tuple[float, str]:
+        name = item.path.relative_to(REPO).as_posix()
+        return (-seconds.get(name, typical), name)
+
+    items.sort(key=longest_first)  # stable: the order within a file is kept
+
+
+def pytest_sessionfinish(session, exitstatus):
+    path = session.config.getoption("--record-file-seconds")
+    if path and not hasattr(session.config, "workerinput"):  # the controller has every report
+        import json
+
+        ranked = dict(sorted(_seconds_by_file.items(), key=lambda kv: -kv[1]))
+        record = {
+            "how": "make test-durations (tests/conftest.py --record-file-seconds)",
+            "seconds": {name: round(s, 1) for name, s in ranked.items()},
+        }
+        tmp = Path(path).with_suffix(".tmp")
+        tmp.write_text(json.dumps(record, indent=1) + "\n")
+        tmp.replace(path)
 
 
 # Disk: simulated sessions are 20-160 MB each and the suite makes dozens (5.4 GB by the end
@@ -70,6 +87,8 @@ _FAILED_FILES: set[str] = set()
 
 
 def pytest_runtest_logreport(report):
+    name = report.nodeid.split("::")[0]
+    _seconds_by_file[name] = _seconds_by_file.get(name, 0.0) + report.duration
     if report.failed:
         _FAILED_FILES.add(report.nodeid.split("::")[0])
 
