@@ -109,8 +109,7 @@ class MappingConfig:
         value = self.odometry_map_skipped
         if not (isinstance(value, bool) or (isinstance(value, str) and value == "auto")):
             raise ConfigError(
-                'mapping.odometry_map_skipped: expected true, false or "auto", got '
-                f"{value!r}"
+                f'mapping.odometry_map_skipped: expected true, false or "auto", got {value!r}'
             )
 
 
