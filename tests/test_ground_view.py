@@ -24,10 +24,11 @@ SHORT_DRIVE = {"orchard": {"rows": 2, "trees_per_row": 6}, "gnss": {"mode": "sta
 
 
 def test_lowest_elevation_by_hand() -> None:
-    # 1000 points: 990 on the horizon, 10 at -20 deg: the 1 % quantile is the lowest ten.
+    # 1000 points: 980 on the horizon, 20 at -20 deg (a lowest ring of 2 % of the points):
+    # the 1 % quantile falls among those 20.
     az = np.linspace(0, 2 * np.pi, 1000, endpoint=False)
     el = np.zeros(1000)
-    el[::100] = np.radians(-20.0)
+    el[::50] = np.radians(-20.0)
     xyz = 5.0 * np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     assert lowest_elevation_deg(xyz, np.array([0.0, 0.0, 1.0])) == pytest.approx(-20.0, abs=1e-6)
     # Five stray points below them do not decide (under 1 % of the points).
