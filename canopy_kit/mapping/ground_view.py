@@ -87,11 +87,13 @@ def map_skipped_decision(setting: bool | str, view: GroundView | None) -> dict:
     """Whether the unregistered sweeps go into the local map, and why (for the diagnostics).
 
     ``setting``: ``mapping.odometry_map_skipped``; ``view`` is needed only for ``"auto"``
-    (None there: off, nothing was read)."""
+    (None there: the first scans could not be read; off)."""
     if setting is True or setting is False:
         return {"setting": setting, "on": setting, "reason": "set explicitly"}
     out: dict = {"setting": setting, "threshold_deg": MAP_SKIPPED_ABOVE_DEG}
-    if view is None or not np.isfinite(view.lowest_elevation_deg):
+    if view is None:
+        return out | {"on": False, "reason": "the first scans could not be read: left off"}
+    if not np.isfinite(view.lowest_elevation_deg):
         return out | {"on": False, "reason": "no returns in the first scans: left off"}
     low = view.lowest_elevation_deg
     on = bool(low > MAP_SKIPPED_ABOVE_DEG)

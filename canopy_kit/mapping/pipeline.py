@@ -225,7 +225,10 @@ def _odometry_pass(
         rig_warnings = list(rig.warnings)
         view = None
         if config.odometry_map_skipped == "auto":
-            view = ground_view(bag.path, topics, rig.lidar_from_base, config)
+            try:
+                view = ground_view(bag.path, topics, rig.lidar_from_base, config)
+            except InputError:
+                pass  # left off; the odometry reads the same scans and reports why, in its stage
         map_skipped = map_skipped_decision(config.odometry_map_skipped, view)
         config = dataclasses.replace(config, odometry_map_skipped=map_skipped["on"])
         if rig.calibrate:
