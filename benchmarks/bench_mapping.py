@@ -1,7 +1,7 @@
 """Mapping throughput, memory and accuracy: canopy-kit's mapping vs KISS-ICP and rko_lio.
 
     .venv/bin/python benchmarks/bench_mapping.py [--session DIR | --rig NAME [--sensor NAME] [--seed N]]
-        [--keep] [--rko-lio PATH] [--repeat N [--against DIR]]
+        [--keep] [--rko-lio PATH] [--repeat N [--against DIR]] [--map-skipped {auto,on,off} ...]
 
 Without ``--session`` a 4-row pistachio session (10 trees a row) is simulated into a
 temporary folder (about 1 GB; deleted afterwards unless ``--keep``): the default 32-ring
@@ -28,6 +28,10 @@ Each pipeline runs in its own process, so peak memory (max RSS) is its own:
   file and poses of the LiDAR's frame. Evaluated against the truth of the frame it reports;
   wall time, CPU time and max RSS are those of its process (``os.wait4``). Printed as "not
   installed" (with the command to install it) when that command is missing.
+
+``--map-skipped off auto`` (any of auto, on, off) runs only the default pipeline, once per
+value of ``mapping.odometry_map_skipped``, and prints its decision (and the lowest returns'
+elevation it was read from), the ATE, drift and CPU time: the Livox table of docs/MAPPING.md.
 
 Real-time factor = seconds of driving per second of compute: wall clock on this machine
 (2 cores, shared: the load average is printed) and CPU time (all processes; the figure an
@@ -60,6 +64,8 @@ DEFAULT = (
 )
 RKO_LIO = Path(os.environ.get("RKO_LIO", "/work/rko_venv/bin/rko_lio"))
 RKO_INSTALL = "python3 -m venv /work/rko_venv && /work/rko_venv/bin/pip install rko_lio rosbags"
+# --map-skipped: the values of mapping.odometry_map_skipped
+MAP_SKIPPED: dict[str, bool | str] = {"auto": "auto", "on": True, "off": False}
 TUM = ["time", "x", "y", "z", "qx", "qy", "qz", "qw"]
 # Runs a command and writes its exit code, CPU s and max RSS (kB) to argv[1]. A child's max RSS
 # starts at its parent's peak (exec keeps the high-water mark of the memory it replaces), so
@@ -129,6 +135,7 @@ def run_canopy_kit(session: Path, overrides: dict) -> dict:
         map_points=d["map_points"],
         stages=d["timing"],
         odometry_processes=d["odometry_workers"],
+        map_skipped=d.get("odometry_map_skipped"),
     )
 
 
@@ -307,6 +314,14 @@ def main() -> None:
         help="With --repeat: a checkout of other canopy-kit code (e.g. `git worktree add "
         "/tmp/old REV`), run alternately with this code under the same conditions",
     )
+    parser.add_argument(
+        "--map-skipped",
+        nargs="+",
+        choices=list(MAP_SKIPPED),
+        help="Only the default pipeline, once with each of these mapping.odometry_map_skipped "
+        "(auto: decided from the data; on/off: true/false): a table of the decision, ATE "
+        "and CPU (docs/MAPPING.md, 'Livox Mid-360 trajectory error')",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.against and not args.repeat:
@@ -337,6 +352,13 @@ def main() -> None:
         sim_args = ["--rig", args.rig, "--seed", str(args.seed)]
         sim_args += ["--sensor", args.sensor] if args.sensor else []
         session = Path(_child("simulate", tmp, None, *sim_args)["session"])
+    if args.map_skipped:
+        try:
+            _map_skipped_table(session, args.map_skipped)
+        finally:
+            if tmp is not None and not args.keep:
+                shutil.rmtree(tmp, ignore_errors=True)
+        return
     rko_version = _rko_version(args.rko_lio)
     try:
         runs = {
@@ -426,6 +448,25 @@ def _print_table(
         + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()),
         flush=True,
     )
+
+
+def _map_skipped_table(session: Path, modes: list[str]) -> None:
+    """The default pipeline once per ``mapping.odometry_map_skipped`` mode: its decision,
+    trajectory error and CPU time (each run in a child process of its own)."""
+    print(
+        f"session: {session}\n\n| odometry_map_skipped | decision (lowest returns, deg) | "
+        "ATE cm | drift % | CPU s | wall s | load avg |\n|---|---|---|---|---|---|---|"
+    )
+    for mode in modes:
+        r = _child(json.dumps({"odometry_map_skipped": MAP_SKIPPED[mode]}), session)
+        decision = r["map_skipped"] or {}
+        low = decision.get("lowest_elevation_deg")
+        print(
+            f"| {mode} | {'on' if decision.get('on') else 'off'}"
+            f"{'' if low is None else f' ({low:.1f})'} | {100 * r['ate_m']:.2f} | "
+            f"{r['drift_pct']:.3f} | {r['cpu_s']:.1f} | {r['wall_s']:.1f} | {r['load']:.1f} |",
+            flush=True,
+        )
 
 
 def _repeat(session: Path, n: int, against: Path | None, duration: float) -> None:

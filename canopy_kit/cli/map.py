@@ -125,6 +125,14 @@ def _print_summary(console, result, evaluation, paths) -> None:
         f"  compute {t['total_wall_s']:.1f} s wall, {t['total_cpu_s']:.1f} s CPU "
         f"({d['duration_s'] / max(t['total_wall_s'], 1e-9):.1f}x real time)"
     )
+    skipped = d.get("odometry_map_skipped")
+    if skipped:
+        setting = skipped["setting"]
+        setting = str(setting).lower() if isinstance(setting, bool) else setting
+        console.print(
+            "  unregistered sweeps in the odometry's local map: "
+            f"{'on' if skipped['on'] else 'off'} ({setting}: {skipped['reason']})"
+        )
     if evaluation is not None:
         e = evaluation
         console.print(

@@ -44,10 +44,12 @@ class MappingConfig:
     # The sweeps left unregistered still go into KISS-ICP's local map, at their predicted
     # pose, so the map does not lag the sensor by the sweeps between registrations (a lag
     # that made the odometry under-measure the distance driven, docs/MAPPING.md "Livox
-    # Mid-360 trajectory error"). Off by default: ATE -0.1 to -1.1 cm on every sensor tried
-    # for +14-19 % of the mapping's CPU; worth it for a sensor that sees no ground beside
-    # the robot (Livox Mid-360: 5.4 -> 3.8-4.4 cm).
-    odometry_map_skipped: bool = False
+    # Mid-360 trajectory error"): +14-19 % of the mapping's CPU, ATE -0.1 to -0.5 cm on the
+    # spinning sensors, 5.4 -> 3.8-4.4 cm on a Livox Mid-360. "auto": on when the LiDAR sees
+    # no ground beside the robot, read from the first scans (the lowest returns above -11 deg,
+    # mapping.ground_view); true / false: always / never. The decision is in the mapping
+    # diagnostics (metrics.json "mapping" > "odometry_map_skipped").
+    odometry_map_skipped: bool | Literal["auto"] = "auto"
     # Long drives: the odometry runs in consecutive chunks of at least this many scans on
     # ``workers`` processes (mapping.chunks), tied together where they overlap.
     odometry_chunk_sweeps: int = 600
@@ -102,6 +104,13 @@ class MappingConfig:
         ""  # the frame the trajectory is reported in (default: base_link, else the LiDAR's)
     )
     extrinsic_tolerance_deg: float = 2.0
+
+    def __post_init__(self) -> None:
+        value = self.odometry_map_skipped
+        if not (isinstance(value, bool) or (isinstance(value, str) and value == "auto")):
+            raise ConfigError(
+                f'mapping.odometry_map_skipped: expected true, false or "auto", got {value!r}'
+            )
 
 
 @dataclass
@@ -374,6 +383,19 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
+def _choices(tp: Any) -> str:
+    """'true, false or "auto"' for a union of ``bool`` and literals (empty for other types)."""
+    values: list[str] = []
+    for arg in get_args(tp):
+        if arg is bool:
+            values += ["true", "false"]
+        elif get_origin(arg) is Literal:
+            values += [f'"{v}"' if isinstance(v, str) else repr(v) for v in get_args(arg)]
+        else:
+            return ""
+    return ", ".join(values[:-1]) + f" or {values[-1]}" if len(values) > 1 else ""
+
+
 def _convert(value: Any, tp: Any, where: str) -> Any:
     """Check ``value`` against the annotation ``tp`` and convert it (ints to floats etc.)."""
     origin = get_origin(tp)
@@ -396,6 +418,9 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
                 return _convert(value, arg, where)
             except ConfigError as exc:
                 errors.append(str(exc))
+        choices = _choices(tp)
+        if choices:
+            raise ConfigError(f"{where}: expected {choices}, got {value!r}")
         raise ConfigError(f"{where}: {value!r} does not match {_type_name(tp)}")
     if origin is list:
         if not isinstance(value, list | tuple):

@@ -406,7 +406,9 @@ class LidarFrontend:
             return None
         if not deskewed:
             self.state.not_deskewed += 1
-        if self.config.odometry_map_skipped:
+        # ``"auto"`` is decided by build_map (mapping.ground_view) before the front end runs;
+        # left undecided it is off.
+        if self.config.odometry_map_skipped is True:
             self._extend_local_map(scan, keep, t_ref if deskewed else None, guess)
         self._unregistered_run += 1
         self.state.sweeps += 1

@@ -10,6 +10,7 @@ better fits come with each sweep as an update).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -46,6 +47,7 @@ from canopy_kit.mapping.gnss import (
     reported_sigmas,
 )
 from canopy_kit.mapping.gnss_jumps import odometry_outliers
+from canopy_kit.mapping.ground_view import ground_view, map_skipped_decision
 from canopy_kit.mapping.kernels import warm_up
 from canopy_kit.mapping.passone import OdometryPass, PassOne, pass_warnings, quality_flags
 from canopy_kit.mapping.sensors import GnssBuffer, SensorTopics, topics_for
@@ -158,7 +160,7 @@ def build_map(
     timing: dict[str, float] = {}
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
     warm_up()  # before the workers fork: they inherit the loaded kernels
-    one, rig, extrinsics, warnings = _odometry_pass(bag_path, config, progress)
+    one, rig, extrinsics, warnings, map_skipped = _odometry_pass(bag_path, config, progress)
     timing["odometry_cpu_s"] = cpu_seconds() - cpu0
     timing["odometry_wall_s"] = time.perf_counter() - wall0
     if not extrinsics:
@@ -193,6 +195,7 @@ def build_map(
     diagnostics = {
         "bag": str(bag_path),
         **_drive_diagnostics(one, rig, extrinsics, frame, base_poses),
+        "odometry_map_skipped": map_skipped,
         "map_points": len(cloud),
         "points_offered": offered,
         **_estimate_diagnostics(one, frame, fused, gnss_diag, timing),
@@ -211,22 +214,30 @@ def build_map(
 
 def _odometry_pass(
     bag_path: str | Path, config: MappingConfig, progress: Progress | None
-) -> tuple[OdometryPass, SensorRig, dict, list[str]]:
+) -> tuple[OdometryPass, SensorRig, dict, list[str], dict]:
     """Pass 1 over the bag: the sensors' rig (calibrated when asked), the odometry front end,
     IMU and GNSS collected; returns the pass, the rig, the calibrated extrinsics (empty when
-    not calibrated) and the warnings so far."""
+    not calibrated), the warnings so far and the ``odometry_map_skipped`` decision."""
     extrinsics: dict = {}
     with open_bag(bag_path, config.ouster_metadata or None) as bag:
         topics = topics_for(bag, config)
         rig = resolve_rig(bag, topics, config)
         rig_warnings = list(rig.warnings)
+        view = None
+        if config.odometry_map_skipped == "auto":
+            try:
+                view = ground_view(bag.path, topics, rig.lidar_from_base, config)
+            except InputError:
+                pass  # left off; the odometry reads the same scans and reports why, in its stage
+        map_skipped = map_skipped_decision(config.odometry_map_skipped, view)
+        config = dataclasses.replace(config, odometry_map_skipped=map_skipped["on"])
         if rig.calibrate:
             rig, extrinsics, more = calibrate_rig(bag, config, rig, progress)
             rig_warnings += more
         one = run_odometry(bag, config, progress, rig)
     registered = sum(1 for r in one.records if r.registered)
     require_sweeps(registered, f"{one.bag_path}: topic {one.topics.scans!r}")
-    return one, rig, extrinsics, rig_warnings + pass_warnings(one, config)
+    return one, rig, extrinsics, rig_warnings + pass_warnings(one, config), map_skipped
 
 
 def _fuse_drive(
