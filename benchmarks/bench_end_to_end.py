@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_end_to_end.py [--sensors vlp16 hdl32 os1-64 os1-128]
         [--orchard pistachio] [--rows 4] [--trees-per-row 10] [--seed 11] [--preset adaptive]
         [--repeats 5] [--against DIR] [--peers] [--work DIR] [--session SIM_DIR]
+        [--rigs identity tower imu-flipped side-tilt]
 
 For each sensor a session is simulated (not timed; kept in ``--work`` and reused when it is
 already there), or ``--session`` names one already simulated; its bag is read once, untimed,
@@ -126,13 +127,19 @@ def _peer_rows(sensor: str, ours: list[dict], peers: dict[str, dict]) -> None:
         )
 
 
-def simulated(work: Path, orchard: str, sensor: str, rows: int, per_row: int, seed: int) -> Path:
-    """The session of these settings in ``work``, simulated unless it is already there."""
+def simulated(
+    work: Path, orchard: str, sensor: str, rows: int, per_row: int, seed: int, rig: str = "identity"
+) -> Path:
+    """The session of these settings in ``work``, simulated unless it is already there
+    (``rig``: where the sensors sit on the robot, ``canopy_kit/presets/rigs``)."""
     from canopy_kit.sim import load_sim_config, simulate_session
 
-    folder = work / f"{orchard}-{sensor}-{rows}x{per_row}-seed{seed}"
+    on_rig = "" if rig == "identity" else f"-{rig}"
+    folder = work / f"{orchard}-{sensor}{on_rig}-{rows}x{per_row}-seed{seed}"
     if not folder.is_dir():
         overrides = {"seed": seed, "orchard": {"rows": rows, "trees_per_row": per_row}}
+        if rig != "identity":
+            overrides["rig"] = {"name": rig}
         cfg = load_sim_config(orchard, overrides, sensor=sensor)
         print(f"simulating {folder.name} ...", flush=True)
         simulate_session(folder, cfg)
@@ -183,6 +190,13 @@ def _summary(name: str, runs: list[dict]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--sensors", nargs="+", default=None, help=f"default: {DEFAULT_SENSORS}")
+    parser.add_argument(
+        "--rigs",
+        nargs="+",
+        default=["identity"],
+        help="robot rigs each sensor is simulated on (canopy_kit/presets/rigs: identity, tower, "
+        "imu-flipped, side-tilt, ...); one session per sensor and rig",
+    )
     parser.add_argument("--orchard", default="pistachio")
     parser.add_argument("--rows", type=int, default=4)
     parser.add_argument("--trees-per-row", type=int, default=10)
@@ -208,8 +222,11 @@ def main() -> None:
             sessions = {args.session.name: args.session}
         else:
             sessions = {
-                s: simulated(work, args.orchard, s, args.rows, args.trees_per_row, args.seed)
+                s if rig == "identity" else f"{s} on {rig}": simulated(
+                    work, args.orchard, s, args.rows, args.trees_per_row, args.seed, rig
+                )
                 for s in args.sensors or DEFAULT_SENSORS
+                for rig in args.rigs
             }
         codes = {"this code": None} | (
             {f"code at {args.against}": args.against} if args.against else {}
