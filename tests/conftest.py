@@ -90,7 +90,7 @@ def pytest_runtest_logreport(report):
     name = report.nodeid.split("::")[0]
     _seconds_by_file[name] = _seconds_by_file.get(name, 0.0) + report.duration
     if report.failed:
-        _FAILED_FILES.add(report.nodeid.split("::")[0])
+        _FAILED_FILES.add(name)
 
 
 @pytest.fixture(scope="module", autouse=True)
