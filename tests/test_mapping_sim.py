@@ -116,8 +116,23 @@ def test_cli_map_evaluate(tmp_path: Path, session, result, monkeypatch) -> None:
         assert (out / name).exists(), name
 
 
+def test_map_keeps_returns_within_the_map_range_only(session, result) -> None:
+    """The map pass drops returns beyond ``map_max_range`` (30 m) that the odometry used."""
+    with open_bag(session.bag) as bag:
+        farthest = max(np.linalg.norm(scan.xyz, axis=1).max() for scan in bag.scans())
+    assert farthest > 31.0  # the sensor sees beyond the map range here
+    lidar = result.sensor_trajectory
+    t = result.map.fields[TIME_FIELD]
+    at = np.column_stack([np.interp(t, lidar["time"], lidar[c]) for c in ("x", "y", "z")])
+    dist = np.linalg.norm(result.map.xyz - at, axis=1)
+    # The sensor moves < 0.2 m within a sweep and a voxel keeps one point of 5 cm.
+    assert dist.max() < 30.0 + 0.3 and np.quantile(dist, 0.99) > 20.0
+
+
 def test_stream_yields_registered_sweeps_close_to_the_smoothed_map(session, result) -> None:
     sweeps = list(stream_map(session.bag))
+    for s in sweeps[::20]:  # streamed sweeps keep the map's range too
+        assert np.linalg.norm(s.points.xyz - s.pose[:3, 3], axis=1).max() < 30.0 + 0.3
     assert [s.index for s in sweeps] == sorted(s.index for s in sweeps)
     assert len(sweeps) == result.diagnostics["sweeps_mapped"]
     assert all(s.georeferenced for s in sweeps)

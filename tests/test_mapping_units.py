@@ -438,6 +438,43 @@ def test_mapping_config_defaults_are_valid() -> None:
         _check_config(MappingConfig(min_range=5.0, max_range=2.0))
     with pytest.raises(ConfigError, match="mapping.gnss_lever_arm"):
         _check_config(MappingConfig(gnss_lever_arm=[0.0, 1.0]))
+    with pytest.raises(
+        ConfigError, match=r"mapping.map_max_range: must be above min_range \(2.0 m\)"
+    ):
+        _check_config(MappingConfig(min_range=2.0, map_max_range=1.5))
+
+
+def test_map_range_is_the_nearer_limit_and_selects_by_distance() -> None:
+    from canopy_kit.mapping.filters import map_range, map_range_subset
+
+    assert map_range(MappingConfig()) == 30.0
+    assert map_range(MappingConfig(max_range=20.0)) == 20.0  # never beyond the odometry's
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-50, 50, (500, 3))
+    keep = rng.random(500) < 0.7
+    sel = map_range_subset(xyz, keep, 30.0)
+    kept_idx = np.flatnonzero(keep)
+    expected = [i for i, k in enumerate(kept_idx) if np.sqrt((xyz[k] ** 2).sum()) <= 30.0]
+    assert sel.tolist() == expected and 0 < len(sel) < keep.sum()
+
+
+def test_map_points_of_a_sweep_keep_indices_and_ground_flags_aligned() -> None:
+    from canopy_kit.io.bag import Scan
+    from canopy_kit.mapping.frontend import FrontendSweep, map_points
+
+    rng = np.random.default_rng(4)
+    raw = rng.uniform(-40, 40, (400, 3))
+    keep = range_mask(raw, 1.0, 35.0)
+    ground = rng.random(int(keep.sum())) < 0.3
+    deskewed = raw[keep] + 0.01  # the deskew moves points a little; ranges come from the scan
+    sweep = FrontendSweep(
+        Scan(0.0, raw, {}, None, "lidar", 0), 0.0, np.eye(4), keep, deskewed, ground, True
+    )
+    xyz, kept, flags = map_points(sweep, 20.0)
+    near = np.linalg.norm(raw, axis=1) <= 20.0
+    assert kept.tolist() == np.flatnonzero(keep & near).tolist()
+    assert np.allclose(xyz, raw[kept] + 0.01)
+    assert flags.tolist() == ground[np.isin(np.flatnonzero(keep), kept)].tolist()
 
 
 def test_point_cloud_of_accumulator_carries_crs_and_origin() -> None:

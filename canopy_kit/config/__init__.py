@@ -30,6 +30,11 @@ class MappingConfig:
     map_voxel_size: float = 0.05
     min_range: float = 1.0
     max_range: float = 60.0
+    # The map keeps returns up to this range (the odometry uses them up to ``max_range``):
+    # far returns help the registration but map as clutter, and a small attitude error moves
+    # them most (0.3 deg at 50 m is 0.26 m): a LiDAR pitched 12 deg saw the headland's far
+    # ground as 1.1 m "trees" (docs/MAPPING.md, "Measured on robot rigs").
+    map_max_range: float = 30.0
     # Odometry front end (KISS-ICP on deskewed sweeps with the ground removed)
     deskew: bool = True
     use_imu: bool = True

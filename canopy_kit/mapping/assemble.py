@@ -23,7 +23,7 @@ from canopy_kit.core.parallel import run_jobs, worker_count
 from canopy_kit.io.bag import BagSession, Scan, open_bag
 from canopy_kit.mapping import quaternions as quat
 from canopy_kit.mapping.accumulate import MapAccumulator, VoxelKeySet, voxel_hash
-from canopy_kit.mapping.filters import range_mask
+from canopy_kit.mapping.filters import map_range, range_mask
 from canopy_kit.mapping.kernels import kept_time_span, place_kept_binned, transform_by_bin
 from canopy_kit.mapping.trajectory import ContinuousTrajectory
 
@@ -84,7 +84,8 @@ def place_sweeps(
     per sweep, the coordinates and ``fields_of(indices)``: the fields (the scan's own plus
     ``gps_time``) of those of the coordinates only, gathered when the map keeps them.
     """
-    kept = [np.flatnonzero(range_mask(s.xyz, config.min_range, config.max_range)) for s in scans]
+    far = map_range(config)
+    kept = [np.flatnonzero(range_mask(s.xyz, config.min_range, far)) for s in scans]
     plans = [_pose_times(s, k, d) for s, k, d in zip(scans, kept, deskew, strict=True)]
     starts = np.cumsum([0] + [len(times) for times, _ in plans])
     pos, q = trajectory.quaternions_at(np.concatenate([times for times, _ in plans]))

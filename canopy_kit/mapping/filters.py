@@ -19,6 +19,18 @@ def range_mask(xyz: np.ndarray, min_range: float, max_range: float) -> np.ndarra
     return in_range(np.ascontiguousarray(xyz, np.float64), min_range**2, max_range**2)
 
 
+def map_range(config) -> float:
+    """The farthest return the map keeps: ``mapping.map_max_range`` within ``max_range``."""
+    return float(min(config.max_range, config.map_max_range))
+
+
+def map_range_subset(xyz: np.ndarray, keep: np.ndarray, max_range: float) -> np.ndarray:
+    """Positions, among the points ``keep`` (a mask) selects of a scan's ``xyz``, of those
+    within ``max_range`` of the sensor."""
+    kept = np.asarray(xyz, np.float64)[keep]
+    return np.flatnonzero(np.einsum("ij,ij->i", kept, kept) <= max_range**2)
+
+
 def first_per_voxel(xyz: np.ndarray, size: float) -> np.ndarray:
     """Indices of the first point in each occupied cubic voxel of edge ``size`` (in order)."""
     from canopy_kit.mapping.kernels import EMPTY, insert_keys, voxel_keys

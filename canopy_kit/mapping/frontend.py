@@ -23,6 +23,7 @@ from canopy_kit.mapping.filters import (
     first_per_voxel,
     fit_ground_plane,
     ground_mask,
+    map_range_subset,
     range_mask,
 )
 from canopy_kit.mapping.ground import (
@@ -487,6 +488,14 @@ class LidarFrontend:
             delta[:3, :3] = Rotation.from_rotvec(self._omega * dt).as_matrix()
         delta[:3, 3] = self._velocity * dt
         return pose @ delta
+
+
+def map_points(sweep: FrontendSweep, max_range: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A sweep's deskewed points the map keeps (within ``max_range`` of the sensor, see
+    ``mapping.map_max_range``): their coordinates, their indices in the scan and their ground
+    flags. The sweep must keep every point in range (``keep_all_points``)."""
+    sel = map_range_subset(sweep.scan.xyz, sweep.keep, max_range)
+    return sweep.xyz[sel], np.flatnonzero(sweep.keep)[sel], sweep.ground[sel]
 
 
 def plane_to_world(plane: np.ndarray, pose: np.ndarray) -> np.ndarray:

@@ -29,7 +29,8 @@ from canopy_kit.mapping.assemble import TIME_FIELD, assemble_map, point_fields
 from canopy_kit.mapping.calibration import calibrate_rig, check_rig
 from canopy_kit.mapping.chunks import run_odometry
 from canopy_kit.mapping.extrinsics import SensorRig, resolve_rig
-from canopy_kit.mapping.frontend import FrontendSweep, require_sweeps
+from canopy_kit.mapping.filters import map_range
+from canopy_kit.mapping.frontend import FrontendSweep, map_points, require_sweeps
 from canopy_kit.mapping.fusion import (
     FusionResult,
     FusionSettings,
@@ -117,6 +118,11 @@ def _check_config(config: MappingConfig) -> None:
         raise ConfigError(
             f"mapping.min_range/max_range: need 0 <= min_range < max_range, got "
             f"{config.min_range}, {config.max_range}"
+        )
+    if not config.map_max_range > config.min_range:
+        raise ConfigError(
+            f"mapping.map_max_range: must be above min_range ({config.min_range} m), got "
+            f"{config.map_max_range}"
         )
     for name in (
         "map_voxel_size",
@@ -500,19 +506,20 @@ def stream_map(
         one = PassOne(bag, config, progress, keep_all_points=True)
         georef = _RunningGeoreference(config) if one.gnss is not None else None
         pending: list[FrontendSweep] = []
+        far = map_range(config)
         for sweep in one.sweeps():
             if georef is None:
-                yield _registered(sweep, np.eye(4), False)
+                yield _registered(sweep, np.eye(4), False, far)
                 continue
             georef.update(one.gnss, sweep)  # type: ignore[arg-type]
             pending.append(sweep)
             if georef.frame_alignment is not None:
                 update = georef.alignment @ np.linalg.inv(georef.frame_alignment)  # type: ignore[operator]
                 for held in pending:
-                    yield _registered(held, georef.frame_alignment, True, update)
+                    yield _registered(held, georef.frame_alignment, True, far, update)
                 pending = []
         for held in pending:  # never georeferenced (too short a drive or no valid fixes)
-            yield _registered(held, np.eye(4), False)
+            yield _registered(held, np.eye(4), False, far)
 
 
 class _RunningGeoreference:
@@ -592,19 +599,21 @@ def _registered(
     sweep: FrontendSweep,
     alignment: np.ndarray,
     georeferenced: bool,
+    max_range: float,
     update: np.ndarray | None = None,
 ) -> RegisteredScan:
     pose = alignment @ sweep.pose
     scan = sweep.scan
-    world = sweep.xyz @ pose[:3, :3].T + pose[:3, 3]
-    fields = point_fields(scan.fields, sweep.keep, scan.times, scan.stamp, len(world))
+    xyz, kept, ground = map_points(sweep, max_range)
+    world = xyz @ pose[:3, :3].T + pose[:3, 3]
+    fields = point_fields(scan.fields, kept, scan.times, scan.stamp, len(world))
     return RegisteredScan(
         scan.index,
         scan.stamp,
         sweep.t_ref,
         pose,
         PointCloud(world, fields),
-        sweep.ground,
+        ground,
         georeferenced,
         np.eye(4) if update is None else update,
     )

@@ -54,7 +54,8 @@ class SweepSource:
         from canopy_kit.io.bag import open_bag
         from canopy_kit.mapping.assemble import point_fields
         from canopy_kit.mapping.extrinsics import resolve_rig
-        from canopy_kit.mapping.frontend import LidarFrontend, require_sweeps
+        from canopy_kit.mapping.filters import map_range
+        from canopy_kit.mapping.frontend import LidarFrontend, map_points, require_sweeps
         from canopy_kit.mapping.sensors import (
             GnssBuffer,
             ImuBuffer,
@@ -102,11 +103,13 @@ class SweepSource:
                         self.progress("streaming: sweeps", self.n_scans, total)
                 yield from frontend.finish()
 
+            far = map_range(cfg)
             for sweep in sweeps():
                 pose = sweep.pose
-                xyz = sweep.xyz @ pose[:3, :3].T + pose[:3, 3]
+                local, kept, _ = map_points(sweep, far)
+                xyz = local @ pose[:3, :3].T + pose[:3, 3]
                 scan = sweep.scan
-                fields = point_fields(scan.fields, sweep.keep, scan.times, scan.stamp, len(xyz))
+                fields = point_fields(scan.fields, kept, scan.times, scan.stamp, len(xyz))
                 n_sweeps += 1
                 yield OdometrySweep(scan.index, sweep.t_ref, pose, PointCloud(xyz, fields))
             require_sweeps(n_sweeps, where)
