@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from canopy_kit.config import MappingConfig
 from canopy_kit.errors import InputError
 
 
@@ -19,7 +20,7 @@ def range_mask(xyz: np.ndarray, min_range: float, max_range: float) -> np.ndarra
     return in_range(np.ascontiguousarray(xyz, np.float64), min_range**2, max_range**2)
 
 
-def map_range(config) -> float:
+def map_range(config: MappingConfig) -> float:
     """The farthest return the map keeps: ``mapping.map_max_range`` within ``max_range``."""
     return float(min(config.max_range, config.map_max_range))
 
