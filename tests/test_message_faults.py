@@ -50,11 +50,19 @@ def _pipeline(
 
 
 @pytest.fixture(scope="module")
-def clean(session, tmp_path_factory, cli_server):
+def clean_out(session, tmp_path_factory, cli_server) -> Path:
+    """The folder of ``canopy-kit run`` (the adaptive preset) on the clean drive."""
     out = tmp_path_factory.mktemp("clean") / "out"
-    result, metrics = _pipeline(cli_server, session.bag, out, session)
+    result, _ = _pipeline(cli_server, session.bag, out, session)
     assert result.returncode == 0, result.stderr
-    return pd.read_csv(out / "trees.csv"), metrics
+    return out
+
+
+@pytest.fixture(scope="module")
+def clean(clean_out) -> tuple[pd.DataFrame, dict]:
+    """The clean drive's trees and metrics."""
+    metrics = json.loads((clean_out / "metrics.json").read_text())
+    return pd.read_csv(clean_out / "trees.csv"), metrics
 
 
 def _assert_true_trees(
@@ -78,15 +86,21 @@ def test_clean_drive_is_three_true_trees_without_warnings(clean) -> None:
 
 # -- IMU ------------------------------------------------------------------------------------------
 def test_nonfinite_imu_sample_is_dropped_and_the_trajectory_unchanged(
-    session, tmp_path: Path
+    session, clean_out, tmp_path: Path
 ) -> None:
     """Library: one (1e308, inf, 0) gyro sample is dropped and counted; the ATE is the clean drive's."""
+    import pickle
+
+    from canopy_kit.config import load_preset
     from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
     from canopy_kit.mapping import build_map
 
     bag = messages.rewrite_bag(session.bag, tmp_path / "nan", messages.imu_sample(4000, NAN_GYRO))
     res = build_map(bag, MappingConfig())
-    ref = build_map(session.bag, MappingConfig())
+    # The clean drive's build_map under the same settings: the clean run's map stage.
+    assert load_preset("adaptive").mapping == MappingConfig()
+    (entry,) = (clean_out / ".cache").glob("map-*.pkl")
+    ref = pickle.loads(entry.read_bytes())
     assert res.diagnostics["inputs"]["imu"]["dropped"] == 1
     assert res.diagnostics["inputs"]["imu"]["used"] == ref.diagnostics["inputs"]["imu"]["used"] - 1
     assert "imu_samples_dropped" in res.diagnostics["quality_flags"]
