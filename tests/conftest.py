@@ -156,6 +156,18 @@ def tiny_pistachio(sim_factory):
     return sim_factory("pistachio", overrides=TINY)
 
 
+@pytest.fixture(scope="module")
+def cli_server(tmp_path_factory) -> Iterator[Any]:
+    """A ``canopy-kit`` command server for one test file (tests/cli_server.py: each command
+    runs in a process forked from one that imported the library once; COLUMNS=400), for files
+    whose commands would otherwise spend seconds each importing it."""
+    from cli_server import CliServer
+
+    server = CliServer(tmp_path_factory.mktemp("cli"), env={"COLUMNS": "400"})
+    yield server
+    server.close()
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """The public data folder (skips the test when it is absent)."""

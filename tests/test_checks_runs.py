@@ -4,16 +4,19 @@ the demo's runs (each orchard with its own preset, and adaptive) must not fail a
 
 The simulator's per-tree truth is the independent reference: the almond session holds
 12 trees (minus missing, plus doubled ones), and the merged run segments far fewer.
+
+The commands run on a command server (conftest.py ``cli_server``): each in a process of its
+own, forked from one that imported the library once (the exit code, stdout and stderr are
+the command's).
 """
 
 from __future__ import annotations
 
 import json
-import os
 
 import pandas as pd
 import pytest
-from test_cli_foundation import cli_command
+from cli_server import CliServer
 
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 6}, "lidar": {"columns": 512}}
 
@@ -42,16 +45,10 @@ def run_folder(tmp_path_factory):
     return folder
 
 
-def _cli_run(session, out, preset: str, *extra: str):
-    import subprocess
-
-    return subprocess.run(
-        [*cli_command(), "run", str(session.bag), "--out", str(out), "--preset", preset, *extra],
-        capture_output=True,
-        text=True,
-        timeout=900,
-        check=False,
-        env={**os.environ, "COLUMNS": "400"},
+def _cli_run(cli: CliServer, session, out, preset: str, *extra: str):
+    """``canopy-kit run`` on the session's bag, on the module's command server."""
+    return cli.run(
+        ["run", str(session.bag), "--out", str(out), "--preset", preset, *extra], timeout=900
     )
 
 
@@ -61,9 +58,9 @@ def _failed(out) -> list[dict]:
 
 
 @pytest.mark.slow
-def test_merged_almond_trees_fail_the_run(small_almond, run_folder):
+def test_merged_almond_trees_fail_the_run(small_almond, run_folder, cli_server):
     out = run_folder("almond")
-    strict = _cli_run(small_almond, out, "pistachio", "--strict")
+    strict = _cli_run(cli_server, small_almond, out, "pistachio", "--strict")
     assert strict.returncode == 4, strict.stdout + strict.stderr
     truth = pd.read_csv(small_almond.truth_dir / "trees.csv")
     trees = pd.read_csv(out / "trees.csv")
@@ -79,7 +76,7 @@ def test_merged_almond_trees_fail_the_run(small_almond, run_folder):
     assert page.index("Do not trust this run") < page.index('id="summary"')
     assert "checks failed: do not trust this run" in strict.stdout
     # Without --strict the exit is 0 (cached stages: no new mapping), and the line is printed.
-    lenient = _cli_run(small_almond, out, "pistachio")
+    lenient = _cli_run(cli_server, small_almond, out, "pistachio")
     assert lenient.returncode == 0, lenient.stderr
     assert "checks failed: do not trust this run" in lenient.stdout
 
@@ -94,9 +91,11 @@ def test_merged_almond_trees_fail_the_run(small_almond, run_folder):
         ("pistachio", "adaptive"),
     ],
 )
-def test_the_demo_runs_fail_no_check(orchard, preset, small_almond, small_pistachio, run_folder):
+def test_the_demo_runs_fail_no_check(
+    orchard, preset, small_almond, small_pistachio, run_folder, cli_server
+):
     session = small_almond if orchard == "almond" else small_pistachio
-    result = _cli_run(session, run_folder(orchard), preset, "--strict")
+    result = _cli_run(cli_server, session, run_folder(orchard), preset, "--strict")
     failed = _failed(run_folder(orchard))
     assert result.returncode == 0 and failed == [], failed
     if orchard == "pistachio":  # free-standing crowns (the simulator keeps them apart)
@@ -104,7 +103,9 @@ def test_the_demo_runs_fail_no_check(orchard, preset, small_almond, small_pistac
 
 
 @pytest.mark.slow
-def test_a_split_almond_tree_fails_the_run_and_the_right_run_passes(sim_factory, tmp_path):
+def test_a_split_almond_tree_fails_the_run_and_the_right_run_passes(
+    sim_factory, tmp_path, cli_server
+):
     """Issue 48's wrong run: a 1 row x 4 almond drive (3 trees stand, seed 3) under the
     paper's almond preset cuts one crown in two; the simulator's truth is the independent
     count. The piece on no trunk beside its tree fails --strict and is named; the adaptive
@@ -113,7 +114,7 @@ def test_a_split_almond_tree_fails_the_run_and_the_right_run_passes(sim_factory,
         "almond", seed=3, overrides={"orchard": {"rows": 1, "trees_per_row": 4}}, truth_field=False
     )
     truth = pd.read_csv(session.truth_dir / "trees.csv")
-    split = _cli_run(session, tmp_path, "almond", "--strict")
+    split = _cli_run(cli_server, session, tmp_path, "almond", "--strict")
     assert split.returncode == 4, split.stdout + split.stderr
     trees = pd.read_csv(tmp_path / "trees.csv")
     assert len(trees) == len(truth) + 1  # the independent count: one tree cut in two
@@ -122,6 +123,6 @@ def test_a_split_almond_tree_fails_the_run_and_the_right_run_passes(sim_factory,
     piece = trees.loc[trees["n_trunks"] == 0, "tree_id"].tolist()
     assert len(piece) == 1 and piece[0] in check["note"]
     assert "segments on no trunk" in split.stdout
-    right = _cli_run(session, tmp_path, "adaptive", "--strict")
+    right = _cli_run(cli_server, session, tmp_path, "adaptive", "--strict")
     assert right.returncode == 0, right.stdout + right.stderr
     assert len(pd.read_csv(tmp_path / "trees.csv")) == len(truth) and _failed(tmp_path) == []

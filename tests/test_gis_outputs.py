@@ -88,11 +88,17 @@ def _metres(lon_a, lat_a, lon_b, lat_b) -> np.ndarray:
 
 # -- a run with every output ----------------------------------------------------------------
 @pytest.fixture(scope="module")
-def gis_run(tiny_pistachio, tmp_path_factory):
+def gis_run(tiny_pistachio, tiny_pistachio_run, tmp_path_factory):
+    """The adaptive run of ``tiny_pistachio`` with every output (an orchard name, the trees'
+    points), its stages from a copy of the shared run's cache (the same bag and preset: the
+    same keys; neither option is part of one), every output written anew."""
+    import shutil
+
     from canopy_kit.config import load_preset
     from canopy_kit.pipeline import run
 
     out = tmp_path_factory.mktemp("gis_run")
+    shutil.copytree(tiny_pistachio_run.out_dir / ".cache", out / ".cache")
     results = run(
         load_preset("adaptive"),
         tiny_pistachio.bag,
@@ -101,6 +107,7 @@ def gis_run(tiny_pistachio, tmp_path_factory):
         orchard="block 7",
         export_trees=True,
     )
+    assert set(results.cache_hits) == {"map", "segment", "volumes"}
     return tiny_pistachio, out, results
 
 

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cli_server import CliServer
 from test_cli_foundation import cli_command
 
 OUTPUTS = (
@@ -49,15 +50,9 @@ def _args(session, out: Path) -> list[str]:
     ]
 
 
-def _finish(args: list[str]) -> dict:
-    result = subprocess.run(
-        [*cli_command(), *args],
-        capture_output=True,
-        text=True,
-        timeout=900,
-        check=False,
-        env={**os.environ, "COLUMNS": "200"},
-    )
+def _finish(cli: CliServer, args: list[str]) -> subprocess.CompletedProcess:
+    """The same command again, to its end (on the module's command server: conftest.py)."""
+    result = cli.run(args, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "Traceback" not in result.stderr
     return result
@@ -86,7 +81,9 @@ def reference_csv(tiny_pistachio_run) -> str:
     return csv_text(tiny_pistachio_run.trees)
 
 
-def test_killed_after_mapping_leaves_no_output_and_resumes(tiny_pistachio, reference_csv, tmp_path):
+def test_killed_after_mapping_leaves_no_output_and_resumes(
+    tiny_pistachio, reference_csv, cli_server, tmp_path
+):
     out = tmp_path / "run"
     proc = subprocess.Popen(
         [*cli_command(), *_args(tiny_pistachio, out)],
@@ -112,7 +109,7 @@ def test_killed_after_mapping_leaves_no_output_and_resumes(tiny_pistachio, refer
     assert not _visible(out), f"outputs of a run killed during segmentation: {_visible(out)}"
     assert "map" in _check_cache_entries(out)
 
-    result = _finish(_args(tiny_pistachio, out))
+    result = _finish(cli_server, _args(tiny_pistachio, out))
     metrics = json.loads((out / "metrics.json").read_text())
     ate = metrics["evaluation"]["mapping"]["ate_rmse_m"]
     assert (
@@ -145,7 +142,7 @@ main()
 
 @pytest.mark.parametrize("target", ["metrics.json", "report.html"])
 def test_killed_while_writing_outputs_leaves_no_partial_file(
-    target, tiny_pistachio, tiny_pistachio_run, reference_csv, tmp_path
+    target, tiny_pistachio, tiny_pistachio_run, reference_csv, cli_server, tmp_path
 ):
     out = tmp_path / "run"
     # Start from the reference run's stage cache: the killed run goes straight to the outputs.
@@ -169,7 +166,7 @@ def test_killed_while_writing_outputs_leaves_no_partial_file(
         json.loads((out / "metrics.json").read_text())
     assert set(_check_cache_entries(out)) == {"map", "segment", "volumes"}
 
-    _finish(_args(tiny_pistachio, out))
+    _finish(cli_server, _args(tiny_pistachio, out))
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics["cached_stages"]) == {"map", "segment", "volumes"}
     assert (out / "trees.csv").read_text() == reference_csv

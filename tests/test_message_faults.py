@@ -7,12 +7,14 @@ topic, the field and the message. Measured before these checks: one NaN/Inf gyro
 aborted the process (exit 134, ``SOPHUS_ENSURE failed``), a halved PointCloud2 width gave 5
 trees and no warning, a 15 s clock jump gave 6 trees, two PointCloud2 topics left
 ``pointcloud_topic = ""`` in config.toml.
+
+The commands run on a command server (conftest.py ``cli_server``): each in a process of its
+own, forked from one that imported the library once.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 from pathlib import Path
 
@@ -20,7 +22,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from bad_inputs import messages
-from test_cli_foundation import cli_command
+from cli_server import CliServer
 
 from canopy_kit.config import MappingConfig
 
@@ -34,31 +36,33 @@ def session(sim_factory):
     return sim_factory("pistachio", overrides=ONE_ROW)
 
 
-def _run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*cli_command(), *args],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-        env={**os.environ, "COLUMNS": "400"},
-    )
+def _run(cli: CliServer, *args: str) -> subprocess.CompletedProcess[str]:
+    """``canopy-kit args`` on the module's command server."""
+    return cli.run(list(args), timeout=600)
 
 
 def _pipeline(
-    bag: Path, out: Path, session, *extra: str
+    cli: CliServer, bag: Path, out: Path, session, *extra: str
 ) -> tuple[subprocess.CompletedProcess[str], dict]:
-    result = _run("run", str(bag), "--out", str(out), "--truth", str(session.root), *extra)
+    result = _run(cli, "run", str(bag), "--out", str(out), "--truth", str(session.root), *extra)
     metrics = json.loads((out / "metrics.json").read_text()) if result.returncode == 0 else {}
     return result, metrics
 
 
 @pytest.fixture(scope="module")
-def clean(session, tmp_path_factory):
+def clean_out(session, tmp_path_factory, cli_server) -> Path:
+    """The folder of ``canopy-kit run`` (the adaptive preset) on the clean drive."""
     out = tmp_path_factory.mktemp("clean") / "out"
-    result, metrics = _pipeline(session.bag, out, session)
+    result, _ = _pipeline(cli_server, session.bag, out, session)
     assert result.returncode == 0, result.stderr
-    return pd.read_csv(out / "trees.csv"), metrics
+    return out
+
+
+@pytest.fixture(scope="module")
+def clean(clean_out) -> tuple[pd.DataFrame, dict]:
+    """The clean drive's trees and metrics."""
+    metrics = json.loads((clean_out / "metrics.json").read_text())
+    return pd.read_csv(clean_out / "trees.csv"), metrics
 
 
 def _assert_true_trees(
@@ -82,15 +86,21 @@ def test_clean_drive_is_three_true_trees_without_warnings(clean) -> None:
 
 # -- IMU ------------------------------------------------------------------------------------------
 def test_nonfinite_imu_sample_is_dropped_and_the_trajectory_unchanged(
-    session, tmp_path: Path
+    session, clean_out, tmp_path: Path
 ) -> None:
     """Library: one (1e308, inf, 0) gyro sample is dropped and counted; the ATE is the clean drive's."""
+    import pickle
+
+    from canopy_kit.config import load_preset
     from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
     from canopy_kit.mapping import build_map
 
     bag = messages.rewrite_bag(session.bag, tmp_path / "nan", messages.imu_sample(4000, NAN_GYRO))
     res = build_map(bag, MappingConfig())
-    ref = build_map(session.bag, MappingConfig())
+    # The clean drive's build_map under the same settings: the clean run's map stage.
+    assert load_preset("adaptive").mapping == MappingConfig()
+    (entry,) = (clean_out / ".cache").glob("map-*.pkl")
+    ref = pickle.loads(entry.read_bytes())
     assert res.diagnostics["inputs"]["imu"]["dropped"] == 1
     assert res.diagnostics["inputs"]["imu"]["used"] == ref.diagnostics["inputs"]["imu"]["used"] - 1
     assert "imu_samples_dropped" in res.diagnostics["quality_flags"]
@@ -101,9 +111,11 @@ def test_nonfinite_imu_sample_is_dropped_and_the_trajectory_unchanged(
     assert abs(ate - ate_ref) < 0.01, (ate, ate_ref)
 
 
-def test_nonfinite_imu_sample_cli_gives_the_true_trees(session, clean, tmp_path: Path) -> None:
+def test_nonfinite_imu_sample_cli_gives_the_true_trees(
+    session, clean, cli_server, tmp_path: Path
+) -> None:
     bag = messages.rewrite_bag(session.bag, tmp_path / "nan", messages.imu_sample(4000, NAN_GYRO))
-    result, metrics = _pipeline(bag, tmp_path / "out", session)
+    result, metrics = _pipeline(cli_server, bag, tmp_path / "out", session)
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
     assert "IMU samples dropped" in " ".join(result.stdout.split())
     assert metrics["mapping"]["quality_flags"] == ["imu_samples_dropped"]
@@ -112,7 +124,7 @@ def test_nonfinite_imu_sample_cli_gives_the_true_trees(session, clean, tmp_path:
 
 # -- PointCloud2 and clocks -------------------------------------------------------------------------
 def test_few_malformed_scans_and_one_late_stamp_give_the_true_trees(
-    session, clean, tmp_path: Path
+    session, clean, cli_server, tmp_path: Path
 ) -> None:
     """4 scans whose x has an unknown datatype, 2 with extra bytes, 1 stamped 15 s back: the
     rest maps to the same trees, and each fault is named."""
@@ -128,7 +140,7 @@ def test_few_malformed_scans_and_one_late_stamp_give_the_true_trees(
         return None
 
     bag = messages.rewrite_bag(session.bag, tmp_path / "faults", edit)
-    result, metrics = _pipeline(bag, tmp_path / "out", session)
+    result, metrics = _pipeline(cli_server, bag, tmp_path / "out", session)
     assert result.returncode == 0, result.stderr
     text = " ".join(metrics["warnings"])
     assert (
@@ -154,11 +166,11 @@ def test_few_malformed_scans_and_one_late_stamp_give_the_true_trees(
     ],
 )
 def test_header_that_lies_or_clock_that_jumps_is_a_clear_error(
-    session, tmp_path: Path, case: str, edit: messages.Edit, says: str
+    session, cli_server, tmp_path: Path, case: str, edit: messages.Edit, says: str
 ) -> None:
     """Before: 5 trees (half width) and 6 trees (15 s back) instead of 3. Now exit 2, early."""
     bag = messages.rewrite_bag(session.bag, tmp_path / case, edit)
-    result = _run("run", str(bag), "--out", str(tmp_path / "out"))
+    result = _run(cli_server, "run", str(bag), "--out", str(tmp_path / "out"))
     lines = result.stderr.strip().splitlines()
     assert (
         result.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"error: {bag}: topic '")
@@ -169,10 +181,10 @@ def test_header_that_lies_or_clock_that_jumps_is_a_clear_error(
 
 # -- topics -------------------------------------------------------------------------------------
 def test_topic_chosen_among_two_is_named_and_reproduced_by_the_saved_config(
-    session, tmp_path: Path
+    session, cli_server, tmp_path: Path
 ) -> None:
     bag = messages.rewrite_bag(session.bag, tmp_path / "two", messages.second_cloud())
-    first = _run("run", str(bag), "--out", str(tmp_path / "a"))
+    first = _run(cli_server, "run", str(bag), "--out", str(tmp_path / "a"))
     assert first.returncode == 0, first.stderr
     metrics = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert any(
@@ -190,6 +202,7 @@ def test_topic_chosen_among_two_is_named_and_reproduced_by_the_saved_config(
     # whatever happened: the warning is what shows the choice).
     assert "2 sensor_msgs/msg/PointCloud2 topics" in (tmp_path / "a" / "report.html").read_text()
     again = _run(
+        cli_server,
         "run",
         str(bag),
         "--out",

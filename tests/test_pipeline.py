@@ -101,17 +101,19 @@ def test_outputs_are_complete_and_readable(pistachio_run):
 
 
 @pytest.mark.slow
-def test_rerun_reuses_unchanged_stages_and_is_deterministic(pistachio_run, tiny_pistachio):
+def test_rerun_reuses_unchanged_stages_and_is_deterministic(
+    pistachio_run, tiny_pistachio, tmp_path
+):
+    import shutil
+
+    # A copy: the shared run's folder (its cache, its outputs) is read by other files' tests.
+    out = shutil.copytree(pistachio_run.out_dir, tmp_path / "run")
     cfg = load_preset("adaptive", {"volume": {"params": {"alpha_shape": {"alpha": 1.5}}}})
-    again = run(cfg, tiny_pistachio.bag, pistachio_run.out_dir, truth=tiny_pistachio.root)
+    again = run(cfg, tiny_pistachio.bag, out, truth=tiny_pistachio.root)
     assert set(again.cache_hits) == {"map", "segment"}
     assert not np.allclose(again.trees["volume_alpha_m3"], pistachio_run.trees["volume_alpha_m3"])
     same = run(
-        load_preset("adaptive"),
-        tiny_pistachio.bag,
-        pistachio_run.out_dir,
-        truth=tiny_pistachio.root,
-        use_cache=False,
+        load_preset("adaptive"), tiny_pistachio.bag, out, truth=tiny_pistachio.root, use_cache=False
     )
     pd.testing.assert_frame_equal(same.trees, pistachio_run.trees)
 

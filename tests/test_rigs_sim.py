@@ -7,6 +7,7 @@ Seed 41 was not used while developing the rig handling (that used 701 and 900-90
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from canopy_kit.config import MappingConfig
 from canopy_kit.core.frames import from_rpy, invert, rotation_angle_deg
 from canopy_kit.errors import InputError
 from canopy_kit.evaluate.trajectory_error import evaluate_against_simulation
-from canopy_kit.mapping import build_map
+from canopy_kit.mapping import MappingResult, build_map
 from canopy_kit.sim.truth import load_truth
 
 SMALL = {"orchard": {"rows": 2, "trees_per_row": 3}, "lidar": {"columns": 512}}
@@ -38,17 +39,33 @@ def _true_lidar_from_imu(sim_dir: Path) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def identity_run(sim_factory):
+def rig_map(sim_factory) -> Callable[[str], MappingResult]:
+    """``rig_map(rig)``: ``build_map`` of the rig's seed-41 drive (with /tf_static) under the
+    default mapping settings, made once per module for every test that maps that drive so."""
+    maps: dict[str, MappingResult] = {}
+
+    def make(rig: str) -> MappingResult:
+        if rig not in maps:
+            maps[rig] = build_map(_session(sim_factory, rig).bag, MappingConfig())
+        return maps[rig]
+
+    return make
+
+
+@pytest.fixture(scope="module")
+def identity_run(sim_factory, rig_map):
     sim = _session(sim_factory, "identity")
-    res = build_map(sim.bag, MappingConfig())
+    res = rig_map("identity")
     return sim, res, evaluate_against_simulation(res, sim.root)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("rig", ["tower", "imu-flipped"])
-def test_a_rig_maps_the_drive_as_well_as_one_frame(sim_factory, identity_run, rig: str) -> None:
+def test_a_rig_maps_the_drive_as_well_as_one_frame(
+    sim_factory, identity_run, rig_map, rig: str
+) -> None:
     sim = _session(sim_factory, rig)
-    res = build_map(sim.bag, MappingConfig())
+    res = rig_map(rig)
     ev = evaluate_against_simulation(res, sim.root)
     base = identity_run[2]
     assert res.trajectory_frame == "base_link" and ev["trajectory_frame"] == "base_link"
@@ -120,14 +137,13 @@ def test_a_rig_file_wrong_by_five_degrees_is_named_with_its_angle(sim_factory, t
 
 
 @pytest.mark.slow
-def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, identity_run, tmp_path) -> None:
+def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, rig_map, tmp_path) -> None:
     """The bag without /tf_static plus the rig file maps as the bag with it does."""
     import pandas as pd
     from test_cli_foundation import run_cli
 
-    with_tf = _session(sim_factory, "tower")
     without = _session(sim_factory, "tower", write_tf_static=False)
-    a = build_map(with_tf.bag, MappingConfig())
+    a = rig_map("tower")  # the bag with /tf_static
     cli = run_cli(
         "map",
         str(without.bag),
@@ -150,18 +166,28 @@ def test_a_rig_file_supplies_what_the_bag_lacks(sim_factory, identity_run, tmp_p
 
 
 @pytest.mark.slow
-def test_a_rig_finds_the_same_trees_with_the_same_volumes(sim_factory, tmp_path_factory) -> None:
+def test_a_rig_finds_the_same_trees_with_the_same_volumes(
+    sim_factory, rig_map, tmp_path_factory
+) -> None:
     """The whole pipeline on the same drive recorded by the identity and the tower rig: the
-    same trees, and each tree's volume within 2 % of the identity rig's (sums within 2 %)."""
+    same trees, and each tree's volume within 2 % of the identity rig's (sums within 2 %).
+    The map stage is ``build_map(bag, preset.mapping)``: the preset's mapping settings are the
+    defaults ``rig_map`` used, so its map goes into the run's stage cache (under the key the
+    run computes) and the run maps nothing; segmentation and volumes run anew."""
     from canopy_kit.config import load_preset
+    from canopy_kit.core.cache import StageCache, fingerprint, stage_key
     from canopy_kit.pipeline import run
 
+    config = load_preset("adaptive")
+    assert config.mapping == MappingConfig()
     tables = {}
     for rig in ("identity", "tower"):
         sim = _session(sim_factory, rig)
-        res = run(
-            load_preset("adaptive"), sim.bag, tmp_path_factory.mktemp(f"run_{rig}"), truth=sim.root
-        )
+        out = tmp_path_factory.mktemp(f"run_{rig}")
+        key = stage_key("map", fingerprint(sim.bag), config.mapping)
+        StageCache(out / ".cache").get_or_compute("map", key, lambda rig=rig: rig_map(rig))
+        res = run(config, sim.bag, out, truth=sim.root)
+        assert res.cache_hits == ["map"], res.cache_hits
         seg = res.metrics["evaluation"]["segmentation"]
         assert seg["n_correct"] == seg["n_truth"] == len(res.trees), rig
         tables[rig] = res.trees.set_index("truth_tree_id")

@@ -537,15 +537,11 @@ def test_top_view_image_shows_the_highest_point_of_each_pixel() -> None:
     assert image[0, 1:, 3].max() == 0 and image[1, :3, 3].max() == 0  # no point: transparent
 
 
-def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
-    """Empty and all-ground maps: exit code 2 and a message; one tree and no rows: results."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
+def test_cli_segment_bad_maps_give_one_line_messages(cli_server, tmp_path) -> None:
+    """Empty and all-ground maps: exit code 2 and a message; one tree and no rows: results.
+    The commands run on the module's command server (conftest.py ``cli_server``)."""
     from canopy_kit.io.clouds import write_cloud
 
-    exe = str(Path(sys.executable).parent / "canopy-kit")
     rng = np.random.default_rng(0)
     flat = PointCloud(np.column_stack([rng.uniform(0, 30, (5000, 2)), rng.normal(0, 0.02, 5000)]))
     one = synthetic_orchard(rows=1, trees_per_row=1, density=150).cloud
@@ -564,9 +560,8 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
     res = {}
     for name, cloud in maps.items():
         path = write_cloud(tmp_path / f"{name}.laz", cloud)
-        res[name] = subprocess.run(
+        res[name] = cli_server.run(
             [
-                exe,
                 "segment",
                 str(path),
                 "--preset",
@@ -574,10 +569,7 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
                 "--out",
                 str(tmp_path / name),
                 "--no-cloud",
-            ],
-            check=False,
-            capture_output=True,
-            text=True,
+            ]
         )
     assert res["flat"].returncode == 2
     assert res["flat"].stderr.strip().startswith("error: map has no points more than 0.8 m above")
@@ -590,12 +582,7 @@ def test_cli_segment_bad_maps_give_one_line_messages(tmp_path) -> None:
     header = laspy.LasHeader(point_format=3, version="1.2")
     header.scales = [0.01, 0.01, 0.01]
     laspy.LasData(header).write(tmp_path / "empty.laz")
-    bad = subprocess.run(
-        [exe, "segment", str(tmp_path / "empty.laz"), "--out", str(tmp_path / "e")],
-        check=False,
-        capture_output=True,
-        text=True,
-    )
+    bad = cli_server.run(["segment", str(tmp_path / "empty.laz"), "--out", str(tmp_path / "e")])
     assert bad.returncode == 2 and bad.stderr.strip().endswith("LAS file has no points")
 
 

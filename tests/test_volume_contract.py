@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_server import CliServer
 
 from canopy_kit import plugins
 from canopy_kit.errors import ConfigError, InputError, PluginError
@@ -224,37 +224,34 @@ def test_sphere_volume() -> None:
     assert sphere_volume(2.0) == pytest.approx(4 / 3 * np.pi)
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    script = Path(sys.executable).with_name("canopy-kit")
-    cmd = (
-        [str(script)]
-        if script.exists()
-        else [sys.executable, "-c", "from canopy_kit.cli import main; main()"]
-    )
-    return subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=120, check=False)
+def _cli(cli: CliServer, *args: str) -> subprocess.CompletedProcess[str]:
+    """``canopy-kit args`` on the module's command server (conftest.py ``cli_server``)."""
+    return cli.run(list(args), timeout=120)
 
 
-def test_cli_volume_json_and_errors(tmp_path: Path) -> None:
+def test_cli_volume_json_and_errors(cli_server, tmp_path: Path) -> None:
     from canopy_kit.core.cloud import PointCloud
     from canopy_kit.io.clouds import write_cloud
 
     pts = blob(2000)
     path = write_cloud(tmp_path / "tree.ply", PointCloud(pts))
-    out = _cli("volume", str(path), "--method", "alpha_shape", "--alpha", "1.2", "--json")
+    out = _cli(
+        cli_server, "volume", str(path), "--method", "alpha_shape", "--alpha", "1.2", "--json"
+    )
     assert out.returncode == 0, out.stderr
     data = json.loads(out.stdout)
     expected = estimate_volume(pts, "alpha_shape", alpha=1.2).volume_m3
     assert data["method"] == "alpha_shape" and data["params"] == {"alpha": 1.2}
     assert data["volume_m3"] == pytest.approx(expected, rel=1e-6) and data["valid"] is True
     assert data["metrics"]["n_points"] == 2000 and data["warnings"] == []
-    human = _cli("volume", str(path), "-m", "convex_hull")
+    human = _cli(cli_server, "volume", str(path), "-m", "convex_hull")
     assert human.returncode == 0 and "m³ by convex_hull" in human.stdout
-    bad = _cli("volume", str(path), "-m", "voxel", "--alpha", "0.9")
+    bad = _cli(cli_server, "volume", str(path), "-m", "voxel", "--alpha", "0.9")
     assert bad.returncode == 2
     assert "volume method 'voxel' has no parameter 'alpha'" in bad.stderr
-    missing = _cli("volume", str(tmp_path / "nope.las"))
+    missing = _cli(cli_server, "volume", str(tmp_path / "nope.las"))
     assert missing.returncode == 2 and "file does not exist" in missing.stderr
-    unknown = _cli("volume", str(path), "-m", "sphere")
+    unknown = _cli(cli_server, "volume", str(path), "-m", "sphere")
     assert unknown.returncode == 2 and "no volumes plugin named 'sphere'" in unknown.stderr
 
 
@@ -292,7 +289,9 @@ def test_alpha_hull_gap_to_the_complex_grows_with_the_spacing() -> None:
     assert gaps[200][0] > 0.3 and gaps[200][1] < -0.1
 
 
-def test_cli_volume_warns_when_the_file_holds_several_trees_or_ground(tmp_path: Path) -> None:
+def test_cli_volume_warns_when_the_file_holds_several_trees_or_ground(
+    cli_server, tmp_path: Path
+) -> None:
     """Two labelled crowns over a ground plane (class 2) in one LAS file: the volume is still
     computed, and the user is told the file is not one tree, naming the field and the ground."""
     from canopy_kit.core.cloud import PointCloud
@@ -307,10 +306,10 @@ def test_cli_volume_warns_when_the_file_holds_several_trees_or_ground(tmp_path: 
         "classification": np.r_[np.ones(3000), np.full(600, 2)].astype(np.uint8),
     }
     path = write_las(tmp_path / "plot.las", PointCloud(xyz, fields))
-    out = _cli("volume", str(path), "--json")
+    out = _cli(cli_server, "volume", str(path), "--json")
     assert out.returncode == 0, out.stderr
     (warning,) = [w for w in json.loads(out.stdout)["warnings"] if "may not be one tree" in w]
     assert "its segment_id field labels 2 trees" in warning
     assert "600 of its 3,600 points (17 %) are classified ground" in warning
-    human = _cli("volume", str(path))
+    human = _cli(cli_server, "volume", str(path))
     assert "warning:" in human.stdout and "cut one tree out first" in human.stdout

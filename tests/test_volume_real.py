@@ -53,7 +53,9 @@ def test_every_method_measures_a_real_terrestrial_tree(shared_data, name: str) -
             assert result.volume_m3 <= hull * 1.05, method
 
 
-def test_a_real_tree_whose_estimators_disagree_does_not_pass_silently(shared_data) -> None:
+def test_a_real_tree_whose_estimators_disagree_does_not_pass_silently(
+    shared_data, cli_server
+) -> None:
     """aRchi's tree 1 is a leafless skeleton 22 m tall: the foliage envelope follows its
     branches (tens of m³), its convex hull is over a thousand. The command says what the
     volume measures and warns that the estimators disagree beyond every tree family; the
@@ -63,6 +65,7 @@ def test_a_real_tree_whose_estimators_disagree_does_not_pass_silently(shared_dat
     from test_volume_contract import _cli
 
     skeleton = _cli(
+        cli_server,
         "volume",
         str(shared_data / "real_trees" / "archi_tree_1.las"),
         "--voxel-size",
@@ -74,11 +77,16 @@ def test_a_real_tree_whose_estimators_disagree_does_not_pass_silently(shared_dat
     assert out["method"] == "foliage_envelope" and "alpha-hull of the foliage" in out["measures"]
     assert out["disagreement"] and "convex_hull" in out["disagreement"]
     human = _cli(
-        "volume", str(shared_data / "real_trees" / "archi_tree_1.las"), "--voxel-size", "0.1"
+        cli_server,
+        "volume",
+        str(shared_data / "real_trees" / "archi_tree_1.las"),
+        "--voxel-size",
+        "0.1",
     )
     assert "warning: estimators disagree beyond every tree family" in human.stdout
     leafy = json.loads(
         _cli(
+            cli_server,
             "volume",
             str(shared_data / "real_trees" / "archi_tree_2.las"),
             "--voxel-size",

@@ -42,6 +42,8 @@ SESSION_KEYS = {
 }
 # A session id names one folder under OUT/sessions/: a name, never a path.
 SESSION_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+#: How long ``--scheduler`` is tried (Dask retries a refused connection) before giving up.
+SCHEDULER_TIMEOUT = "20s"
 
 
 @dataclass
@@ -504,7 +506,7 @@ def _connect(scheduler: str | None, n_workers: int) -> tuple[Any, Any]:
 
     if scheduler:
         try:
-            return Client(scheduler, timeout="20s"), None
+            return Client(scheduler, timeout=SCHEDULER_TIMEOUT), None
         except (OSError, TimeoutError) as exc:
             raise InputError(
                 f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})"
