@@ -28,8 +28,7 @@ def map_range(config: MappingConfig) -> float:
 def map_range_subset(xyz: np.ndarray, keep: np.ndarray, max_range: float) -> np.ndarray:
     """Positions, among the points ``keep`` (a mask) selects of a scan's ``xyz``, of those
     within ``max_range`` of the sensor."""
-    kept = np.asarray(xyz, np.float64)[keep]
-    return np.flatnonzero(np.einsum("ij,ij->i", kept, kept) <= max_range**2)
+    return np.flatnonzero(range_mask(xyz[keep], 0.0, max_range))
 
 
 def first_per_voxel(xyz: np.ndarray, size: float) -> np.ndarray:
