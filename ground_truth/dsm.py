@@ -17,6 +17,7 @@ import numpy as np
 
 from canopy_kit.errors import ProcessingError
 from ground_truth.camera import PosedCamera
+from ground_truth.kernels import pair_score
 from ground_truth.raster import Grid
 
 Progress = Callable[[str, float, float], None]
@@ -184,7 +185,8 @@ class _ViewSampler:
     """Grey values of every cell at any height in its assigned photo (one photo per cell).
 
     The projection is split once into a height-independent part and the camera's third
-    rotation column, so each height costs one division and one bilinear lookup per cell.
+    rotation column, so each height costs one division and one bilinear lookup per cell
+    (``ground_truth.kernels.project_bilinear``).
     """
 
     def __init__(
@@ -204,71 +206,17 @@ class _ViewSampler:
             cam = cameras[i]
             pts = np.column_stack([xy[idx], ground[idx]])
             base = (pts @ cam.rotation.T + cam.translation).astype(np.float32)
-            self.groups.append(
-                (idx, base, cam.rotation[:, 2].astype(np.float32), cam.intrinsics(), images[i])
-            )
+            intrinsics = np.asarray(cam.intrinsics(), np.float64)
+            axis = cam.rotation[:, 2].astype(np.float32)
+            self.groups.append((idx, base, axis, intrinsics, np.asarray(images[i], np.float32)))
 
     def sample(self, height: float) -> np.ndarray:
-        from scipy.ndimage import map_coordinates
+        from ground_truth.kernels import project_bilinear
 
         out = np.full(self.n, np.nan, np.float32)
-        h = np.float32(height)
-        for idx, base, axis, (fx, fy, cx, cy, k1, k2), image in self.groups:
-            cam = base + h * axis
-            x, y = cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2]
-            if k1 or k2:
-                r2 = x * x + y * y
-                d = 1.0 + k1 * r2 + k2 * r2 * r2
-                x, y = x * d, y * d
-            # map_coordinates indexes pixel centres at integers: shift by half a pixel.
-            out[idx] = map_coordinates(
-                image,
-                [fy * y + (cy - 0.5), fx * x + (cx - 0.5)],
-                order=1,
-                mode="constant",
-                cval=np.nan,
-            )
+        for idx, base, axis, intrinsics, image in self.groups:
+            project_bilinear(base, axis, float(np.float32(height)), intrinsics, image, idx, out)
         return out
-
-
-def _ncc(
-    a: np.ndarray,
-    b: np.ndarray,
-    size: int,
-    mask: np.ndarray | None = None,
-    min_fraction: float = 0.4,
-) -> np.ndarray:
-    """Windowed normalised cross-correlation of two rasters over the cells in ``mask``.
-
-    NaN where either raster is NaN or fewer than ``min_fraction`` of the window counts.
-    """
-    from scipy.ndimage import uniform_filter
-
-    valid = np.isfinite(a) & np.isfinite(b)
-    if mask is not None:
-        valid &= mask
-    a0, b0 = np.where(valid, a, 0.0), np.where(valid, b, 0.0)
-    w = uniform_filter(valid.astype(np.float32), size)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ma = uniform_filter(a0, size) / w
-        mb = uniform_filter(b0, size) / w
-        va = uniform_filter(a0 * a0, size) / w - ma * ma
-        vb = uniform_filter(b0 * b0, size) / w - mb * mb
-        cov = uniform_filter(a0 * b0, size) / w - ma * mb
-        ncc = cov / np.sqrt(np.maximum(va, 1e-6) * np.maximum(vb, 1e-6))
-    ncc[(w < min_fraction) | ~valid] = np.nan
-    return ncc
-
-
-def _class_disagreement(a: np.ndarray, b: np.ndarray, size: int) -> np.ndarray:
-    """Windowed fraction of cells whose vegetation class differs between two views."""
-    from scipy.ndimage import uniform_filter
-
-    valid = np.isfinite(a) & np.isfinite(b)
-    diff = np.where(valid, np.abs(a - b), 0.0).astype(np.float32)
-    w = uniform_filter(valid.astype(np.float32), size)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return uniform_filter(diff, size) / w
 
 
 def dense_surface(
@@ -322,14 +270,19 @@ def dense_surface(
             if class_samplers is None
             else [s.sample(h).reshape(grid.shape) for s in class_samplers]
         )
-        scores = []
-        for i, j in pairs:
-            score_ij = _ncc(grey[i], grey[j], opts.window_cells, min_fraction=0.8)
-            if cls is not None:
-                score_ij = score_ij - opts.class_weight * _class_disagreement(
-                    cls[i], cls[j], opts.window_cells
-                )
-            scores.append(score_ij)
+        weight = opts.class_weight if cls is not None else 0.0
+        scores = [
+            pair_score(
+                grey[i],
+                grey[j],
+                grey[i] if cls is None else cls[i],
+                grey[j] if cls is None else cls[j],
+                opts.window_cells,
+                0.8,
+                weight,
+            )
+            for i, j in pairs
+        ]
         stack = np.stack(scores)
         # Robust to one view that sees something else (occlusion): average the best pairs.
         stack = np.sort(np.where(np.isfinite(stack), stack, -np.inf), axis=0)[len(pairs) - keep :]

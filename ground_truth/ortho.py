@@ -15,6 +15,7 @@ import numpy as np
 
 from ground_truth.camera import PosedCamera
 from ground_truth.dsm import nadir_views
+from ground_truth.kernels import rays_clear
 from ground_truth.raster import Grid, sample_bilinear
 
 Progress = Callable[[str, float, float], None]
@@ -54,20 +55,17 @@ def _line_of_sight_clear(
     rise = np.maximum(top - points[:, 2], 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         reach = np.where(d[:, 2] > 0, rise / d[:, 2] * horizontal, 0.0)
-    n_steps = int(np.ceil(np.nanmax(reach, initial=0.0) / step)) if len(points) else 0
-    clear = np.ones(len(points), bool)
-    unit = d / np.maximum(horizontal, 1e-9)[:, None]  # per metre of horizontal travel
-    for s in range(1, n_steps + 1):
-        dist = s * step
-        active = dist <= reach
-        if not active.any():
-            break
-        q = points[active] + unit[active] * dist
-        surface = sample_bilinear(dsm_grid, dsm, q[:, 0], q[:, 1])
-        blocked = surface > q[:, 2] + 0.15
-        idx = np.flatnonzero(active)
-        clear[idx[blocked]] = False
-    return clear
+    return rays_clear(
+        np.ascontiguousarray(points, np.float64),
+        np.asarray(c, np.float64),
+        reach,
+        float(step),
+        np.asarray(dsm, np.float64),
+        dsm_grid.x0,
+        dsm_grid.y0,
+        dsm_grid.resolution,
+        0.15,
+    )
 
 
 def _max_reach(cameras: Sequence[PosedCamera], relief: float) -> float:

@@ -146,12 +146,19 @@ def read_geotiff(path) -> tuple[np.ndarray, dict]:
         }
 
 
+# zlib level of the preview PNGs: on a 1868 x 1662 orthomosaic level 1 took 0.33 s and 6.0 MB,
+# PIL's default (6) 1.94 s and 5.5 MB.
+PNG_COMPRESS_LEVEL = 1
+
+
 def png_bytes(rgb: np.ndarray) -> bytes:
-    """PNG of an (rows, cols, 3|4) uint8 array."""
+    """PNG of an (rows, cols, 3|4) uint8 array (fast zlib level: previews, not archives)."""
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(rgb)).save(buf, format="PNG")
+    Image.fromarray(np.ascontiguousarray(rgb)).save(
+        buf, format="PNG", compress_level=PNG_COMPRESS_LEVEL
+    )
     return buf.getvalue()
 
 

@@ -377,3 +377,112 @@ def test_crown_agreement_scores_hand_made_crowns_and_an_empty_match():
     table, m = crown_agreement(far, truth)
     assert m["matched"] == 0 and len(table) == 0
     assert np.isnan(m["along_row_mae_m"]) and np.isnan(m["across_row_bias_m"])
+
+
+@pytest.mark.parametrize("k1, k2", [(0.0, 0.0), (-0.12, 0.03)])
+def test_projected_bilinear_lookup_agrees_with_scipy(k1, k2):
+    """The compiled lookup of the surface matching against the projection written out in
+    numpy and ``scipy.ndimage.map_coordinates(order=1, mode="constant", cval=nan)``, on
+    points inside, on and beyond the image's edge, behind the camera too."""
+    from scipy.ndimage import map_coordinates
+
+    from ground_truth.kernels import project_bilinear
+
+    rng = np.random.default_rng(3)
+    image = rng.random((40, 60)).astype(np.float32)
+    fx, fy, cx, cy = 50.0, 52.0, 30.0, 20.0
+    base = np.column_stack(
+        [rng.uniform(-0.9, 0.9, 500), rng.uniform(-0.7, 0.7, 500), rng.uniform(0.5, 2.0, 500)]
+    ).astype(np.float32)
+    base[:4, :2] = [[-0.59, 0.0], [0.0, -0.385], [0.59, 0.0], [0.0, 0.375]]  # near the edges
+    base[:4, 2] = 1.0
+    base[4, 2] = -1.0  # behind the camera: projects through the centre, mirrored
+    axis = np.array([0.05, -0.02, 0.3], np.float32)
+    height = 0.7
+    index = rng.permutation(600)[:500]  # the cells these points stand for, scattered
+    out = np.full(600, -1.0, np.float32)
+    project_bilinear(base, axis, height, np.array([fx, fy, cx, cy, k1, k2]), image, index, out)
+
+    cam = base.astype(np.float64) + height * axis.astype(np.float64)
+    x, y = cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2]
+    d = 1.0 + k1 * (x * x + y * y) + k2 * (x * x + y * y) ** 2
+    rows, cols = fy * y * d + (cy - 0.5), fx * x * d + (cx - 0.5)
+    expected = map_coordinates(image, [rows, cols], order=1, mode="constant", cval=np.nan)
+    inside = (rows >= 0) & (rows <= 39) & (cols >= 0) & (cols <= 59)
+    assert 50 < inside.sum() < 490  # both kinds are tried
+    np.testing.assert_allclose(out[index], expected, rtol=1e-5, atol=1e-6)
+    assert np.isnan(out[index][~inside]).all()
+    untouched = np.setdiff1d(np.arange(600), index)
+    assert (out[untouched] == -1.0).all()
+
+
+def _windowed_score_reference(a, b, ca, cb, size, min_fraction, class_weight):
+    """The matching score written out with scipy's box filter (mirrored edges): windowed
+    NCC over the cells both rasters have, minus the weighted mean class difference."""
+    from scipy.ndimage import uniform_filter
+
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    valid = np.isfinite(a) & np.isfinite(b)
+    a0, b0 = np.where(valid, a, 0.0), np.where(valid, b, 0.0)
+    w = uniform_filter(valid.astype(float), size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ma, mb = uniform_filter(a0, size) / w, uniform_filter(b0, size) / w
+        va = uniform_filter(a0 * a0, size) / w - ma * ma
+        vb = uniform_filter(b0 * b0, size) / w - mb * mb
+        cov = uniform_filter(a0 * b0, size) / w - ma * mb
+        ncc = cov / np.sqrt(np.maximum(va, 1e-6) * np.maximum(vb, 1e-6))
+        ncc[(w < min_fraction - 1e-9) | ~valid] = np.nan
+        both = np.isfinite(ca) & np.isfinite(cb)
+        diff = np.where(both, np.abs(ca - cb), 0.0)
+        disagreement = uniform_filter(diff, size) / uniform_filter(both.astype(float), size)
+    return ncc - class_weight * disagreement if class_weight else ncc
+
+
+@pytest.mark.parametrize("size, class_weight", [(3, 1.0), (3, 0.0), (4, 0.5), (5, 1.0)])
+def test_pair_score_agrees_with_the_box_filter_formula(size, class_weight):
+    """The compiled matching score of two views against the same score from scipy's
+    ``uniform_filter``: textured and flat patches, NaN holes, the raster's edges."""
+    from ground_truth.kernels import pair_score
+
+    rng = np.random.default_rng(size)
+    a = rng.random((23, 31)).astype(np.float32)
+    b = (0.6 * a + 0.4 * rng.random(a.shape)).astype(np.float32)
+    b[5:9, 20:26] = 0.25 + 1e-4 * a[5:9, 20:26]  # nearly flat: the variance floor decides
+    a[rng.random(a.shape) < 0.05] = np.nan
+    b[10:12, :3] = np.nan  # a hole at the edge
+    ca = (rng.random(a.shape) < 0.5).astype(np.float32)
+    cb = np.where(rng.random(a.shape) < 0.8, ca, 1 - ca).astype(np.float32)
+    cb[0, :] = np.nan
+    got = pair_score(a, b, ca, cb, size, 0.8, class_weight)
+    want = _windowed_score_reference(a, b, ca, cb, size, 0.8, class_weight)
+    assert np.isfinite(want).sum() > 0.6 * a.size and np.isnan(want).sum() > 20
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_line_of_sight_over_a_wall_against_hand_geometry():
+    """A 2 m wall along x = 5 m on flat ground (DSM at 0.1 m cells) and a camera 20 m up at
+    x = 15 m: ground points west of the wall see the camera only where the ray from them to
+    the camera clears the wall's top, i.e. where z_ray(x = 5) = 20 (5 - x) / (15 - x) > 2
+    + 0.15 m; points east of it and outside the raster always see it."""
+    from ground_truth.ortho import _line_of_sight_clear
+
+    grid = Grid(0.0, 10.0, 0.1, 100, 100)
+    dsm = np.zeros(grid.shape)
+    x, _ = grid.centers()
+    dsm[(x > 4.9) & (x < 5.1)] = 2.0  # the wall: two cell columns around x = 5
+    camera = camera_from_pose(
+        "above",
+        "PINHOLE",
+        (300.0, 300.0, 200.0, 150.0),
+        400,
+        300,
+        np.array([15.0, 5.0, 20.0]),
+        NADIR,
+    )
+    px = np.array([0.5, 2.0, 3.0, 3.5, 4.0, 4.2, 4.4, 4.6, 4.8, 6.0, 8.0, -3.0])
+    points = np.column_stack([px, np.full(len(px), 5.0), np.zeros(len(px))])
+    clear = _line_of_sight_clear(points, camera, grid, dsm, top=2.0, step=0.05)
+    ray_at_wall = 20.0 * (5.0 - px) / (15.0 - px)  # height of each ray above x = 5
+    expected = (px > 5.1) | (px < 0) | (ray_at_wall > 2.15 + 0.2)  # 0.2: a margin
+    assert (clear == expected)[np.abs(ray_at_wall - 2.15) > 0.2].all(), (clear, ray_at_wall)
+    assert clear.sum() >= 3 and (~clear).sum() >= 3
