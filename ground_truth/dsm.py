@@ -182,11 +182,12 @@ def nadir_views(
 
 
 class _ViewSampler:
-    """Grey values of every cell at any height in its assigned photo (one photo per cell).
+    """Grey values (and vegetation classes) of every cell at any height in its assigned photo
+    (one photo per cell).
 
     The projection is split once into a height-independent part and the camera's third
-    rotation column, so each height costs one division and one bilinear lookup per cell
-    (``ground_truth.kernels.project_bilinear``).
+    rotation column, so each height costs one division and one bilinear lookup per cell and
+    image (``ground_truth.kernels.project_bilinear``).
     """
 
     def __init__(
@@ -196,8 +197,11 @@ class _ViewSampler:
         views: np.ndarray,
         xy: np.ndarray,
         ground: np.ndarray,
+        classes: Sequence[np.ndarray] | None = None,
     ) -> None:
         self.n = len(views)
+        self.with_classes = classes is not None
+        no_classes = np.empty((0, 0), np.float32)
         self.groups = []
         for i in np.unique(views):
             if i < 0:
@@ -208,15 +212,20 @@ class _ViewSampler:
             base = (pts @ cam.rotation.T + cam.translation).astype(np.float32)
             intrinsics = np.asarray(cam.intrinsics(), np.float64)
             axis = cam.rotation[:, 2].astype(np.float32)
-            self.groups.append((idx, base, axis, intrinsics, np.asarray(images[i], np.float32)))
+            image = np.asarray(images[i], np.float32)
+            cls = no_classes if classes is None else np.asarray(classes[i], np.float32)
+            self.groups.append((idx, base, axis, intrinsics, image, cls))
 
-    def sample(self, height: float) -> np.ndarray:
+    def sample(self, height: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """(grey values, classes or None) of every cell at ``height`` above the ground."""
         from ground_truth.kernels import project_bilinear
 
         out = np.full(self.n, np.nan, np.float32)
-        for idx, base, axis, intrinsics, image in self.groups:
-            project_bilinear(base, axis, float(np.float32(height)), intrinsics, image, idx, out)
-        return out
+        out_classes = np.full(self.n if self.with_classes else 0, np.nan, np.float32)
+        h = float(np.float32(height))
+        for idx, base, axis, intrinsics, image, cls in self.groups:
+            project_bilinear(base, axis, h, intrinsics, image, idx, out, cls, out_classes)
+        return out, (out_classes if self.with_classes else None)
 
 
 def dense_surface(
@@ -246,12 +255,7 @@ def dense_surface(
     x, y = grid.centers()
     xy = np.column_stack([x.ravel(), y.ravel()])
     g = ground.ravel()
-    samplers = [_ViewSampler(cameras, images, flat_views[:, j], xy, g) for j in range(k)]
-    class_samplers = (
-        None
-        if classes is None
-        else [_ViewSampler(cameras, classes, flat_views[:, j], xy, g) for j in range(k)]
-    )
+    samplers = [_ViewSampler(cameras, images, flat_views[:, j], xy, g, classes) for j in range(k)]
     best = np.full(len(g), -np.inf, np.float32)
     best_level = np.zeros(len(g), np.int32)
     before = np.full(len(g), np.nan, np.float32)
@@ -264,12 +268,9 @@ def dense_surface(
         pairs = [(0, j) for j in range(1, k)]
         keep = len(pairs) - 1 if k > 2 else len(pairs)
     for li, h in enumerate(levels):
-        grey = [s.sample(h).reshape(grid.shape) for s in samplers]
-        cls = (
-            None
-            if class_samplers is None
-            else [s.sample(h).reshape(grid.shape) for s in class_samplers]
-        )
+        sampled = [s.sample(h) for s in samplers]
+        grey = [values.reshape(grid.shape) for values, _ in sampled]
+        cls = None if classes is None else [c.reshape(grid.shape) for _, c in sampled]
         weight = opts.class_weight if cls is not None else 0.0
         scores = [
             pair_score(

@@ -40,10 +40,14 @@ def project_bilinear(
     image: np.ndarray,
     index: np.ndarray,
     out: np.ndarray,
+    second: np.ndarray,
+    second_out: np.ndarray,
 ) -> None:
     """``out[index[n]]`` = ``image`` bilinearly sampled where camera point
     ``base[n] + height · axis`` projects (pinhole ``intrinsics`` = fx, fy, cx, cy, k1, k2, pixel
-    centres at integers + 0.5); NaN where it falls outside the pixel centres' span."""
+    centres at integers + 0.5); NaN where it falls outside the pixel centres' span. A
+    ``second`` image of the same size (none: an empty one) is sampled at the same pixels into
+    ``second_out``: one projection for both."""
     fx, fy, cx, cy, k1, k2 = (
         intrinsics[0],
         intrinsics[1],
@@ -53,6 +57,7 @@ def project_bilinear(
         intrinsics[5],
     )
     distorted = k1 != 0.0 or k2 != 0.0
+    both = second.size > 0
     for n in range(base.shape[0]):
         z = base[n, 2] + height * axis[2]
         x = (base[n, 0] + height * axis[0]) / z
@@ -61,7 +66,10 @@ def project_bilinear(
             r2 = x * x + y * y
             d = 1.0 + k1 * r2 + k2 * r2 * r2
             x, y = x * d, y * d
-        out[index[n]] = bilinear_at(image, fy * y + (cy - 0.5), fx * x + (cx - 0.5))
+        r, c = fy * y + (cy - 0.5), fx * x + (cx - 0.5)
+        out[index[n]] = bilinear_at(image, r, c)
+        if both:
+            second_out[index[n]] = bilinear_at(second, r, c)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

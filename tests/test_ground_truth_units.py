@@ -383,7 +383,8 @@ def test_crown_agreement_scores_hand_made_crowns_and_an_empty_match():
 def test_projected_bilinear_lookup_agrees_with_scipy(k1, k2):
     """The compiled lookup of the surface matching against the projection written out in
     numpy and ``scipy.ndimage.map_coordinates(order=1, mode="constant", cval=nan)``, on
-    points inside, on and beyond the image's edge, behind the camera too."""
+    points inside, on and beyond the image's edge, behind the camera too; a second image is
+    read at the same pixels (bilinear is linear: 1 - 2 x the first's values)."""
     from scipy.ndimage import map_coordinates
 
     from ground_truth.kernels import project_bilinear
@@ -401,7 +402,14 @@ def test_projected_bilinear_lookup_agrees_with_scipy(k1, k2):
     height = 0.7
     index = rng.permutation(600)[:500]  # the cells these points stand for, scattered
     out = np.full(600, -1.0, np.float32)
-    project_bilinear(base, axis, height, np.array([fx, fy, cx, cy, k1, k2]), image, index, out)
+    second, second_out = 1.0 - 2.0 * image, np.full(600, -1.0, np.float32)
+    intrinsics = np.array([fx, fy, cx, cy, k1, k2])
+    project_bilinear(base, axis, height, intrinsics, image, index, out, second, second_out)
+    alone = np.full(600, -1.0, np.float32)  # without a second image: the same first one
+    no_image = np.empty((0, 0), np.float32)
+    project_bilinear(base, axis, height, intrinsics, image, index, alone, no_image, out[:0])
+    np.testing.assert_array_equal(alone, out)
+    np.testing.assert_allclose(second_out[index], 1.0 - 2.0 * out[index], rtol=1e-5, atol=1e-5)
 
     cam = base.astype(np.float64) + height * axis.astype(np.float64)
     x, y = cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2]
