@@ -17,7 +17,6 @@ import numpy as np
 
 from canopy_kit.errors import ProcessingError
 from ground_truth.camera import PosedCamera
-from ground_truth.kernels import pair_score
 from ground_truth.raster import Grid
 
 Progress = Callable[[str, float, float], None]
@@ -246,6 +245,8 @@ def dense_surface(
     most textured part of a window decide, so crowns swell over their dark shadows; the
     class term counts cells, whatever their contrast.
     """
+    from ground_truth.kernels import pair_score  # numba: compiled on first use, not on import
+
     opts = options or SurfaceOptions()
     report = progress or (lambda *_: None)
     k = max(opts.views_per_cell, 2)

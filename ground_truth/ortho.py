@@ -15,7 +15,6 @@ import numpy as np
 
 from ground_truth.camera import PosedCamera
 from ground_truth.dsm import nadir_views
-from ground_truth.kernels import rays_clear
 from ground_truth.raster import Grid, sample_bilinear
 
 Progress = Callable[[str, float, float], None]
@@ -48,6 +47,8 @@ def _line_of_sight_clear(
     step: float,
 ) -> np.ndarray:
     """True where the ray from each point towards the camera stays above the DSM."""
+    from ground_truth.kernels import rays_clear  # numba: compiled on first use
+
     c = camera.center
     d = c - points
     horizontal = np.hypot(d[:, 0], d[:, 1])
