@@ -76,12 +76,18 @@ class GroundTruthResult:
 RECONSTRUCTION_KEYS = ("max_image_size", "work_image_size", "ortho_resolution", "max_canopy_height")
 
 
+def check_threads(threads: object, name: str = "threads") -> int:
+    """SfM's thread count as given (0: every core; 1: one thread, which makes COLMAP's result
+    repeatable bit for bit); a ConfigError naming ``name`` for anything else."""
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
+        raise ConfigError(f"{name}: expected an integer >= 0 (0: every core), got {threads!r}")
+    return threads
+
+
 def sfm_options(config: GroundTruthConfig, seed: int = 0, threads: int = 0) -> SfmOptions:
     """The structure-from-motion settings of ``config``, the run's ``seed`` and its
-    ``threads`` (0: every core; 1: one thread, which makes COLMAP's result repeatable bit
-    for bit), the rest at their defaults."""
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
-        raise ConfigError(f"threads: expected an integer >= 0 (0: every core), got {threads!r}")
+    ``threads`` (:func:`check_threads`), the rest at their defaults."""
+    check_threads(threads)
     return SfmOptions(
         max_image_size=config.max_image_size, seed=seed, num_threads=threads if threads else -1
     )

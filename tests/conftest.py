@@ -263,7 +263,9 @@ class SharedDroneSession:
         from canopy_kit.pipeline import run
 
         shutil.copytree(self.run_dir, out, dirs_exist_ok=True)
-        return run(load_preset("adaptive"), self.bag, out, drone_images=self.drone_dir)
+        return run(
+            load_preset("adaptive"), self.bag, out, drone_images=self.drone_dir, sfm_threads=1
+        )
 
 
 @pytest.fixture(scope="session")
@@ -278,7 +280,15 @@ def tiny_drone_session(tmp_path_factory) -> SharedDroneSession:
 
         cfg = load_sim_config("pistachio", merge({"seed": TINY_DRONE_SEED}, TINY_DRONE))
         sim = simulate_session(folder / "sim", cfg)
-        run(load_preset("adaptive"), sim.bag, folder / "run", drone_images=sim.drone_dir)
+        # SfM on one thread: the same reconstruction in every test run (COLMAP's several
+        # threads do not repeat bit for bit)
+        run(
+            load_preset("adaptive"),
+            sim.bag,
+            folder / "run",
+            drone_images=sim.drone_dir,
+            sfm_threads=1,
+        )
 
     folder = built_once(shared_base(tmp_path_factory) / "tiny_drone_session", build)
     sim = folder / "sim"

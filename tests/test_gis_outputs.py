@@ -624,7 +624,7 @@ def test_drone_crowns_carry_the_lidar_tree_id(tiny_drone_session, tmp_path) -> N
     assert np.allclose(  # trees.csv: metres to the mm
         named.loc[matched.index, "diameter_max_m"], matched["aerial_diameter_m"], rtol=0, atol=5e-4
     )
-    ctx, _ = compute(load_preset("adaptive"), sim.bag, out, drone_images=drone)
+    ctx, _ = compute(load_preset("adaptive"), sim.bag, out, drone_images=drone, sfm_threads=1)
     ax = plot_crowns(ctx.aerial.ortho, ctx.aerial.segmentation, ctx.aerial.crowns)
     labels = [t.get_text() for t in ax.texts]
     expected = [tid or f"aerial {cid}" for tid, cid in zip(crowns["tree_id"], crowns["crown_id"])]

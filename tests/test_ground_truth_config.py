@@ -330,6 +330,25 @@ def test_impossible_thread_counts_are_named_before_any_work(
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("threads", [-1, 2.0, False])
+def test_a_runs_impossible_sfm_threads_are_named_before_the_mapping(
+    threads: object, tiny_pistachio, flight_dir: Path, tmp_path: Path
+) -> None:
+    """``run``/``compute`` with drone photos check ``sfm_threads`` before any stage: nothing
+    is mapped, no output folder is made."""
+    from canopy_kit.pipeline import compute
+
+    with pytest.raises(ConfigError, match="sfm_threads: expected an integer >= 0"):
+        compute(
+            load_preset("adaptive"),
+            tiny_pistachio.bag,
+            tmp_path / "out",
+            drone_images=flight_dir,
+            sfm_threads=threads,  # type: ignore[arg-type]
+        )
+    assert not (tmp_path / "out").exists()
+
+
 def test_reuse_refuses_other_reconstruction_settings(flight_dir: Path, tmp_path: Path) -> None:
     """A reused reconstruction cannot honour new SfM, surface or mosaic settings: an error."""
     from ground_truth.exif import read_flight

@@ -96,3 +96,11 @@ def test_the_run_measures_the_lidar_maps_offset_from_the_drone(drone_run):
     assert [offset["east_m"], offset["north_m"]] == pytest.approx(-drift, abs=BOUND_M)
     report = json.loads((out / "aerial" / "report.json").read_text())
     assert report["seed_offset"]["east_m"] == offset["east_m"]
+
+
+def test_the_shared_run_reconstructed_the_photos_on_one_thread(drone_run) -> None:
+    """The tests' shared drone run asks for one SfM thread (``run(sfm_threads=1)``), so every
+    test run gets the same reconstruction, and its aerial report says so."""
+    _, out, _ = drone_run
+    report = json.loads((out / "aerial" / "report.json").read_text())
+    assert report["sfm_threads"] == 1

@@ -22,6 +22,12 @@ def run(
     drone_images: Path = typer.Option(
         None, "--drone-images", help="Folder of geotagged drone JPEGs"
     ),
+    sfm_threads: int = typer.Option(
+        0,
+        "--sfm-threads",
+        help="Threads for the drone photos' structure from motion: 0 every core; 1 repeats "
+        "the reconstruction bit for bit (slower)",
+    ),
     truth: Path = typer.Option(
         None, "--truth", help="Simulated session folder to evaluate against"
     ),
@@ -126,6 +132,7 @@ def run(
             orchard=orchard,
             export_trees=export_trees,
             gnss=GnssTrackOption(gnss, gnss_crs, gnss_time),
+            sfm_threads=sfm_threads,
         )
     print_results(results)
     if strict and results.metrics.get("checks_summary", {}).get("fail", 0):

@@ -65,12 +65,15 @@ def run(
     orchard: str | None = None,
     export_trees: bool = False,
     gnss: Any = None,
+    sfm_threads: int = 0,
 ) -> Results:
     """Run every stage on ``bag`` and write the outputs (all atomically) into ``out``.
 
     ``orchard`` names the orchard or block in the provenance (default: the bag's stem);
     ``export_trees`` also writes each tree's points as ``trees/<tree_id>.laz``. ``bag`` may
     be a Velodyne pcap, with ``gnss`` a :class:`canopy_kit.io.pcap_drive.GnssTrackOption`.
+    ``sfm_threads``: COLMAP's threads for the drone photos (0: every core; 1: repeatable bit
+    for bit, slower).
     """
     from canopy_kit.io.pcap_drive import drive_input
     from canopy_kit.mapping.map_source import MapFile, input_path
@@ -87,7 +90,15 @@ def run(
     bag_hash = BagHash(path, start=False)
     try:
         ctx, cache = compute(
-            config, bag, out, drone_images, truth, use_cache, report, on_mapped=bag_hash.start
+            config,
+            bag,
+            out,
+            drone_images,
+            truth,
+            use_cache,
+            report,
+            on_mapped=bag_hash.start,
+            sfm_threads=sfm_threads,
         )
     except BaseException:
         bag_hash.cancel()
@@ -128,9 +139,12 @@ def compute(
     use_cache: bool = True,
     progress: Progress | None = None,
     on_mapped: Callable[[], None] | None = None,
+    sfm_threads: int = 0,
 ) -> tuple[RunContext, StageCache]:
     """Every stage's result (from the cache in ``out/.cache`` when unchanged), no outputs;
-    ``on_mapped()`` is called once the map is made or loaded.
+    ``on_mapped()`` is called once the map is made or loaded; ``sfm_threads`` as in
+    :func:`run` (not part of the aerial stage's cache key: every thread count makes a valid
+    reconstruction).
 
     Notebooks call this to explore a run; :func:`run` adds the output files.
     """
@@ -147,7 +161,9 @@ def compute(
     segmenter, estimators = check_settings(config)
     if drone_images is not None:
         from ground_truth.exif import read_flight
+        from ground_truth.pipeline import check_threads
 
+        check_threads(sfm_threads, "sfm_threads")  # now, not after the LiDAR stages
         read_flight(drone_images)  # bad photos reported now, not after the LiDAR stages
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache(out / ".cache", enabled=use_cache)
@@ -174,7 +190,9 @@ def compute(
     if drone_images is not None:
         gt_key = stage_key("aerial", fingerprint(drone_images), config.ground_truth, vol_key)
         ctx.aerial = cache.get_or_compute(
-            "aerial", gt_key, lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report)
+            "aerial",
+            gt_key,
+            lambda: aerial_stage(ctx, Path(drone_images), out / "aerial", report, sfm_threads),
         )
     ctx.layout = layout_stage(ctx)
     ctx.row_profiles = row_profile_stage(ctx)
@@ -294,8 +312,11 @@ def row_profile_stage(ctx: RunContext) -> Any:
     return segmentation_row_profiles(ctx.segmentation, ctx.mapping.map.xyz, ctx.layout)
 
 
-def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -> Any:
-    """Drone photogrammetry ground truth, seeded with the LiDAR tree positions."""
+def aerial_stage(
+    ctx: RunContext, images: Path, out: Path, progress: Progress, threads: int = 0
+) -> Any:
+    """Drone photogrammetry ground truth, seeded with the LiDAR tree positions (SfM on
+    ``threads`` threads, 0: every core)."""
     from ground_truth import process_flight
 
     shift = ctx.mapping.map.origin[:2] - _frame_origin(ctx)[:2]
@@ -315,6 +336,7 @@ def aerial_stage(ctx: RunContext, images: Path, out: Path, progress: Progress) -
         progress=progress,
         config=ctx.config.ground_truth,
         seed=ctx.config.seed,
+        threads=threads,
     )
 
 
