@@ -68,6 +68,11 @@ def recommended_volume(views: dict, crowns: pd.DataFrame) -> dict:
     return {"recommended": column, "flight_views": views["views"], "why": why}
 
 
+def hull_options(config: GroundTruthConfig) -> HullOptions:
+    """The hull's options from the ``[ground_truth]`` settings."""
+    return HullOptions(outline_margin_m=float(config.hull_outline_margin_m))
+
+
 def hull_stage(
     flight: Flight,
     cameras: Sequence[PosedCamera],
@@ -111,7 +116,7 @@ def multiview_stage(
     seconds = None
     if config.hull_volume:
         t0 = time.perf_counter()
-        hull = hull_stage(flight, cameras, seg, crowns, surface, progress=progress)
+        hull = hull_stage(flight, cameras, seg, crowns, surface, hull_options(config), progress)
         add_hull_column(crowns, trees, hull)
         seconds = time.perf_counter() - t0
     return {

@@ -54,8 +54,8 @@ class HullOptions:
     # oblique views from bearings all round that would enclose a round crown within
     # ``max_plan_excess`` of its plan area (``side_coverage``). 0: never grown
     # (docs/GROUND_TRUTH.md, issue 51).
-    outline_margin_m: float = 0.0
-    max_plan_excess: float = 0.02
+    outline_margin_m: float = 0.6
+    max_plan_excess: float = 0.025  # a ring of views every 30° gives 2.3 %, every 36° 3.4 %
     oblique_deg: float = 20.0  # a view of a crown this far off straight down is oblique
     image_size: int = 800
 
