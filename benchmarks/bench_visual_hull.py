@@ -67,19 +67,6 @@ def print_errors(errors: dict[str, np.ndarray]) -> None:
         )
 
 
-def grown_crowns(cameras, size, seg, crowns, surface, opts) -> int:
-    """How many crowns the side-coverage rule lets grow (0 when the margin is off)."""
-    from ground_truth.visual_hull import bounded_crowns, crown_centres
-
-    if opts.outline_margin_m <= 0:
-        return 0
-    scale = min(1.0, opts.image_size / max(size))
-    scaled = [c.scaled(scale) for c in cameras]
-    shapes = [(c.height, c.width) for c in scaled]
-    centres = crown_centres(seg.labels, seg.grid, crowns, surface.dtm, surface.grid)
-    return int(bounded_crowns(scaled, shapes, centres, opts).sum())
-
-
 def print_one_to_one(crowns: pd.DataFrame, truth: pd.DataFrame) -> None:
     """The hull's bias and MAPE over the crowns one-to-one with a true tree (within 1.5 m,
     crowns cut by the mosaic border left out), as ``bench_hull_flights.py`` reports them."""
@@ -96,7 +83,7 @@ def print_one_to_one(crowns: pd.DataFrame, truth: pd.DataFrame) -> None:
 
 def main() -> None:
     from ground_truth.exif import read_flight
-    from ground_truth.multiview import flight_views, hull_stage
+    from ground_truth.multiview import flight_views, hull_stage, outlines_grown
     from ground_truth.pipeline import load_result
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -128,7 +115,7 @@ def main() -> None:
         crowns["hull_volume_m3"] = hull_stage(flight, cameras, seg, crowns, surface, opts)
         seconds = time.perf_counter() - t0
         views = flight_views(cameras)["views"]
-        grown = grown_crowns(cameras, flight.size, seg, crowns, surface, opts)
+        grown = outlines_grown(flight, cameras, seg, crowns, surface, opts)
         print(
             f"## {root.name}: {len(cameras)} photos ({views}), {len(crowns)} crowns, hull {seconds:.1f} s,"
             f" margin {opts.outline_margin_m} m on {grown} crowns (max plan excess {opts.max_plan_excess})"
