@@ -1,9 +1,8 @@
 """A crown's volume from its silhouettes in every calibrated photo (a visual hull).
 
 Each crown's box (its outline in the crown labels, from the ground up to above its top) is
-cut into voxels; a voxel stays
-when every photo that sees it (it projects inside the image, in front of the camera) shows
-vegetation there. What stays is the largest shape consistent
+cut into voxels; a voxel stays when every photo that sees it (it projects inside the image,
+in front of the camera) shows vegetation there. What stays is the largest shape consistent
 with the silhouettes: it holds the whole crown (up to the masks' errors) and is larger than
 it where no photo looks between crown and ground. Nadir photos carve only the sides, so the
 hull reaches down to the ground under the crown; oblique photos see below the skirt and
