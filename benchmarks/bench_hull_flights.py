@@ -11,7 +11,8 @@ form, default the preset's), processes it with the default
 ``[ground_truth]`` settings (crowns from the imagery alone, every core) and prints one JSON line:
 crowns one-to-one with the true trees (within 1.5 m, crowns cut by the mosaic border left out),
 each model's bias and MAPE over those crowns, the recommended model, and the wall and CPU time
-per stage; the crowns flagged from the imagery (``crown_flag``), how many of them hold two or
+per stage; the crowns whose outlines the hull grew (``hull_outlines``);
+the crowns flagged from the imagery (``crown_flag``), how many of them hold two or
 more true crown centres or none (``trees_per_crown``, the simulator's truth), and the hull's
 bias and MAPE over the unflagged crowns alone. Run flights one at a time: each uses every core for minutes.
 """
@@ -109,6 +110,7 @@ def main() -> None:
         "diameter_mae_m": round(m["diameter_mae_m"], 3),
         "flight_views": report["flight_views"],
         "aerial_volume_model": report["aerial_volume_model"]["recommended"],
+        "hull_outlines": report.get("hull_outlines"),
         "models": models,
         "crown_flags": report["crown_flags"],
         "flagged": {

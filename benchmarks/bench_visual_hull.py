@@ -67,14 +67,34 @@ def print_errors(errors: dict[str, np.ndarray]) -> None:
         )
 
 
+def print_one_to_one(crowns: pd.DataFrame, truth: pd.DataFrame) -> None:
+    """The hull's bias and MAPE over the crowns one-to-one with a true tree (within 1.5 m,
+    crowns cut by the mosaic border left out), as ``bench_hull_flights.py`` reports them."""
+    from ground_truth.flight_accuracy import crown_agreement
+
+    table, m = crown_agreement(crowns, truth)
+    e = (table["hull_volume_m3"] / table["volume_true_m3"] - 1) * 100
+    e = e[np.isfinite(e)]
+    print(
+        f"  one-to-one {m['matched']}/{m['trees']}: hull bias {e.mean():+.1f} %  MAPE"
+        f" {e.abs().mean():.1f} %  range {e.min():+.0f}..{e.max():+.0f} %"
+    )
+
+
 def main() -> None:
     from ground_truth.exif import read_flight
-    from ground_truth.multiview import flight_views, hull_stage
+    from ground_truth.multiview import flight_views, hull_stage, outlines_grown
     from ground_truth.pipeline import load_result
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("flights", nargs="*", type=Path, default=DEFAULT)
     parser.add_argument("--outline-margin-m", type=float, default=None)
+    parser.add_argument(
+        "--max-plan-excess",
+        type=float,
+        default=None,
+        help="the side-coverage rule's limit (HullOptions.max_plan_excess; inf: grow every crown)",
+    )
     args = parser.parse_args()
     for root in args.flights:
         gt = root / "gt_imagery"
@@ -86,18 +106,23 @@ def main() -> None:
         crowns = result.crowns.copy()
         from ground_truth.visual_hull import HullOptions
 
-        opts = (
-            HullOptions()
-            if args.outline_margin_m is None
-            else HullOptions(outline_margin_m=args.outline_margin_m)
-        )
+        given = {}
+        if args.outline_margin_m is not None:
+            given["outline_margin_m"] = args.outline_margin_m
+        if args.max_plan_excess is not None:
+            given["max_plan_excess"] = args.max_plan_excess
+        opts = HullOptions(**given)
         crowns["hull_volume_m3"] = hull_stage(flight, cameras, seg, crowns, surface, opts)
         seconds = time.perf_counter() - t0
         views = flight_views(cameras)["views"]
+        grown = outlines_grown(flight, cameras, seg, crowns, surface, opts)
         print(
-            f"## {root.name}: {len(cameras)} photos ({views}), {len(crowns)} crowns, hull {seconds:.1f} s"
+            f"## {root.name}: {len(cameras)} photos ({views}), {len(crowns)} crowns, hull {seconds:.1f} s,"
+            f" margin {opts.outline_margin_m} m on {grown} crowns (max plan excess {opts.max_plan_excess})"
         )
-        print_errors(model_errors(crowns, pd.read_csv(root / "truth" / "trees.csv")))
+        truth = pd.read_csv(root / "truth" / "trees.csv")
+        print_errors(model_errors(crowns, truth))
+        print_one_to_one(crowns, truth)
 
 
 if __name__ == "__main__":

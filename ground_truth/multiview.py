@@ -68,6 +68,11 @@ def recommended_volume(views: dict, crowns: pd.DataFrame) -> dict:
     return {"recommended": column, "flight_views": views["views"], "why": why}
 
 
+def hull_options(config: GroundTruthConfig) -> HullOptions:
+    """The hull's options from the ``[ground_truth]`` settings."""
+    return HullOptions(outline_margin_m=float(config.hull_outline_margin_m))
+
+
 def hull_stage(
     flight: Flight,
     cameras: Sequence[PosedCamera],
@@ -94,6 +99,27 @@ def hull_stage(
     )
 
 
+def outlines_grown(
+    flight: Flight,
+    cameras: Sequence[PosedCamera],
+    seg: CrownSegmentation,
+    crowns: pd.DataFrame,
+    surface: SurfaceModel,
+    options: HullOptions,
+) -> int:
+    """How many crowns' outlines the hull grows (the side-coverage rule of
+    ``ground_truth.visual_hull``, with the photos at ``options.image_size`` px)."""
+    from ground_truth.visual_hull import bounded_crowns, crown_centres
+
+    if options.outline_margin_m <= 0 or not len(crowns) or len(cameras) < options.min_views:
+        return 0
+    factor = min(1.0, options.image_size / max(flight.size))
+    scaled = [c.scaled(factor) if factor < 1.0 else c for c in cameras]
+    shapes = [(c.height, c.width) for c in scaled]
+    centres = crown_centres(seg.labels, seg.grid, crowns, surface.dtm, surface.grid)
+    return int(bounded_crowns(scaled, shapes, centres, options).sum())
+
+
 def multiview_stage(
     flight: Flight,
     cameras: Sequence[PosedCamera],
@@ -106,17 +132,26 @@ def multiview_stage(
 ) -> dict:
     """The flight's views and, with ``config.hull_volume``, the hull column added to ``crowns``
     (and ``aerial_hull_volume_m3`` to the matched ``trees``); returns the report's
-    ``flight_views``, ``aerial_volume_model`` and the hull's seconds (None when off)."""
+    ``flight_views``, ``aerial_volume_model``, ``hull_outlines`` (the outline margin and how
+    many crowns it was given) and the hull's seconds (None when off)."""
     views = flight_views(cameras)
-    seconds = None
+    seconds, outlines = None, None
     if config.hull_volume:
         t0 = time.perf_counter()
-        hull = hull_stage(flight, cameras, seg, crowns, surface, progress=progress)
+        options = hull_options(config)
+        hull = hull_stage(flight, cameras, seg, crowns, surface, options, progress)
         add_hull_column(crowns, trees, hull)
+        outlines = {
+            "margin_m": options.outline_margin_m,
+            "max_plan_excess": options.max_plan_excess,
+            "grown": outlines_grown(flight, cameras, seg, crowns, surface, options),
+            "crowns": len(crowns),
+        }
         seconds = time.perf_counter() - t0
     return {
         "flight_views": views,
         "aerial_volume_model": recommended_volume(views, crowns),
+        "hull_outlines": outlines,
         "hull_s": seconds,
     }
 

@@ -337,6 +337,7 @@ def process_flight(
         "sphere_diameter": "diameter_max_m (widest extent)",
         "flight_views": multiview["flight_views"],
         "aerial_volume_model": multiview["aerial_volume_model"],
+        "hull_outlines": multiview["hull_outlines"],
         "timings_s": timings,
     }
     summary["crown_seeding"] = seg.seeding

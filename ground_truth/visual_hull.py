@@ -1,9 +1,8 @@
 """A crown's volume from its silhouettes in every calibrated photo (a visual hull).
 
-Each crown's box (its outline in the crown labels grown by ``outline_margin_m`` but never
-into a neighbour's, from the ground up to above its top) is cut into voxels; a voxel stays
-when every photo that sees it (it projects inside the image, in front of the camera) shows
-vegetation there. What stays is the largest shape consistent
+Each crown's box (its outline in the crown labels, from the ground up to above its top) is
+cut into voxels; a voxel stays when every photo that sees it (it projects inside the image,
+in front of the camera) shows vegetation there. What stays is the largest shape consistent
 with the silhouettes: it holds the whole crown (up to the masks' errors) and is larger than
 it where no photo looks between crown and ground. Nadir photos carve only the sides, so the
 hull reaches down to the ground under the crown; oblique photos see below the skirt and
@@ -19,6 +18,13 @@ A crown whose centre (its voxels' mean position at mid-height) fewer than ``min_
 photos see has no hull (NaN): too few views to carve it. A voxel is dropped as soon as it can
 no longer stay, which gives the same volume as carving every voxel in every photo, faster.
 ``ground_truth.multiview`` runs it in ``process_flight``.
+
+The hull cannot be wider than the crown's outline, and outlines from the surface model run
+narrow on porous, lobed crowns. A crown whose oblique views come from bearings all round
+(:func:`side_coverage`: they would enclose a round crown within ``max_plan_excess`` of its
+plan area) has its outline grown by ``outline_margin_m``, never into a neighbour's, so that
+its silhouettes, not the outline, bound its sides; a crown seen from fewer bearings keeps its
+outline, which then bounds the hull better than the silhouettes do.
 """
 
 from __future__ import annotations
@@ -43,11 +49,13 @@ class HullOptions:
     min_views: int = 3
     headroom_m: float = 0.3  # above the crown's top
     # Crown outlines (the surface model's) grown by this much, never into a neighbour's, so
-    # that the silhouettes bound the hull. Off by default: on looked-at 4 x 8 double-grid
-    # flights 0.6 m took lobed pistachio crowns from -27.6 % to -11.5 % (outlines 0.42 m
-    # narrow) and free ones from -8.4 % to -5.5 %, but on a 1 x 3 flight, carved by fewer
-    # views, one crown went from +8 % to +16 % (docs/GROUND_TRUTH.md).
-    outline_margin_m: float = 0.0
+    # that the silhouettes bound the hull, for the crowns whose views bound their sides:
+    # oblique views from bearings all round that would enclose a round crown within
+    # ``max_plan_excess`` of its plan area (``side_coverage``). 0: never grown
+    # (docs/GROUND_TRUTH.md, issue 51).
+    outline_margin_m: float = 0.6
+    max_plan_excess: float = 0.025  # a ring of views every 30° gives 2.3 %, every 36° 3.4 %
+    oblique_deg: float = 20.0  # a view of a crown this far off straight down is oblique
     image_size: int = 800
 
 
@@ -73,9 +81,8 @@ def crown_hull_volumes(
     report = progress or (lambda *_: None)
     x, y = grid.centers()
     if opts.outline_margin_m > 0:
-        from skimage.segmentation import expand_labels
-
-        labels = expand_labels(labels, opts.outline_margin_m / grid.resolution)
+        labels = _grow_bounded_outlines(cameras, vegetation, labels, grid, crowns, ground,
+                                        ground_grid, opts)  # fmt: skip
     out = np.zeros(len(crowns))
     for k, crown in enumerate(crowns.itertuples()):
         report("Visual hull", k, len(crowns))
@@ -100,6 +107,114 @@ def crown_hull_volumes(
         out[k] = _carve(pts, cameras, vegetation, opts) * opts.voxel_m**3
     report("Visual hull", len(crowns), len(crowns))
     return out
+
+
+@dataclass(frozen=True)
+class SideCoverage:
+    """How a crown's views surround it: photos that see its centre, those of them looking
+    at it at least ``oblique_deg`` off straight down, the widest gap (degrees) between the
+    bearings of those oblique views taken as lines (a view from the north bounds the same
+    sides as one from the south), and ``plan_excess``: the share by which the polygon those
+    bearings circumscribe round a round crown exceeds the crown's plan area (inf with fewer
+    than two bearings)."""
+
+    views: int
+    oblique_views: int
+    bearing_gap_deg: float
+    plan_excess: float
+
+
+def side_coverage(
+    cameras: Sequence[PosedCamera],
+    shapes: Sequence[tuple[int, ...]],
+    centre: np.ndarray,
+    oblique_deg: float = 20.0,
+) -> SideCoverage:
+    """The views round a crown's ``centre`` (x, y, z). A view from bearing b bounds the
+    crown across b with its silhouette's two edges, so views from bearings (as lines) that
+    leave gaps g_i (summing to 180°) enclose a round crown of radius r in a polygon of area
+    2 r² Σ tan(g_i / 2): ``plan_excess`` = 2 Σ tan(g_i / 2) / π - 1 (5.5 % for four bearings
+    45° apart, 27 % for two at right angles)."""
+    point = np.asarray(centre, float).reshape(1, 3)
+    bearings = []
+    views = 0
+    for cam, shape in zip(cameras, shapes, strict=True):
+        if not _visible(cam, shape, point)[0][0]:
+            continue
+        views += 1
+        d = cam.center - point[0]
+        if np.degrees(np.arctan2(np.hypot(d[0], d[1]), d[2])) >= oblique_deg:
+            bearings.append(np.degrees(np.arctan2(d[1], d[0])) % 180.0)
+    b = np.unique(np.round(bearings, 6))
+    if len(b) < 2:
+        return SideCoverage(views, len(bearings), 180.0, float("inf"))
+    gaps = np.diff(np.r_[b, b[0] + 180.0])
+    if gaps.max() >= 180.0 - 1e-9:
+        return SideCoverage(views, len(bearings), 180.0, float("inf"))
+    excess = 2.0 * np.tan(np.radians(gaps) / 2).sum() / np.pi - 1.0
+    return SideCoverage(views, len(bearings), float(gaps.max()), float(excess))
+
+
+def crown_centres(
+    labels: np.ndarray,
+    grid: Grid,
+    crowns: pd.DataFrame,
+    ground: np.ndarray,
+    ground_grid: Grid,
+) -> np.ndarray:
+    """Each crown's centre (n x 3; NaN without cells): its outline's mean position, at half
+    its height above the ground there."""
+    x, y = grid.centers()
+    out = np.full((len(crowns), 3), np.nan)
+    for k, crown in enumerate(crowns.itertuples()):
+        cells = labels == crown.crown_id
+        if cells.any():
+            cx, cy = float(x[cells].mean()), float(y[cells].mean())
+            z0 = _sample(ground, ground_grid, np.array([cx]), np.array([cy]))[0]
+            z0 = z0 if np.isfinite(z0) else float(np.nanmedian(ground))
+            out[k] = (cx, cy, z0 + float(crown.height_m) / 2)
+    return out
+
+
+def bounded_crowns(
+    cameras: Sequence[PosedCamera],
+    shapes: Sequence[tuple[int, ...]],
+    centres: np.ndarray,
+    opts: HullOptions,
+) -> np.ndarray:
+    """Which crowns (rows of ``centres``) have their sides bounded by the views: at least
+    ``min_views`` oblique views whose bearings would enclose a round crown within
+    ``max_plan_excess`` of its plan area (:func:`side_coverage`)."""
+    out = np.zeros(len(centres), bool)
+    for k, c in enumerate(centres):
+        if np.isfinite(c).all():
+            cov = side_coverage(cameras, shapes, c, opts.oblique_deg)
+            out[k] = cov.oblique_views >= opts.min_views and cov.plan_excess <= opts.max_plan_excess
+    return out
+
+
+def _grow_bounded_outlines(
+    cameras: Sequence[PosedCamera],
+    vegetation: Sequence[np.ndarray],
+    labels: np.ndarray,
+    grid: Grid,
+    crowns: pd.DataFrame,
+    ground: np.ndarray,
+    ground_grid: Grid,
+    opts: HullOptions,
+) -> np.ndarray:
+    """The crown labels with the outlines of the crowns whose sides the views bound
+    (:func:`bounded_crowns`) grown by ``outline_margin_m``, never into a neighbour's."""
+    from skimage.segmentation import expand_labels
+
+    centres = crown_centres(labels, grid, crowns, ground, ground_grid)
+    shapes = [m.shape for m in vegetation]
+    grow = crowns["crown_id"].to_numpy()[bounded_crowns(cameras, shapes, centres, opts)]
+    if not len(grow):
+        return labels
+    grown = expand_labels(labels, opts.outline_margin_m / grid.resolution)
+    added = (labels == 0) & np.isin(grown, grow)
+    return np.where(added, grown, labels)
 
 
 def _carve(

@@ -217,6 +217,27 @@ def _hull_crowns(config: GroundTruthConfig, flight_dir: Path, _) -> float:
     return float(crowns["hull_volume_m3"].notna().sum()) if "hull_volume_m3" in crowns else 0.0
 
 
+def _hull_of_a_narrow_outline(config: GroundTruthConfig, *_) -> float:
+    """The hull of an exact sphere seen from bearings every 30°, its outline 0.7 of its
+    radius (tests/test_visual_hull.py), carved with the settings' hull options."""
+    from ground_truth.multiview import hull_options
+    from ground_truth.raster import Grid
+    from ground_truth.visual_hull import crown_hull_volumes
+    from tests.test_visual_hull import _ring, _silhouette
+
+    cameras = _ring(30)
+    grid = Grid.covering(np.array([-3.0, -3.0]), np.array([3.0, 3.0]), 0.1)
+    x, y = grid.centers()
+    labels = np.where(np.hypot(x, y) <= 1.05, 1, 0)
+    crowns = pd.DataFrame({"crown_id": [1], "height_m": [4.0]})
+    masks = [_silhouette(c) for c in cameras]
+    ground = np.zeros(grid.shape)
+    volume = crown_hull_volumes(
+        cameras, masks, labels, grid, crowns, ground, grid, hull_options(config)
+    )
+    return float(volume[0])
+
+
 Measure = Callable[[GroundTruthConfig, Path, Path], float]
 # key -> (changed value, what it changes, expected sign of changed minus default: -1, +1, 0 any)
 CASES: dict[str, tuple[object, Measure, int]] = {
@@ -234,6 +255,7 @@ CASES: dict[str, tuple[object, Measure, int]] = {
     "min_diameter_ratio": (0.9, _flagged_crowns, +1),
     "max_diameter_ratio": (1.1, _flagged_crowns, +1),
     "hull_volume": (False, _hull_crowns, -1),
+    "hull_outline_margin_m": (0.0, _hull_of_a_narrow_outline, -1),
 }
 
 
@@ -286,6 +308,8 @@ def test_an_unknown_key_fails_naming_it(tmp_path: Path) -> None:
         {"crown_seeds": "watershed"},
         {"tree_spacing_m": -4.0},
         {"hull_volume": "no"},
+        {"hull_outline_margin_m": -0.3},
+        {"hull_outline_margin_m": "0.6"},
     ],
 )
 def test_impossible_values_are_named(table: dict) -> None:

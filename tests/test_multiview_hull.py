@@ -124,6 +124,11 @@ def test_hull_of_rendered_oblique_crowns_holds_the_true_crown(double_grid: Path)
     assert views["views"] == "oblique" and views["oblique_photos"] == views["photos"]
     assert views["median_pitch_deg"] == pytest.approx(-60.0, abs=3.0)  # the plan's gimbal
     assert out["aerial_volume_model"]["recommended"] == "hull_volume_m3"
+    # 17 photos from few bearings round each crown (their 12-gon-or-worse polygon leaves more
+    # than 2.5 % round a round crown): the outlines are not grown
+    assert out["hull_outlines"] == {
+        "margin_m": 0.6, "max_plan_excess": 0.025, "grown": 0, "crowns": len(crowns)
+    }  # fmt: skip
     assert matched["aerial_hull_volume_m3"].tolist() == crowns["hull_volume_m3"].tolist()
     assert calls[-1] == ("Visual hull", len(crowns), len(crowns))  # progress to the end
     assert list(crowns.columns).index("hull_volume_m3") == 1 + list(crowns.columns).index(
@@ -136,7 +141,7 @@ def test_switched_off_there_is_no_hull_and_the_nadir_model_is_recommended(
 ) -> None:
     _, crowns, matched, out, calls = _stage(double_grid, GroundTruthConfig(hull_volume=False))
     assert "hull_volume_m3" not in crowns and "aerial_hull_volume_m3" not in matched
-    assert out["hull_s"] is None and calls == []
+    assert out["hull_s"] is None and calls == [] and out["hull_outlines"] is None
     assert out["aerial_volume_model"]["recommended"] == "ellipsoid_volume_m3"
     assert out["flight_views"]["views"] == "oblique"  # still said
 
@@ -207,6 +212,7 @@ def test_the_cli_writes_the_hull_and_recommends_it(double_grid: Path, tmp_path) 
     report = json.loads((out / "report.json").read_text())
     assert report["aerial_volume_model"]["recommended"] == "hull_volume_m3"
     assert report["flight_views"]["views"] == "oblique" and "hull" in report["timings_s"]
+    assert report["hull_outlines"]["grown"] == 0  # too few bearings round these crowns
     assert pd.read_csv(out / "trees.csv")["aerial_hull_volume_m3"].notna().all()
     truth = pd.read_csv(truth_dir / "trees.csv")
     table, metrics = crown_agreement(pd.read_csv(out / "crowns.csv"), truth, exclude_border=False)

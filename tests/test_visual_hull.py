@@ -52,9 +52,12 @@ def _looking_at_sphere(position: np.ndarray) -> PosedCamera:
 
 
 def _hull(
-    cameras: list[PosedCamera], outline: float = RADIUS + 0.1, margin: float | None = None
+    cameras: list[PosedCamera],
+    outline: float = RADIUS + 0.1,
+    margin: float | None = None,
+    **rule: float,
 ) -> float:
-    grid = Grid.covering(np.array([-2.5, -2.5]), np.array([2.5, 2.5]), 0.05)
+    grid = Grid.covering(np.array([-3.0, -3.0]), np.array([3.0, 3.0]), 0.05)
     x, y = grid.centers()
     labels = np.where(np.hypot(x, y) <= outline, 1, 0)  # the crown's outline from above
     crowns = pd.DataFrame({"crown_id": [1], "height_m": [CENTRE[2] + RADIUS]})
@@ -63,6 +66,8 @@ def _hull(
     options = HullOptions(voxel_m=0.05, min_fraction=1.0, min_views=2, headroom_m=0.2)
     if margin is not None:
         options = HullOptions(**{**options.__dict__, "outline_margin_m": margin})
+    if rule:
+        options = HullOptions(**{**options.__dict__, **rule})
     return float(crown_hull_volumes(cameras, masks, labels, grid, crowns, ground, grid, options)[0])
 
 
@@ -91,21 +96,58 @@ def test_oblique_views_carve_the_hull_towards_the_sphere() -> None:
     assert hull < 0.75 * nadir
 
 
-def test_the_silhouettes_not_a_narrow_outline_bound_the_hull() -> None:
-    """Crown outlines from the surface model run narrow on lobed crowns (0.42 m on a held-out
-    flight): an outline at 0.7 of the radius caps the hull at its cylinder (about 0.6 of the
-    sphere); grown by ``outline_margin_m`` (0.6 m), the silhouettes bound it again."""
-    ring = [
-        _looking_at_sphere(CENTRE + 25.0 * np.array([np.cos(a), np.sin(a), 1.2]))
-        for a in np.radians(np.arange(0, 360, 30))
+def _ring(step_deg: float, elevation: float = 1.2, start_deg: float = 0.0) -> list:
+    """Cameras 25 m out on bearings every ``step_deg``, ``elevation`` x 25 m up, looking at
+    the sphere."""
+    return [
+        _looking_at_sphere(CENTRE + 25.0 * np.array([np.cos(a), np.sin(a), elevation]))
+        for a in np.radians(np.arange(start_deg, start_deg + 360, step_deg))
     ]
-    cameras = ring + [_camera(np.array([0.0, 0.0, 40.0]), 0.0, -90.0)]
+
+
+def test_the_silhouettes_not_a_narrow_outline_bound_the_hull() -> None:
+    """Crown outlines from the surface model run narrow on lobed crowns (0.42 m on a
+    looked-at flight): an outline at 0.7 of the radius caps the hull at its cylinder (about
+    0.6 of the sphere); seen from bearings all round (every 30°), the crown's outline is
+    grown by the default ``outline_margin_m`` (0.6 m) and the silhouettes bound it again."""
+    cameras = _ring(30) + [_camera(np.array([0.0, 0.0, 40.0]), 0.0, -90.0)]
     narrow = 0.7 * RADIUS
-    capped = _hull(cameras, outline=narrow)  # the default: no margin
+    capped = _hull(cameras, outline=narrow, margin=0.0)
     assert capped <= np.pi * narrow**2 * 2 * RADIUS * 1.05  # within the outline's cylinder
     assert capped < 0.8 * SPHERE
-    grown = _hull(cameras, outline=narrow, margin=0.6)
+    grown = _hull(cameras, outline=narrow)  # the default margin, and the rule lets it grow
     assert SPHERE * 0.97 <= grown <= SPHERE * 1.35
+
+
+def test_side_coverage_is_the_polygon_the_bearings_draw_round_a_round_crown() -> None:
+    """Views every 30° (six bearing lines) enclose a circle in a regular 12-gon, 12 tan 15° /
+    π - 1 = 2.3 % larger; two lines at right angles in a square, 4 / π - 1 = 27 %; views
+    from one line only bound nothing across it (inf); the nadir view is not oblique."""
+    from ground_truth.visual_hull import side_coverage
+
+    nadir = [_camera(np.array([0.0, 0.0, 40.0]), 0.0, -90.0)]
+    shapes = [(SIZE, SIZE)] * 13
+    every_30 = side_coverage(_ring(30) + nadir, shapes, CENTRE)
+    assert (every_30.views, every_30.oblique_views) == (13, 12)
+    assert every_30.plan_excess == pytest.approx(12 * np.tan(np.radians(15)) / np.pi - 1)
+    assert every_30.bearing_gap_deg == pytest.approx(30.0)
+    square = side_coverage(_ring(90, start_deg=20), shapes[:4], CENTRE)
+    assert square.plan_excess == pytest.approx(4 / np.pi - 1)
+    one_line = side_coverage(_ring(180), shapes[:2], CENTRE)
+    assert one_line.plan_excess == np.inf and one_line.bearing_gap_deg == 180.0
+    away = side_coverage(_ring(30), shapes[:12], CENTRE + np.array([80.0, 0.0, 0.0]))
+    assert away.views == 0 and away.plan_excess == np.inf  # a crown no view sees
+
+
+def test_an_outline_is_not_grown_where_the_views_do_not_bound_the_sides() -> None:
+    """Low views from two opposite bearings only: nothing carves the sphere's sides across
+    them, so growing its (right) outline would let the hull out (+20 % of the sphere here);
+    the side-coverage rule keeps the outline, and the hull is the one carved without margin."""
+    cameras = _ring(180, elevation=0.6, start_deg=45)
+    kept = _hull(cameras, margin=0.6)  # the default rule
+    assert kept == _hull(cameras, margin=0.0)
+    let_out = _hull(cameras, margin=0.6, max_plan_excess=np.inf)
+    assert let_out > kept + 0.15 * SPHERE
 
 
 def test_a_crown_no_camera_sees_has_no_hull_volume() -> None:

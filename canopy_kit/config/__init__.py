@@ -257,11 +257,26 @@ class GroundTruthConfig:
     # Carve each crown's visual hull from its silhouettes in every registered photo
     # (hull_volume_m3; the recommended aerial volume of an oblique flight); false: skip it.
     hull_volume: bool = True
+    # Grow a crown's outline by this much (m, never into a neighbour's) before carving its
+    # hull, when its oblique views come from bearings all round (the silhouettes then bound
+    # its sides; outlines run narrow on porous crowns); 0: never.
+    hull_outline_margin_m: float = 0.6
 
     def __post_init__(self) -> None:
         if not isinstance(self.hull_volume, bool):
             raise ConfigError(
                 f"ground_truth.hull_volume: expected true or false, got {self.hull_volume!r}"
+            )
+        value = self.hull_outline_margin_m
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not 0 <= value <= 5
+            or value != value
+        ):
+            raise ConfigError(
+                "ground_truth.hull_outline_margin_m: expected a distance in metres from 0 "
+                f"(never grow the crown outlines) to 5, got {value!r}"
             )
         for name in ("max_image_size", "work_image_size"):
             value = getattr(self, name)
