@@ -205,7 +205,7 @@ AERIAL_REFERENCES = [
         "aerial_ellipsoid_volume_m3",
         "aerial ellipsoid",
         "Alpha-shape volume against the aerial height-aware ellipsoid (both crown "
-        "extents and the CHM crown depth), the nadir flight's aerial reference: the "
+        "extents and the CHM crown depth), the aerial reference of a nadir flight: the "
         "paper's sphere of the widest extent overstates crowns that are flatter or "
         "longer than wide (docs/GROUND_TRUTH.md gives both models' measured bias "
         "per crown form).",
@@ -214,7 +214,7 @@ AERIAL_REFERENCES = [
         "aerial_hull_volume_m3",
         "aerial visual hull",
         "Alpha-shape volume against the aerial visual hull (each crown carved from its "
-        "silhouettes in every photo), the oblique flight's aerial reference: oblique photos "
+        "silhouettes in every photo), the aerial reference of an oblique flight: oblique photos "
         "see below the crowns' widest level, which no nadir model can.",
     ),
 ]
