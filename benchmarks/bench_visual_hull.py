@@ -83,7 +83,7 @@ def print_one_to_one(crowns: pd.DataFrame, truth: pd.DataFrame) -> None:
 
 def main() -> None:
     from ground_truth.exif import read_flight
-    from ground_truth.multiview import flight_views, hull_stage, outlines_grown
+    from ground_truth.multiview import flight_views, hull_stage
     from ground_truth.pipeline import load_result
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -112,10 +112,10 @@ def main() -> None:
         if args.max_plan_excess is not None:
             given["max_plan_excess"] = args.max_plan_excess
         opts = HullOptions(**given)
-        crowns["hull_volume_m3"] = hull_stage(flight, cameras, seg, crowns, surface, opts)
+        hulls = hull_stage(flight, cameras, seg, crowns, surface, opts)
+        crowns["hull_volume_m3"], grown = hulls.volumes, hulls.grown
         seconds = time.perf_counter() - t0
         views = flight_views(cameras)["views"]
-        grown = outlines_grown(flight, cameras, seg, crowns, surface, opts)
         print(
             f"## {root.name}: {len(cameras)} photos ({views}), {len(crowns)} crowns, hull {seconds:.1f} s,"
             f" margin {opts.outline_margin_m} m on {grown} crowns (max plan excess {opts.max_plan_excess})"

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -31,7 +32,7 @@ from ground_truth.crowns import CrownSegmentation
 from ground_truth.dsm import SurfaceModel
 from ground_truth.exif import Flight
 from ground_truth.silhouettes import crown_silhouettes
-from ground_truth.visual_hull import HullOptions, crown_hull_volumes
+from ground_truth.visual_hull import HullOptions, crown_hull_volumes, grow_bounded_outlines
 
 OBLIQUE_SHARE = 0.25  # share of oblique photos that makes a flight oblique
 
@@ -73,6 +74,15 @@ def hull_options(config: GroundTruthConfig) -> HullOptions:
     return HullOptions(outline_margin_m=float(config.hull_outline_margin_m))
 
 
+@dataclass(frozen=True)
+class CrownHulls:
+    """Each crown's visual-hull volume (m³, NaN: too few views) and how many crowns'
+    outlines were grown before carving (the side-coverage rule of ``ground_truth.visual_hull``)."""
+
+    volumes: np.ndarray
+    grown: int
+
+
 def hull_stage(
     flight: Flight,
     cameras: Sequence[PosedCamera],
@@ -81,43 +91,29 @@ def hull_stage(
     surface: SurfaceModel,
     options: HullOptions | None = None,
     progress: Callable[[str, float, float], None] | None = None,
-) -> np.ndarray:
+) -> CrownHulls:
     """Visual-hull volume (m³) of each crown, carved with silhouettes of the registered
-    photos read at ``options.image_size`` px; NaN throughout with fewer than
-    ``options.min_views`` photos."""
+    photos read at ``options.image_size`` px (NaN throughout with fewer than
+    ``options.min_views`` photos), and how many outlines the side-coverage rule grew."""
     from ground_truth.pipeline import load_work_images
 
     opts = options or HullOptions()
     if len(cameras) < opts.min_views or not len(crowns):
-        return np.full(len(crowns), np.nan)
+        return CrownHulls(np.full(len(crowns), np.nan), 0)
     scaled, rgbs = load_work_images(flight, list(cameras), opts.image_size)
     ground_z = float(np.nanmedian(surface.dtm))
     masks = crown_silhouettes(rgbs, scaled, ground_z)
     del rgbs
-    return crown_hull_volumes(
-        scaled, masks, seg.labels, seg.grid, crowns, surface.dtm, surface.grid, opts, progress
+    labels, grown = seg.labels, np.zeros(len(crowns), bool)
+    if opts.outline_margin_m > 0:  # decided once: the count reported is the one carved
+        labels, grown = grow_bounded_outlines(
+            scaled, masks, seg.labels, seg.grid, crowns, surface.dtm, surface.grid, opts
+        )
+    carve = replace(opts, outline_margin_m=0.0)  # the outlines are grown already
+    volumes = crown_hull_volumes(
+        scaled, masks, labels, seg.grid, crowns, surface.dtm, surface.grid, carve, progress
     )
-
-
-def outlines_grown(
-    flight: Flight,
-    cameras: Sequence[PosedCamera],
-    seg: CrownSegmentation,
-    crowns: pd.DataFrame,
-    surface: SurfaceModel,
-    options: HullOptions,
-) -> int:
-    """How many crowns' outlines the hull grows (the side-coverage rule of
-    ``ground_truth.visual_hull``, with the photos at ``options.image_size`` px)."""
-    from ground_truth.visual_hull import bounded_crowns, crown_centres
-
-    if options.outline_margin_m <= 0 or not len(crowns) or len(cameras) < options.min_views:
-        return 0
-    factor = min(1.0, options.image_size / max(flight.size))
-    scaled = [c.scaled(factor) if factor < 1.0 else c for c in cameras]
-    shapes = [(c.height, c.width) for c in scaled]
-    centres = crown_centres(seg.labels, seg.grid, crowns, surface.dtm, surface.grid)
-    return int(bounded_crowns(scaled, shapes, centres, options).sum())
+    return CrownHulls(volumes, int(grown.sum()))
 
 
 def multiview_stage(
@@ -140,11 +136,11 @@ def multiview_stage(
         t0 = time.perf_counter()
         options = hull_options(config)
         hull = hull_stage(flight, cameras, seg, crowns, surface, options, progress)
-        add_hull_column(crowns, trees, hull)
+        add_hull_column(crowns, trees, hull.volumes)
         outlines = {
             "margin_m": options.outline_margin_m,
             "max_plan_excess": options.max_plan_excess,
-            "grown": outlines_grown(flight, cameras, seg, crowns, surface, options),
+            "grown": hull.grown,
             "crowns": len(crowns),
         }
         seconds = time.perf_counter() - t0

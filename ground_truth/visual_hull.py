@@ -81,8 +81,9 @@ def crown_hull_volumes(
     report = progress or (lambda *_: None)
     x, y = grid.centers()
     if opts.outline_margin_m > 0:
-        labels = _grow_bounded_outlines(cameras, vegetation, labels, grid, crowns, ground,
-                                        ground_grid, opts)  # fmt: skip
+        labels, _ = grow_bounded_outlines(
+            cameras, vegetation, labels, grid, crowns, ground, ground_grid, opts
+        )
     out = np.zeros(len(crowns))
     for k, crown in enumerate(crowns.itertuples()):
         report("Visual hull", k, len(crowns))
@@ -193,7 +194,7 @@ def bounded_crowns(
     return out
 
 
-def _grow_bounded_outlines(
+def grow_bounded_outlines(
     cameras: Sequence[PosedCamera],
     vegetation: Sequence[np.ndarray],
     labels: np.ndarray,
@@ -202,19 +203,20 @@ def _grow_bounded_outlines(
     ground: np.ndarray,
     ground_grid: Grid,
     opts: HullOptions,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """The crown labels with the outlines of the crowns whose sides the views bound
-    (:func:`bounded_crowns`) grown by ``outline_margin_m``, never into a neighbour's."""
+    (:func:`bounded_crowns`) grown by ``outline_margin_m``, never into a neighbour's, and
+    which crowns (rows of ``crowns``) those are."""
     from skimage.segmentation import expand_labels
 
     centres = crown_centres(labels, grid, crowns, ground, ground_grid)
-    shapes = [m.shape for m in vegetation]
-    grow = crowns["crown_id"].to_numpy()[bounded_crowns(cameras, shapes, centres, opts)]
+    bounded = bounded_crowns(cameras, [m.shape for m in vegetation], centres, opts)
+    grow = crowns["crown_id"].to_numpy()[bounded]
     if not len(grow):
-        return labels
+        return labels, bounded
     grown = expand_labels(labels, opts.outline_margin_m / grid.resolution)
     added = (labels == 0) & np.isin(grown, grow)
-    return np.where(added, grown, labels)
+    return np.where(added, grown, labels), bounded
 
 
 def _carve(
