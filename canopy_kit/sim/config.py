@@ -214,8 +214,9 @@ class DroneSpec:
 
     ``pattern``: ``nadir`` (a lawn-mower survey, lines along the rows, the image's long side
     across the track), ``double-grid`` (two grids, along and across the rows, the camera
-    pitched to ``gimbal_pitch_deg``) or ``orbit`` (a racetrack round each row, the camera at
-    that pitch aimed at the row); see :mod:`canopy_kit.sim.drone_patterns`.
+    pitched to ``gimbal_pitch_deg``), ``single-grid`` (the grid along the rows alone) or
+    ``orbit`` (a racetrack round each row, the camera at that pitch aimed at the row); see
+    :mod:`canopy_kit.sim.drone_patterns`.
     ``gps_sigma_*`` is the per-photo GNSS noise written to EXIF (defaults: an RTK drone);
     ``gps_offset_sigma_*`` a constant offset shared by the whole flight (metre-level for a
     drone without RTK). ``position_jitter_*`` and ``attitude_sigma_deg``/``yaw_sigma_deg``
@@ -223,7 +224,7 @@ class DroneSpec:
     """
 
     enabled: bool = False
-    pattern: Literal["nadir", "double-grid", "orbit"] = "nadir"
+    pattern: Literal["nadir", "double-grid", "single-grid", "orbit"] = "nadir"
     gimbal_pitch_deg: float = -60.0  # oblique patterns only; -90 looks straight down
     altitude: float = 35.0
     forward_overlap: float = 0.8
@@ -661,9 +662,9 @@ def _validate_drone(dr: DroneSpec) -> None:
 def _validate_drone_pattern(d: DroneSpec) -> None:
     """The flight pattern and an oblique camera that sees the ground across its whole frame."""
     _check(
-        d.pattern in ("nadir", "double-grid", "orbit"),
+        d.pattern in ("nadir", "double-grid", "single-grid", "orbit"),
         "drone.pattern",
-        f"must be nadir, double-grid or orbit, got {d.pattern!r}",
+        f"must be nadir, double-grid, single-grid or orbit, got {d.pattern!r}",
     )
     half_fov = math.degrees(
         math.atan(d.image_height / 2 * d.sensor_width_mm / d.image_width / d.focal_length_mm)

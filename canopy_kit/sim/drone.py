@@ -156,7 +156,11 @@ def plan_shots(orchard: Orchard, spec: DroneSpec, rng: np.random.Generator) -> l
         return plan_flight(orchard, spec, rng)
     from canopy_kit.sim import drone_patterns
 
-    planner = {"double-grid": drone_patterns.plan_double_grid, "orbit": drone_patterns.plan_orbits}
+    planner = {
+        "double-grid": drone_patterns.plan_double_grid,
+        "single-grid": drone_patterns.plan_single_grid,
+        "orbit": drone_patterns.plan_orbits,
+    }
     return planner[spec.pattern](orchard, spec, rng)
 
 

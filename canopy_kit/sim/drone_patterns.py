@@ -1,4 +1,4 @@
-"""Oblique drone flights: a double grid with a tilted camera, and an orbit around each row.
+"""Oblique drone flights: a single or double grid with a tilted camera, and an orbit per row.
 
 A nadir flight does not see what lies below a crown's widest level, nor the gaps between
 touching crowns along a row (docs/GROUND_TRUTH.md). Surveyors add oblique photos:
@@ -8,6 +8,9 @@ touching crowns along a row (docs/GROUND_TRUTH.md). Surveyors add oblique photos
   line; the lines are serpentine, so every side of every crown is seen. Photos are placed
   so the image centre sweeps the nadir flight's area (each station is set back by the
   distance the tilted view reaches ahead).
+- ``single-grid``: the first of those grids alone (lines along the rows, flown both ways):
+  half the photos and flight time, and crown sides seen from two bearings only, along the
+  row (a grid mission with a tilted camera, as survey apps fly it).
 - ``orbit``: per row, a racetrack around it (two straight legs beside the row, half
   circles round its ends) at the distance from which the pitched camera's centre ray meets
   the row's line at mid-crown height; the camera always aims at the nearest point of that
@@ -38,6 +41,20 @@ def plan_double_grid(
     orchard: Orchard, spec: DroneSpec, rng: np.random.Generator
 ) -> list[DroneShot]:
     """Two serpentine grids (along, then across the rows) with the camera pitched ahead."""
+    return _plan_grids(orchard, spec, rng, (True, False))
+
+
+def plan_single_grid(
+    orchard: Orchard, spec: DroneSpec, rng: np.random.Generator
+) -> list[DroneShot]:
+    """One serpentine grid along the rows with the camera pitched ahead."""
+    return _plan_grids(orchard, spec, rng, (True,))
+
+
+def _plan_grids(
+    orchard: Orchard, spec: DroneSpec, rng: np.random.Generator, grids: tuple[bool, ...]
+) -> list[DroneShot]:
+    """Serpentine grids, each along (True) or across (False) the rows, camera pitched ahead."""
     a_lo, a_hi, c_lo, c_hi = crown_area(orchard, spec.area_margin)
     centre = orchard.to_local(np.array((a_lo + a_hi) / 2), np.array((c_lo + c_hi) / 2))
     z_fly = float(orchard.terrain.height(centre[0], centre[1])) + spec.altitude
@@ -45,8 +62,7 @@ def plan_double_grid(
     across_size, along_size = ground_footprint(spec)
     flight = FlightRecorder(spec, rng)
     line = 0
-    # grid 1 flies along the rows (lines spaced across them), grid 2 across the rows
-    for along_rows in (True, False):
+    for along_rows in grids:  # along: lines spaced across the rows
         (s_lo, s_hi), (l_lo, l_hi) = ((a_lo, a_hi), (c_lo, c_hi))[:: 1 if along_rows else -1]
         lines = line_positions(l_lo, l_hi, across_size * (1 - spec.side_overlap))
         stations = line_positions(s_lo, s_hi, along_size * (1 - spec.forward_overlap))
