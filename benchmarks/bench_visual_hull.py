@@ -90,10 +90,10 @@ def main() -> None:
     parser.add_argument("flights", nargs="*", type=Path, default=DEFAULT)
     parser.add_argument("--outline-margin-m", type=float, default=None)
     parser.add_argument(
-        "--max-plan-excess",
+        "--max-outline-excess",
         type=float,
         default=None,
-        help="the side-coverage rule's limit (HullOptions.max_plan_excess; inf: grow every crown)",
+        help="the outline rule's limit (HullOptions.max_outline_excess; inf: grow every crown)",
     )
     args = parser.parse_args()
     for root in args.flights:
@@ -109,8 +109,8 @@ def main() -> None:
         given = {}
         if args.outline_margin_m is not None:
             given["outline_margin_m"] = args.outline_margin_m
-        if args.max_plan_excess is not None:
-            given["max_plan_excess"] = args.max_plan_excess
+        if args.max_outline_excess is not None:
+            given["max_outline_excess"] = args.max_outline_excess
         opts = HullOptions(**given)
         hulls = hull_stage(flight, cameras, seg, crowns, surface, opts)
         crowns["hull_volume_m3"], grown = hulls.volumes, hulls.grown
@@ -118,7 +118,7 @@ def main() -> None:
         views = flight_views(cameras)["views"]
         print(
             f"## {root.name}: {len(cameras)} photos ({views}), {len(crowns)} crowns, hull {seconds:.1f} s,"
-            f" margin {opts.outline_margin_m} m on {grown} crowns (max plan excess {opts.max_plan_excess})"
+            f" margin {opts.outline_margin_m} m on {grown} crowns (max outline excess {opts.max_outline_excess})"
         )
         truth = pd.read_csv(root / "truth" / "trees.csv")
         print_errors(model_errors(crowns, truth))

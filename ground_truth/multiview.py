@@ -139,7 +139,7 @@ def multiview_stage(
         add_hull_column(crowns, trees, hull.volumes)
         outlines = {
             "margin_m": options.outline_margin_m,
-            "max_plan_excess": options.max_plan_excess,
+            "max_outline_excess": options.max_outline_excess,
             "grown": hull.grown,
             "crowns": len(crowns),
         }

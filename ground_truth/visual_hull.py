@@ -20,11 +20,12 @@ no longer stay, which gives the same volume as carving every voxel in every phot
 ``ground_truth.multiview`` runs it in ``process_flight``.
 
 The hull cannot be wider than the crown's outline, and outlines from the surface model run
-narrow on porous, lobed crowns. A crown whose oblique views come from bearings all round
-(:func:`side_coverage`: they would enclose a round crown within ``max_plan_excess`` of its
-plan area) has its outline grown by ``outline_margin_m``, never into a neighbour's, so that
-its silhouettes, not the outline, bound its sides; a crown seen from fewer bearings keeps its
-outline, which then bounds the hull better than the silhouettes do.
+narrow on porous, lobed crowns. So each crown's outline is grown by ``outline_margin_m``,
+never into a neighbour's, and its silhouettes, not the outline, bound its sides, unless the
+views would not bound them: :func:`outline_excess` carves a round crown of the crown's size
+at its centre with exact silhouettes in the flight's cameras and measures how much of it
+would reach into the grown ring; above ``max_outline_excess`` of the crown's volume the
+outline is kept (views from one line of bearings; docs/GROUND_TRUTH.md).
 """
 
 from __future__ import annotations
@@ -49,13 +50,12 @@ class HullOptions:
     min_views: int = 3
     headroom_m: float = 0.3  # above the crown's top
     # Crown outlines (the surface model's) grown by this much, never into a neighbour's, so
-    # that the silhouettes bound the hull, for the crowns whose views bound their sides:
-    # oblique views from bearings all round that would enclose a round crown within
-    # ``max_plan_excess`` of its plan area (``side_coverage``). 0: never grown
-    # (docs/GROUND_TRUTH.md, issue 51).
+    # that the silhouettes bound the hull, for the crowns whose views bound their sides: a
+    # round crown of the crown's size, carved with its exact silhouettes, would let at most
+    # ``max_outline_excess`` of its volume into the grown ring (``outline_excess``). 0: never
+    # grown (docs/GROUND_TRUTH.md, issue 51).
     outline_margin_m: float = 0.6
-    max_plan_excess: float = 0.025  # a ring of views every 30° gives 2.3 %, every 36° 3.4 %
-    oblique_deg: float = 20.0  # a view of a crown this far off straight down is oblique
+    max_outline_excess: float = 0.05  # every flight tried: <= 0.6 %; one line of views: 29 %
     image_size: int = 800
 
 
@@ -110,50 +110,43 @@ def crown_hull_volumes(
     return out
 
 
-@dataclass(frozen=True)
-class SideCoverage:
-    """How a crown's views surround it: photos that see its centre, those of them looking
-    at it at least ``oblique_deg`` off straight down, the widest gap (degrees) between the
-    bearings of those oblique views taken as lines (a view from the north bounds the same
-    sides as one from the south), and ``plan_excess``: the share by which the polygon those
-    bearings circumscribe round a round crown exceeds the crown's plan area (inf with fewer
-    than two bearings)."""
-
-    views: int
-    oblique_views: int
-    bearing_gap_deg: float
-    plan_excess: float
-
-
-def side_coverage(
+def outline_excess(
     cameras: Sequence[PosedCamera],
     shapes: Sequence[tuple[int, ...]],
     centre: np.ndarray,
-    oblique_deg: float = 20.0,
-) -> SideCoverage:
-    """The views round a crown's ``centre`` (x, y, z). A view from bearing b bounds the
-    crown across b with its silhouette's two edges, so views from bearings (as lines) that
-    leave gaps g_i (summing to 180°) enclose a round crown of radius r in a polygon of area
-    2 r² Σ tan(g_i / 2): ``plan_excess`` = 2 Σ tan(g_i / 2) / π - 1 (5.5 % for four bearings
-    45° apart, 27 % for two at right angles)."""
-    point = np.asarray(centre, float).reshape(1, 3)
-    bearings = []
-    views = 0
+    radius: float,
+    margin: float,
+    opts: HullOptions,
+) -> float:
+    """How much of a round crown (a sphere of ``radius`` at ``centre``) the views would let
+    into a ring ``margin`` wide round its outline, as a share of its volume: the voxels of
+    the ring (within the sphere's height) that the hull's rule keeps (``min_views`` photos
+    see them, ``min_fraction`` of those on the sphere's exact silhouette: the ray from the
+    camera passes within ``radius`` of the centre). 0 where the views bound the sides; a
+    view from one bearing bounds only the sides across it."""
+    step = min(2 * opts.voxel_m, radius / 8)
+    reach = radius + margin
+    a = np.arange(-reach, reach + step / 2, step)
+    gx, gy = np.meshgrid(a, a)
+    rho = np.hypot(gx, gy)
+    ring = (rho > radius) & (rho <= reach)
+    z = np.arange(-radius, radius, step) + step / 2
+    n = int(ring.sum())
+    pts = np.column_stack(
+        [np.tile(gx[ring], len(z)), np.tile(gy[ring], len(z)), np.repeat(z, n)]
+    ) + np.asarray(centre, float)
+    seen = np.zeros(len(pts), np.int32)
+    on = np.zeros(len(pts), np.int32)
     for cam, shape in zip(cameras, shapes, strict=True):
-        if not _visible(cam, shape, point)[0][0]:
-            continue
-        views += 1
-        d = cam.center - point[0]
-        if np.degrees(np.arctan2(np.hypot(d[0], d[1]), d[2])) >= oblique_deg:
-            bearings.append(np.degrees(np.arctan2(d[1], d[0])) % 180.0)
-    b = np.unique(np.round(bearings, 6))
-    if len(b) < 2:
-        return SideCoverage(views, len(bearings), 180.0, float("inf"))
-    gaps = np.diff(np.r_[b, b[0] + 180.0])
-    if gaps.max() >= 180.0 - 1e-9:
-        return SideCoverage(views, len(bearings), 180.0, float("inf"))
-    excess = 2.0 * np.tan(np.radians(gaps) / 2).sum() / np.pi - 1.0
-    return SideCoverage(views, len(bearings), float(gaps.max()), float(excess))
+        ok = _visible(cam, shape, pts)[0]
+        if ok.any():
+            ray = pts[ok] - cam.center
+            to_centre = np.asarray(centre, float) - cam.center
+            miss = np.linalg.norm(np.cross(to_centre, ray), axis=1) / np.linalg.norm(ray, axis=1)
+            seen[ok] += 1
+            on[ok] += miss <= radius
+    stays = (seen >= opts.min_views) & (on >= opts.min_fraction * seen)
+    return float(stays.sum() * step**3 / (4 / 3 * np.pi * radius**3))
 
 
 def crown_centres(
@@ -162,11 +155,12 @@ def crown_centres(
     crowns: pd.DataFrame,
     ground: np.ndarray,
     ground_grid: Grid,
-) -> np.ndarray:
-    """Each crown's centre (n x 3; NaN without cells): its outline's mean position, at half
-    its height above the ground there."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each crown's centre (n x 3; NaN without cells), its outline's mean position at half
+    its height above the ground there, and radius (the outline's area as a circle's)."""
     x, y = grid.centers()
     out = np.full((len(crowns), 3), np.nan)
+    radii = np.full(len(crowns), np.nan)
     for k, crown in enumerate(crowns.itertuples()):
         cells = labels == crown.crown_id
         if cells.any():
@@ -174,23 +168,25 @@ def crown_centres(
             z0 = _sample(ground, ground_grid, np.array([cx]), np.array([cy]))[0]
             z0 = z0 if np.isfinite(z0) else float(np.nanmedian(ground))
             out[k] = (cx, cy, z0 + float(crown.height_m) / 2)
-    return out
+            radii[k] = np.sqrt(cells.sum() * grid.resolution**2 / np.pi)
+    return out, radii
 
 
 def bounded_crowns(
     cameras: Sequence[PosedCamera],
     shapes: Sequence[tuple[int, ...]],
     centres: np.ndarray,
+    radii: np.ndarray,
     opts: HullOptions,
 ) -> np.ndarray:
-    """Which crowns (rows of ``centres``) have their sides bounded by the views: at least
-    ``min_views`` oblique views whose bearings would enclose a round crown within
-    ``max_plan_excess`` of its plan area (:func:`side_coverage`)."""
+    """Which crowns (rows of ``centres``, ``radii``) have their sides bounded by the views:
+    a round crown of that size there would let at most ``max_outline_excess`` of its
+    volume into the grown ring (:func:`outline_excess`)."""
     out = np.zeros(len(centres), bool)
-    for k, c in enumerate(centres):
-        if np.isfinite(c).all():
-            cov = side_coverage(cameras, shapes, c, opts.oblique_deg)
-            out[k] = cov.oblique_views >= opts.min_views and cov.plan_excess <= opts.max_plan_excess
+    for k, (c, r) in enumerate(zip(centres, radii, strict=True)):
+        if np.isfinite(c).all() and r > 0:
+            excess = outline_excess(cameras, shapes, c, r, opts.outline_margin_m, opts)
+            out[k] = excess <= opts.max_outline_excess
     return out
 
 
@@ -209,8 +205,8 @@ def grow_bounded_outlines(
     which crowns (rows of ``crowns``) those are."""
     from skimage.segmentation import expand_labels
 
-    centres = crown_centres(labels, grid, crowns, ground, ground_grid)
-    bounded = bounded_crowns(cameras, [m.shape for m in vegetation], centres, opts)
+    centres, radii = crown_centres(labels, grid, crowns, ground, ground_grid)
+    bounded = bounded_crowns(cameras, [m.shape for m in vegetation], centres, radii, opts)
     grow = crowns["crown_id"].to_numpy()[bounded]
     if not len(grow):
         return labels, bounded

@@ -124,10 +124,10 @@ def test_hull_of_rendered_oblique_crowns_holds_the_true_crown(double_grid: Path)
     assert views["views"] == "oblique" and views["oblique_photos"] == views["photos"]
     assert views["median_pitch_deg"] == pytest.approx(-60.0, abs=3.0)  # the plan's gimbal
     assert out["aerial_volume_model"]["recommended"] == "hull_volume_m3"
-    # 17 photos from few bearings round each crown (their 12-gon-or-worse polygon leaves more
-    # than 2.5 % round a round crown): the outlines are not grown
+    # 17 photos round each crown bound its sides (a round crown of its size would let under
+    # 0.2 % of its volume into the grown ring, the limit is 5 %): every outline is grown
     assert out["hull_outlines"] == {
-        "margin_m": 0.6, "max_plan_excess": 0.025, "grown": 0, "crowns": len(crowns)
+        "margin_m": 0.6, "max_outline_excess": 0.05, "grown": len(crowns), "crowns": len(crowns)
     }  # fmt: skip
     assert matched["aerial_hull_volume_m3"].tolist() == crowns["hull_volume_m3"].tolist()
     assert calls[-1] == ("Visual hull", len(crowns), len(crowns))  # progress to the end
@@ -189,8 +189,10 @@ def test_a_hull_switch_that_is_not_a_bool_is_named(value: object) -> None:
 def test_the_cli_writes_the_hull_and_recommends_it(double_grid: Path, tmp_path) -> None:
     """``canopy-kit ground-truth`` from photos to crowns (structure from motion on one thread;
     crowns seeded by the true trees; about 15 s): crowns.csv and trees.csv carry each crown's
-    hull, within ±15 % of the matched true crown (measured: -8 … +8 %), and report.json and
-    the printed summary name the hull as this oblique flight's aerial reference."""
+    hull, within -15 … +30 % of the matched true crown (measured: +3 … +16 %; at 600 x 450 px
+    the silhouettes hold a pixel's looseness: with the true cameras and outlines these crowns'
+    hulls are +21 … +28 %), and report.json and the printed summary name the hull as this
+    oblique flight's aerial reference."""
     import json
     import subprocess
 
@@ -212,10 +214,10 @@ def test_the_cli_writes_the_hull_and_recommends_it(double_grid: Path, tmp_path) 
     report = json.loads((out / "report.json").read_text())
     assert report["aerial_volume_model"]["recommended"] == "hull_volume_m3"
     assert report["flight_views"]["views"] == "oblique" and "hull" in report["timings_s"]
-    assert report["hull_outlines"]["grown"] == 0  # too few bearings round these crowns
+    assert report["hull_outlines"]["grown"] == 3  # the views bound every crown's sides
     assert pd.read_csv(out / "trees.csv")["aerial_hull_volume_m3"].notna().all()
     truth = pd.read_csv(truth_dir / "trees.csv")
     table, metrics = crown_agreement(pd.read_csv(out / "crowns.csv"), truth, exclude_border=False)
     assert metrics["matched"] == len(truth)
     error = table["hull_volume_m3"] / table["volume_true_m3"] - 1
-    assert (error.abs() < 0.15).all(), error.round(3).tolist()
+    assert ((error > -0.15) & (error < 0.30)).all(), error.round(3).tolist()

@@ -119,34 +119,43 @@ def test_the_silhouettes_not_a_narrow_outline_bound_the_hull() -> None:
     assert SPHERE * 0.97 <= grown <= SPHERE * 1.35
 
 
-def test_side_coverage_is_the_polygon_the_bearings_draw_round_a_round_crown() -> None:
-    """Views every 30° (six bearing lines) enclose a circle in a regular 12-gon, 12 tan 15° /
-    π - 1 = 2.3 % larger; two lines at right angles in a square, 4 / π - 1 = 27 %; views
-    from one line only bound nothing across it (inf); the nadir view is not oblique."""
-    from ground_truth.visual_hull import side_coverage
+def test_outline_excess_of_two_views_along_one_line_by_hand() -> None:
+    """Two level views from far along +x and -x carve a round crown to the cylinder
+    y² + z² <= r² along x: in a ring r < rho <= r + m round its outline that keeps
+    ∫ 2 √(r² − y²) · 2 (√((r + m)² − y²) − √(r² − y²)) dy (quadrature), here 68 % of the
+    sphere; views all round (every 30°, every 60°, four at right angles) keep almost nothing
+    of the ring, and one view alone (fewer than ``min_views``) keeps nothing."""
+    from scipy.integrate import quad
 
-    nadir = [_camera(np.array([0.0, 0.0, 40.0]), 0.0, -90.0)]
-    shapes = [(SIZE, SIZE)] * 13
-    every_30 = side_coverage(_ring(30) + nadir, shapes, CENTRE)
-    assert (every_30.views, every_30.oblique_views) == (13, 12)
-    assert every_30.plan_excess == pytest.approx(12 * np.tan(np.radians(15)) / np.pi - 1)
-    assert every_30.bearing_gap_deg == pytest.approx(30.0)
-    square = side_coverage(_ring(90, start_deg=20), shapes[:4], CENTRE)
-    assert square.plan_excess == pytest.approx(4 / np.pi - 1)
-    one_line = side_coverage(_ring(180), shapes[:2], CENTRE)
-    assert one_line.plan_excess == np.inf and one_line.bearing_gap_deg == 180.0
-    away = side_coverage(_ring(30), shapes[:12], CENTRE + np.array([80.0, 0.0, 0.0]))
-    assert away.views == 0 and away.plan_excess == np.inf  # a crown no view sees
+    from ground_truth.visual_hull import outline_excess
+
+    r, m = RADIUS, 0.6
+    options = HullOptions(voxel_m=0.05, min_fraction=1.0, min_views=2)
+    band = quad(
+        lambda y: (
+            4 * np.sqrt(r * r - y * y) * (np.sqrt((r + m) ** 2 - y * y) - np.sqrt(r * r - y * y))
+        ),
+        -r,
+        r,
+    )[0]
+    far = [_looking_at_sphere(CENTRE + np.array([s * 500.0, 0.0, 0.0])) for s in (1.0, -1.0)]
+    shapes = [(SIZE, SIZE)] * 12
+    excess = outline_excess(far, shapes[:2], CENTRE, r, m, options)
+    assert excess == pytest.approx(band / SPHERE, rel=0.05)
+    assert outline_excess(far[:1], shapes[:1], CENTRE, r, m, options) == 0.0
+    for cameras in (_ring(30), _ring(60), _ring(90, start_deg=20)):
+        assert outline_excess(cameras, shapes[: len(cameras)], CENTRE, r, m, options) < 0.02
 
 
 def test_an_outline_is_not_grown_where_the_views_do_not_bound_the_sides() -> None:
-    """Low views from two opposite bearings only: nothing carves the sphere's sides across
-    them, so growing its (right) outline would let the hull out (+20 % of the sphere here);
-    the side-coverage rule keeps the outline, and the hull is the one carved without margin."""
+    """Low views from two opposite bearings only: nothing carves the sphere's sides along
+    them, so growing its (right) outline would let the hull out (+22 % of the sphere here);
+    the rule (a round crown would let 26 % of its volume into the grown ring) keeps the
+    outline, and the hull is the one carved without margin."""
     cameras = _ring(180, elevation=0.6, start_deg=45)
     kept = _hull(cameras, margin=0.6)  # the default rule
     assert kept == _hull(cameras, margin=0.0)
-    let_out = _hull(cameras, margin=0.6, max_plan_excess=np.inf)
+    let_out = _hull(cameras, margin=0.6, max_outline_excess=np.inf)
     assert let_out > kept + 0.15 * SPHERE
 
 
