@@ -110,3 +110,68 @@ def geodesic_split(
     elif lost.all():
         _, labels = cKDTree(positions).query(xyz[:, :2], workers=-1)
     return labels.astype(np.int64), dist
+
+
+def _graph_with_tops(
+    xyz: np.ndarray,
+    positions: np.ndarray,
+    k: int,
+    down_penalty: float,
+    seed_radius: float,
+    seed_links: int,
+) -> csr_matrix:
+    """The canopy graph plus one node per tree (numbered ``N + tree``) at its trunk top."""
+    n, n_trees = len(xyz), len(positions)
+    graph = canopy_graph(xyz, k, down_penalty).tocoo()
+    tops = trunk_tops(xyz, positions, seed_radius)
+    m = min(seed_links, n)
+    _, near = cKDTree(xyz).query(tops, k=m)
+    src = np.repeat(n + np.arange(n_trees), m)
+    dst = near.reshape(n_trees, m).ravel()
+    cost = _link_cost(np.vstack([xyz, tops]), src, dst, down_penalty)
+    return coo_matrix(
+        (
+            np.concatenate([graph.data, cost]),
+            (np.concatenate([graph.row, src]), np.concatenate([graph.col, dst])),
+        ),
+        shape=(n + n_trees, n + n_trees),
+    ).tocsr()
+
+
+def path_lengths(
+    xyz: np.ndarray,
+    positions: np.ndarray,
+    k: int = 8,
+    down_penalty: float = 0.0,
+    seed_radius: float = 0.5,
+    seed_links: int = 16,
+) -> np.ndarray:
+    """(K, N) shortest-path length from each tree's trunk top to each point (inf: none)."""
+    n, n_trees = len(xyz), len(positions)
+    full = _graph_with_tops(xyz, positions, k, down_penalty, seed_radius, seed_links)
+    return dijkstra(full, directed=True, indices=n + np.arange(n_trees))[:, :n]
+
+
+def scaled_split(
+    dist: np.ndarray, start: np.ndarray, n_iter: int = 3, quantile: float = 90.0
+) -> np.ndarray:
+    """Labels by the path length relative to each tree's reach (a multiplicatively
+    weighted geodesic Voronoi): the reach of a tree is the ``quantile`` % path length of
+    its points, starting from labels ``start``; a big crown keeps the far points a small
+    neighbour's trunk is nearer to."""
+    labels = start.copy()
+    n_trees = dist.shape[0]
+    finite = np.isfinite(dist)
+    for _ in range(n_iter):
+        reach = np.ones(n_trees)
+        for t in range(n_trees):
+            d = dist[t, (labels == t) & finite[t]]
+            if len(d) >= 10:
+                reach[t] = max(np.percentile(d, quantile), 1e-6)
+        ok = np.isfinite(dist).any(axis=0)
+        new = labels.copy()
+        new[ok] = np.argmin(dist[:, ok] / reach[:, None], axis=0)
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return labels
