@@ -42,7 +42,6 @@ from canopy_kit.plugins.params import Positive
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.crowns import crown_split
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
-from canopy_kit.segment.geodesic import geodesic_split
 from canopy_kit.segment.posts import without_posts
 from canopy_kit.segment.profile import along_axis, chm_peaks, chm_spacing, principal_axis
 from canopy_kit.segment.stems import StemDetections, detect_stems, no_stems
@@ -156,10 +155,8 @@ class AdaptiveSegmenter(Segmenter):
         stem_search_radius: Positive = 1.0,
         crown_split: bool = True,
         cut: Literal["crowns", "trunk-midpoints"] = "crowns",
-        assignment: Literal["crowns", "geodesic"] = "crowns",
         random_state: int = 0,
     ) -> None:
-        self.assignment = assignment
         self.link_factor = link_factor
         self.crown_split = crown_split
         self.cut = cut
@@ -241,8 +238,6 @@ class AdaptiveSegmenter(Segmenter):
             return markers, np.zeros(len(xyz), dtype=np.int64)
         if self.cut == "trunk-midpoints" and not tops:
             return markers, nearest_along_row(xyz[:, :2], w, markers)
-        if self.assignment == "geodesic" and not tops:
-            return markers, geodesic_split(xyz, markers)[0]
         if self.crown_split and not tops:
             # Crown shells need crowns seen from the side (trunks, rows); crown tops of
             # a stand seen from above keep the nearest top.
