@@ -21,24 +21,8 @@ import numpy as np
 import pandas as pd
 
 
-def true_cameras(root: Path) -> list:
-    """The simulator's camera poses and intrinsics (``truth/drone_cameras.csv``)."""
-    from scipy.spatial.transform import Rotation
-
-    from ground_truth.camera import camera_from_pose
-
-    table = pd.read_csv(root / "truth" / "drone_cameras.csv")
-    rotations = Rotation.from_quat(table[["qx", "qy", "qz", "qw"]].to_numpy()).as_matrix()
-    return [
-        camera_from_pose(
-            r.image, "SIMPLE_PINHOLE", (r.focal_px, r.cx, r.cy), r.width, r.height,
-            np.array([r.x, r.y, r.z]), rotation,
-        )
-        for r, rotation in zip(table.itertuples(), rotations, strict=True)
-    ]  # fmt: skip
-
-
 def main() -> None:
+    from ground_truth.flight_accuracy import true_cameras
     from ground_truth.visual_hull import HullOptions, outline_excess
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -46,7 +30,7 @@ def main() -> None:
     args = parser.parse_args()
     options = HullOptions()
     for root in args.flights:
-        cameras = true_cameras(root)
+        cameras = true_cameras(root / "truth" / "drone_cameras.csv")
         shapes = [(c.height, c.width) for c in cameras]
         trees = pd.read_csv(root / "truth" / "trees.csv")
         centres = np.column_stack(

@@ -13,9 +13,26 @@ import numpy as np
 import pandas as pd
 
 from canopy_kit.evaluate.stats import agreement
+from ground_truth.camera import PosedCamera, camera_from_pose
 from ground_truth.match import assign
 from ground_truth.raster import Grid
 from ground_truth.sfm import SparseModel
+
+
+def true_cameras(cameras_csv: str | Path) -> list[PosedCamera]:
+    """The simulator's camera poses and intrinsics (``truth/drone_cameras.csv``), in its
+    order."""
+    from scipy.spatial.transform import Rotation
+
+    table = pd.read_csv(cameras_csv)
+    rotations = Rotation.from_quat(table[["qx", "qy", "qz", "qw"]].to_numpy()).as_matrix()
+    return [
+        camera_from_pose(
+            r.image, "SIMPLE_PINHOLE", (r.focal_px, r.cx, r.cy), r.width, r.height,
+            np.array([r.x, r.y, r.z]), rotation,
+        )
+        for r, rotation in zip(table.itertuples(), rotations, strict=True)
+    ]  # fmt: skip
 
 
 def camera_errors(model: SparseModel, cameras_csv: str | Path) -> pd.DataFrame:

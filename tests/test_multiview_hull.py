@@ -16,6 +16,7 @@ from canopy_kit.config import GroundTruthConfig
 from ground_truth.camera import PosedCamera, camera_from_pose
 from ground_truth.crowns import CrownSegmentation
 from ground_truth.dsm import SurfaceModel
+from ground_truth.flight_accuracy import true_cameras as simulated_cameras
 from ground_truth.raster import Grid
 
 SMALL = {"seed": 7, "orchard": {"rows": 1, "trees_per_row": 3}}
@@ -44,17 +45,7 @@ def render(root: Path, pattern: str, width: int = 600, height: int = 450) -> Pat
 
 def true_cameras(root: Path) -> list[PosedCamera]:
     """The simulator's camera poses and intrinsics (truth/drone_cameras.csv)."""
-    from scipy.spatial.transform import Rotation
-
-    table = pd.read_csv(root / "truth" / "drone_cameras.csv")
-    rotations = Rotation.from_quat(table[["qx", "qy", "qz", "qw"]].to_numpy()).as_matrix()
-    return [
-        camera_from_pose(
-            r.image, "SIMPLE_PINHOLE", (r.focal_px, r.cx, r.cy), r.width, r.height,
-            np.array([r.x, r.y, r.z]), rot,
-        )
-        for r, rot in zip(table.itertuples(), rotations, strict=True)
-    ]  # fmt: skip
+    return simulated_cameras(root / "truth" / "drone_cameras.csv")
 
 
 def truth_crowns(root: Path, margin_m: float = 0.3):
