@@ -1,4 +1,5 @@
-"""Compiled per-cell loops (numba) of the dense surface matching.
+"""Compiled per-cell loops (numba) of the dense surface matching, the orthomosaic's line
+of sight and the visual hull's carving.
 
 The plane sweep (``ground_truth.dsm``) looks every cell up in its photos at each trial
 height: a projection, the lens distortion and a bilinear lookup. Through numpy and
@@ -170,3 +171,54 @@ def rays_clear(
                 break
             s += 1
     return clear
+
+
+@numba.njit(cache=True, nogil=True)
+def carve_count(
+    pts: np.ndarray,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    intrinsics: np.ndarray,
+    vegetation: np.ndarray,
+    offsets: np.ndarray,
+    widths: np.ndarray,
+    heights: np.ndarray,
+    limit: float,
+    min_views: int,
+    min_fraction: float,
+) -> int:
+    """How many points ``pts`` (N, 3) stay in a visual hull: seen (in front of the camera,
+    inside the image) by at least ``min_views`` of the views and shown as vegetation by at
+    least ``min_fraction`` of those. View k: world-to-camera ``rotations[k]``,
+    ``translations[k]``, pinhole ``intrinsics[k]`` = fx, fy, cx, cy, k1, k2 (pixel (row,
+    col) = floor of the projection), its vegetation mask (1: vegetation) flattened row by
+    row at ``vegetation[offsets[k]:]``, ``widths[k]`` x ``heights[k]`` pixels. A point
+    leaves as soon as more than ``limit`` views showed no vegetation there."""
+    count = 0
+    for n in range(pts.shape[0]):
+        px, py, pz = pts[n, 0], pts[n, 1], pts[n, 2]
+        seen = 0
+        bare = 0
+        for k in range(rotations.shape[0]):
+            r = rotations[k]
+            depth = r[2, 0] * px + r[2, 1] * py + r[2, 2] * pz + translations[k, 2]
+            if not depth > 0.0:
+                continue
+            x = (r[0, 0] * px + r[0, 1] * py + r[0, 2] * pz + translations[k, 0]) / depth
+            y = (r[1, 0] * px + r[1, 1] * py + r[1, 2] * pz + translations[k, 1]) / depth
+            k1, k2 = intrinsics[k, 4], intrinsics[k, 5]
+            if k1 != 0.0 or k2 != 0.0:
+                r2 = x * x + y * y
+                d = 1.0 + k1 * r2 + k2 * r2 * r2
+                x, y = x * d, y * d
+            col = np.floor(intrinsics[k, 0] * x + intrinsics[k, 2])
+            row = np.floor(intrinsics[k, 1] * y + intrinsics[k, 3])
+            if col >= 0.0 and row >= 0.0 and col < widths[k] and row < heights[k]:
+                seen += 1
+                if vegetation[offsets[k] + int(row) * widths[k] + int(col)] == 0:
+                    bare += 1
+                    if bare > limit:
+                        break
+        if bare <= limit and seen >= min_views and seen - bare >= min_fraction * seen:
+            count += 1
+    return count

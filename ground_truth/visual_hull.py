@@ -138,7 +138,7 @@ def outline_excess(
     seen = np.zeros(len(pts), np.int32)
     on = np.zeros(len(pts), np.int32)
     for cam, shape in zip(cameras, shapes, strict=True):
-        ok = _visible(cam, shape, pts)[0]
+        ok = _visible(cam, shape, pts)
         if ok.any():
             ray = pts[ok] - cam.center
             to_centre = np.asarray(centre, float) - cam.center
@@ -239,28 +239,32 @@ def _carve(
     if sum(_visible(cam, mask.shape, centre)[0] for cam, mask in views) < opts.min_views:
         return float("nan")
     limit = (1.0 - opts.min_fraction) * len(views) + 1e-9
-    alive = pts
-    seen = np.zeros(len(pts), np.int32)
-    bare = np.zeros(len(pts), np.int32)  # photos showing no vegetation at the voxel
-    for cam, mask in views:
-        ok, row, col = _visible(cam, mask.shape, alive, with_pixels=True)
-        seen += ok
-        bare[ok] += mask[row[ok], col[ok]] <= 0.5
-        keep = bare <= limit
-        if not keep.all():
-            alive, seen, bare = alive[keep], seen[keep], bare[keep]
-    green = seen - bare
-    return float(((seen >= opts.min_views) & (green >= opts.min_fraction * seen)).sum())
+    from ground_truth.kernels import carve_count  # numba: compiled on first use
+
+    masks = [np.ravel(~(np.asarray(mask) <= 0.5)).astype(np.uint8) for _, mask in views]
+    offsets = np.cumsum([0] + [m.size for m in masks[:-1]]).astype(np.int64)
+    return float(
+        carve_count(
+            np.ascontiguousarray(pts, np.float64),
+            np.array([cam.rotation for cam, _ in views], np.float64),
+            np.array([cam.translation for cam, _ in views], np.float64),
+            np.array([cam.intrinsics() for cam, _ in views], np.float64),
+            np.concatenate(masks),
+            offsets,
+            np.array([mask.shape[1] for _, mask in views], np.int64),
+            np.array([mask.shape[0] for _, mask in views], np.int64),
+            limit,
+            opts.min_views,
+            opts.min_fraction,
+        )
+    )
 
 
-def _visible(
-    cam: PosedCamera, shape: tuple[int, ...], pts: np.ndarray, with_pixels: bool = False
-) -> tuple[np.ndarray, ...]:
-    """Which points project inside the image in front of the camera (and their pixels)."""
+def _visible(cam: PosedCamera, shape: tuple[int, ...], pts: np.ndarray) -> np.ndarray:
+    """Which points project inside the image in front of the camera."""
     uv, depth = cam.project(pts)
-    col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-    ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < shape[1]) & (row < shape[0])
-    return (ok, row, col) if with_pixels else (ok,)
+    col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+    return (depth > 0) & (col >= 0) & (row >= 0) & (col < shape[1]) & (row < shape[0])
 
 
 def _box_in_view(cam: PosedCamera, shape: tuple[int, ...], lo: np.ndarray, hi: np.ndarray) -> bool:

@@ -165,9 +165,13 @@ def test_a_crown_no_camera_sees_has_no_hull_volume() -> None:
     assert np.isnan(_hull(away))
 
 
-def test_dropping_voxels_early_carves_the_same_hull_as_every_voxel_in_every_photo() -> None:
-    """The early drop (a voxel leaves once it can no longer stay) against the plain rule
-    evaluated over every voxel and every photo, with masks that disagree (noisy pixels)."""
+@pytest.mark.parametrize("distortion", [None, (-0.08, 0.02)])
+def test_dropping_voxels_early_carves_the_same_hull_as_every_voxel_in_every_photo(
+    distortion: tuple[float, float] | None,
+) -> None:
+    """The compiled carving (a voxel leaves once it can no longer stay) against the plain
+    rule evaluated in numpy over every voxel and every photo (``PosedCamera.project``), with
+    masks that disagree (noisy pixels), with and without radial lens distortion."""
     from ground_truth.visual_hull import _carve
 
     rng = np.random.default_rng(5)
@@ -175,6 +179,14 @@ def test_dropping_voxels_early_carves_the_same_hull_as_every_voxel_in_every_phot
         _looking_at_sphere(CENTRE + 25.0 * np.array([np.cos(a), np.sin(a), 1.2]))
         for a in np.radians(np.arange(0, 360, 24))
     ]
+    if distortion is not None:
+        cameras = [
+            PosedCamera(
+                c.name, "RADIAL", (*c.params, *distortion), c.width, c.height, c.rotation,
+                c.translation,
+            )
+            for c in cameras
+        ]  # fmt: skip
     masks = [_silhouette(c) ^ (rng.random((SIZE, SIZE)) < 0.02) for c in cameras]
     axis = np.arange(-1.8, 1.8, 0.1)
     pts = np.stack(np.meshgrid(axis, axis, axis + 2.5), -1).reshape(-1, 3)
