@@ -124,7 +124,7 @@ def outline_excess(
     see them, ``min_fraction`` of those on the sphere's exact silhouette: the ray from the
     camera passes within ``radius`` of the centre). 0 where the views bound the sides; a
     view from one bearing bounds only the sides across it."""
-    step = min(2 * opts.voxel_m, radius / 8)
+    step = min(2 * opts.voxel_m, max(radius / 8, 0.02))  # a tiny crown: bounded work
     reach = radius + margin
     a = np.arange(-reach, reach + step / 2, step)
     gx, gy = np.meshgrid(a, a)
