@@ -165,6 +165,20 @@ def test_a_path_error_the_command_could_not_foresee_is_exit_2(monkeypatch, capsy
     assert capsys.readouterr().err == "error: /srv/orchard/out: Permission denied\n"
 
 
+def test_a_negative_sfm_thread_count_names_the_option(
+    lidar_bag, tmp_path, monkeypatch, capsys
+) -> None:
+    """``run --sfm-threads -1`` is refused by the option itself (exit 2, naming
+    ``--sfm-threads``), before any folder is made."""
+    out = tmp_path / "run"
+    code, _, err = cli(
+        monkeypatch, capsys, "run", lidar_bag, "--out", out, "--drone-images", tmp_path,
+        "--sfm-threads", -1,
+    )  # fmt: skip
+    assert code == 2 and "--sfm-threads" in err, err
+    assert not out.exists()
+
+
 # -- 2. a refused run leaves nothing behind ---------------------------------------------------
 @pytest.mark.parametrize("stream", [False, True])
 def test_a_refused_run_leaves_no_folder(imu_bag, tmp_path, stream) -> None:

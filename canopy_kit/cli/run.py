@@ -25,6 +25,7 @@ def run(
     sfm_threads: int = typer.Option(
         0,
         "--sfm-threads",
+        min=0,
         help="Threads for the drone photos' structure from motion: 0 every core; 1 repeats "
         "the reconstruction bit for bit (slower)",
     ),
