@@ -1,0 +1,86 @@
+"""Issue 52's table from the saved per-session results: orchard x sensor x method.
+
+    python benchmarks/issue52_table.py --seeds 701 702 703
+
+Reads ``canopy_kit/paper/data/segmentation_results.csv`` (written by ``bench_segment.py
+accuracy --csv``) and prints, per orchard, sensor and method: sessions, true trees, segments,
+trees one to one (point IoU >= 0.5), success (one-to-one / true trees, pooled), precision
+(one-to-one / segments, pooled) and the per-session minimum of both. The hedgerow sessions
+are ``almond`` with ``orchard.crown_form=hedged`` (variant ``hedged`` or ``hedged_<sensor>``).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import pandas as pd
+
+ORCHARDS = ["pistachio", "almond", "almond-paper", "hedgerow", "fruiting-wall"]
+METHODS = ["dbscan", "dbscan_spectral", "adaptive", "wall"]
+
+
+def per_session(csv: str, seeds: list[int]) -> pd.DataFrame:
+    d = pd.read_csv(csv)
+    d = d[d["seed"].isin(seeds)].copy()
+    v = d["variant"].astype(str)
+    hedged = v.str.startswith("hedged")
+    d["orchard"] = d["orchard"].where(~hedged, "hedgerow")
+    sensor = v.str.replace(r"^hedged_?", "", regex=True).replace({"": "default"})
+    d["sensor"] = sensor.where(sensor != "default", "32-ring (default)")
+    d["correct"] = (d["success_points"] * d["n_truth"]).round().astype(int)
+    d["success"] = d["correct"] / d["n_truth"]
+    d["precision"] = d["correct"] / d["n_predicted"].where(d["n_predicted"] > 0)
+    return d.fillna({"precision": 0.0})
+
+
+def table(d: pd.DataFrame) -> pd.DataFrame:
+    g = d.groupby(["orchard", "sensor", "method"])
+    t = g.agg(
+        sessions=("seed", "nunique"),
+        trees=("n_truth", "sum"),
+        segments=("n_predicted", "sum"),
+        correct=("correct", "sum"),
+        min_success=("success", "min"),
+        min_precision=("precision", "min"),
+    ).reset_index()
+    t["success"] = t["correct"] / t["trees"]
+    t["precision"] = t["correct"] / t["segments"]
+    order = {o: i for i, o in enumerate(ORCHARDS)}
+    morder = {m: i for i, m in enumerate(METHODS)}
+    t["_o"], t["_m"] = t["orchard"].map(order), t["method"].map(morder)
+    t["_s"] = t["sensor"] != "32-ring (default)"
+    return t.sort_values(["_o", "_s", "sensor", "_m"]).drop(columns=["_o", "_m", "_s"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--csv", default="canopy_kit/paper/data/segmentation_results.csv")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[701, 702, 703])
+    ap.add_argument("--sessions", action="store_true", help="also list every session")
+    args = ap.parse_args()
+    d = per_session(args.csv, args.seeds)
+    t = table(d)
+
+    def pct(v: float) -> str:
+        return f"{100 * v:.1f} %"
+
+    print(
+        "| orchard | sensor | method | sessions | trees | segments | one-to-one | success "
+        "| min per session | precision | min per session |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in t.itertuples():
+        bold = r.method in ("adaptive", "wall")
+        s, p = pct(r.success), pct(r.precision)
+        print(
+            f"| {r.orchard} | {r.sensor} | {r.method} | {r.sessions} | {r.trees} | {r.segments} | "
+            f"{r.correct} | {'**' + s + '**' if bold else s} | {pct(r.min_success)} | "
+            f"{'**' + p + '**' if bold else p} | {pct(r.min_precision)} |"
+        )
+    if args.sessions:
+        cols = ["session", "method", "n_truth", "n_predicted", "correct", "n_merged", "n_split"]
+        print(d[cols + ["n_other"]].to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()
