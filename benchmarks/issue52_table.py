@@ -52,8 +52,39 @@ def table(d: pd.DataFrame) -> pd.DataFrame:
     order = {o: i for i, o in enumerate(ORCHARDS)}
     morder = {m: i for i, m in enumerate(METHODS)}
     t["_o"], t["_m"] = t["orchard"].map(order), t["method"].map(morder)
-    t["_s"] = t["sensor"] != "32-ring (default)"
+    sensors = ["32-ring (default)", "vlp16", "hdl32", "os0-32", "os1-64", "os1-128", "livox-mid360"]
+    t["_s"] = t["sensor"].map({s: i for i, s in enumerate(sensors)}).fillna(len(sensors))
     return t.sort_values(["_o", "_s", "sensor", "_m"]).drop(columns=["_o", "_m", "_s"])
+
+
+def compact(t: pd.DataFrame) -> None:
+    """One line per orchard and sensor: success / precision pooled, the worst session's in
+    brackets, for each method."""
+
+    def cell(r) -> str:
+        if r is None:
+            return ""
+        return (
+            f"{100 * r.success:.1f} / {100 * r.precision:.1f} "
+            f"({100 * r.min_success:.0f} / {100 * r.min_precision:.0f})"
+        )
+
+    print(
+        "| orchard | sensor | sessions | trees | dbscan | dbscan_spectral | **adaptive** "
+        "| **wall** | ceiling |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for (orchard, sensor), g in t.groupby(["orchard", "sensor"], sort=False):
+        by = {r.method: r for r in g.itertuples()}
+        a = by.get("adaptive")
+        rec = "wall" if orchard == "fruiting-wall" else "adaptive"
+        cells = {m: cell(by.get(m)) for m in METHODS}
+        cells[rec] = f"**{cells[rec]}**"
+        print(
+            f"| {orchard} | {sensor} | {a.sessions} | {a.trees} | {cells['dbscan']} | "
+            f"{cells['dbscan_spectral']} | {cells['adaptive']} | {cells['wall']} | "
+            f"{a.ceiling if orchard != 'fruiting-wall' else ''} |"
+        )
 
 
 def main() -> None:
@@ -61,9 +92,13 @@ def main() -> None:
     ap.add_argument("--csv", default="canopy_kit/paper/data/segmentation_results.csv")
     ap.add_argument("--seeds", nargs="+", type=int, default=[701, 702, 703])
     ap.add_argument("--sessions", action="store_true", help="also list every session")
+    ap.add_argument("--long", action="store_true", help="one line per method (else per orchard)")
     args = ap.parse_args()
     d = per_session(args.csv, args.seeds)
     t = table(d)
+    if not args.long:
+        compact(t)
+        return
 
     def pct(v: float) -> str:
         return f"{100 * v:.1f} %"
