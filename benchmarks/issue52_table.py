@@ -98,6 +98,8 @@ def main() -> None:
     t = table(d)
     if not args.long:
         compact(t)
+        if args.sessions:
+            sessions(d)
         return
 
     def pct(v: float) -> str:
@@ -118,8 +120,12 @@ def main() -> None:
             f"{r.ceiling if r.method == 'adaptive' and r.orchard != 'fruiting-wall' else ''} |"
         )
     if args.sessions:
-        cols = ["session", "method", "n_truth", "n_predicted", "correct", "n_merged", "n_split"]
-        print(d[cols + ["n_other"]].to_string(index=False))
+        sessions(d)
+
+
+def sessions(d: pd.DataFrame) -> None:
+    cols = ["session", "method", "n_truth", "n_predicted", "correct", "n_merged", "n_split"]
+    print(d[cols + ["n_other"]].to_string(index=False))
 
 
 if __name__ == "__main__":
