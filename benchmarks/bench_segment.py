@@ -120,11 +120,10 @@ def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
         score_point_labels,
         truth_footprints,
     )
+    from canopy_kit.evaluate.wall_cuts import cut_labels, is_wall_truth
     from canopy_kit.segment.rows import driving_direction_from_trajectory
     from canopy_kit.segment.verb import segment
     from canopy_kit.sim.truth import load_truth
-
-    from canopy_kit.evaluate.wall_cuts import cut_labels, is_wall_truth
 
     truth = load_truth(sim_dir)
     tl = truth.trees.set_index("tree_id")[["row", "label"]]
