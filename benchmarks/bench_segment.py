@@ -44,6 +44,8 @@ PAPER = {
         "n_neighbors": 10,
     },
     "adaptive": {},
+    # the `wall` preset's segmenter (canopy_kit/presets/wall.toml): fruiting walls and hedgerows
+    "wall": {"cut": "trunk-midpoints"},
 }
 # the paper's almond method with its split threshold and graph at our map's scale, as the
 # shipped preset sets it (canopy_kit/presets/almond-scaled.toml)
@@ -59,6 +61,7 @@ DEFAULT_METHODS = ["dbscan", "dbscan_spectral", "dbscan_spectral_scaled", "adapt
 SEGMENTER = {
     "dbscan_spectral_scaled": "dbscan_spectral",
     "dbscan_spectral_cells": "dbscan_spectral",
+    "wall": "adaptive",
 }
 
 
@@ -117,15 +120,19 @@ def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
         score_point_labels,
         truth_footprints,
     )
+    from canopy_kit.evaluate.wall_cuts import cut_labels, is_wall_truth
     from canopy_kit.segment.rows import driving_direction_from_trajectory
     from canopy_kit.segment.verb import segment
     from canopy_kit.sim.truth import load_truth
 
     truth = load_truth(sim_dir)
     tl = truth.trees.set_index("tree_id")[["row", "label"]]
+    true_ids = cloud.fields["tree_id"]
+    if is_wall_truth(truth.trees):  # a wall's tree is its trunk-midpoint cut, as a run scores it
+        true_ids = cut_labels(cloud.xyz[:, :2], true_ids, truth.trees)
     direction = driving_direction_from_trajectory(truth.trajectory[["x", "y"]].to_numpy())
     footprints = truth_footprints(sim_dir)
-    ceiling = score_point_labels(envelope_ceiling(cloud.xyz, sim_dir), cloud.fields["tree_id"])
+    ceiling = score_point_labels(envelope_ceiling(cloud.xyz, sim_dir), true_ids)
     out = []
     for method in methods:
         t0 = time.perf_counter()
@@ -137,9 +144,7 @@ def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
         )
         elapsed = time.perf_counter() - t0
         pl = seg.table().set_index("segment_id")[["row", "label"]]
-        pts = score_point_labels(
-            seg.labels, cloud.fields["tree_id"], truth_labels=tl, pred_labels=pl
-        )
+        pts = score_point_labels(seg.labels, true_ids, truth_labels=tl, pred_labels=pl)
         fp = score_footprints(seg.footprints, footprints, truth_labels=tl, pred_labels=pl)
         out.append(
             {
@@ -147,6 +152,7 @@ def score_session(cloud, sim_dir: Path, methods: list[str]) -> list[dict]:
                 "n_truth": pts.n_truth,
                 "n_predicted": pts.n_predicted,
                 "success_points": pts.success_rate,
+                "precision_points": pts.precision,
                 "success_footprints": fp.success_rate,
                 "ceiling_points": ceiling.success_rate,
                 "n_merged": pts.n_merged,
