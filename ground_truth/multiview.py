@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -32,7 +32,7 @@ from ground_truth.crowns import CrownSegmentation
 from ground_truth.dsm import SurfaceModel
 from ground_truth.exif import Flight
 from ground_truth.silhouettes import crown_silhouettes
-from ground_truth.visual_hull import HullOptions, crown_hull_volumes, grow_bounded_outlines
+from ground_truth.visual_hull import HullOptions, carve_hulls, pack_photos
 
 OBLIQUE_SHARE = 0.25  # share of oblique photos that makes a flight oblique
 
@@ -77,7 +77,7 @@ def hull_options(config: GroundTruthConfig) -> HullOptions:
 @dataclass(frozen=True)
 class CrownHulls:
     """Each crown's visual-hull volume (m³, NaN: too few views) and how many crowns'
-    outlines were grown before carving (the side-coverage rule of ``ground_truth.visual_hull``)."""
+    outlines were grown before carving (the outline rule of ``ground_truth.visual_hull``)."""
 
     volumes: np.ndarray
     grown: int
@@ -94,7 +94,7 @@ def hull_stage(
 ) -> CrownHulls:
     """Visual-hull volume (m³) of each crown, carved with silhouettes of the registered
     photos read at ``options.image_size`` px (NaN throughout with fewer than
-    ``options.min_views`` photos), and how many outlines the side-coverage rule grew."""
+    ``options.min_views`` photos), and how many outlines the outline rule grew."""
     from ground_truth.pipeline import load_work_images
 
     opts = options or HullOptions()
@@ -104,14 +104,10 @@ def hull_stage(
     ground_z = float(np.nanmedian(surface.dtm))
     masks = crown_silhouettes(rgbs, scaled, ground_z)
     del rgbs
-    labels, grown = seg.labels, np.zeros(len(crowns), bool)
-    if opts.outline_margin_m > 0:  # decided once: the count reported is the one carved
-        labels, grown = grow_bounded_outlines(
-            scaled, masks, seg.labels, seg.grid, crowns, surface.dtm, surface.grid, opts
-        )
-    carve = replace(opts, outline_margin_m=0.0)  # the outlines are grown already
-    volumes = crown_hull_volumes(
-        scaled, masks, labels, seg.grid, crowns, surface.dtm, surface.grid, carve, progress
+    photos = pack_photos(scaled, masks)
+    del masks
+    volumes, grown = carve_hulls(  # the rule decided once: the count reported is the one carved
+        photos, seg.labels, seg.grid, crowns, surface.dtm, surface.grid, opts, progress
     )
     return CrownHulls(volumes, int(grown.sum()))
 

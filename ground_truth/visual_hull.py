@@ -59,6 +59,44 @@ class HullOptions:
     image_size: int = 800
 
 
+@dataclass(frozen=True)
+class PhotoMasks:
+    """The registered photos and their vegetation masks packed once for the compiled
+    carving (:func:`pack_photos`): per photo its camera, world-to-camera rotation and
+    translation, pinhole intrinsics (fx, fy, cx, cy, k1, k2), and where its mask (1:
+    vegetation, row by row) starts in ``vegetation``, with its width and height."""
+
+    cameras: tuple[PosedCamera, ...]
+    rotations: np.ndarray
+    translations: np.ndarray
+    intrinsics: np.ndarray
+    vegetation: np.ndarray
+    offsets: np.ndarray
+    widths: np.ndarray
+    heights: np.ndarray
+
+    @property
+    def shapes(self) -> list[tuple[int, int]]:
+        """Each mask's (rows, columns)."""
+        return list(zip(self.heights.tolist(), self.widths.tolist(), strict=True))
+
+
+def pack_photos(cameras: Sequence[PosedCamera], vegetation: Sequence[np.ndarray]) -> PhotoMasks:
+    """Cameras and per-photo masks (bool or 0/1; > 0.5 is vegetation) as :class:`PhotoMasks`."""
+    masks = [np.ravel(~(np.asarray(m) <= 0.5)).astype(np.uint8) for m in vegetation]
+    sizes = [m.size for m in masks]
+    return PhotoMasks(
+        cameras=tuple(cameras),
+        rotations=np.array([c.rotation for c in cameras], np.float64).reshape(-1, 3, 3),
+        translations=np.array([c.translation for c in cameras], np.float64).reshape(-1, 3),
+        intrinsics=np.array([c.intrinsics() for c in cameras], np.float64).reshape(-1, 6),
+        vegetation=np.concatenate(masks) if masks else np.zeros(0, np.uint8),
+        offsets=np.cumsum([0, *sizes[:-1]]).astype(np.int64)[: len(masks)],
+        widths=np.array([np.shape(m)[1] for m in vegetation], np.int64),
+        heights=np.array([np.shape(m)[0] for m in vegetation], np.int64),
+    )
+
+
 def crown_hull_volumes(
     cameras: Sequence[PosedCamera],
     vegetation: Sequence[np.ndarray],
@@ -70,20 +108,39 @@ def crown_hull_volumes(
     options: HullOptions | None = None,
     progress: Callable[[str, float, float], None] | None = None,
 ) -> np.ndarray:
-    """Visual-hull volume (m³) of each crown of ``crowns`` (rows in order, ``crown_id``).
+    """Visual-hull volume (m³) of each crown of ``crowns`` (rows in order, ``crown_id``),
+    the outlines grown first where the views bound the crowns' sides
+    (:func:`grow_bounded_outlines`).
 
     ``vegetation`` are per-photo masks (bool or 0/1, the size of each camera's image);
     ``labels`` the crown label raster on ``grid`` (0: no crown); ``ground`` the terrain
     heights on ``ground_grid``; ``crowns`` needs ``crown_id`` and ``height_m`` (top above
     the ground). NaN for a crown whose centre fewer than ``min_views`` photos see;
     ``progress(stage, done, total)`` after each crown."""
+    photos = pack_photos(cameras, vegetation)
     opts = options or HullOptions()
+    return carve_hulls(photos, labels, grid, crowns, ground, ground_grid, opts, progress)[0]
+
+
+def carve_hulls(
+    photos: PhotoMasks,
+    labels: np.ndarray,
+    grid: Grid,
+    crowns: pd.DataFrame,
+    ground: np.ndarray,
+    ground_grid: Grid,
+    opts: HullOptions,
+    progress: Callable[[str, float, float], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`crown_hull_volumes` on packed photos, and which crowns (rows of ``crowns``)
+    had their outline grown."""
+    grown = np.zeros(len(crowns), bool)
+    if opts.outline_margin_m > 0:
+        labels, grown = grow_bounded_outlines(
+            photos, labels, grid, crowns, ground, ground_grid, opts
+        )
     report = progress or (lambda *_: None)
     x, y = grid.centers()
-    if opts.outline_margin_m > 0:
-        labels, _ = grow_bounded_outlines(
-            cameras, vegetation, labels, grid, crowns, ground, ground_grid, opts
-        )
     out = np.zeros(len(crowns))
     for k, crown in enumerate(crowns.itertuples()):
         report("Visual hull", k, len(crowns))
@@ -105,9 +162,9 @@ def crown_hull_volumes(
             [np.tile(cx, len(levels)), np.tile(cy, len(levels)), np.repeat(levels, len(cx))]
         )
         pts = pts[pts[:, 2] >= np.tile(z0, len(levels))]
-        out[k] = _carve(pts, cameras, vegetation, opts) * opts.voxel_m**3
+        out[k] = _carve(pts, photos, opts) * opts.voxel_m**3
     report("Visual hull", len(crowns), len(crowns))
-    return out
+    return out, grown
 
 
 def outline_excess(
@@ -191,8 +248,7 @@ def bounded_crowns(
 
 
 def grow_bounded_outlines(
-    cameras: Sequence[PosedCamera],
-    vegetation: Sequence[np.ndarray],
+    photos: PhotoMasks,
     labels: np.ndarray,
     grid: Grid,
     crowns: pd.DataFrame,
@@ -206,7 +262,7 @@ def grow_bounded_outlines(
     from skimage.segmentation import expand_labels
 
     centres, radii = crown_centres(labels, grid, crowns, ground, ground_grid)
-    bounded = bounded_crowns(cameras, [m.shape for m in vegetation], centres, radii, opts)
+    bounded = bounded_crowns(photos.cameras, photos.shapes, centres, radii, opts)
     grow = crowns["crown_id"].to_numpy()[bounded]
     if not len(grow):
         return labels, bounded
@@ -215,12 +271,7 @@ def grow_bounded_outlines(
     return np.where(added, grown, labels), bounded
 
 
-def _carve(
-    pts: np.ndarray,
-    cameras: Sequence[PosedCamera],
-    vegetation: Sequence[np.ndarray],
-    opts: HullOptions,
-) -> float:
+def _carve(pts: np.ndarray, photos: PhotoMasks, opts: HullOptions) -> float:
     """How many voxel centres ``pts`` stay (NaN when fewer than ``min_views`` photos see the
     crown's centre). A voxel stays when at least ``min_views`` photos see it and at least
     ``min_fraction`` of them show vegetation there. Photos whose view misses the crown's box
@@ -230,30 +281,26 @@ def _carve(
     if len(pts) == 0:
         return float("nan")
     lo, hi = pts.min(axis=0), pts.max(axis=0)
-    views = [
-        (cam, mask)
-        for cam, mask in zip(cameras, vegetation, strict=True)
-        if _box_in_view(cam, mask.shape, lo, hi)
-    ]
+    shapes = photos.shapes
+    views = [k for k, cam in enumerate(photos.cameras) if _box_in_view(cam, shapes[k], lo, hi)]
     centre = np.array([[*pts[:, :2].mean(axis=0), (lo[2] + hi[2]) / 2]])
-    if sum(_visible(cam, mask.shape, centre)[0] for cam, mask in views) < opts.min_views:
+    seen = sum(_visible(photos.cameras[k], shapes[k], centre)[0] for k in views)
+    if seen < opts.min_views:
         return float("nan")
-    limit = (1.0 - opts.min_fraction) * len(views) + 1e-9
     from ground_truth.kernels import carve_count  # numba: compiled on first use
 
-    masks = [np.ravel(~(np.asarray(mask) <= 0.5)).astype(np.uint8) for _, mask in views]
-    offsets = np.cumsum([0] + [m.size for m in masks[:-1]]).astype(np.int64)
+    v = np.array(views, np.int64)
     return float(
         carve_count(
             np.ascontiguousarray(pts, np.float64),
-            np.array([cam.rotation for cam, _ in views], np.float64),
-            np.array([cam.translation for cam, _ in views], np.float64),
-            np.array([cam.intrinsics() for cam, _ in views], np.float64),
-            np.concatenate(masks),
-            offsets,
-            np.array([mask.shape[1] for _, mask in views], np.int64),
-            np.array([mask.shape[0] for _, mask in views], np.int64),
-            limit,
+            photos.rotations[v],
+            photos.translations[v],
+            photos.intrinsics[v],
+            photos.vegetation,
+            photos.offsets[v],
+            photos.widths[v],
+            photos.heights[v],
+            (1.0 - opts.min_fraction) * len(views) + 1e-9,
             opts.min_views,
             opts.min_fraction,
         )

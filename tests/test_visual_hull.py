@@ -172,7 +172,7 @@ def test_dropping_voxels_early_carves_the_same_hull_as_every_voxel_in_every_phot
     """The compiled carving (a voxel leaves once it can no longer stay) against the plain
     rule evaluated in numpy over every voxel and every photo (``PosedCamera.project``), with
     masks that disagree (noisy pixels), with and without radial lens distortion."""
-    from ground_truth.visual_hull import _carve
+    from ground_truth.visual_hull import _carve, pack_photos
 
     rng = np.random.default_rng(5)
     cameras = [
@@ -200,4 +200,4 @@ def test_dropping_voxels_early_carves_the_same_hull_as_every_voxel_in_every_phot
         green[ok] += mask[row[ok], col[ok]]
     plain = ((seen >= options.min_views) & (green >= options.min_fraction * seen)).sum()
     assert 0 < plain < len(pts)
-    assert _carve(pts, cameras, masks, options) == plain
+    assert _carve(pts, pack_photos(cameras, masks), options) == plain
