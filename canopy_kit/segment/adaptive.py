@@ -191,8 +191,9 @@ class AdaptiveSegmenter(Segmenter):
             self.n_clusters_ = 0
             return self
         parts = connected_parts(xyz, self.link_factor * self.point_spacing_, w)
+        wall = self.cut == "trunk-midpoints"
         stems = (
-            without_posts(detect_stems(stem_xyz, close_trunks=self.cut == "trunk-midpoints"), xyz)
+            without_posts(detect_stems(stem_xyz, close_trunks=wall), xyz, through_canopy=wall)
             if (self.use_stems and stem_xyz is not None)
             else no_stems()
         )
