@@ -312,9 +312,9 @@ def test_a_wall_runs_report_says_what_its_trees_are() -> None:
 @pytest.mark.slow
 def test_posts_no_taller_than_the_trees_are_no_trees(sim_factory) -> None:
     """A wall whose 3.2 m posts stand no higher than the trees beside them (seed 1, looked at
-    while choosing the rule): on the true-pose map the ``wall`` segmenter makes one segment per
-    tree, each one-to-one with its trunk-midpoint cut, and no post makes a tree (before the
-    through-the-wall rule, end posts hidden in the wall's height were taken for trunks:
+    while choosing the rule): on the true-pose map the ``wall`` segmenter makes one segment
+    per tree, each one-to-one with its trunk-midpoint cut, and no post makes a tree (before
+    the through-the-wall rule, end posts hidden in the wall's height were taken for trunks:
     docs/SEGMENTATION.md "Fruiting walls")."""
     from canopy_kit.evaluate.segmentation_score import score_point_labels
     from canopy_kit.evaluate.truth_map import truth_map
@@ -324,7 +324,11 @@ def test_posts_no_taller_than_the_trees_are_no_trees(sim_factory) -> None:
     from canopy_kit.sim.truth import load_truth
 
     overrides = {
-        "orchard": {"rows": 2, "trees_per_row": 5, "trellis_post_height": 3.2},
+        "orchard": {
+            "rows": 2,
+            "trees_per_row": 5,
+            "trellis_post_height": 3.2,
+        },
         "lidar": {"columns": 512},
     }
     session = sim_factory("fruiting-wall", seed=1, overrides=overrides)

@@ -81,6 +81,31 @@ def test_trellis_posts_stand_above_the_wall_with_wires_and_a_drip_line() -> None
     assert _wall(trellis_post_spacing=0.0).trellis == []
 
 
+def test_end_posts_lean_out_of_the_row_and_the_wires_meet_them() -> None:
+    """``trellis_end_post_lean_deg``: each row's two end posts lean outward along the row, their
+    tops ``height * tan(lean)`` beyond their feet; the middle posts stay upright, and every
+    wire meets each post on its axis at its height."""
+    lean = 20.0
+    orchard = _wall(trellis_end_post_lean_deg=lean)
+    spec = orchard.spec
+    reach = spec.trellis_post_height * np.tan(np.radians(lean))
+    for trellis in orchard.trellis:
+        shift = _along(orchard, trellis.post_tops) - _along(orchard, trellis.post_bases)
+        assert shift[0] == pytest.approx(-reach) and shift[-1] == pytest.approx(reach)
+        assert np.abs(shift[1:-1]).max(initial=0.0) < 1e-9
+        assert trellis.post_tops[:, 2] - trellis.post_bases[:, 2] == pytest.approx(
+            spec.trellis_post_height
+        )
+        for wire, h in zip(trellis.wires, spec.trellis_wire_heights, strict=True):
+            np.testing.assert_allclose(wire, trellis.post_at(h), atol=1e-12)
+            assert _along(orchard, wire[-1]) - _along(orchard, trellis.post_bases[-1]) == (
+                pytest.approx(h * np.tan(np.radians(lean)))
+            )
+    upright = _wall()
+    for a, b in zip(upright.trellis, orchard.trellis, strict=True):
+        np.testing.assert_allclose(a.post_bases, b.post_bases)  # the same feet
+
+
 def test_the_lidar_hits_posts_and_wires_and_labels_them_no_tree() -> None:
     """Rays from the alley straight at a post, a wire and the drip line (where no crown
     hides them): what they hit is trellis, with the per-point label ``TRELLIS_ID``."""
@@ -110,6 +135,8 @@ def test_the_lidar_hits_posts_and_wires_and_labels_them_no_tree() -> None:
     [
         ({"trellis_post_spacing": -1.0}, "orchard.trellis_post_spacing"),
         ({"trellis_wire_heights": [1.0, 4.5]}, "orchard.trellis_wire_heights"),
+        ({"trellis_end_post_lean_deg": 70.0}, "orchard.trellis_end_post_lean_deg"),
+        ({"trellis_end_post_lean_deg": -5.0}, "orchard.trellis_end_post_lean_deg"),
         ({"young_probability": 1.0}, "orchard.young_probability"),
         ({"drip_line_radius": 0.0}, "orchard.drip_line_height/drip_line_radius"),
     ],

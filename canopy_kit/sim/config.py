@@ -88,6 +88,7 @@ class OrchardSpec:
     trellis_post_height: float = 3.6
     trellis_post_radius: float = 0.05
     trellis_end_overhang: float = 0.6  # end posts this far beyond the first and last tree
+    trellis_end_post_lean_deg: float = 0.0  # end posts lean outward along the row (0: upright)
     trellis_wire_heights: list[float] = field(default_factory=list)
     trellis_wire_radius: float = 0.0015
     drip_line_height: float = 0.0
@@ -691,6 +692,11 @@ def _validate_trellis(o: OrchardSpec) -> None:
         o.trellis_end_overhang >= 0,
         "orchard.trellis_end_overhang",
         f"must not be negative, got {o.trellis_end_overhang}",
+    )
+    _check(
+        0 <= o.trellis_end_post_lean_deg < 60,
+        "orchard.trellis_end_post_lean_deg",
+        f"must be at least 0 and below 60 degrees, got {o.trellis_end_post_lean_deg}",
     )
     _check(
         all(0 < h < o.trellis_post_height for h in o.trellis_wire_heights),

@@ -11,11 +11,14 @@ Posts stand on each row's line (the row's offset across the rows), from
 ``trellis_end_overhang`` before the first tree to as far after the last, every
 ``trellis_post_spacing`` m in between (evenly, so both end posts are anchors). Wires and
 the drip line run from end post to end post at fixed heights above the ground at each post.
+End posts may lean outward along the row by ``trellis_end_post_lean_deg`` (anchor posts
+braced against the wires' pull, as many trellises set them): their tops stand that far
+beyond their feet, and the wires meet them on their axis.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,11 +41,20 @@ class RowTrellis:
     wire_radius: float
     drip_line: np.ndarray | None
     drip_radius: float
+    # per post, the horizontal offset (x, y) of its top from its foot (P, 2); None: upright
+    post_lean: np.ndarray | None = None
 
     @property
     def post_tops(self) -> np.ndarray:
         """Top centre of every post (P, 3)."""
-        return self.post_bases + np.array([0.0, 0.0, self.post_height])
+        return self.post_at(self.post_height)
+
+    def post_at(self, height: float) -> np.ndarray:
+        """The posts' axes at ``height`` above their feet (P, 3)."""
+        points = self.post_bases + np.array([0.0, 0.0, height])
+        if self.post_lean is not None:
+            points[:, :2] += self.post_lean * (height / self.post_height)
+        return points
 
 
 def build_trellis(
@@ -66,19 +78,24 @@ def build_trellis(
         xy = along[:, None] * d + row_offsets[row] * right
         ground = terrain.height(xy[:, 0], xy[:, 1])
         bases = np.column_stack([xy, ground])
-        wires = tuple(bases + np.array([0.0, 0.0, h]) for h in spec.trellis_wire_heights)
-        drip = bases + np.array([0.0, 0.0, spec.drip_line_height])
+        lean = np.zeros((len(bases), 2))
+        reach = spec.trellis_post_height * np.tan(np.radians(spec.trellis_end_post_lean_deg))
+        lean[0], lean[-1] = -reach * np.asarray(d[:2]), reach * np.asarray(d[:2])  # outward
+        posts = RowTrellis(
+            row,
+            bases,
+            spec.trellis_post_height,
+            spec.trellis_post_radius,
+            (),
+            spec.trellis_wire_radius,
+            None,
+            spec.drip_line_radius,
+            lean if reach > 0 else None,
+        )
+        wires = tuple(posts.post_at(h) for h in spec.trellis_wire_heights)
+        drip = posts.post_at(spec.drip_line_height)
         out.append(
-            RowTrellis(
-                row,
-                bases,
-                spec.trellis_post_height,
-                spec.trellis_post_radius,
-                wires,
-                spec.trellis_wire_radius,
-                drip if spec.drip_line_height > 0 else None,
-                spec.drip_line_radius,
-            )
+            replace(posts, wires=wires, drip_line=drip if spec.drip_line_height > 0 else None)
         )
     return out
 
@@ -88,7 +105,7 @@ def trellis_cylinders(trellis: list[RowTrellis]) -> list[tuple[np.ndarray, np.nd
     10 cm below the ground to their tops, and every span of a wire or the drip line."""
     groups = []
     for t in trellis:
-        below = t.post_bases - np.array([0.0, 0.0, 0.1])
+        below = t.post_at(-0.1)
         groups.append((below, t.post_tops, np.full(len(below), t.post_radius)))
         lines = [(w, t.wire_radius) for w in t.wires]
         if t.drip_line is not None:
