@@ -10,8 +10,9 @@ height left in tree segments, and per row the share of the stem band's foot agai
 canopy that decides whether a wall run warns of missed trunks (``segment.trunk_feet``).
 Seeds 0, 1, 2 were looked at; 7, 11, 13 are held out.
 
-Usage: ``python benchmarks/bench_fruiting_wall.py [--work DIR] [SEED ...]`` (one JSON line per
-seed).
+Usage: ``python benchmarks/bench_fruiting_wall.py [--work DIR] [--set section.key=value]...
+[SEED ...]`` (one JSON line per seed; ``--set`` changes the simulated orchard, e.g.
+``orchard.trellis_end_post_lean_deg=20``, and names its sessions apart).
 """
 
 from __future__ import annotations
@@ -32,13 +33,24 @@ from canopy_kit.sim import load_sim_config, simulate_session
 LOOKED_AT, HELD_OUT = (0, 1, 2), (7, 11, 13)
 
 
-def measure(seed: int, work: Path, preset: str = "adaptive", sensor: str | None = None) -> dict:
+def measure(
+    seed: int,
+    work: Path,
+    preset: str = "adaptive",
+    sensor: str | None = None,
+    overrides: list[str] | None = None,
+) -> dict:
     """Simulate (once, cached in ``work``) and run one seed; its figures. ``sensor``: one of
-    the simulator's sensor models instead of the default 32-ring, 512-column one."""
-    root = work / (f"wall{seed}" + (f"_{sensor}" if sensor else ""))
+    the simulator's sensor models instead of the default 32-ring, 512-column one;
+    ``overrides``: simulator settings ``section.key=value``."""
+    from canopy_kit.cli.common import parse_overrides
+
+    variant = "".join(f"_{o.split('.')[-1]}" for o in overrides or [])
+    root = work / (f"wall{seed}" + (f"_{sensor}" if sensor else "") + variant)
     layout = {"orchard": {"rows": 2, "trees_per_row": 10}}
     if sensor is None:
         layout["lidar"] = {"columns": 512}
+    layout = merge(layout, parse_overrides(overrides) if overrides else {})
     cfg = load_sim_config("fruiting-wall", merge({"seed": seed}, layout), sensor=sensor)
     if not (root / "sim").exists():
         simulate_session(root / "sim", cfg, fmt="ros2-mcap", truth_field=True, overwrite=True)
@@ -119,10 +131,17 @@ def main() -> None:
     parser.add_argument(
         "--sensor", default=None, help="a simulator sensor model (vlp16, os1-128...)"
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="a simulator override (repeat for more)",
+    )
     parser.add_argument("seeds", type=int, nargs="*", default=list(LOOKED_AT))
     args = parser.parse_args()
     for seed in args.seeds:
-        print(json.dumps(measure(seed, args.work, args.preset, args.sensor)), flush=True)
+        print(json.dumps(measure(seed, args.work, args.preset, args.sensor, args.set)), flush=True)
 
 
 if __name__ == "__main__":
