@@ -122,6 +122,24 @@ def test_posts_and_wires_set_no_height_and_no_width() -> None:
     assert table.loc[0, "width_m"] == pytest.approx(3.0, abs=0.05)
 
 
+def test_a_post_leaning_out_of_the_walls_end_sets_no_section() -> None:
+    """An anchor post leaning 25 deg out of the end of a 3 m wall (foot 0.6 m past it, top
+    3.8 m up and 1.8 m further on, crossing three sections): it makes no section of its own
+    and the wall's sections keep their height, so the leaf wall area is the wall's alone
+    (before the filter followed a leaning post, its sections counted at full height)."""
+    rng = np.random.default_rng(4)
+    wall = _box(-1.0, 1.0, 0.0, 4.0, 0.8, 3.0)
+    ang, z = rng.uniform(0, 2 * np.pi, 4000), rng.uniform(0.0, 3.8, 4000)
+    lean = np.tan(np.radians(25.0))
+    post = np.column_stack([0.05 * np.cos(ang), 4.6 + lean * z + 0.05 * np.sin(ang), z])
+    xyz = np.vstack([wall, post])
+    profiles = row_profiles(xyz, xyz[:, 2], _rows([_line(0, 0.0, (0.0, 7.0))]), row_spacing_m=5.0)
+    t = profiles.sections
+    assert (t.loc[t["start_m"] >= 4.0, "height_m"] == 0.0).all(), t
+    assert ((t.loc[t["end_m"] <= 4.0, "height_m"] - 3.0).abs() <= 0.1).all()
+    assert profiles.summary.loc[0, "lwa_m2_per_ha"] == pytest.approx(2 * 3.0 * 1e4 / 5, rel=0.02)
+
+
 def test_a_crown_tip_reaching_into_a_section_is_canopy_a_lone_post_is_not() -> None:
     """A wall 2.5 m high ending 8 cm into the next section, where only its 0.2 m wide tip
     lies: that section keeps the tip's height (the canopy goes on beside it); the same tip

@@ -5,11 +5,14 @@ row) and wires (a few mm, along the row) would otherwise set a section's height 
 the row past its trees. In the section's across-row x height grid (occupied cells, one-cell
 gaps across closed), a post is a column at most ``TRELLIS_MAX_WIDTH_M`` (0.3 m) wide
 standing at least ``POLE_MIN_HEIGHT_M`` (0.3 m) where no canopy is beside it, and narrow
-along the row too (the middle half of its returns within 0.15 m: a wall's face seen without
-its inside is as narrow across, but runs the section's length), and which does not go on
-into the neighbouring sections (returns as high as its top within 0.3 m beyond the section
-and farther than 0.15 m from it along the row: the tip of a crown reaching into a section is
-as narrow as a post within it); a wire seen end-on is an isolated blob at most 0.3 m across
+along the row too about one line, upright or leaning (the middle half of its returns within
+0.15 m of the line fitted along the row against height, at most ``MAX_POST_LEAN_DEG``: a
+wall's face seen without its inside is as narrow across, but runs the section's length at
+every height), and which does not go on into the neighbouring sections (returns as high as
+its top within 0.3 m beyond the section, 0.15-0.45 m from its line along the row, and not
+found to be a post there: the tip of a crown reaching into a section is as narrow as a post
+within it; a leaning anchor post crosses several sections, and a section beside one where a
+post was found is judged again without it); a wire seen end-on is an isolated blob at most 0.3 m across
 and high (unless, short along the row, it goes on beyond the section as a crown's tip does);
 both are left out. (A post's returns in the canopy's top cell layer still count, 0.1 m at
 most; a post sticking out of the wall by less than 0.3 m, or a wire touching the canopy, can
@@ -34,6 +37,7 @@ POLE_MIN_HEIGHT_M = 0.3  # a narrow column at least this tall is a post, not a c
 MIN_RETURNS = 3  # returns that show canopy going on (row_profile.MIN_CELL_POINTS)
 SECTION_M = 1.0  # row sections the rule looks at (row_profile.SECTION_M)
 CELL_M = 0.1  # across-row x height grid cell (row_profile.CELL_M)
+MAX_POST_LEAN_DEG = 35.0  # anchor posts lean 10-30 deg out of a row's end
 
 
 def clustered(offset: np.ndarray, height: np.ndarray, cell_m: float, min_points: int) -> np.ndarray:
@@ -58,23 +62,40 @@ def _goes_on(
     beside: np.ndarray | None,
     cell_m: float,
     min_points: int = MIN_RETURNS,
+    line: tuple[float, float] | None = None,
 ) -> bool:
     """Whether canopy goes on beyond the section from a narrow part of it (a crown's tip
     reaching in): ``min_points`` returns of ``beside`` as high as its top, within
-    ``TRELLIS_MAX_WIDTH_M`` of it across and more than half that from it along the row,
-    spread wider or higher than that (a wire going on is as thin as it is here)."""
+    ``TRELLIS_MAX_WIDTH_M`` of it across and more than half that but at most 1.5 times that
+    from its line along the row (``line``: its along-row position at height 0 and per metre
+    of height; None: upright at its median), spread wider or higher than that (a wire going on is as thin as it is
+    here; a leaning post going on lies on its line)."""
     if beside is None or len(beside) == 0 or len(offset) == 0:
         return False
     w = TRELLIS_MAX_WIDTH_M
+    a0, slope = _post_line(along, height) if line is None else line
     near = beside[
         (beside[:, 1] >= height.max() - cell_m)
         & (beside[:, 0] >= offset.min() - w)
         & (beside[:, 0] <= offset.max() + w)
-        & (np.abs(beside[:, 2] - np.median(along)) > w / 2)
+        & (np.abs(beside[:, 2] - a0 - slope * beside[:, 1]) > w / 2)  # not the post going on
+        & (np.abs(beside[:, 2] - a0 - slope * beside[:, 1]) <= 1.5 * w)  # but next to it
     ]
     if len(near) < min_points:
         return False
     return bool(np.ptp(near[:, 0]) > w or np.ptp(near[:, 1]) > w)
+
+
+def _post_line(along: np.ndarray, height: np.ndarray) -> tuple[float, float]:
+    """A narrow part's line along the row: its position at height 0 and its lean (metres along
+    per metre up), fitted to its returns and kept within ``MAX_POST_LEAN_DEG`` (upright at the
+    median when the returns span less than ``POLE_MIN_HEIGHT_M`` of height)."""
+    if len(along) < 3 or np.ptp(height) < POLE_MIN_HEIGHT_M:
+        return float(np.median(along)), 0.0
+    slope = float(np.polyfit(height, along, 1)[0])
+    limit = np.tan(np.radians(MAX_POST_LEAN_DEG))
+    slope = float(np.clip(slope, -limit, limit))
+    return float(np.median(along - slope * height)), slope
 
 
 def without_trellis(
@@ -110,11 +131,15 @@ def without_trellis(
             continue
         mine = part_of_point == k
         a = along[mine]
-        # most of its returns within half the width along the row: a post (a wire
-        # meeting it adds a few); a face runs along the section
-        if len(a) == 0 or np.ptp(np.percentile(a, [25, 75])) > TRELLIS_MAX_WIDTH_M / 2:
+        if len(a) == 0:
             continue
-        if not _goes_on(offset[mine], height[mine], a, beside, cell_m, min_points):
+        # most of its returns within half the width of one line along the row, upright or
+        # leaning: a post (a wire meeting it adds a few); a face runs along the section
+        line = _post_line(a, height[mine])
+        residual = a - line[0] - line[1] * height[mine]
+        if np.ptp(np.percentile(residual, [25, 75])) > TRELLIS_MAX_WIDTH_M / 2:
+            continue
+        if not _goes_on(offset[mine], height[mine], a, beside, cell_m, min_points, line):
             trellis[box] |= parts[box] == k
     # what is left of a post, and wires end-on: small isolated blobs
     blobs, _ = ndimage.label(grid & ~trellis, structure=np.ones((3, 3), bool))
@@ -157,17 +182,22 @@ def trellis_along_row(
     edges = start + np.arange(n_sections + 1) * section_m
     bounds = np.searchsorted(a_sorted, edges)
     windows = np.searchsorted(a_sorted, np.column_stack([edges[:-1] - margin, edges[1:] + margin]))
-    for s in np.flatnonzero(np.diff(bounds) > 0):
+    filled = np.flatnonzero(np.diff(bounds) > 0)
+    found = np.zeros(n_sections, bool)
+
+    def judge(s: int) -> None:
         members = order[bounds[s] : bounds[s + 1]]
         dense = members[clustered(offset[members], height[members], cell_m, min_cell_points)]
         if len(dense) == 0:
-            continue
+            return
         lo, hi = windows[s]
         beside = order[np.r_[lo : bounds[s], bounds[s + 1] : hi]]
+        beside = beside[~trellis[beside]]  # a post found beyond is not canopy going on
         near = np.column_stack([offset[beside], height[beside], along[beside]])
         kept = without_trellis(
             offset[dense], height[dense], along[dense], cell_m, near, min_cell_points
         )
+        found[s] |= bool((~kept).any())
         trellis[dense[~kept]] = True
         # sparse returns next to a post or wire (a post's cap) are part of it
         cells = _cells(offset[dense[~kept]], height[dense[~kept]], cell_m)
@@ -176,6 +206,14 @@ def trellis_along_row(
             sparse = np.setdiff1d(members, dense)
             mine = _cells(offset[sparse], height[sparse], cell_m)
             trellis[sparse[_in(mine, near_cells)]] = True
+
+    for s in filled:
+        judge(s)
+    # once more beside a section where a post was found: the end of a leaning post crossing
+    # into this section went on into that post, which is no canopy going on
+    again = found[np.maximum(filled - 1, 0)] | found[np.minimum(filled + 1, n_sections - 1)]
+    for s in filled[again]:
+        judge(s)
     return trellis
 
 
