@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from pathlib import Path
 
@@ -45,7 +46,10 @@ def measure(
     ``overrides``: simulator settings ``section.key=value``."""
     from canopy_kit.cli.common import parse_overrides
 
-    variant = "".join(f"_{o.split('.')[-1]}" for o in overrides or [])
+    # each override named apart: orchard.trellis_post_height=3.3 -> _trellis_post_height-3-3
+    variant = "".join(
+        "_" + re.sub(r"[^A-Za-z0-9_]+", "-", o.split(".", 1)[-1]) for o in overrides or []
+    )
     root = work / (f"wall{seed}" + (f"_{sensor}" if sensor else "") + variant)
     layout = {"orchard": {"rows": 2, "trees_per_row": 10}}
     if sensor is None:
