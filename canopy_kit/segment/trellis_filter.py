@@ -68,12 +68,12 @@ def _goes_on(
     reaching in): ``min_points`` returns of ``beside`` as high as its top, within
     ``TRELLIS_MAX_WIDTH_M`` of it across and more than half that but at most 1.5 times that
     from its line along the row (``line``: its along-row position at height 0 and per metre
-    of height; None: upright at its median), spread wider or higher than that (a wire going on is as thin as it is
-    here; a leaning post going on lies on its line)."""
+    of height; None: upright at its median), spread wider or higher than that (a wire going
+    on is as thin as it is here; a leaning post going on lies on its line)."""
     if beside is None or len(beside) == 0 or len(offset) == 0:
         return False
     w = TRELLIS_MAX_WIDTH_M
-    a0, slope = _post_line(along, height) if line is None else line
+    a0, slope = (float(np.median(along)), 0.0) if line is None else line
     near = beside[
         (beside[:, 1] >= height.max() - cell_m)
         & (beside[:, 0] >= offset.min() - w)
@@ -211,8 +211,10 @@ def trellis_along_row(
         judge(s)
     # once more beside a section where a post was found: the end of a leaning post crossing
     # into this section went on into that post, which is no canopy going on
-    again = found[np.maximum(filled - 1, 0)] | found[np.minimum(filled + 1, n_sections - 1)]
-    for s in filled[again]:
+    beside_post = np.zeros(n_sections, bool)
+    beside_post[1:] |= found[:-1]
+    beside_post[:-1] |= found[1:]
+    for s in filled[beside_post[filled]]:
         judge(s)
     return trellis
 
