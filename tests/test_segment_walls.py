@@ -236,6 +236,48 @@ def test_a_post_is_no_trunk_above_or_inside_the_wall() -> None:
     np.testing.assert_array_equal(without_posts(stems, canopy).xy, xy[1:])  # crown orchards
 
 
+def test_a_post_leaning_out_of_the_rows_end_is_no_trunk() -> None:
+    """Hand-made wall along a row at 30 degrees (trunks 1 m apart, a few cm off the line, the
+    foliage reaching 1.5 m past the first trunk): an end post 0.6 m past the first trunk,
+    leaning 20 deg out of the row (through the foliage, then in the open above its end), is
+    a post by its slanted column; the trunks are not (the last one, at the row's other end,
+    divides into branches). Only the two ends get an outward direction, along the row within
+    a degree; crown orchards do not ask the rule."""
+    from canopy_kit.segment.posts import leans_out_of_row_end, row_end_outward, without_posts
+    from canopy_kit.segment.stems import StemDetections
+
+    rng = np.random.default_rng(11)
+    wall = rng.uniform([-0.4, -1.5, 0.8], [0.4, 5.4, 3.0], (35000, 3))
+    h = rng.uniform(0.8, 3.4, 900)  # the post: foot at y = -0.6, leaning towards -y
+    a = rng.uniform(0, 2 * np.pi, 900)
+    post = np.column_stack(
+        [0.05 * np.cos(a), -0.6 - np.tan(np.radians(20)) * h + 0.05 * np.sin(a), h]
+    )
+    t = rng.uniform(0.0, 1.0, (4, 150))  # the last trunk's branches from (0, 5, 0.8)
+    branches = np.concatenate(
+        [
+            np.column_stack([0.4 * np.cos(b) * f, 5.0 + 0.4 * np.sin(b) * f, 0.8 + 0.8 * f])
+            for b, f in zip(np.linspace(0, 2 * np.pi, 4, endpoint=False), t)
+        ]
+    )
+    feet = np.column_stack([[0.0, 0.04, -0.03, 0.03, 0.0, -0.04, 0.02], np.r_[-0.6, 0:6]])
+    turn = np.array(
+        [[np.cos(np.pi / 6), -np.sin(np.pi / 6)], [np.sin(np.pi / 6), np.cos(np.pi / 6)]]
+    )
+    canopy = np.vstack([wall, post, branches])
+    canopy[:, :2] = canopy[:, :2] @ turn.T
+    stems = StemDetections(feet @ turn.T, np.full(7, 50), np.full(7, 0.05), np.ones(7))
+    out = row_end_outward(stems.xy)
+    row = turn @ np.array([0.0, 1.0])
+    assert np.isnan(out[1:6]).all()
+    assert out[0] @ -row > np.cos(np.radians(1)) and out[6] @ row > np.cos(np.radians(1))
+    assert leans_out_of_row_end(stems, canopy).tolist() == [True] + [False] * 6
+    np.testing.assert_array_equal(
+        without_posts(stems, canopy, through_canopy=True).xy, stems.xy[1:]
+    )
+    assert len(without_posts(stems, canopy)) == 7  # crown orchards
+
+
 def test_the_trunk_midpoint_cut_gives_each_tree_the_row_between_the_midpoints() -> None:
     """Markers along a row at 30 degrees (0, 1, 3 m along): points go to the marker whose
     interval between the midpoints (0.5, 2.0 m) holds them, whatever their offset across."""
@@ -310,12 +352,18 @@ def test_a_wall_runs_report_says_what_its_trees_are() -> None:
 
 
 @pytest.mark.slow
-def test_posts_no_taller_than_the_trees_are_no_trees(sim_factory) -> None:
-    """A wall whose 3.2 m posts stand no higher than the trees beside them (seed 1, looked at
-    while choosing the rule): on the true-pose map the ``wall`` segmenter makes one segment
-    per tree, each one-to-one with its trunk-midpoint cut, and no post makes a tree (before
-    the through-the-wall rule, end posts hidden in the wall's height were taken for trunks:
-    docs/SEGMENTATION.md "Fruiting walls")."""
+@pytest.mark.parametrize(
+    "trellis",
+    [{"trellis_post_height": 3.2}, {"trellis_end_post_lean_deg": 20.0}],
+    ids=["posts-no-taller", "end-posts-leaning"],
+)
+def test_posts_no_taller_than_the_trees_are_no_trees(sim_factory, trellis) -> None:
+    """A wall whose 3.2 m posts stand no higher than the trees beside them, and one whose end
+    posts lean 20 deg out of the rows (seed 1, looked at while choosing the rules): on the
+    true-pose map the ``wall`` segmenter makes one segment per tree, each one-to-one with its
+    trunk-midpoint cut, and no post makes a tree (before the through-the-wall rule, end posts
+    hidden in the wall's height were taken for trunks; before the leaning rule every leaning
+    end post: docs/SEGMENTATION.md "Fruiting walls", "Leaning end posts")."""
     from canopy_kit.evaluate.segmentation_score import score_point_labels
     from canopy_kit.evaluate.truth_map import truth_map
     from canopy_kit.evaluate.wall_cuts import cut_labels
@@ -323,18 +371,11 @@ def test_posts_no_taller_than_the_trees_are_no_trees(sim_factory) -> None:
     from canopy_kit.segment.verb import make_segmenter, segment
     from canopy_kit.sim.truth import load_truth
 
-    overrides = {
-        "orchard": {
-            "rows": 2,
-            "trees_per_row": 5,
-            "trellis_post_height": 3.2,
-        },
-        "lidar": {"columns": 512},
-    }
+    overrides = {"orchard": {"rows": 2, "trees_per_row": 5, **trellis}, "lidar": {"columns": 512}}
     session = sim_factory("fruiting-wall", seed=1, overrides=overrides)
     posts = np.concatenate([t.post_bases[:, :2] for t in session.orchard.trellis])
-    tallest = max(t.height for t in session.orchard.trees)
-    assert tallest > 3.2  # some trees stand above the posts
+    if "trellis_post_height" in trellis:
+        assert max(t.height for t in session.orchard.trees) > 3.2  # trees above the posts
     cloud = truth_map(session.root, voxel_size=0.05)
     truth = load_truth(session.root)
     segmenter = make_segmenter("adaptive", {"cut": "trunk-midpoints"})

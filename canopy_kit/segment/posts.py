@@ -18,9 +18,17 @@ is what stands above the foot. Two rules, either makes a post:
   sparse crown reads the same (2 of the 18 trunks of a pistachio session), and so would a
   wall tree's straight central leader seen through thin foliage (the simulator's wall trees
   have none: untested).
+- **Leaning out of a row's end** (:func:`leans_out_of_row_end`, trellised walls only): an
+  anchor post at a row's end is often set leaning outward along the row, against the wires'
+  pull. Its foot is a row's last detection, and the same column test runs along lines
+  leaning outward from the foot (``LEAN_MIN_DEG`` to ``LEAN_MAX_DEG``); above the wall's end
+  the post stands in the open, and a layer where only the cylinder holds returns shows the
+  column too. A trunk's foliage above it shows no slanted column either way.
 """
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -40,6 +48,20 @@ COLUMN_LAYER_M = 0.2
 COLUMN_DENSITY_RATIO = 3.0
 COLUMN_MIN_LAYERS = 8
 COLUMN_MIN_SHARE = 0.7
+# Leaning out of a row's end: the leans tried (the trellis filter follows posts up to 35 deg)
+# and the turns of the lean's direction about the row's axis, what makes a detection a row's
+# end (:func:`row_end_outward`), and the returns a layer in the open needs in the cylinder.
+# Chosen on fruiting-wall seeds 0-2 with end posts at 20 deg, then on seeds 707-720 (leans of
+# 15-30 deg, posts 0.4-1.0 m past the end tree, a row starting with a gap): leaning posts showed
+# the column in 79-100 % of their layers, row-end trunks (walls without posts) in at most 60 %
+# (docs/SEGMENTATION.md, "Leaning end posts").
+LEAN_MIN_DEG = 6.0
+LEAN_MAX_DEG = 36.0
+LEAN_STEP_DEG = 1.5
+TURN_DEG = (-3.0, 0.0, 3.0)  # the lean's direction: the row's axis and a little either side
+ROW_END_NEIGHBOUR_M = 4.0
+ROW_END_ANGLE_DEG = 20.0
+OPEN_LAYER_RETURNS = 2
 
 
 def is_post(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
@@ -105,12 +127,102 @@ def stands_through_canopy(stems: StemDetections, canopy_xyz: np.ndarray) -> np.n
     return out
 
 
+def _row_direction(xy: np.ndarray) -> np.ndarray:
+    """The direction of the rows: the axial mean of the vectors from each detection to its
+    nearest neighbour (along a row, trees stand closer than rows)."""
+    step = xy[cKDTree(xy).query(xy, k=2)[1][:, 1]] - xy
+    angle = 0.5 * np.angle(np.exp(2j * np.arctan2(step[:, 1], step[:, 0])).mean())
+    return np.array([np.cos(angle), np.sin(angle)])
+
+
+def row_end_outward(xy: np.ndarray) -> np.ndarray:
+    """Per detection: the unit vector pointing out of its row when it is a row's last
+    detection, else NaN. Along the rows' direction (:func:`_row_direction`) a last detection
+    has at least two detections within ``ROW_END_ANGLE_DEG`` of it on one side (the nearest
+    within ``ROW_END_NEIGHBOUR_M``, the others within twice that) and none on the other; the
+    vector is the principal axis through it and those (two trunks a few cm off the row line
+    would turn it by several degrees)."""
+    xy = np.asarray(xy, float)
+    out = np.full((len(xy), 2), np.nan)
+    if len(xy) < 3:
+        return out
+    row = _row_direction(xy)
+    cos_max = np.cos(np.radians(ROW_END_ANGLE_DEG))
+    for i, near in enumerate(cKDTree(xy).query_ball_point(xy, 2.0 * ROW_END_NEIGHBOUR_M)):
+        near = np.array([j for j in near if j != i], int)
+        step = xy[near] - xy[i]
+        dist = np.hypot(*step.T)
+        along = step @ row / np.maximum(dist, 1e-9)
+        ahead, behind = along >= cos_max, along <= -cos_max
+        if ahead.any() == behind.any():
+            continue
+        line = ahead if ahead.any() else behind
+        if line.sum() < 2 or dist[line].min() > ROW_END_NEIGHBOUR_M:
+            continue
+        pts = np.vstack([xy[i], xy[near[line]]])
+        axis = np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][0]
+        out[i] = -axis if axis @ step[line].mean(0) > 0 else axis
+    return out
+
+
+def _slanted_column_share(pts: np.ndarray, foot: np.ndarray, outward: np.ndarray) -> float:
+    """The best share of layers showing a column along a line leaning out of ``foot`` by
+    ``outward`` (a unit vector), over the leans tried; 0 with fewer than
+    ``COLUMN_MIN_LAYERS`` layers occupied."""
+    inner_area = np.pi * COLUMN_RADIUS_M**2
+    ring_area = np.pi * (COLUMN_RING_M**2 - (2.0 * COLUMN_RADIUS_M) ** 2)
+    layer = np.floor((pts[:, 2] - pts[:, 2].min()) / COLUMN_LAYER_M).astype(np.int64)
+    n_layers = int(layer.max()) + 1
+    best = 0.0
+    turns = np.radians(TURN_DEG)
+    directions = [
+        np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ outward for a in turns
+    ]
+    for lean, direction in itertools.product(
+        np.arange(LEAN_MIN_DEG, LEAN_MAX_DEG, LEAN_STEP_DEG), directions
+    ):
+        centre = foot + np.tan(np.radians(lean)) * pts[:, 2:3] * direction
+        r = np.hypot(*(pts[:, :2] - centre).T)
+        in_column = np.bincount(layer[r <= COLUMN_RADIUS_M], minlength=n_layers)
+        in_ring = np.bincount(
+            layer[(r > 2.0 * COLUMN_RADIUS_M) & (r <= COLUMN_RING_M)], minlength=n_layers
+        )
+        in_open = (in_ring == 0) & (in_column >= OPEN_LAYER_RETURNS)
+        occupied = (in_ring > 0) | in_open
+        shows = in_open | (in_column / inner_area > COLUMN_DENSITY_RATIO * in_ring / ring_area)
+        if occupied.sum() >= COLUMN_MIN_LAYERS:
+            best = max(best, float((shows & occupied).sum() / occupied.sum()))
+    return best
+
+
+def leans_out_of_row_end(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
+    """Per detection: whether a straight column leans out of it, away from its row, when it
+    is the row's last detection (:func:`row_end_outward`): in at least ``COLUMN_MIN_SHARE``
+    of at least ``COLUMN_MIN_LAYERS`` layers, for one lean between ``LEAN_MIN_DEG`` and
+    ``LEAN_MAX_DEG`` (the layer test of :func:`stands_through_canopy`, along the slanted line;
+    a layer with returns in the cylinder and none in the ring counts as showing it)."""
+    out = np.zeros(len(stems), bool)
+    if len(stems) == 0 or len(canopy_xyz) == 0:
+        return out
+    xyz = np.asarray(canopy_xyz, float)
+    tree = cKDTree(xyz[:, :2])
+    outward = row_end_outward(stems.xy)
+    reach = np.tan(np.radians(LEAN_MAX_DEG)) * float(xyz[:, 2].max())
+    for i in np.flatnonzero(np.isfinite(outward[:, 0])):
+        foot, u = stems.xy[i], outward[i]
+        near = tree.query_ball_point(foot + 0.5 * reach * u, 0.5 * reach + COLUMN_RING_M)
+        if len(near) < MIN_TOP_RETURNS:
+            continue
+        out[i] = _slanted_column_share(xyz[near], foot, u) >= COLUMN_MIN_SHARE
+    return out
+
+
 def without_posts(
     stems: StemDetections, canopy_xyz: np.ndarray, through_canopy: bool = False
 ) -> StemDetections:
     """The detections that are not posts: not :func:`is_post`, and with ``through_canopy``
-    (a trellised wall) not :func:`stands_through_canopy` either."""
+    (a trellised wall) neither :func:`stands_through_canopy` nor :func:`leans_out_of_row_end`."""
     post = is_post(stems, canopy_xyz)
     if through_canopy:
-        post |= stands_through_canopy(stems, canopy_xyz)
+        post |= stands_through_canopy(stems, canopy_xyz) | leans_out_of_row_end(stems, canopy_xyz)
     return stems.select(~post)
