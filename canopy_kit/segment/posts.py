@@ -1,7 +1,7 @@
 """Trellis posts among trunk detections: a post stands as a straight column through the canopy.
 
 In the stem band a post (about 0.1 m thick) is a column like a trunk. What tells them apart
-is what stands above the foot. Two rules, either makes a post:
+is what stands above the foot. Three rules, any makes a post:
 
 - **Above the wall**: the canopy points above the detection hold a column whose top
   ``POLE_MIN_HEIGHT_M`` is narrower than ``TRELLIS_MAX_WIDTH_M`` (nothing that high in the
