@@ -278,32 +278,6 @@ def test_a_post_leaning_out_of_the_rows_end_is_no_trunk() -> None:
     assert len(without_posts(stems, canopy)) == 7  # crown orchards
 
 
-def test_a_flagged_detection_where_the_rhythm_puts_a_tree_stays_a_trunk() -> None:
-    """Hand-made rows at 30 degrees, trunks 1 m apart, flags given: a flagged detection is due
-    (stays a trunk) only between two kept ones a doubled gap apart and near that gap's middle:
-    a flagged trunk in its row's rhythm (row 0, 3 m) and a post beside a trunk (row 1, 2.97 m,
-    the trunk not detected apart) are due; a post between two trunks (row 0, 4.5 m), a post
-    off the middle of a missing tree's gap (row 1, 4.6 m), an end post (row 0, -0.6 m) and a
-    flagged detection in a row of too few kept ones (row 2) are not."""
-    from canopy_kit.segment.posts import where_a_tree_is_due
-
-    row0 = [(a, False) for a in (0, 1, 2, 4, 5, 6, 7)] + [(3.0, True), (4.5, True), (-0.6, True)]
-    row1 = [(a, False) for a in (0, 1, 2, 4, 6, 7, 8)] + [(2.97, True), (4.6, True)]
-    row2 = [(0.0, False), (1.0, True), (2.0, False)]
-    along, across, flagged = [], [], []
-    for offset, row in ((0.0, row0), (3.2, row1), (6.4, row2)):
-        for a, f in row:
-            along.append(a)
-            across.append(offset + 0.02 * np.sin(7 * a))  # a few cm off the row line
-            flagged.append(f)
-    d = np.array([np.cos(np.pi / 6), np.sin(np.pi / 6)])
-    xy = np.outer(along, d) + np.outer(across, [-d[1], d[0]])
-    due = where_a_tree_is_due(xy, np.array(flagged))
-    got = {(round(a, 2), round(c)) for a, c, u in zip(along, across, due) if u}
-    assert got == {(3.0, 0), (2.97, 3)}
-    assert not due[~np.array(flagged)].any()
-
-
 def test_the_trunk_midpoint_cut_gives_each_tree_the_row_between_the_midpoints() -> None:
     """Markers along a row at 30 degrees (0, 1, 3 m along): points go to the marker whose
     interval between the midpoints (0.5, 2.0 m) holds them, whatever their offset across."""

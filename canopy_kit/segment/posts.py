@@ -24,12 +24,6 @@ is what stands above the foot. Three rules, any makes a post:
   leaning outward from the foot (``LEAN_MIN_DEG`` to ``LEAN_MAX_DEG``); above the wall's end
   the post stands in the open, and a layer where only the cylinder holds returns shows the
   column too. A trunk's foliage above it shows no slanted column either way.
-
-On a wall the trees' rhythm has the last word (:func:`where_a_tree_is_due`): a detection
-flagged by any rule whose removal would leave a gap of ``DOUBLED_RATIO`` times its row's
-spacing, with it in the middle of that gap, stays a trunk. A tree stands there, whatever else
-does: a post set right beside a trunk (one detection for both), or a tree whose straight
-central leader reads as a column through the wall.
 """
 
 from __future__ import annotations
@@ -41,7 +35,6 @@ from scipy.spatial import cKDTree
 
 from canopy_kit.segment.stems import StemDetections
 from canopy_kit.segment.trellis_filter import POLE_MIN_HEIGHT_M, TRELLIS_MAX_WIDTH_M
-from canopy_kit.segment.trunk_feet import DOUBLED_RATIO
 
 MIN_TOP_RETURNS = 3  # returns of the column's top that show it is there
 # Through the wall: the cylinder around the foot (a post 0.1-0.15 m thick, the foot's
@@ -69,11 +62,6 @@ TURN_DEG = (-3.0, 0.0, 3.0)  # the lean's direction: the row's axis and a little
 ROW_END_NEIGHBOUR_M = 4.0
 ROW_END_ANGLE_DEG = 20.0
 OPEN_LAYER_RETURNS = 2
-# The rhythm: rows told apart by their detections' offsets across the rows' direction, and how
-# near to the middle of the gap it would leave (a share of the row's spacing) a flagged
-# detection must stand to stay a trunk.
-ROW_GAP_M = 1.0
-DUE_WITHIN = 0.25
 
 
 def is_post(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
@@ -229,49 +217,12 @@ def leans_out_of_row_end(stems: StemDetections, canopy_xyz: np.ndarray) -> np.nd
     return out
 
 
-def where_a_tree_is_due(xy: np.ndarray, flagged: np.ndarray) -> np.ndarray:
-    """Per detection: whether it is flagged and the trees' rhythm puts a tree where it stands.
-
-    Rows are the detections whose offsets across the rows' direction (:func:`_row_direction`)
-    lie within ``ROW_GAP_M`` of each other; the spacing is the median gap between the
-    unflagged detections along a row. A flagged detection between two unflagged ones whose gap
-    is at least ``DOUBLED_RATIO`` times the spacing, within ``DUE_WITHIN`` spacings of the
-    gap's middle, is due: removing it would leave room for a missing tree right where it is.
-    """
-    xy = np.asarray(xy, float)
-    flagged = np.asarray(flagged, bool)
-    due = np.zeros(len(xy), bool)
-    if len(xy) < 3 or not flagged.any():
-        return due
-    row = _row_direction(xy)
-    along, across = xy @ row, xy @ np.array([-row[1], row[0]])
-    order = np.argsort(across)
-    group = np.empty(len(xy), np.int64)
-    group[order] = np.cumsum(np.r_[0, np.diff(across[order]) > ROW_GAP_M])
-    for g in np.unique(group[flagged]):
-        kept = np.sort(along[(group == g) & ~flagged])
-        if len(kept) < 3:
-            continue
-        spacing = float(np.median(np.diff(kept)))
-        for i in np.flatnonzero((group == g) & flagged):
-            k = np.searchsorted(kept, along[i])
-            if k == 0 or k == len(kept):
-                continue
-            lo, hi = kept[k - 1], kept[k]
-            due[i] = (hi - lo >= DOUBLED_RATIO * spacing) and (
-                abs(along[i] - 0.5 * (lo + hi)) <= DUE_WITHIN * spacing
-            )
-    return due
-
-
 def without_posts(
     stems: StemDetections, canopy_xyz: np.ndarray, through_canopy: bool = False
 ) -> StemDetections:
     """The detections that are not posts: not :func:`is_post`, and with ``through_canopy``
-    (a trellised wall) neither :func:`stands_through_canopy` nor :func:`leans_out_of_row_end`,
-    unless the trees' rhythm puts a tree there (:func:`where_a_tree_is_due`)."""
+    (a trellised wall) neither :func:`stands_through_canopy` nor :func:`leans_out_of_row_end`."""
     post = is_post(stems, canopy_xyz)
     if through_canopy:
         post |= stands_through_canopy(stems, canopy_xyz) | leans_out_of_row_end(stems, canopy_xyz)
-        post &= ~where_a_tree_is_due(stems.xy, post)
     return stems.select(~post)
