@@ -32,9 +32,9 @@ def test_no_post_sets_a_trees_height(small_wall) -> None:
     """No trellis return above the wall's top lies in a tree segment, and no tree reaches above
     the tallest true crown it holds: the end posts (3.8 m, above a wall of at most 3.5 m) set
     no end tree's height (before the segmentation used the row profile's trellis rule, four
-    trees of seed 0 at 2 x 10 read 3.80-3.83 m). Posts and wires inside the wall's foliage
-    still count with the trees (measured here: about half the trellis returns at canopy
-    height; docs/SEGMENTATION.md "Fruiting walls")."""
+    trees of seed 0 at 2 x 10 read 3.80-3.83 m). Wires, and posts not found among the
+    trunk detections, inside the wall's foliage still count with the trees (measured here:
+    about half the trellis returns at canopy height; docs/SEGMENTATION.md "Fruiting walls")."""
     session, ctx = small_wall
     seg, cloud = ctx.segmentation, ctx.mapping.map
     truth = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
@@ -243,7 +243,12 @@ def test_a_post_leaning_out_of_the_rows_end_is_no_trunk() -> None:
     a post by its slanted column; the trunks are not (the last one, at the row's other end,
     divides into branches). Only the two ends get an outward direction, along the row within
     a degree; crown orchards do not ask the rule."""
-    from canopy_kit.segment.posts import leans_out_of_row_end, row_end_outward, without_posts
+    from canopy_kit.segment.posts import (
+        leans_out_of_row_end,
+        row_end_outward,
+        split_posts,
+        without_posts,
+    )
     from canopy_kit.segment.stems import StemDetections
 
     rng = np.random.default_rng(11)
@@ -276,6 +281,13 @@ def test_a_post_leaning_out_of_the_rows_end_is_no_trunk() -> None:
         without_posts(stems, canopy, through_canopy=True).xy, stems.xy[1:]
     )
     assert len(without_posts(stems, canopy)) == 7  # crown orchards
+    # the post's line: its tilt, and the returns it takes out of the canopy
+    _, posts = split_posts(stems, canopy, through_canopy=True)
+    np.testing.assert_allclose(posts.tilt[0], -np.tan(np.radians(20)) * row, atol=0.03)
+    taken = posts.on_post(canopy[:, :2], canopy[:, 2])
+    n_wall, n_post = len(wall), len(post)
+    assert taken[n_wall : n_wall + n_post].mean() >= 0.9
+    assert taken[:n_wall].mean() <= 0.01
 
 
 def test_the_trunk_midpoint_cut_gives_each_tree_the_row_between_the_midpoints() -> None:
@@ -388,3 +400,9 @@ def test_posts_no_taller_than_the_trees_are_no_trees(sim_factory, trellis) -> No
     # no post is among the trunks the cut used
     gap = np.linalg.norm(segmenter.stems_.xy[:, None] - posts[None], axis=2).min(axis=0)
     assert (gap > 0.3).all(), gap
+    # the posts found are no canopy: most trellis returns at canopy height are in no tree
+    hit = np.asarray(cloud.fields["tree_id"]).astype(np.int64)
+    lo, hi = seg.canopy_band_m
+    trellis = (hit == TRELLIS_ID) & (seg.height >= lo) & (seg.height <= hi)
+    in_trees = float((seg.labels[trellis] >= 0).mean())
+    assert in_trees <= 0.5, in_trees

@@ -42,7 +42,7 @@ from canopy_kit.plugins.params import Positive
 from canopy_kit.segment.base import Segmenter, check_points, check_weight
 from canopy_kit.segment.crowns import crown_split
 from canopy_kit.segment.density import first_appearance_order, grid_dbscan
-from canopy_kit.segment.posts import without_posts
+from canopy_kit.segment.posts import no_posts, split_posts
 from canopy_kit.segment.profile import along_axis, chm_peaks, chm_spacing, principal_axis
 from canopy_kit.segment.stems import StemDetections, detect_stems, no_stems
 
@@ -175,8 +175,9 @@ class AdaptiveSegmenter(Segmenter):
     ) -> AdaptiveSegmenter:
         """Segment canopy points ``X`` (x, y, height above ground); sets ``labels_`` etc.
 
-        Fitted: ``labels_``, ``n_clusters_``, ``stems_`` (trunks used), ``markers_``
-        (tree positions), ``scale_`` (:class:`TreeScale`), ``point_spacing_``.
+        Fitted: ``labels_``, ``n_clusters_``, ``stems_`` (trunks used), ``posts_`` (trellis
+        posts found among the detections, :class:`~canopy_kit.segment.posts.Posts`),
+        ``markers_`` (tree positions), ``scale_`` (:class:`TreeScale`), ``point_spacing_``.
         """
         self.validate_params()
         xyz = check_points(X)
@@ -184,6 +185,7 @@ class AdaptiveSegmenter(Segmenter):
         n = len(xyz)
         self.labels_ = np.full(n, -1, dtype=np.int64)
         self.stems_ = no_stems()
+        self.posts_ = no_posts()
         self.markers_ = np.zeros((0, 2))
         self.scale_ = TreeScale(np.nan, np.nan, np.nan, "none")
         self.point_spacing_ = point_spacing(xyz, seed=self.random_state)
@@ -192,10 +194,10 @@ class AdaptiveSegmenter(Segmenter):
             return self
         parts = connected_parts(xyz, self.link_factor * self.point_spacing_, w)
         wall = self.cut == "trunk-midpoints"
-        stems = (
-            without_posts(detect_stems(stem_xyz, close_trunks=wall), xyz, through_canopy=wall)
+        stems, self.posts_ = (
+            split_posts(detect_stems(stem_xyz, close_trunks=wall), xyz, through_canopy=wall)
             if (self.use_stems and stem_xyz is not None)
-            else no_stems()
+            else (no_stems(), no_posts())
         )
         stem_part = self._stems_to_parts(xyz, w, parts, stems)
         keep = stem_part >= 0

@@ -29,6 +29,7 @@ is what stands above the foot. Three rules, any makes a post:
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -165,15 +166,17 @@ def row_end_outward(xy: np.ndarray) -> np.ndarray:
     return out
 
 
-def _slanted_column_share(pts: np.ndarray, foot: np.ndarray, outward: np.ndarray) -> float:
+def _slanted_column_share(
+    pts: np.ndarray, foot: np.ndarray, outward: np.ndarray
+) -> tuple[float, np.ndarray]:
     """The best share of layers showing a column along a line leaning out of ``foot`` by
-    ``outward`` (a unit vector), over the leans tried; 0 with fewer than
-    ``COLUMN_MIN_LAYERS`` layers occupied."""
+    ``outward`` (a unit vector), over the leans tried (0 with fewer than ``COLUMN_MIN_LAYERS``
+    layers occupied), and that line's tilt (horizontal metres per metre of height)."""
     inner_area = np.pi * COLUMN_RADIUS_M**2
     ring_area = np.pi * (COLUMN_RING_M**2 - (2.0 * COLUMN_RADIUS_M) ** 2)
     layer = np.floor((pts[:, 2] - pts[:, 2].min()) / COLUMN_LAYER_M).astype(np.int64)
     n_layers = int(layer.max()) + 1
-    best = 0.0
+    best, best_tilt = 0.0, np.zeros(2)
     turns = np.radians(TURN_DEG)
     directions = [
         np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ outward for a in turns
@@ -181,7 +184,8 @@ def _slanted_column_share(pts: np.ndarray, foot: np.ndarray, outward: np.ndarray
     for lean, direction in itertools.product(
         np.arange(LEAN_MIN_DEG, LEAN_MAX_DEG, LEAN_STEP_DEG), directions
     ):
-        centre = foot + np.tan(np.radians(lean)) * pts[:, 2:3] * direction
+        tilt = np.tan(np.radians(lean)) * direction
+        centre = foot + pts[:, 2:3] * tilt
         r = np.hypot(*(pts[:, :2] - centre).T)
         in_column = np.bincount(layer[r <= COLUMN_RADIUS_M], minlength=n_layers)
         in_ring = np.bincount(
@@ -190,20 +194,39 @@ def _slanted_column_share(pts: np.ndarray, foot: np.ndarray, outward: np.ndarray
         in_open = (in_ring == 0) & (in_column >= OPEN_LAYER_RETURNS)
         occupied = (in_ring > 0) | in_open
         shows = in_open | (in_column / inner_area > COLUMN_DENSITY_RATIO * in_ring / ring_area)
-        if occupied.sum() >= COLUMN_MIN_LAYERS:
-            best = max(best, float((shows & occupied).sum() / occupied.sum()))
-    return best
+        share = float((shows & occupied).sum() / max(occupied.sum(), 1))
+        if occupied.sum() >= COLUMN_MIN_LAYERS and share > best:
+            best, best_tilt = share, tilt
+    return best, best_tilt
 
 
-def leans_out_of_row_end(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
-    """Per detection: whether a straight column leans out of it, away from its row, when it
-    is the row's last detection (:func:`row_end_outward`): in at least ``COLUMN_MIN_SHARE``
-    of at least ``COLUMN_MIN_LAYERS`` layers, for one lean between ``LEAN_MIN_DEG`` and
-    ``LEAN_MAX_DEG`` (the layer test of :func:`stands_through_canopy`, along the slanted line;
-    a layer with returns in the cylinder and none in the ring counts as showing it)."""
-    out = np.zeros(len(stems), bool)
+def _fitted_line(
+    pts: np.ndarray, foot: np.ndarray, tilt: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The post's line refined on its returns: within twice ``COLUMN_RADIUS_M`` of the line
+    tried (``foot``, ``tilt``), x and y fitted against the height by least squares, once more
+    without the returns farther than ``COLUMN_RADIUS_M`` (a leaf, a wire). The lean steps and
+    turns tried leave a line some cm off the post at its top."""
+    for reach in (2.0 * COLUMN_RADIUS_M, COLUMN_RADIUS_M):
+        near = np.hypot(*(pts[:, :2] - foot - pts[:, 2:3] * tilt).T) <= reach
+        if near.sum() < 2 * COLUMN_MIN_LAYERS:
+            break
+        design = np.column_stack([np.ones(int(near.sum())), pts[near, 2]])
+        (foot, tilt), *_ = np.linalg.lstsq(design, pts[near, :2], rcond=None)
+    return foot, tilt
+
+
+def leaning_posts(stems: StemDetections, canopy_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per detection: the foot (x, y at the ground) and tilt (horizontal metres per metre of
+    height) of the straight column leaning out of it, away from its row, when it is the row's
+    last detection (:func:`row_end_outward`) and the column shows in at least
+    ``COLUMN_MIN_SHARE`` of at least ``COLUMN_MIN_LAYERS`` layers for one lean between
+    ``LEAN_MIN_DEG`` and ``LEAN_MAX_DEG`` (the layer test of :func:`stands_through_canopy`,
+    along the slanted line; a layer with returns in the cylinder and none in the ring counts
+    as showing it); NaN otherwise."""
+    feet, tilts = np.full((len(stems), 2), np.nan), np.full((len(stems), 2), np.nan)
     if len(stems) == 0 or len(canopy_xyz) == 0:
-        return out
+        return feet, tilts
     xyz = np.asarray(canopy_xyz, float)
     tree = cKDTree(xyz[:, :2])
     outward = row_end_outward(stems.xy)
@@ -213,16 +236,73 @@ def leans_out_of_row_end(stems: StemDetections, canopy_xyz: np.ndarray) -> np.nd
         near = tree.query_ball_point(foot + 0.5 * reach * u, 0.5 * reach + COLUMN_RING_M)
         if len(near) < MIN_TOP_RETURNS:
             continue
-        out[i] = _slanted_column_share(xyz[near], foot, u) >= COLUMN_MIN_SHARE
-    return out
+        share, tilt = _slanted_column_share(xyz[near], foot, u)
+        if share >= COLUMN_MIN_SHARE:
+            feet[i], tilts[i] = _fitted_line(xyz[near], foot, tilt)
+    return feet, tilts
+
+
+def leans_out_of_row_end(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
+    """Per detection: whether a post leans out of it, away from its row (:func:`leaning_posts`)."""
+    return np.isfinite(leaning_posts(stems, canopy_xyz)[1][:, 0])
+
+
+@dataclass(frozen=True)
+class Posts:
+    """Posts found among the trunk detections: the foot (x, y) and the tilt of each (horizontal
+    metres per metre of height along the post; zero for an upright one)."""
+
+    xy: np.ndarray
+    tilt: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+    def on_post(
+        self, xy: np.ndarray, height: np.ndarray, radius: float = COLUMN_RADIUS_M
+    ) -> np.ndarray:
+        """Which points (``xy``, ``height`` above the ground) lie within ``radius`` of a post's
+        axis at their height (a post's own returns, and the few leaves touching it)."""
+        xy = np.asarray(xy, float)
+        height = np.asarray(height, float)
+        hit = np.zeros(len(xy), bool)
+        if len(self) == 0 or len(xy) == 0:
+            return hit
+        reach = radius + float(np.abs(self.tilt).max(initial=0.0)) * float(height.max())
+        tree = cKDTree(xy)
+        for foot, tilt in zip(self.xy, self.tilt):
+            near = np.asarray(tree.query_ball_point(foot + 0.5 * tilt * height.max(), reach), int)
+            if len(near) == 0:
+                continue
+            axis = foot + height[near, None] * tilt
+            hit[near[np.hypot(*(xy[near] - axis).T) <= radius]] = True
+        return hit
+
+
+def no_posts() -> Posts:
+    """No post found."""
+    return Posts(np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+def split_posts(
+    stems: StemDetections, canopy_xyz: np.ndarray, through_canopy: bool = False
+) -> tuple[StemDetections, Posts]:
+    """The detections that are not posts, and the posts: :func:`is_post`, and with
+    ``through_canopy`` (a trellised wall) :func:`stands_through_canopy` (upright, at the
+    detection, as the first) and :func:`leaning_posts` (along their fitted lines)."""
+    post = is_post(stems, canopy_xyz)
+    feet, tilt = stems.xy.copy(), np.zeros((len(stems), 2))
+    if through_canopy:
+        post |= stands_through_canopy(stems, canopy_xyz)
+        lean_feet, lean_tilt = leaning_posts(stems, canopy_xyz)
+        lean = np.isfinite(lean_tilt[:, 0]) & ~post
+        feet[lean], tilt[lean] = lean_feet[lean], lean_tilt[lean]
+        post |= lean
+    return stems.select(~post), Posts(feet[post], tilt[post])
 
 
 def without_posts(
     stems: StemDetections, canopy_xyz: np.ndarray, through_canopy: bool = False
 ) -> StemDetections:
-    """The detections that are not posts: not :func:`is_post`, and with ``through_canopy``
-    (a trellised wall) neither :func:`stands_through_canopy` nor :func:`leans_out_of_row_end`."""
-    post = is_post(stems, canopy_xyz)
-    if through_canopy:
-        post |= stands_through_canopy(stems, canopy_xyz) | leans_out_of_row_end(stems, canopy_xyz)
-    return stems.select(~post)
+    """The detections that are not posts (:func:`split_posts`)."""
+    return split_posts(stems, canopy_xyz, through_canopy)[0]

@@ -107,6 +107,9 @@ def segment(
     trellis = trellis_in_segments(
         cloud.xyz[:, :2], prepared.height, seg.labels, seg.rows, segment_row
     )
+    posts = getattr(segmenter, "posts_", None)
+    if posts is not None and len(posts):  # the posts found among the trunks, to their tops
+        trellis |= (seg.labels >= 0) & posts.on_post(cloud.xyz[:, :2], prepared.height)
     if trellis.any():
         labels = first_appearance_order(np.where(trellis, -1, seg.labels))
         seg = _describe(labels, *describe)
