@@ -24,6 +24,11 @@ is what stands above the foot. Three rules, any makes a post:
   leaning outward from the foot (``LEAN_MIN_DEG`` to ``LEAN_MAX_DEG``); above the wall's end
   the post stands in the open, and a layer where only the cylinder holds returns shows the
   column too. A trunk's foliage above it shows no slanted column either way.
+
+The posts found keep their line (:class:`Posts`: an upright one on its detection, a leaning
+one fitted to its returns), and the segmentation takes the returns along it out of the trees
+(:meth:`Posts.on_post`, ``segment.verb``): a post is no canopy, also where it stands inside
+the wall's foliage.
 """
 
 from __future__ import annotations
