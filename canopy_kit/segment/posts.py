@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from canopy_kit.segment.rows import row_axis
 from canopy_kit.segment.stems import StemDetections
 from canopy_kit.segment.trellis_filter import POLE_MIN_HEIGHT_M, TRELLIS_MAX_WIDTH_M
 
@@ -68,6 +69,8 @@ TURN_DEG = (-3.0, 0.0, 3.0)  # the lean's direction: the row's axis and a little
 ROW_END_NEIGHBOUR_M = 4.0
 ROW_END_ANGLE_DEG = 20.0
 OPEN_LAYER_RETURNS = 2
+_COLUMN_AREA = np.pi * COLUMN_RADIUS_M**2
+_RING_AREA = np.pi * (COLUMN_RING_M**2 - (2.0 * COLUMN_RADIUS_M) ** 2)
 
 
 def is_post(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
@@ -97,6 +100,27 @@ def is_post(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
     return out
 
 
+def _layers(height: np.ndarray) -> tuple[np.ndarray, int]:
+    """Each point's ``COLUMN_LAYER_M`` layer from the lowest of them up, and how many layers."""
+    layer = np.floor((height - height.min()) / COLUMN_LAYER_M).astype(np.int64)
+    return layer, int(layer.max()) + 1
+
+
+def _column_and_ring(
+    layer: np.ndarray, r: np.ndarray, n_layers: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per layer, from the points' distances ``r`` to a column's axis: the returns in the
+    cylinder of ``COLUMN_RADIUS_M``, those in the ring from twice that out to ``COLUMN_RING_M``,
+    and whether the cylinder holds more than ``COLUMN_DENSITY_RATIO`` times the ring's point
+    density (per m² of plan)."""
+    in_column = np.bincount(layer[r <= COLUMN_RADIUS_M], minlength=n_layers)
+    in_ring = np.bincount(
+        layer[(r > 2.0 * COLUMN_RADIUS_M) & (r <= COLUMN_RING_M)], minlength=n_layers
+    )
+    dense = in_column / _COLUMN_AREA > COLUMN_DENSITY_RATIO * (in_ring / _RING_AREA)
+    return in_column, in_ring, dense
+
+
 def stands_through_canopy(stems: StemDetections, canopy_xyz: np.ndarray) -> np.ndarray:
     """Per detection: whether a straight vertical column stands on it through the canopy.
 
@@ -114,36 +138,24 @@ def stands_through_canopy(stems: StemDetections, canopy_xyz: np.ndarray) -> np.n
         return out
     xyz = np.asarray(canopy_xyz, float)
     tree = cKDTree(xyz[:, :2])
-    inner_area = np.pi * COLUMN_RADIUS_M**2
-    ring_area = np.pi * (COLUMN_RING_M**2 - (2.0 * COLUMN_RADIUS_M) ** 2)
     for i, (foot, near) in enumerate(zip(stems.xy, tree.query_ball_point(stems.xy, COLUMN_RING_M))):
         if len(near) < MIN_TOP_RETURNS:
             continue
         pts = xyz[near]
+        layer, n_layers = _layers(pts[:, 2])
         r = np.hypot(pts[:, 0] - foot[0], pts[:, 1] - foot[1])
-        layer = np.floor((pts[:, 2] - pts[:, 2].min()) / COLUMN_LAYER_M).astype(np.int64)
-        n_layers = int(layer.max()) + 1
-        in_column = np.bincount(layer[r <= COLUMN_RADIUS_M], minlength=n_layers) / inner_area
-        in_ring = np.bincount(layer[r > 2.0 * COLUMN_RADIUS_M], minlength=n_layers) / ring_area
+        _, in_ring, dense = _column_and_ring(layer, r, n_layers)
         occupied = in_ring > 0  # layers of canopy beside it: not a bare stem under a crown
-        shows = (in_column > COLUMN_DENSITY_RATIO * in_ring) & occupied
+        shows = dense & occupied
         out[i] = (
             occupied.sum() >= COLUMN_MIN_LAYERS and shows.sum() >= COLUMN_MIN_SHARE * occupied.sum()
         )
     return out
 
 
-def _row_direction(xy: np.ndarray) -> np.ndarray:
-    """The direction of the rows: the axial mean of the vectors from each detection to its
-    nearest neighbour (along a row, trees stand closer than rows)."""
-    step = xy[cKDTree(xy).query(xy, k=2)[1][:, 1]] - xy
-    angle = 0.5 * np.angle(np.exp(2j * np.arctan2(step[:, 1], step[:, 0])).mean())
-    return np.array([np.cos(angle), np.sin(angle)])
-
-
 def row_end_outward(xy: np.ndarray) -> np.ndarray:
     """Per detection: the unit vector pointing out of its row when it is a row's last
-    detection, else NaN. Along the rows' direction (:func:`_row_direction`) a last detection
+    detection, else NaN. Along the rows' axis (:func:`~canopy_kit.segment.rows.row_axis`) a last detection
     has at least two detections within ``ROW_END_ANGLE_DEG`` of it on one side (the nearest
     within ``ROW_END_NEIGHBOUR_M``, the others within twice that) and none on the other; the
     vector is the principal axis through it and those (two trunks a few cm off the row line
@@ -152,7 +164,7 @@ def row_end_outward(xy: np.ndarray) -> np.ndarray:
     out = np.full((len(xy), 2), np.nan)
     if len(xy) < 3:
         return out
-    row = _row_direction(xy)
+    row = row_axis(xy)
     cos_max = np.cos(np.radians(ROW_END_ANGLE_DEG))
     for i, near in enumerate(cKDTree(xy).query_ball_point(xy, 2.0 * ROW_END_NEIGHBOUR_M)):
         near = np.array([j for j in near if j != i], int)
@@ -177,10 +189,7 @@ def _slanted_column_share(
     """The best share of layers showing a column along a line leaning out of ``foot`` by
     ``outward`` (a unit vector), over the leans tried (0 with fewer than ``COLUMN_MIN_LAYERS``
     layers occupied), and that line's tilt (horizontal metres per metre of height)."""
-    inner_area = np.pi * COLUMN_RADIUS_M**2
-    ring_area = np.pi * (COLUMN_RING_M**2 - (2.0 * COLUMN_RADIUS_M) ** 2)
-    layer = np.floor((pts[:, 2] - pts[:, 2].min()) / COLUMN_LAYER_M).astype(np.int64)
-    n_layers = int(layer.max()) + 1
+    layer, n_layers = _layers(pts[:, 2])
     best, best_tilt = 0.0, np.zeros(2)
     turns = np.radians(TURN_DEG)
     directions = [
@@ -192,13 +201,10 @@ def _slanted_column_share(
         tilt = np.tan(np.radians(lean)) * direction
         centre = foot + pts[:, 2:3] * tilt
         r = np.hypot(*(pts[:, :2] - centre).T)
-        in_column = np.bincount(layer[r <= COLUMN_RADIUS_M], minlength=n_layers)
-        in_ring = np.bincount(
-            layer[(r > 2.0 * COLUMN_RADIUS_M) & (r <= COLUMN_RING_M)], minlength=n_layers
-        )
+        in_column, in_ring, dense = _column_and_ring(layer, r, n_layers)
         in_open = (in_ring == 0) & (in_column >= OPEN_LAYER_RETURNS)
         occupied = (in_ring > 0) | in_open
-        shows = in_open | (in_column / inner_area > COLUMN_DENSITY_RATIO * in_ring / ring_area)
+        shows = in_open | dense
         share = float((shows & occupied).sum() / max(occupied.sum(), 1))
         if occupied.sum() >= COLUMN_MIN_LAYERS and share > best:
             best, best_tilt = share, tilt
@@ -273,10 +279,12 @@ class Posts:
         hit = np.zeros(len(xy), bool)
         if len(self) == 0 or len(xy) == 0:
             return hit
-        reach = radius + float(np.abs(self.tilt).max(initial=0.0)) * float(height.max())
+        top = float(height.max())
         tree = cKDTree(xy)
         for foot, tilt in zip(self.xy, self.tilt):
-            near = np.asarray(tree.query_ball_point(foot + 0.5 * tilt * height.max(), reach), int)
+            # the ball round the axis's middle, from the ground to the highest point
+            reach = radius + 0.5 * float(np.hypot(*tilt)) * top
+            near = np.asarray(tree.query_ball_point(foot + 0.5 * tilt * top, reach), int)
             if len(near) == 0:
                 continue
             axis = foot + height[near, None] * tilt

@@ -74,12 +74,13 @@ def _goes_on(
         return False
     w = TRELLIS_MAX_WIDTH_M
     a0, slope = (float(np.median(along)), 0.0) if line is None else line
+    off_line = np.abs(beside[:, 2] - a0 - slope * beside[:, 1])  # along the row, at its height
     near = beside[
         (beside[:, 1] >= height.max() - cell_m)
         & (beside[:, 0] >= offset.min() - w)
         & (beside[:, 0] <= offset.max() + w)
-        & (np.abs(beside[:, 2] - a0 - slope * beside[:, 1]) > w / 2)  # not the post going on
-        & (np.abs(beside[:, 2] - a0 - slope * beside[:, 1]) <= 1.5 * w)  # but next to it
+        & (off_line > w / 2)  # not the post going on
+        & (off_line <= 1.5 * w)  # but next to it
     ]
     if len(near) < min_points:
         return False
